@@ -1,0 +1,51 @@
+//! The pinhole camera of the scene format (section 2).
+
+use crate::scene::{CameraSpec, RenderSettings};
+use crate::vec3::Vec3;
+
+/// The camera's orthonormal basis and the image geometry, computed once per render.
+#[derive(Clone, Copy, Debug)]
+pub struct Camera {
+    position: Vec3,
+    forward: Vec3,
+    right: Vec3,
+    up: Vec3,
+    half_width: f64,
+    half_height: f64,
+    /// The shorter image side, which spans the field of view 2·atan(1/2).
+    short_side: f64,
+}
+
+impl Camera {
+    /// Builds the basis. The scene loader has already refused a camera that looks along
+    /// the up axis, so the cross products here are non-zero.
+    pub fn new(spec: &CameraSpec, settings: &RenderSettings) -> Self {
+        let world_up = Vec3::new(0.0, 1.0, 0.0);
+        let forward = (spec.look_at - spec.position).normalize();
+        let right = world_up.cross(forward).normalize();
+        let up = forward.cross(right);
+        let width = f64::from(settings.width);
+        let height = f64::from(settings.height);
+        Camera {
+            position: spec.position,
+            forward,
+            right,
+            up,
+            half_width: width / 2.0,
+            half_height: height / 2.0,
+            short_side: width.min(height),
+        }
+    }
+
+    pub fn position(&self) -> Vec3 {
+        self.position
+    }
+
+    /// The unit direction through the point (`px`, `py`) of the image plane, measured in
+    /// pixels from the top-left corner (pixel column i with offset sx is `i + sx`).
+    pub fn direction(&self, px: f64, py: f64) -> Vec3 {
+        let x = (px - self.half_width) / self.short_side;
+        let y = (self.half_height - py) / self.short_side;
+        (self.forward + self.right * x + self.up * y).normalize()
+    }
+}

@@ -1,0 +1,27 @@
+//! Tessera's ray tracer: the seed scene format's Whitted-style renderer.
+//!
+//! Pure computation: a scene's text goes in ([`parse_scene`]), tiles or whole frames
+//! come out ([`render_tile`], [`render_frame`]), and every pixel is a deterministic
+//! function of the scene, the settings and its coordinates. No I/O, no network, no async,
+//! so the same code serves `tessera render`, the workers of the farm and the tests.
+
+mod camera;
+mod error;
+mod geometry;
+mod image;
+pub mod limits;
+mod parse;
+mod scene;
+mod tile;
+mod tracer;
+mod vec3;
+
+pub use crate::error::SceneError;
+pub use crate::image::Image;
+pub use crate::parse::{parse_scene, validate_settings};
+pub use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
+pub use crate::tile::{
+    render_frame, render_tile, tiles, Frame, Rect, TileError, TileImage, DEFAULT_TILE_SIZE,
+};
+pub use crate::tracer::{Hit, Tracer};
+pub use crate::vec3::Vec3;

@@ -1,0 +1,10 @@
+//! Bounds on what a scene may ask for, so that a scene file can never make the renderer
+//! allocate or compute without bound. Each is checked with a clear error at load time
+//! and again when a caller overrides a setting.
+
+/// Largest width or height in pixels (a 16K frame).
+pub const MAX_SIDE: u32 = 16_384;
+/// Largest `aa`: 64 × 64 = 4096 samples per pixel.
+pub const MAX_AA: u32 = 64;
+/// Largest reflection depth.
+pub const MAX_DEPTH: u32 = 64;

@@ -1,0 +1,387 @@
+//! Reading a scene file: JSON syntax, then every key checked by hand so that each error
+//! names the exact place (`objects[2].radius`) and what is wrong with it.
+//!
+//! The JSON is first read into a `serde_json::Value`; a typed serde derive cannot say
+//! "`objects[1].color`: special must be 0, in (0, 1] or 2" with the object's index, and
+//! the format has two spellings for vectors (a string or an array), so the walk is
+//! explicit.
+
+use serde_json::{Map, Value};
+
+use crate::error::SceneError;
+use crate::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
+use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
+use crate::vec3::Vec3;
+
+type Result<T> = std::result::Result<T, SceneError>;
+
+/// Parses and validates a scene file's text.
+///
+/// Every error of the scene format is reported here, before any rendering: syntax
+/// errors with line and column, everything else with the path of the offending value.
+pub fn parse_scene(text: &str) -> Result<Scene> {
+    let root: Value = serde_json::from_str(text).map_err(|e| SceneError::Syntax {
+        message: syntax_message(&e),
+        line: e.line(),
+        column: e.column(),
+    })?;
+    let root = as_object(&root, "scene")?;
+    check_keys(
+        root,
+        "",
+        &["lights", "objects", "camera", "image", "ambient"],
+    )?;
+
+    let lights = required_array(root, "", "lights")?
+        .iter()
+        .enumerate()
+        .map(|(i, v)| parse_light(v, &format!("lights[{i}]")))
+        .collect::<Result<Vec<_>>>()?;
+    let objects = required_array(root, "", "objects")?
+        .iter()
+        .enumerate()
+        .map(|(i, v)| parse_object(v, &format!("objects[{i}]")))
+        .collect::<Result<Vec<_>>>()?;
+    let camera = match root.get("camera") {
+        Some(v) => parse_camera(v, "camera")?,
+        None => CameraSpec::default(),
+    };
+    let settings = match root.get("image") {
+        Some(v) => parse_image(v, "image")?,
+        None => RenderSettings::default(),
+    };
+    let ambient = match root.get("ambient") {
+        Some(v) => {
+            let a = number(v, "ambient")?;
+            if a < 0.0 {
+                return Err(SceneError::invalid("ambient", format!("must be >= 0, got {a}")));
+            }
+            a
+        }
+        None => 0.2,
+    };
+    Ok(Scene {
+        lights,
+        objects,
+        camera,
+        settings,
+        ambient,
+    })
+}
+
+/// serde_json appends " at line L column C" to its messages; we report those separately.
+fn syntax_message(e: &serde_json::Error) -> String {
+    let full = e.to_string();
+    match full.rfind(" at line ") {
+        Some(i) => full[..i].to_string(),
+        None => full,
+    }
+}
+
+/// Checks image settings (from the file or from a caller's overrides) against the
+/// format's rules and Tessera's limits. `prefix` names where they came from.
+pub fn validate_settings(s: &RenderSettings, prefix: &str) -> Result<()> {
+    let key = |k: &str| join(prefix, k);
+    for (name, value) in [("width", s.width), ("height", s.height)] {
+        if value == 0 || value > MAX_SIDE {
+            return Err(SceneError::invalid(
+                key(name),
+                format!("must be between 1 and {MAX_SIDE}, got {value}"),
+            ));
+        }
+    }
+    if s.aa == 0 || s.aa > MAX_AA {
+        return Err(SceneError::invalid(
+            key("aa"),
+            format!("must be between 1 and {MAX_AA}, got {}", s.aa),
+        ));
+    }
+    if s.max_depth > MAX_DEPTH {
+        return Err(SceneError::invalid(
+            key("max_depth"),
+            format!("must be between 0 and {MAX_DEPTH}, got {}", s.max_depth),
+        ));
+    }
+    Ok(())
+}
+
+fn join(prefix: &str, key: &str) -> String {
+    if prefix.is_empty() {
+        key.to_string()
+    } else {
+        format!("{prefix}.{key}")
+    }
+}
+
+fn type_name(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+fn as_object<'a>(v: &'a Value, path: &str) -> Result<&'a Map<String, Value>> {
+    v.as_object()
+        .ok_or_else(|| SceneError::invalid(path, format!("expected an object, got {}", type_name(v))))
+}
+
+fn check_keys(obj: &Map<String, Value>, path: &str, allowed: &[&str]) -> Result<()> {
+    match obj.keys().find(|k| !allowed.contains(&k.as_str())) {
+        Some(k) => Err(SceneError::invalid(
+            join(path, k),
+            format!("unknown key (expected one of: {})", allowed.join(", ")),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn required<'a>(obj: &'a Map<String, Value>, path: &str, key: &str) -> Result<&'a Value> {
+    obj.get(key).ok_or_else(|| {
+        let place = if path.is_empty() { "scene" } else { path };
+        SceneError::invalid(place, format!("missing key \"{key}\""))
+    })
+}
+
+fn required_array<'a>(obj: &'a Map<String, Value>, path: &str, key: &str) -> Result<&'a Vec<Value>> {
+    let v = required(obj, path, key)?;
+    v.as_array().ok_or_else(|| {
+        SceneError::invalid(join(path, key), format!("expected an array, got {}", type_name(v)))
+    })
+}
+
+fn finite(x: f64, path: &str) -> Result<f64> {
+    if x.is_finite() {
+        Ok(x)
+    } else {
+        Err(SceneError::invalid(path, format!("must be a finite number, got {x}")))
+    }
+}
+
+fn number(v: &Value, path: &str) -> Result<f64> {
+    match v.as_f64() {
+        Some(x) => finite(x, path),
+        None => Err(SceneError::invalid(
+            path,
+            format!("expected a number, got {}", type_name(v)),
+        )),
+    }
+}
+
+fn whole_number(v: &Value, path: &str) -> Result<u32> {
+    match v.as_u64() {
+        Some(n) => Ok(u32::try_from(n).unwrap_or(u32::MAX)),
+        None => Err(SceneError::invalid(
+            path,
+            format!("expected a whole number >= 0, got {v}"),
+        )),
+    }
+}
+
+/// A list of numbers written either as a whitespace-separated string (the seed's way,
+/// `" 7.0 10.0 10.0"`) or as a JSON array.
+fn number_list(v: &Value, path: &str, what: &str) -> Result<Vec<f64>> {
+    let values = match v {
+        Value::String(s) => s
+            .split_whitespace()
+            .map(|word| {
+                word.parse::<f64>().map_err(|_| {
+                    SceneError::invalid(path, format!("expected {what}, \"{word}\" is not a number"))
+                })
+            })
+            .collect::<Result<Vec<_>>>()?,
+        Value::Array(items) => items
+            .iter()
+            .map(|item| {
+                item.as_f64().ok_or_else(|| {
+                    SceneError::invalid(
+                        path,
+                        format!("expected {what}, found {} in the array", type_name(item)),
+                    )
+                })
+            })
+            .collect::<Result<Vec<_>>>()?,
+        other => {
+            return Err(SceneError::invalid(
+                path,
+                format!("expected {what} as a string or an array, got {}", type_name(other)),
+            ))
+        }
+    };
+    for &x in &values {
+        finite(x, path)?;
+    }
+    Ok(values)
+}
+
+fn vec3(v: &Value, path: &str) -> Result<Vec3> {
+    let n = number_list(v, path, "3 numbers")?;
+    match n[..] {
+        [x, y, z] => Ok(Vec3::new(x, y, z)),
+        _ => Err(SceneError::invalid(
+            path,
+            format!("expected 3 numbers, got {}", n.len()),
+        )),
+    }
+}
+
+/// Reads `r g b special` (or `r g b` where `allow_three`), checking r, g, b ≥ 0.
+fn color(v: &Value, path: &str, allow_three: bool) -> Result<(Vec3, f64)> {
+    let what = if allow_three { "3 or 4 numbers" } else { "4 numbers (r g b special)" };
+    let n = number_list(v, path, what)?;
+    let (rgb, special) = match (&n[..], allow_three) {
+        (&[r, g, b, s], _) => ([r, g, b], s),
+        (&[r, g, b], true) => ([r, g, b], 0.0),
+        _ => {
+            return Err(SceneError::invalid(
+                path,
+                format!("expected {what}, got {}", n.len()),
+            ))
+        }
+    };
+    if let Some(c) = rgb.iter().find(|c| **c < 0.0) {
+        return Err(SceneError::invalid(
+            path,
+            format!("r, g and b must be >= 0, got {c}"),
+        ));
+    }
+    Ok((Vec3::new(rgb[0], rgb[1], rgb[2]), special))
+}
+
+fn material(special: f64, path: &str) -> Result<Material> {
+    if special == 0.0 {
+        Ok(Material::Matte)
+    } else if special > 0.0 && special <= 1.0 {
+        Ok(Material::Reflective(special))
+    } else if special == 2.0 {
+        Ok(Material::Checker)
+    } else {
+        Err(SceneError::invalid(
+            path,
+            format!("special (4th number) must be 0, in (0, 1] or 2, got {special}"),
+        ))
+    }
+}
+
+fn parse_light(v: &Value, path: &str) -> Result<Light> {
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["position", "color"])?;
+    let position = vec3(required(obj, path, "position")?, &join(path, "position"))?;
+    let (color, _ignored) = color(required(obj, path, "color")?, &join(path, "color"), true)?;
+    Ok(Light { position, color })
+}
+
+fn parse_object(v: &Value, path: &str) -> Result<Object> {
+    let obj = as_object(v, path)?;
+    let type_path = join(path, "type");
+    let kind = match required(obj, path, "type")? {
+        Value::String(s) => s.as_str(),
+        other => {
+            return Err(SceneError::invalid(
+                type_path,
+                format!("expected a string, got {}", type_name(other)),
+            ))
+        }
+    };
+    let shape = match kind {
+        "sphere" => {
+            check_keys(obj, path, &["type", "center", "radius", "color"])?;
+            let center = vec3(required(obj, path, "center")?, &join(path, "center"))?;
+            let radius_path = join(path, "radius");
+            let radius = number(required(obj, path, "radius")?, &radius_path)?;
+            if radius <= 0.0 {
+                return Err(SceneError::invalid(
+                    radius_path,
+                    format!("must be > 0, got {radius}"),
+                ));
+            }
+            Shape::Sphere { center, radius }
+        }
+        "plan" | "plane" => {
+            check_keys(obj, path, &["type", "normal", "distance", "color"])?;
+            let normal_path = join(path, "normal");
+            let normal = vec3(required(obj, path, "normal")?, &normal_path)?;
+            let len = normal.length();
+            if len == 0.0 || !len.is_finite() {
+                return Err(SceneError::invalid(
+                    normal_path,
+                    "must be a non-zero vector of finite length",
+                ));
+            }
+            let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
+            Shape::Plane { normal, distance }
+        }
+        other => {
+            return Err(SceneError::invalid(
+                type_path,
+                format!("unknown object type \"{other}\" (expected \"sphere\", \"plan\" or \"plane\")"),
+            ))
+        }
+    };
+    let color_path = join(path, "color");
+    let (color, special) = color(required(obj, path, "color")?, &color_path, false)?;
+    let material = material(special, &color_path)?;
+    Ok(Object {
+        shape,
+        color,
+        material,
+    })
+}
+
+fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["position", "look_at"])?;
+    let default = CameraSpec::default();
+    let position = match obj.get("position") {
+        Some(v) => vec3(v, &join(path, "position"))?,
+        None => default.position,
+    };
+    let look_at = match obj.get("look_at") {
+        Some(v) => vec3(v, &join(path, "look_at"))?,
+        None => default.look_at,
+    };
+    let forward = look_at - position;
+    if forward == Vec3::ZERO {
+        return Err(SceneError::invalid(
+            join(path, "look_at"),
+            "must differ from camera.position",
+        ));
+    }
+    if !forward.is_finite() || !forward.length().is_normal() {
+        return Err(SceneError::invalid(
+            join(path, "look_at"),
+            "is too far from or too close to camera.position to define a direction",
+        ));
+    }
+    // The right axis is up × forward = (f.z, 0, -f.x): it vanishes (or underflows) when
+    // the camera looks straight up or down.
+    let f = forward.normalize();
+    if !Vec3::new(f.z, 0.0, -f.x).length().is_normal() {
+        return Err(SceneError::invalid(
+            path,
+            "the viewing direction (look_at - position) is parallel to the world up axis (0 1 0)",
+        ));
+    }
+    Ok(CameraSpec { position, look_at })
+}
+
+fn parse_image(v: &Value, path: &str) -> Result<RenderSettings> {
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["width", "height", "aa", "max_depth"])?;
+    let mut s = RenderSettings::default();
+    for (key, slot) in [
+        ("width", &mut s.width),
+        ("height", &mut s.height),
+        ("aa", &mut s.aa),
+        ("max_depth", &mut s.max_depth),
+    ] {
+        if let Some(v) = obj.get(key) {
+            *slot = whole_number(v, &join(path, key))?;
+        }
+    }
+    validate_settings(&s, path)?;
+    Ok(s)
+}

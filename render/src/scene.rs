@@ -1,0 +1,108 @@
+//! The scene model: what a scene file means once it has been read and validated.
+//!
+//! Values here are always valid (finite numbers, positive radii, non-zero normals,
+//! settings within [`limits`](crate::limits)); [`crate::parse_scene`] is the only way in
+//! from untrusted text.
+
+use crate::vec3::Vec3;
+
+/// A validated scene, independent of image settings overrides.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    pub lights: Vec<Light>,
+    pub objects: Vec<Object>,
+    pub camera: CameraSpec,
+    /// The image settings the scene asks for; a caller may override them.
+    pub settings: RenderSettings,
+    pub ambient: f64,
+}
+
+/// A point light. Its colour's optional 4th number is dropped at load time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Light {
+    pub position: Vec3,
+    pub color: Vec3,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Object {
+    pub shape: Shape,
+    /// The object's r g b; unused by the checkerboard material.
+    pub color: Vec3,
+    pub material: Material,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Shape {
+    Sphere {
+        center: Vec3,
+        radius: f64,
+    },
+    /// Points p with n̂·p = distance, where n̂ is `normal` normalised. The normal is
+    /// kept as written; the tracer normalises it once when the scene is prepared.
+    Plane {
+        normal: Vec3,
+        distance: f64,
+    },
+}
+
+/// The material chosen by a colour's 4th number (`special`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Material {
+    /// `special` = 0.
+    Matte,
+    /// 0 < `special` ≤ 1: mirror reflection weighted by the coefficient, plus a highlight.
+    Reflective(f64),
+    /// `special` = 2: black and white unit squares in x and z.
+    Checker,
+}
+
+/// Where the camera is and what it looks at; the up axis is always world +y.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraSpec {
+    pub position: Vec3,
+    pub look_at: Vec3,
+}
+
+impl Default for CameraSpec {
+    fn default() -> Self {
+        CameraSpec {
+            position: Vec3::new(3.0, 1.5, -4.0),
+            look_at: Vec3::ZERO,
+        }
+    }
+}
+
+/// Image size, antialiasing and reflection depth: everything a render may override.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct RenderSettings {
+    pub width: u32,
+    pub height: u32,
+    /// `aa` = n gives n × n samples per pixel.
+    pub aa: u32,
+    /// Reflection rays are traced only while the depth is below this.
+    pub max_depth: u32,
+}
+
+impl Default for RenderSettings {
+    /// The seed's measurement settings (600 × 400, one sample, depth 10).
+    fn default() -> Self {
+        RenderSettings {
+            width: 600,
+            height: 400,
+            aa: 1,
+            max_depth: 10,
+        }
+    }
+}
+
+impl RenderSettings {
+    /// Samples per pixel.
+    pub fn samples_per_pixel(&self) -> u64 {
+        u64::from(self.aa) * u64::from(self.aa)
+    }
+
+    pub fn pixel_count(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
+    }
+}
