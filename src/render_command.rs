@@ -37,7 +37,10 @@ pub fn run(opts: Options) -> Result<()> {
     settings.max_depth = opts.max_depth.unwrap_or(settings.max_depth);
     validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
 
-    let output = opts.output.clone().unwrap_or_else(|| default_output(scene_path));
+    let output = opts
+        .output
+        .clone()
+        .unwrap_or_else(|| default_output(scene_path));
     let threads = opts.threads.map_or(0, |n| n as usize);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -69,10 +72,9 @@ pub fn run(opts: Options) -> Result<()> {
 
 /// `scenes/seed.json` renders to `./seed.png`.
 fn default_output(scene: &Path) -> PathBuf {
-    let stem = scene.file_stem().map_or_else(
-        || "render".into(),
-        |s| s.to_string_lossy().into_owned(),
-    );
+    let stem = scene
+        .file_stem()
+        .map_or_else(|| "render".into(), |s| s.to_string_lossy().into_owned());
     PathBuf::from(format!("{stem}.png"))
 }
 

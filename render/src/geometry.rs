@@ -48,27 +48,31 @@ impl SphereGeom {
             let t = -2.0 * b;
             return (t > 0.0).then_some(t);
         }
+        let c = f.dot(f) - self.radius2;
+        if c > 0.0 && b >= 0.0 {
+            // Outside and heading away: both roots are behind the origin.
+            return None;
+        }
         // Closest approach of the line to the centre, computed without cancellation.
         let l = f - dir * b;
         let disc = self.radius2 - l.dot(l);
         if disc < 0.0 {
             return None;
         }
-        let c = f.dot(f) - self.radius2;
         let root = disc.sqrt();
+        // q and c/q are the two roots; q never suffers cancellation.
         let q = if b > 0.0 { -b - root } else { -b + root };
-        if q == 0.0 {
-            // Tangent at the origin itself: t = 0 is not a hit.
-            return None;
-        }
-        let (t0, t1) = (c / q, q);
-        let (near, far) = if t0 <= t1 { (t0, t1) } else { (t1, t0) };
-        if near > 0.0 {
-            Some(near)
-        } else if far > 0.0 {
-            Some(far)
+        if c > 0.0 {
+            // Outside, heading towards the centre: both roots ahead, take the nearer.
+            Some((c / q).min(q))
+        } else if b > 0.0 {
+            // Inside (or on the surface), heading away from the centre: q < 0 ≤ c/q.
+            let t = c / q;
+            (t > 0.0).then_some(t)
         } else {
-            None
+            // Inside, heading towards the centre: c/q ≤ 0 < q (q = 0 only for a ray
+            // tangent at its own origin, which is not a hit).
+            (q > 0.0).then_some(q)
         }
     }
 

@@ -40,7 +40,12 @@ impl Image {
         use image::ImageEncoder;
         let mut out = Vec::new();
         image::codecs::png::PngEncoder::new(&mut out)
-            .write_image(&self.rgb, self.width, self.height, image::ExtendedColorType::Rgb8)
+            .write_image(
+                &self.rgb,
+                self.width,
+                self.height,
+                image::ExtendedColorType::Rgb8,
+            )
             .expect("encoding an in-memory RGB8 buffer of the right size cannot fail");
         out
     }

@@ -54,7 +54,10 @@ pub fn parse_scene(text: &str) -> Result<Scene> {
         Some(v) => {
             let a = number(v, "ambient")?;
             if a < 0.0 {
-                return Err(SceneError::invalid("ambient", format!("must be >= 0, got {a}")));
+                return Err(SceneError::invalid(
+                    "ambient",
+                    format!("must be >= 0, got {a}"),
+                ));
             }
             a
         }
@@ -125,8 +128,9 @@ fn type_name(v: &Value) -> &'static str {
 }
 
 fn as_object<'a>(v: &'a Value, path: &str) -> Result<&'a Map<String, Value>> {
-    v.as_object()
-        .ok_or_else(|| SceneError::invalid(path, format!("expected an object, got {}", type_name(v))))
+    v.as_object().ok_or_else(|| {
+        SceneError::invalid(path, format!("expected an object, got {}", type_name(v)))
+    })
 }
 
 fn check_keys(obj: &Map<String, Value>, path: &str, allowed: &[&str]) -> Result<()> {
@@ -146,10 +150,17 @@ fn required<'a>(obj: &'a Map<String, Value>, path: &str, key: &str) -> Result<&'
     })
 }
 
-fn required_array<'a>(obj: &'a Map<String, Value>, path: &str, key: &str) -> Result<&'a Vec<Value>> {
+fn required_array<'a>(
+    obj: &'a Map<String, Value>,
+    path: &str,
+    key: &str,
+) -> Result<&'a Vec<Value>> {
     let v = required(obj, path, key)?;
     v.as_array().ok_or_else(|| {
-        SceneError::invalid(join(path, key), format!("expected an array, got {}", type_name(v)))
+        SceneError::invalid(
+            join(path, key),
+            format!("expected an array, got {}", type_name(v)),
+        )
     })
 }
 
@@ -157,7 +168,10 @@ fn finite(x: f64, path: &str) -> Result<f64> {
     if x.is_finite() {
         Ok(x)
     } else {
-        Err(SceneError::invalid(path, format!("must be a finite number, got {x}")))
+        Err(SceneError::invalid(
+            path,
+            format!("must be a finite number, got {x}"),
+        ))
     }
 }
 
@@ -189,7 +203,10 @@ fn number_list(v: &Value, path: &str, what: &str) -> Result<Vec<f64>> {
             .split_whitespace()
             .map(|word| {
                 word.parse::<f64>().map_err(|_| {
-                    SceneError::invalid(path, format!("expected {what}, \"{word}\" is not a number"))
+                    SceneError::invalid(
+                        path,
+                        format!("expected {what}, \"{word}\" is not a number"),
+                    )
                 })
             })
             .collect::<Result<Vec<_>>>()?,
@@ -207,7 +224,10 @@ fn number_list(v: &Value, path: &str, what: &str) -> Result<Vec<f64>> {
         other => {
             return Err(SceneError::invalid(
                 path,
-                format!("expected {what} as a string or an array, got {}", type_name(other)),
+                format!(
+                    "expected {what} as a string or an array, got {}",
+                    type_name(other)
+                ),
             ))
         }
     };
@@ -230,7 +250,11 @@ fn vec3(v: &Value, path: &str) -> Result<Vec3> {
 
 /// Reads `r g b special` (or `r g b` where `allow_three`), checking r, g, b ≥ 0.
 fn color(v: &Value, path: &str, allow_three: bool) -> Result<(Vec3, f64)> {
-    let what = if allow_three { "3 or 4 numbers" } else { "4 numbers (r g b special)" };
+    let what = if allow_three {
+        "3 or 4 numbers"
+    } else {
+        "4 numbers (r g b special)"
+    };
     let n = number_list(v, path, what)?;
     let (rgb, special) = match (&n[..], allow_three) {
         (&[r, g, b, s], _) => ([r, g, b], s),
@@ -286,41 +310,42 @@ fn parse_object(v: &Value, path: &str) -> Result<Object> {
             ))
         }
     };
-    let shape = match kind {
-        "sphere" => {
-            check_keys(obj, path, &["type", "center", "radius", "color"])?;
-            let center = vec3(required(obj, path, "center")?, &join(path, "center"))?;
-            let radius_path = join(path, "radius");
-            let radius = number(required(obj, path, "radius")?, &radius_path)?;
-            if radius <= 0.0 {
-                return Err(SceneError::invalid(
-                    radius_path,
-                    format!("must be > 0, got {radius}"),
-                ));
+    let shape =
+        match kind {
+            "sphere" => {
+                check_keys(obj, path, &["type", "center", "radius", "color"])?;
+                let center = vec3(required(obj, path, "center")?, &join(path, "center"))?;
+                let radius_path = join(path, "radius");
+                let radius = number(required(obj, path, "radius")?, &radius_path)?;
+                if radius <= 0.0 {
+                    return Err(SceneError::invalid(
+                        radius_path,
+                        format!("must be > 0, got {radius}"),
+                    ));
+                }
+                Shape::Sphere { center, radius }
             }
-            Shape::Sphere { center, radius }
-        }
-        "plan" | "plane" => {
-            check_keys(obj, path, &["type", "normal", "distance", "color"])?;
-            let normal_path = join(path, "normal");
-            let normal = vec3(required(obj, path, "normal")?, &normal_path)?;
-            let len = normal.length();
-            if len == 0.0 || !len.is_finite() {
-                return Err(SceneError::invalid(
-                    normal_path,
-                    "must be a non-zero vector of finite length",
-                ));
+            "plan" | "plane" => {
+                check_keys(obj, path, &["type", "normal", "distance", "color"])?;
+                let normal_path = join(path, "normal");
+                let normal = vec3(required(obj, path, "normal")?, &normal_path)?;
+                let len = normal.length();
+                if len == 0.0 || !len.is_finite() {
+                    return Err(SceneError::invalid(
+                        normal_path,
+                        "must be a non-zero vector of finite length",
+                    ));
+                }
+                let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
+                Shape::Plane { normal, distance }
             }
-            let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
-            Shape::Plane { normal, distance }
-        }
-        other => {
-            return Err(SceneError::invalid(
+            other => return Err(SceneError::invalid(
                 type_path,
-                format!("unknown object type \"{other}\" (expected \"sphere\", \"plan\" or \"plane\")"),
-            ))
-        }
-    };
+                format!(
+                    "unknown object type \"{other}\" (expected \"sphere\", \"plan\" or \"plane\")"
+                ),
+            )),
+        };
     let color_path = join(path, "color");
     let (color, special) = color(required(obj, path, "color")?, &color_path, false)?;
     let material = material(special, &color_path)?;
@@ -384,4 +409,160 @@ fn parse_image(v: &Value, path: &str) -> Result<RenderSettings> {
     }
     validate_settings(&s, path)?;
     Ok(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SEED: &str = include_str!("../../scenes/seed.json");
+
+    fn error_of(text: &str) -> String {
+        parse_scene(text).unwrap_err().to_string()
+    }
+
+    /// A minimal valid scene with one object replaced.
+    fn with_object(object: &str) -> String {
+        format!(r#"{{"lights": [], "objects": [{object}]}}"#)
+    }
+
+    #[test]
+    fn the_seed_scene_loads_with_its_values_and_the_defaults() {
+        let s = parse_scene(SEED).unwrap();
+        assert_eq!(s.lights.len(), 2);
+        assert_eq!(s.lights[1].position, Vec3::new(7.0, 10.0, 10.0));
+        assert_eq!(s.objects.len(), 3);
+        assert_eq!(
+            s.objects[0].shape,
+            Shape::Sphere {
+                center: Vec3::ZERO,
+                radius: 1.0
+            }
+        );
+        assert_eq!(s.objects[1].material, Material::Reflective(0.6));
+        assert_eq!(s.objects[2].material, Material::Checker);
+        assert_eq!(
+            s.objects[2].shape,
+            Shape::Plane {
+                normal: Vec3::new(0.0, 1.0, 0.0),
+                distance: -1.0
+            }
+        );
+        assert_eq!(s.camera, CameraSpec::default());
+        assert_eq!(s.settings, RenderSettings::default());
+        assert_eq!(s.ambient, 0.2);
+    }
+
+    #[test]
+    fn vectors_and_colours_may_be_arrays_and_planes_plane() {
+        let s = parse_scene(
+            r#"{"lights": [{"position": [1, 2, 3], "color": [1, 0.5, 0]}],
+                "objects": [{"type": "plane", "normal": [0, 2, 0], "distance": 1,
+                             "color": [1, 1, 1, 0]}],
+                "camera": {"look_at": "0 0 1"},
+                "image": {"width": 32, "aa": 3},
+                "ambient": 0.5}"#,
+        )
+        .unwrap();
+        assert_eq!(s.lights[0].color, Vec3::new(1.0, 0.5, 0.0));
+        assert_eq!(s.objects[0].material, Material::Matte);
+        assert_eq!(s.camera.position, CameraSpec::default().position);
+        assert_eq!(s.camera.look_at, Vec3::new(0.0, 0.0, 1.0));
+        assert_eq!(
+            (s.settings.width, s.settings.height, s.settings.aa),
+            (32, 400, 3)
+        );
+        assert_eq!(s.ambient, 0.5);
+    }
+
+    #[test]
+    fn errors_name_the_place_and_the_problem() {
+        let sphere = |radius: &str| {
+            with_object(&format!(
+                r#"{{"type": "sphere", "center": "0 0 0", "radius": {radius}, "color": "1 1 1 0"}}"#
+            ))
+        };
+        assert_eq!(
+            error_of(&sphere("-1")),
+            "objects[0].radius: must be > 0, got -1"
+        );
+        assert_eq!(
+            error_of(&sphere("0")),
+            "objects[0].radius: must be > 0, got 0"
+        );
+        assert_eq!(
+            error_of(&sphere("\"big\"")),
+            "objects[0].radius: expected a number, got a string"
+        );
+        assert_eq!(
+            error_of(&with_object(
+                r#"{"type": "sphere", "center": "0 0 0", "radius": 1, "color": "1 1 1 1.5"}"#
+            )),
+            "objects[0].color: special (4th number) must be 0, in (0, 1] or 2, got 1.5"
+        );
+        assert_eq!(
+            error_of(&with_object(r#"{"type": "cube"}"#)),
+            "objects[0].type: unknown object type \"cube\" (expected \"sphere\", \"plan\" or \"plane\")"
+        );
+        assert_eq!(
+            error_of(&with_object(
+                r#"{"type": "plan", "normal": "0 0 0", "distance": 1, "color": "1 1 1 0"}"#
+            )),
+            "objects[0].normal: must be a non-zero vector of finite length"
+        );
+        assert_eq!(
+            error_of(&with_object(
+                r#"{"type": "sphere", "center": "0 0 inf", "radius": 1, "color": "1 1 1 0"}"#
+            )),
+            "objects[0].center: must be a finite number, got inf"
+        );
+        assert_eq!(
+            error_of(&with_object(
+                r#"{"type": "sphere", "center": "0 0", "radius": 1, "color": "1 1 1 0"}"#
+            )),
+            "objects[0].center: expected 3 numbers, got 2"
+        );
+        assert_eq!(
+            error_of(&with_object(r#"{"type": "sphere", "centre": "0 0 0"}"#)),
+            "objects[0].centre: unknown key (expected one of: type, center, radius, color)"
+        );
+        assert_eq!(
+            error_of(r#"{"lights": []}"#),
+            "scene: missing key \"objects\""
+        );
+        assert_eq!(
+            error_of(r#"{"lights": [], "objects": [], "image": {"width": 0}}"#),
+            "image.width: must be between 1 and 16384, got 0"
+        );
+        assert_eq!(
+            error_of(r#"{"lights": [], "objects": [], "camera": {"position": "0 5 0"}}"#),
+            "camera: the viewing direction (look_at - position) is parallel to the world up axis (0 1 0)"
+        );
+        assert_eq!(
+            error_of("{\"lights\": [],\n \"objects\": [}"),
+            "not valid JSON: expected value at line 2, column 14"
+        );
+    }
+
+    #[test]
+    fn overrides_are_checked_against_the_limits() {
+        let ok = RenderSettings::default();
+        assert!(validate_settings(&ok, "").is_ok());
+        let too_wide = RenderSettings {
+            width: MAX_SIDE + 1,
+            ..ok
+        };
+        assert_eq!(
+            validate_settings(&too_wide, "").unwrap_err().to_string(),
+            format!(
+                "width: must be between 1 and {MAX_SIDE}, got {}",
+                MAX_SIDE + 1
+            )
+        );
+        let no_aa = RenderSettings { aa: 0, ..ok };
+        assert!(validate_settings(&no_aa, "image")
+            .unwrap_err()
+            .to_string()
+            .starts_with("image.aa:"));
+    }
 }

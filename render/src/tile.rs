@@ -40,8 +40,7 @@ impl Rect {
         let fits = |start: u32, len: u32, side: u32| {
             len > 0 && start.checked_add(len).is_some_and(|end| end <= side)
         };
-        if fits(self.x, self.width, settings.width) && fits(self.y, self.height, settings.height)
-        {
+        if fits(self.x, self.width, settings.width) && fits(self.y, self.height, settings.height) {
             Ok(())
         } else {
             Err(TileError {

@@ -57,6 +57,8 @@ pub struct Tracer {
     ambient: f64,
     camera: Camera,
     settings: RenderSettings,
+    /// (a + ½)/n for a in 0..n: the sample offsets inside a pixel, on both axes.
+    offsets: Vec<f64>,
 }
 
 /// Marks a ray that leaves no surface (a camera ray).
@@ -105,6 +107,9 @@ impl Tracer {
                 .collect(),
             ambient: scene.ambient,
             camera: Camera::new(&scene.camera, &settings),
+            offsets: (0..settings.aa)
+                .map(|a| (f64::from(a) + 0.5) / f64::from(settings.aa))
+                .collect(),
             settings,
         }
     }
@@ -141,14 +146,13 @@ impl Tracer {
     /// The 8-bit colour of pixel (`i`, `j`) (column, row from the top left): the mean of
     /// its n × n clipped samples, summed in sample order. Adds the rays traced to `rays`.
     pub fn pixel(&self, i: u32, j: u32, rays: &mut u64) -> [u8; 3] {
-        let n = self.settings.aa;
-        let nf = f64::from(n);
+        let nf = f64::from(self.settings.aa);
         let origin = self.camera.position();
         let mut sum = Vec3::ZERO;
-        for b in 0..n {
-            let py = f64::from(j) + (f64::from(b) + 0.5) / nf;
-            for a in 0..n {
-                let px = f64::from(i) + (f64::from(a) + 0.5) / nf;
+        for &sy in &self.offsets {
+            let py = f64::from(j) + sy;
+            for &sx in &self.offsets {
+                let px = f64::from(i) + sx;
                 let dir = self.camera.direction(px, py);
                 sum += self.radiance(origin, dir, FROM_CAMERA, 0, 1.0, rays);
             }
@@ -233,9 +237,12 @@ impl Tracer {
             Material::Reflective(s) => s,
             _ => 0.0,
         };
-        let reflected = dir - normal * (2.0 * dir.dot(normal));
-        if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT
-        {
+        let reflected = if special > 0.0 {
+            dir - normal * (2.0 * dir.dot(normal))
+        } else {
+            Vec3::ZERO
+        };
+        if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT {
             let c = self.radiance(p, reflected, index, depth + 1, weight * special, rays);
             color += c * special;
         }
@@ -267,11 +274,21 @@ impl Tracer {
 
 /// Black and white unit squares in x and z: white where floor(x) + floor(z) is odd.
 fn checker(p: Vec3) -> Vec3 {
-    let sum = (p.x.floor() as i64).wrapping_add(p.z.floor() as i64);
+    let sum = floor_to_int(p.x).wrapping_add(floor_to_int(p.z));
     if sum & 1 == 1 {
         Vec3::new(1.0, 1.0, 1.0)
     } else {
         Vec3::ZERO
+    }
+}
+
+/// ⌊x⌋ as an integer (saturating beyond ±2⁶³), without a call into the C library.
+fn floor_to_int(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x {
+        t - 1
+    } else {
+        t
     }
 }
 
@@ -297,10 +314,22 @@ pub(crate) fn clip(c: Vec3) -> Vec3 {
     } else {
         c
     };
-    Vec3::new(c.x.clamp(0.0, 1.0), c.y.clamp(0.0, 1.0), c.z.clamp(0.0, 1.0))
+    Vec3::new(
+        c.x.clamp(0.0, 1.0),
+        c.y.clamp(0.0, 1.0),
+        c.z.clamp(0.0, 1.0),
+    )
 }
 
 /// Section 6: round(clamp(v, 0, 1) · 255).
 fn to_byte(v: f64) -> u8 {
-    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+    // round() halves away from zero; for x in [0, 255] that is trunc, plus one when the
+    // (exact) fractional part is at least one half.
+    let x = v.clamp(0.0, 1.0) * 255.0;
+    let t = x as u8;
+    if x - f64::from(t) >= 0.5 {
+        t + 1
+    } else {
+        t
+    }
 }
