@@ -85,9 +85,13 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".tessera-")
-        .suffix(".png.tmp")
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".tessera-").suffix(".png.tmp");
+    // A temporary file is private (0600); the image is an ordinary file, readable as
+    // the user's umask allows.
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = builder
         .tempfile_in(dir)
         .with_context(|| format!("cannot write {}", path.display()))?;
     tmp.write_all(bytes)

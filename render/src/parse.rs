@@ -310,42 +310,43 @@ fn parse_object(v: &Value, path: &str) -> Result<Object> {
             ))
         }
     };
-    let shape =
-        match kind {
-            "sphere" => {
-                check_keys(obj, path, &["type", "center", "radius", "color"])?;
-                let center = vec3(required(obj, path, "center")?, &join(path, "center"))?;
-                let radius_path = join(path, "radius");
-                let radius = number(required(obj, path, "radius")?, &radius_path)?;
-                if radius <= 0.0 {
-                    return Err(SceneError::invalid(
-                        radius_path,
-                        format!("must be > 0, got {radius}"),
-                    ));
-                }
-                Shape::Sphere { center, radius }
+    let shape = match kind {
+        "sphere" => {
+            check_keys(obj, path, &["type", "center", "radius", "color"])?;
+            let center = vec3(required(obj, path, "center")?, &join(path, "center"))?;
+            let radius_path = join(path, "radius");
+            let radius = number(required(obj, path, "radius")?, &radius_path)?;
+            if radius <= 0.0 {
+                return Err(SceneError::invalid(
+                    radius_path,
+                    format!("must be > 0, got {radius}"),
+                ));
             }
-            "plan" | "plane" => {
-                check_keys(obj, path, &["type", "normal", "distance", "color"])?;
-                let normal_path = join(path, "normal");
-                let normal = vec3(required(obj, path, "normal")?, &normal_path)?;
-                let len = normal.length();
-                if len == 0.0 || !len.is_finite() {
-                    return Err(SceneError::invalid(
-                        normal_path,
-                        "must be a non-zero vector of finite length",
-                    ));
-                }
-                let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
-                Shape::Plane { normal, distance }
+            Shape::Sphere { center, radius }
+        }
+        "plan" | "plane" => {
+            check_keys(obj, path, &["type", "normal", "distance", "color"])?;
+            let normal_path = join(path, "normal");
+            let normal = vec3(required(obj, path, "normal")?, &normal_path)?;
+            let len = normal.length();
+            if len == 0.0 || !len.is_finite() {
+                return Err(SceneError::invalid(
+                    normal_path,
+                    "must be a non-zero vector of finite length",
+                ));
             }
-            other => return Err(SceneError::invalid(
+            let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
+            Shape::Plane { normal, distance }
+        }
+        other => {
+            return Err(SceneError::invalid(
                 type_path,
                 format!(
                     "unknown object type \"{other}\" (expected \"sphere\", \"plan\" or \"plane\")"
                 ),
-            )),
-        };
+            ))
+        }
+    };
     let color_path = join(path, "color");
     let (color, special) = color(required(obj, path, "color")?, &color_path, false)?;
     let material = material(special, &color_path)?;

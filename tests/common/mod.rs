@@ -1,0 +1,63 @@
+//! What the end-to-end tests share: running the real `tessera` binary with a time
+//! limit, so that a hung process fails its test instead of hanging CI.
+
+// Each test binary uses its own part of this module.
+#![allow(dead_code)]
+
+use std::ffi::{OsStr, OsString};
+use std::io::Read;
+use std::path::Path;
+use std::process::{Command, ExitStatus, Stdio};
+use std::thread::{self, JoinHandle};
+use std::time::{Duration, Instant};
+
+/// What one run of the binary returned and printed.
+pub struct Run {
+    pub status: ExitStatus,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+/// Runs `tessera ARGS` in `dir`, killing it (and failing the test) after `timeout`.
+///
+/// stdout and stderr are drained on their own threads so that a chatty child cannot
+/// block on a full pipe while we wait for it.
+pub fn tessera<S: AsRef<OsStr>>(dir: &Path, args: &[S], timeout: Duration) -> Run {
+    let args: Vec<OsString> = args.iter().map(|a| a.as_ref().to_owned()).collect();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .args(&args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot start the tessera binary");
+    let stdout = drain(child.stdout.take().expect("stdout is piped"));
+    let stderr = drain(child.stderr.take().expect("stderr is piped"));
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("cannot wait for tessera") {
+            break status;
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("tessera {args:?} still running after {timeout:?}: killed");
+        }
+        thread::sleep(Duration::from_millis(10));
+    };
+    Run {
+        status,
+        stdout: stdout.join().expect("stdout reader panicked"),
+        stderr: stderr.join().expect("stderr reader panicked"),
+    }
+}
+
+fn drain(mut pipe: impl Read + Send + 'static) -> JoinHandle<String> {
+    thread::spawn(move || {
+        let mut bytes = Vec::new();
+        pipe.read_to_end(&mut bytes)
+            .expect("cannot read the child's output");
+        String::from_utf8_lossy(&bytes).into_owned()
+    })
+}
