@@ -1,16 +1,26 @@
 //! `tessera`: the command line. This file only parses arguments and hands them to the
-//! module that runs each subcommand.
+//! modules that run each subcommand.
 
+mod client_commands;
+mod daemons;
+mod output;
 mod render_command;
+mod up_command;
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use anyhow::Result;
+use clap::{Args, Parser, Subcommand};
+use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 
-/// Tessera renders ray-traced images of JSON scenes: spheres, planes, point lights,
-/// mirrors and checkerboards.
+/// The coordinator's default address.
+const DEFAULT_COORDINATOR: &str = "127.0.0.1:7878";
+
+/// Tessera renders ray-traced images of JSON scenes (spheres, planes, point lights,
+/// mirrors and checkerboards), on this machine or on a farm of workers.
 #[derive(Parser)]
 #[command(name = "tessera", version, propagate_version = true)]
 struct Cli {
@@ -31,19 +41,71 @@ enum Command {
             tessera render scenes/seed.json -o big.png --width 1920 --height 1080 --aa 4"
     )]
     Render(RenderArgs),
+
+    /// Render a scene on a farm started on this machine for the occasion.
+    #[command(
+        long_about = "Start a coordinator and worker processes on this machine (loopback \
+            only), render the scene on them, write the image and stop them all again.",
+        after_help = "Example:\n  tessera up scenes/seed.json --workers 3 -o seed.png"
+    )]
+    Up(UpArgs),
+
+    /// Run a coordinator: accept jobs, hand tiles to workers, store images.
+    #[command(
+        after_help = "Example:\n  tessera coordinator --listen 127.0.0.1:7878 --data /var/lib/tessera"
+    )]
+    Coordinator(CoordinatorArgs),
+
+    /// Run a worker: render tiles for a coordinator.
+    #[command(after_help = "Example:\n  tessera worker --coordinator 127.0.0.1:7878 --threads 8")]
+    Worker(WorkerArgs),
+
+    /// Submit a scene to a coordinator; print the job id, or with --wait, write the image.
+    #[command(after_help = "Examples:\n  \
+        tessera submit scenes/seed.json                  prints the job id\n  \
+        tessera submit scenes/seed.json --wait -o seed.png --aa 4")]
+    Submit(SubmitArgs),
+
+    /// Show a job's state and progress.
+    Status {
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// List the coordinator's jobs.
+    List {
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Cancel a job: its tiles stop being rendered.
+    Cancel {
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Download a finished job's image.
+    Fetch {
+        job: JobId,
+        /// Where to write the PNG [default: job-JOB.png].
+        #[arg(short, long, value_name = "OUT.png")]
+        output: Option<PathBuf>,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// List the workers connected to the coordinator, with their throughput.
+    Workers {
+        #[command(flatten)]
+        common: ClientArgs,
+    },
 }
 
-/// Arguments of `tessera render`.
-#[derive(clap::Args)]
-struct RenderArgs {
-    /// The scene file (JSON).
-    scene: PathBuf,
-
-    /// Where to write the PNG [default: the scene's file name with .png, in the current
-    /// directory].
-    #[arg(short, long, value_name = "OUT.png")]
-    output: Option<PathBuf>,
-
+/// Image settings that override the scene's own.
+#[derive(Args, Clone, Copy)]
+struct ImageArgs {
     /// Image width in pixels [default: the scene's, else 600].
     #[arg(long, value_name = "W", value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_SIDE)))]
     width: Option<u32>,
@@ -59,30 +121,213 @@ struct RenderArgs {
     /// Maximum reflection depth [default: the scene's, else 10].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_DEPTH)))]
     max_depth: Option<u32>,
+}
 
+#[derive(Args)]
+struct RenderArgs {
+    /// The scene file (JSON).
+    scene: PathBuf,
+    /// Where to write the PNG [default: the scene's file name with .png, here].
+    #[arg(short, long, value_name = "OUT.png")]
+    output: Option<PathBuf>,
+    #[command(flatten)]
+    image: ImageArgs,
     /// Rendering threads [default: one per core].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
 }
 
+#[derive(Args)]
+struct UpArgs {
+    /// The scene file (JSON).
+    scene: PathBuf,
+    /// Worker processes to start.
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=64))]
+    workers: u32,
+    /// Rendering threads of each worker [default: cores / workers, at least 1].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads_per_worker: Option<u32>,
+    /// Where to write the PNG [default: the scene's file name with .png, here].
+    #[arg(short, long, value_name = "OUT.png")]
+    output: Option<PathBuf>,
+    #[command(flatten)]
+    image: ImageArgs,
+    /// Tile side in pixels [default: chosen from the image size and aa].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
+    tile: Option<u32>,
+}
+
+#[derive(Args)]
+struct CoordinatorArgs {
+    /// Address to listen on.
+    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    listen: SocketAddr,
+    /// Where jobs and images are stored.
+    #[arg(long, value_name = "DIR", default_value = "tessera-data")]
+    data: PathBuf,
+    /// Exit when standard input closes (used by `tessera up` for its children).
+    #[arg(long, hide = true)]
+    exit_on_stdin_eof: bool,
+}
+
+#[derive(Args)]
+struct WorkerArgs {
+    /// The coordinator's address.
+    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    coordinator: String,
+    /// Rendering threads [default: one per core].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+    /// Name shown by `tessera workers` [default: HOST-PID].
+    #[arg(long)]
+    name: Option<String>,
+    /// Exit when standard input closes (used by `tessera up` for its children).
+    #[arg(long, hide = true)]
+    exit_on_stdin_eof: bool,
+}
+
+#[derive(Args)]
+struct SubmitArgs {
+    /// The scene file (JSON).
+    scene: PathBuf,
+    #[command(flatten)]
+    image: ImageArgs,
+    /// Tile side in pixels [default: chosen from the image size and aa].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
+    tile: Option<u32>,
+    /// Priority: higher runs first; equal priorities share the farm.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    priority: i32,
+    /// Wait for the job, showing progress, and write its image.
+    #[arg(long)]
+    wait: bool,
+    /// With --wait: where to write the PNG [default: the scene's file name with .png].
+    #[arg(short, long, value_name = "OUT.png", requires = "wait")]
+    output: Option<PathBuf>,
+    #[command(flatten)]
+    common: ClientArgs,
+}
+
+/// What every client command takes.
+#[derive(Args)]
+struct ClientArgs {
+    /// The coordinator's address.
+    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    coordinator: String,
+    /// Machine-readable JSON output.
+    #[arg(long)]
+    json: bool,
+}
+
+impl ImageArgs {
+    fn overrides(self, tile_size: Option<u32>) -> Overrides {
+        Overrides {
+            width: self.width,
+            height: self.height,
+            aa: self.aa,
+            max_depth: self.max_depth,
+            tile_size,
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let result = match cli.command {
-        Command::Render(args) => render_command::run(render_command::Options {
-            scene: args.scene,
-            output: args.output,
-            width: args.width,
-            height: args.height,
-            aa: args.aa,
-            max_depth: args.max_depth,
-            threads: args.threads,
-        }),
-    };
-    match result {
+    match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
     }
+}
+
+fn run(command: Command) -> Result<()> {
+    if let Command::Render(a) = command {
+        return render_command::run(render_command::Options {
+            scene: a.scene,
+            output: a.output,
+            width: a.image.width,
+            height: a.image.height,
+            aa: a.image.aa,
+            max_depth: a.image.max_depth,
+            threads: a.threads,
+        });
+    }
+    let daemon = matches!(command, Command::Coordinator(_) | Command::Worker(_));
+    if daemon {
+        init_logging();
+    }
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(async move {
+        match command {
+            Command::Render(_) => unreachable!("handled above"),
+            Command::Up(a) => {
+                let workers = a.workers as usize;
+                let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+                up_command::run(up_command::Options {
+                    scene: a.scene,
+                    workers,
+                    threads_per_worker: a
+                        .threads_per_worker
+                        .map_or((cores / workers).max(1), |n| n as usize),
+                    output: a.output,
+                    overrides: a.image.overrides(a.tile),
+                })
+                .await
+            }
+            Command::Coordinator(a) => {
+                daemons::coordinator(a.listen, a.data, a.exit_on_stdin_eof).await
+            }
+            Command::Worker(a) => {
+                daemons::worker(
+                    a.coordinator,
+                    a.threads.map(|n| n as usize),
+                    a.name,
+                    a.exit_on_stdin_eof,
+                )
+                .await
+            }
+            Command::Submit(a) => {
+                client_commands::run_submit(
+                    &a.common.coordinator,
+                    &a.scene,
+                    a.image.overrides(a.tile),
+                    a.priority,
+                    a.wait,
+                    a.output,
+                    a.common.json,
+                )
+                .await
+            }
+            Command::Status { job, common } => {
+                client_commands::run_status(&common.coordinator, job, common.json).await
+            }
+            Command::List { common } => {
+                client_commands::run_list(&common.coordinator, common.json).await
+            }
+            Command::Cancel { job, common } => {
+                client_commands::run_cancel(&common.coordinator, job, common.json).await
+            }
+            Command::Fetch {
+                job,
+                output,
+                common,
+            } => client_commands::run_fetch(&common.coordinator, job, output, common.json).await,
+            Command::Workers { common } => {
+                client_commands::run_workers(&common.coordinator, common.json).await
+            }
+        }
+    })
+}
+
+/// Logs of the daemons go to stderr: readable text, filtered by `RUST_LOG` (default
+/// `info`).
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
 }

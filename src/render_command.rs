@@ -1,11 +1,12 @@
 //! `tessera render`: load a scene, render it on a local thread pool, write the PNG
 //! atomically and print a one-line summary.
 
-use std::io::{IsTerminal, Write};
-use std::path::{Path, PathBuf};
+use std::io::IsTerminal;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use crate::output::{default_output, write_atomically};
 use anyhow::{anyhow, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use render::{parse_scene, render_frame, validate_settings, Tracer, DEFAULT_TILE_SIZE};
@@ -67,39 +68,6 @@ pub fn run(opts: Options) -> Result<()> {
         frame.rays as f64 / secs.max(1e-9) / 1e6,
         pool.current_num_threads(),
     );
-    Ok(())
-}
-
-/// `scenes/seed.json` renders to `./seed.png`.
-fn default_output(scene: &Path) -> PathBuf {
-    let stem = scene
-        .file_stem()
-        .map_or_else(|| "render".into(), |s| s.to_string_lossy().into_owned());
-    PathBuf::from(format!("{stem}.png"))
-}
-
-/// Writes to a temporary file beside `path` and renames it into place, so a failure
-/// never leaves a partial image behind.
-fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    builder.prefix(".tessera-").suffix(".png.tmp");
-    // A temporary file is private (0600); the image is an ordinary file, readable as
-    // the user's umask allows.
-    #[cfg(unix)]
-    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-    let mut tmp = builder
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    tmp.write_all(bytes)
-        .and_then(|()| tmp.as_file().sync_all())
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    tmp.persist(path)
-        .map_err(|e| e.error)
-        .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
 }
 

@@ -1,0 +1,14 @@
+//! Tessera's coordinator: accepts jobs, cuts them into tiles, hands the tiles to
+//! workers and stores the assembled images.
+//!
+//! [`scheduler`] makes every decision as a pure state machine; [`server`] is the daemon
+//! that feeds it events from the network and carries out its actions; [`client`] is the
+//! library side of the command-line client.
+
+pub mod client;
+pub mod scheduler;
+pub mod server;
+mod store;
+mod tiling;
+
+pub use crate::server::{serve, Config};

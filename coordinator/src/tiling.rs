@@ -1,0 +1,40 @@
+//! How a frame is cut into tiles when the client does not say.
+
+use protocol::{Settings, TileRect};
+
+/// Smallest and largest tile sides a job may ask for. The upper bound keeps a tile's
+/// result (side² × 3 bytes) far below the frame limit.
+pub const MIN_TILE: u32 = 8;
+pub const MAX_TILE: u32 = 512;
+
+/// A tile side giving each tile about 64 K samples (a few milliseconds of work on one
+/// core for the seed scene: long enough that the per-tile overhead vanishes, short
+/// enough to balance), reduced until the frame has at least 64 tiles so that several
+/// workers all have work.
+pub fn default_tile_size(settings: &Settings) -> u32 {
+    let mut side = (256 / settings.aa.max(1)).clamp(16, 256);
+    while side > 16 && tile_count(settings, side) < 64 {
+        side /= 2;
+    }
+    side
+}
+
+pub fn tile_count(settings: &Settings, side: u32) -> u32 {
+    settings.width.div_ceil(side) * settings.height.div_ceil(side)
+}
+
+/// The tiles of a frame, row by row from the top left.
+pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
+    let mut tiles = Vec::new();
+    for y in (0..settings.height).step_by(side as usize) {
+        for x in (0..settings.width).step_by(side as usize) {
+            tiles.push(TileRect {
+                x,
+                y,
+                width: side.min(settings.width - x),
+                height: side.min(settings.height - y),
+            });
+        }
+    }
+    tiles
+}

@@ -1,0 +1,70 @@
+//! Framing: a length prefix (tokio-util's `LengthDelimitedCodec`, 4 bytes big-endian)
+//! and one bincode message per frame. A frame longer than the configured maximum is
+//! refused from its length prefix alone, before its body is read.
+
+use std::marker::PhantomData;
+
+use bytes::{Bytes, BytesMut};
+use serde::{de::DeserializeOwned, Serialize};
+use tokio_util::codec::{Decoder, Encoder, LengthDelimitedCodec};
+
+use crate::wire::{self, DecodeError};
+
+/// The default largest frame: room for the largest scene a job may carry
+/// (`limits::MAX_SCENE_BYTES`, 8 MiB) with margin for its envelope.
+pub const DEFAULT_MAX_FRAME: usize = 16 * 1024 * 1024;
+
+/// No configuration may raise the frame limit above this (64 MiB); it is also the
+/// decoder's allocation limit.
+pub const MAX_FRAME_LIMIT: usize = 64 * 1024 * 1024;
+
+/// Why a frame could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    #[error("connection error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error(transparent)]
+    Decode(#[from] DecodeError),
+}
+
+/// Encodes `Out` messages and decodes `In` messages, one per length-prefixed frame.
+pub struct MessageCodec<In, Out> {
+    frames: LengthDelimitedCodec,
+    _messages: PhantomData<fn(Out) -> In>,
+}
+
+impl<In, Out> MessageCodec<In, Out> {
+    /// A codec refusing frames longer than `max_frame` bytes (capped at
+    /// [`MAX_FRAME_LIMIT`]).
+    pub fn new(max_frame: usize) -> Self {
+        MessageCodec {
+            frames: LengthDelimitedCodec::builder()
+                .length_field_length(4)
+                .max_frame_length(max_frame.min(MAX_FRAME_LIMIT))
+                .new_codec(),
+            _messages: PhantomData,
+        }
+    }
+}
+
+impl<In: DeserializeOwned, Out> Decoder for MessageCodec<In, Out> {
+    type Item = In;
+    type Error = FrameError;
+
+    fn decode(&mut self, src: &mut BytesMut) -> Result<Option<In>, FrameError> {
+        match self.frames.decode(src)? {
+            Some(frame) => Ok(Some(wire::decode(&frame)?)),
+            None => Ok(None),
+        }
+    }
+}
+
+impl<In, Out: Serialize> Encoder<Out> for MessageCodec<In, Out> {
+    type Error = FrameError;
+
+    fn encode(&mut self, item: Out, dst: &mut BytesMut) -> Result<(), FrameError> {
+        self.frames
+            .encode(Bytes::from(wire::encode(&item)), dst)
+            .map_err(FrameError::Io)
+    }
+}

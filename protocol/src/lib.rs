@@ -1,0 +1,19 @@
+//! Tessera's wire protocol, shared by the coordinator, its workers and its clients.
+//!
+//! A connection carries frames: a 4-byte big-endian length, then one message encoded
+//! with bincode (fixed-width little-endian integers, see [`wire`]). The first frame
+//! each way is the handshake ([`Hello`], [`Welcome`]); after it, a client sends
+//! [`ClientRequest`]s and reads [`ClientResponse`]s, and a worker reads [`ToWorker`]
+//! and sends [`FromWorker`] messages. `docs/protocol.md` describes every byte.
+//!
+//! This crate holds formats and limits only: no sockets, no policy. It does not know
+//! the renderer either: a scene travels as its JSON text plus a content hash.
+
+mod codec;
+mod handshake;
+mod messages;
+pub mod wire;
+
+pub use crate::codec::{FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
+pub use crate::handshake::{Hello, HelloError, Role, Welcome, MAGIC, PROTOCOL_VERSION};
+pub use crate::messages::*;

@@ -1,0 +1,202 @@
+//! Every message after the handshake.
+
+use serde::{Deserialize, Serialize};
+
+/// A job's identity, made by the coordinator.
+pub type JobId = u64;
+
+/// A connected worker's identity for the lifetime of its connection, made by the
+/// coordinator.
+pub type WorkerId = u64;
+
+/// SHA-256 of a scene's JSON text: workers cache scenes under it.
+pub type SceneHash = [u8; 32];
+
+/// Image settings of a job, after the client's overrides were applied to the scene's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Settings {
+    pub width: u32,
+    pub height: u32,
+    pub aa: u32,
+    pub max_depth: u32,
+}
+
+/// A rectangle of the frame: columns `x .. x + width`, rows `y .. y + height`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct TileRect {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// What a client may change of a scene's own settings, and how the job is cut.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Overrides {
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub aa: Option<u32>,
+    pub max_depth: Option<u32>,
+    /// Side of the square tiles, in pixels.
+    pub tile_size: Option<u32>,
+}
+
+/// A job as submitted.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobSpec {
+    /// The scene file's JSON text.
+    pub scene: String,
+    pub overrides: Overrides,
+    /// Higher runs first; jobs of equal priority share the farm (see docs/protocol.md).
+    pub priority: i32,
+}
+
+/// A client's request. Each gets exactly one [`ClientResponse`], in order.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ClientRequest {
+    Submit(JobSpec),
+    Status {
+        job: JobId,
+    },
+    List,
+    Cancel {
+        job: JobId,
+    },
+    /// A slice of the finished job's PNG, starting at byte `offset`.
+    Fetch {
+        job: JobId,
+        offset: u64,
+    },
+    Workers,
+}
+
+/// The coordinator's answer to a [`ClientRequest`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientResponse {
+    Submitted {
+        job: JobId,
+    },
+    Job(JobStatus),
+    Jobs(Vec<JobStatus>),
+    Cancelled {
+        job: JobId,
+    },
+    /// `bytes` are the PNG's bytes `offset .. offset + bytes.len()` of `total`.
+    ImageChunk {
+        job: JobId,
+        total: u64,
+        offset: u64,
+        bytes: Vec<u8>,
+    },
+    Workers(Vec<WorkerStatus>),
+    /// The request was refused; `message` says why, in one line.
+    Error {
+        message: String,
+    },
+}
+
+/// Where a job is in its life.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum JobState {
+    Queued,
+    Running,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    /// The lowercase name used in listings and JSON output.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Done => "done",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// Whether the job will change no more.
+    pub fn is_final(self) -> bool {
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
+    }
+}
+
+/// A job's progress, as reported to clients.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobStatus {
+    pub id: JobId,
+    pub state: JobState,
+    pub settings: Settings,
+    pub priority: i32,
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+    /// Rays traced so far.
+    pub rays: u64,
+    /// Since submission, or submission to completion for a finished job.
+    pub elapsed_ms: u64,
+    /// Estimated time left, once some tiles are done.
+    pub eta_ms: Option<u64>,
+    /// Why the job failed.
+    pub error: Option<String>,
+}
+
+/// A connected worker, as reported to clients.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorkerStatus {
+    pub id: WorkerId,
+    pub name: String,
+    pub threads: u32,
+    pub tiles_in_flight: u32,
+    pub tiles_done: u64,
+    pub rays: u64,
+    pub connected_ms: u64,
+    /// Rays per second over the worker's connection so far.
+    pub rays_per_second: f64,
+}
+
+/// Coordinator to worker.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ToWorker {
+    /// A scene the worker has not seen; sent once per worker before its first tile.
+    Scene { hash: SceneHash, scene: String },
+    /// Render one tile of a job whose scene the worker has.
+    Render {
+        job: JobId,
+        tile: u32,
+        scene: SceneHash,
+        settings: Settings,
+        rect: TileRect,
+    },
+    /// Drop the job's tiles not yet rendered; their results are no longer wanted.
+    Cancel { job: JobId },
+    /// No active job uses this scene any more: the worker may drop it from its cache.
+    /// A later job with the same scene sends it again.
+    ForgetScene { hash: SceneHash },
+}
+
+/// Worker to coordinator.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum FromWorker {
+    /// A rendered tile: RGB8 pixels, rows top to bottom.
+    TileDone {
+        job: JobId,
+        tile: u32,
+        rgb: Vec<u8>,
+        rays: u64,
+        render_us: u64,
+    },
+    /// The tile could not be rendered (the scene did not load, the tile is outside the
+    /// frame); `message` says why.
+    TileFailed {
+        job: JobId,
+        tile: u32,
+        message: String,
+    },
+    /// The worker is shutting down: send it nothing more. It finishes what it holds.
+    Draining,
+}

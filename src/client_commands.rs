@@ -1,0 +1,266 @@
+//! `tessera submit`, `status`, `list`, `cancel`, `fetch` and `workers`.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{anyhow, Context, Result};
+use coordinator::client::Client;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, WorkerStatus};
+use serde_json::{json, Value};
+
+use crate::output::{default_output, write_atomically};
+
+/// How often `--wait` asks for progress.
+const POLL: Duration = Duration::from_millis(100);
+
+/// Reads a scene file for submission.
+pub fn read_scene(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read scene file {}", path.display()))
+}
+
+/// Submits; a refused scene's message is prefixed with the file name, exactly as
+/// `tessera render` reports it.
+pub async fn submit(
+    client: &mut Client,
+    scene_path: &Path,
+    overrides: Overrides,
+    priority: i32,
+) -> Result<JobId> {
+    let scene = read_scene(scene_path)?;
+    client
+        .submit(JobSpec {
+            scene,
+            overrides,
+            priority,
+        })
+        .await
+        .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
+}
+
+/// Follows a job until it ends, with a progress bar on a terminal, and returns its
+/// final status. A job that fails or is cancelled is an error.
+pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr())
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles {msg}",
+        )
+        .expect("the template is valid"),
+    );
+    let status = loop {
+        let status = client.status(job).await?;
+        bar.set_length(u64::from(status.tiles_total));
+        bar.set_position(u64::from(status.tiles_done));
+        let rate = status.rays as f64 / (status.elapsed_ms.max(1) as f64 / 1000.0) / 1e6;
+        let eta = status.eta_ms.map_or(String::new(), |ms| {
+            format!(", {:.1} s left", ms as f64 / 1000.0)
+        });
+        bar.set_message(format!("{rate:.1} M rays/s{eta}"));
+        if status.state.is_final() {
+            break status;
+        }
+        tokio::time::sleep(POLL).await;
+    };
+    bar.finish_and_clear();
+    match status.state {
+        JobState::Done => Ok(status),
+        JobState::Failed => Err(anyhow!(
+            "job {job} failed: {}",
+            status.error.as_deref().unwrap_or("no reason given")
+        )),
+        other => Err(anyhow!("job {job} is {}", other.as_str())),
+    }
+}
+
+/// Fetches a finished job's image and writes it.
+pub async fn fetch_to(client: &mut Client, job: JobId, output: &Path) -> Result<usize> {
+    let png = client.fetch(job).await?;
+    write_atomically(output, &png)?;
+    Ok(png.len())
+}
+
+/// The one-line summary of a finished job.
+pub fn summary(output: &Path, status: &JobStatus) -> String {
+    let secs = status.elapsed_ms as f64 / 1000.0;
+    format!(
+        "{}: {}x{}, {} samples/pixel, {} tiles, {:.3} s, {:.1} M rays/s",
+        output.display(),
+        status.settings.width,
+        status.settings.height,
+        u64::from(status.settings.aa) * u64::from(status.settings.aa),
+        status.tiles_total,
+        secs,
+        status.rays as f64 / secs.max(1e-9) / 1e6
+    )
+}
+
+/// `tessera submit`.
+pub async fn run_submit(
+    coordinator: &str,
+    scene: &Path,
+    overrides: Overrides,
+    priority: i32,
+    wait_for_it: bool,
+    output: Option<PathBuf>,
+    json_out: bool,
+) -> Result<()> {
+    let mut client = Client::connect(coordinator).await?;
+    let job = submit(&mut client, scene, overrides, priority).await?;
+    if !wait_for_it {
+        if json_out {
+            println!("{}", json!({ "id": job, "state": "queued" }));
+        } else {
+            println!("{job}");
+        }
+        return Ok(());
+    }
+    let status = wait(&mut client, job).await?;
+    let output = output.unwrap_or_else(|| default_output(scene));
+    fetch_to(&mut client, job, &output).await?;
+    if json_out {
+        let mut v = status_json(&status);
+        v["output"] = json!(output.display().to_string());
+        println!("{v}");
+    } else {
+        eprintln!("{}", summary(&output, &status));
+    }
+    Ok(())
+}
+
+pub async fn run_status(coordinator: &str, job: JobId, json_out: bool) -> Result<()> {
+    let status = Client::connect(coordinator).await?.status(job).await?;
+    if json_out {
+        println!("{}", status_json(&status));
+    } else {
+        println!("{}", status_line(&status));
+    }
+    Ok(())
+}
+
+pub async fn run_list(coordinator: &str, json_out: bool) -> Result<()> {
+    let jobs = Client::connect(coordinator).await?.list().await?;
+    if json_out {
+        println!("{}", Value::Array(jobs.iter().map(status_json).collect()));
+    } else if jobs.is_empty() {
+        println!("no jobs");
+    } else {
+        for status in &jobs {
+            println!("{}", status_line(status));
+        }
+    }
+    Ok(())
+}
+
+pub async fn run_cancel(coordinator: &str, job: JobId, json_out: bool) -> Result<()> {
+    Client::connect(coordinator).await?.cancel(job).await?;
+    if json_out {
+        println!("{}", json!({ "id": job, "state": "cancelled" }));
+    } else {
+        println!("job {job} cancelled");
+    }
+    Ok(())
+}
+
+pub async fn run_fetch(
+    coordinator: &str,
+    job: JobId,
+    output: Option<PathBuf>,
+    json_out: bool,
+) -> Result<()> {
+    let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
+    let mut client = Client::connect(coordinator).await?;
+    let bytes = fetch_to(&mut client, job, &output).await?;
+    if json_out {
+        println!(
+            "{}",
+            json!({ "id": job, "output": output.display().to_string(), "bytes": bytes })
+        );
+    } else {
+        println!("{}", output.display());
+    }
+    Ok(())
+}
+
+pub async fn run_workers(coordinator: &str, json_out: bool) -> Result<()> {
+    let workers = Client::connect(coordinator).await?.workers().await?;
+    if json_out {
+        println!(
+            "{}",
+            Value::Array(workers.iter().map(worker_json).collect())
+        );
+    } else if workers.is_empty() {
+        println!("no workers");
+    } else {
+        for w in &workers {
+            println!(
+                "worker {} {}: {} threads, {} tiles in flight, {} tiles done, {:.1} M rays/s",
+                w.id,
+                w.name,
+                w.threads,
+                w.tiles_in_flight,
+                w.tiles_done,
+                w.rays_per_second / 1e6
+            );
+        }
+    }
+    Ok(())
+}
+
+fn status_line(s: &JobStatus) -> String {
+    let mut line = format!(
+        "job {}: {}, {}/{} tiles, {}x{} aa {}, {:.1} s",
+        s.id,
+        s.state.as_str(),
+        s.tiles_done,
+        s.tiles_total,
+        s.settings.width,
+        s.settings.height,
+        s.settings.aa,
+        s.elapsed_ms as f64 / 1000.0
+    );
+    if let Some(eta) = s.eta_ms {
+        line.push_str(&format!(", about {:.1} s left", eta as f64 / 1000.0));
+    }
+    if let Some(e) = &s.error {
+        line.push_str(&format!(": {e}"));
+    }
+    line
+}
+
+fn status_json(s: &JobStatus) -> Value {
+    json!({
+        "id": s.id,
+        "state": s.state.as_str(),
+        "width": s.settings.width,
+        "height": s.settings.height,
+        "aa": s.settings.aa,
+        "max_depth": s.settings.max_depth,
+        "priority": s.priority,
+        "tiles_done": s.tiles_done,
+        "tiles_total": s.tiles_total,
+        "rays": s.rays,
+        "elapsed_ms": s.elapsed_ms,
+        "eta_ms": s.eta_ms,
+        "error": s.error,
+    })
+}
+
+fn worker_json(w: &WorkerStatus) -> Value {
+    json!({
+        "id": w.id,
+        "name": w.name,
+        "threads": w.threads,
+        "tiles_in_flight": w.tiles_in_flight,
+        "tiles_done": w.tiles_done,
+        "rays": w.rays,
+        "connected_ms": w.connected_ms,
+        "rays_per_second": w.rays_per_second,
+    })
+}

@@ -1,0 +1,82 @@
+//! `tessera coordinator` and `tessera worker`: the two long-running processes.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use tracing::info;
+
+/// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
+/// standard input reaches its end because the parent is gone.
+pub fn shutdown_signal(exit_on_stdin_eof: bool) -> impl Future<Output = ()> {
+    async move {
+        let stdin_closed = async {
+            if exit_on_stdin_eof {
+                let _ = tokio::task::spawn_blocking(|| {
+                    let mut sink = Vec::new();
+                    let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut sink);
+                })
+                .await;
+            } else {
+                std::future::pending::<()>().await;
+            }
+        };
+        #[cfg(unix)]
+        let terminate = async {
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(mut s) => {
+                    s.recv().await;
+                }
+                Err(_) => std::future::pending().await,
+            }
+        };
+        #[cfg(not(unix))]
+        let terminate = std::future::pending::<()>();
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => info!("interrupted"),
+            () = terminate => info!("terminated"),
+            () = stdin_closed => info!("parent gone"),
+        }
+    }
+}
+
+pub async fn coordinator(listen: SocketAddr, data: PathBuf, exit_on_stdin_eof: bool) -> Result<()> {
+    let server = coordinator::server::Server::bind(coordinator::Config::new(listen, data)).await?;
+    let addr = server.local_addr()?;
+    // The first line on stdout is the address, for scripts and `tessera up`.
+    println!("listening on {addr}");
+    info!(%addr, "coordinator listening");
+    server.run(shutdown_signal(exit_on_stdin_eof)).await
+}
+
+pub async fn worker(
+    coordinator: String,
+    threads: Option<usize>,
+    name: Option<String>,
+    exit_on_stdin_eof: bool,
+) -> Result<()> {
+    let threads =
+        threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let name = name.unwrap_or_else(default_worker_name);
+    worker::run(
+        worker::Config {
+            coordinator,
+            threads,
+            name,
+        },
+        shutdown_signal(exit_on_stdin_eof),
+    )
+    .await
+    .context("worker stopped")
+}
+
+/// `host-pid`, unique enough to tell workers apart in listings.
+fn default_worker_name() -> String {
+    let host = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "worker".into());
+    format!("{host}-{}", std::process::id())
+}
