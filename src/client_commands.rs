@@ -12,8 +12,9 @@ use serde_json::{json, Value};
 
 use crate::output::{default_output, write_atomically};
 
-/// How often `--wait` asks for progress.
-const POLL: Duration = Duration::from_millis(100);
+/// How often `--wait` asks for progress: often enough that noticing the end of a job
+/// adds little to a short render; a status request costs the coordinator microseconds.
+const POLL: Duration = Duration::from_millis(20);
 
 /// Reads a scene file for submission.
 pub fn read_scene(path: &Path) -> Result<String> {

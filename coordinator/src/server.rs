@@ -328,8 +328,13 @@ async fn serve_worker(
     };
     info!(worker, %name, threads, "worker joined");
     let writer = tokio::spawn(async move {
+        // Everything queued goes out in one write: one syscall for a burst of tiles.
         while let Some(message) = inbox.recv().await {
-            if sink.send(message).await.is_err() {
+            let mut batch = sink.feed(message).await;
+            while let (Ok(()), Ok(more)) = (&batch, inbox.try_recv()) {
+                batch = sink.feed(more).await;
+            }
+            if batch.is_err() || sink.flush().await.is_err() {
                 break;
             }
         }
@@ -492,16 +497,13 @@ impl State {
         };
         let rect = record.tiles[tile as usize];
         if let Some(image) = record.image.as_mut() {
-            image.put_tile(&render::TileImage {
-                rect: render::Rect {
-                    x: rect.x,
-                    y: rect.y,
-                    width: rect.width,
-                    height: rect.height,
-                },
-                rgb: rgb.to_vec(),
-                rays,
-            });
+            let rect = render::Rect {
+                x: rect.x,
+                y: rect.y,
+                width: rect.width,
+                height: rect.height,
+            };
+            image.put_rect(rect, rgb);
         }
         record.tiles_done += 1;
         record.rays += rays;

@@ -1,6 +1,6 @@
 //! The frame buffer and its PNG encoding (section 6: 8-bit RGB, top row first).
 
-use crate::tile::TileImage;
+use crate::tile::{Rect, TileImage};
 
 /// An 8-bit RGB image, rows top to bottom.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -21,9 +21,14 @@ impl Image {
 
     /// Copies a tile's pixels into place. The tile must lie inside the image.
     pub fn put_tile(&mut self, tile: &TileImage) {
-        let r = tile.rect;
+        self.put_rect(tile.rect, &tile.rgb);
+    }
+
+    /// Copies the RGB8 pixels of rectangle `r` (rows top to bottom, `r.width × r.height
+    /// × 3` bytes) into place. The rectangle must lie inside the image.
+    pub fn put_rect(&mut self, r: Rect, rgb: &[u8]) {
         let row_bytes = r.width as usize * 3;
-        for (row, src) in tile.rgb.chunks_exact(row_bytes).enumerate() {
+        for (row, src) in rgb.chunks_exact(row_bytes).enumerate() {
             let start = ((r.y as usize + row) * self.width as usize + r.x as usize) * 3;
             self.rgb[start..start + row_bytes].copy_from_slice(src);
         }

@@ -121,10 +121,16 @@ impl Session {
                     }
                 }
                 Some(rendered) = done_rx.recv() => {
-                    self.in_flight -= 1;
-                    if let Rendered::Done(message) = rendered {
-                        self.conn.send(message).await?;
+                    // Every result ready now goes out in one write.
+                    let mut next = Some(rendered);
+                    while let Some(rendered) = next {
+                        self.in_flight -= 1;
+                        if let Rendered::Done(message) = rendered {
+                            self.conn.feed(message).await?;
+                        }
+                        next = done_rx.try_recv().ok();
                     }
+                    self.conn.flush().await?;
                 }
                 () = &mut shutdown, if !draining => {
                     info!(in_flight = self.in_flight, "shutting down: finishing the tiles held");
