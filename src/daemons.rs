@@ -1,8 +1,6 @@
 //! `tessera coordinator` and `tessera worker`: the two long-running processes.
 
 use std::future::Future;
-use std::net::SocketAddr;
-use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use tracing::info;
@@ -41,8 +39,8 @@ pub fn shutdown_signal(exit_on_stdin_eof: bool) -> impl Future<Output = ()> {
     }
 }
 
-pub async fn coordinator(listen: SocketAddr, data: PathBuf, exit_on_stdin_eof: bool) -> Result<()> {
-    let server = coordinator::server::Server::bind(coordinator::Config::new(listen, data)).await?;
+pub async fn coordinator(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<()> {
+    let server = coordinator::server::Server::bind(config).await?;
     let addr = server.local_addr()?;
     // The first line on stdout is the address, for scripts and `tessera up`.
     println!("listening on {addr}");

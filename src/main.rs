@@ -165,6 +165,11 @@ struct CoordinatorArgs {
     /// Where jobs and images are stored.
     #[arg(long, value_name = "DIR", default_value = "tessera-data")]
     data: PathBuf,
+    /// Largest protocol frame accepted from a peer, in bytes (it bounds the scene a job
+    /// may carry).
+    #[arg(long, value_name = "BYTES", default_value_t = protocol::DEFAULT_MAX_FRAME as u64,
+          value_parser = clap::value_parser!(u64).range(65_536..=protocol::MAX_FRAME_LIMIT as u64))]
+    max_frame: u64,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -277,7 +282,12 @@ fn run(command: Command) -> Result<()> {
                 .await
             }
             Command::Coordinator(a) => {
-                daemons::coordinator(a.listen, a.data, a.exit_on_stdin_eof).await
+                let config = coordinator::Config {
+                    listen: a.listen,
+                    data: a.data,
+                    max_frame: a.max_frame as usize,
+                };
+                daemons::coordinator(config, a.exit_on_stdin_eof).await
             }
             Command::Worker(a) => {
                 daemons::worker(
