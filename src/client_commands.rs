@@ -2,7 +2,6 @@
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
@@ -11,10 +10,6 @@ use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, WorkerStatus};
 use serde_json::{json, Value};
 
 use crate::output::{default_output, write_atomically};
-
-/// How often `--wait` asks for progress: often enough that noticing the end of a job
-/// adds little to a short render; a status request costs the coordinator microseconds.
-const POLL: Duration = Duration::from_millis(20);
 
 /// Reads a scene file for submission.
 pub fn read_scene(path: &Path) -> Result<String> {
@@ -55,8 +50,10 @@ pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
         )
         .expect("the template is valid"),
     );
+    let mut seen = 0;
     let status = loop {
-        let status = client.status(job).await?;
+        let status = client.watch(job, seen).await?;
+        seen = status.tiles_done;
         bar.set_length(u64::from(status.tiles_total));
         bar.set_position(u64::from(status.tiles_done));
         let rate = status.rays as f64 / (status.elapsed_ms.max(1) as f64 / 1000.0) / 1e6;
@@ -67,7 +64,6 @@ pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
         if status.state.is_final() {
             break status;
         }
-        tokio::time::sleep(POLL).await;
     };
     bar.finish_and_clear();
     match status.state {

@@ -83,6 +83,18 @@ impl Client {
         }
     }
 
+    /// The job's status once it has progressed past `after_tiles` or ended (see
+    /// [`ClientRequest::Watch`]).
+    pub async fn watch(&mut self, job: JobId, after_tiles: u32) -> Result<JobStatus> {
+        match self
+            .request(ClientRequest::Watch { job, after_tiles })
+            .await?
+        {
+            ClientResponse::Job(status) => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     pub async fn list(&mut self) -> Result<Vec<JobStatus>> {
         match self.request(ClientRequest::List).await? {
             ClientResponse::Jobs(jobs) => Ok(jobs),

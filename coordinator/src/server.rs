@@ -38,6 +38,11 @@ const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Bytes of PNG per `ImageChunk`.
 const CHUNK: usize = 1024 * 1024;
 
+/// A `Watch` reports progress at most this often...
+const WATCH_MIN_INTERVAL: Duration = Duration::from_millis(50);
+/// ...and answers after this long even without progress.
+const WATCH_TIMEOUT: Duration = Duration::from_secs(1);
+
 /// How the daemon is set up.
 #[derive(Clone, Debug)]
 pub struct Config {
@@ -67,6 +72,14 @@ struct Shared {
     state: Mutex<State>,
     store: Store,
     max_frame: usize,
+    /// Bumped whenever a job progresses or changes state, to wake `Watch`es.
+    changes: tokio::sync::watch::Sender<u64>,
+}
+
+impl Shared {
+    fn changed(&self) {
+        self.changes.send_modify(|n| *n = n.wrapping_add(1));
+    }
 }
 
 struct State {
@@ -129,6 +142,7 @@ impl Server {
                 }),
                 store,
                 max_frame: config.max_frame,
+                changes: tokio::sync::watch::channel(0).0,
             }),
         })
     }
@@ -220,6 +234,7 @@ type WorkerConn = Framed<TcpStream, MessageCodec<FromWorker, ToWorker>>;
 async fn serve_client(shared: Arc<Shared>, mut conn: ClientConn) -> ConnResult {
     while let Some(request) = conn.next().await {
         let response = match request {
+            Ok(ClientRequest::Watch { job, after_tiles }) => watch(&shared, job, after_tiles).await,
             Ok(request) => respond(&shared, request),
             Err(e) => {
                 let message = format!("bad request: {e}");
@@ -232,6 +247,37 @@ async fn serve_client(shared: Arc<Shared>, mut conn: ClientConn) -> ConnResult {
     Ok(())
 }
 
+/// Answers a `Watch`: waits until the job has progressed past `after_tiles` (and at
+/// least [`WATCH_MIN_INTERVAL`] has passed) or has ended, or [`WATCH_TIMEOUT`] is up.
+async fn watch(shared: &Shared, job: JobId, after_tiles: u32) -> ClientResponse {
+    let started = tokio::time::Instant::now();
+    let mut changes = shared.changes.subscribe();
+    loop {
+        let status = match shared.state.lock().expect("state lock").jobs.get(&job) {
+            Some(record) => record.status(job),
+            None => return unknown_job(job),
+        };
+        let progressed = status.tiles_done > after_tiles;
+        let elapsed = started.elapsed();
+        if status.state.is_final()
+            || (progressed && elapsed >= WATCH_MIN_INTERVAL)
+            || elapsed >= WATCH_TIMEOUT
+        {
+            return ClientResponse::Job(status);
+        }
+        let until = started
+            + if progressed {
+                WATCH_MIN_INTERVAL
+            } else {
+                WATCH_TIMEOUT
+            };
+        tokio::select! {
+            _ = changes.changed() => {}
+            () = tokio::time::sleep_until(until) => {}
+        }
+    }
+}
+
 fn respond(shared: &Arc<Shared>, request: ClientRequest) -> ClientResponse {
     let mut state = shared.state.lock().expect("state lock");
     match request {
@@ -239,10 +285,12 @@ fn respond(shared: &Arc<Shared>, request: ClientRequest) -> ClientResponse {
             Ok(job) => ClientResponse::Submitted { job },
             Err(message) => ClientResponse::Error { message },
         },
-        ClientRequest::Status { job } => match state.jobs.get(&job) {
-            Some(record) => ClientResponse::Job(record.status(job)),
-            None => unknown_job(job),
-        },
+        ClientRequest::Watch { job, .. } | ClientRequest::Status { job } => {
+            match state.jobs.get(&job) {
+                Some(record) => ClientResponse::Job(record.status(job)),
+                None => unknown_job(job),
+            }
+        }
         ClientRequest::List => {
             ClientResponse::Jobs(state.jobs.iter().map(|(id, r)| r.status(*id)).collect())
         }
@@ -521,6 +569,7 @@ impl State {
                 other => self.apply_one(other),
             }
         }
+        shared.changed();
     }
 
     /// For actions that cannot finish a job (a submission of a non-empty job).
@@ -639,6 +688,8 @@ impl State {
                     record.error = Some(format!("cannot store the image: {e:#}"));
                 }
             }
+            drop(state);
+            shared.changed();
         });
     }
 }

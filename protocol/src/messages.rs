@@ -68,6 +68,13 @@ pub enum ClientRequest {
         offset: u64,
     },
     Workers,
+    /// The job's status as soon as it has more than `after_tiles` tiles done (but at
+    /// most every 50 ms) or has ended, or after one second at the latest: progress
+    /// without polling, and the end of a job noticed at once.
+    Watch {
+        job: JobId,
+        after_tiles: u32,
+    },
 }
 
 /// The coordinator's answer to a [`ClientRequest`].
