@@ -339,3 +339,188 @@ impl Scheduler {
             .map(|(id, _)| *id)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCENE_A: SceneHash = [1; 32];
+    const SCENE_B: SceneHash = [2; 32];
+
+    fn assigns(actions: &[Action]) -> Vec<(WorkerId, JobId, u32)> {
+        actions
+            .iter()
+            .filter_map(|a| match *a {
+                Action::Assign { worker, job, tile } => Some((worker, job, tile)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn submit(
+        s: &mut Scheduler,
+        job: JobId,
+        priority: i32,
+        scene: SceneHash,
+        tiles: u32,
+    ) -> Vec<Action> {
+        s.handle(Event::JobSubmitted {
+            job,
+            priority,
+            scene,
+            tiles,
+        })
+    }
+
+    #[test]
+    fn a_worker_holds_its_credit_and_gets_the_next_tile_when_it_returns_one() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 10);
+        let joined = s.handle(Event::WorkerJoined {
+            worker: 7,
+            threads: 1,
+        });
+        assert_eq!(joined[0], Action::SendScene { worker: 7, job: 1 });
+        assert_eq!(assigns(&joined), vec![(7, 1, 0), (7, 1, 1)]);
+        let done = s.handle(Event::TileDone {
+            worker: 7,
+            job: 1,
+            tile: 0,
+        });
+        assert_eq!(done[0], Action::AcceptTile { job: 1, tile: 0 });
+        assert_eq!(assigns(&done), vec![(7, 1, 2)]);
+        assert_eq!(s.held_by(7), 2);
+    }
+
+    #[test]
+    fn results_are_accepted_once_and_only_from_the_holder() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 3);
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        s.handle(Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+        });
+        // Tile 0 is worker 1's: worker 2's result for it is dropped.
+        let stray = s.handle(Event::TileDone {
+            worker: 2,
+            job: 1,
+            tile: 0,
+        });
+        assert!(!stray.iter().any(|a| matches!(a, Action::AcceptTile { .. })));
+        let first = s.handle(Event::TileDone {
+            worker: 1,
+            job: 1,
+            tile: 0,
+        });
+        assert!(first.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        let again = s.handle(Event::TileDone {
+            worker: 1,
+            job: 1,
+            tile: 0,
+        });
+        assert!(!again.iter().any(|a| matches!(a, Action::AcceptTile { .. })));
+    }
+
+    #[test]
+    fn a_leaving_worker_s_tiles_go_to_another_and_the_job_finishes() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 4);
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        let joined = s.handle(Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+        });
+        assert_eq!(assigns(&joined), vec![(2, 1, 2), (2, 1, 3)]);
+        let left = s.handle(Event::WorkerLeft { worker: 1 });
+        assert!(assigns(&left).is_empty(), "worker 2 is at its credit");
+        let mut actions = Vec::new();
+        for tile in [2, 3, 0, 1] {
+            actions.extend(s.handle(Event::TileDone {
+                worker: 2,
+                job: 1,
+                tile,
+            }));
+        }
+        assert!(actions.contains(&Action::JobDone { job: 1 }));
+        assert!(!s.is_active(1));
+    }
+
+    #[test]
+    fn equal_priorities_share_the_farm_and_higher_priority_goes_first() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 100);
+        submit(&mut s, 2, 0, SCENE_A, 4);
+        let joined = s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 2,
+        });
+        // Fewest tiles in flight first: the two jobs alternate.
+        assert_eq!(
+            assigns(&joined),
+            vec![(1, 1, 0), (1, 2, 0), (1, 1, 1), (1, 2, 1)]
+        );
+        let urgent = submit(&mut s, 3, 5, SCENE_B, 2);
+        assert!(assigns(&urgent).is_empty(), "the worker is at its credit");
+        let next = s.handle(Event::TileDone {
+            worker: 1,
+            job: 1,
+            tile: 0,
+        });
+        assert_eq!(assigns(&next), vec![(1, 3, 0)]);
+        assert!(next.contains(&Action::SendScene { worker: 1, job: 3 }));
+    }
+
+    #[test]
+    fn cancelling_tells_the_holders_and_forgets_the_scene() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 10);
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        let cancelled = s.handle(Event::CancelJob { job: 1 });
+        assert!(cancelled.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
+        assert!(cancelled.contains(&Action::ForgetScene {
+            worker: 1,
+            scene: SCENE_A
+        }));
+        assert!(!s.is_active(1));
+        assert_eq!(s.held_by(1), 0);
+        // A later job of the same scene sends it again.
+        let later = submit(&mut s, 2, 0, SCENE_A, 1);
+        assert_eq!(later[0], Action::SendScene { worker: 1, job: 2 });
+    }
+
+    #[test]
+    fn a_draining_worker_gets_nothing_more_and_a_failure_fails_the_job() {
+        let mut s = Scheduler::new();
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        s.handle(Event::WorkerDraining { worker: 1 });
+        assert!(assigns(&submit(&mut s, 1, 0, SCENE_A, 3)).is_empty());
+        s.handle(Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+        });
+        let failed = s.handle(Event::TileFailed {
+            worker: 2,
+            job: 1,
+            tile: 0,
+            message: "boom".into(),
+        });
+        assert!(failed.contains(&Action::JobFailed {
+            job: 1,
+            message: "boom".into()
+        }));
+        assert!(!s.is_active(1));
+    }
+}
