@@ -10,6 +10,7 @@
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::Mutex;
 
 use anyhow::{anyhow, bail, Context, Result};
 use coordinator::client::Client;
@@ -35,6 +36,7 @@ pub async fn run(opts: Options) -> Result<()> {
         .context("starting the local farm")??;
     let result = tokio::select! {
         r = render_on(&farm.address, &opts) => r,
+        e = farm.first_exit() => Err(e),
         _ = tokio::signal::ctrl_c() => Err(anyhow!("interrupted")),
     };
     drop(farm);
@@ -57,11 +59,42 @@ async fn render_on(address: &str, opts: &Options) -> Result<()> {
 /// The child processes of a local farm; dropping it stops them all.
 struct LocalFarm {
     address: String,
-    children: Vec<(Child, Option<ChildStdin>)>,
+    children: Mutex<Vec<(Child, Option<ChildStdin>)>>,
     dir: tempfile::TempDir,
 }
 
 impl LocalFarm {
+    /// Completes when the farm can no longer finish: the coordinator or every worker
+    /// has exited on its own. (One worker lost is survivable: its tiles go to the
+    /// others.) The error names the process, with the last line of its log.
+    async fn first_exit(&self) -> anyhow::Error {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            let mut children = self.children.lock().expect("children lock");
+            let mut exited = Vec::new();
+            for (i, (child, _)) in children.iter_mut().enumerate() {
+                if let Ok(Some(status)) = child.try_wait() {
+                    exited.push((i, status));
+                }
+            }
+            let workers = children.len() - 1;
+            let fatal = exited.iter().find(|(i, _)| *i == 0).or_else(|| {
+                (workers > 0 && exited.len() == workers)
+                    .then(|| exited.last())
+                    .flatten()
+            });
+            if let Some(&(i, status)) = fatal {
+                let name = if i == 0 {
+                    "coordinator".to_string()
+                } else {
+                    format!("local-{i}")
+                };
+                let log = last_line(&self.dir.path().join(format!("{name}.log")));
+                return anyhow!("the local {name} stopped ({status}): {log}");
+            }
+        }
+    }
+
     fn start(workers: usize, threads: usize) -> Result<LocalFarm> {
         let exe = std::env::current_exe().context("cannot find the tessera executable")?;
         let dir = tempfile::Builder::new()
@@ -70,7 +103,7 @@ impl LocalFarm {
             .context("cannot create a temporary directory")?;
         let mut farm = LocalFarm {
             address: String::new(),
-            children: Vec::new(),
+            children: Mutex::new(Vec::new()),
             dir,
         };
         let data = farm.dir.path().join("data");
@@ -88,7 +121,10 @@ impl LocalFarm {
         )?;
         let stdout = coordinator.stdout.take().expect("stdout is piped");
         let stdin = coordinator.stdin.take();
-        farm.children.push((coordinator, stdin));
+        farm.children
+            .get_mut()
+            .expect("children lock")
+            .push((coordinator, stdin));
         let mut line = String::new();
         BufReader::new(stdout).read_line(&mut line)?;
         farm.address = match line.trim().strip_prefix("listening on ") {
@@ -116,7 +152,10 @@ impl LocalFarm {
                 false,
             )?;
             let stdin = child.stdin.take();
-            farm.children.push((child, stdin));
+            farm.children
+                .get_mut()
+                .expect("children lock")
+                .push((child, stdin));
         }
         Ok(farm)
     }
@@ -148,7 +187,8 @@ impl LocalFarm {
 impl Drop for LocalFarm {
     fn drop(&mut self) {
         // Workers first, so the coordinator never sees its workers' tiles requeued.
-        for (child, stdin) in self.children.iter_mut().rev() {
+        let children = self.children.get_mut().unwrap_or_else(|e| e.into_inner());
+        for (child, stdin) in children.iter_mut().rev() {
             drop(stdin.take());
             let _ = child.kill();
             let _ = child.wait();
