@@ -1,41 +1,37 @@
 //! `tessera coordinator` and `tessera worker`: the two long-running processes.
 
-use std::future::Future;
-
 use anyhow::{Context, Result};
 use tracing::info;
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
 /// standard input reaches its end because the parent is gone.
-pub fn shutdown_signal(exit_on_stdin_eof: bool) -> impl Future<Output = ()> {
-    async move {
-        let stdin_closed = async {
-            if exit_on_stdin_eof {
-                let _ = tokio::task::spawn_blocking(|| {
-                    let mut sink = Vec::new();
-                    let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut sink);
-                })
-                .await;
-            } else {
-                std::future::pending::<()>().await;
-            }
-        };
-        #[cfg(unix)]
-        let terminate = async {
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(mut s) => {
-                    s.recv().await;
-                }
-                Err(_) => std::future::pending().await,
-            }
-        };
-        #[cfg(not(unix))]
-        let terminate = std::future::pending::<()>();
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => info!("interrupted"),
-            () = terminate => info!("terminated"),
-            () = stdin_closed => info!("parent gone"),
+pub async fn shutdown_signal(exit_on_stdin_eof: bool) {
+    let stdin_closed = async {
+        if exit_on_stdin_eof {
+            let _ = tokio::task::spawn_blocking(|| {
+                let mut sink = Vec::new();
+                let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut sink);
+            })
+            .await;
+        } else {
+            std::future::pending::<()>().await;
         }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => info!("interrupted"),
+        () = terminate => info!("terminated"),
+        () = stdin_closed => info!("parent gone"),
     }
 }
 

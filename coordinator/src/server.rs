@@ -391,7 +391,7 @@ async fn serve_worker(
         while let Some(message) = stream.next().await {
             let message = message?;
             let mut state = shared.state.lock().expect("state lock");
-            state.from_worker(&shared, worker, message)?;
+            state.on_worker_message(&shared, worker, message)?;
         }
         Ok(())
     }
@@ -481,7 +481,7 @@ impl State {
         Ok(id)
     }
 
-    fn from_worker(
+    fn on_worker_message(
         &mut self,
         shared: &Arc<Shared>,
         worker: WorkerId,
