@@ -191,10 +191,8 @@ impl Scheduler {
                 tile,
                 message,
             } => {
-                if let Some(w) = self.workers.get_mut(&worker) {
-                    w.holding.remove(&(job, tile));
-                }
-                if self.jobs.contains_key(&job) {
+                // Like a result, a failure counts only from the worker holding the tile.
+                if self.release(worker, job, tile) {
                     self.end_job(job, &mut actions);
                     actions.push(Action::JobFailed { job, message });
                 }
@@ -227,18 +225,27 @@ impl Scheduler {
         self.workers.get(&worker).map_or(0, |w| w.holding.len())
     }
 
-    fn tile_done(&mut self, worker: WorkerId, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
-        let held = self
-            .workers
-            .get_mut(&worker)
-            .is_some_and(|w| w.holding.remove(&(job_id, tile)));
+    /// Takes the tile back from the worker if, and only if, the worker holds it for an
+    /// active job. Anything else (a stray, late or duplicate message) changes nothing.
+    fn release(&mut self, worker: WorkerId, job_id: JobId, tile: u32) -> bool {
         let Some(job) = self.jobs.get_mut(&job_id) else {
-            return;
+            return false;
         };
-        if !held || job.in_flight.get(&tile) != Some(&worker) {
-            return;
+        if job.in_flight.get(&tile) != Some(&worker) {
+            return false;
         }
         job.in_flight.remove(&tile);
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.holding.remove(&(job_id, tile));
+        }
+        true
+    }
+
+    fn tile_done(&mut self, worker: WorkerId, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
+        if !self.release(worker, job_id, tile) {
+            return;
+        }
+        let job = self.jobs.get_mut(&job_id).expect("release checked the job");
         job.done[tile as usize] = true;
         job.remaining -= 1;
         actions.push(Action::AcceptTile { job: job_id, tile });
