@@ -2,7 +2,7 @@
 //! integers and a decode limit, so that a length or a vector size claimed by a peer is
 //! checked against what the frame can hold before anything is allocated.
 
-use bincode::config::{self, Configuration, Fixint, Limit, LittleEndian, NoLimit};
+use bincode::config::{self, Configuration, Fixint, LittleEndian, NoLimit};
 use serde::{de::DeserializeOwned, Serialize};
 
 use crate::codec::MAX_FRAME_LIMIT;
