@@ -48,6 +48,7 @@ pub async fn worker(
     coordinator: String,
     threads: Option<usize>,
     name: Option<String>,
+    secret: Option<Vec<u8>>,
     exit_on_stdin_eof: bool,
 ) -> Result<()> {
     let threads =
@@ -58,6 +59,7 @@ pub async fn worker(
             coordinator,
             threads,
             name,
+            secret,
         },
         shutdown_signal(exit_on_stdin_eof),
     )

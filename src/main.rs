@@ -168,8 +168,36 @@ struct CoordinatorArgs {
     /// Largest protocol frame accepted from a peer, in bytes (it bounds the scene a job
     /// may carry).
     #[arg(long, value_name = "BYTES", default_value_t = protocol::DEFAULT_MAX_FRAME as u64,
-          value_parser = clap::value_parser!(u64).range(65_536..=protocol::MAX_FRAME_LIMIT as u64))]
+          value_parser = clap::value_parser!(u64).range(2 * 1024 * 1024..=protocol::MAX_FRAME_LIMIT as u64))]
     max_frame: u64,
+    /// Connections served at once; more are refused with a message.
+    #[arg(long, value_name = "N", default_value_t = coordinator::server::DEFAULT_MAX_CONNECTIONS as u32,
+          value_parser = clap::value_parser!(u32).range(1..=65_536))]
+    max_connections: u32,
+    /// Largest scene a job may carry, in bytes.
+    #[arg(long, value_name = "BYTES", default_value_t = 8 * 1024 * 1024)]
+    max_scene_bytes: u64,
+    /// Most objects a scene may have.
+    #[arg(long, value_name = "N", default_value_t = 100_000)]
+    max_objects: u64,
+    /// Most pixels an image may have.
+    #[arg(long, value_name = "N", default_value_t = 8192 * 8192)]
+    max_pixels: u64,
+    /// Largest antialiasing a job may ask for.
+    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
+    max_aa: u32,
+    /// Most jobs queued or running per client address.
+    #[arg(long, value_name = "N", default_value_t = 64)]
+    max_jobs_per_client: u64,
+    #[command(flatten)]
+    secret: SecretArgs,
+    /// Accept peers without a token on a non-loopback address.
+    #[arg(long)]
+    insecure: bool,
+    /// Milliseconds a peer has to complete its handshake.
+    #[arg(long, value_name = "MS", default_value_t = coordinator::server::DEFAULT_HANDSHAKE_TIMEOUT.as_millis() as u64,
+          value_parser = clap::value_parser!(u64).range(100..=600_000))]
+    handshake_timeout_ms: u64,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -186,6 +214,8 @@ struct WorkerArgs {
     /// Name shown by `tessera workers` [default: HOST-PID].
     #[arg(long)]
     name: Option<String>,
+    #[command(flatten)]
+    secret: SecretArgs,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -219,9 +249,46 @@ struct ClientArgs {
     /// The coordinator's address.
     #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
     coordinator: String,
+    #[command(flatten)]
+    secret: SecretArgs,
     /// Machine-readable JSON output.
     #[arg(long)]
     json: bool,
+}
+
+/// The shared secret of a farm that requires one.
+#[derive(Args)]
+struct SecretArgs {
+    /// File holding the farm's shared secret [or set TESSERA_TOKEN to the secret itself].
+    #[arg(long, value_name = "FILE")]
+    token_file: Option<PathBuf>,
+}
+
+impl SecretArgs {
+    /// The secret from --token-file, else from TESSERA_TOKEN, else none.
+    fn load(&self) -> Result<Option<Vec<u8>>> {
+        let secret = match &self.token_file {
+            Some(path) => std::fs::read_to_string(path).map_err(|e| {
+                anyhow::anyhow!("cannot read the token file {}: {e}", path.display())
+            })?,
+            None => match std::env::var("TESSERA_TOKEN") {
+                Ok(token) => token,
+                Err(_) => return Ok(None),
+            },
+        };
+        let secret = secret.trim();
+        anyhow::ensure!(!secret.is_empty(), "the token is empty");
+        Ok(Some(secret.as_bytes().to_vec()))
+    }
+}
+
+impl ClientArgs {
+    fn target(&self) -> Result<client_commands::Target> {
+        Ok(client_commands::Target {
+            address: self.coordinator.clone(),
+            secret: self.secret.load()?,
+        })
+    }
 }
 
 impl ImageArgs {
@@ -286,7 +353,25 @@ fn run(command: Command) -> Result<()> {
                     listen: a.listen,
                     data: a.data,
                     max_frame: a.max_frame as usize,
+                    max_connections: a.max_connections as usize,
+                    handshake_timeout: std::time::Duration::from_millis(a.handshake_timeout_ms),
+                    secret: a.secret.load()?,
+                    limits: coordinator::server::JobLimits {
+                        max_scene_bytes: a.max_scene_bytes as usize,
+                        max_objects: a.max_objects as usize,
+                        max_pixels: a.max_pixels,
+                        max_aa: a.max_aa,
+                        max_active_per_client: a.max_jobs_per_client as usize,
+                    },
                 };
+                if !a.listen.ip().is_loopback() && config.secret.is_none() && !a.insecure {
+                    anyhow::bail!(
+                        "refusing to listen on {} without a token: anyone who can reach it could \
+                         submit jobs and pose as a worker. Give --token-file FILE or set \
+                         TESSERA_TOKEN (or pass --insecure to accept anyone)",
+                        a.listen
+                    );
+                }
                 daemons::coordinator(config, a.exit_on_stdin_eof).await
             }
             Command::Worker(a) => {
@@ -294,13 +379,14 @@ fn run(command: Command) -> Result<()> {
                     a.coordinator,
                     a.threads.map(|n| n as usize),
                     a.name,
+                    a.secret.load()?,
                     a.exit_on_stdin_eof,
                 )
                 .await
             }
             Command::Submit(a) => {
                 client_commands::run_submit(
-                    &a.common.coordinator,
+                    &a.common.target()?,
                     &a.scene,
                     a.image.overrides(a.tile),
                     a.priority,
@@ -311,21 +397,21 @@ fn run(command: Command) -> Result<()> {
                 .await
             }
             Command::Status { job, common } => {
-                client_commands::run_status(&common.coordinator, job, common.json).await
+                client_commands::run_status(&common.target()?, job, common.json).await
             }
             Command::List { common } => {
-                client_commands::run_list(&common.coordinator, common.json).await
+                client_commands::run_list(&common.target()?, common.json).await
             }
             Command::Cancel { job, common } => {
-                client_commands::run_cancel(&common.coordinator, job, common.json).await
+                client_commands::run_cancel(&common.target()?, job, common.json).await
             }
             Command::Fetch {
                 job,
                 output,
                 common,
-            } => client_commands::run_fetch(&common.coordinator, job, output, common.json).await,
+            } => client_commands::run_fetch(&common.target()?, job, output, common.json).await,
             Command::Workers { common } => {
-                client_commands::run_workers(&common.coordinator, common.json).await
+                client_commands::run_workers(&common.target()?, common.json).await
             }
         }
     })

@@ -44,7 +44,7 @@ pub async fn run(opts: Options) -> Result<()> {
 }
 
 async fn render_on(address: &str, opts: &Options) -> Result<()> {
-    let mut client = Client::connect(address).await?;
+    let mut client = Client::connect(address, None).await?;
     let job = submit(&mut client, &opts.scene, opts.overrides, 0).await?;
     let status = wait(&mut client, job).await?;
     let output = opts

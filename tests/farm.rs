@@ -955,3 +955,118 @@ fn up_leaves_no_process_behind() {
         let _ = std::fs::remove_dir_all(up_dir);
     }
 }
+
+// ---------------------------------------------------------------------------------
+// A farm with a shared secret.
+// ---------------------------------------------------------------------------------
+
+#[test]
+fn a_farm_with_a_token_admits_only_peers_that_prove_it() {
+    let dir = TempDir::new().expect("cannot create a temporary directory");
+    let token = dir.path().join("token");
+    std::fs::write(&token, "correct horse\n").unwrap();
+    let wrong = dir.path().join("wrong");
+    std::fs::write(&wrong, "battery staple\n").unwrap();
+    let token_arg = path_arg(&token);
+
+    // Without a token, only loopback addresses are served (nothing is bound here).
+    let refused = common::tessera(
+        dir.path(),
+        &["coordinator", "--listen", "0.0.0.0:0", "--data", "d"],
+        CLIENT_TIMEOUT,
+    );
+    let line = one_error_line(&refused, "coordinator on 0.0.0.0 without a token");
+    assert!(line.contains("without a token"), "{line}");
+
+    let log = dir.path().join("coordinator.log");
+    let mut child = Command::new(BIN)
+        .args([
+            "coordinator",
+            "--listen",
+            "127.0.0.1:0",
+            "--token-file",
+            &token_arg,
+        ])
+        .arg("--data")
+        .arg(dir.path().join("data"))
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(File::create(&log).unwrap())
+        .spawn()
+        .expect("cannot start the coordinator");
+    let stdout = child.stdout.take().unwrap();
+    let _coordinator = Guarded {
+        name: "coordinator".into(),
+        child,
+        log: Some(log),
+    };
+    let line = first_line(stdout, STARTUP_TIMEOUT).expect("no address from the coordinator");
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap()
+        .to_owned();
+    let client = |extra: &[&str]| {
+        let args = cat(&["list", "--coordinator", addr.as_str()], extra);
+        common::tessera(dir.path(), &args, CLIENT_TIMEOUT)
+    };
+
+    let anonymous = one_error_line(&client(&[]), "list without a token");
+    assert!(
+        anonymous.contains("a token is required") && anonymous.contains(&addr),
+        "{anonymous}"
+    );
+    let wrong_token = one_error_line(&client(&["--token-file", &path_arg(&wrong)]), "wrong token");
+    assert!(
+        wrong_token.contains("authentication failed"),
+        "{wrong_token}"
+    );
+    ok(client(&["--token-file", &token_arg]), "list with the token");
+
+    // A worker without the token is refused for good and exits; one with it (from the
+    // environment) joins and renders.
+    let anonymous_worker = common::tessera(
+        dir.path(),
+        &["worker", "--coordinator", addr.as_str(), "--threads", "1"],
+        CLIENT_TIMEOUT,
+    );
+    assert!(!anonymous_worker.status.success());
+    assert!(anonymous_worker.stderr.contains("a token is required"));
+    let worker = Command::new(BIN)
+        .args([
+            "worker",
+            "--coordinator",
+            addr.as_str(),
+            "--threads",
+            "2",
+            "--name",
+            "trusted",
+        ])
+        .env("TESSERA_TOKEN", "correct horse")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("cannot start a worker");
+    let _worker = Guarded {
+        name: "worker".into(),
+        child: worker,
+        log: None,
+    };
+    let out = dir.path().join("seed.png");
+    let seed = scene("seed.json");
+    let submit = cat(
+        &["submit", seed.as_str(), "--wait", "-o", &path_arg(&out)],
+        &["--coordinator", addr.as_str(), "--token-file", &token_arg],
+    );
+    ok(
+        common::tessera(dir.path(), &cat(&submit, SMALL), CLIENT_TIMEOUT),
+        "submit with the token",
+    );
+    let reference = render_reference(dir.path(), &seed, "reference.png", SMALL);
+    assert_same_image(
+        &out,
+        &reference,
+        "the image rendered by an authenticated farm",
+    );
+}

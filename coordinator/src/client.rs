@@ -5,8 +5,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, Hello, JobId, JobSpec, JobStatus, MessageCodec, Role, Welcome,
-    WorkerStatus, DEFAULT_MAX_FRAME,
+    ClientRequest, ClientResponse, Hello, JobId, JobSpec, JobStatus, MessageCodec, PeerHandshake,
+    PeerStep, Role, WorkerStatus, DEFAULT_MAX_FRAME,
 };
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
@@ -18,8 +18,9 @@ pub struct Client {
 }
 
 impl Client {
-    /// Connects and handshakes. Errors name the address tried.
-    pub async fn connect(address: &str) -> Result<Client> {
+    /// Connects and handshakes, proving `secret` if the coordinator asks for it.
+    /// Errors name the address tried.
+    pub async fn connect(address: &str, secret: Option<Vec<u8>>) -> Result<Client> {
         let stream = TcpStream::connect(address)
             .await
             .with_context(|| format!("cannot reach the coordinator at {address}"))?;
@@ -34,17 +35,21 @@ impl Client {
         raw.send(Bytes::from(Hello::new(Role::Client).to_frame()))
             .await
             .with_context(|| format!("cannot talk to the coordinator at {address}"))?;
-        let reply = raw
-            .next()
-            .await
-            .ok_or_else(|| anyhow!("the coordinator at {address} closed the connection"))?
-            .with_context(|| format!("cannot talk to the coordinator at {address}"))?;
-        match protocol::wire::decode::<Welcome>(&reply) {
-            Ok(Welcome::Accepted { .. }) => {}
-            Ok(Welcome::Refused { reason }) => {
-                bail!("the coordinator at {address} refused the connection: {reason}")
+        let mut handshake = PeerHandshake::new(secret);
+        loop {
+            let reply = raw
+                .next()
+                .await
+                .ok_or_else(|| anyhow!("the coordinator at {address} closed the connection"))?
+                .with_context(|| format!("cannot talk to the coordinator at {address}"))?;
+            match handshake.on_frame(&reply) {
+                Ok(PeerStep::Accepted) => break,
+                Ok(PeerStep::Send(proof)) => raw
+                    .send(Bytes::from(proof))
+                    .await
+                    .with_context(|| format!("cannot talk to the coordinator at {address}"))?,
+                Err(e) => bail!("the coordinator at {address}: {e}"),
             }
-            Err(e) => bail!("{address} does not answer like a Tessera coordinator: {e}"),
         }
         Ok(Client {
             conn: raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)),

@@ -6,6 +6,7 @@
 //! library side of the command-line client.
 
 pub mod client;
+mod db;
 pub mod scheduler;
 pub mod server;
 mod store;

@@ -1,8 +1,10 @@
-//! The scheduler core: which tile goes to which worker, and when a job is finished.
+//! The scheduler core: which tile goes to which worker, when a lease runs out, and when
+//! a job is finished or has failed.
 //!
 //! A pure state machine. It owns no socket, no clock and no thread: the daemon feeds it
-//! [`Event`]s and carries out the [`Action`]s it returns, and tests feed it scripted or
-//! random events. Every decision of the farm is made here.
+//! [`Event`]s (time arrives as [`Event::Tick`]) and carries out the [`Action`]s it
+//! returns, and tests feed it scripted or random events with a virtual clock. Every
+//! decision of the farm is made here.
 //!
 //! Policy:
 //! - **Pull with credit.** A worker holds at most its credit of tiles (twice its
@@ -13,23 +15,81 @@
 //!   tiles in flight; among those, to the oldest. One job alone gets the whole farm;
 //!   two jobs of equal priority split it evenly, so a small job behind a huge one
 //!   finishes in about twice its solo time instead of waiting for the huge one.
-//! - **First result wins.** A result for a tile that is already done, or that is no
-//!   longer assigned to the worker that sends it, is dropped.
+//! - **Leases.** Every assignment has a deadline: a few times the job's measured tile
+//!   time (a generous default before the first tile is measured). A tile whose lease
+//!   runs out goes back to the queue; its first holder may still deliver it.
+//! - **Liveness from heartbeats.** A worker not heard from within the heartbeat
+//!   timeout is dropped and its tiles go back to the queue.
+//! - **Stragglers.** When a job has no tile left waiting, a worker with free credit is
+//!   also given a tile still in flight elsewhere (the one out longest, at most two
+//!   holders per tile). The first result wins; a later copy is checked equal.
+//! - **First result wins.** A result or a failure for a tile the sender does not hold
+//!   (any more) changes nothing.
+//! - **Poison tiles.** A tile that fails (an error reported, or its worker dying while
+//!   holding it) is retried on other workers; after [`Policy::max_attempts`] failures
+//!   the job fails with the last error. A worker that fails
+//!   [`Policy::block_after`] tiles of a job gets no more of that job's tiles.
 //! - **Scenes once.** A worker is sent a scene before its first tile of it, and only
-//!   then.
+//!   then; it may forget the scene once no active job uses it.
 
 use std::collections::{BTreeMap, BTreeSet, HashSet, VecDeque};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
+/// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
+pub type Millis = u64;
+
+/// The knobs of the policy.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Policy {
+    /// A worker silent for this long is dropped.
+    pub heartbeat_timeout: Millis,
+    /// The lease of a job's tiles before any of them has been measured.
+    pub initial_lease: Millis,
+    /// No lease is shorter than this, however fast the tiles.
+    pub min_lease: Millis,
+    /// A lease lasts this many times the job's slowest measured tile (and at least
+    /// four times its mean).
+    pub lease_factor: u64,
+    /// Failed attempts at one tile before its job fails.
+    pub max_attempts: u32,
+    /// Failures of one job's tiles on one worker before the worker is blocked from it.
+    pub block_after: u32,
+    /// Whether to duplicate stragglers near the end of a job.
+    pub speculate: bool,
+}
+
+impl Default for Policy {
+    fn default() -> Self {
+        Policy {
+            heartbeat_timeout: 5_000,
+            initial_lease: 60_000,
+            min_lease: 1_000,
+            lease_factor: 3,
+            max_attempts: 5,
+            block_after: 2,
+            speculate: true,
+        }
+    }
+}
+
 /// Something that happened, as the daemon saw it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Event {
+    /// The clock moved on: leases and heartbeats are checked.
+    Tick {
+        now: Millis,
+    },
     WorkerJoined {
         worker: WorkerId,
         threads: u32,
     },
-    /// The worker's connection is gone; its tiles go back to their queues.
+    /// The worker is alive (any message from it counts as much).
+    Heartbeat {
+        worker: WorkerId,
+    },
+    /// The worker's connection is gone; its tiles go back to their queues, and count as
+    /// failed attempts (the worker may have died of them).
     WorkerLeft {
         worker: WorkerId,
     },
@@ -48,7 +108,7 @@ pub enum Event {
         job: JobId,
         tile: u32,
     },
-    /// The worker could not render the tile: the job fails with `message`.
+    /// The worker could not render the tile.
     TileFailed {
         worker: WorkerId,
         job: JobId,
@@ -79,6 +139,11 @@ pub enum Action {
         job: JobId,
         tile: u32,
     },
+    /// A second result for a tile already accepted: it must equal the first.
+    DuplicateResult {
+        job: JobId,
+        tile: u32,
+    },
     /// Tell the worker to drop the job's tiles it still holds.
     CancelOnWorker {
         worker: WorkerId,
@@ -88,6 +153,10 @@ pub enum Action {
     ForgetScene {
         worker: WorkerId,
         scene: SceneHash,
+    },
+    /// The worker missed its heartbeats: close its connection.
+    DropWorker {
+        worker: WorkerId,
     },
     /// Every tile is done: assemble and store the image.
     JobDone {
@@ -99,14 +168,102 @@ pub enum Action {
     },
 }
 
+/// One assignment of a tile to a worker.
+#[derive(Clone, Copy, Debug)]
+struct Lease {
+    worker: WorkerId,
+    started: Millis,
+    deadline: Millis,
+    /// Ran out: the tile was put back in the queue, but this holder may still deliver.
+    expired: bool,
+}
+
 struct Job {
     priority: i32,
     scene: SceneHash,
     waiting: VecDeque<u32>,
-    /// Tile → the worker rendering it.
-    in_flight: BTreeMap<u32, WorkerId>,
+    in_flight: BTreeMap<u32, Vec<Lease>>,
     done: Vec<bool>,
     remaining: u32,
+    /// Failed attempts per tile, and the workers each tile failed on.
+    failures: BTreeMap<u32, (u32, BTreeSet<WorkerId>)>,
+    /// Failures per worker, and the workers blocked from this job.
+    worker_failures: BTreeMap<WorkerId, u32>,
+    blocked: BTreeSet<WorkerId>,
+    /// Holders of tiles already accepted, whose copies are still to come.
+    late_copies: BTreeSet<(u32, WorkerId)>,
+    /// Measured tile times (assignment to result).
+    measured: u32,
+    total_time: Millis,
+    slowest: Millis,
+}
+
+impl Job {
+    fn new(priority: i32, scene: SceneHash, tiles: u32) -> Job {
+        Job {
+            priority,
+            scene,
+            waiting: (0..tiles).collect(),
+            in_flight: BTreeMap::new(),
+            done: vec![false; tiles as usize],
+            remaining: tiles,
+            failures: BTreeMap::new(),
+            worker_failures: BTreeMap::new(),
+            blocked: BTreeSet::new(),
+            late_copies: BTreeSet::new(),
+            measured: 0,
+            total_time: 0,
+            slowest: 0,
+        }
+    }
+
+    fn live_leases(&self, tile: u32) -> usize {
+        self.in_flight
+            .get(&tile)
+            .map_or(0, |ls| ls.iter().filter(|l| !l.expired).count())
+    }
+
+    fn lease_length(&self, policy: &Policy) -> Millis {
+        if self.measured == 0 {
+            return policy.initial_lease;
+        }
+        let mean = self.total_time / u64::from(self.measured);
+        (self.slowest * policy.lease_factor)
+            .max(mean * 4)
+            .max(policy.min_lease)
+    }
+
+    /// The first waiting tile this worker may take: one that has not failed on it and
+    /// that it does not still hold under an expired lease.
+    fn take_waiting_for(&mut self, worker: WorkerId) -> Option<u32> {
+        let pos = self.waiting.iter().position(|t| {
+            self.failures
+                .get(t)
+                .is_none_or(|(_, on)| !on.contains(&worker))
+                && self
+                    .in_flight
+                    .get(t)
+                    .is_none_or(|ls| ls.iter().all(|l| l.worker != worker))
+        })?;
+        self.waiting.remove(pos)
+    }
+
+    /// The tile to duplicate for an idle worker: in flight with one live holder that is
+    /// not this worker, never failed on this worker, out the longest.
+    fn straggler_for(&self, worker: WorkerId) -> Option<u32> {
+        self.in_flight
+            .iter()
+            .filter(|(t, ls)| {
+                ls.iter().all(|l| l.worker != worker)
+                    && ls.iter().filter(|l| !l.expired).count() == 1
+                    && self
+                        .failures
+                        .get(t)
+                        .is_none_or(|(_, on)| !on.contains(&worker))
+            })
+            .min_by_key(|(t, ls)| (ls.iter().map(|l| l.started).min(), **t))
+            .map(|(t, _)| *t)
+    }
 }
 
 struct Worker {
@@ -114,25 +271,42 @@ struct Worker {
     holding: BTreeSet<(JobId, u32)>,
     scenes: HashSet<SceneHash>,
     draining: bool,
+    last_seen: Millis,
 }
 
 /// The scheduler's whole state.
 #[derive(Default)]
 pub struct Scheduler {
+    policy: Policy,
+    now: Millis,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
     workers: BTreeMap<WorkerId, Worker>,
 }
 
 impl Scheduler {
+    /// A scheduler with the default policy.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    pub fn with_policy(policy: Policy) -> Self {
+        Scheduler {
+            policy,
+            ..Self::default()
+        }
     }
 
     /// Applies one event and returns what to do, in order.
     pub fn handle(&mut self, event: Event) -> Vec<Action> {
         let mut actions = Vec::new();
         match event {
+            Event::Tick { now } => {
+                self.now = self.now.max(now);
+                self.check_heartbeats(&mut actions);
+                self.check_leases();
+                self.fill_all(&mut actions);
+            }
             Event::WorkerJoined { worker, threads } => {
                 self.workers.insert(
                     worker,
@@ -141,21 +315,24 @@ impl Scheduler {
                         holding: BTreeSet::new(),
                         scenes: HashSet::new(),
                         draining: false,
+                        last_seen: self.now,
                     },
                 );
                 self.fill(worker, &mut actions);
             }
-            Event::WorkerLeft { worker } => {
-                if let Some(w) = self.workers.remove(&worker) {
-                    for (job, tile) in w.holding {
-                        self.requeue(job, tile);
-                    }
-                    self.fill_all(&mut actions);
+            Event::Heartbeat { worker } => {
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    w.last_seen = self.now;
                 }
+            }
+            Event::WorkerLeft { worker } => {
+                self.remove_worker(worker, &mut actions);
+                self.fill_all(&mut actions);
             }
             Event::WorkerDraining { worker } => {
                 if let Some(w) = self.workers.get_mut(&worker) {
                     w.draining = true;
+                    w.last_seen = self.now;
                 }
             }
             Event::JobSubmitted {
@@ -164,25 +341,17 @@ impl Scheduler {
                 scene,
                 tiles,
             } => {
-                self.jobs.insert(
-                    job,
-                    Job {
-                        priority,
-                        scene,
-                        waiting: (0..tiles).collect(),
-                        in_flight: BTreeMap::new(),
-                        done: vec![false; tiles as usize],
-                        remaining: tiles,
-                    },
-                );
                 if tiles == 0 {
-                    self.jobs.remove(&job);
                     actions.push(Action::JobDone { job });
+                } else {
+                    self.jobs.insert(job, Job::new(priority, scene, tiles));
                 }
                 self.fill_all(&mut actions);
             }
             Event::TileDone { worker, job, tile } => {
+                self.seen(worker);
                 self.tile_done(worker, job, tile, &mut actions);
+                // Holders of a finished job's last copies are filled at the next tick.
                 self.fill(worker, &mut actions);
             }
             Event::TileFailed {
@@ -191,10 +360,17 @@ impl Scheduler {
                 tile,
                 message,
             } => {
-                // Like a result, a failure counts only from the worker holding the tile.
-                if self.release(worker, job, tile) {
-                    self.end_job(job, &mut actions);
-                    actions.push(Action::JobFailed { job, message });
+                self.seen(worker);
+                // Like a result, a failure counts only from a holder of the tile. A
+                // failed copy of a tile already accepted only frees the worker's slot.
+                if self.release(worker, job, tile).is_some() {
+                    self.failed_attempt(worker, job, tile, &message, &mut actions);
+                } else if let Some(j) = self.jobs.get_mut(&job) {
+                    if j.late_copies.remove(&(tile, worker)) {
+                        if let Some(w) = self.workers.get_mut(&worker) {
+                            w.holding.remove(&(job, tile));
+                        }
+                    }
                 }
                 self.fill_all(&mut actions);
             }
@@ -206,6 +382,40 @@ impl Scheduler {
             }
         }
         actions
+    }
+
+    /// Takes back a job found in durable storage after a restart, with the tiles
+    /// already done; only the others are rendered. (A method rather than an event: it
+    /// is part of rebuilding the state, not something that happens to a running farm.)
+    pub fn resume_job(
+        &mut self,
+        job: JobId,
+        priority: i32,
+        scene: SceneHash,
+        tiles: u32,
+        done: &[u32],
+    ) -> Vec<Action> {
+        let mut actions = Vec::new();
+        let mut j = Job::new(priority, scene, tiles);
+        for &tile in done.iter().filter(|t| **t < tiles) {
+            if !j.done[tile as usize] {
+                j.done[tile as usize] = true;
+                j.remaining -= 1;
+            }
+        }
+        j.waiting.retain(|t| !j.done[*t as usize]);
+        if j.remaining == 0 {
+            actions.push(Action::JobDone { job });
+        } else {
+            self.jobs.insert(job, j);
+        }
+        self.fill_all(&mut actions);
+        actions
+    }
+
+    /// Tiles in flight on all workers (for a graceful shutdown).
+    pub fn tiles_in_flight(&self) -> usize {
+        self.workers.values().map(|w| w.holding.len()).sum()
     }
 
     /// Whether the job still has tiles to render.
@@ -225,46 +435,164 @@ impl Scheduler {
         self.workers.get(&worker).map_or(0, |w| w.holding.len())
     }
 
-    /// Takes the tile back from the worker if, and only if, the worker holds it for an
-    /// active job. Anything else (a stray, late or duplicate message) changes nothing.
-    fn release(&mut self, worker: WorkerId, job_id: JobId, tile: u32) -> bool {
-        let Some(job) = self.jobs.get_mut(&job_id) else {
-            return false;
-        };
-        if job.in_flight.get(&tile) != Some(&worker) {
-            return false;
+    fn seen(&mut self, worker: WorkerId) {
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.last_seen = self.now;
         }
-        job.in_flight.remove(&tile);
+    }
+
+    fn remove_worker(&mut self, worker: WorkerId, actions: &mut Vec<Action>) {
+        let Some(w) = self.workers.remove(&worker) else {
+            return;
+        };
+        for (job, tile) in w.holding {
+            if self.release(worker, job, tile).is_some() {
+                self.failed_attempt(
+                    worker,
+                    job,
+                    tile,
+                    "the worker was lost while rendering it",
+                    actions,
+                );
+            } else if let Some(j) = self.jobs.get_mut(&job) {
+                j.late_copies.remove(&(tile, worker));
+            }
+        }
+    }
+
+    fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
+        let timeout = self.policy.heartbeat_timeout;
+        let silent: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| self.now.saturating_sub(w.last_seen) > timeout)
+            .map(|(id, _)| *id)
+            .collect();
+        for worker in silent {
+            actions.push(Action::DropWorker { worker });
+            self.remove_worker(worker, actions);
+        }
+    }
+
+    /// Puts back every tile whose only live lease has run out.
+    fn check_leases(&mut self) {
+        let now = self.now;
+        for job in self.jobs.values_mut() {
+            let mut requeue = Vec::new();
+            for (tile, leases) in &mut job.in_flight {
+                let mut expired_now = false;
+                for lease in leases
+                    .iter_mut()
+                    .filter(|l| !l.expired && l.deadline <= now)
+                {
+                    lease.expired = true;
+                    expired_now = true;
+                }
+                if expired_now && leases.iter().all(|l| l.expired) {
+                    requeue.push(*tile);
+                }
+            }
+            for tile in requeue {
+                if !job.waiting.contains(&tile) {
+                    job.waiting.push_front(tile);
+                }
+            }
+        }
+    }
+
+    /// Ends the worker's lease on the tile if it holds one for an active job, and
+    /// returns it. Anything else (a stray or late message) changes nothing.
+    fn release(&mut self, worker: WorkerId, job_id: JobId, tile: u32) -> Option<Lease> {
+        let job = self.jobs.get_mut(&job_id)?;
+        let leases = job.in_flight.get_mut(&tile)?;
+        let pos = leases.iter().position(|l| l.worker == worker)?;
+        let lease = leases.remove(pos);
+        if leases.is_empty() {
+            job.in_flight.remove(&tile);
+        }
         if let Some(w) = self.workers.get_mut(&worker) {
             w.holding.remove(&(job_id, tile));
         }
-        true
+        Some(lease)
     }
 
     fn tile_done(&mut self, worker: WorkerId, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
-        if !self.release(worker, job_id, tile) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        if job.late_copies.remove(&(tile, worker)) {
+            if let Some(w) = self.workers.get_mut(&worker) {
+                w.holding.remove(&(job_id, tile));
+            }
+            actions.push(Action::DuplicateResult { job: job_id, tile });
             return;
         }
+        let Some(lease) = self.release(worker, job_id, tile) else {
+            return;
+        };
         let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+        let took = self.now.saturating_sub(lease.started);
+        job.measured += 1;
+        job.total_time += took;
+        job.slowest = job.slowest.max(took);
         job.done[tile as usize] = true;
         job.remaining -= 1;
+        job.waiting.retain(|t| *t != tile);
+        // Other holders' copies are still to come: they will be compared.
+        if let Some(others) = job.in_flight.remove(&tile) {
+            for other in others {
+                job.late_copies.insert((tile, other.worker));
+            }
+        }
         actions.push(Action::AcceptTile { job: job_id, tile });
         if job.remaining == 0 {
+            let holders: BTreeSet<WorkerId> = job.late_copies.iter().map(|(_, w)| *w).collect();
             self.jobs.remove(&job_id);
+            for holder in holders {
+                if let Some(w) = self.workers.get_mut(&holder) {
+                    w.holding.retain(|(j, _)| *j != job_id);
+                    actions.push(Action::CancelOnWorker {
+                        worker: holder,
+                        job: job_id,
+                    });
+                }
+            }
             actions.push(Action::JobDone { job: job_id });
-            self.forget_unused_scene(actions);
+            self.forget_unused_scenes(actions);
         }
     }
 
-    /// After a job ended: workers may drop its scene unless another active job uses it.
-    fn forget_unused_scene(&mut self, actions: &mut Vec<Action>) {
-        let in_use: HashSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
-        for (&worker, w) in &mut self.workers {
-            let unused: Vec<SceneHash> = w.scenes.difference(&in_use).copied().collect();
-            for scene in unused {
-                w.scenes.remove(&scene);
-                actions.push(Action::ForgetScene { worker, scene });
-            }
+    /// Counts a failed attempt at a tile (already released): retry it elsewhere, block
+    /// a worker that keeps failing, or fail the job.
+    fn failed_attempt(
+        &mut self,
+        worker: WorkerId,
+        job_id: JobId,
+        tile: u32,
+        message: &str,
+        actions: &mut Vec<Action>,
+    ) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let (attempts, on) = job.failures.entry(tile).or_default();
+        *attempts += 1;
+        on.insert(worker);
+        let attempts = *attempts;
+        let worker_failures = job.worker_failures.entry(worker).or_default();
+        *worker_failures += 1;
+        if *worker_failures >= self.policy.block_after {
+            job.blocked.insert(worker);
+        }
+        if attempts >= self.policy.max_attempts {
+            let message = format!("tile {tile} failed {attempts} times; last: {message}");
+            self.end_job(job_id, actions);
+            actions.push(Action::JobFailed {
+                job: job_id,
+                message,
+            });
+        } else if job.live_leases(tile) == 0 && !job.waiting.contains(&tile) {
+            job.waiting.push_front(tile);
         }
     }
 
@@ -273,7 +601,13 @@ impl Scheduler {
         let Some(job) = self.jobs.remove(&job_id) else {
             return;
         };
-        let holders: BTreeSet<WorkerId> = job.in_flight.values().copied().collect();
+        let holders: BTreeSet<WorkerId> = job
+            .in_flight
+            .values()
+            .flatten()
+            .map(|l| l.worker)
+            .chain(job.late_copies.iter().map(|(_, w)| *w))
+            .collect();
         for worker in holders {
             if let Some(w) = self.workers.get_mut(&worker) {
                 w.holding.retain(|(j, _)| *j != job_id);
@@ -283,14 +617,17 @@ impl Scheduler {
                 });
             }
         }
-        self.forget_unused_scene(actions);
+        self.forget_unused_scenes(actions);
     }
 
-    fn requeue(&mut self, job_id: JobId, tile: u32) {
-        if let Some(job) = self.jobs.get_mut(&job_id) {
-            if job.in_flight.remove(&tile).is_some() && !job.done[tile as usize] {
-                // Back to the front: it was handed out first, so it is the oldest work.
-                job.waiting.push_front(tile);
+    /// After a job ended: workers may drop scenes no active job uses.
+    fn forget_unused_scenes(&mut self, actions: &mut Vec<Action>) {
+        let in_use: HashSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
+        for (&worker, w) in &mut self.workers {
+            let unused: Vec<SceneHash> = w.scenes.difference(&in_use).copied().collect();
+            for scene in unused {
+                w.scenes.remove(&scene);
+                actions.push(Action::ForgetScene { worker, scene });
             }
         }
     }
@@ -302,7 +639,7 @@ impl Scheduler {
         }
     }
 
-    /// Gives the worker tiles until its credit is used or nothing is waiting.
+    /// Gives the worker tiles until its credit is used or nothing is left for it.
     fn fill(&mut self, worker_id: WorkerId, actions: &mut Vec<Action>) {
         loop {
             let Some(worker) = self.workers.get(&worker_id) else {
@@ -311,15 +648,22 @@ impl Scheduler {
             if worker.draining || worker.holding.len() >= worker.credit {
                 return;
             }
-            let Some(job_id) = self.next_job() else {
+            let Some((job_id, tile)) = self.next_tile(worker_id) else {
                 return;
             };
+            let now = self.now;
+            let policy = self.policy;
             let job = self
                 .jobs
                 .get_mut(&job_id)
-                .expect("next_job returns an active job");
-            let tile = job.waiting.pop_front().expect("next_job has waiting tiles");
-            job.in_flight.insert(tile, worker_id);
+                .expect("next_tile returns an active job");
+            let deadline = now + job.lease_length(&policy);
+            job.in_flight.entry(tile).or_default().push(Lease {
+                worker: worker_id,
+                started: now,
+                deadline,
+                expired: false,
+            });
             let scene = job.scene;
             let worker = self.workers.get_mut(&worker_id).expect("checked above");
             if worker.scenes.insert(scene) {
@@ -337,13 +681,36 @@ impl Scheduler {
         }
     }
 
-    /// Highest priority, then fewest tiles in flight, then oldest.
-    fn next_job(&self) -> Option<JobId> {
-        self.jobs
+    /// The next tile for the worker: a waiting tile of the best job (highest priority,
+    /// then fewest tiles in flight, then oldest) it is not blocked from; failing that,
+    /// a straggler to duplicate.
+    fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
+        let mut candidates: Vec<(&JobId, &Job)> = self
+            .jobs
             .iter()
-            .filter(|(_, j)| !j.waiting.is_empty())
-            .min_by_key(|(id, j)| (std::cmp::Reverse(j.priority), j.in_flight.len(), **id))
-            .map(|(id, _)| *id)
+            .filter(|(_, j)| !j.blocked.contains(&worker))
+            .collect();
+        candidates.sort_by_key(|(id, j)| (std::cmp::Reverse(j.priority), j.in_flight.len(), **id));
+        let order: Vec<JobId> = candidates.iter().map(|(id, _)| **id).collect();
+        for id in &order {
+            let job = self.jobs.get_mut(id).expect("listed above");
+            if let Some(tile) = job.take_waiting_for(worker) {
+                return Some((*id, tile));
+            }
+        }
+        if !self.policy.speculate {
+            return None;
+        }
+        let holding = &self.workers.get(&worker)?.holding;
+        order.iter().find_map(|id| {
+            let job = &self.jobs[id];
+            if !job.waiting.is_empty() {
+                return None;
+            }
+            job.straggler_for(worker)
+                .filter(|t| !holding.contains(&(*id, *t)))
+                .map(|t| (*id, t))
+        })
     }
 }
 
@@ -399,9 +766,16 @@ mod tests {
         assert_eq!(s.held_by(7), 2);
     }
 
+    fn without_speculation() -> Scheduler {
+        Scheduler::with_policy(Policy {
+            speculate: false,
+            ..Policy::default()
+        })
+    }
+
     #[test]
     fn results_are_accepted_once_and_only_from_the_holder() {
-        let mut s = Scheduler::new();
+        let mut s = without_speculation();
         submit(&mut s, 1, 0, SCENE_A, 3);
         s.handle(Event::WorkerJoined {
             worker: 1,
@@ -506,7 +880,7 @@ mod tests {
     }
 
     #[test]
-    fn a_draining_worker_gets_nothing_more_and_a_failure_fails_the_job() {
+    fn a_draining_worker_gets_nothing_more() {
         let mut s = Scheduler::new();
         s.handle(Event::WorkerJoined {
             worker: 1,
@@ -514,10 +888,34 @@ mod tests {
         });
         s.handle(Event::WorkerDraining { worker: 1 });
         assert!(assigns(&submit(&mut s, 1, 0, SCENE_A, 3)).is_empty());
+        assert_eq!(s.held_by(1), 0);
+    }
+
+    #[test]
+    fn a_failed_tile_is_retried_elsewhere_then_fails_the_job() {
+        let mut s = Scheduler::with_policy(Policy {
+            max_attempts: 2,
+            speculate: false,
+            ..Policy::default()
+        });
+        submit(&mut s, 1, 0, SCENE_A, 1);
         s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        let failed = s.handle(Event::TileFailed {
+            worker: 1,
+            job: 1,
+            tile: 0,
+            message: "boom".into(),
+        });
+        // Not given back to the worker it failed on.
+        assert!(assigns(&failed).is_empty());
+        let joined = s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
         });
+        assert_eq!(assigns(&joined), vec![(2, 1, 0)]);
         let failed = s.handle(Event::TileFailed {
             worker: 2,
             job: 1,
@@ -526,8 +924,81 @@ mod tests {
         });
         assert!(failed.contains(&Action::JobFailed {
             job: 1,
-            message: "boom".into()
+            message: "tile 0 failed 2 times; last: boom".into()
         }));
         assert!(!s.is_active(1));
+    }
+
+    #[test]
+    fn an_expired_lease_requeues_the_tile_and_a_silent_worker_is_dropped() {
+        let policy = Policy::default();
+        let mut s = without_speculation();
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        s.handle(Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+        });
+        // Both stay alive; worker 1 holds the tile until its lease runs out, and then
+        // the tile goes to worker 2.
+        let mut expired = Vec::new();
+        for now in (1_000..=policy.initial_lease).step_by(1_000) {
+            s.handle(Event::Heartbeat { worker: 1 });
+            s.handle(Event::Heartbeat { worker: 2 });
+            expired = s.handle(Event::Tick { now });
+            if !expired.is_empty() {
+                break;
+            }
+        }
+        assert_eq!(assigns(&expired), vec![(2, 1, 0)]);
+        // Worker 1 falls silent and is dropped at the first tick past the timeout;
+        // worker 2 keeps the tile.
+        let mut now = policy.initial_lease;
+        let dropped = loop {
+            now += 1_000;
+            s.handle(Event::Heartbeat { worker: 2 });
+            let actions = s.handle(Event::Tick { now });
+            if !actions.is_empty() {
+                break actions;
+            }
+        };
+        assert_eq!(dropped, vec![Action::DropWorker { worker: 1 }]);
+        // Its last heartbeat arrived when the clock read initial_lease - 1 s.
+        assert_eq!(
+            now,
+            policy.initial_lease - 1_000 + policy.heartbeat_timeout + 1_000
+        );
+        let done = s.handle(Event::TileDone {
+            worker: 2,
+            job: 1,
+            tile: 0,
+        });
+        assert!(done.contains(&Action::JobDone { job: 1 }));
+    }
+
+    #[test]
+    fn a_straggler_is_duplicated_and_the_first_result_wins() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        s.handle(Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+        });
+        let idle = s.handle(Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+        });
+        assert_eq!(assigns(&idle), vec![(2, 1, 0)]);
+        let first = s.handle(Event::TileDone {
+            worker: 2,
+            job: 1,
+            tile: 0,
+        });
+        assert!(first.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        assert!(first.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
+        assert!(first.contains(&Action::JobDone { job: 1 }));
     }
 }

@@ -15,25 +15,60 @@ use anyhow::{Context, Result};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, FromWorker, Hello, JobId, JobSpec, JobState, JobStatus,
-    MessageCodec, Role, SceneHash, Settings, TileRect, ToWorker, Welcome, WorkerId, WorkerStatus,
-    DEFAULT_MAX_FRAME,
+    AuthProof, ClientRequest, ClientResponse, FromWorker, Hello, JobId, JobSpec, JobState,
+    JobStatus, MessageCodec, Role, SceneHash, Settings, TileRect, ToWorker, Welcome, WorkerId,
+    WorkerStatus, DEFAULT_MAX_FRAME,
 };
 use sha2::{Digest, Sha256};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
+use crate::db::{Db, StoredJob, TileWrite};
 use crate::scheduler::{Action, Event, Scheduler};
 use crate::store::{JobMetadata, Store};
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
 
-/// Largest scene a job may carry.
-pub const MAX_SCENE_BYTES: usize = 8 * 1024 * 1024;
+/// What a job may ask for. Each bound keeps one client from taking the farm's memory
+/// or time from everyone else; exceeding one is a clear error at submission.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct JobLimits {
+    /// Bytes of scene text (8 MiB).
+    pub max_scene_bytes: usize,
+    /// Objects in a scene (100,000).
+    pub max_objects: usize,
+    /// Pixels of an image (8192 × 8192 = 67,108,864: 192 MiB of RGB being assembled).
+    pub max_pixels: u64,
+    /// Antialiasing (16: 256 samples per pixel).
+    pub max_aa: u32,
+    /// Jobs queued or running per client address (64).
+    pub max_active_per_client: usize,
+}
 
-/// A peer must complete its handshake within this time.
-const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+impl Default for JobLimits {
+    fn default() -> Self {
+        JobLimits {
+            max_scene_bytes: 8 * 1024 * 1024,
+            max_objects: 100_000,
+            max_pixels: 8192 * 8192,
+            max_aa: 16,
+            max_active_per_client: 64,
+        }
+    }
+}
+
+/// How long a shutdown waits for the tiles in flight.
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(10);
+
+/// How often the scheduler is told the time.
+const TICK: Duration = Duration::from_millis(100);
+
+/// Connections served at once by default.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 256;
+
+/// The default time a peer has to complete its handshake.
+pub const DEFAULT_HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Bytes of PNG per `ImageChunk`.
 const CHUNK: usize = 1024 * 1024;
@@ -50,6 +85,13 @@ pub struct Config {
     pub data: PathBuf,
     /// Largest frame accepted from a peer.
     pub max_frame: usize,
+    /// Connections served at once; more are refused.
+    pub max_connections: usize,
+    /// A peer must complete its handshake within this time.
+    pub handshake_timeout: Duration,
+    /// The shared secret peers must prove, if any.
+    pub secret: Option<Vec<u8>>,
+    pub limits: JobLimits,
 }
 
 impl Config {
@@ -58,6 +100,10 @@ impl Config {
             listen,
             data,
             max_frame: DEFAULT_MAX_FRAME,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
+            secret: None,
+            limits: JobLimits::default(),
         }
     }
 }
@@ -65,12 +111,23 @@ impl Config {
 /// A bound, not yet serving coordinator.
 pub struct Server {
     listener: TcpListener,
+    /// One permit per open connection.
+    connections: Arc<tokio::sync::Semaphore>,
     shared: Arc<Shared>,
+    writer: Option<std::thread::JoinHandle<()>>,
 }
 
 struct Shared {
     state: Mutex<State>,
     store: Store,
+    db: Arc<Db>,
+    /// Tiles and state changes on their way to the database, in order.
+    writes: Mutex<Option<std::sync::mpsc::Sender<DbWrite>>>,
+    handshake_timeout: Duration,
+    secret: Option<Vec<u8>>,
+    limits: JobLimits,
+    /// Set on shutdown: new jobs are refused.
+    closing: std::sync::atomic::AtomicBool,
     max_frame: usize,
     /// Bumped whenever a job progresses or changes state, to wake `Watch`es.
     changes: tokio::sync::watch::Sender<u64>,
@@ -79,6 +136,56 @@ struct Shared {
 impl Shared {
     fn changed(&self) {
         self.changes.send_modify(|n| *n = n.wrapping_add(1));
+    }
+
+    /// Queues a write for the database thread.
+    fn record(&self, write: DbWrite) {
+        if let Some(tx) = self.writes.lock().expect("writes lock").as_ref() {
+            let _ = tx.send(write);
+        }
+    }
+}
+
+/// What the database thread writes, in the order given.
+enum DbWrite {
+    Tile(TileWrite),
+    State {
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+    },
+}
+
+/// The database thread: consecutive tiles are written in one transaction.
+fn write_loop(db: Arc<Db>, rx: std::sync::mpsc::Receiver<DbWrite>) {
+    let mut pending = rx.recv().ok();
+    while let Some(write) = pending.take() {
+        match write {
+            DbWrite::Tile(first) => {
+                let mut batch = vec![first];
+                loop {
+                    match rx.try_recv() {
+                        Ok(DbWrite::Tile(t)) if batch.len() < 256 => batch.push(t),
+                        Ok(other) => {
+                            pending = Some(other);
+                            break;
+                        }
+                        Err(_) => break,
+                    }
+                }
+                if let Err(e) = db.save_tiles(&batch) {
+                    error!(error = %format!("{e:#}"), "cannot record tiles");
+                }
+            }
+            DbWrite::State { job, state, error } => {
+                if let Err(e) = db.set_state(job, state, error.as_deref()) {
+                    error!(job, error = %format!("{e:#}"), "cannot record the job's state");
+                }
+            }
+        }
+        if pending.is_none() {
+            pending = rx.recv().ok();
+        }
     }
 }
 
@@ -91,6 +198,8 @@ struct State {
 }
 
 struct JobRecord {
+    /// Who submitted it, for the per-client limit (unknown for jobs restored from disk).
+    client: Option<std::net::IpAddr>,
     scene: Arc<str>,
     hash: SceneHash,
     settings: Settings,
@@ -114,6 +223,8 @@ struct WorkerRecord {
     name: String,
     threads: u32,
     outbox: mpsc::UnboundedSender<ToWorker>,
+    /// Notified when the scheduler drops the worker: its connection is closed.
+    dropped: Arc<tokio::sync::Notify>,
     connected: Instant,
     tiles_done: u64,
     rays: u64,
@@ -126,24 +237,41 @@ impl Server {
     /// Binds the listening socket and opens the data directory.
     pub async fn bind(config: Config) -> Result<Server> {
         let store = Store::open(&config.data)?;
-        let next_job = store.next_job_id()?;
+        let db = Arc::new(Db::open(&config.data.join("tessera.db"))?);
+        let next_job = store.next_job_id()?.max(db.max_job_id()? + 1);
         let listener = TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
+        let (tx, rx) = std::sync::mpsc::channel();
+        let writer_db = Arc::clone(&db);
+        let writer = std::thread::Builder::new()
+            .name("db-writer".into())
+            .spawn(move || write_loop(writer_db, rx))
+            .context("cannot start the database thread")?;
+        let shared = Arc::new(Shared {
+            state: Mutex::new(State {
+                scheduler: Scheduler::new(),
+                jobs: BTreeMap::new(),
+                workers: BTreeMap::new(),
+                next_job,
+                next_worker: 1,
+            }),
+            store,
+            db,
+            writes: Mutex::new(Some(tx)),
+            closing: std::sync::atomic::AtomicBool::new(false),
+            max_frame: config.max_frame,
+            handshake_timeout: config.handshake_timeout,
+            secret: config.secret.clone(),
+            limits: config.limits,
+            changes: tokio::sync::watch::channel(0).0,
+        });
+        restore(&shared)?;
         Ok(Server {
             listener,
-            shared: Arc::new(Shared {
-                state: Mutex::new(State {
-                    scheduler: Scheduler::new(),
-                    jobs: BTreeMap::new(),
-                    workers: BTreeMap::new(),
-                    next_job,
-                    next_worker: 1,
-                }),
-                store,
-                max_frame: config.max_frame,
-                changes: tokio::sync::watch::channel(0).0,
-            }),
+            connections: Arc::new(tokio::sync::Semaphore::new(config.max_connections)),
+            shared,
+            writer: Some(writer),
         })
     }
 
@@ -153,8 +281,10 @@ impl Server {
     }
 
     /// Serves connections until `shutdown` completes.
-    pub async fn run(self, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
+    pub async fn run(mut self, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
         tokio::pin!(shutdown);
+        let ticker = tokio::spawn(tick(Arc::clone(&self.shared)));
+        let _stop_ticking = AbortOnDrop(ticker);
         loop {
             tokio::select! {
                 accepted = self.listener.accept() => {
@@ -166,19 +296,146 @@ impl Server {
                             continue;
                         }
                     };
+                    let Ok(permit) = Arc::clone(&self.connections).try_acquire_owned() else {
+                        warn!(%peer, "connection limit reached: refusing");
+                        tokio::spawn(refuse(stream, "too many connections: try again later".into()));
+                        continue;
+                    };
                     let shared = Arc::clone(&self.shared);
                     tokio::spawn(async move {
-                        if let Err(e) = handle_connection(shared, stream).await {
+                        if let Err(e) = handle_connection(shared, stream, peer.ip()).await {
                             info!(%peer, error = %format!("{e:#}"), "connection closed");
                         }
+                        drop(permit);
                     });
                 }
                 () = &mut shutdown => {
-                    info!("shutting down");
+                    self.shutdown_gracefully().await;
                     return Ok(());
                 }
             }
         }
+    }
+}
+
+impl Server {
+    /// Stops taking jobs, lets the tiles in flight come back (for at most
+    /// [`SHUTDOWN_GRACE`]) and flushes everything to the database.
+    async fn shutdown_gracefully(&mut self) {
+        info!("shutting down: finishing the tiles in flight");
+        self.shared
+            .closing
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
+        while tokio::time::Instant::now() < deadline {
+            let in_flight = self
+                .shared
+                .state
+                .lock()
+                .expect("state lock")
+                .scheduler
+                .tiles_in_flight();
+            if in_flight == 0 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        // Closing the channel ends the database thread once it has written everything.
+        self.shared.writes.lock().expect("writes lock").take();
+        if let Some(writer) = self.writer.take() {
+            let _ = tokio::task::spawn_blocking(move || writer.join()).await;
+        }
+        info!("shut down");
+    }
+}
+
+/// Rebuilds the state from the database after a start: finished jobs for queries and
+/// fetches, unfinished ones back in the scheduler with the tiles already recorded.
+fn restore(shared: &Arc<Shared>) -> Result<()> {
+    let jobs = shared.db.load_jobs()?;
+    let mut state = shared.state.lock().expect("state lock");
+    for stored in jobs {
+        let tiles = tiling::cut(&stored.settings, stored.tile_size);
+        let mut record = JobRecord {
+            client: None,
+            scene: Arc::from(stored.scene.as_str()),
+            hash: stored.hash,
+            settings: stored.settings,
+            tile_size: stored.tile_size,
+            tiles,
+            priority: stored.priority,
+            state: stored.state,
+            image: None,
+            submitted: Instant::now(),
+            finished: stored.state.is_final().then(Instant::now),
+            tiles_done: 0,
+            rays: 0,
+            tiles_per_worker: BTreeMap::new(),
+            error: stored.error.clone(),
+            png: None,
+        };
+        if stored.state.is_final() {
+            if stored.state == JobState::Done {
+                record.tiles_done = record.tiles.len() as u32;
+            }
+            state.jobs.insert(stored.id, record);
+            continue;
+        }
+        let mut image = render::Image::black(stored.settings.width, stored.settings.height);
+        let mut done = Vec::new();
+        for t in shared.db.load_tiles(stored.id)? {
+            let Some(rect) = record.tiles.get(t.tile as usize) else {
+                continue;
+            };
+            image.put_rect(to_render_rect(*rect), &t.rgb);
+            record.tiles_done += 1;
+            record.rays += t.rays;
+            *record.tiles_per_worker.entry(t.worker).or_default() += 1;
+            done.push(t.tile);
+        }
+        record.image = Some(image);
+        let total = record.tiles.len() as u32;
+        info!(job = stored.id, done = done.len(), total, "resuming job");
+        state.jobs.insert(stored.id, record);
+        let actions =
+            state
+                .scheduler
+                .resume_job(stored.id, stored.priority, stored.hash, total, &done);
+        state.apply(shared, actions);
+    }
+    Ok(())
+}
+
+fn to_render_rect(r: TileRect) -> render::Rect {
+    render::Rect {
+        x: r.x,
+        y: r.y,
+        width: r.width,
+        height: r.height,
+    }
+}
+
+/// Feeds the scheduler the time, so that leases and heartbeats are checked.
+async fn tick(shared: Arc<Shared>) {
+    let started = Instant::now();
+    let mut interval = tokio::time::interval(TICK);
+    loop {
+        interval.tick().await;
+        let now = started.elapsed().as_millis() as u64;
+        let mut state = shared.state.lock().expect("state lock");
+        let actions = state.scheduler.handle(Event::Tick { now });
+        if !actions.is_empty() {
+            state.apply(&shared, actions);
+        }
+    }
+}
+
+/// Aborts a background task when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
     }
 }
 
@@ -187,8 +444,75 @@ pub async fn serve(config: Config, shutdown: impl std::future::Future<Output = (
     Server::bind(config).await?.run(shutdown).await
 }
 
-async fn handle_connection(shared: Arc<Shared>, stream: TcpStream) -> ConnResult {
+/// Sends a refusal the peer can read, then closes.
+async fn refuse(stream: TcpStream, reason: String) {
+    let mut framed = Framed::new(stream, LengthDelimitedCodec::new());
+    let refusal = protocol::wire::encode(&Welcome::Refused { reason });
+    let _ = framed.send(Bytes::from(refusal)).await;
+}
+
+/// Challenge-response: the peer proves it knows the secret with an HMAC of a fresh
+/// nonce. A wrong or missing proof is refused.
+async fn authenticate(
+    framed: &mut Framed<TcpStream, LengthDelimitedCodec>,
+    secret: &[u8],
+    timeout: Duration,
+) -> Result<()> {
+    let mut nonce = [0u8; 32];
+    getrandom::fill(&mut nonce).map_err(|e| anyhow::anyhow!("no randomness for a nonce: {e}"))?;
+    framed
+        .send(Bytes::from(protocol::wire::encode(&Welcome::Challenge {
+            nonce,
+        })))
+        .await?;
+    let proof = match tokio::time::timeout(timeout, framed.next()).await {
+        Ok(Some(Ok(frame))) => protocol::wire::decode::<AuthProof>(&frame).ok(),
+        _ => None,
+    };
+    if proof.is_some_and(|p| protocol::verify(secret, &nonce, &p)) {
+        return Ok(());
+    }
+    let refusal = Welcome::Refused {
+        reason: "authentication failed: the token does not match this coordinator's".into(),
+    };
+    let _ = framed
+        .send(Bytes::from(protocol::wire::encode(&refusal)))
+        .await;
+    anyhow::bail!("authentication failed")
+}
+
+/// What a browser or `curl` sees when pointed at the protocol port.
+const NOT_HTTP: &[u8] = b"HTTP/1.0 400 Bad Request\r\nContent-Type: text/plain\r\nConnection: close\r\n\r\nThis port speaks the Tessera protocol, not HTTP (see docs/protocol.md).\r\n";
+
+async fn handle_connection(
+    shared: Arc<Shared>,
+    mut stream: TcpStream,
+    peer: std::net::IpAddr,
+) -> ConnResult {
     stream.set_nodelay(true)?;
+    // An HTTP request would read as a frame length of over a gigabyte: answer it in
+    // its own language instead.
+    let mut start = [0u8; 4];
+    if let Ok(Ok(4)) = tokio::time::timeout(shared.handshake_timeout, stream.peek(&mut start)).await
+    {
+        if [
+            &b"GET "[..],
+            b"POST",
+            b"HEAD",
+            b"PUT ",
+            b"OPTI",
+            b"DELE",
+            b"PATC",
+            b"CONN",
+        ]
+        .contains(&&start[..])
+        {
+            use tokio::io::AsyncWriteExt;
+            let _ = stream.write_all(NOT_HTTP).await;
+            let _ = stream.shutdown().await;
+            anyhow::bail!("an HTTP request on the protocol port");
+        }
+    }
     let mut framed = Framed::new(
         stream,
         LengthDelimitedCodec::builder()
@@ -196,11 +520,32 @@ async fn handle_connection(shared: Arc<Shared>, stream: TcpStream) -> ConnResult
             .max_frame_length(shared.max_frame)
             .new_codec(),
     );
-    let first = tokio::time::timeout(HANDSHAKE_TIMEOUT, framed.next())
-        .await
-        .context("no handshake within the time limit")?
-        .context("peer closed before its handshake")?
-        .context("unreadable handshake")?;
+    let first = match tokio::time::timeout(shared.handshake_timeout, framed.next()).await {
+        Err(_) => {
+            let refusal = Welcome::Refused {
+                reason: format!(
+                    "no handshake within {} ms",
+                    shared.handshake_timeout.as_millis()
+                ),
+            };
+            let _ = framed
+                .send(Bytes::from(protocol::wire::encode(&refusal)))
+                .await;
+            anyhow::bail!("no handshake within the time limit");
+        }
+        Ok(None) => anyhow::bail!("peer closed before its handshake"),
+        Ok(Some(Err(e))) => {
+            // Too long a frame (refused from its length prefix) or a broken stream.
+            let refusal = Welcome::Refused {
+                reason: format!("unreadable handshake: {e}"),
+            };
+            let _ = framed
+                .send(Bytes::from(protocol::wire::encode(&refusal)))
+                .await;
+            return Err(anyhow::Error::from(e).context("unreadable handshake"));
+        }
+        Ok(Some(Ok(frame))) => frame,
+    };
     let hello = match Hello::from_frame(&first) {
         Ok(hello) => hello,
         Err(e) => {
@@ -211,6 +556,9 @@ async fn handle_connection(shared: Arc<Shared>, stream: TcpStream) -> ConnResult
             return Err(e.into());
         }
     };
+    if let Some(secret) = &shared.secret {
+        authenticate(&mut framed, secret, shared.handshake_timeout).await?;
+    }
     let accepted = protocol::wire::encode(&Welcome::Accepted {
         version: protocol::PROTOCOL_VERSION,
     });
@@ -219,7 +567,7 @@ async fn handle_connection(shared: Arc<Shared>, stream: TcpStream) -> ConnResult
     match hello.role {
         Role::Client => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            serve_client(shared, framed).await
+            serve_client(shared, framed, peer).await
         }
         Role::Worker { name, threads } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
@@ -231,11 +579,15 @@ async fn handle_connection(shared: Arc<Shared>, stream: TcpStream) -> ConnResult
 type ClientConn = Framed<TcpStream, MessageCodec<ClientRequest, ClientResponse>>;
 type WorkerConn = Framed<TcpStream, MessageCodec<FromWorker, ToWorker>>;
 
-async fn serve_client(shared: Arc<Shared>, mut conn: ClientConn) -> ConnResult {
+async fn serve_client(
+    shared: Arc<Shared>,
+    mut conn: ClientConn,
+    peer: std::net::IpAddr,
+) -> ConnResult {
     while let Some(request) = conn.next().await {
         let response = match request {
             Ok(ClientRequest::Watch { job, after_tiles }) => watch(&shared, job, after_tiles).await,
-            Ok(request) => respond(&shared, request),
+            Ok(request) => respond(&shared, request, peer),
             Err(e) => {
                 let message = format!("bad request: {e}");
                 let _ = conn.send(ClientResponse::Error { message }).await;
@@ -278,11 +630,19 @@ async fn watch(shared: &Shared, job: JobId, after_tiles: u32) -> ClientResponse 
     }
 }
 
-fn respond(shared: &Arc<Shared>, request: ClientRequest) -> ClientResponse {
+fn respond(shared: &Arc<Shared>, request: ClientRequest, peer: std::net::IpAddr) -> ClientResponse {
     let mut state = shared.state.lock().expect("state lock");
     match request {
-        ClientRequest::Submit(spec) => match state.submit(spec) {
-            Ok(job) => ClientResponse::Submitted { job },
+        ClientRequest::Submit(_) if shared.closing.load(std::sync::atomic::Ordering::SeqCst) => {
+            ClientResponse::Error {
+                message: "the coordinator is shutting down: submit again when it is back".into(),
+            }
+        }
+        ClientRequest::Submit(spec) => match state.submit(&shared.db, &shared.limits, spec, peer) {
+            Ok((job, actions)) => {
+                state.apply(shared, actions);
+                ClientResponse::Submitted { job }
+            }
             Err(message) => ClientResponse::Error { message },
         },
         ClientRequest::Watch { job, .. } | ClientRequest::Status { job } => {
@@ -305,13 +665,31 @@ fn respond(shared: &Arc<Shared>, request: ClientRequest) -> ClientResponse {
                 record.state = JobState::Cancelled;
                 record.finished = Some(Instant::now());
                 record.image = None;
+                shared.record(DbWrite::State {
+                    job,
+                    state: JobState::Cancelled,
+                    error: None,
+                });
                 state.apply(shared, actions);
                 info!(job, "job cancelled");
                 ClientResponse::Cancelled { job }
             }
         },
-        ClientRequest::Fetch { job, offset } => match state.jobs.get(&job) {
+        ClientRequest::Fetch { job, offset } => match state.jobs.get_mut(&job) {
             None => unknown_job(job),
+            Some(record) if record.state == JobState::Done && record.png.is_none() => {
+                // Stored before a restart: read once from the data directory.
+                match shared.store.read_image(job) {
+                    Ok(png) => {
+                        record.png = Some(Arc::new(png));
+                        drop(state);
+                        respond(shared, ClientRequest::Fetch { job, offset }, peer)
+                    }
+                    Err(e) => ClientResponse::Error {
+                        message: format!("cannot read the image of job {job}: {e:#}"),
+                    },
+                }
+            }
             Some(record) => match (&record.png, record.state) {
                 (Some(png), JobState::Done) => {
                     let start = usize::try_from(offset).unwrap_or(usize::MAX).min(png.len());
@@ -352,6 +730,7 @@ async fn serve_worker(
 ) -> ConnResult {
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
+    let dropped = Arc::new(tokio::sync::Notify::new());
     let worker = {
         let mut state = shared.state.lock().expect("state lock");
         let id = state.next_worker;
@@ -362,6 +741,7 @@ async fn serve_worker(
                 name: name.clone(),
                 threads,
                 outbox,
+                dropped: Arc::clone(&dropped),
                 connected: Instant::now(),
                 tiles_done: 0,
                 rays: 0,
@@ -388,12 +768,18 @@ async fn serve_worker(
         }
     });
     let result = async {
-        while let Some(message) = stream.next().await {
+        loop {
+            let message = tokio::select! {
+                message = stream.next() => message,
+                () = dropped.notified() => anyhow::bail!("no heartbeat in time: dropped"),
+            };
+            let Some(message) = message else {
+                return Ok(());
+            };
             let message = message?;
             let mut state = shared.state.lock().expect("state lock");
             state.on_worker_message(&shared, worker, message)?;
         }
-        Ok(())
     }
     .await;
     {
@@ -408,14 +794,39 @@ async fn serve_worker(
 }
 
 impl State {
-    fn submit(&mut self, spec: JobSpec) -> Result<JobId, String> {
-        if spec.scene.len() > MAX_SCENE_BYTES {
+    fn submit(
+        &mut self,
+        db: &Db,
+        limits: &JobLimits,
+        spec: JobSpec,
+        client: std::net::IpAddr,
+    ) -> Result<(JobId, Vec<Action>), String> {
+        if spec.scene.len() > limits.max_scene_bytes {
             return Err(format!(
-                "the scene is {} bytes, more than the limit of {MAX_SCENE_BYTES}",
-                spec.scene.len()
+                "the scene is {} bytes, more than this coordinator's limit of {}",
+                spec.scene.len(),
+                limits.max_scene_bytes
+            ));
+        }
+        let active = self
+            .jobs
+            .values()
+            .filter(|j| j.client == Some(client) && !j.state.is_final())
+            .count();
+        if active >= limits.max_active_per_client {
+            return Err(format!(
+                "{client} already has {active} jobs queued or running, this coordinator's limit: \
+                 wait for some to finish"
             ));
         }
         let scene = render::parse_scene(&spec.scene).map_err(|e| e.to_string())?;
+        if scene.objects.len() > limits.max_objects {
+            return Err(format!(
+                "objects: {} objects, more than this coordinator's limit of {}",
+                scene.objects.len(),
+                limits.max_objects
+            ));
+        }
         let o = spec.overrides;
         let mut s = scene.settings;
         s.width = o.width.unwrap_or(s.width);
@@ -423,6 +834,19 @@ impl State {
         s.aa = o.aa.unwrap_or(s.aa);
         s.max_depth = o.max_depth.unwrap_or(s.max_depth);
         render::validate_settings(&s, "").map_err(|e| format!("overrides: {e}"))?;
+        let pixels = u64::from(s.width) * u64::from(s.height);
+        if pixels > limits.max_pixels {
+            return Err(format!(
+                "image: {}x{} is {pixels} pixels, more than this coordinator's limit of {}",
+                s.width, s.height, limits.max_pixels
+            ));
+        }
+        if s.aa > limits.max_aa {
+            return Err(format!(
+                "image.aa: {} is more than this coordinator's limit of {}",
+                s.aa, limits.max_aa
+            ));
+        }
         let settings = Settings {
             width: s.width,
             height: s.height,
@@ -443,9 +867,25 @@ impl State {
         let id = self.next_job;
         self.next_job += 1;
         let tile_count = tiles.len() as u32;
+        // Durable before acknowledged.
+        db.insert_job(&StoredJob {
+            id,
+            scene: spec.scene.clone(),
+            hash,
+            settings,
+            tile_size,
+            priority: spec.priority,
+            state: JobState::Queued,
+            error: None,
+        })
+        .map_err(|e| {
+            error!(error = %format!("{e:#}"), "cannot store a job");
+            format!("the coordinator cannot store the job: {e:#}")
+        })?;
         self.jobs.insert(
             id,
             JobRecord {
+                client: Some(client),
                 scene: Arc::from(spec.scene),
                 hash,
                 settings,
@@ -477,8 +917,7 @@ impl State {
             scene: hash,
             tiles: tile_count,
         });
-        self.apply_without_store(actions);
-        Ok(id)
+        Ok((id, actions))
     }
 
     fn on_worker_message(
@@ -508,8 +947,14 @@ impl State {
                 }
                 let actions = self.scheduler.handle(Event::TileDone { worker, job, tile });
                 for action in &actions {
-                    if let Action::AcceptTile { job, tile } = *action {
-                        self.accept_tile(worker, job, tile, &rgb, rays);
+                    match *action {
+                        Action::AcceptTile { job, tile } => {
+                            self.accept_tile(shared, worker, job, tile, &rgb, rays)
+                        }
+                        Action::DuplicateResult { job, tile } => {
+                            self.check_duplicate(worker, job, tile, &rgb)
+                        }
+                        _ => {}
                     }
                 }
                 self.apply(shared, actions);
@@ -530,11 +975,47 @@ impl State {
                 let actions = self.scheduler.handle(Event::WorkerDraining { worker });
                 self.apply(shared, actions);
             }
+            FromWorker::Heartbeat => {
+                let actions = self.scheduler.handle(Event::Heartbeat { worker });
+                self.apply(shared, actions);
+            }
         }
         Ok(())
     }
 
-    fn accept_tile(&mut self, worker: WorkerId, job: JobId, tile: u32, rgb: &[u8], rays: u64) {
+    /// A straggler's second copy of a tile must equal the accepted one: a difference
+    /// would break determinism, so it is logged as an error.
+    fn check_duplicate(&self, worker: WorkerId, job: JobId, tile: u32, rgb: &[u8]) {
+        let Some(record) = self.jobs.get(&job) else {
+            return;
+        };
+        let (Some(image), Some(rect)) = (&record.image, record.tiles.get(tile as usize)) else {
+            return;
+        };
+        let row = rect.width as usize * 3;
+        let same = rgb.chunks_exact(row).enumerate().all(|(r, src)| {
+            let start = ((rect.y as usize + r) * image.width as usize + rect.x as usize) * 3;
+            image.rgb.get(start..start + row) == Some(src)
+        });
+        if same {
+            info!(
+                worker,
+                job, tile, "duplicate result equals the accepted one"
+            );
+        } else {
+            error!(worker, job, tile, "duplicate result differs from the accepted one: rendering is not deterministic on this worker");
+        }
+    }
+
+    fn accept_tile(
+        &mut self,
+        shared: &Shared,
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        rgb: &[u8],
+        rays: u64,
+    ) {
         let name = self.workers.get_mut(&worker).map(|w| {
             w.tiles_done += 1;
             w.rays += rays;
@@ -545,20 +1026,19 @@ impl State {
         };
         let rect = record.tiles[tile as usize];
         if let Some(image) = record.image.as_mut() {
-            let rect = render::Rect {
-                x: rect.x,
-                y: rect.y,
-                width: rect.width,
-                height: rect.height,
-            };
-            image.put_rect(rect, rgb);
+            image.put_rect(to_render_rect(rect), rgb);
         }
         record.tiles_done += 1;
         record.rays += rays;
-        *record
-            .tiles_per_worker
-            .entry(name.unwrap_or_default())
-            .or_default() += 1;
+        let name = name.unwrap_or_default();
+        *record.tiles_per_worker.entry(name.clone()).or_default() += 1;
+        shared.record(DbWrite::Tile(TileWrite {
+            job,
+            tile,
+            rgb: rgb.to_vec(),
+            rays,
+            worker: name,
+        }));
     }
 
     /// Carries out the scheduler's actions.
@@ -566,17 +1046,18 @@ impl State {
         for action in actions {
             match action {
                 Action::JobDone { job } => self.finish(shared, job),
+                Action::JobFailed { job, message } => {
+                    shared.record(DbWrite::State {
+                        job,
+                        state: JobState::Failed,
+                        error: Some(message.clone()),
+                    });
+                    self.apply_one(Action::JobFailed { job, message });
+                }
                 other => self.apply_one(other),
             }
         }
         shared.changed();
-    }
-
-    /// For actions that cannot finish a job (a submission of a non-empty job).
-    fn apply_without_store(&mut self, actions: Vec<Action>) {
-        for action in actions {
-            self.apply_one(action);
-        }
     }
 
     fn apply_one(&mut self, action: Action) {
@@ -618,7 +1099,13 @@ impl State {
             Action::ForgetScene { worker, scene } => {
                 send(&self.workers, worker, ToWorker::ForgetScene { hash: scene })
             }
-            Action::AcceptTile { .. } => {}
+            Action::AcceptTile { .. } | Action::DuplicateResult { .. } => {}
+            Action::DropWorker { worker } => {
+                if let Some(w) = self.workers.remove(&worker) {
+                    warn!(worker, name = %w.name, "no heartbeat in time: dropping the worker");
+                    w.dropped.notify_one();
+                }
+            }
             Action::JobFailed { job, message } => {
                 if let Some(record) = self.jobs.get_mut(&job) {
                     warn!(job, %message, "job failed");
@@ -681,6 +1168,11 @@ impl State {
                     );
                     record.state = JobState::Done;
                     record.png = Some(Arc::new(png));
+                    shared.record(DbWrite::State {
+                        job,
+                        state: JobState::Done,
+                        error: None,
+                    });
                 }
                 Err(e) => {
                     warn!(job, error = %format!("{e:#}"), "cannot store the image");

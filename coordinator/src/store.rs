@@ -64,6 +64,12 @@ impl Store {
         self.root.join("jobs").join(job.to_string())
     }
 
+    /// The stored image of a finished job.
+    pub fn read_image(&self, job: JobId) -> Result<Vec<u8>> {
+        let path = self.job_dir(job).join("image.png");
+        std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))
+    }
+
     /// Stores a finished job: scene, image, then metadata (the metadata's presence
     /// means the job is complete).
     pub fn save(&self, meta: &JobMetadata, scene: &str, png: &[u8]) -> Result<()> {

@@ -15,5 +15,8 @@ mod messages;
 pub mod wire;
 
 pub use crate::codec::{FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
-pub use crate::handshake::{Hello, HelloError, Role, Welcome, MAGIC, PROTOCOL_VERSION};
+pub use crate::handshake::{
+    prove, verify, AuthProof, Hello, HelloError, PeerHandshake, PeerHandshakeError, PeerStep, Role,
+    Welcome, AUTH_CONTEXT, MAGIC, PROTOCOL_VERSION,
+};
 pub use crate::messages::*;

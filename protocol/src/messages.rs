@@ -206,4 +206,7 @@ pub enum FromWorker {
     },
     /// The worker is shutting down: send it nothing more. It finishes what it holds.
     Draining,
+    /// The worker is alive. Sent every second; a worker silent for longer than the
+    /// coordinator's heartbeat timeout loses its tiles.
+    Heartbeat,
 }

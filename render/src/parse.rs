@@ -108,9 +108,17 @@ pub fn validate_settings(s: &RenderSettings, prefix: &str) -> Result<()> {
     Ok(())
 }
 
+/// `prefix.key`, with a key that is not a plain word quoted and escaped, so that an
+/// error naming it stays on one line: `objects[0]."ce\nter"`.
 fn join(prefix: &str, key: &str) -> String {
-    if prefix.is_empty() {
+    let plain = !key.is_empty() && key.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    let key = if plain {
         key.to_string()
+    } else {
+        format!("{key:?}")
+    };
+    if prefix.is_empty() {
+        key
     } else {
         format!("{prefix}.{key}")
     }
@@ -203,10 +211,7 @@ fn number_list(v: &Value, path: &str, what: &str) -> Result<Vec<f64>> {
             .split_whitespace()
             .map(|word| {
                 word.parse::<f64>().map_err(|_| {
-                    SceneError::invalid(
-                        path,
-                        format!("expected {what}, \"{word}\" is not a number"),
-                    )
+                    SceneError::invalid(path, format!("expected {what}, {word:?} is not a number"))
                 })
             })
             .collect::<Result<Vec<_>>>()?,
@@ -342,7 +347,7 @@ fn parse_object(v: &Value, path: &str) -> Result<Object> {
             return Err(SceneError::invalid(
                 type_path,
                 format!(
-                    "unknown object type \"{other}\" (expected \"sphere\", \"plan\" or \"plane\")"
+                    "unknown object type {other:?} (expected \"sphere\", \"plan\" or \"plane\")"
                 ),
             ))
         }

@@ -9,14 +9,16 @@
 mod cache;
 
 use std::collections::HashSet;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    FromWorker, Hello, JobId, MessageCodec, Role, ToWorker, Welcome, DEFAULT_MAX_FRAME,
+    FromWorker, Hello, JobId, MessageCodec, PeerHandshake, PeerStep, Role, ToWorker,
+    DEFAULT_MAX_FRAME,
 };
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
@@ -24,6 +26,9 @@ use tokio_util::codec::{Framed, LengthDelimitedCodec};
 use tracing::{info, warn};
 
 use crate::cache::SceneCache;
+
+/// How often the worker tells the coordinator it is alive, also while it renders.
+const HEARTBEAT: Duration = Duration::from_secs(1);
 
 /// How a worker is set up.
 #[derive(Clone, Debug)]
@@ -34,37 +39,110 @@ pub struct Config {
     pub threads: usize,
     /// The name the coordinator shows for this worker.
     pub name: String,
+    /// The shared secret, if the coordinator requires one.
+    pub secret: Option<Vec<u8>>,
 }
 
 type Conn = Framed<TcpStream, MessageCodec<ToWorker, FromWorker>>;
 
-/// Connects to the coordinator and works until the coordinator closes the connection
-/// (an error) or `shutdown` completes (a clean exit after draining).
+/// Works for the coordinator until `shutdown` completes (a clean exit after
+/// draining). A lost or unreachable coordinator is retried with exponential backoff
+/// and jitter; a coordinator that refuses the worker (another protocol version) is an
+/// error.
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(config.threads)
-        .thread_name(|i| format!("render-{i}"))
-        .build()
-        .context("cannot start the rendering threads")?;
-    let conn = connect(&config).await?;
-    info!(coordinator = %config.coordinator, threads = config.threads, "connected");
-    Session {
-        conn,
-        pool,
-        cache: SceneCache::default(),
-        cancelled: Arc::new(Mutex::new(HashSet::new())),
-        in_flight: 0,
+    let pool = Arc::new(
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(|i| format!("render-{i}"))
+            .build()
+            .context("cannot start the rendering threads")?,
+    );
+    tokio::pin!(shutdown);
+    let mut backoff = Backoff::default();
+    loop {
+        match connect(&config).await {
+            Ok(conn) => {
+                info!(coordinator = %config.coordinator, threads = config.threads, "connected");
+                backoff.reset();
+                let session = Session {
+                    conn,
+                    pool: Arc::clone(&pool),
+                    cache: SceneCache::default(),
+                    cancelled: Arc::new(Mutex::new(HashSet::new())),
+                    alive: Arc::new(AtomicBool::new(true)),
+                    in_flight: 0,
+                };
+                match session.run(&mut shutdown).await {
+                    Ok(()) => return Ok(()),
+                    Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
+                }
+            }
+            Err(ConnectError::Refused(e)) => return Err(e),
+            Err(ConnectError::Unreachable(e)) => {
+                warn!(error = %format!("{e:#}"), "cannot reach the coordinator")
+            }
+        }
+        let delay = backoff.next_delay();
+        info!(delay_ms = delay.as_millis() as u64, "reconnecting");
+        tokio::select! {
+            () = tokio::time::sleep(delay) => {}
+            () = &mut shutdown => return Ok(()),
+        }
     }
-    .run(shutdown)
-    .await
 }
 
-async fn connect(config: &Config) -> Result<Conn> {
+/// Why a connection attempt failed: worth retrying, or not.
+enum ConnectError {
+    Unreachable(anyhow::Error),
+    Refused(anyhow::Error),
+}
+
+/// Exponential backoff from 100 ms to 10 s, each delay scaled by a random factor in
+/// [0.5, 1) so that workers cut off together do not all come back at the same instant.
+#[derive(Default)]
+struct Backoff {
+    attempt: u32,
+}
+
+impl Backoff {
+    const FIRST: Duration = Duration::from_millis(100);
+    const MAX: Duration = Duration::from_secs(10);
+
+    fn reset(&mut self) {
+        self.attempt = 0;
+    }
+
+    fn next_delay(&mut self) -> Duration {
+        let exp = Self::FIRST
+            .saturating_mul(1 << self.attempt.min(16))
+            .min(Self::MAX);
+        self.attempt += 1;
+        exp.mul_f64(0.5 + 0.5 * jitter())
+    }
+}
+
+/// A number in [0, 1) that differs between processes and calls.
+fn jitter() -> f64 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos()),
+    );
+    (h.finish() >> 11) as f64 / (1u64 << 53) as f64
+}
+
+async fn connect(config: &Config) -> Result<Conn, ConnectError> {
     let address = &config.coordinator;
+    let unreachable = |e: anyhow::Error| ConnectError::Unreachable(e);
     let stream = TcpStream::connect(address)
         .await
-        .with_context(|| format!("cannot reach the coordinator at {address}"))?;
-    stream.set_nodelay(true)?;
+        .with_context(|| format!("cannot reach the coordinator at {address}"))
+        .map_err(unreachable)?;
+    stream
+        .set_nodelay(true)
+        .map_err(|e| unreachable(e.into()))?;
     let mut raw = Framed::new(
         stream,
         LengthDelimitedCodec::builder()
@@ -76,14 +154,34 @@ async fn connect(config: &Config) -> Result<Conn> {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
     });
-    raw.send(Bytes::from(hello.to_frame())).await?;
-    let reply = raw
-        .next()
+    raw.send(Bytes::from(hello.to_frame()))
         .await
-        .ok_or_else(|| anyhow!("the coordinator at {address} closed the connection"))??;
-    match protocol::wire::decode::<Welcome>(&reply)? {
-        Welcome::Accepted { .. } => Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME))),
-        Welcome::Refused { reason } => bail!("the coordinator at {address} refused: {reason}"),
+        .map_err(|e| unreachable(e.into()))?;
+    let mut handshake = PeerHandshake::new(config.secret.clone());
+    loop {
+        let reply = raw
+            .next()
+            .await
+            .ok_or_else(|| {
+                unreachable(anyhow!(
+                    "the coordinator at {address} closed the connection"
+                ))
+            })?
+            .map_err(|e| unreachable(e.into()))?;
+        match handshake.on_frame(&reply) {
+            Ok(PeerStep::Accepted) => {
+                return Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))
+            }
+            Ok(PeerStep::Send(proof)) => raw
+                .send(Bytes::from(proof))
+                .await
+                .map_err(|e| unreachable(e.into()))?,
+            Err(e) => {
+                return Err(ConnectError::Refused(anyhow!(
+                    "the coordinator at {address}: {e}"
+                )))
+            }
+        }
     }
 }
 
@@ -96,18 +194,31 @@ enum Rendered {
 
 struct Session {
     conn: Conn,
-    pool: rayon::ThreadPool,
+    pool: Arc<rayon::ThreadPool>,
     cache: SceneCache,
     /// Jobs whose queued tiles must not be rendered.
     cancelled: Arc<Mutex<HashSet<JobId>>>,
+    /// Cleared when the session ends: tiles of a lost connection are not rendered.
+    alive: Arc<AtomicBool>,
     in_flight: usize,
 }
 
+impl Drop for Session {
+    fn drop(&mut self) {
+        self.alive.store(false, Ordering::Relaxed);
+    }
+}
+
 impl Session {
-    async fn run(mut self, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
+    /// Serves one connection. Returns Ok after a clean drain on shutdown, an error when
+    /// the connection is lost.
+    async fn run<F: std::future::Future<Output = ()>>(
+        mut self,
+        shutdown: &mut std::pin::Pin<&mut F>,
+    ) -> Result<()> {
         let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Rendered>();
-        tokio::pin!(shutdown);
         let mut draining = false;
+        let mut heartbeat = tokio::time::interval(HEARTBEAT);
         loop {
             if draining && self.in_flight == 0 {
                 info!("drained: exiting");
@@ -132,7 +243,10 @@ impl Session {
                     }
                     self.conn.flush().await?;
                 }
-                () = &mut shutdown, if !draining => {
+                _ = heartbeat.tick() => {
+                    self.conn.send(FromWorker::Heartbeat).await?;
+                }
+                () = shutdown.as_mut(), if !draining => {
                     info!(in_flight = self.in_flight, "shutting down: finishing the tiles held");
                     draining = true;
                     self.conn.send(FromWorker::Draining).await?;
@@ -158,9 +272,12 @@ impl Session {
                 self.in_flight += 1;
                 let tracer = self.cache.tracer(&scene, settings);
                 let cancelled = Arc::clone(&self.cancelled);
+                let alive = Arc::clone(&self.alive);
                 let done = done.clone();
                 self.pool.spawn(move || {
-                    if cancelled.lock().expect("cancel set").contains(&job) {
+                    if !alive.load(Ordering::Relaxed)
+                        || cancelled.lock().expect("cancel set").contains(&job)
+                    {
                         let _ = done.send(Rendered::Skipped);
                         return;
                     }
