@@ -207,6 +207,7 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
         (any::<u64>(), any::<u32>(), text())
             .prop_map(|(job, tile, message)| { FromWorker::TileFailed { job, tile, message } }),
         Just(FromWorker::Draining),
+        Just(FromWorker::Heartbeat),
     ]
 }
 
@@ -260,6 +261,7 @@ fn welcome() -> impl Strategy<Value = Welcome> {
     prop_oneof![
         any::<u16>().prop_map(|version| Welcome::Accepted { version }),
         text().prop_map(|reason| Welcome::Refused { reason }),
+        any::<[u8; 32]>().prop_map(|nonce| Welcome::Challenge { nonce }),
     ]
 }
 
