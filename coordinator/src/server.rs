@@ -8,6 +8,7 @@
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -110,7 +111,8 @@ impl Config {
 
 /// A bound, not yet serving coordinator.
 pub struct Server {
-    listener: TcpListener,
+    /// Taken (closed) when the server shuts down, so new peers are refused at once.
+    listener: Option<TcpListener>,
     /// One permit per open connection.
     connections: Arc<tokio::sync::Semaphore>,
     shared: Arc<Shared>,
@@ -126,6 +128,8 @@ struct Shared {
     handshake_timeout: Duration,
     secret: Option<Vec<u8>>,
     limits: JobLimits,
+    /// Images being encoded and stored.
+    finishing: std::sync::atomic::AtomicUsize,
     /// Set on shutdown: new jobs are refused.
     closing: std::sync::atomic::AtomicBool,
     max_frame: usize,
@@ -156,8 +160,13 @@ enum DbWrite {
     },
 }
 
-/// The database thread: consecutive tiles are written in one transaction.
-fn write_loop(db: Arc<Db>, rx: std::sync::mpsc::Receiver<DbWrite>) {
+/// The database thread: consecutive tiles are written in one transaction, and only
+/// then counted as done in the jobs' progress, so that a tile reported done survives a
+/// crash.
+fn write_loop(shared: std::sync::Weak<Shared>, rx: std::sync::mpsc::Receiver<DbWrite>) {
+    let Some(db) = shared.upgrade().map(|s| Arc::clone(&s.db)) else {
+        return;
+    };
     let mut pending = rx.recv().ok();
     while let Some(write) = pending.take() {
         match write {
@@ -173,8 +182,20 @@ fn write_loop(db: Arc<Db>, rx: std::sync::mpsc::Receiver<DbWrite>) {
                         Err(_) => break,
                     }
                 }
-                if let Err(e) = db.save_tiles(&batch) {
-                    error!(error = %format!("{e:#}"), "cannot record tiles");
+                match db.save_tiles(&batch) {
+                    Ok(()) => {
+                        if let Some(shared) = shared.upgrade() {
+                            let mut state = shared.state.lock().expect("state lock");
+                            for t in &batch {
+                                if let Some(record) = state.jobs.get_mut(&t.job) {
+                                    record.tiles_recorded += 1;
+                                }
+                            }
+                            drop(state);
+                            shared.changed();
+                        }
+                    }
+                    Err(e) => error!(error = %format!("{e:#}"), "cannot record tiles"),
                 }
             }
             DbWrite::State { job, state, error } => {
@@ -212,6 +233,8 @@ struct JobRecord {
     submitted: Instant,
     finished: Option<Instant>,
     tiles_done: u32,
+    /// Tiles written to the database: the progress reported to clients.
+    tiles_recorded: u32,
     rays: u64,
     tiles_per_worker: BTreeMap<String, u64>,
     error: Option<String>,
@@ -243,11 +266,6 @@ impl Server {
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
         let (tx, rx) = std::sync::mpsc::channel();
-        let writer_db = Arc::clone(&db);
-        let writer = std::thread::Builder::new()
-            .name("db-writer".into())
-            .spawn(move || write_loop(writer_db, rx))
-            .context("cannot start the database thread")?;
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
                 scheduler: Scheduler::new(),
@@ -260,15 +278,21 @@ impl Server {
             db,
             writes: Mutex::new(Some(tx)),
             closing: std::sync::atomic::AtomicBool::new(false),
+            finishing: std::sync::atomic::AtomicUsize::new(0),
             max_frame: config.max_frame,
             handshake_timeout: config.handshake_timeout,
             secret: config.secret.clone(),
             limits: config.limits,
             changes: tokio::sync::watch::channel(0).0,
         });
+        let recorder = Arc::downgrade(&shared);
+        let writer = std::thread::Builder::new()
+            .name("db-writer".into())
+            .spawn(move || write_loop(recorder, rx))
+            .context("cannot start the database thread")?;
         restore(&shared)?;
         Ok(Server {
-            listener,
+            listener: Some(listener),
             connections: Arc::new(tokio::sync::Semaphore::new(config.max_connections)),
             shared,
             writer: Some(writer),
@@ -277,7 +301,11 @@ impl Server {
 
     /// The address actually bound (useful with port 0).
     pub fn local_addr(&self) -> Result<SocketAddr> {
-        Ok(self.listener.local_addr()?)
+        Ok(self
+            .listener
+            .as_ref()
+            .expect("bound until shutdown")
+            .local_addr()?)
     }
 
     /// Serves connections until `shutdown` completes.
@@ -287,7 +315,7 @@ impl Server {
         let _stop_ticking = AbortOnDrop(ticker);
         loop {
             tokio::select! {
-                accepted = self.listener.accept() => {
+                accepted = self.listener.as_ref().expect("bound until shutdown").accept() => {
                     let (stream, peer) = match accepted {
                         Ok(conn) => conn,
                         Err(e) => {
@@ -323,22 +351,28 @@ impl Server {
     /// [`SHUTDOWN_GRACE`]) and flushes everything to the database.
     async fn shutdown_gracefully(&mut self) {
         info!("shutting down: finishing the tiles in flight");
-        self.shared
-            .closing
-            .store(true, std::sync::atomic::Ordering::SeqCst);
+        self.listener.take();
+        self.shared.closing.store(true, Ordering::SeqCst);
+        {
+            // Every worker finishes what it holds and gets nothing more.
+            let mut state = self.shared.state.lock().expect("state lock");
+            let workers: Vec<WorkerId> = state.workers.keys().copied().collect();
+            for worker in workers {
+                let actions = state.scheduler.handle(Event::WorkerDraining { worker });
+                state.apply(&self.shared, actions);
+            }
+        }
         let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
         while tokio::time::Instant::now() < deadline {
-            let in_flight = self
-                .shared
-                .state
-                .lock()
-                .expect("state lock")
-                .scheduler
-                .tiles_in_flight();
-            if in_flight == 0 {
+            let in_flight = {
+                let state = self.shared.state.lock().expect("state lock");
+                state.scheduler.tiles_in_flight()
+            };
+            let busy = in_flight > 0 || self.shared.finishing.load(Ordering::SeqCst) > 0;
+            if !busy {
                 break;
             }
-            tokio::time::sleep(Duration::from_millis(50)).await;
+            tokio::time::sleep(Duration::from_millis(20)).await;
         }
         // Closing the channel ends the database thread once it has written everything.
         self.shared.writes.lock().expect("writes lock").take();
@@ -369,6 +403,7 @@ fn restore(shared: &Arc<Shared>) -> Result<()> {
             submitted: Instant::now(),
             finished: stored.state.is_final().then(Instant::now),
             tiles_done: 0,
+            tiles_recorded: 0,
             rays: 0,
             tiles_per_worker: BTreeMap::new(),
             error: stored.error.clone(),
@@ -389,6 +424,7 @@ fn restore(shared: &Arc<Shared>) -> Result<()> {
             };
             image.put_rect(to_render_rect(*rect), &t.rgb);
             record.tiles_done += 1;
+            record.tiles_recorded += 1;
             record.rays += t.rays;
             *record.tiles_per_worker.entry(t.worker).or_default() += 1;
             done.push(t.tile);
@@ -493,8 +529,9 @@ async fn handle_connection(
     // An HTTP request would read as a frame length of over a gigabyte: answer it in
     // its own language instead.
     let mut start = [0u8; 4];
-    if let Ok(Ok(4)) = tokio::time::timeout(shared.handshake_timeout, stream.peek(&mut start)).await
-    {
+    // One deadline for the whole handshake, however its reads are split.
+    let deadline = tokio::time::Instant::now() + shared.handshake_timeout;
+    if let Ok(Ok(4)) = tokio::time::timeout_at(deadline, stream.peek(&mut start)).await {
         if [
             &b"GET "[..],
             b"POST",
@@ -520,7 +557,7 @@ async fn handle_connection(
             .max_frame_length(shared.max_frame)
             .new_codec(),
     );
-    let first = match tokio::time::timeout(shared.handshake_timeout, framed.next()).await {
+    let first = match tokio::time::timeout_at(deadline, framed.next()).await {
         Err(_) => {
             let refusal = Welcome::Refused {
                 reason: format!(
@@ -589,8 +626,25 @@ async fn serve_client(
             Ok(ClientRequest::Watch { job, after_tiles }) => watch(&shared, job, after_tiles).await,
             Ok(request) => respond(&shared, request, peer),
             Err(e) => {
-                let message = format!("bad request: {e}");
+                let message = format!(
+                    "bad request: {e} (this coordinator takes frames of at most {} bytes)",
+                    shared.max_frame
+                );
                 let _ = conn.send(ClientResponse::Error { message }).await;
+                // Let the peer finish sending and read the answer: closing with its
+                // bytes unread would reset the connection and lose the message.
+                let mut stream = conn.into_inner();
+                use tokio::io::AsyncWriteExt;
+                let _ = stream.shutdown().await;
+                let _ = tokio::time::timeout(Duration::from_secs(2), async {
+                    let mut sink = [0u8; 64 * 1024];
+                    while let Ok(n) = tokio::io::AsyncReadExt::read(&mut stream, &mut sink).await {
+                        if n == 0 {
+                            break;
+                        }
+                    }
+                })
+                .await;
                 return Err(e.into());
             }
         };
@@ -897,6 +951,7 @@ impl State {
                 submitted: Instant::now(),
                 finished: None,
                 tiles_done: 0,
+                tiles_recorded: 0,
                 rays: 0,
                 tiles_per_worker: BTreeMap::new(),
                 error: None,
@@ -1150,6 +1205,7 @@ impl State {
         };
         let scene = Arc::clone(&record.scene);
         let shared = Arc::clone(shared);
+        shared.finishing.fetch_add(1, Ordering::SeqCst);
         tokio::task::spawn_blocking(move || {
             let png = image.to_png();
             let stored = shared.store.save(&meta, &scene, &png);
@@ -1181,6 +1237,7 @@ impl State {
                 }
             }
             drop(state);
+            shared.finishing.fetch_sub(1, Ordering::SeqCst);
             shared.changed();
         });
     }
@@ -1200,7 +1257,11 @@ impl JobRecord {
             state: self.state,
             settings: self.settings,
             priority: self.priority,
-            tiles_done: self.tiles_done,
+            tiles_done: if self.state == JobState::Done {
+                total
+            } else {
+                self.tiles_recorded
+            },
             tiles_total: total,
             rays: self.rays,
             elapsed_ms: elapsed.as_millis() as u64,

@@ -61,3 +61,378 @@ fn drain(mut pipe: impl Read + Send + 'static) -> JoinHandle<String> {
         String::from_utf8_lossy(&bytes).into_owned()
     })
 }
+
+// ---------------------------------------------------------------------------------
+// Farm processes under guards, shared by the fault-injection and hostile-peer tests.
+// ---------------------------------------------------------------------------------
+
+/// The binary under test.
+pub const BIN: &str = env!("CARGO_BIN_EXE_tessera");
+
+/// Interval between two polls of a state.
+pub const POLL: Duration = Duration::from_millis(20);
+
+/// A daemon (or any child) killed with SIGKILL and reaped when dropped, also when a
+/// test fails; on failure the last lines of its log are printed.
+pub struct Daemon {
+    pub name: String,
+    pub child: std::process::Child,
+    pub log: Option<std::path::PathBuf>,
+}
+
+impl Daemon {
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Whether the process has not exited yet (a stopped process is still running).
+    pub fn is_running(&mut self) -> bool {
+        self.child
+            .try_wait()
+            .expect("cannot wait for a child")
+            .is_none()
+    }
+
+    /// SIGKILL (`kill -9`), then reap.
+    pub fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Sends `kill -SIG` (e.g. "TERM", "STOP", "CONT") to the still-running child.
+    pub fn signal(&mut self, sig: &str) {
+        assert!(
+            self.is_running(),
+            "{} is not running to get SIG{sig}",
+            self.name
+        );
+        let status = Command::new("kill")
+            .args([format!("-{sig}"), self.pid().to_string()])
+            .status()
+            .expect("cannot run kill");
+        assert!(status.success(), "kill -{sig} {} failed", self.pid());
+    }
+
+    /// Waits for the child to exit, at most `timeout`; `None` if it is still running.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("cannot wait for a child") {
+                return Some(status);
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// The log's text (empty if none).
+    pub fn log_text(&self) -> String {
+        self.log
+            .as_ref()
+            .and_then(|l| std::fs::read_to_string(l).ok())
+            .unwrap_or_default()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        // SIGKILL also ends a stopped process.
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if thread::panicking() {
+            let text = self.log_text();
+            let tail: Vec<&str> = text.lines().rev().take(20).collect();
+            if !tail.is_empty() {
+                eprintln!("--- last lines of {}'s log ---", self.name);
+                for line in tail.iter().rev() {
+                    eprintln!("{line}");
+                }
+            }
+        }
+    }
+}
+
+/// Reads `stdout`'s first line within `timeout`; the rest is drained in the background
+/// so the child never blocks on a full pipe.
+pub fn first_line(stdout: impl Read + Send + 'static, timeout: Duration) -> Option<String> {
+    use std::io::BufRead;
+    let (tx, rx) = std::sync::mpsc::channel();
+    thread::spawn(move || {
+        let mut reader = std::io::BufReader::new(stdout);
+        let mut line = String::new();
+        let _ = reader.read_line(&mut line);
+        let _ = tx.send(line);
+        let _ = std::io::copy(&mut reader, &mut std::io::sink());
+    });
+    rx.recv_timeout(timeout)
+        .ok()
+        .filter(|line| !line.is_empty())
+}
+
+/// Starts `tessera coordinator --listen LISTEN --data DATA EXTRA...` (log in
+/// `DIR/LOG_NAME`) and returns it with the address it printed.
+pub fn start_coordinator(
+    dir: &Path,
+    data: &Path,
+    listen: &str,
+    extra: &[&str],
+    log_name: &str,
+) -> (Daemon, String) {
+    let log = dir.join(log_name);
+    let mut child = Command::new(BIN)
+        .args(["coordinator", "--listen", listen, "--data"])
+        .arg(data)
+        .args(extra)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("cannot create the log"))
+        .spawn()
+        .expect("cannot start the coordinator");
+    let stdout = child.stdout.take().expect("stdout is piped");
+    let daemon = Daemon {
+        name: log_name.trim_end_matches(".log").to_owned(),
+        child,
+        log: Some(log),
+    };
+    let line = first_line(stdout, Duration::from_secs(10))
+        .expect("the coordinator printed no first line within 10 s");
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_owned();
+    assert!(addr.starts_with("127.0.0.1:"), "listening on {addr}");
+    (daemon, addr)
+}
+
+/// Starts `tessera worker --coordinator ADDR --threads 1 --name NAME` (log in
+/// `DIR/worker-NAME.log`), without waiting for it to register.
+pub fn start_worker(dir: &Path, addr: &str, name: &str) -> Daemon {
+    let log = dir.join(format!("worker-{name}.log"));
+    let child = Command::new(BIN)
+        .args([
+            "worker",
+            "--coordinator",
+            addr,
+            "--threads",
+            "1",
+            "--name",
+            name,
+        ])
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("cannot create the log"))
+        .spawn()
+        .expect("cannot start a worker");
+    Daemon {
+        name: format!("worker {name}"),
+        child,
+        log: Some(log),
+    }
+}
+
+/// A port that was free a moment ago on 127.0.0.1.
+pub fn free_port() -> u16 {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("cannot bind a port");
+    listener.local_addr().expect("no local address").port()
+}
+
+/// Calls `probe` every [`POLL`] until it returns a value; panics after `timeout`.
+pub fn poll<T>(what: &str, timeout: Duration, mut probe: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(value) = probe() {
+            return value;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out after {timeout:?} waiting for {what}"
+        );
+        thread::sleep(POLL);
+    }
+}
+
+/// `scenes/NAME` in the checkout.
+pub fn scene_path(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name)
+        .to_str()
+        .expect("test paths are UTF-8")
+        .to_owned()
+}
+
+/// Panics with everything the run printed unless it succeeded.
+pub fn ok(run: Run, what: &str) -> Run {
+    assert!(
+        run.status.success(),
+        "{what} failed ({}):\nstdout: {}\nstderr: {}",
+        run.status,
+        run.stdout,
+        run.stderr
+    );
+    run
+}
+
+/// `tessera ARGS --coordinator ADDR` in `dir`, at most 60 s.
+pub fn client(dir: &Path, addr: &str, args: &[&str]) -> Run {
+    let mut all: Vec<&str> = args.to_vec();
+    all.extend(["--coordinator", addr]);
+    tessera(dir, &all, Duration::from_secs(60))
+}
+
+/// `tessera status JOB --json`, parsed; `None` if the command failed (for example
+/// while the coordinator is down).
+pub fn try_status(dir: &Path, addr: &str, job: u64) -> Option<serde_json::Value> {
+    let run = client(dir, addr, &["status", &job.to_string(), "--json"]);
+    if !run.status.success() {
+        return None;
+    }
+    Some(
+        serde_json::from_str(run.stdout.trim())
+            .unwrap_or_else(|e| panic!("status --json is not JSON ({e}): {:?}", run.stdout)),
+    )
+}
+
+/// `tessera submit ARGS` (without `--wait`): the job id it printed.
+pub fn submit(dir: &Path, addr: &str, args: &[&str]) -> u64 {
+    let mut all = vec!["submit"];
+    all.extend(args);
+    let run = ok(
+        client(dir, addr, &all),
+        &format!("tessera {}", all.join(" ")),
+    );
+    run.stdout
+        .trim()
+        .parse()
+        .unwrap_or_else(|e| panic!("submit printed {:?}, not a job id: {e}", run.stdout))
+}
+
+/// Polls `status` until the job is `done` (within `timeout`), tolerating a coordinator
+/// that is briefly unreachable; panics if the job ends in another state.
+pub fn wait_done(dir: &Path, addr: &str, job: u64, timeout: Duration) -> serde_json::Value {
+    poll(&format!("job {job} to be done"), timeout, || {
+        let status = try_status(dir, addr, job)?;
+        let state = status["state"].as_str().expect("state is a string");
+        assert!(
+            !matches!(state, "failed" | "cancelled"),
+            "job {job} ended {state}: {status}"
+        );
+        (state == "done").then_some(status)
+    })
+}
+
+/// `tessera render SCENE -o DIR/NAME ARGS...`: the reference image.
+pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> std::path::PathBuf {
+    let out = dir.join(name);
+    let out_arg = out.to_str().expect("test paths are UTF-8");
+    let mut all = vec!["render", scene, "-o", out_arg];
+    all.extend(args);
+    ok(
+        tessera(dir, &all, Duration::from_secs(60)),
+        &format!("tessera {}", all.join(" ")),
+    );
+    out
+}
+
+/// `tessera fetch JOB -o DIR/NAME`.
+pub fn fetch(dir: &Path, addr: &str, job: u64, name: &str) -> std::path::PathBuf {
+    let out = dir.join(name);
+    let out_arg = out.to_str().expect("test paths are UTF-8");
+    ok(
+        client(dir, addr, &["fetch", &job.to_string(), "-o", out_arg]),
+        &format!("fetch {job}"),
+    );
+    out
+}
+
+/// The two PNG files are byte for byte the same (on a mismatch, says how many pixels
+/// differ).
+pub fn assert_same_png(actual: &Path, reference: &Path, what: &str) {
+    let a_bytes = std::fs::read(actual).unwrap_or_else(|e| panic!("{what}: no image: {e}"));
+    let r_bytes = std::fs::read(reference).expect("cannot read the reference image");
+    if a_bytes == r_bytes {
+        return;
+    }
+    let a = image::load_from_memory(&a_bytes)
+        .unwrap_or_else(|e| panic!("{what}: not a PNG: {e}"))
+        .to_rgb8();
+    let r = image::load_from_memory(&r_bytes)
+        .expect("the reference is a PNG")
+        .to_rgb8();
+    assert_eq!(a.dimensions(), r.dimensions(), "{what}: image size");
+    let differing = a.pixels().zip(r.pixels()).filter(|(p, q)| p != q).count();
+    panic!(
+        "{what}: the PNG differs from `tessera render`'s ({} vs {} bytes, {differing} of {} \
+         pixels differ)",
+        a_bytes.len(),
+        r_bytes.len(),
+        a.width() * a.height()
+    );
+}
+
+/// The resident set of a process in KiB (`VmRSS` of `/proc/PID/status`).
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// Open file descriptors of a process.
+pub fn open_fds(pid: u32) -> Option<usize> {
+    Some(std::fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count())
+}
+
+/// A small deterministic pseudo-random generator (SplitMix64).
+pub struct SplitMix(pub u64);
+
+impl SplitMix {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// A number in `0..n`.
+    pub fn below(&mut self, n: usize) -> usize {
+        (self.next_u64() % n as u64) as usize
+    }
+}
+
+/// Held by a test for its whole run so that the tests of one binary run one at a time
+/// (they all want every core); when dropped, prints how long the test took.
+pub struct Serial {
+    _lock: std::sync::MutexGuard<'static, ()>,
+    started: Instant,
+}
+
+/// Waits for the other tests of this binary that called it to finish.
+pub fn serial() -> Serial {
+    static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    Serial {
+        _lock: SERIAL.lock().unwrap_or_else(|e| e.into_inner()),
+        started: Instant::now(),
+    }
+}
+
+impl Drop for Serial {
+    fn drop(&mut self) {
+        eprintln!(
+            "[{}: {:.1} s]",
+            thread::current().name().unwrap_or("test"),
+            self.started.elapsed().as_secs_f64()
+        );
+    }
+}
