@@ -9,7 +9,7 @@ use protocol::{
     PeerStep, Role, WorkerStatus, DEFAULT_MAX_FRAME,
 };
 use tokio::net::TcpStream;
-use tokio_util::codec::{Framed, LengthDelimitedCodec};
+use tokio_util::codec::Framed;
 
 /// An open, handshaken connection to a coordinator.
 pub struct Client {
@@ -25,13 +25,7 @@ impl Client {
             .await
             .with_context(|| format!("cannot reach the coordinator at {address}"))?;
         stream.set_nodelay(true)?;
-        let mut raw = Framed::new(
-            stream,
-            LengthDelimitedCodec::builder()
-                .length_field_length(4)
-                .max_frame_length(DEFAULT_MAX_FRAME)
-                .new_codec(),
-        );
+        let mut raw = Framed::new(stream, protocol::frame_codec(DEFAULT_MAX_FRAME));
         raw.send(Bytes::from(Hello::new(Role::Client).to_frame()))
             .await
             .with_context(|| format!("cannot talk to the coordinator at {address}"))?;

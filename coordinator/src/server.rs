@@ -550,13 +550,7 @@ async fn handle_connection(
             anyhow::bail!("an HTTP request on the protocol port");
         }
     }
-    let mut framed = Framed::new(
-        stream,
-        LengthDelimitedCodec::builder()
-            .length_field_length(4)
-            .max_frame_length(shared.max_frame)
-            .new_codec(),
-    );
+    let mut framed = Framed::new(stream, protocol::frame_codec(shared.max_frame));
     let first = match tokio::time::timeout_at(deadline, framed.next()).await {
         Err(_) => {
             let refusal = Welcome::Refused {

@@ -23,18 +23,22 @@ pub fn tile_count(settings: &Settings, side: u32) -> u32 {
     settings.width.div_ceil(side) * settings.height.div_ceil(side)
 }
 
-/// The tiles of a frame, row by row from the top left.
+/// The tiles of a frame, row by row from the top left: the renderer's own cut, so that
+/// tile `i` means the same rectangle everywhere.
 pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
-    let mut tiles = Vec::new();
-    for y in (0..settings.height).step_by(side as usize) {
-        for x in (0..settings.width).step_by(side as usize) {
-            tiles.push(TileRect {
-                x,
-                y,
-                width: side.min(settings.width - x),
-                height: side.min(settings.height - y),
-            });
-        }
-    }
-    tiles
+    let frame = render::RenderSettings {
+        width: settings.width,
+        height: settings.height,
+        aa: settings.aa,
+        max_depth: settings.max_depth,
+    };
+    render::tiles(&frame, side)
+        .into_iter()
+        .map(|r| TileRect {
+            x: r.x,
+            y: r.y,
+            width: r.width,
+            height: r.height,
+        })
+        .collect()
 }

@@ -38,13 +38,19 @@ impl<In, Out> MessageCodec<In, Out> {
     /// [`MAX_FRAME_LIMIT`]).
     pub fn new(max_frame: usize) -> Self {
         MessageCodec {
-            frames: LengthDelimitedCodec::builder()
-                .length_field_length(4)
-                .max_frame_length(max_frame.min(MAX_FRAME_LIMIT))
-                .new_codec(),
+            frames: frame_codec(max_frame),
             _messages: PhantomData,
         }
     }
+}
+
+/// The framing alone (4-byte big-endian length, at most `max_frame` bytes, capped at
+/// [`MAX_FRAME_LIMIT`]), for the handshake frames read before the message codec.
+pub fn frame_codec(max_frame: usize) -> LengthDelimitedCodec {
+    LengthDelimitedCodec::builder()
+        .length_field_length(4)
+        .max_frame_length(max_frame.min(MAX_FRAME_LIMIT))
+        .new_codec()
 }
 
 impl<In: DeserializeOwned, Out> Decoder for MessageCodec<In, Out> {

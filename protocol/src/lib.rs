@@ -14,7 +14,7 @@ mod handshake;
 mod messages;
 pub mod wire;
 
-pub use crate::codec::{FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
+pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
 pub use crate::handshake::{
     prove, verify, AuthProof, Hello, HelloError, PeerHandshake, PeerHandshakeError, PeerStep, Role,
     Welcome, AUTH_CONTEXT, MAGIC, PROTOCOL_VERSION,

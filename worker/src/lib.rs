@@ -22,7 +22,7 @@ use protocol::{
 };
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
-use tokio_util::codec::{Framed, LengthDelimitedCodec};
+use tokio_util::codec::Framed;
 use tracing::{info, warn};
 
 use crate::cache::SceneCache;
@@ -143,13 +143,7 @@ async fn connect(config: &Config) -> Result<Conn, ConnectError> {
     stream
         .set_nodelay(true)
         .map_err(|e| unreachable(e.into()))?;
-    let mut raw = Framed::new(
-        stream,
-        LengthDelimitedCodec::builder()
-            .length_field_length(4)
-            .max_frame_length(DEFAULT_MAX_FRAME)
-            .new_codec(),
-    );
+    let mut raw = Framed::new(stream, protocol::frame_codec(DEFAULT_MAX_FRAME));
     let hello = Hello::new(Role::Worker {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
