@@ -22,15 +22,14 @@
 mod common;
 
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
 use std::thread;
 use std::time::{Duration, Instant};
 
-use common::Run;
+use common::{first_line, ok, poll, Run, POLL};
 use serde_json::Value;
 use tempfile::TempDir;
 
@@ -42,8 +41,6 @@ const CLIENT_TIMEOUT: Duration = Duration::from_secs(60);
 const JOB_TIMEOUT: Duration = Duration::from_secs(60);
 /// Longest a daemon may take to start (print its address, or register as a worker).
 const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
-/// Interval between two polls of a state.
-const POLL: Duration = Duration::from_millis(20);
 
 /// A small frame that still has many tiles, and partial tiles at the right and bottom
 /// edges for most tile sizes.
@@ -86,18 +83,6 @@ fn cat<A: AsRef<str>, B: AsRef<str>>(args: &[A], more: &[B]) -> Vec<String> {
         .collect()
 }
 
-/// Panics with everything the run printed unless it succeeded.
-fn ok(run: Run, what: &str) -> Run {
-    assert!(
-        run.status.success(),
-        "{what} failed ({}):\nstdout: {}\nstderr: {}",
-        run.status,
-        run.stdout,
-        run.stderr
-    );
-    run
-}
-
 /// `tessera render SCENE -o DIR/NAME ARGS...`: the reference image.
 fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> PathBuf {
     let out = dir.join(name);
@@ -138,21 +123,6 @@ fn assert_same_image(actual: &Path, reference: &Path, what: &str) {
         a_bytes.len(),
         r_bytes.len()
     );
-}
-
-/// Calls `probe` every [`POLL`] until it returns a value; panics after `timeout`.
-fn poll<T>(what: &str, timeout: Duration, mut probe: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Some(value) = probe() {
-            return value;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "timed out after {timeout:?} waiting for {what}"
-        );
-        thread::sleep(POLL);
-    }
 }
 
 fn parse_json(run: &Run, what: &str) -> Value {
@@ -212,22 +182,6 @@ impl Drop for Guarded {
             }
         }
     }
-}
-
-/// Reads `stdout`'s first line within `timeout`; the rest is drained in the background
-/// so the child never blocks on a full pipe.
-fn first_line(stdout: impl Read + Send + 'static, timeout: Duration) -> Option<String> {
-    let (tx, rx) = mpsc::channel();
-    thread::spawn(move || {
-        let mut reader = BufReader::new(stdout);
-        let mut line = String::new();
-        let _ = reader.read_line(&mut line);
-        let _ = tx.send(line);
-        let _ = std::io::copy(&mut reader, &mut std::io::sink());
-    });
-    rx.recv_timeout(timeout)
-        .ok()
-        .filter(|line| !line.is_empty())
 }
 
 /// A coordinator and its workers on loopback, with a fresh data directory; dropping it
