@@ -5,23 +5,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
+use coordinator::transport::Endpoint;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, WorkerStatus};
 use serde_json::{json, Value};
 
 use crate::output::{default_output, write_atomically};
-
-/// Which coordinator to talk to, and the secret to prove to it.
-pub struct Target {
-    pub address: String,
-    pub secret: Option<Vec<u8>>,
-}
-
-impl Target {
-    pub async fn connect(&self) -> Result<Client> {
-        Client::connect(&self.address, self.secret.clone()).await
-    }
-}
 
 /// Reads a scene file for submission.
 pub fn read_scene(path: &Path) -> Result<String> {
@@ -112,7 +101,7 @@ pub fn summary(output: &Path, status: &JobStatus) -> String {
 
 /// `tessera submit`.
 pub async fn run_submit(
-    coordinator: &Target,
+    coordinator: &Endpoint,
     scene: &Path,
     overrides: Overrides,
     priority: i32,
@@ -120,7 +109,7 @@ pub async fn run_submit(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
-    let mut client = coordinator.connect().await?;
+    let mut client = Client::connect(coordinator).await?;
     let job = submit(&mut client, scene, overrides, priority).await?;
     if !wait_for_it {
         if json_out {
@@ -143,8 +132,8 @@ pub async fn run_submit(
     Ok(())
 }
 
-pub async fn run_status(coordinator: &Target, job: JobId, json_out: bool) -> Result<()> {
-    let status = coordinator.connect().await?.status(job).await?;
+pub async fn run_status(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
+    let status = Client::connect(coordinator).await?.status(job).await?;
     if json_out {
         println!("{}", status_json(&status));
     } else {
@@ -153,8 +142,8 @@ pub async fn run_status(coordinator: &Target, job: JobId, json_out: bool) -> Res
     Ok(())
 }
 
-pub async fn run_list(coordinator: &Target, json_out: bool) -> Result<()> {
-    let jobs = coordinator.connect().await?.list().await?;
+pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
+    let jobs = Client::connect(coordinator).await?.list().await?;
     if json_out {
         println!("{}", Value::Array(jobs.iter().map(status_json).collect()));
     } else if jobs.is_empty() {
@@ -167,8 +156,8 @@ pub async fn run_list(coordinator: &Target, json_out: bool) -> Result<()> {
     Ok(())
 }
 
-pub async fn run_cancel(coordinator: &Target, job: JobId, json_out: bool) -> Result<()> {
-    coordinator.connect().await?.cancel(job).await?;
+pub async fn run_cancel(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
+    Client::connect(coordinator).await?.cancel(job).await?;
     if json_out {
         println!("{}", json!({ "id": job, "state": "cancelled" }));
     } else {
@@ -178,13 +167,13 @@ pub async fn run_cancel(coordinator: &Target, job: JobId, json_out: bool) -> Res
 }
 
 pub async fn run_fetch(
-    coordinator: &Target,
+    coordinator: &Endpoint,
     job: JobId,
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
     let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
-    let mut client = coordinator.connect().await?;
+    let mut client = Client::connect(coordinator).await?;
     let bytes = fetch_to(&mut client, job, &output).await?;
     if json_out {
         println!(
@@ -197,8 +186,8 @@ pub async fn run_fetch(
     Ok(())
 }
 
-pub async fn run_workers(coordinator: &Target, json_out: bool) -> Result<()> {
-    let workers = coordinator.connect().await?.workers().await?;
+pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
+    let workers = Client::connect(coordinator).await?.workers().await?;
     if json_out {
         println!(
             "{}",

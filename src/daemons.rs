@@ -1,6 +1,7 @@
 //! `tessera coordinator` and `tessera worker`: the two long-running processes.
 
 use anyhow::{Context, Result};
+use coordinator::transport::Endpoint;
 use tracing::info;
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
@@ -45,10 +46,9 @@ pub async fn coordinator(config: coordinator::Config, exit_on_stdin_eof: bool) -
 }
 
 pub async fn worker(
-    coordinator: String,
+    coordinator: Endpoint,
     threads: Option<usize>,
     name: Option<String>,
-    secret: Option<Vec<u8>>,
     exit_on_stdin_eof: bool,
 ) -> Result<()> {
     let threads =
@@ -59,7 +59,6 @@ pub async fn worker(
             coordinator,
             threads,
             name,
-            secret,
         },
         shutdown_signal(exit_on_stdin_eof),
     )

@@ -13,6 +13,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
+use coordinator::transport::{ClientTls, Endpoint, ServerTls};
 use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 
@@ -191,6 +192,17 @@ struct CoordinatorArgs {
     max_jobs_per_client: u64,
     #[command(flatten)]
     secret: SecretArgs,
+    /// PEM certificate chain: serve TLS with it (needs --tls-key).
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Milliseconds without a heartbeat after which a worker counts as lost and its
+    /// tiles go to others.
+    #[arg(long, value_name = "MS", default_value_t = coordinator::scheduler::Policy::default().heartbeat_timeout,
+          value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
+    heartbeat_timeout_ms: u64,
     /// Accept peers without a token on a non-loopback address.
     #[arg(long)]
     insecure: bool,
@@ -205,17 +217,14 @@ struct CoordinatorArgs {
 
 #[derive(Args)]
 struct WorkerArgs {
-    /// The coordinator's address.
-    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
-    coordinator: String,
+    #[command(flatten)]
+    peer: PeerArgs,
     /// Rendering threads [default: one per core].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
     /// Name shown by `tessera workers` [default: HOST-PID].
     #[arg(long)]
     name: Option<String>,
-    #[command(flatten)]
-    secret: SecretArgs,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -246,14 +255,43 @@ struct SubmitArgs {
 /// What every client command takes.
 #[derive(Args)]
 struct ClientArgs {
+    #[command(flatten)]
+    peer: PeerArgs,
+    /// Machine-readable JSON output.
+    #[arg(long)]
+    json: bool,
+}
+
+/// How clients and workers reach a coordinator.
+#[derive(Args)]
+struct PeerArgs {
     /// The coordinator's address.
     #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
     coordinator: String,
     #[command(flatten)]
     secret: SecretArgs,
-    /// Machine-readable JSON output.
-    #[arg(long)]
-    json: bool,
+    /// Speak TLS, trusting the certificates in this PEM file (the coordinator's own
+    /// certificate or the CA that signed it).
+    #[arg(long, value_name = "FILE")]
+    tls_ca: Option<PathBuf>,
+    /// The name the coordinator's certificate must carry [default: the host of
+    /// --coordinator].
+    #[arg(long, value_name = "NAME", requires = "tls_ca")]
+    tls_server_name: Option<String>,
+}
+
+impl PeerArgs {
+    fn endpoint(&self) -> Result<Endpoint> {
+        Ok(Endpoint {
+            address: self.coordinator.clone(),
+            tls: self
+                .tls_ca
+                .as_deref()
+                .map(|ca| ClientTls::from_ca_file(ca, self.tls_server_name.as_deref()))
+                .transpose()?,
+            secret: self.secret.load()?,
+        })
+    }
 }
 
 /// The shared secret of a farm that requires one.
@@ -283,11 +321,8 @@ impl SecretArgs {
 }
 
 impl ClientArgs {
-    fn target(&self) -> Result<client_commands::Target> {
-        Ok(client_commands::Target {
-            address: self.coordinator.clone(),
-            secret: self.secret.load()?,
-        })
+    fn target(&self) -> Result<Endpoint> {
+        self.peer.endpoint()
     }
 }
 
@@ -356,6 +391,14 @@ fn run(command: Command) -> Result<()> {
                     max_connections: a.max_connections as usize,
                     handshake_timeout: std::time::Duration::from_millis(a.handshake_timeout_ms),
                     secret: a.secret.load()?,
+                    tls: match (&a.tls_cert, &a.tls_key) {
+                        (Some(cert), Some(key)) => Some(ServerTls::from_pem_files(cert, key)?),
+                        _ => None,
+                    },
+                    policy: coordinator::scheduler::Policy {
+                        heartbeat_timeout: a.heartbeat_timeout_ms,
+                        ..Default::default()
+                    },
                     limits: coordinator::server::JobLimits {
                         max_scene_bytes: a.max_scene_bytes as usize,
                         max_objects: a.max_objects as usize,
@@ -376,10 +419,9 @@ fn run(command: Command) -> Result<()> {
             }
             Command::Worker(a) => {
                 daemons::worker(
-                    a.coordinator,
+                    a.peer.endpoint()?,
                     a.threads.map(|n| n as usize),
                     a.name,
-                    a.secret.load()?,
                     a.exit_on_stdin_eof,
                 )
                 .await

@@ -14,6 +14,7 @@ use std::sync::Mutex;
 
 use anyhow::{anyhow, bail, Context, Result};
 use coordinator::client::Client;
+use coordinator::transport::Endpoint;
 use protocol::Overrides;
 
 use crate::client_commands::{fetch_to, submit, summary, wait};
@@ -44,7 +45,7 @@ pub async fn run(opts: Options) -> Result<()> {
 }
 
 async fn render_on(address: &str, opts: &Options) -> Result<()> {
-    let mut client = Client::connect(address, None).await?;
+    let mut client = Client::connect(&Endpoint::plain(address)).await?;
     let job = submit(&mut client, &opts.scene, opts.overrides, 0).await?;
     let status = wait(&mut client, job).await?;
     let output = opts

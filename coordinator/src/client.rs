@@ -2,52 +2,31 @@
 //! `fetch` and `workers` (and `tessera up`) use to talk to a coordinator.
 
 use anyhow::{anyhow, bail, Context, Result};
-use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, Hello, JobId, JobSpec, JobStatus, MessageCodec, PeerHandshake,
-    PeerStep, Role, WorkerStatus, DEFAULT_MAX_FRAME,
+    ClientRequest, ClientResponse, JobId, JobSpec, JobStatus, MessageCodec, Role, WorkerStatus,
+    DEFAULT_MAX_FRAME,
 };
-use tokio::net::TcpStream;
 use tokio_util::codec::Framed;
+
+use crate::transport::{self, Endpoint, Stream};
 
 /// An open, handshaken connection to a coordinator.
 pub struct Client {
-    conn: Framed<TcpStream, MessageCodec<ClientResponse, ClientRequest>>,
+    conn: Framed<Stream, MessageCodec<ClientResponse, ClientRequest>>,
     address: String,
 }
 
 impl Client {
-    /// Connects and handshakes, proving `secret` if the coordinator asks for it.
-    /// Errors name the address tried.
-    pub async fn connect(address: &str, secret: Option<Vec<u8>>) -> Result<Client> {
-        let stream = TcpStream::connect(address)
+    /// Connects and handshakes (over TLS if the endpoint says so), proving the
+    /// endpoint's secret if the coordinator asks for it. Errors name the address tried.
+    pub async fn connect(endpoint: &Endpoint) -> Result<Client> {
+        let raw = transport::dial(endpoint, Role::Client)
             .await
-            .with_context(|| format!("cannot reach the coordinator at {address}"))?;
-        stream.set_nodelay(true)?;
-        let mut raw = Framed::new(stream, protocol::frame_codec(DEFAULT_MAX_FRAME));
-        raw.send(Bytes::from(Hello::new(Role::Client).to_frame()))
-            .await
-            .with_context(|| format!("cannot talk to the coordinator at {address}"))?;
-        let mut handshake = PeerHandshake::new(secret);
-        loop {
-            let reply = raw
-                .next()
-                .await
-                .ok_or_else(|| anyhow!("the coordinator at {address} closed the connection"))?
-                .with_context(|| format!("cannot talk to the coordinator at {address}"))?;
-            match handshake.on_frame(&reply) {
-                Ok(PeerStep::Accepted) => break,
-                Ok(PeerStep::Send(proof)) => raw
-                    .send(Bytes::from(proof))
-                    .await
-                    .with_context(|| format!("cannot talk to the coordinator at {address}"))?,
-                Err(e) => bail!("the coordinator at {address}: {e}"),
-            }
-        }
+            .map_err(transport::DialError::into_inner)?;
         Ok(Client {
             conn: raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)),
-            address: address.to_string(),
+            address: endpoint.address.clone(),
         })
     }
 

@@ -11,5 +11,6 @@ pub mod scheduler;
 pub mod server;
 mod store;
 mod tiling;
+pub mod transport;
 
 pub use crate::server::{serve, Config};

@@ -27,9 +27,10 @@ use tokio_util::codec::{Framed, LengthDelimitedCodec};
 use tracing::{error, info, warn};
 
 use crate::db::{Db, StoredJob, TileWrite};
-use crate::scheduler::{Action, Event, Scheduler};
+use crate::scheduler::{Action, Event, Policy, Scheduler};
 use crate::store::{JobMetadata, Store};
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
+use crate::transport::{ServerTls, Stream, TLS_HANDSHAKE_RECORD};
 
 /// What a job may ask for. Each bound keeps one client from taking the farm's memory
 /// or time from everyone else; exceeding one is a clear error at submission.
@@ -65,6 +66,10 @@ const SHUTDOWN_GRACE: Duration = Duration::from_secs(10);
 /// How often the scheduler is told the time.
 const TICK: Duration = Duration::from_millis(100);
 
+/// How often workers are told the coordinator is alive (they give up on a silent
+/// coordinator after `worker::COORDINATOR_SILENCE`).
+const HEARTBEAT_TO_WORKERS: Duration = Duration::from_secs(1);
+
 /// Connections served at once by default.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 256;
 
@@ -92,6 +97,10 @@ pub struct Config {
     pub handshake_timeout: Duration,
     /// The shared secret peers must prove, if any.
     pub secret: Option<Vec<u8>>,
+    /// Serve TLS with this certificate, if set; plain TCP otherwise.
+    pub tls: Option<ServerTls>,
+    /// Heartbeat timeout, leases, retries and speculation.
+    pub policy: Policy,
     pub limits: JobLimits,
 }
 
@@ -104,6 +113,8 @@ impl Config {
             max_connections: DEFAULT_MAX_CONNECTIONS,
             handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
             secret: None,
+            tls: None,
+            policy: Policy::default(),
             limits: JobLimits::default(),
         }
     }
@@ -127,6 +138,7 @@ struct Shared {
     writes: Mutex<Option<std::sync::mpsc::Sender<DbWrite>>>,
     handshake_timeout: Duration,
     secret: Option<Vec<u8>>,
+    tls: Option<ServerTls>,
     limits: JobLimits,
     /// Images being encoded and stored.
     finishing: std::sync::atomic::AtomicUsize,
@@ -268,7 +280,7 @@ impl Server {
         let (tx, rx) = std::sync::mpsc::channel();
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
-                scheduler: Scheduler::new(),
+                scheduler: Scheduler::with_policy(config.policy),
                 jobs: BTreeMap::new(),
                 workers: BTreeMap::new(),
                 next_job,
@@ -282,6 +294,7 @@ impl Server {
             max_frame: config.max_frame,
             handshake_timeout: config.handshake_timeout,
             secret: config.secret.clone(),
+            tls: config.tls.clone(),
             limits: config.limits,
             changes: tokio::sync::watch::channel(0).0,
         });
@@ -326,7 +339,12 @@ impl Server {
                     };
                     let Ok(permit) = Arc::clone(&self.connections).try_acquire_owned() else {
                         warn!(%peer, "connection limit reached: refusing");
-                        tokio::spawn(refuse(stream, "too many connections: try again later".into()));
+                        let shared = Arc::clone(&self.shared);
+                        tokio::spawn(async move {
+                            if let Ok(stream) = secure(&shared, stream, tokio::time::Instant::now() + shared.handshake_timeout).await {
+                                refuse(stream, "too many connections: try again later".into()).await;
+                            }
+                        });
                         continue;
                     };
                     let shared = Arc::clone(&self.shared);
@@ -481,7 +499,7 @@ pub async fn serve(config: Config, shutdown: impl std::future::Future<Output = (
 }
 
 /// Sends a refusal the peer can read, then closes.
-async fn refuse(stream: TcpStream, reason: String) {
+async fn refuse(stream: Stream, reason: String) {
     let mut framed = Framed::new(stream, LengthDelimitedCodec::new());
     let refusal = protocol::wire::encode(&Welcome::Refused { reason });
     let _ = framed.send(Bytes::from(refusal)).await;
@@ -490,7 +508,7 @@ async fn refuse(stream: TcpStream, reason: String) {
 /// Challenge-response: the peer proves it knows the secret with an HMAC of a fresh
 /// nonce. A wrong or missing proof is refused.
 async fn authenticate(
-    framed: &mut Framed<TcpStream, LengthDelimitedCodec>,
+    framed: &mut Framed<Stream, LengthDelimitedCodec>,
     secret: &[u8],
     timeout: Duration,
 ) -> Result<()> {
@@ -515,6 +533,36 @@ async fn authenticate(
         .send(Bytes::from(protocol::wire::encode(&refusal)))
         .await;
     anyhow::bail!("authentication failed")
+}
+
+/// Completes the TLS handshake when the coordinator serves TLS (by `deadline`); a peer
+/// that speaks plain protocol to it is told, in plain protocol, what to do instead.
+async fn secure(
+    shared: &Shared,
+    stream: TcpStream,
+    deadline: tokio::time::Instant,
+) -> Result<Stream> {
+    let Some(tls) = &shared.tls else {
+        return Ok(Box::new(stream));
+    };
+    let mut first = [0u8; 1];
+    match tokio::time::timeout_at(deadline, stream.peek(&mut first)).await {
+        Ok(Ok(1)) if first[0] == TLS_HANDSHAKE_RECORD => {}
+        Ok(Ok(1)) => {
+            refuse(
+                Box::new(stream),
+                "this coordinator speaks TLS only: connect with --tls-ca".into(),
+            )
+            .await;
+            anyhow::bail!("a plain connection to the TLS port");
+        }
+        _ => anyhow::bail!("no TLS handshake within the time limit"),
+    }
+    match tokio::time::timeout_at(deadline, tls.accept(stream)).await {
+        Ok(Ok(stream)) => Ok(stream),
+        Ok(Err(e)) => Err(anyhow::Error::from(e).context("TLS handshake failed")),
+        Err(_) => anyhow::bail!("no TLS handshake within the time limit"),
+    }
 }
 
 /// What a browser or `curl` sees when pointed at the protocol port.
@@ -550,6 +598,7 @@ async fn handle_connection(
             anyhow::bail!("an HTTP request on the protocol port");
         }
     }
+    let stream = secure(&shared, stream, deadline).await?;
     let mut framed = Framed::new(stream, protocol::frame_codec(shared.max_frame));
     let first = match tokio::time::timeout_at(deadline, framed.next()).await {
         Err(_) => {
@@ -607,8 +656,8 @@ async fn handle_connection(
     }
 }
 
-type ClientConn = Framed<TcpStream, MessageCodec<ClientRequest, ClientResponse>>;
-type WorkerConn = Framed<TcpStream, MessageCodec<FromWorker, ToWorker>>;
+type ClientConn = Framed<Stream, MessageCodec<ClientRequest, ClientResponse>>;
+type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
 
 async fn serve_client(
     shared: Arc<Shared>,
@@ -804,8 +853,16 @@ async fn serve_worker(
     };
     info!(worker, %name, threads, "worker joined");
     let writer = tokio::spawn(async move {
-        // Everything queued goes out in one write: one syscall for a burst of tiles.
-        while let Some(message) = inbox.recv().await {
+        let mut heartbeat = tokio::time::interval(HEARTBEAT_TO_WORKERS);
+        loop {
+            let message = tokio::select! {
+                message = inbox.recv() => match message {
+                    Some(message) => message,
+                    None => break,
+                },
+                _ = heartbeat.tick() => ToWorker::Heartbeat,
+            };
+            // Everything queued goes out in one write: one syscall for a burst of tiles.
             let mut batch = sink.feed(message).await;
             while let (Ok(()), Ok(more)) = (&batch, inbox.try_recv()) {
                 batch = sink.feed(more).await;

@@ -184,6 +184,9 @@ pub enum ToWorker {
     /// No active job uses this scene any more: the worker may drop it from its cache.
     /// A later job with the same scene sends it again.
     ForgetScene { hash: SceneHash },
+    /// The coordinator is alive. Sent every second, so that a worker cut off from it
+    /// notices (it hears nothing) and reconnects instead of waiting forever.
+    Heartbeat,
 }
 
 /// Worker to coordinator.

@@ -185,6 +185,7 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
             }),
         any::<u64>().prop_map(|job| ToWorker::Cancel { job }),
         any::<[u8; 32]>().prop_map(|hash| ToWorker::ForgetScene { hash }),
+        Just(ToWorker::Heartbeat),
     ]
 }
 

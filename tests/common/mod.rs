@@ -4,6 +4,8 @@
 // Each test binary uses its own part of this module.
 #![allow(dead_code)]
 
+pub mod proxy;
+
 use std::ffi::{OsStr, OsString};
 use std::io::Read;
 use std::path::Path;
@@ -211,6 +213,11 @@ pub fn start_coordinator(
 /// Starts `tessera worker --coordinator ADDR --threads 1 --name NAME` (log in
 /// `DIR/worker-NAME.log`), without waiting for it to register.
 pub fn start_worker(dir: &Path, addr: &str, name: &str) -> Daemon {
+    start_worker_with(dir, addr, name, &[])
+}
+
+/// [`start_worker`] with more arguments.
+pub fn start_worker_with(dir: &Path, addr: &str, name: &str, extra: &[&str]) -> Daemon {
     let log = dir.join(format!("worker-{name}.log"));
     let child = Command::new(BIN)
         .args([
@@ -222,6 +229,7 @@ pub fn start_worker(dir: &Path, addr: &str, name: &str) -> Daemon {
             "--name",
             name,
         ])
+        .args(extra)
         .current_dir(dir)
         .stdin(Stdio::null())
         .stdout(Stdio::null())

@@ -13,14 +13,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Context, Result};
-use bytes::Bytes;
+use anyhow::{bail, Context, Result};
+use coordinator::transport::{self, DialError, Endpoint, Stream};
 use futures_util::{SinkExt, StreamExt};
-use protocol::{
-    FromWorker, Hello, JobId, MessageCodec, PeerHandshake, PeerStep, Role, ToWorker,
-    DEFAULT_MAX_FRAME,
-};
-use tokio::net::TcpStream;
+use protocol::{FromWorker, JobId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
 use tracing::{info, warn};
@@ -30,20 +26,23 @@ use crate::cache::SceneCache;
 /// How often the worker tells the coordinator it is alive, also while it renders.
 const HEARTBEAT: Duration = Duration::from_secs(1);
 
+/// A coordinator heard from for this long is taken as lost (it sends a heartbeat every
+/// second), so a worker cut off from the network reconnects instead of waiting on a
+/// connection that will never speak again.
+pub const COORDINATOR_SILENCE: Duration = Duration::from_secs(10);
+
 /// How a worker is set up.
 #[derive(Clone, Debug)]
 pub struct Config {
-    /// host:port of the coordinator.
-    pub coordinator: String,
+    /// Where the coordinator is, how to talk to it and the secret to prove.
+    pub coordinator: Endpoint,
     /// Rendering threads.
     pub threads: usize,
     /// The name the coordinator shows for this worker.
     pub name: String,
-    /// The shared secret, if the coordinator requires one.
-    pub secret: Option<Vec<u8>>,
 }
 
-type Conn = Framed<TcpStream, MessageCodec<ToWorker, FromWorker>>;
+type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
 /// Works for the coordinator until `shutdown` completes (a clean exit after
 /// draining). A lost or unreachable coordinator is retried with exponential backoff
@@ -62,7 +61,7 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
     loop {
         match connect(&config).await {
             Ok(conn) => {
-                info!(coordinator = %config.coordinator, threads = config.threads, "connected");
+                info!(coordinator = %config.coordinator.address, threads = config.threads, "connected");
                 backoff.reset();
                 let session = Session {
                     conn,
@@ -77,8 +76,8 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
             }
-            Err(ConnectError::Refused(e)) => return Err(e),
-            Err(ConnectError::Unreachable(e)) => {
+            Err(DialError::Refused(e)) => return Err(e),
+            Err(DialError::Unreachable(e)) => {
                 warn!(error = %format!("{e:#}"), "cannot reach the coordinator")
             }
         }
@@ -89,12 +88,6 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
             () = &mut shutdown => return Ok(()),
         }
     }
-}
-
-/// Why a connection attempt failed: worth retrying, or not.
-enum ConnectError {
-    Unreachable(anyhow::Error),
-    Refused(anyhow::Error),
 }
 
 /// Exponential backoff from 100 ms to 10 s, each delay scaled by a random factor in
@@ -133,50 +126,13 @@ fn jitter() -> f64 {
     (h.finish() >> 11) as f64 / (1u64 << 53) as f64
 }
 
-async fn connect(config: &Config) -> Result<Conn, ConnectError> {
-    let address = &config.coordinator;
-    let unreachable = |e: anyhow::Error| ConnectError::Unreachable(e);
-    let stream = TcpStream::connect(address)
-        .await
-        .with_context(|| format!("cannot reach the coordinator at {address}"))
-        .map_err(unreachable)?;
-    stream
-        .set_nodelay(true)
-        .map_err(|e| unreachable(e.into()))?;
-    let mut raw = Framed::new(stream, protocol::frame_codec(DEFAULT_MAX_FRAME));
-    let hello = Hello::new(Role::Worker {
+async fn connect(config: &Config) -> Result<Conn, DialError> {
+    let role = Role::Worker {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
-    });
-    raw.send(Bytes::from(hello.to_frame()))
-        .await
-        .map_err(|e| unreachable(e.into()))?;
-    let mut handshake = PeerHandshake::new(config.secret.clone());
-    loop {
-        let reply = raw
-            .next()
-            .await
-            .ok_or_else(|| {
-                unreachable(anyhow!(
-                    "the coordinator at {address} closed the connection"
-                ))
-            })?
-            .map_err(|e| unreachable(e.into()))?;
-        match handshake.on_frame(&reply) {
-            Ok(PeerStep::Accepted) => {
-                return Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))
-            }
-            Ok(PeerStep::Send(proof)) => raw
-                .send(Bytes::from(proof))
-                .await
-                .map_err(|e| unreachable(e.into()))?,
-            Err(e) => {
-                return Err(ConnectError::Refused(anyhow!(
-                    "the coordinator at {address}: {e}"
-                )))
-            }
-        }
-    }
+    };
+    let raw = transport::dial(&config.coordinator, role).await?;
+    Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))
 }
 
 /// A rendered tile (or a skipped one) on its way back from the pool.
@@ -213,6 +169,7 @@ impl Session {
         let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Rendered>();
         let mut draining = false;
         let mut heartbeat = tokio::time::interval(HEARTBEAT);
+        let mut last_heard = tokio::time::Instant::now();
         loop {
             if draining && self.in_flight == 0 {
                 info!("drained: exiting");
@@ -220,10 +177,17 @@ impl Session {
             }
             tokio::select! {
                 message = self.conn.next(), if !draining => {
+                    last_heard = tokio::time::Instant::now();
                     match message {
                         Some(message) => self.handle(message?, &done_tx),
                         None => bail!("the coordinator closed the connection"),
                     }
+                }
+                () = tokio::time::sleep_until(last_heard + COORDINATOR_SILENCE), if !draining => {
+                    bail!(
+                        "nothing from the coordinator for {} s",
+                        COORDINATOR_SILENCE.as_secs()
+                    );
                 }
                 Some(rendered) = done_rx.recv() => {
                     // Every result ready now goes out in one write.
@@ -253,6 +217,7 @@ impl Session {
         match message {
             ToWorker::Scene { hash, scene } => self.cache.insert(hash, scene),
             ToWorker::ForgetScene { hash } => self.cache.forget(&hash),
+            ToWorker::Heartbeat => {}
             ToWorker::Cancel { job } => {
                 self.cancelled.lock().expect("cancel set").insert(job);
             }
