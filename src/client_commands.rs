@@ -7,10 +7,12 @@ use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
 use coordinator::transport::Endpoint;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, WorkerStatus};
+use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, Sampling, Settings, WorkerStatus};
+use render::RenderSettings;
 use serde_json::{json, Value};
 
 use crate::output::{default_output, write_atomically};
+use crate::render_command::sampling_summary;
 
 /// Reads a scene file for submission.
 pub fn read_scene(path: &Path) -> Result<String> {
@@ -84,19 +86,39 @@ pub async fn fetch_to(client: &mut Client, job: JobId, output: &Path) -> Result<
     Ok(png.len())
 }
 
-/// The one-line summary of a finished job.
+/// The one-line summary of a finished job: size, samples spent, estimated error, tiles,
+/// time.
 pub fn summary(output: &Path, status: &JobStatus) -> String {
     let secs = status.elapsed_ms as f64 / 1000.0;
     format!(
-        "{}: {}x{}, {} samples/pixel, {} tiles, {:.3} s, {:.1} M rays/s",
+        "{}: {}x{}, {}, {} tiles, {:.3} s, {:.1} M rays/s",
         output.display(),
         status.settings.width,
         status.settings.height,
-        u64::from(status.settings.aa) * u64::from(status.settings.aa),
+        sampling_summary(
+            &render_settings(&status.settings),
+            status.samples,
+            status.estimated_error
+        ),
         status.tiles_total,
         secs,
         status.rays as f64 / secs.max(1e-9) / 1e6
     )
+}
+
+/// The renderer's view of a job's settings, for the summary.
+fn render_settings(s: &Settings) -> RenderSettings {
+    RenderSettings {
+        width: s.width,
+        height: s.height,
+        aa: s.aa,
+        max_depth: s.max_depth,
+        sampling: match s.sampling {
+            Sampling::Grid => render::Sampling::Grid,
+            Sampling::Jittered => render::Sampling::Jittered,
+            Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
+        },
+    }
 }
 
 /// `tessera submit`.
@@ -213,7 +235,7 @@ pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
 
 fn status_line(s: &JobStatus) -> String {
     let mut line = format!(
-        "job {}: {}, {}/{} tiles, {}x{} aa {}, {:.1} s",
+        "job {}: {}, {}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
         s.id,
         s.state.as_str(),
         s.tiles_done,
@@ -221,8 +243,13 @@ fn status_line(s: &JobStatus) -> String {
         s.settings.width,
         s.settings.height,
         s.settings.aa,
+        s.settings.sampling.name(),
+        s.samples,
         s.elapsed_ms as f64 / 1000.0
     );
+    if let Some(e) = s.estimated_error {
+        line.push_str(&format!(", estimated error {e:.3} levels"));
+    }
     if let Some(eta) = s.eta_ms {
         line.push_str(&format!(", about {:.1} s left", eta as f64 / 1000.0));
     }
@@ -247,6 +274,14 @@ fn status_json(s: &JobStatus) -> Value {
         "elapsed_ms": s.elapsed_ms,
         "eta_ms": s.eta_ms,
         "error": s.error,
+        "sampler": s.settings.sampling.name(),
+        "target_error": s.settings.sampling.target_error(),
+        "samples": s.samples,
+        // The mean over the whole image, known once every tile is in.
+        "samples_per_pixel": (s.state == JobState::Done).then(|| {
+            s.samples as f64 / (u64::from(s.settings.width) * u64::from(s.settings.height)) as f64
+        }),
+        "estimated_error": s.estimated_error,
     })
 }
 

@@ -11,11 +11,12 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Result;
-use clap::{Args, Parser, Subcommand};
+use anyhow::{anyhow, bail, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use coordinator::transport::{ClientTls, Endpoint, ServerTls};
 use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
+use render::Sampling;
 
 /// The coordinator's default address.
 const DEFAULT_COORDINATOR: &str = "127.0.0.1:7878";
@@ -122,6 +123,25 @@ struct ImageArgs {
     /// Maximum reflection depth [default: the scene's, else 10].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_DEPTH)))]
     max_depth: Option<u32>,
+
+    /// Where the samples of a pixel go: grid (the regular N x N grid, the reference),
+    /// jittered (one random point in each of the N x N cells) or adaptive (4 samples, then
+    /// more only where they disagree, up to N x N) [default: grid].
+    #[arg(long, value_name = "SAMPLER", value_enum)]
+    sampler: Option<SamplerArg>,
+
+    /// With --sampler adaptive: the error each pixel should reach, in 8-bit levels (for
+    /// example 1); a pixel stops taking samples once its estimated error is below it.
+    #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
+    target_error: Option<f64>,
+}
+
+/// The samplers as the command line names them.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum SamplerArg {
+    Grid,
+    Jittered,
+    Adaptive,
 }
 
 #[derive(Args)]
@@ -327,14 +347,39 @@ impl ClientArgs {
 }
 
 impl ImageArgs {
-    fn overrides(self, tile_size: Option<u32>) -> Overrides {
-        Overrides {
+    /// The sampling asked for (`None`: the default grid), checked: adaptive sampling needs
+    /// a target and the other samplers take none.
+    fn sampling(self) -> Result<Option<Sampling>> {
+        match (self.sampler, self.target_error) {
+            (Some(SamplerArg::Adaptive), Some(levels)) => Sampling::adaptive(levels)
+                .map(Some)
+                .map_err(|e| anyhow!("--target-error: {e}")),
+            (Some(SamplerArg::Adaptive), None) => bail!(
+                "--sampler adaptive needs --target-error LEVELS (the error each pixel should \
+                 reach, in 8-bit levels, for example 1)"
+            ),
+            (_, Some(_)) => bail!("--target-error applies only to --sampler adaptive"),
+            (Some(SamplerArg::Grid), None) => Ok(Some(Sampling::Grid)),
+            (Some(SamplerArg::Jittered), None) => Ok(Some(Sampling::Jittered)),
+            (None, None) => Ok(None),
+        }
+    }
+
+    fn overrides(self, tile_size: Option<u32>) -> Result<Overrides> {
+        Ok(Overrides {
             width: self.width,
             height: self.height,
             aa: self.aa,
             max_depth: self.max_depth,
             tile_size,
-        }
+            sampling: self.sampling()?.map(|s| match s {
+                Sampling::Grid => protocol::Sampling::Grid,
+                Sampling::Jittered => protocol::Sampling::Jittered,
+                Sampling::Adaptive { target_milli } => {
+                    protocol::Sampling::Adaptive { target_milli }
+                }
+            }),
+        })
     }
 }
 
@@ -358,6 +403,7 @@ fn run(command: Command) -> Result<()> {
             height: a.image.height,
             aa: a.image.aa,
             max_depth: a.image.max_depth,
+            sampling: a.image.sampling()?,
             threads: a.threads,
         });
     }
@@ -379,7 +425,7 @@ fn run(command: Command) -> Result<()> {
                         .threads_per_worker
                         .map_or((cores / workers).max(1), |n| n as usize),
                     output: a.output,
-                    overrides: a.image.overrides(a.tile),
+                    overrides: a.image.overrides(a.tile)?,
                 })
                 .await
             }
@@ -430,7 +476,7 @@ fn run(command: Command) -> Result<()> {
                 client_commands::run_submit(
                     &a.common.target()?,
                     &a.scene,
-                    a.image.overrides(a.tile),
+                    a.image.overrides(a.tile)?,
                     a.priority,
                     a.wait,
                     a.output,

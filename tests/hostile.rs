@@ -313,6 +313,8 @@ fn lying_worker(addr: &str) -> String {
         rgb: vec![0; 5],
         rays: 1,
         render_us: 1,
+        samples: 1,
+        error_sq_sum: 0.0,
     };
     send_frame(&mut stream, &protocol::wire::encode(&lie));
     let started = Instant::now();

@@ -9,6 +9,7 @@ pub mod client;
 mod db;
 pub mod scheduler;
 pub mod server;
+pub mod sim;
 mod store;
 mod tiling;
 pub mod transport;

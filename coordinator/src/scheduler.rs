@@ -32,7 +32,18 @@
 //! - **Scenes once.** A worker is sent a scene before its first tile of it, and only
 //!   then; it may forget the scene once no active job uses it.
 
-use std::collections::{BTreeMap, BTreeSet, HashSet, VecDeque};
+//!
+//! Cost: the farm may have thousands of workers and hundreds of thousands of tiles, and
+//! the daemon holds its lock for the whole of [`Scheduler::handle`]. So no event walks
+//! every tile or every lease: each job keeps its tiles' state next to its queue, its
+//! straggler candidates in the order they are chosen, and its live leases by deadline;
+//! the jobs are kept in the order they are served; and only workers with free credit
+//! are visited to be filled. An event costs time logarithmic in the tiles, times what
+//! it changes, times the workers it fills. These indexes only speed the decisions up:
+//! they are the same, event for event, as a search of every tile would make.
+
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -178,12 +189,53 @@ struct Lease {
     expired: bool,
 }
 
+/// Where a tile of an active job stands. One byte per tile: a job of a million tiles
+/// is mostly tiles waiting, and they should cost little more than their place in the
+/// queue.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum TileState {
+    /// In the queue (possibly also still held under leases that ran out).
+    Waiting,
+    /// Out of the queue and not done: held by workers.
+    Out,
+    /// Accepted; it never waits again.
+    Done,
+}
+
+/// The earliest start among a tile's leases, if exactly one of them is live: the key
+/// by which a tile is a straggler candidate, and its rank among them.
+fn straggler_key(leases: &[Lease]) -> Option<Millis> {
+    let mut live = leases.iter().filter(|l| !l.expired);
+    match (live.next(), live.next()) {
+        (Some(_), None) => leases.iter().map(|l| l.started).min(),
+        _ => None,
+    }
+}
+
+/// A job's rank for a free slot: highest priority, then fewest tiles in flight, then
+/// oldest (ids grow with submission order).
+type JobRank = (Reverse<i32>, usize, JobId);
+
 struct Job {
     priority: i32,
     scene: SceneHash,
+    /// The tiles waiting, in the order they are handed out. Accepting a tile that is
+    /// still queued (its lease ran out, then its holder delivered) leaves its entry
+    /// here rather than searching the queue for it; entries of done tiles are skipped,
+    /// and dropped when met. A done tile never waits again, so each waiting tile has
+    /// exactly one entry.
     waiting: VecDeque<u32>,
+    /// The tiles waiting: the entries of `waiting` that are not stale.
+    queued: u32,
+    state: Vec<TileState>,
     in_flight: BTreeMap<u32, Vec<Lease>>,
-    done: Vec<bool>,
+    /// The tiles of `in_flight` with exactly one live lease, by [`straggler_key`] then
+    /// number: the candidates for a copy, the one out longest first. Kept so that a
+    /// worker with free credit finds its straggler without walking every tile in
+    /// flight.
+    stragglers: BTreeSet<(Millis, u32)>,
+    /// The live leases by deadline, so that a tick looks only at those that ran out.
+    deadlines: BTreeSet<(Millis, u32, WorkerId)>,
     remaining: u32,
     /// Failed attempts per tile, and the workers each tile failed on.
     failures: BTreeMap<u32, (u32, BTreeSet<WorkerId>)>,
@@ -204,8 +256,11 @@ impl Job {
             priority,
             scene,
             waiting: (0..tiles).collect(),
+            queued: tiles,
+            state: vec![TileState::Waiting; tiles as usize],
             in_flight: BTreeMap::new(),
-            done: vec![false; tiles as usize],
+            stragglers: BTreeSet::new(),
+            deadlines: BTreeSet::new(),
             remaining: tiles,
             failures: BTreeMap::new(),
             worker_failures: BTreeMap::new(),
@@ -214,6 +269,25 @@ impl Job {
             measured: 0,
             total_time: 0,
             slowest: 0,
+        }
+    }
+
+    fn rank(&self, id: JobId) -> JobRank {
+        (Reverse(self.priority), self.in_flight.len(), id)
+    }
+
+    fn is_waiting(&self, tile: u32) -> bool {
+        self.state.get(tile as usize) == Some(&TileState::Waiting)
+    }
+
+    /// Puts a tile that is not done back at the head of the queue, unless it waits
+    /// already.
+    fn requeue(&mut self, tile: u32) {
+        debug_assert_ne!(self.state[tile as usize], TileState::Done);
+        if !self.is_waiting(tile) {
+            self.waiting.push_front(tile);
+            self.state[tile as usize] = TileState::Waiting;
+            self.queued += 1;
         }
     }
 
@@ -233,43 +307,138 @@ impl Job {
             .max(policy.min_lease)
     }
 
+    /// Moves the tile between straggler candidates after its leases changed.
+    fn restraggle(&mut self, tile: u32, before: Option<Millis>, after: Option<Millis>) {
+        if before != after {
+            if let Some(started) = before {
+                self.stragglers.remove(&(started, tile));
+            }
+            if let Some(started) = after {
+                self.stragglers.insert((started, tile));
+            }
+        }
+    }
+
+    fn add_lease(&mut self, tile: u32, lease: Lease) {
+        let leases = self.in_flight.entry(tile).or_default();
+        let before = straggler_key(leases);
+        leases.push(lease);
+        let after = straggler_key(leases);
+        self.deadlines.insert((lease.deadline, tile, lease.worker));
+        self.restraggle(tile, before, after);
+    }
+
+    /// Ends the worker's lease on the tile, if it has one.
+    fn remove_lease(&mut self, tile: u32, worker: WorkerId) -> Option<Lease> {
+        let leases = self.in_flight.get_mut(&tile)?;
+        let pos = leases.iter().position(|l| l.worker == worker)?;
+        let before = straggler_key(leases);
+        let lease = leases.remove(pos);
+        let after = straggler_key(leases);
+        if leases.is_empty() {
+            self.in_flight.remove(&tile);
+        }
+        if !lease.expired {
+            self.deadlines.remove(&(lease.deadline, tile, worker));
+        }
+        self.restraggle(tile, before, after);
+        Some(lease)
+    }
+
+    /// Ends every lease on the tile, returning them.
+    fn take_leases(&mut self, tile: u32) -> Option<Vec<Lease>> {
+        let leases = self.in_flight.remove(&tile)?;
+        for l in leases.iter().filter(|l| !l.expired) {
+            self.deadlines.remove(&(l.deadline, tile, l.worker));
+        }
+        self.restraggle(tile, straggler_key(&leases), None);
+        Some(leases)
+    }
+
+    /// Marks the leases whose deadline has come as run out, and puts back in the queue
+    /// (in increasing tile order, each at the head) the tiles left with no live lease.
+    fn expire_leases(&mut self, now: Millis) {
+        let mut due = Vec::new();
+        while let Some(&(deadline, tile, _)) = self.deadlines.first() {
+            if deadline > now {
+                break;
+            }
+            self.deadlines.pop_first();
+            due.push(tile);
+        }
+        due.sort_unstable();
+        due.dedup();
+        for tile in due {
+            let leases = self
+                .in_flight
+                .get_mut(&tile)
+                .expect("a live lease is in flight");
+            let before = straggler_key(leases);
+            for lease in leases
+                .iter_mut()
+                .filter(|l| !l.expired && l.deadline <= now)
+            {
+                lease.expired = true;
+            }
+            let all_expired = leases.iter().all(|l| l.expired);
+            let after = straggler_key(leases);
+            self.restraggle(tile, before, after);
+            if all_expired {
+                self.requeue(tile);
+            }
+        }
+    }
+
     /// The first waiting tile this worker may take: one that has not failed on it and
     /// that it does not still hold under an expired lease.
     fn take_waiting_for(&mut self, worker: WorkerId) -> Option<u32> {
+        if self.queued == 0 {
+            // Whatever is left are entries of done tiles.
+            self.waiting.clear();
+            return None;
+        }
+        while let Some(&t) = self.waiting.front() {
+            if self.state[t as usize] != TileState::Done {
+                break;
+            }
+            self.waiting.pop_front();
+        }
         let pos = self.waiting.iter().position(|t| {
-            self.failures
-                .get(t)
-                .is_none_or(|(_, on)| !on.contains(&worker))
+            self.state[*t as usize] == TileState::Waiting
+                && self
+                    .failures
+                    .get(t)
+                    .is_none_or(|(_, on)| !on.contains(&worker))
                 && self
                     .in_flight
                     .get(t)
                     .is_none_or(|ls| ls.iter().all(|l| l.worker != worker))
         })?;
-        self.waiting.remove(pos)
+        let tile = self.waiting.remove(pos)?;
+        self.state[tile as usize] = TileState::Out;
+        self.queued -= 1;
+        Some(tile)
     }
 
     /// The tile to duplicate for an idle worker: in flight with one live holder that is
-    /// not this worker, never failed on this worker, out the longest.
+    /// not this worker, never failed on this worker, out the longest (earliest start
+    /// among its leases, then lowest number). The candidates are kept in that order, so
+    /// this skips at most the worker's own tiles and the few that failed on it.
     fn straggler_for(&self, worker: WorkerId) -> Option<u32> {
-        self.in_flight
-            .iter()
-            .filter(|(t, ls)| {
-                ls.iter().all(|l| l.worker != worker)
-                    && ls.iter().filter(|l| !l.expired).count() == 1
-                    && self
-                        .failures
-                        .get(t)
-                        .is_none_or(|(_, on)| !on.contains(&worker))
-            })
-            .min_by_key(|(t, ls)| (ls.iter().map(|l| l.started).min(), **t))
-            .map(|(t, _)| *t)
+        self.stragglers.iter().map(|&(_, t)| t).find(|t| {
+            self.in_flight[t].iter().all(|l| l.worker != worker)
+                && self
+                    .failures
+                    .get(t)
+                    .is_none_or(|(_, on)| !on.contains(&worker))
+        })
     }
 }
 
 struct Worker {
     credit: usize,
     holding: BTreeSet<(JobId, u32)>,
-    scenes: HashSet<SceneHash>,
+    scenes: BTreeSet<SceneHash>,
     draining: bool,
     last_seen: Millis,
 }
@@ -281,7 +450,14 @@ pub struct Scheduler {
     now: Millis,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
+    /// The active jobs in the order a free slot serves them ([`Job::rank`]).
+    order: BTreeSet<JobRank>,
     workers: BTreeMap<WorkerId, Worker>,
+    /// Every live worker that is not draining and holds less than its credit, and
+    /// perhaps some that are full again: filling a worker drops it from here once it is
+    /// full, and anything that frees a slot puts it back. Filling everyone visits only
+    /// these, in id order.
+    hungry: BTreeSet<WorkerId>,
 }
 
 impl Scheduler {
@@ -313,11 +489,12 @@ impl Scheduler {
                     Worker {
                         credit: 2 * threads.max(1) as usize,
                         holding: BTreeSet::new(),
-                        scenes: HashSet::new(),
+                        scenes: BTreeSet::new(),
                         draining: false,
                         last_seen: self.now,
                     },
                 );
+                self.hungry.insert(worker);
                 self.fill(worker, &mut actions);
             }
             Event::Heartbeat { worker } => {
@@ -344,7 +521,7 @@ impl Scheduler {
                 if tiles == 0 {
                     actions.push(Action::JobDone { job });
                 } else {
-                    self.jobs.insert(job, Job::new(priority, scene, tiles));
+                    self.insert_job(job, Job::new(priority, scene, tiles));
                 }
                 self.fill_all(&mut actions);
             }
@@ -367,9 +544,7 @@ impl Scheduler {
                     self.failed_attempt(worker, job, tile, &message, &mut actions);
                 } else if let Some(j) = self.jobs.get_mut(&job) {
                     if j.late_copies.remove(&(tile, worker)) {
-                        if let Some(w) = self.workers.get_mut(&worker) {
-                            w.holding.remove(&(job, tile));
-                        }
+                        self.drop_holding(worker, job, tile);
                     }
                 }
                 self.fill_all(&mut actions);
@@ -398,16 +573,19 @@ impl Scheduler {
         let mut actions = Vec::new();
         let mut j = Job::new(priority, scene, tiles);
         for &tile in done.iter().filter(|t| **t < tiles) {
-            if !j.done[tile as usize] {
-                j.done[tile as usize] = true;
+            if j.state[tile as usize] != TileState::Done {
+                j.state[tile as usize] = TileState::Done;
                 j.remaining -= 1;
             }
         }
-        j.waiting.retain(|t| !j.done[*t as usize]);
+        let state = &j.state;
+        j.waiting
+            .retain(|t| state[*t as usize] == TileState::Waiting);
+        j.queued = j.remaining;
         if j.remaining == 0 {
             actions.push(Action::JobDone { job });
         } else {
-            self.jobs.insert(job, j);
+            self.insert_job(job, j);
         }
         self.fill_all(&mut actions);
         actions
@@ -427,7 +605,7 @@ impl Scheduler {
     pub fn has_started(&self, job: JobId) -> bool {
         self.jobs
             .get(&job)
-            .is_some_and(|j| j.waiting.len() < j.done.len())
+            .is_some_and(|j| (j.queued as usize) < j.state.len())
     }
 
     /// Tiles the worker holds.
@@ -441,10 +619,45 @@ impl Scheduler {
         }
     }
 
+    /// Adds an active job (replacing one of the same id, as a map insert does).
+    fn insert_job(&mut self, id: JobId, job: Job) {
+        if let Some(old) = self.jobs.get(&id) {
+            self.order.remove(&old.rank(id));
+        }
+        self.order.insert(job.rank(id));
+        self.jobs.insert(id, job);
+    }
+
+    fn remove_job(&mut self, id: JobId) -> Option<Job> {
+        let job = self.jobs.remove(&id)?;
+        self.order.remove(&job.rank(id));
+        Some(job)
+    }
+
+    /// Moves the job in the serving order after its tiles in flight changed.
+    fn rerank(&mut self, id: JobId, before: JobRank) {
+        if let Some(job) = self.jobs.get(&id) {
+            let after = job.rank(id);
+            if after != before {
+                self.order.remove(&before);
+                self.order.insert(after);
+            }
+        }
+    }
+
+    /// The worker no longer holds the tile; its slot is free again.
+    fn drop_holding(&mut self, worker: WorkerId, job: JobId, tile: u32) {
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.holding.remove(&(job, tile));
+            self.hungry.insert(worker);
+        }
+    }
+
     fn remove_worker(&mut self, worker: WorkerId, actions: &mut Vec<Action>) {
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
+        self.hungry.remove(&worker);
         for (job, tile) in w.holding {
             if self.release(worker, job, tile).is_some() {
                 self.failed_attempt(
@@ -478,25 +691,7 @@ impl Scheduler {
     fn check_leases(&mut self) {
         let now = self.now;
         for job in self.jobs.values_mut() {
-            let mut requeue = Vec::new();
-            for (tile, leases) in &mut job.in_flight {
-                let mut expired_now = false;
-                for lease in leases
-                    .iter_mut()
-                    .filter(|l| !l.expired && l.deadline <= now)
-                {
-                    lease.expired = true;
-                    expired_now = true;
-                }
-                if expired_now && leases.iter().all(|l| l.expired) {
-                    requeue.push(*tile);
-                }
-            }
-            for tile in requeue {
-                if !job.waiting.contains(&tile) {
-                    job.waiting.push_front(tile);
-                }
-            }
+            job.expire_leases(now);
         }
     }
 
@@ -504,15 +699,10 @@ impl Scheduler {
     /// returns it. Anything else (a stray or late message) changes nothing.
     fn release(&mut self, worker: WorkerId, job_id: JobId, tile: u32) -> Option<Lease> {
         let job = self.jobs.get_mut(&job_id)?;
-        let leases = job.in_flight.get_mut(&tile)?;
-        let pos = leases.iter().position(|l| l.worker == worker)?;
-        let lease = leases.remove(pos);
-        if leases.is_empty() {
-            job.in_flight.remove(&tile);
-        }
-        if let Some(w) = self.workers.get_mut(&worker) {
-            w.holding.remove(&(job_id, tile));
-        }
+        let before = job.rank(job_id);
+        let lease = job.remove_lease(tile, worker)?;
+        self.rerank(job_id, before);
+        self.drop_holding(worker, job_id, tile);
         Some(lease)
     }
 
@@ -521,9 +711,7 @@ impl Scheduler {
             return;
         };
         if job.late_copies.remove(&(tile, worker)) {
-            if let Some(w) = self.workers.get_mut(&worker) {
-                w.holding.remove(&(job_id, tile));
-            }
+            self.drop_holding(worker, job_id, tile);
             actions.push(Action::DuplicateResult { job: job_id, tile });
             return;
         }
@@ -535,22 +723,29 @@ impl Scheduler {
         job.measured += 1;
         job.total_time += took;
         job.slowest = job.slowest.max(took);
-        job.done[tile as usize] = true;
+        // Still queued if its lease ran out: its entry there is now stale.
+        if job.state[tile as usize] == TileState::Waiting {
+            job.queued -= 1;
+        }
+        job.state[tile as usize] = TileState::Done;
         job.remaining -= 1;
-        job.waiting.retain(|t| *t != tile);
         // Other holders' copies are still to come: they will be compared.
-        if let Some(others) = job.in_flight.remove(&tile) {
+        let before = job.rank(job_id);
+        if let Some(others) = job.take_leases(tile) {
             for other in others {
                 job.late_copies.insert((tile, other.worker));
             }
         }
+        let finished = job.remaining == 0;
+        self.rerank(job_id, before);
         actions.push(Action::AcceptTile { job: job_id, tile });
-        if job.remaining == 0 {
+        if finished {
+            let job = self.remove_job(job_id).expect("checked above");
             let holders: BTreeSet<WorkerId> = job.late_copies.iter().map(|(_, w)| *w).collect();
-            self.jobs.remove(&job_id);
             for holder in holders {
                 if let Some(w) = self.workers.get_mut(&holder) {
                     w.holding.retain(|(j, _)| *j != job_id);
+                    self.hungry.insert(holder);
                     actions.push(Action::CancelOnWorker {
                         worker: holder,
                         job: job_id,
@@ -591,14 +786,14 @@ impl Scheduler {
                 job: job_id,
                 message,
             });
-        } else if job.live_leases(tile) == 0 && !job.waiting.contains(&tile) {
-            job.waiting.push_front(tile);
+        } else if job.live_leases(tile) == 0 {
+            job.requeue(tile);
         }
     }
 
     /// Removes an active job, telling the workers that hold its tiles to drop them.
     fn end_job(&mut self, job_id: JobId, actions: &mut Vec<Action>) {
-        let Some(job) = self.jobs.remove(&job_id) else {
+        let Some(job) = self.remove_job(job_id) else {
             return;
         };
         let holders: BTreeSet<WorkerId> = job
@@ -611,6 +806,7 @@ impl Scheduler {
         for worker in holders {
             if let Some(w) = self.workers.get_mut(&worker) {
                 w.holding.retain(|(j, _)| *j != job_id);
+                self.hungry.insert(worker);
                 actions.push(Action::CancelOnWorker {
                     worker,
                     job: job_id,
@@ -622,7 +818,7 @@ impl Scheduler {
 
     /// After a job ended: workers may drop scenes no active job uses.
     fn forget_unused_scenes(&mut self, actions: &mut Vec<Action>) {
-        let in_use: HashSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
+        let in_use: BTreeSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
         for (&worker, w) in &mut self.workers {
             let unused: Vec<SceneHash> = w.scenes.difference(&in_use).copied().collect();
             for scene in unused {
@@ -632,8 +828,11 @@ impl Scheduler {
         }
     }
 
+    /// Fills every worker with free credit, in id order. Filling one worker changes
+    /// no other worker's credit, so those full at the start are skipped, as filling
+    /// them would give them nothing.
     fn fill_all(&mut self, actions: &mut Vec<Action>) {
-        let ids: Vec<WorkerId> = self.workers.keys().copied().collect();
+        let ids: Vec<WorkerId> = self.hungry.iter().copied().collect();
         for worker in ids {
             self.fill(worker, actions);
         }
@@ -643,9 +842,11 @@ impl Scheduler {
     fn fill(&mut self, worker_id: WorkerId, actions: &mut Vec<Action>) {
         loop {
             let Some(worker) = self.workers.get(&worker_id) else {
+                self.hungry.remove(&worker_id);
                 return;
             };
             if worker.draining || worker.holding.len() >= worker.credit {
+                self.hungry.remove(&worker_id);
                 return;
             }
             let Some((job_id, tile)) = self.next_tile(worker_id) else {
@@ -657,14 +858,19 @@ impl Scheduler {
                 .jobs
                 .get_mut(&job_id)
                 .expect("next_tile returns an active job");
+            let before = job.rank(job_id);
             let deadline = now + job.lease_length(&policy);
-            job.in_flight.entry(tile).or_default().push(Lease {
-                worker: worker_id,
-                started: now,
-                deadline,
-                expired: false,
-            });
+            job.add_lease(
+                tile,
+                Lease {
+                    worker: worker_id,
+                    started: now,
+                    deadline,
+                    expired: false,
+                },
+            );
             let scene = job.scene;
+            self.rerank(job_id, before);
             let worker = self.workers.get_mut(&worker_id).expect("checked above");
             if worker.scenes.insert(scene) {
                 actions.push(Action::SendScene {
@@ -685,31 +891,27 @@ impl Scheduler {
     /// then fewest tiles in flight, then oldest) it is not blocked from; failing that,
     /// a straggler to duplicate.
     fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
-        let mut candidates: Vec<(&JobId, &Job)> = self
-            .jobs
-            .iter()
-            .filter(|(_, j)| !j.blocked.contains(&worker))
-            .collect();
-        candidates.sort_by_key(|(id, j)| (std::cmp::Reverse(j.priority), j.in_flight.len(), **id));
-        let order: Vec<JobId> = candidates.iter().map(|(id, _)| **id).collect();
-        for id in &order {
-            let job = self.jobs.get_mut(id).expect("listed above");
+        for &(_, _, id) in &self.order {
+            let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
+            if job.blocked.contains(&worker) {
+                continue;
+            }
             if let Some(tile) = job.take_waiting_for(worker) {
-                return Some((*id, tile));
+                return Some((id, tile));
             }
         }
         if !self.policy.speculate {
             return None;
         }
         let holding = &self.workers.get(&worker)?.holding;
-        order.iter().find_map(|id| {
-            let job = &self.jobs[id];
-            if !job.waiting.is_empty() {
+        self.order.iter().find_map(|&(_, _, id)| {
+            let job = &self.jobs[&id];
+            if job.blocked.contains(&worker) || job.queued > 0 {
                 return None;
             }
             job.straggler_for(worker)
-                .filter(|t| !holding.contains(&(*id, *t)))
-                .map(|t| (*id, t))
+                .filter(|t| !holding.contains(&(id, *t)))
+                .map(|t| (id, t))
         })
     }
 }

@@ -26,7 +26,7 @@ use tokio::sync::mpsc;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
 use tracing::{error, info, warn};
 
-use crate::db::{Db, StoredJob, TileWrite};
+use crate::db::{Db, StoredJob, TileWrite, Totals};
 use crate::scheduler::{Action, Event, Policy, Scheduler};
 use crate::store::{JobMetadata, Store};
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
@@ -42,7 +42,8 @@ pub struct JobLimits {
     pub max_objects: usize,
     /// Pixels of an image (8192 × 8192 = 67,108,864: 192 MiB of RGB being assembled).
     pub max_pixels: u64,
-    /// Antialiasing (16: 256 samples per pixel).
+    /// Antialiasing (16: 256 samples per pixel). It bounds the budget of adaptive
+    /// sampling too, which may spend all of it on a pixel.
     pub max_aa: u32,
     /// Jobs queued or running per client address (64).
     pub max_active_per_client: usize,
@@ -169,6 +170,8 @@ enum DbWrite {
         job: JobId,
         state: JobState,
         error: Option<String>,
+        /// The job's totals, recorded with a final state.
+        totals: Option<Totals>,
     },
 }
 
@@ -210,8 +213,13 @@ fn write_loop(shared: std::sync::Weak<Shared>, rx: std::sync::mpsc::Receiver<DbW
                     Err(e) => error!(error = %format!("{e:#}"), "cannot record tiles"),
                 }
             }
-            DbWrite::State { job, state, error } => {
-                if let Err(e) = db.set_state(job, state, error.as_deref()) {
+            DbWrite::State {
+                job,
+                state,
+                error,
+                totals,
+            } => {
+                if let Err(e) = db.set_state(job, state, error.as_deref(), totals) {
                     error!(job, error = %format!("{e:#}"), "cannot record the job's state");
                 }
             }
@@ -248,6 +256,12 @@ struct JobRecord {
     /// Tiles written to the database: the progress reported to clients.
     tiles_recorded: u32,
     rays: u64,
+    /// Camera samples of the accepted tiles.
+    samples: u64,
+    /// Sum of the squared per-pixel error estimates of the accepted tiles that carried
+    /// one, over `error_pixels` pixels.
+    error_sq_sum: f64,
+    error_pixels: u64,
     tiles_per_worker: BTreeMap<String, u64>,
     error: Option<String>,
     /// The stored PNG, once the job is done.
@@ -423,6 +437,9 @@ fn restore(shared: &Arc<Shared>) -> Result<()> {
             tiles_done: 0,
             tiles_recorded: 0,
             rays: 0,
+            samples: 0,
+            error_sq_sum: 0.0,
+            error_pixels: 0,
             tiles_per_worker: BTreeMap::new(),
             error: stored.error.clone(),
             png: None,
@@ -430,6 +447,9 @@ fn restore(shared: &Arc<Shared>) -> Result<()> {
         if stored.state.is_final() {
             if stored.state == JobState::Done {
                 record.tiles_done = record.tiles.len() as u32;
+            }
+            if let Some(totals) = stored.totals {
+                record.set_totals(totals);
             }
             state.jobs.insert(stored.id, record);
             continue;
@@ -444,6 +464,12 @@ fn restore(shared: &Arc<Shared>) -> Result<()> {
             record.tiles_done += 1;
             record.tiles_recorded += 1;
             record.rays += t.rays;
+            // A tile recorded by an earlier version was a grid render: aa² per pixel.
+            let pixels = u64::from(rect.width) * u64::from(rect.height);
+            let samples = t.samples.unwrap_or_else(|| {
+                pixels * u64::from(stored.settings.aa) * u64::from(stored.settings.aa)
+            });
+            record.add_cost(samples, t.error_sq_sum, pixels);
             *record.tiles_per_worker.entry(t.worker).or_default() += 1;
             done.push(t.tile);
         }
@@ -766,6 +792,7 @@ fn respond(shared: &Arc<Shared>, request: ClientRequest, peer: std::net::IpAddr)
                     job,
                     state: JobState::Cancelled,
                     error: None,
+                    totals: Some(record.totals()),
                 });
                 state.apply(shared, actions);
                 info!(job, "job cancelled");
@@ -938,6 +965,7 @@ impl State {
         s.height = o.height.unwrap_or(s.height);
         s.aa = o.aa.unwrap_or(s.aa);
         s.max_depth = o.max_depth.unwrap_or(s.max_depth);
+        s.sampling = o.sampling.map_or(s.sampling, tiling::render_sampling);
         render::validate_settings(&s, "").map_err(|e| format!("overrides: {e}"))?;
         let pixels = u64::from(s.width) * u64::from(s.height);
         if pixels > limits.max_pixels {
@@ -946,6 +974,7 @@ impl State {
                 s.width, s.height, limits.max_pixels
             ));
         }
+        // The limit bounds the budget of every sampler: adaptive sampling may spend it all.
         if s.aa > limits.max_aa {
             return Err(format!(
                 "image.aa: {} is more than this coordinator's limit of {}",
@@ -957,6 +986,7 @@ impl State {
             height: s.height,
             aa: s.aa,
             max_depth: s.max_depth,
+            sampling: o.sampling.unwrap_or_default(),
         };
         let tile_size = match o.tile_size {
             Some(t) if !(MIN_TILE..=MAX_TILE).contains(&t) => {
@@ -982,6 +1012,7 @@ impl State {
             priority: spec.priority,
             state: JobState::Queued,
             error: None,
+            totals: None,
         })
         .map_err(|e| {
             error!(error = %format!("{e:#}"), "cannot store a job");
@@ -1004,6 +1035,9 @@ impl State {
                 tiles_done: 0,
                 tiles_recorded: 0,
                 rays: 0,
+                samples: 0,
+                error_sq_sum: 0.0,
+                error_pixels: 0,
                 tiles_per_worker: BTreeMap::new(),
                 error: None,
                 png: None,
@@ -1014,6 +1048,8 @@ impl State {
             width = settings.width,
             height = settings.height,
             aa = settings.aa,
+            sampler = settings.sampling.name(),
+            target_error = ?settings.sampling.target_error(),
             tiles = tile_count,
             "job accepted"
         );
@@ -1039,6 +1075,8 @@ impl State {
                 rgb,
                 rays,
                 render_us: _,
+                samples,
+                error_sq_sum,
             } => {
                 if let Some(record) = self.jobs.get(&job) {
                     let rect = record.tiles.get(tile as usize).with_context(|| {
@@ -1054,9 +1092,18 @@ impl State {
                 let actions = self.scheduler.handle(Event::TileDone { worker, job, tile });
                 for action in &actions {
                     match *action {
-                        Action::AcceptTile { job, tile } => {
-                            self.accept_tile(shared, worker, job, tile, &rgb, rays)
-                        }
+                        Action::AcceptTile { job, tile } => self.accept_tile(
+                            shared,
+                            worker,
+                            job,
+                            tile,
+                            &rgb,
+                            Cost {
+                                rays,
+                                samples,
+                                error_sq_sum,
+                            },
+                        ),
                         Action::DuplicateResult { job, tile } => {
                             self.check_duplicate(worker, job, tile, &rgb)
                         }
@@ -1120,8 +1167,9 @@ impl State {
         job: JobId,
         tile: u32,
         rgb: &[u8],
-        rays: u64,
+        cost: Cost,
     ) {
+        let rays = cost.rays;
         let name = self.workers.get_mut(&worker).map(|w| {
             w.tiles_done += 1;
             w.rays += rays;
@@ -1136,6 +1184,10 @@ impl State {
         }
         record.tiles_done += 1;
         record.rays += rays;
+        // An estimate that is not a sum of squares (a broken worker) counts as unknown.
+        let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
+            .then_some(cost.error_sq_sum);
+        record.add_cost(cost.samples, error_sq_sum, rect_pixels(rect));
         let name = name.unwrap_or_default();
         *record.tiles_per_worker.entry(name.clone()).or_default() += 1;
         shared.record(DbWrite::Tile(TileWrite {
@@ -1144,6 +1196,8 @@ impl State {
             rgb: rgb.to_vec(),
             rays,
             worker: name,
+            samples: cost.samples,
+            error_sq_sum,
         }));
     }
 
@@ -1157,6 +1211,7 @@ impl State {
                         job,
                         state: JobState::Failed,
                         error: Some(message.clone()),
+                        totals: self.jobs.get(&job).map(JobRecord::totals),
                     });
                     self.apply_one(Action::JobFailed { job, message });
                 }
@@ -1253,7 +1308,14 @@ impl State {
             rays: record.rays,
             rays_per_second: record.rays as f64 / wall.as_secs_f64().max(1e-9),
             tiles_per_worker: record.tiles_per_worker.clone(),
+            sampler: record.settings.sampling.name(),
+            target_error: record.settings.sampling.target_error(),
+            samples: record.samples,
+            samples_per_pixel: record.samples as f64
+                / (u64::from(record.settings.width) * u64::from(record.settings.height)) as f64,
+            estimated_error: record.estimated_error(),
         };
+        let totals = record.totals();
         let scene = Arc::clone(&record.scene);
         let shared = Arc::clone(shared);
         shared.finishing.fetch_add(1, Ordering::SeqCst);
@@ -1279,6 +1341,7 @@ impl State {
                         job,
                         state: JobState::Done,
                         error: None,
+                        totals: Some(totals),
                     });
                 }
                 Err(e) => {
@@ -1294,7 +1357,51 @@ impl State {
     }
 }
 
+/// What a worker reports a tile cost.
+struct Cost {
+    rays: u64,
+    samples: u64,
+    error_sq_sum: f64,
+}
+
+fn rect_pixels(r: TileRect) -> u64 {
+    u64::from(r.width) * u64::from(r.height)
+}
+
 impl JobRecord {
+    /// Counts a tile of `pixels` pixels that took `samples` samples, with its sum of
+    /// squared error estimates if known.
+    fn add_cost(&mut self, samples: u64, error_sq_sum: Option<f64>, pixels: u64) {
+        self.samples = self.samples.saturating_add(samples);
+        if let Some(e) = error_sq_sum {
+            self.error_sq_sum += e;
+            self.error_pixels += pixels;
+        }
+    }
+
+    fn totals(&self) -> Totals {
+        Totals {
+            rays: self.rays,
+            samples: self.samples,
+            error_sq_sum: self.error_sq_sum,
+            error_pixels: self.error_pixels,
+        }
+    }
+
+    fn set_totals(&mut self, t: Totals) {
+        self.rays = t.rays;
+        self.samples = t.samples;
+        self.error_sq_sum = t.error_sq_sum;
+        self.error_pixels = t.error_pixels;
+    }
+
+    /// The RMS of the per-pixel error estimates over the finished pixels that have one,
+    /// in levels; `None` with one sample per pixel (no spread to measure) or before any.
+    fn estimated_error(&self) -> Option<f64> {
+        (self.settings.aa >= 2 && self.error_pixels > 0)
+            .then(|| (self.error_sq_sum / self.error_pixels as f64).sqrt())
+    }
+
     fn status(&self, id: JobId) -> JobStatus {
         let end = self.finished.unwrap_or_else(Instant::now);
         let elapsed = end - self.submitted;
@@ -1318,6 +1425,8 @@ impl JobRecord {
             elapsed_ms: elapsed.as_millis() as u64,
             eta_ms,
             error: self.error.clone(),
+            samples: self.samples,
+            estimated_error: self.estimated_error(),
         }
     }
 }

@@ -27,6 +27,16 @@ pub struct JobMetadata {
     pub rays_per_second: f64,
     /// Tiles rendered by each worker, by worker name.
     pub tiles_per_worker: std::collections::BTreeMap<String, u64>,
+    /// `grid`, `jittered` or `adaptive`.
+    pub sampler: &'static str,
+    /// The adaptive target in 8-bit levels (absent for the other samplers).
+    pub target_error: Option<f64>,
+    /// Camera samples taken, in total and per pixel on average.
+    pub samples: u64,
+    pub samples_per_pixel: f64,
+    /// The renderer's RMS error estimate in 8-bit levels (absent with one sample per
+    /// pixel).
+    pub estimated_error: Option<f64>,
 }
 
 pub struct Store {

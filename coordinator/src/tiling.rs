@@ -1,6 +1,6 @@
 //! How a frame is cut into tiles when the client does not say.
 
-use protocol::{Settings, TileRect};
+use protocol::{Sampling, Settings, TileRect};
 
 /// Smallest and largest tile sides a job may ask for. The upper bound keeps a tile's
 /// result (side² × 3 bytes) far below the frame limit.
@@ -11,6 +11,10 @@ pub const MAX_TILE: u32 = 512;
 /// core for the seed scene: long enough that the per-tile overhead vanishes, short
 /// enough to balance), reduced until the frame has at least 64 tiles so that several
 /// workers all have work.
+///
+/// Samples are counted by the budget, `aa` × `aa` per pixel, whatever the sampler: an
+/// adaptive job usually spends less, but where it spends the budget (on edges) a tile
+/// sized for fewer samples would be a straggler.
 pub fn default_tile_size(settings: &Settings) -> u32 {
     let mut side = (256 / settings.aa.max(1)).clamp(16, 256);
     while side > 16 && tile_count(settings, side) < 64 {
@@ -31,6 +35,7 @@ pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
         height: settings.height,
         aa: settings.aa,
         max_depth: settings.max_depth,
+        sampling: render_sampling(settings.sampling),
     };
     render::tiles(&frame, side)
         .into_iter()
@@ -41,4 +46,13 @@ pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
             height: r.height,
         })
         .collect()
+}
+
+/// The renderer's sampling for the protocol's (the two crates do not know each other).
+pub fn render_sampling(s: Sampling) -> render::Sampling {
+    match s {
+        Sampling::Grid => render::Sampling::Grid,
+        Sampling::Jittered => render::Sampling::Jittered,
+        Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
+    }
 }

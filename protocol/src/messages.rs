@@ -17,8 +17,47 @@ pub type SceneHash = [u8; 32];
 pub struct Settings {
     pub width: u32,
     pub height: u32,
+    /// The sample budget: at most `aa` × `aa` samples per pixel.
     pub aa: u32,
     pub max_depth: u32,
+    /// Where the samples of each pixel go. Part of the settings, so that every worker
+    /// renders a job's tiles the same way.
+    pub sampling: Sampling,
+}
+
+/// How the samples of a pixel are placed (the renderer's `Sampling`, on the wire).
+/// Every choice is deterministic: a pixel's value depends only on the scene, the
+/// settings and its coordinates, so a job's image is the same in any tiling.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Sampling {
+    /// `aa` × `aa` samples on the centred regular grid: the reference.
+    #[default]
+    Grid,
+    /// `aa` × `aa` strata, one sample at a hashed offset inside each.
+    Jittered,
+    /// A first pass of 4 samples, then 4 more at a time while the pixel's estimated
+    /// error is above the target, up to `aa` × `aa`. `target_milli` is the target in
+    /// thousandths of an 8-bit level (1000 = one level), 1 ..= 255,000.
+    Adaptive { target_milli: u32 },
+}
+
+impl Sampling {
+    /// The lowercase name used on the command line, in listings and in JSON output.
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Grid => "grid",
+            Sampling::Jittered => "jittered",
+            Sampling::Adaptive { .. } => "adaptive",
+        }
+    }
+
+    /// The adaptive target in 8-bit levels; `None` for the other samplers.
+    pub fn target_error(self) -> Option<f64> {
+        match self {
+            Sampling::Adaptive { target_milli } => Some(f64::from(target_milli) / 1000.0),
+            _ => None,
+        }
+    }
 }
 
 /// A rectangle of the frame: columns `x .. x + width`, rows `y .. y + height`.
@@ -39,6 +78,8 @@ pub struct Overrides {
     pub max_depth: Option<u32>,
     /// Side of the square tiles, in pixels.
     pub tile_size: Option<u32>,
+    /// How pixels are sampled; `None` is the regular grid (a scene file never says).
+    pub sampling: Option<Sampling>,
 }
 
 /// A job as submitted.
@@ -150,6 +191,14 @@ pub struct JobStatus {
     pub eta_ms: Option<u64>,
     /// Why the job failed.
     pub error: Option<String>,
+    /// Camera samples taken for the finished tiles: what adaptive sampling saves shows
+    /// here, next to the time.
+    pub samples: u64,
+    /// The renderer's own estimate of the image's error, in 8-bit levels: the root mean
+    /// square over the finished pixels of each pixel's standard error. `None` until a
+    /// tile with an estimate is in, and always with one sample per pixel (`aa` 1),
+    /// where the spread of the samples cannot be measured.
+    pub estimated_error: Option<f64>,
 }
 
 /// A connected worker, as reported to clients.
@@ -190,7 +239,7 @@ pub enum ToWorker {
 }
 
 /// Worker to coordinator.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum FromWorker {
     /// A rendered tile: RGB8 pixels, rows top to bottom.
     TileDone {
@@ -199,6 +248,12 @@ pub enum FromWorker {
         rgb: Vec<u8>,
         rays: u64,
         render_us: u64,
+        /// Camera samples taken for the tile.
+        samples: u64,
+        /// The sum over the tile's pixels of the squared estimated error of each, in
+        /// 8-bit levels squared (0 with one sample per pixel: no estimate). Sums, so
+        /// that the coordinator can combine tiles into the image's RMS estimate.
+        error_sq_sum: f64,
     },
     /// The tile could not be rendered (the scene did not load, the tile is outside the
     /// frame); `message` says why.

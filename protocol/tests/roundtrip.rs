@@ -26,8 +26,8 @@ use bytes::{BufMut, BytesMut};
 use proptest::prelude::*;
 use protocol::{
     wire, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError, JobSpec,
-    JobState, JobStatus, MessageCodec, Overrides, Role, Settings, TileRect, ToWorker, Welcome,
-    WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT, PROTOCOL_VERSION,
+    JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings, TileRect, ToWorker,
+    Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT, PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -100,10 +100,20 @@ fn rate() -> impl Strategy<Value = f64> {
     POSITIVE | NEGATIVE | NORMAL | SUBNORMAL | ZERO | INFINITE
 }
 
+/// Every sampler, with any target: the encoding must carry out-of-range targets too
+/// (refusing them is the coordinator's job).
+fn sampling() -> impl Strategy<Value = Sampling> {
+    prop_oneof![
+        Just(Sampling::Grid),
+        Just(Sampling::Jittered),
+        any::<u32>().prop_map(|target_milli| Sampling::Adaptive { target_milli }),
+    ]
+}
+
 prop_compose! {
     fn settings()(width in any::<u32>(), height in any::<u32>(), aa in any::<u32>(),
-                  max_depth in any::<u32>()) -> Settings {
-        Settings { width, height, aa, max_depth }
+                  max_depth in any::<u32>(), sampling in sampling()) -> Settings {
+        Settings { width, height, aa, max_depth, sampling }
     }
 }
 
@@ -117,8 +127,9 @@ prop_compose! {
 prop_compose! {
     fn overrides()(width in any::<Option<u32>>(), height in any::<Option<u32>>(),
                    aa in any::<Option<u32>>(), max_depth in any::<Option<u32>>(),
-                   tile_size in any::<Option<u32>>()) -> Overrides {
-        Overrides { width, height, aa, max_depth, tile_size }
+                   tile_size in any::<Option<u32>>(),
+                   sampling in prop::option::of(sampling())) -> Overrides {
+        Overrides { width, height, aa, max_depth, tile_size, sampling }
     }
 }
 
@@ -144,11 +155,12 @@ prop_compose! {
         id in any::<u64>(), state in job_state(), settings in settings(),
         priority in any::<i32>(), tiles_done in any::<u32>(), tiles_total in any::<u32>(),
         rays in any::<u64>(), elapsed_ms in any::<u64>(), eta_ms in any::<Option<u64>>(),
-        error in prop::option::of(text()),
+        error in prop::option::of(text()), samples in any::<u64>(),
+        estimated_error in prop::option::of(rate()),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
-            eta_ms, error,
+            eta_ms, error, samples, estimated_error,
         }
     }
 }
@@ -196,14 +208,20 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
             any::<u32>(),
             blob(),
             any::<u64>(),
-            any::<u64>()
+            any::<u64>(),
+            any::<u64>(),
+            rate()
         )
-            .prop_map(|(job, tile, rgb, rays, render_us)| FromWorker::TileDone {
-                job,
-                tile,
-                rgb,
-                rays,
-                render_us
+            .prop_map(|(job, tile, rgb, rays, render_us, samples, error_sq_sum)| {
+                FromWorker::TileDone {
+                    job,
+                    tile,
+                    rgb,
+                    rays,
+                    render_us,
+                    samples,
+                    error_sq_sum,
+                }
             }),
         (any::<u64>(), any::<u32>(), text())
             .prop_map(|(job, tile, message)| { FromWorker::TileFailed { job, tile, message } }),
@@ -638,9 +656,11 @@ fn the_hand_made_layout_matches_the_encoder() {
         rgb: vec![1, 2, 3, 4, 5, 6],
         rays: 0,
         render_us: 0,
+        samples: 0,
+        error_sq_sum: 0.0,
     };
     let mut crafted = tile_done_claiming(6);
-    crafted.extend_from_slice(&[0; 16]); // rays, render_us
+    crafted.extend_from_slice(&[0; 32]); // rays, render_us, samples, error_sq_sum
     assert_eq!(wire::encode(&real), crafted);
     let real = FromWorker::TileFailed {
         job: 7,
@@ -729,7 +749,7 @@ fn hand_made_garbage_is_an_error() {
 
     let mut bad_option = 1u32.to_le_bytes().to_vec(); // ClientResponse::Job
     bad_option.extend_from_slice(&[0; 8 + 4]); // id, state
-    bad_option.extend_from_slice(&[0; 16 + 4 + 4 + 4 + 8 + 8]); // settings .. elapsed_ms
+    bad_option.extend_from_slice(&[0; 20 + 4 + 4 + 4 + 8 + 8]); // settings .. elapsed_ms
     bad_option.push(2); // eta_ms: neither None (0) nor Some (1)
     assert!(matches!(
         decode_framed::<ClientResponse>(&bad_option),

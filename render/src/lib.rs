@@ -4,13 +4,20 @@
 //! come out ([`render_tile`], [`render_frame`]), and every pixel is a deterministic
 //! function of the scene, the settings and its coordinates. No I/O, no network, no async,
 //! so the same code serves `tessera render`, the workers of the farm and the tests.
+//!
+//! Pixels are sampled on the scene format's regular grid by default, or jittered, or
+//! adaptively ([`Sampling`]); every tile reports the samples it took and its estimated
+//! error, and [`metrics`] measures an image's real error against a reference.
 
+mod bvh;
 mod camera;
 mod error;
 mod geometry;
 mod image;
 pub mod limits;
+pub mod metrics;
 mod parse;
+pub mod sampling;
 mod scene;
 mod tile;
 mod tracer;
@@ -19,9 +26,13 @@ mod vec3;
 pub use crate::error::SceneError;
 pub use crate::image::Image;
 pub use crate::parse::{parse_scene, validate_settings};
+pub use crate::sampling::{
+    sample_offsets, InvalidTarget, Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI,
+};
 pub use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
 pub use crate::tile::{
-    render_frame, render_tile, tiles, Frame, Rect, TileError, TileImage, DEFAULT_TILE_SIZE,
+    estimated_error, render_frame, render_tile, tiles, Frame, Rect, TileError, TileImage,
+    DEFAULT_TILE_SIZE,
 };
 pub use crate::tracer::{Hit, Tracer};
 pub use crate::vec3::Vec3;

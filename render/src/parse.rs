@@ -10,6 +10,7 @@ use serde_json::{Map, Value};
 
 use crate::error::SceneError;
 use crate::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
+use crate::sampling::{Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI};
 use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
 use crate::vec3::Vec3;
 
@@ -104,6 +105,17 @@ pub fn validate_settings(s: &RenderSettings, prefix: &str) -> Result<()> {
             key("max_depth"),
             format!("must be between 0 and {MAX_DEPTH}, got {}", s.max_depth),
         ));
+    }
+    if let Sampling::Adaptive { target_milli } = s.sampling {
+        if !(MIN_TARGET_MILLI..=MAX_TARGET_MILLI).contains(&target_milli) {
+            return Err(SceneError::invalid(
+                key("target_error"),
+                format!(
+                    "must be between 0.001 and 255 levels, got {}",
+                    f64::from(target_milli) / 1000.0
+                ),
+            ));
+        }
     }
     Ok(())
 }

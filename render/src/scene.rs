@@ -4,6 +4,7 @@
 //! settings within [`limits`](crate::limits)); [`crate::parse_scene`] is the only way in
 //! from untrusted text.
 
+use crate::sampling::Sampling;
 use crate::vec3::Vec3;
 
 /// A validated scene, independent of image settings overrides.
@@ -73,31 +74,38 @@ impl Default for CameraSpec {
     }
 }
 
-/// Image size, antialiasing and reflection depth: everything a render may override.
+/// Image size, antialiasing, reflection depth and sampling: everything a render may
+/// override.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct RenderSettings {
     pub width: u32,
     pub height: u32,
-    /// `aa` = n gives n × n samples per pixel.
+    /// `aa` = n gives n × n samples per pixel: exactly with the grid and jittered
+    /// samplers, at most with adaptive sampling.
     pub aa: u32,
     /// Reflection rays are traced only while the depth is below this.
     pub max_depth: u32,
+    /// Where the samples of a pixel go. A scene file never sets it: it is the grid
+    /// unless the caller asks otherwise.
+    pub sampling: Sampling,
 }
 
 impl Default for RenderSettings {
-    /// The seed's measurement settings (600 × 400, one sample, depth 10).
+    /// The seed's measurement settings (600 × 400, one sample, depth 10, grid).
     fn default() -> Self {
         RenderSettings {
             width: 600,
             height: 400,
             aa: 1,
             max_depth: 10,
+            sampling: Sampling::Grid,
         }
     }
 }
 
 impl RenderSettings {
-    /// Samples per pixel.
+    /// Samples per pixel: the grid's and jittered sampling's count, adaptive sampling's
+    /// budget.
     pub fn samples_per_pixel(&self) -> u64 {
         u64::from(self.aa) * u64::from(self.aa)
     }

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::image::Image;
+use crate::sampling::PixelSampler;
 use crate::scene::RenderSettings;
 use crate::tracer::Tracer;
 
@@ -52,27 +53,48 @@ impl Rect {
     }
 }
 
-/// The pixels of one tile, RGB8, rows top to bottom.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// The pixels of one tile, RGB8, rows top to bottom, and what they cost.
+#[derive(Clone, Debug, PartialEq)]
 pub struct TileImage {
     pub rect: Rect,
     pub rgb: Vec<u8>,
     /// Rays traced for this tile (camera, reflection and shadow rays).
     pub rays: u64,
+    /// Camera samples taken: pixels × `aa`² for the grid and jittered samplers, what
+    /// the pixels needed for adaptive sampling.
+    pub samples: u64,
+    /// The sum over the tile's pixels of the square of each pixel's estimated error, in
+    /// 8-bit levels squared (see [`crate::sampling`]). A sum, so that tiles combine into
+    /// a frame's or a job's RMS estimate by addition. Pixels of one sample have no
+    /// estimate and add 0.
+    pub error_sq_sum: f64,
 }
 
-/// Renders one tile. Each pixel depends only on the scene, the settings and its
-/// coordinates, so the bytes equal those of the same pixels in any other tiling.
+/// Renders one tile with the tracer's settings and sampling. Each pixel depends only on
+/// the scene, the settings and its coordinates, so the bytes equal those of the same
+/// pixels in any other tiling.
 pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> {
     rect.check_inside(tracer.settings())?;
     let mut rgb = Vec::with_capacity(rect.pixel_count() as usize * 3);
     let mut rays = 0;
+    let mut samples = 0;
+    let mut error_sq_sum = 0.0;
+    let mut sampler = PixelSampler::new(tracer);
     for j in rect.y..rect.y + rect.height {
         for i in rect.x..rect.x + rect.width {
-            rgb.extend_from_slice(&tracer.pixel(i, j, &mut rays));
+            let pixel = sampler.render(i, j, &mut rays);
+            rgb.extend_from_slice(&pixel.rgb);
+            samples += u64::from(pixel.samples);
+            error_sq_sum += pixel.error * pixel.error;
         }
     }
-    Ok(TileImage { rect, rgb, rays })
+    Ok(TileImage {
+        rect,
+        rgb,
+        rays,
+        samples,
+        error_sq_sum,
+    })
 }
 
 /// Cuts a frame into tiles of at most `size` × `size`, row by row from the top left.
@@ -92,11 +114,40 @@ pub fn tiles(settings: &RenderSettings, size: u32) -> Vec<Rect> {
     out
 }
 
-/// A rendered frame and what it cost.
+/// A rendered frame, what it cost and how wrong it may be.
 #[derive(Clone, Debug)]
 pub struct Frame {
     pub image: Image,
     pub rays: u64,
+    /// Camera samples taken over the whole frame.
+    pub samples: u64,
+    /// The sum of the tiles' [`TileImage::error_sq_sum`].
+    pub error_sq_sum: f64,
+}
+
+impl Frame {
+    /// Mean camera samples per pixel.
+    pub fn samples_per_pixel(&self) -> f64 {
+        self.samples as f64 / self.image.pixel_count().max(1) as f64
+    }
+
+    /// The renderer's own estimate of the frame's error, in 8-bit levels: the root mean
+    /// square over its pixels of each pixel's estimated error. NaN when it is unknown:
+    /// with one sample per pixel the spread of the samples cannot be measured (the
+    /// unbiased variance of one value is 0/0).
+    pub fn estimated_error(&self) -> f64 {
+        estimated_error(self.samples, self.error_sq_sum, self.image.pixel_count())
+    }
+}
+
+/// The RMS estimated error (levels) of `pixels` pixels that took `samples` samples and
+/// whose squared estimates sum to `error_sq_sum`; NaN when unknown (no pixel, or one
+/// sample per pixel: every sampler takes at least 4 per pixel when `aa` ≥ 2).
+pub fn estimated_error(samples: u64, error_sq_sum: f64, pixels: u64) -> f64 {
+    if pixels == 0 || samples <= pixels {
+        return f64::NAN;
+    }
+    (error_sq_sum / pixels as f64).sqrt()
 }
 
 /// Renders the whole frame as tiles on the current rayon pool, calling `on_tile` with
@@ -114,9 +165,18 @@ pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sy
         .collect();
     let mut image = Image::black(settings.width, settings.height);
     let mut rays = 0;
+    let mut samples = 0;
+    let mut error_sq_sum = 0.0;
     for tile in &done {
         image.put_tile(tile);
         rays += tile.rays;
+        samples += tile.samples;
+        error_sq_sum += tile.error_sq_sum;
     }
-    Frame { image, rays }
+    Frame {
+        image,
+        rays,
+        samples,
+        error_sq_sum,
+    }
 }

@@ -1,10 +1,11 @@
 //! The Whitted-style tracer of the scene format (sections 4 and 5): nearest hit,
 //! two-sided normals, ambient, mirror reflection, shadows, highlight and clip.
 
+use crate::bvh::{consider, has_avx2, Bvh, Stack};
 use crate::camera::Camera;
-use crate::geometry::{PlaneGeom, SphereGeom};
+use crate::geometry::{plane_ahead, plane_hits, sphere_hits, PlaneGeom, SphereGeom};
 use crate::scene::{Material, RenderSettings, Scene, Shape};
-use crate::vec3::Vec3;
+use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
 /// A reflection path whose weight (the product of its `special` factors) is below this
 /// contributes less than a quarter of an 8-bit level, so it is not traced (section 5,
@@ -44,8 +45,39 @@ struct LightSource {
     color: Vec3,
 }
 
-/// A scene prepared for tracing at given settings: normals normalised, camera basis
-/// and per-object constants computed once, so tracing allocates nothing.
+/// Constants of every camera ray for one sphere: camera rays all start at the eye, so
+/// f = eye − centre and c = f·f − r² are computed once, by the same operations that
+/// [`SphereGeom::hit`] performs per ray, hence with the same bits.
+#[derive(Clone, Copy, Debug)]
+struct EyeSphere {
+    f: Vec3,
+    c: f64,
+    radius2: f64,
+    index: u32,
+}
+
+/// A plane as camera rays see it: the numerator distance − n̂·eye of
+/// [`PlaneGeom::hit`] is the same for all of them.
+#[derive(Clone, Copy, Debug)]
+struct EyePlane {
+    normal: Vec3,
+    num: f64,
+    index: u32,
+}
+
+/// Spheres from which the hierarchy is built when camera rays are traced one by one
+/// (aa = 1): below this, testing every sphere is as fast. Measured with
+/// `cargo bench -p render --bench bvh_threshold` (see docs/performance.md).
+const BVH_MIN_SPHERES: usize = 12;
+
+/// The same when camera rays are traced four at a time (aa ≥ 2): testing every sphere
+/// then runs in SIMD lanes across the four rays while the hierarchy is traversed ray by
+/// ray, so it pays only from more spheres. Measured likewise.
+const BVH_MIN_SPHERES_PACKETS: usize = 40;
+
+/// A scene prepared for tracing at given settings: normals normalised, camera basis,
+/// per-object constants and, for many spheres, a bounding volume hierarchy computed
+/// once, so tracing allocates nothing.
 #[derive(Clone, Debug)]
 pub struct Tracer {
     surfaces: Vec<Surface>,
@@ -53,6 +85,13 @@ pub struct Tracer {
     /// hot loops run over one shape at a time.
     spheres: Vec<(u32, SphereGeom)>,
     planes: Vec<(u32, PlaneGeom)>,
+    /// The hierarchy over the spheres, when there are enough of them to pay.
+    bvh: Option<Bvh>,
+    /// Camera-ray constants (only without a hierarchy, which has its own).
+    eye_spheres: Vec<EyeSphere>,
+    eye_planes: Vec<EyePlane>,
+    /// Whether the processor has AVX2, for the packet code.
+    avx2: bool,
     lights: Vec<LightSource>,
     ambient: f64,
     camera: Camera,
@@ -61,13 +100,37 @@ pub struct Tracer {
     offsets: Vec<f64>,
 }
 
-/// Marks a ray that leaves no surface (a camera ray).
+/// Marks a ray that leaves no surface (a camera ray); no object has this index.
 const FROM_CAMERA: u32 = u32::MAX;
+
+/// Per-pixel working state: the ray count and, with a hierarchy, its traversal stack.
+struct Ctx<'a> {
+    rays: u64,
+    stack: Option<&'a mut Stack>,
+}
 
 impl Tracer {
     /// Prepares `scene` for rendering with `settings` (the scene's own or overridden
     /// ones, already validated).
     pub fn new(scene: &Scene, settings: RenderSettings) -> Self {
+        Self::prepare(scene, settings, None)
+    }
+
+    /// [`Tracer::new`] with the hierarchy forced on (`true`) or off, whatever the object
+    /// count: the images are the same either way, only the speed differs. For tests and
+    /// benchmarks.
+    #[doc(hidden)]
+    pub fn with_bvh(scene: &Scene, settings: RenderSettings, bvh: bool) -> Self {
+        Self::prepare(scene, settings, Some(bvh))
+    }
+
+    /// Whether rays are traced through a hierarchy (for tests and benchmarks).
+    #[doc(hidden)]
+    pub fn uses_bvh(&self) -> bool {
+        self.bvh.is_some()
+    }
+
+    fn prepare(scene: &Scene, settings: RenderSettings, force_bvh: Option<bool>) -> Self {
         let surfaces: Vec<Surface> = scene
             .objects
             .iter()
@@ -93,10 +156,49 @@ impl Tracer {
                 Geometry::Plane(g) => planes.push((index, g)),
             }
         }
+        let camera = Camera::new(&scene.camera, &settings);
+        let eye = camera.position();
+        let threshold = if settings.aa == 1 {
+            BVH_MIN_SPHERES
+        } else {
+            BVH_MIN_SPHERES_PACKETS
+        };
+        let bvh = if force_bvh.unwrap_or(spheres.len() >= threshold) {
+            Bvh::build(&spheres)
+        } else {
+            None
+        };
+        let eye_spheres: Vec<EyeSphere> = if bvh.is_some() {
+            Vec::new()
+        } else {
+            spheres
+                .iter()
+                .map(|&(index, s)| {
+                    let f = eye - s.center;
+                    EyeSphere {
+                        f,
+                        c: f.dot(f) - s.radius2,
+                        radius2: s.radius2,
+                        index,
+                    }
+                })
+                .collect()
+        };
         Tracer {
+            eye_planes: planes
+                .iter()
+                .map(|&(index, p)| EyePlane {
+                    normal: p.normal,
+                    num: p.distance - p.normal.dot(eye),
+                    index,
+                })
+                .collect(),
+            avx2: has_avx2(),
             surfaces,
             spheres,
             planes,
+            bvh,
+            eye_spheres,
             lights: scene
                 .lights
                 .iter()
@@ -106,7 +208,7 @@ impl Tracer {
                 })
                 .collect(),
             ambient: scene.ambient,
-            camera: Camera::new(&scene.camera, &settings),
+            camera,
             offsets: (0..settings.aa)
                 .map(|a| (f64::from(a) + 0.5) / f64::from(settings.aa))
                 .collect(),
@@ -118,14 +220,32 @@ impl Tracer {
         &self.settings
     }
 
+    /// Runs `f` with a fresh per-pixel state (and a traversal stack if there is a
+    /// hierarchy), then adds the rays it traced to `rays`.
+    #[inline(always)]
+    fn with_ctx<T>(&self, rays: &mut u64, f: impl FnOnce(&mut Ctx) -> T) -> T {
+        let run = |stack: Option<&mut Stack>| {
+            let mut ctx = Ctx { rays: 0, stack };
+            let out = f(&mut ctx);
+            *rays += ctx.rays;
+            out
+        };
+        if self.bvh.is_some() {
+            run(Some(&mut Stack::new()))
+        } else {
+            run(None)
+        }
+    }
+
     /// The nearest hit with t > 0 of the ray `origin + t·dir` (|dir| = 1), ignoring the
     /// surface the ray leaves (`from`). Equal distances go to the lower object index.
     pub fn nearest_hit(&self, origin: Vec3, dir: Vec3, from: Option<usize>) -> Option<Hit> {
         let from = from.map_or(FROM_CAMERA, |i| i as u32);
-        self.nearest(origin, dir, from).map(|(t, object)| Hit {
-            t,
-            object: object as usize,
-        })
+        self.with_ctx(&mut 0, |ctx| self.nearest(origin, dir, from, ctx))
+            .map(|(t, object)| Hit {
+                t,
+                object: object as usize,
+            })
     }
 
     /// Whether the light `light` (index into the scene's lights) is seen from `point`
@@ -134,7 +254,9 @@ impl Tracer {
         let to_light = self.lights[light].position - point;
         let distance = to_light.length();
         let dir = to_light / distance;
-        !self.occluded(point, dir, from as u32, distance)
+        !self.with_ctx(&mut 0, |ctx| {
+            self.occluded(point, dir, from as u32, distance, ctx)
+        })
     }
 
     /// The clipped colour seen along a camera ray.
@@ -143,60 +265,204 @@ impl Tracer {
         self.radiance(origin, dir, FROM_CAMERA, 0, 1.0, &mut rays)
     }
 
+    /// The clipped colour of the camera sample through the image point (`px`, `py`),
+    /// measured in pixels from the top-left corner (pixel column i with offset sx is
+    /// `i + sx`). Adds the rays traced to `rays`.
+    pub fn sample(&self, px: f64, py: f64, rays: &mut u64) -> Vec3 {
+        let dir = self.camera.direction(px, py);
+        self.with_ctx(rays, |ctx| self.camera_sample(dir, ctx))
+    }
+
+    /// The clipped colours of the camera samples through the image points `points`
+    /// (as in [`Tracer::sample`]), written to `colors`: bit for bit what one call of
+    /// [`Tracer::sample`] per point gives, but traced four at a time, which is faster
+    /// where neighbouring samples meet the same object. Adds the rays traced to `rays`.
+    ///
+    /// # Panics
+    ///
+    /// If `colors` is not as long as `points`.
+    pub fn samples(&self, points: &[(f64, f64)], colors: &mut [Vec3], rays: &mut u64) {
+        assert_eq!(points.len(), colors.len(), "one colour per point");
+        self.with_ctx(rays, |ctx| {
+            for (points, colors) in points.chunks(LANES).zip(colors.chunks_mut(LANES)) {
+                self.trace_points(points, colors, ctx);
+            }
+        });
+    }
+
     /// The 8-bit colour of pixel (`i`, `j`) (column, row from the top left): the mean of
     /// its n × n clipped samples, summed in sample order. Adds the rays traced to `rays`.
     pub fn pixel(&self, i: u32, j: u32, rays: &mut u64) -> [u8; 3] {
-        let nf = f64::from(self.settings.aa);
-        let origin = self.camera.position();
-        let mut sum = Vec3::ZERO;
-        for &sy in &self.offsets {
-            let py = f64::from(j) + sy;
-            for &sx in &self.offsets {
-                let px = f64::from(i) + sx;
-                let dir = self.camera.direction(px, py);
-                sum += self.radiance(origin, dir, FROM_CAMERA, 0, 1.0, rays);
+        let sum = self.with_ctx(rays, |ctx| {
+            if let [offset] = self.offsets[..] {
+                let dir = self
+                    .camera
+                    .direction(f64::from(i) + offset, f64::from(j) + offset);
+                return self.camera_sample(dir, ctx);
             }
-        }
+            // Several samples: traced four at a time, summed in sample order.
+            let mut sum = Vec3::ZERO;
+            let mut points = [(0.0, 0.0); LANES];
+            let mut colors = [Vec3::ZERO; LANES];
+            let mut filled = 0;
+            for &sy in &self.offsets {
+                for &sx in &self.offsets {
+                    points[filled] = (f64::from(i) + sx, f64::from(j) + sy);
+                    filled += 1;
+                    if filled == LANES {
+                        self.trace_points(&points, &mut colors, ctx);
+                        for &color in &colors {
+                            sum += color;
+                        }
+                        filled = 0;
+                    }
+                }
+            }
+            if filled > 0 {
+                self.trace_points(&points[..filled], &mut colors[..filled], ctx);
+                for &color in &colors[..filled] {
+                    sum += color;
+                }
+            }
+            sum
+        });
+        let nf = f64::from(self.settings.aa);
         let mean = sum / (nf * nf);
         [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]
     }
 
-    fn nearest(&self, origin: Vec3, dir: Vec3, from: u32) -> Option<(f64, u32)> {
-        let mut best_t = f64::INFINITY;
-        let mut best = FROM_CAMERA;
-        for &(index, ref sphere) in &self.spheres {
-            if let Some(t) = sphere.hit(origin, dir, index == from) {
-                if t < best_t || (t == best_t && index < best) {
-                    best_t = t;
-                    best = index;
-                }
-            }
+    /// Traces up to [`LANES`] camera samples: alone, or as one packet.
+    #[inline(always)]
+    fn trace_points(&self, points: &[(f64, f64)], colors: &mut [Vec3], ctx: &mut Ctx) {
+        let direction = |k: usize| self.camera.direction(points[k].0, points[k].1);
+        if points.len() == 1 {
+            colors[0] = self.camera_sample(direction(0), ctx);
+            return;
         }
+        let mut dirs = [Vec3::ZERO; LANES];
+        for (k, dir) in dirs.iter_mut().enumerate().take(points.len()) {
+            *dir = direction(k);
+        }
+        // Unused lanes repeat the first ray; their results are dropped.
+        for k in points.len()..LANES {
+            dirs[k] = dirs[0];
+        }
+        let out = self.camera_packet(dirs, points.len(), ctx);
+        colors.copy_from_slice(&out[..points.len()]);
+    }
+
+    /// The nearest hit, as (distance, object index).
+    #[inline(always)]
+    fn nearest(&self, origin: Vec3, dir: Vec3, from: u32, ctx: &mut Ctx) -> Option<(f64, u32)> {
+        let mut best = (f64::INFINITY, FROM_CAMERA);
         for &(index, ref plane) in &self.planes {
             if index == from {
                 continue;
             }
             if let Some(t) = plane.hit(origin, dir) {
-                if t < best_t || (t == best_t && index < best) {
-                    best_t = t;
-                    best = index;
-                }
+                consider(&mut best, t, index);
             }
         }
-        (best != FROM_CAMERA).then_some((best_t, best))
+        self.nearest_sphere(origin, dir, from, &mut best, ctx);
+        (best.1 != FROM_CAMERA).then_some(best)
+    }
+
+    /// Updates `best` with the spheres' hits: through the hierarchy if there is one
+    /// (and the ray is within its range), else by testing every sphere.
+    #[inline(always)]
+    fn nearest_sphere(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        from: u32,
+        best: &mut (f64, u32),
+        ctx: &mut Ctx,
+    ) {
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            if let Some(s) = self.sphere(from) {
+                if let Some(t) = s.hit(origin, dir, true) {
+                    consider(best, t, from);
+                }
+            }
+            if bvh.nearest(origin, dir, from, best, stack).is_ok() {
+                return;
+            }
+        }
+        for &(index, ref sphere) in &self.spheres {
+            if let Some(t) = sphere.hit(origin, dir, index == from) {
+                consider(best, t, index);
+            }
+        }
+    }
+
+    /// The geometry of object `index` if it is a sphere.
+    #[inline(always)]
+    fn sphere(&self, index: u32) -> Option<&SphereGeom> {
+        match self.surfaces.get(index as usize)?.geometry {
+            Geometry::Sphere(ref s) => Some(s),
+            Geometry::Plane(_) => None,
+        }
+    }
+
+    /// The nearest hit of a camera ray, from the per-sphere camera constants.
+    #[inline(always)]
+    fn nearest_from_eye(&self, dir: Vec3) -> Option<(f64, u32)> {
+        let mut best = (f64::INFINITY, FROM_CAMERA);
+        for s in &self.eye_spheres {
+            if let Some(t) = SphereGeom::hit_offset(s.f, s.c, s.radius2, dir) {
+                consider(&mut best, t, s.index);
+            }
+        }
+        for plane in &self.eye_planes {
+            // PlaneGeom::hit with its numerator precomputed.
+            let denom = plane.normal.dot(dir);
+            if denom == 0.0 {
+                continue;
+            }
+            let t = plane.num / denom;
+            if t > 0.0 && t.is_finite() {
+                consider(&mut best, t, plane.index);
+            }
+        }
+        (best.1 != FROM_CAMERA).then_some(best)
     }
 
     /// Whether any object is hit at a distance in (0, reach·`max_t`): shadow rays stop
     /// at the first occluder found.
-    fn occluded(&self, origin: Vec3, dir: Vec3, from: u32, max_t: f64) -> bool {
+    #[inline(always)]
+    fn occluded(&self, origin: Vec3, dir: Vec3, from: u32, max_t: f64, ctx: &mut Ctx) -> bool {
         let limit = max_t * SHADOW_REACH;
-        self.spheres.iter().any(|&(index, ref sphere)| {
-            sphere
-                .hit(origin, dir, index == from)
-                .is_some_and(|t| t < limit)
-        }) || self.planes.iter().any(|&(index, ref plane)| {
-            index != from && plane.hit(origin, dir).is_some_and(|t| t < limit)
-        })
+        for &(index, ref plane) in &self.planes {
+            if index == from {
+                continue;
+            }
+            let num = plane.distance - plane.normal.dot(origin);
+            let denom = plane.normal.dot(dir);
+            if plane_ahead(num, denom) {
+                let t = num / denom;
+                if t > 0.0 && t.is_finite() && t < limit {
+                    return true;
+                }
+            }
+        }
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            if let Some(s) = self.sphere(from) {
+                if s.hit(origin, dir, true).is_some_and(|t| t < limit) {
+                    return true;
+                }
+            }
+            if let Ok(occluder) = bvh.occluder(origin, dir, from, limit, stack) {
+                return occluder.is_some();
+            }
+        }
+        for &(index, ref sphere) in &self.spheres {
+            if let Some(t) = sphere.hit(origin, dir, index == from) {
+                if t < limit {
+                    return true;
+                }
+            }
+        }
+        false
     }
 
     /// Section 5: the clipped colour of the ray `origin + t·dir` at reflection depth
@@ -210,10 +476,57 @@ impl Tracer {
         weight: f64,
         rays: &mut u64,
     ) -> Vec3 {
-        *rays += 1;
-        let Some((t, index)) = self.nearest(origin, dir, from) else {
+        self.with_ctx(rays, |ctx| {
+            self.radiance_in(origin, dir, from, depth, weight, ctx)
+        })
+    }
+
+    /// [`Tracer::radiance`] within a pixel's state.
+    fn radiance_in(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        from: u32,
+        depth: u32,
+        weight: f64,
+        ctx: &mut Ctx,
+    ) -> Vec3 {
+        ctx.rays += 1;
+        let Some((t, index)) = self.nearest(origin, dir, from, ctx) else {
             return Vec3::ZERO;
         };
+        self.shade(origin, dir, t, index, depth, weight, ctx)
+    }
+
+    /// One camera ray's clipped colour.
+    #[inline(always)]
+    fn camera_sample(&self, dir: Vec3, ctx: &mut Ctx) -> Vec3 {
+        ctx.rays += 1;
+        let origin = self.camera.position();
+        let hit = if self.bvh.is_some() {
+            self.nearest(origin, dir, FROM_CAMERA, ctx)
+        } else {
+            self.nearest_from_eye(dir)
+        };
+        match hit {
+            Some((t, index)) => self.shade(origin, dir, t, index, 0, 1.0, ctx),
+            None => Vec3::ZERO,
+        }
+    }
+
+    /// Section 5, steps 1 to 6, at the hit `origin + t·dir` on object `index`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn shade(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t: f64,
+        index: u32,
+        depth: u32,
+        weight: f64,
+        ctx: &mut Ctx,
+    ) -> Vec3 {
         let surface = &self.surfaces[index as usize];
         let p = origin + dir * t;
 
@@ -243,7 +556,7 @@ impl Tracer {
             Vec3::ZERO
         };
         if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT {
-            let c = self.radiance(p, reflected, index, depth + 1, weight * special, rays);
+            let c = self.radiance_in(p, reflected, index, depth + 1, weight * special, ctx);
             color += c * special;
         }
         // 5. Direct light, diffuse and highlight, where the light is not shadowed.
@@ -255,8 +568,8 @@ impl Tracer {
             if cos <= 0.0 {
                 continue;
             }
-            *rays += 1;
-            if self.occluded(p, l, index, distance) {
+            ctx.rays += 1;
+            if self.occluded(p, l, index, distance, ctx) {
                 continue;
             }
             color += base.hadamard(light.color) * cos;
@@ -270,23 +583,316 @@ impl Tracer {
         // 6. Clip.
         clip(color)
     }
+
+    /// Up to four camera rays (the first `active` lanes of `dirs`) traced side by side:
+    /// their clipped colours, each with the bits [`Tracer::camera_sample`] gives for it.
+    fn camera_packet(&self, dirs: [Vec3; LANES], active: usize, ctx: &mut Ctx) -> [Vec3; LANES] {
+        let origin = V4::splat(self.camera.position());
+        let dir = V4::from_lanes(dirs);
+        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(active), ctx)
+    }
+
+    /// [`Tracer::radiance_in`] for the rays of the lanes in `active`, all leaving object
+    /// `from` (or the camera) at reflection depth `depth` with path weight `weight`:
+    /// their clipped colours, black in other lanes. Lanes that meet the same object are
+    /// shaded together; lanes that meet different objects (at a silhouette) one by one.
+    #[allow(clippy::too_many_arguments)]
+    fn packet(
+        &self,
+        origin: V4,
+        dir: V4,
+        from: u32,
+        depth: u32,
+        weight: f64,
+        active: M4,
+        ctx: &mut Ctx,
+    ) -> [Vec3; LANES] {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only where the processor was found to support AVX2.
+            return unsafe { self.packet_avx2(origin, dir, from, depth, weight, active, ctx) };
+        }
+        self.packet_lanes(origin, dir, from, depth, weight, active, ctx)
+    }
+
+    /// [`Tracer::packet`] compiled for AVX2, whose 256-bit registers hold the four
+    /// lanes at once. The same IEEE operations as the baseline code, so the same bits
+    /// (no fused multiply-add: Rust never contracts `a * b + c`).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    fn packet_avx2(
+        &self,
+        origin: V4,
+        dir: V4,
+        from: u32,
+        depth: u32,
+        weight: f64,
+        active: M4,
+        ctx: &mut Ctx,
+    ) -> [Vec3; LANES] {
+        self.packet_lanes(origin, dir, from, depth, weight, active, ctx)
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn packet_lanes(
+        &self,
+        origin: V4,
+        dir: V4,
+        from: u32,
+        depth: u32,
+        weight: f64,
+        active: M4,
+        ctx: &mut Ctx,
+    ) -> [Vec3; LANES] {
+        ctx.rays += active.count();
+        let (t, index) = self.nearest_lanes(origin, dir, from, active, ctx);
+        let hit = active.and(index.lt(F4::splat(f64::from(FROM_CAMERA))));
+        let mut colors = [Vec3::ZERO; LANES];
+        let Some(first) = (0..LANES).find(|&k| hit.get(k)) else {
+            return colors;
+        };
+        let object = index.0[first];
+        if (0..LANES).all(|k| !hit.get(k) || index.0[k] == object) {
+            return self.shade_lanes(origin, dir, t, object as u32, hit, depth, weight, ctx);
+        }
+        for (k, color) in colors.iter_mut().enumerate() {
+            if hit.get(k) {
+                let (o, d) = (origin.lane(k), dir.lane(k));
+                *color = self.shade(o, d, t.0[k], index.0[k] as u32, depth, weight, ctx);
+            }
+        }
+        colors
+    }
+
+    /// [`Tracer::nearest`] in the lanes of `active`: the distances and the object
+    /// indices, the latter as f64 (exact for every u32) so that the tie rule runs in
+    /// the same SIMD lanes as the distances; [`FROM_CAMERA`] where nothing is hit.
+    #[inline(always)]
+    fn nearest_lanes(&self, origin: V4, dir: V4, from: u32, active: M4, ctx: &mut Ctx) -> (F4, F4) {
+        let mut t = F4::splat(f64::INFINITY);
+        let mut index = F4::splat(f64::from(FROM_CAMERA));
+        if self.bvh.is_some() {
+            for k in 0..LANES {
+                if active.get(k) {
+                    if let Some((tk, ik)) = self.nearest(origin.lane(k), dir.lane(k), from, ctx) {
+                        t.0[k] = tk;
+                        index.0[k] = f64::from(ik);
+                    }
+                }
+            }
+        } else if from == FROM_CAMERA {
+            // Camera rays: the per-object constants of the eye.
+            for s in &self.eye_spheres {
+                let (f, c, radius2) = (V4::splat(s.f), F4::splat(s.c), F4::splat(s.radius2));
+                let hits = sphere_hits(f, c, radius2, dir, M4::NONE);
+                consider_lanes(&mut t, &mut index, hits, s.index);
+            }
+            for plane in &self.eye_planes {
+                let hits = plane_hits(F4::splat(plane.num), V4::splat(plane.normal).dot(dir));
+                consider_lanes(&mut t, &mut index, hits, plane.index);
+            }
+        } else {
+            for &(i, ref s) in &self.spheres {
+                let f = origin - V4::splat(s.center);
+                let hits = if i == from {
+                    leaving_hits(f, dir)
+                } else {
+                    let radius2 = F4::splat(s.radius2);
+                    sphere_hits(f, f.dot(f) - radius2, radius2, dir, M4::NONE)
+                };
+                consider_lanes(&mut t, &mut index, hits, i);
+            }
+            for &(i, ref plane) in &self.planes {
+                if i == from {
+                    continue;
+                }
+                let n = V4::splat(plane.normal);
+                let num = F4::splat(plane.distance) - n.dot(origin);
+                consider_lanes(&mut t, &mut index, plane_hits(num, n.dot(dir)), i);
+            }
+        }
+        (t, index)
+    }
+
+    /// [`Tracer::shade`] for rays that all meet object `index`, in the lanes of `hit`
+    /// (other lanes are black). Each lane performs the operations of the scalar code in
+    /// the same order.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn shade_lanes(
+        &self,
+        origin: V4,
+        dir: V4,
+        t: F4,
+        index: u32,
+        hit: M4,
+        depth: u32,
+        weight: f64,
+        ctx: &mut Ctx,
+    ) -> [Vec3; LANES] {
+        let zero = F4::splat(0.0);
+        let surface = &self.surfaces[index as usize];
+        let p = origin + dir.scale(t);
+
+        // 1. Checkerboard colour.
+        let base = match surface.material {
+            Material::Checker => {
+                let white = M4::from_fn(|k| checker_white(p.lane(k)));
+                white.select3(V4::splat(Vec3::new(1.0, 1.0, 1.0)), V4::splat(Vec3::ZERO))
+            }
+            _ => V4::splat(surface.color),
+        };
+        // 2. Two-sided normal, facing the incoming ray.
+        let normal = match surface.geometry {
+            Geometry::Sphere(ref s) => (p - V4::splat(s.center)).div(F4::splat(s.radius)),
+            Geometry::Plane(ref pl) => V4::splat(pl.normal),
+        };
+        let normal = normal.dot(dir).gt(zero).select3(-normal, normal);
+        // 3. Ambient.
+        let mut acc = base.scale(F4::splat(self.ambient));
+        // 4. Mirror reflection.
+        let special = match surface.material {
+            Material::Reflective(s) => s,
+            _ => 0.0,
+        };
+        let reflected = if special > 0.0 {
+            dir - normal.scale(dir.dot(normal).map(|x| 2.0 * x))
+        } else {
+            V4::splat(Vec3::ZERO)
+        };
+        if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT {
+            let weight = weight * special;
+            let c = self.packet(p, reflected, index, depth + 1, weight, hit, ctx);
+            for (k, c) in c.iter().enumerate() {
+                if hit.get(k) {
+                    let c = *c * special;
+                    acc.x.0[k] += c.x;
+                    acc.y.0[k] += c.y;
+                    acc.z.0[k] += c.z;
+                }
+            }
+        }
+        // 5. Direct light, diffuse and highlight, where the light is not shadowed.
+        for light in &self.lights {
+            let to_light = V4::splat(light.position) - p;
+            let distance = to_light.dot(to_light).sqrt();
+            let l = to_light.div(distance);
+            let cos = normal.dot(l);
+            // Not `cos > 0`: a NaN cosine is traced on, as in the scalar code.
+            let lit = hit.and_not(cos.le(zero));
+            if !lit.any() {
+                continue;
+            }
+            ctx.rays += lit.count();
+            let unshadowed = lit.and_not(self.occluded_lanes(p, l, index, distance, lit, ctx));
+            let light_color = V4::splat(light.color);
+            acc = unshadowed.select3(acc + base.hadamard(light_color).scale(cos), acc);
+            if special > 0.0 {
+                let r_dot_l = reflected.dot(l);
+                let highlight = unshadowed.and(r_dot_l.gt(zero));
+                let strength = F4::splat(special) * r_dot_l.map(pow10);
+                acc = highlight.select3(acc + light_color.scale(strength), acc);
+            }
+        }
+        // 6. Clip.
+        std::array::from_fn(|k| {
+            if hit.get(k) {
+                clip(acc.lane(k))
+            } else {
+                Vec3::ZERO
+            }
+        })
+    }
+
+    /// [`Tracer::occluded`] for the shadow rays of the lanes in `lit`: from `p` along
+    /// `l`, leaving object `from`, towards a light at `distance`.
+    #[inline(always)]
+    fn occluded_lanes(&self, p: V4, l: V4, from: u32, distance: F4, lit: M4, ctx: &mut Ctx) -> M4 {
+        let mut blocked = M4::NONE;
+        if self.bvh.is_some() {
+            for k in 0..LANES {
+                if lit.get(k) && self.occluded(p.lane(k), l.lane(k), from, distance.0[k], ctx) {
+                    blocked.0[k] = u64::MAX;
+                }
+            }
+            return blocked;
+        }
+        let zero = F4::splat(0.0);
+        let limit = distance * SHADOW_REACH;
+        for &(index, ref plane) in &self.planes {
+            if index == from {
+                continue;
+            }
+            let n = V4::splat(plane.normal);
+            let num = F4::splat(plane.distance) - n.dot(p);
+            let denom = n.dot(l);
+            let ahead = num.gt(zero).and(denom.gt(zero));
+            let ahead = lit.and(ahead.or(num.lt(zero).and(denom.lt(zero))));
+            if ahead.any() {
+                blocked = blocked.or(ahead.and(plane_hits(num, denom).lt(limit)));
+            }
+        }
+        for &(index, ref s) in &self.spheres {
+            if !lit.and_not(blocked).any() {
+                break;
+            }
+            let f = p - V4::splat(s.center);
+            let t = if index == from {
+                leaving_hits(f, l)
+            } else {
+                let radius2 = F4::splat(s.radius2);
+                sphere_hits(f, f.dot(f) - radius2, radius2, l, M4::NONE)
+            };
+            blocked = blocked.or(t.lt(limit));
+        }
+        blocked
+    }
+}
+
+/// [`consider`] lane by lane, for one object's hits in four rays; object indices are
+/// held as f64 (exact for every u32) so that the whole rule runs in SIMD lanes.
+#[inline(always)]
+fn consider_lanes(best_t: &mut F4, best: &mut F4, t: F4, index: u32) {
+    let index = F4::splat(f64::from(index));
+    let tie = t.test(*best_t, |a, b| a == b).and(index.lt(*best));
+    let better = t.lt(*best_t).or(tie);
+    *best_t = better.select(t, *best_t);
+    *best = better.select(index, *best);
+}
+
+/// Lane by lane, [`SphereGeom::hit`] for rays leaving the sphere (`f` = origin −
+/// centre): the far wall at t = −2 f·d when ahead, NaN otherwise.
+#[inline(always)]
+fn leaving_hits(f: V4, dir: V4) -> F4 {
+    let t = f.dot(dir).map(|b| -2.0 * b);
+    t.gt(F4::splat(0.0)).select(t, F4::splat(f64::NAN))
 }
 
 /// Black and white unit squares in x and z: white where floor(x) + floor(z) is odd.
 fn checker(p: Vec3) -> Vec3 {
-    let sum = floor_to_int(p.x).wrapping_add(floor_to_int(p.z));
-    if sum & 1 == 1 {
+    if checker_white(p) {
         Vec3::new(1.0, 1.0, 1.0)
     } else {
         Vec3::ZERO
     }
 }
 
-/// ⌊x⌋ as an integer (saturating beyond ±2⁶³), without a call into the C library.
+/// Whether the checkerboard is white at `p`.
+#[inline(always)]
+fn checker_white(p: Vec3) -> bool {
+    floor_to_int(p.x).wrapping_add(floor_to_int(p.z)) & 1 == 1
+}
+
+/// ⌊x⌋ as an integer, without a call into the C library. Beyond ±2⁶³ the conversion
+/// saturates, and below −2⁶³ the correction wraps around to `i64::MAX`: only the
+/// parity is used, and it is the same in every build (a plain `t - 1` would panic
+/// there in a debug build and wrap in a release build).
 fn floor_to_int(x: f64) -> i64 {
     let t = x as i64;
     if (t as f64) > x {
-        t - 1
+        t.wrapping_sub(1)
     } else {
         t
     }
@@ -322,7 +928,7 @@ pub(crate) fn clip(c: Vec3) -> Vec3 {
 }
 
 /// Section 6: round(clamp(v, 0, 1) · 255).
-fn to_byte(v: f64) -> u8 {
+pub(crate) fn to_byte(v: f64) -> u8 {
     // round() halves away from zero; for x in [0, 255] that is trunc, plus one when the
     // (exact) fractional part is at least one half.
     let x = v.clamp(0.0, 1.0) * 255.0;
@@ -331,5 +937,115 @@ fn to_byte(v: f64) -> u8 {
         t + 1
     } else {
         t
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{CameraSpec, Light, Object};
+
+    /// SplitMix64, for reproducible random scenes.
+    struct Mix(u64);
+
+    impl Mix {
+        fn next(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+
+        fn unit(&mut self) -> f64 {
+            (self.next() >> 11) as f64 / (1u64 << 53) as f64
+        }
+
+        fn vec(&mut self, scale: f64) -> Vec3 {
+            let mut c = || (2.0 * self.unit() - 1.0) * scale;
+            Vec3::new(c(), c(), c())
+        }
+    }
+
+    fn random_scene(rng: &mut Mix) -> Scene {
+        let material = |rng: &mut Mix| match rng.next() % 4 {
+            0 => Material::Checker,
+            1 => Material::Reflective(0.05 + 0.95 * rng.unit()),
+            _ => Material::Matte,
+        };
+        let mut objects = Vec::new();
+        for _ in 0..rng.next() % 20 {
+            let shape = Shape::Sphere {
+                center: rng.vec(2.0),
+                radius: 0.1 + rng.unit(),
+            };
+            objects.push(Object {
+                shape,
+                color: rng.vec(1.0),
+                material: material(rng),
+            });
+        }
+        for _ in 0..rng.next() % 3 {
+            let shape = Shape::Plane {
+                normal: rng.vec(1.0),
+                distance: 2.0 * rng.unit() - 1.0,
+            };
+            objects.push(Object {
+                shape,
+                color: rng.vec(1.0),
+                material: material(rng),
+            });
+        }
+        let lights = (0..rng.next() % 4)
+            .map(|_| Light {
+                position: rng.vec(6.0),
+                color: Vec3::new(rng.unit(), rng.unit(), rng.unit()),
+            })
+            .collect();
+        Scene {
+            lights,
+            objects,
+            camera: CameraSpec {
+                position: rng.vec(2.0) + Vec3::new(0.0, 0.0, -6.0),
+                look_at: rng.vec(0.5),
+            },
+            settings: RenderSettings {
+                width: 24,
+                height: 16,
+                aa: 2,
+                max_depth: (rng.next() % 5) as u32,
+                ..RenderSettings::default()
+            },
+            ambient: 0.2,
+        }
+    }
+
+    /// Four samples traced as a packet have exactly the colours (and count exactly the
+    /// rays) of the same samples traced one by one, whatever the scene.
+    #[test]
+    fn packets_equal_single_samples() {
+        let mut rng = Mix(5);
+        for case in 0..300 {
+            let scene = random_scene(&mut rng);
+            for bvh in [false, true] {
+                let tracer = Tracer::with_bvh(&scene, scene.settings, bvh);
+                for j in 0..scene.settings.height {
+                    for i in 0..scene.settings.width {
+                        let points: Vec<(f64, f64)> = (0..1 + rng.next() % 6)
+                            .map(|_| (f64::from(i) + rng.unit(), f64::from(j) + rng.unit()))
+                            .collect();
+                        let mut colors = vec![Vec3::ZERO; points.len()];
+                        let (mut packed, mut single) = (0, 0);
+                        tracer.samples(&points, &mut colors, &mut packed);
+                        for (&(px, py), color) in points.iter().zip(&colors) {
+                            let alone = tracer.sample(px, py, &mut single);
+                            let bits = |c: Vec3| [c.x, c.y, c.z].map(f64::to_bits);
+                            assert_eq!(bits(*color), bits(alone), "case {case} at ({px}, {py})");
+                        }
+                        assert_eq!(packed, single, "case {case}: rays");
+                    }
+                }
+            }
+        }
     }
 }

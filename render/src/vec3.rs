@@ -92,3 +92,273 @@ impl Div<f64> for Vec3 {
         Vec3::new(self.x / s, self.y / s, self.z / s)
     }
 }
+
+/// How many rays (or spheres) the packet code handles side by side.
+pub(crate) const LANES: usize = 4;
+
+/// Four `f64`s handled side by side. Every operation is the scalar one applied to each
+/// lane, written as plain loops over a fixed-size array so that the compiler turns them
+/// into SIMD instructions; each lane is bit-for-bit what the scalar code computes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct F4(pub [f64; LANES]);
+
+/// One boolean per lane, as all-ones or all-zeros bits like a SIMD comparison's result,
+/// so that tests and selections compile to SIMD instructions too.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct M4(pub [u64; LANES]);
+
+impl F4 {
+    #[inline(always)]
+    pub fn splat(v: f64) -> F4 {
+        F4([v; LANES])
+    }
+
+    #[inline(always)]
+    pub fn map(self, f: impl Fn(f64) -> f64) -> F4 {
+        F4(self.0.map(f))
+    }
+
+    #[inline(always)]
+    pub fn zip(self, o: F4, f: impl Fn(f64, f64) -> f64) -> F4 {
+        F4(std::array::from_fn(|k| f(self.0[k], o.0[k])))
+    }
+
+    #[inline(always)]
+    pub fn test(self, o: F4, f: impl Fn(f64, f64) -> bool) -> M4 {
+        M4::from_fn(|k| f(self.0[k], o.0[k]))
+    }
+
+    #[inline(always)]
+    pub fn sqrt(self) -> F4 {
+        self.map(f64::sqrt)
+    }
+
+    /// Lane by lane `f64::min`: the smaller, or the other operand where one is NaN.
+    #[inline(always)]
+    pub fn min(self, o: F4) -> F4 {
+        self.zip(o, f64::min)
+    }
+
+    #[inline(always)]
+    pub fn gt(self, o: F4) -> M4 {
+        self.test(o, |a, b| a > b)
+    }
+
+    #[inline(always)]
+    pub fn ge(self, o: F4) -> M4 {
+        self.test(o, |a, b| a >= b)
+    }
+
+    #[inline(always)]
+    pub fn lt(self, o: F4) -> M4 {
+        self.test(o, |a, b| a < b)
+    }
+
+    #[inline(always)]
+    pub fn le(self, o: F4) -> M4 {
+        self.test(o, |a, b| a <= b)
+    }
+}
+
+impl M4 {
+    pub const NONE: M4 = M4([0; LANES]);
+    pub const ALL: M4 = M4([u64::MAX; LANES]);
+
+    #[inline(always)]
+    fn bits(b: bool) -> u64 {
+        u64::from(b).wrapping_neg()
+    }
+
+    #[inline(always)]
+    pub fn from_fn(f: impl Fn(usize) -> bool) -> M4 {
+        M4(std::array::from_fn(|k| M4::bits(f(k))))
+    }
+
+    /// Lanes 0..n set.
+    #[inline(always)]
+    pub fn first(n: usize) -> M4 {
+        M4::from_fn(|k| k < n)
+    }
+
+    #[inline(always)]
+    pub fn get(self, k: usize) -> bool {
+        self.0[k] != 0
+    }
+
+    #[inline(always)]
+    pub fn any(self) -> bool {
+        self.0.iter().fold(0, |a, &b| a | b) != 0
+    }
+
+    #[inline(always)]
+    pub fn and(self, o: M4) -> M4 {
+        M4(std::array::from_fn(|k| self.0[k] & o.0[k]))
+    }
+
+    #[inline(always)]
+    pub fn or(self, o: M4) -> M4 {
+        M4(std::array::from_fn(|k| self.0[k] | o.0[k]))
+    }
+
+    #[inline(always)]
+    pub fn and_not(self, o: M4) -> M4 {
+        M4(std::array::from_fn(|k| self.0[k] & !o.0[k]))
+    }
+
+    #[inline(always)]
+    pub fn count(self) -> u64 {
+        self.0.iter().map(|&b| b & 1).sum()
+    }
+
+    /// Lane by lane, `a` where the mask is set, else `b` (bit selection, so NaNs and
+    /// signed zeros pass through unchanged).
+    #[inline(always)]
+    pub fn select(self, a: F4, b: F4) -> F4 {
+        F4(std::array::from_fn(|k| {
+            f64::from_bits((a.0[k].to_bits() & self.0[k]) | (b.0[k].to_bits() & !self.0[k]))
+        }))
+    }
+
+    #[inline(always)]
+    pub fn select3(self, a: V4, b: V4) -> V4 {
+        V4 {
+            x: self.select(a.x, b.x),
+            y: self.select(a.y, b.y),
+            z: self.select(a.z, b.z),
+        }
+    }
+}
+
+macro_rules! lane_op {
+    ($trait:ident, $method:ident, $op:tt) => {
+        impl $trait for F4 {
+            type Output = F4;
+            #[inline(always)]
+            fn $method(self, o: F4) -> F4 {
+                F4(std::array::from_fn(|k| self.0[k] $op o.0[k]))
+            }
+        }
+        impl $trait<f64> for F4 {
+            type Output = F4;
+            #[inline(always)]
+            fn $method(self, o: f64) -> F4 {
+                F4(self.0.map(|a| a $op o))
+            }
+        }
+    };
+}
+
+lane_op!(Add, add, +);
+lane_op!(Sub, sub, -);
+lane_op!(Mul, mul, *);
+lane_op!(Div, div, /);
+
+impl Neg for F4 {
+    type Output = F4;
+    #[inline(always)]
+    fn neg(self) -> F4 {
+        self.map(|a| -a)
+    }
+}
+
+/// Four 3-vectors in structure-of-arrays form: lane k is (x[k], y[k], z[k]). The
+/// methods mirror [`Vec3`]'s with the same operations in the same order.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct V4 {
+    pub x: F4,
+    pub y: F4,
+    pub z: F4,
+}
+
+impl V4 {
+    #[inline(always)]
+    pub fn splat(v: Vec3) -> V4 {
+        V4 {
+            x: F4::splat(v.x),
+            y: F4::splat(v.y),
+            z: F4::splat(v.z),
+        }
+    }
+
+    #[inline(always)]
+    pub fn from_lanes(v: [Vec3; LANES]) -> V4 {
+        V4 {
+            x: F4(v.map(|v| v.x)),
+            y: F4(v.map(|v| v.y)),
+            z: F4(v.map(|v| v.z)),
+        }
+    }
+
+    #[inline(always)]
+    pub fn lane(&self, k: usize) -> Vec3 {
+        Vec3::new(self.x.0[k], self.y.0[k], self.z.0[k])
+    }
+
+    #[inline(always)]
+    pub fn dot(self, o: V4) -> F4 {
+        self.x * o.x + self.y * o.y + self.z * o.z
+    }
+
+    #[inline(always)]
+    pub fn hadamard(self, o: V4) -> V4 {
+        V4 {
+            x: self.x * o.x,
+            y: self.y * o.y,
+            z: self.z * o.z,
+        }
+    }
+
+    #[inline(always)]
+    pub fn scale(self, s: F4) -> V4 {
+        V4 {
+            x: self.x * s,
+            y: self.y * s,
+            z: self.z * s,
+        }
+    }
+
+    #[inline(always)]
+    pub fn div(self, s: F4) -> V4 {
+        V4 {
+            x: self.x / s,
+            y: self.y / s,
+            z: self.z / s,
+        }
+    }
+}
+
+impl Add for V4 {
+    type Output = V4;
+    #[inline(always)]
+    fn add(self, o: V4) -> V4 {
+        V4 {
+            x: self.x + o.x,
+            y: self.y + o.y,
+            z: self.z + o.z,
+        }
+    }
+}
+
+impl Sub for V4 {
+    type Output = V4;
+    #[inline(always)]
+    fn sub(self, o: V4) -> V4 {
+        V4 {
+            x: self.x - o.x,
+            y: self.y - o.y,
+            z: self.z - o.z,
+        }
+    }
+}
+
+impl Neg for V4 {
+    type Output = V4;
+    #[inline(always)]
+    fn neg(self) -> V4 {
+        V4 {
+            x: -self.x,
+            y: -self.y,
+            z: -self.z,
+        }
+    }
+}

@@ -38,6 +38,7 @@ fn check(text: &str) {
                 height: 3,
                 aa: 1,
                 max_depth: scene.settings.max_depth.min(4),
+                ..scene.settings
             };
             let tracer = Tracer::new(&scene, settings);
             let tile = render_tile(

@@ -692,6 +692,7 @@ fn two_facing_mirrors_respect_the_depth_limit() {
             height: 1,
             aa: 1,
             max_depth,
+            ..RenderSettings::default()
         };
         let tracer = Tracer::new(&s, s.settings);
         let mut rays = 0;

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use protocol::{SceneHash, Settings};
+use protocol::{Sampling, SceneHash, Settings};
 use render::{RenderSettings, Scene, Tracer};
 use sha2::{Digest, Sha256};
 
@@ -55,6 +55,11 @@ impl SceneCache {
             height: settings.height,
             aa: settings.aa,
             max_depth: settings.max_depth,
+            sampling: match settings.sampling {
+                Sampling::Grid => render::Sampling::Grid,
+                Sampling::Jittered => render::Sampling::Jittered,
+                Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
+            },
         };
         render::validate_settings(&settings_r, "").map_err(|e| format!("invalid settings: {e}"))?;
         let tracer = Arc::new(Tracer::new(&scene, settings_r));

@@ -256,6 +256,8 @@ impl Session {
                             rgb: image.rgb,
                             rays: image.rays,
                             render_us: started.elapsed().as_micros() as u64,
+                            samples: image.samples,
+                            error_sq_sum: image.error_sq_sum,
                         },
                         Err(message) => {
                             warn!(job, tile, %message, "cannot render tile");

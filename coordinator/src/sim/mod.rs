@@ -1,0 +1,1651 @@
+//! A farm of thousands of workers, simulated in virtual time around the real scheduler.
+//!
+//! One machine cannot host a farm of thousands of workers, but the [`Scheduler`] owns no
+//! socket, clock or thread, so it can be driven by a discrete-event simulation instead:
+//! [`run`] feeds it the same events in the same order as the daemon ([`crate::server`])
+//! would, from simulated workers with heterogeneous speeds that crash, hang, reconnect
+//! and join, over links with latency, and carries out its actions the way the daemon
+//! does. Time is virtual (a binary heap of timed events), so a run of hours of farm time
+//! takes seconds, and a seed names one run exactly.
+//!
+//! What is modelled, mirroring the daemon and the worker:
+//! - **Coordinator**: a `Tick` every 100 ms carrying the virtual clock in milliseconds;
+//!   `WorkerJoined` when a worker's hello arrives, its `Accepted` sent first;
+//!   `Heartbeat` and `TileDone` as they arrive; `WorkerLeft` when a connection closes,
+//!   and right after a `DropWorker` (the daemon closes the connection, whose task then
+//!   reports it). Messages on a connection the coordinator dropped are not read.
+//! - **Links**: a one-way latency (base plus jitter) per message, in order per direction
+//!   (TCP).
+//! - **Workers**: `threads` rendering slots fed first-in first-out from the tiles
+//!   received; a tile of a job cancelled before it starts is skipped; a heartbeat every
+//!   second from the moment the handshake is accepted; when the coordinator closes the
+//!   connection the worker drops its queue (the tiles being rendered finish, unsent) and
+//!   reconnects after 100 ms × [0.5, 1) as a new worker.
+//! - **Failures**: crashes (the process dies; its connection closes after a latency) and
+//!   hangs (the whole process stops, as with `SIGSTOP`, for a random time: its renders
+//!   pause, messages wait in its socket, no heartbeats; if the coordinator dropped it
+//!   meanwhile it finds the connection closed when it wakes, and reconnects), each a
+//!   Poisson process per machine; new machines join as a Poisson process for the farm.
+//! - **Work**: a tile's cost is its area times a per-frame cost map (smooth hot regions,
+//!   like a glass object, up to `hotspot_factor` times the base cost, and a per-tile
+//!   random factor); a worker renders it in cost / speed of one of its threads.
+//!
+//! What is not: bandwidth (scenes and results cross the network instantly whatever
+//! their size), the database, image assembly and PNG encoding, the daemon's own
+//! bookkeeping around the scheduler, failed tiles (`TileFailed`), draining, cancelled
+//! jobs and priorities (every job has priority 0).
+
+mod alloc;
+mod report;
+mod rng;
+
+use std::cmp::{Ordering, Reverse};
+use std::collections::{BTreeMap, BTreeSet, BinaryHeap, VecDeque};
+use std::time::{Duration, Instant};
+
+use protocol::{JobId, SceneHash, WorkerId};
+
+use crate::scheduler::{Action, Event, Millis, Policy, Scheduler};
+
+pub use alloc::{counting, live_bytes, CountingAlloc};
+pub use report::{EventCost, LastTile, Memory, Outcome, SimReport};
+
+use rng::Rng;
+
+/// A kind of machine in the farm: real farms mix laptops, desktops and servers, and the
+/// spread of their speeds is what makes stragglers.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MachineClass {
+    /// Relative share of the farm's machines in this class (shares need not sum to 1).
+    pub share: f64,
+    /// Rendering threads; the scheduler gives the worker twice as many tiles.
+    pub threads: u32,
+    /// Speed of one thread, relative to the reference thread that renders a full tile in
+    /// [`SimConfig::tile_ms`].
+    pub speed: f64,
+}
+
+/// Everything that defines a simulated run. Two runs of the same configuration give the
+/// same [`Outcome`] and [`Memory`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimConfig {
+    /// Names the run: every random draw derives from it.
+    pub seed: u64,
+    /// Machines present from the start.
+    pub workers: usize,
+    /// The mix of machines, for the initial ones and those that join.
+    pub classes: Vec<MachineClass>,
+    /// Each machine's thread speed is its class's times a factor uniform in
+    /// [1 - spread, 1 + spread): no two machines are quite alike.
+    pub speed_spread: f64,
+    /// Jobs (frames) submitted.
+    pub jobs: usize,
+    /// Time between two submissions (0: all at once).
+    pub job_interval_ms: u64,
+    /// Frame size and tile side, as a client would ask; they give the tiles per job.
+    pub width: u32,
+    pub height: u32,
+    pub tile_size: u32,
+    /// Time of one full tile of average cost on a reference thread (speed 1).
+    pub tile_ms: f64,
+    /// Costly regions per frame, at random places, each a smooth bump of radius 5–20 %
+    /// of the frame's smaller side.
+    pub hotspots: usize,
+    /// A tile at the centre of a hot region costs this many times the base.
+    pub hotspot_factor: f64,
+    /// Each tile's cost is also scaled by a factor uniform in [1 - noise, 1 + noise).
+    pub tile_noise: f64,
+    /// Crashes per machine per hour of farm time (Poisson).
+    pub crashes_per_worker_hour: f64,
+    /// Hangs per machine per hour of farm time (Poisson).
+    pub hangs_per_worker_hour: f64,
+    /// A hang lasts a time uniform in [min, max): around the heartbeat timeout, some
+    /// workers come back in time and some are dropped.
+    pub hang_min_ms: u64,
+    pub hang_max_ms: u64,
+    /// New machines per minute (Poisson), while jobs remain.
+    pub joins_per_minute: f64,
+    /// One-way network latency: base plus a jitter uniform in [0, jitter).
+    pub latency_ms: f64,
+    pub latency_jitter_ms: f64,
+    /// The worker's heartbeat period (its own constant: 1 s).
+    pub heartbeat_ms: u64,
+    /// The daemon's tick period (its own constant: 100 ms).
+    pub tick_ms: u64,
+    /// The worker's first reconnection delay (its own constant: 100 ms), scaled by a
+    /// random factor in [0.5, 1).
+    pub reconnect_ms: u64,
+    /// The scheduler's policy, as the daemon would set it.
+    pub policy: Policy,
+    /// The run stops here even if jobs remain (reported as timed out).
+    pub max_virtual_ms: u64,
+}
+
+impl Default for SimConfig {
+    /// A thousand mixed machines rendering twenty 4K frames, with a few crashes, hangs
+    /// and arrivals: a busy farm on an ordinary day.
+    fn default() -> Self {
+        SimConfig {
+            seed: 1,
+            workers: 1000,
+            classes: vec![
+                MachineClass {
+                    share: 0.25,
+                    threads: 4,
+                    speed: 0.7,
+                },
+                MachineClass {
+                    share: 0.5,
+                    threads: 8,
+                    speed: 1.0,
+                },
+                MachineClass {
+                    share: 0.2,
+                    threads: 16,
+                    speed: 1.2,
+                },
+                MachineClass {
+                    share: 0.05,
+                    threads: 32,
+                    speed: 1.5,
+                },
+            ],
+            speed_spread: 0.2,
+            jobs: 20,
+            job_interval_ms: 0,
+            width: 3840,
+            height: 2160,
+            tile_size: 32,
+            tile_ms: 2_000.0,
+            hotspots: 3,
+            hotspot_factor: 8.0,
+            tile_noise: 0.3,
+            crashes_per_worker_hour: 1.0,
+            hangs_per_worker_hour: 1.0,
+            hang_min_ms: 1_000,
+            hang_max_ms: 20_000,
+            joins_per_minute: 10.0,
+            latency_ms: 0.5,
+            latency_jitter_ms: 0.5,
+            heartbeat_ms: 1_000,
+            tick_ms: 100,
+            reconnect_ms: 100,
+            policy: Policy::default(),
+            max_virtual_ms: 24 * 3_600_000,
+        }
+    }
+}
+
+impl SimConfig {
+    /// A farm of identical single-threaded machines that never fail: the setting in
+    /// which the makespan should come close to the ideal.
+    pub fn uniform(workers: usize) -> Self {
+        SimConfig {
+            workers,
+            classes: vec![MachineClass {
+                share: 1.0,
+                threads: 1,
+                speed: 1.0,
+            }],
+            speed_spread: 0.0,
+            hotspots: 0,
+            tile_noise: 0.0,
+            ..SimConfig::default()
+        }
+        .without_failures()
+    }
+
+    /// The same farm where nothing fails and nobody joins.
+    pub fn without_failures(self) -> Self {
+        SimConfig {
+            crashes_per_worker_hour: 0.0,
+            hangs_per_worker_hour: 0.0,
+            joins_per_minute: 0.0,
+            ..self
+        }
+    }
+
+    pub fn tiles_per_job(&self) -> u32 {
+        self.width.div_ceil(self.tile_size.max(1)) * self.height.div_ceil(self.tile_size.max(1))
+    }
+
+    /// Whether the run can make sense, with the reason if not.
+    pub fn validate(&self) -> Result<(), String> {
+        let rate = |r: f64| r.is_finite() && r >= 0.0;
+        if self.jobs == 0 {
+            return Err("jobs: at least one".into());
+        }
+        if self.width == 0 || self.height == 0 || self.tile_size == 0 {
+            return Err("width, height and tile_size must be positive".into());
+        }
+        if self.workers == 0 && self.joins_per_minute <= 0.0 {
+            return Err("no worker: give workers or a join rate".into());
+        }
+        if self.classes.is_empty()
+            || self.classes.iter().any(|c| {
+                c.threads == 0 || !(c.speed.is_finite() && c.speed > 0.0) || !rate(c.share)
+            })
+            || self.classes.iter().map(|c| c.share).sum::<f64>() <= 0.0
+        {
+            return Err(
+                "classes: at least one, each with threads, a positive speed and a share".into(),
+            );
+        }
+        if !(0.0..1.0).contains(&self.speed_spread) || !(0.0..1.0).contains(&self.tile_noise) {
+            return Err("speed_spread and tile_noise must be in [0, 1)".into());
+        }
+        let tile_ok = self.tile_ms.is_finite() && self.tile_ms > 0.0;
+        let hotspot_ok = self.hotspot_factor.is_finite() && self.hotspot_factor >= 1.0;
+        if !(tile_ok && hotspot_ok) {
+            return Err("tile_ms must be positive and hotspot_factor at least 1".into());
+        }
+        if ![
+            self.crashes_per_worker_hour,
+            self.hangs_per_worker_hour,
+            self.joins_per_minute,
+            self.latency_ms,
+            self.latency_jitter_ms,
+        ]
+        .into_iter()
+        .all(rate)
+        {
+            return Err("rates and latencies must be finite and not negative".into());
+        }
+        if self.hang_min_ms > self.hang_max_ms
+            || self.heartbeat_ms == 0
+            || self.tick_ms == 0
+            || self.reconnect_ms == 0
+        {
+            return Err("hang_min_ms <= hang_max_ms, and positive periods".into());
+        }
+        Ok(())
+    }
+}
+
+/// The runs of the scaling table in `docs/simulation.md`: 100, 1,000 and 5,000 mixed
+/// machines on one and on twenty 4K frames, without and with failures (the defaults:
+/// a crash and a hang per machine-hour, ten arrivals a minute); then the largest farm
+/// without speculation, and one 8192 × 8192 frame cut into 32- and 16-pixel tiles on
+/// 1,000 identical single-threaded machines.
+pub fn scaling_runs() -> Vec<(String, SimConfig)> {
+    let mut runs = Vec::new();
+    for workers in [100, 1_000, 5_000] {
+        for jobs in [1, 20] {
+            for failures in [false, true] {
+                let config = SimConfig {
+                    workers,
+                    jobs,
+                    ..SimConfig::default()
+                };
+                let (config, trouble) = if failures {
+                    (config, ", failures")
+                } else {
+                    (config.without_failures(), "")
+                };
+                runs.push((format!("{workers} w, {jobs} × 4K{trouble}"), config));
+            }
+        }
+    }
+    let mut config = SimConfig {
+        workers: 5_000,
+        jobs: 20,
+        ..SimConfig::default()
+    };
+    config.policy.speculate = false;
+    runs.push(("5000 w, 20 × 4K, failures, no speculation".into(), config));
+    // The same frame and the same work cut finer, on identical machines: what changes
+    // is only the number of tiles the scheduler tracks.
+    for tile_size in [32, 16] {
+        let config = SimConfig {
+            jobs: 1,
+            width: 8192,
+            height: 8192,
+            tile_size,
+            tile_ms: 2_000.0 * f64::from(tile_size * tile_size) / (32.0 * 32.0),
+            ..SimConfig::uniform(1_000)
+        };
+        runs.push((
+            format!("1000 × 1 thread, 1 × 8192², {tile_size}-px tiles"),
+            config,
+        ));
+    }
+    runs
+}
+
+/// Runs the simulation. Panics if the configuration does not [validate](SimConfig::validate).
+///
+/// The memory figures need [`CountingAlloc`] as the program's global allocator; without
+/// it the report's `memory` is `None`.
+pub fn run(config: &SimConfig) -> SimReport {
+    if let Err(e) = config.validate() {
+        panic!("invalid simulation: {e}");
+    }
+    let started = Instant::now();
+    let mut sim = Sim::new(config);
+    let memory = counting().then(|| sim.probe_memory());
+    sim.run();
+    sim.into_report(memory, started.elapsed())
+}
+
+// ---------------------------------------------------------------------------------------
+// Virtual time and events.
+
+/// Virtual microseconds since the start of the run.
+type Micros = u64;
+
+const MS: Micros = 1_000;
+
+/// Random streams, one per purpose.
+const STREAM_MACHINES: u64 = 1;
+const STREAM_TILES: u64 = 2;
+const STREAM_FAILURES: u64 = 3;
+const STREAM_NETWORK: u64 = 4;
+const STREAM_JOINS: u64 = 5;
+
+/// Worker to coordinator.
+#[derive(Clone, Copy, Debug)]
+enum Up {
+    Hello,
+    Heartbeat,
+    TileDone {
+        job: JobId,
+        tile: u32,
+        /// When the coordinator sent it and when its render began.
+        sent: Micros,
+        started: Micros,
+    },
+    /// The connection closed (the process died).
+    Closed,
+}
+
+/// Coordinator to worker.
+#[derive(Clone, Copy, Debug)]
+enum Down {
+    /// The handshake's `Accepted`.
+    Welcome,
+    Render {
+        job: JobId,
+        tile: u32,
+        sent: Micros,
+    },
+    Cancel {
+        job: JobId,
+    },
+    /// The coordinator closed the connection.
+    Close,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Ev {
+    Tick,
+    /// A client's submission reaches the coordinator.
+    Submit {
+        job: JobId,
+    },
+    /// A machine starts (at the beginning or joining later).
+    Boot {
+        machine: usize,
+    },
+    Reconnect {
+        machine: usize,
+    },
+    NextJoin,
+    /// A message reaches the coordinator.
+    Arrival {
+        conn: usize,
+        msg: Up,
+    },
+    /// A message reaches a worker.
+    Delivery {
+        conn: usize,
+        msg: Down,
+    },
+    /// After a `DropWorker`, the connection's task reports `WorkerLeft`.
+    ConnectionTaskLeft {
+        conn: usize,
+    },
+    RenderDone {
+        machine: usize,
+        epoch: u32,
+        render: u64,
+    },
+    HeartbeatTimer {
+        machine: usize,
+        epoch: u32,
+        conn: usize,
+    },
+    Crash {
+        machine: usize,
+        epoch: u32,
+    },
+    Hang {
+        machine: usize,
+        epoch: u32,
+    },
+    Thaw {
+        machine: usize,
+    },
+}
+
+struct Scheduled {
+    at: Micros,
+    seq: u64,
+    ev: Ev,
+}
+
+impl PartialEq for Scheduled {
+    fn eq(&self, other: &Self) -> bool {
+        (self.at, self.seq) == (other.at, other.seq)
+    }
+}
+impl Eq for Scheduled {}
+impl PartialOrd for Scheduled {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Scheduled {
+    /// Earliest first, and in scheduling order at equal times: a min-heap on (at, seq).
+    fn cmp(&self, other: &Self) -> Ordering {
+        (other.at, other.seq).cmp(&(self.at, self.seq))
+    }
+}
+
+#[derive(Default)]
+struct Agenda {
+    heap: BinaryHeap<Scheduled>,
+    seq: u64,
+}
+
+impl Agenda {
+    fn push(&mut self, at: Micros, ev: Ev) {
+        self.seq += 1;
+        self.heap.push(Scheduled {
+            at,
+            seq: self.seq,
+            ev,
+        });
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The simulated farm.
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Life {
+    /// Not started yet.
+    Off,
+    Running,
+    Frozen,
+    Dead,
+}
+
+struct Task {
+    conn: usize,
+    job: JobId,
+    tile: u32,
+    sent: Micros,
+}
+
+struct Render {
+    id: u64,
+    conn: usize,
+    job: JobId,
+    tile: u32,
+    /// Reference-thread microseconds of the tile.
+    cost: Micros,
+    sent: Micros,
+    started: Micros,
+    end: Micros,
+    /// While frozen: what was left to render.
+    remaining: Micros,
+}
+
+struct Machine {
+    threads: u32,
+    speed: f64,
+    life: Life,
+    /// Bumped on every freeze, thaw and crash: events of an older epoch are void.
+    epoch: u32,
+    conn: Option<usize>,
+    queue: VecDeque<Task>,
+    running: Vec<Render>,
+    /// Messages that arrived while the process was stopped.
+    inbox: Vec<(usize, Down)>,
+    reconnect_on_thaw: bool,
+}
+
+impl Machine {
+    fn capacity(&self) -> f64 {
+        f64::from(self.threads) * self.speed
+    }
+}
+
+/// One connection (one worker session), seen from both ends.
+#[derive(Default)]
+struct Conn {
+    machine: usize,
+    /// The scheduler's id, once the coordinator has the hello.
+    worker: Option<WorkerId>,
+    /// The coordinator no longer reads it.
+    coordinator_closed: bool,
+    left_reported: bool,
+    /// The worker side ended this session.
+    worker_closed: bool,
+    welcomed: bool,
+    cancelled: BTreeSet<JobId>,
+    /// Arrival time of the last message each way, to keep them in order.
+    up_last: Micros,
+    down_last: Micros,
+}
+
+struct SimJob {
+    /// Reference-thread microseconds per tile.
+    costs: Vec<Micros>,
+    sent: Micros,
+    accepted: Vec<u8>,
+    assigned: Vec<u16>,
+    /// When each tile was last sent out.
+    last_sent: Vec<Micros>,
+    ended: Option<Micros>,
+}
+
+// ---------------------------------------------------------------------------------------
+// The scheduler, metered.
+
+const EVENT_KINDS: [&str; 9] = [
+    "Tick",
+    "WorkerJoined",
+    "Heartbeat",
+    "WorkerLeft",
+    "WorkerDraining",
+    "JobSubmitted",
+    "TileDone",
+    "TileFailed",
+    "CancelJob",
+];
+
+fn kind_of(event: &Event) -> usize {
+    match event {
+        Event::Tick { .. } => 0,
+        Event::WorkerJoined { .. } => 1,
+        Event::Heartbeat { .. } => 2,
+        Event::WorkerLeft { .. } => 3,
+        Event::WorkerDraining { .. } => 4,
+        Event::JobSubmitted { .. } => 5,
+        Event::TileDone { .. } => 6,
+        Event::TileFailed { .. } => 7,
+        Event::CancelJob { .. } => 8,
+    }
+}
+
+/// Heap bytes of the actions returned: the caller's, not the scheduler's.
+fn heap_of(actions: &Vec<Action>) -> i64 {
+    let strings: usize = actions
+        .iter()
+        .map(|a| match a {
+            Action::JobFailed { message, .. } => message.capacity(),
+            _ => 0,
+        })
+        .sum();
+    (actions.capacity() * std::mem::size_of::<Action>() + strings) as i64
+}
+
+#[derive(Clone, Copy, Default)]
+struct Cost {
+    count: u64,
+    total: Duration,
+    max: Duration,
+}
+
+/// The real scheduler, with the time spent in and the heap held by it.
+struct Metered {
+    scheduler: Scheduler,
+    bytes: i64,
+    peak: i64,
+    costs: [Cost; 9],
+}
+
+impl Metered {
+    fn handle(&mut self, event: Event) -> Vec<Action> {
+        let kind = kind_of(&event);
+        let before = live_bytes();
+        let start = Instant::now();
+        let actions = self.scheduler.handle(event);
+        let took = start.elapsed();
+        self.bytes += live_bytes() - before - heap_of(&actions);
+        self.peak = self.peak.max(self.bytes);
+        let cost = &mut self.costs[kind];
+        cost.count += 1;
+        cost.total += took;
+        cost.max = cost.max.max(took);
+        actions
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The leases, as the daemon could work them out from what it sent and received.
+//
+// The scheduler does not report a lease running out (the tile just goes back to the
+// queue), so the simulation keeps its own account with the scheduler's documented rule,
+// and checks it against every assignment and result: a tile given again while held must
+// be a straggler copy (one live holder) or a requeue (every lease ran out), and a result
+// is accepted exactly when its sender holds a lease. Any disagreement is counted in
+// `Outcome::model_mismatches`.
+
+struct ModelLease {
+    worker: WorkerId,
+    started: Millis,
+    deadline: Millis,
+    expired: bool,
+}
+
+enum AssignKind {
+    First,
+    AfterLoss,
+    AfterExpiry,
+    Speculative,
+    Unexplained,
+}
+
+#[derive(Default)]
+struct LeaseModel {
+    policy: Policy,
+    now: Millis,
+    leases: BTreeMap<(JobId, u32), Vec<ModelLease>>,
+    by_worker: BTreeMap<WorkerId, BTreeSet<(JobId, u32)>>,
+    deadlines: BinaryHeap<Reverse<(Millis, JobId, u32, WorkerId)>>,
+    /// Per job: accepted results measured, their total time and the slowest.
+    measured: BTreeMap<JobId, (u32, Millis, Millis)>,
+}
+
+impl LeaseModel {
+    fn lease_length(&self, job: JobId) -> Millis {
+        match self.measured.get(&job) {
+            None | Some((0, _, _)) => self.policy.initial_lease,
+            Some(&(n, total, slowest)) => (slowest * self.policy.lease_factor)
+                .max(total / u64::from(n) * 4)
+                .max(self.policy.min_lease),
+        }
+    }
+
+    /// Marks the leases that ran out by `now`; returns how many.
+    fn expire(&mut self, now: Millis) -> u64 {
+        self.now = self.now.max(now);
+        let mut expired = 0;
+        while let Some(&Reverse((deadline, job, tile, worker))) = self.deadlines.peek() {
+            if deadline > self.now {
+                break;
+            }
+            self.deadlines.pop();
+            if let Some(lease) = self.leases.get_mut(&(job, tile)).and_then(|ls| {
+                ls.iter_mut()
+                    .find(|l| l.worker == worker && l.deadline == deadline && !l.expired)
+            }) {
+                lease.expired = true;
+                expired += 1;
+            }
+        }
+        expired
+    }
+
+    fn assign(&mut self, worker: WorkerId, job: JobId, tile: u32, before: bool) -> AssignKind {
+        let deadline = self.now + self.lease_length(job);
+        let leases = self.leases.entry((job, tile)).or_default();
+        let kind = if leases.is_empty() {
+            if before {
+                AssignKind::AfterLoss
+            } else {
+                AssignKind::First
+            }
+        } else if leases.iter().any(|l| l.worker == worker) {
+            AssignKind::Unexplained
+        } else if leases.iter().all(|l| l.expired) {
+            AssignKind::AfterExpiry
+        } else if leases.iter().filter(|l| !l.expired).count() == 1 {
+            AssignKind::Speculative
+        } else {
+            AssignKind::Unexplained
+        };
+        leases.push(ModelLease {
+            worker,
+            started: self.now,
+            deadline,
+            expired: false,
+        });
+        self.by_worker
+            .entry(worker)
+            .or_default()
+            .insert((job, tile));
+        self.deadlines.push(Reverse((deadline, job, tile, worker)));
+        kind
+    }
+
+    fn holds(&self, worker: WorkerId, job: JobId, tile: u32) -> bool {
+        self.leases
+            .get(&(job, tile))
+            .is_some_and(|ls| ls.iter().any(|l| l.worker == worker))
+    }
+
+    /// The first result: measured, and every lease on the tile ends (the other holders'
+    /// copies are late copies now).
+    fn accepted(&mut self, worker: WorkerId, job: JobId, tile: u32) {
+        let Some(leases) = self.leases.remove(&(job, tile)) else {
+            return;
+        };
+        for lease in &leases {
+            if let Some(held) = self.by_worker.get_mut(&lease.worker) {
+                held.remove(&(job, tile));
+            }
+            if lease.worker == worker {
+                let took = self.now.saturating_sub(lease.started);
+                let m = self.measured.entry(job).or_default();
+                m.0 += 1;
+                m.1 += took;
+                m.2 = m.2.max(took);
+            }
+        }
+    }
+
+    fn remove_worker(&mut self, worker: WorkerId) {
+        for key in self.by_worker.remove(&worker).unwrap_or_default() {
+            if let Some(leases) = self.leases.get_mut(&key) {
+                leases.retain(|l| l.worker != worker);
+                if leases.is_empty() {
+                    self.leases.remove(&key);
+                }
+            }
+        }
+    }
+
+    fn end_job(&mut self, job: JobId) {
+        let keys: Vec<(JobId, u32)> = self
+            .leases
+            .range((job, 0)..=(job, u32::MAX))
+            .map(|(k, _)| *k)
+            .collect();
+        for key in keys {
+            for lease in self.leases.remove(&key).unwrap_or_default() {
+                if let Some(held) = self.by_worker.get_mut(&lease.worker) {
+                    held.remove(&key);
+                }
+            }
+        }
+        self.measured.remove(&job);
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The engine.
+
+struct Sim<'a> {
+    cfg: &'a SimConfig,
+    now: Micros,
+    agenda: Agenda,
+    machines: Vec<Machine>,
+    conns: Vec<Conn>,
+    jobs: Vec<SimJob>,
+    sched: Metered,
+    /// The daemon's table of connected workers.
+    worker_conn: BTreeMap<WorkerId, usize>,
+    next_worker: WorkerId,
+    model: LeaseModel,
+    machines_rng: Rng,
+    failures_rng: Rng,
+    network_rng: Rng,
+    joins_rng: Rng,
+    /// (time, change) of the farm's rendering capacity, in reference threads.
+    capacity: Vec<(Micros, f64)>,
+    next_render: u64,
+    jobs_open: usize,
+    out: Outcome,
+}
+
+impl<'a> Sim<'a> {
+    fn new(cfg: &'a SimConfig) -> Sim<'a> {
+        let mut tiles_rng = Rng::new(cfg.seed, STREAM_TILES);
+        let jobs = (0..cfg.jobs)
+            .map(|j| {
+                let costs = tile_costs(cfg, &mut tiles_rng);
+                SimJob {
+                    accepted: vec![0; costs.len()],
+                    assigned: vec![0; costs.len()],
+                    last_sent: vec![0; costs.len()],
+                    costs,
+                    sent: j as Micros * cfg.job_interval_ms * MS,
+                    ended: None,
+                }
+            })
+            .collect();
+        let mut sim = Sim {
+            cfg,
+            now: 0,
+            agenda: Agenda::default(),
+            machines: Vec::new(),
+            conns: Vec::new(),
+            jobs,
+            sched: Metered {
+                scheduler: Scheduler::with_policy(cfg.policy),
+                bytes: 0,
+                peak: 0,
+                costs: [Cost::default(); 9],
+            },
+            worker_conn: BTreeMap::new(),
+            next_worker: 1,
+            model: LeaseModel {
+                policy: cfg.policy,
+                ..LeaseModel::default()
+            },
+            machines_rng: Rng::new(cfg.seed, STREAM_MACHINES),
+            failures_rng: Rng::new(cfg.seed, STREAM_FAILURES),
+            network_rng: Rng::new(cfg.seed, STREAM_NETWORK),
+            joins_rng: Rng::new(cfg.seed, STREAM_JOINS),
+            capacity: Vec::new(),
+            next_render: 0,
+            jobs_open: cfg.jobs,
+            out: Outcome {
+                workers_initial: cfg.workers,
+                jobs: cfg.jobs,
+                ..Outcome::default()
+            },
+        };
+        for _ in 0..cfg.workers {
+            let m = sim.new_machine();
+            sim.agenda.push(0, Ev::Boot { machine: m });
+        }
+        for j in 0..cfg.jobs {
+            let at = sim.jobs[j].sent + sim.latency();
+            sim.agenda.push(
+                at,
+                Ev::Submit {
+                    job: j as JobId + 1,
+                },
+            );
+        }
+        if cfg.joins_per_minute > 0.0 {
+            let gap = sim.join_gap();
+            sim.agenda.push(gap, Ev::NextJoin);
+        }
+        sim.agenda.push(0, Ev::Tick);
+        sim
+    }
+
+    fn new_machine(&mut self) -> usize {
+        let total: f64 = self.cfg.classes.iter().map(|c| c.share).sum();
+        let mut pick = self.machines_rng.unit() * total;
+        let class = self
+            .cfg
+            .classes
+            .iter()
+            .find(|c| {
+                pick -= c.share;
+                pick < 0.0
+            })
+            .unwrap_or(&self.cfg.classes[self.cfg.classes.len() - 1]);
+        let spread = self.cfg.speed_spread;
+        let speed = class.speed * self.machines_rng.range(1.0 - spread, 1.0 + spread);
+        self.machines.push(Machine {
+            threads: class.threads,
+            speed,
+            life: Life::Off,
+            epoch: 0,
+            conn: None,
+            queue: VecDeque::new(),
+            running: Vec::new(),
+            inbox: Vec::new(),
+            reconnect_on_thaw: false,
+        });
+        self.machines.len() - 1
+    }
+
+    fn latency(&mut self) -> Micros {
+        let ms = self.cfg.latency_ms + self.cfg.latency_jitter_ms * self.network_rng.unit();
+        (ms * MS as f64).round() as Micros
+    }
+
+    fn join_gap(&mut self) -> Micros {
+        let mean = 60_000.0 * MS as f64 / self.cfg.joins_per_minute;
+        (self.joins_rng.exponential(mean).round() as Micros).max(1)
+    }
+
+    fn send_up(&mut self, conn: usize, msg: Up) {
+        let at = (self.now + self.latency()).max(self.conns[conn].up_last);
+        self.conns[conn].up_last = at;
+        self.agenda.push(at, Ev::Arrival { conn, msg });
+    }
+
+    fn send_down(&mut self, conn: usize, msg: Down) {
+        let at = (self.now + self.latency()).max(self.conns[conn].down_last);
+        self.conns[conn].down_last = at;
+        self.agenda.push(at, Ev::Delivery { conn, msg });
+    }
+
+    fn run(&mut self) {
+        let limit = self.cfg.max_virtual_ms * MS;
+        while let Some(Scheduled { at, ev, .. }) = self.agenda.heap.pop() {
+            if at > limit {
+                self.out.timed_out = true;
+                self.now = limit;
+                break;
+            }
+            self.now = at;
+            self.dispatch(ev);
+            if self.jobs_open == 0 {
+                break;
+            }
+        }
+    }
+
+    fn dispatch(&mut self, ev: Ev) {
+        match ev {
+            Ev::Tick => {
+                let now = self.now / MS;
+                // The scheduler drops silent workers before it looks at leases; the model
+                // expires leases once those drops are applied (see `apply`).
+                self.model.now = self.model.now.max(now);
+                let actions = self.sched.handle(Event::Tick { now });
+                self.apply(actions, Some(now));
+                self.agenda.push(self.now + self.cfg.tick_ms * MS, Ev::Tick);
+            }
+            Ev::Submit { job } => {
+                let tiles = self.jobs[job as usize - 1].costs.len() as u32;
+                let actions = self.sched.handle(Event::JobSubmitted {
+                    job,
+                    priority: 0,
+                    scene: scene_of(job),
+                    tiles,
+                });
+                self.apply(actions, None);
+            }
+            Ev::Boot { machine } => {
+                let m = &mut self.machines[machine];
+                m.life = Life::Running;
+                let capacity = m.capacity();
+                self.capacity.push((self.now, capacity));
+                self.arm_failures(machine);
+                self.connect(machine);
+            }
+            Ev::Reconnect { machine } => match self.machines[machine].life {
+                Life::Running => self.connect(machine),
+                Life::Frozen => self.machines[machine].reconnect_on_thaw = true,
+                Life::Off | Life::Dead => {}
+            },
+            Ev::NextJoin => {
+                let machine = self.new_machine();
+                self.out.workers_joined += 1;
+                self.agenda.push(self.now, Ev::Boot { machine });
+                let gap = self.join_gap();
+                self.agenda.push(self.now + gap, Ev::NextJoin);
+            }
+            Ev::Arrival { conn, msg } => self.at_coordinator(conn, msg),
+            Ev::Delivery { conn, msg } => {
+                let machine = self.conns[conn].machine;
+                match self.machines[machine].life {
+                    Life::Running => self.at_worker(conn, msg),
+                    Life::Frozen => self.machines[machine].inbox.push((conn, msg)),
+                    Life::Off | Life::Dead => {}
+                }
+            }
+            Ev::ConnectionTaskLeft { conn } => self.worker_left(conn),
+            Ev::RenderDone {
+                machine,
+                epoch,
+                render,
+            } => self.render_done(machine, epoch, render),
+            Ev::HeartbeatTimer {
+                machine,
+                epoch,
+                conn,
+            } => {
+                let m = &self.machines[machine];
+                if m.life == Life::Running
+                    && m.epoch == epoch
+                    && m.conn == Some(conn)
+                    && !self.conns[conn].worker_closed
+                {
+                    self.send_up(conn, Up::Heartbeat);
+                    self.agenda.push(
+                        self.now + self.cfg.heartbeat_ms * MS,
+                        Ev::HeartbeatTimer {
+                            machine,
+                            epoch,
+                            conn,
+                        },
+                    );
+                }
+            }
+            Ev::Crash { machine, epoch } => self.crash(machine, epoch),
+            Ev::Hang { machine, epoch } => self.hang(machine, epoch),
+            Ev::Thaw { machine } => self.thaw(machine),
+        }
+    }
+
+    // --- the coordinator's side ------------------------------------------------------
+
+    fn at_coordinator(&mut self, conn: usize, msg: Up) {
+        if self.conns[conn].coordinator_closed {
+            if let Up::TileDone { .. } = msg {
+                self.out.results_unread += 1;
+            }
+            return;
+        }
+        match msg {
+            Up::Hello => {
+                let worker = self.next_worker;
+                self.next_worker += 1;
+                self.conns[conn].worker = Some(worker);
+                self.worker_conn.insert(worker, conn);
+                // `Accepted` goes out before anything the scheduler sends.
+                self.send_down(conn, Down::Welcome);
+                let threads = self.machines[self.conns[conn].machine].threads;
+                let actions = self.sched.handle(Event::WorkerJoined { worker, threads });
+                self.apply(actions, None);
+            }
+            Up::Heartbeat => {
+                let worker = self.conns[conn].worker.expect("hello first");
+                let actions = self.sched.handle(Event::Heartbeat { worker });
+                self.apply(actions, None);
+            }
+            Up::TileDone {
+                job,
+                tile,
+                sent,
+                started,
+            } => {
+                let worker = self.conns[conn].worker.expect("hello first");
+                let held = self.model.holds(worker, job, tile);
+                let actions = self.sched.handle(Event::TileDone { worker, job, tile });
+                let accepted = actions.contains(&Action::AcceptTile { job, tile });
+                let duplicate = actions.contains(&Action::DuplicateResult { job, tile });
+                if held != accepted {
+                    self.out.model_mismatches += 1;
+                }
+                if accepted {
+                    self.model.accepted(worker, job, tile);
+                    let j = &self.jobs[job as usize - 1];
+                    self.out.last_tile = Some(LastTile {
+                        job,
+                        tile,
+                        cost_ms: j.costs[tile as usize] as f64 / MS as f64,
+                        assignments: u32::from(j.assigned[tile as usize]),
+                        last_assigned_ms: j.last_sent[tile as usize] as f64 / MS as f64,
+                        thread_speed: self.machines[self.conns[conn].machine].speed,
+                        assigned_ms: sent as f64 / MS as f64,
+                        started_ms: started as f64 / MS as f64,
+                        accepted_ms: self.now as f64 / MS as f64,
+                    });
+                } else if !duplicate {
+                    self.out.stray_results += 1;
+                }
+                self.apply(actions, None);
+            }
+            Up::Closed => {
+                self.conns[conn].coordinator_closed = true;
+                self.worker_left(conn);
+            }
+        }
+    }
+
+    /// The daemon's end of a connection: `WorkerLeft`, once.
+    fn worker_left(&mut self, conn: usize) {
+        if std::mem::replace(&mut self.conns[conn].left_reported, true) {
+            return;
+        }
+        let Some(worker) = self.conns[conn].worker else {
+            return;
+        };
+        self.worker_conn.remove(&worker);
+        self.model.remove_worker(worker);
+        let actions = self.sched.handle(Event::WorkerLeft { worker });
+        self.apply(actions, None);
+    }
+
+    /// Carries out the scheduler's actions as the daemon does. `tick`: the clock of a
+    /// `Tick` whose lease expiries the model still has to apply (before its first
+    /// assignment, after its drops).
+    fn apply(&mut self, actions: Vec<Action>, mut tick: Option<Millis>) {
+        for action in actions {
+            match action {
+                Action::SendScene { .. } => self.out.scenes_sent += 1,
+                Action::Assign { worker, job, tile } => {
+                    if let Some(now) = tick.take() {
+                        self.out.leases_expired += self.model.expire(now);
+                    }
+                    self.out.assignments += 1;
+                    let j = &mut self.jobs[job as usize - 1];
+                    let before = j.assigned[tile as usize] > 0;
+                    j.assigned[tile as usize] = j.assigned[tile as usize].saturating_add(1);
+                    j.last_sent[tile as usize] = self.now;
+                    match self.model.assign(worker, job, tile, before) {
+                        AssignKind::First => {}
+                        AssignKind::AfterLoss => self.out.reassigned_after_loss += 1,
+                        AssignKind::AfterExpiry => self.out.reassigned_after_expiry += 1,
+                        AssignKind::Speculative => self.out.speculative_copies += 1,
+                        AssignKind::Unexplained => self.out.model_mismatches += 1,
+                    }
+                    match self.worker_conn.get(&worker) {
+                        Some(&conn) => {
+                            let sent = self.now;
+                            self.send_down(conn, Down::Render { job, tile, sent });
+                        }
+                        None => self.out.model_mismatches += 1,
+                    }
+                }
+                Action::AcceptTile { job, tile } => {
+                    let count = &mut self.jobs[job as usize - 1].accepted[tile as usize];
+                    *count = count.saturating_add(1);
+                    if *count > 1 {
+                        self.out.tiles_accepted_twice += 1;
+                    }
+                    self.out.tiles_accepted += 1;
+                }
+                Action::DuplicateResult { .. } => self.out.duplicate_results += 1,
+                Action::CancelOnWorker { worker, job } => {
+                    if let Some(&conn) = self.worker_conn.get(&worker) {
+                        self.send_down(conn, Down::Cancel { job });
+                    }
+                }
+                Action::ForgetScene { .. } => self.out.scenes_forgotten += 1,
+                Action::DropWorker { worker } => {
+                    self.out.drops += 1;
+                    self.model.remove_worker(worker);
+                    if let Some(conn) = self.worker_conn.remove(&worker) {
+                        self.conns[conn].coordinator_closed = true;
+                        self.agenda.push(self.now, Ev::ConnectionTaskLeft { conn });
+                        self.send_down(conn, Down::Close);
+                    }
+                }
+                Action::JobDone { job } => self.job_ended(job, true),
+                Action::JobFailed { job, message } => {
+                    self.job_ended(job, false);
+                    self.out.job_failures.push((job, message));
+                }
+            }
+        }
+        if let Some(now) = tick {
+            self.out.leases_expired += self.model.expire(now);
+        }
+    }
+
+    fn job_ended(&mut self, job: JobId, done: bool) {
+        let j = &mut self.jobs[job as usize - 1];
+        if j.ended.is_some() {
+            self.out.model_mismatches += 1;
+            return;
+        }
+        j.ended = Some(self.now);
+        self.jobs_open -= 1;
+        if done {
+            self.out.jobs_done += 1;
+            self.out.tiles_missing += j.accepted.iter().filter(|&&c| c == 0).count() as u64;
+        } else {
+            self.out.jobs_failed += 1;
+        }
+        self.model.end_job(job);
+    }
+
+    // --- the workers' side -----------------------------------------------------------
+
+    fn connect(&mut self, machine: usize) {
+        self.conns.push(Conn {
+            machine,
+            ..Conn::default()
+        });
+        let conn = self.conns.len() - 1;
+        self.machines[machine].conn = Some(conn);
+        self.send_up(conn, Up::Hello);
+    }
+
+    fn at_worker(&mut self, conn: usize, msg: Down) {
+        if self.conns[conn].worker_closed {
+            return;
+        }
+        let machine = self.conns[conn].machine;
+        match msg {
+            Down::Welcome => {
+                self.conns[conn].welcomed = true;
+                let epoch = self.machines[machine].epoch;
+                // The worker's interval fires at once, then every period.
+                self.agenda.push(
+                    self.now,
+                    Ev::HeartbeatTimer {
+                        machine,
+                        epoch,
+                        conn,
+                    },
+                );
+            }
+            Down::Render { job, tile, sent } => {
+                self.machines[machine].queue.push_back(Task {
+                    conn,
+                    job,
+                    tile,
+                    sent,
+                });
+                self.start_renders(machine);
+            }
+            Down::Cancel { job } => {
+                self.conns[conn].cancelled.insert(job);
+            }
+            Down::Close => {
+                // The session ends: queued tiles are never rendered, the ones being
+                // rendered finish unsent; the worker reconnects after its backoff.
+                self.conns[conn].worker_closed = true;
+                let m = &mut self.machines[machine];
+                if m.conn == Some(conn) {
+                    m.conn = None;
+                }
+                let before = m.queue.len();
+                m.queue.retain(|t| t.conn != conn);
+                self.out.tasks_skipped += (before - m.queue.len()) as u64;
+                let delay =
+                    self.cfg.reconnect_ms as f64 * MS as f64 * self.network_rng.range(0.5, 1.0);
+                self.out.reconnects += 1;
+                self.agenda.push(
+                    self.now + delay.round() as Micros,
+                    Ev::Reconnect { machine },
+                );
+            }
+        }
+    }
+
+    fn start_renders(&mut self, machine: usize) {
+        let m = &mut self.machines[machine];
+        while m.running.len() < m.threads as usize {
+            let Some(task) = m.queue.pop_front() else {
+                break;
+            };
+            let conn = &self.conns[task.conn];
+            if conn.worker_closed || conn.cancelled.contains(&task.job) {
+                self.out.tasks_skipped += 1;
+                continue;
+            }
+            let cost = self.jobs[task.job as usize - 1].costs[task.tile as usize];
+            let took = ((cost as f64 / m.speed).round() as Micros).max(1);
+            let id = self.next_render;
+            self.next_render += 1;
+            m.running.push(Render {
+                id,
+                conn: task.conn,
+                job: task.job,
+                tile: task.tile,
+                cost,
+                sent: task.sent,
+                started: self.now,
+                end: self.now + took,
+                remaining: 0,
+            });
+            self.out.renders_started += 1;
+            self.agenda.push(
+                self.now + took,
+                Ev::RenderDone {
+                    machine,
+                    epoch: m.epoch,
+                    render: id,
+                },
+            );
+        }
+    }
+
+    fn render_done(&mut self, machine: usize, epoch: u32, render: u64) {
+        let m = &mut self.machines[machine];
+        if m.epoch != epoch || m.life != Life::Running {
+            return;
+        }
+        let Some(pos) = m.running.iter().position(|r| r.id == render) else {
+            return;
+        };
+        let r = m.running.swap_remove(pos);
+        self.out.renders_completed += 1;
+        self.out.work_spent_ms += r.cost as f64 / MS as f64;
+        if m.conn == Some(r.conn) && !self.conns[r.conn].worker_closed {
+            self.send_up(
+                r.conn,
+                Up::TileDone {
+                    job: r.job,
+                    tile: r.tile,
+                    sent: r.sent,
+                    started: r.started,
+                },
+            );
+        } else {
+            self.out.renders_orphaned += 1;
+        }
+        self.start_renders(machine);
+    }
+
+    fn arm_failures(&mut self, machine: usize) {
+        let epoch = self.machines[machine].epoch;
+        let hour = 3_600_000.0 * MS as f64;
+        if self.cfg.crashes_per_worker_hour > 0.0 {
+            let after = self
+                .failures_rng
+                .exponential(hour / self.cfg.crashes_per_worker_hour);
+            self.agenda.push(
+                self.now + after.round() as Micros,
+                Ev::Crash { machine, epoch },
+            );
+        }
+        if self.cfg.hangs_per_worker_hour > 0.0 {
+            let after = self
+                .failures_rng
+                .exponential(hour / self.cfg.hangs_per_worker_hour);
+            self.agenda.push(
+                self.now + after.round() as Micros,
+                Ev::Hang { machine, epoch },
+            );
+        }
+    }
+
+    fn crash(&mut self, machine: usize, epoch: u32) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if m.epoch != epoch || m.life != Life::Running {
+            return;
+        }
+        m.life = Life::Dead;
+        m.epoch += 1;
+        self.out.crashes += 1;
+        self.capacity.push((now, -m.capacity()));
+        for r in m.running.drain(..) {
+            self.out.renders_interrupted += 1;
+            self.out.work_spent_ms += (now - r.started) as f64 * m.speed / MS as f64;
+        }
+        m.queue.clear();
+        if let Some(conn) = m.conn.take() {
+            self.send_up(conn, Up::Closed);
+        }
+    }
+
+    fn hang(&mut self, machine: usize, epoch: u32) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if m.epoch != epoch || m.life != Life::Running {
+            return;
+        }
+        m.life = Life::Frozen;
+        m.epoch += 1;
+        self.out.hangs += 1;
+        self.capacity.push((now, -m.capacity()));
+        for r in &mut m.running {
+            r.remaining = r.end - now;
+        }
+        let span = self
+            .failures_rng
+            .range(self.cfg.hang_min_ms as f64, self.cfg.hang_max_ms as f64);
+        self.agenda.push(
+            now + (span * MS as f64).round() as Micros,
+            Ev::Thaw { machine },
+        );
+    }
+
+    fn thaw(&mut self, machine: usize) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if m.life != Life::Frozen {
+            return;
+        }
+        m.life = Life::Running;
+        m.epoch += 1;
+        let epoch = m.epoch;
+        self.capacity.push((now, m.capacity()));
+        for r in &mut m.running {
+            // The pause shifts the render; its start moves with it, so that work done
+            // counts only time running.
+            r.started += now - (r.end - r.remaining);
+            r.end = now + r.remaining;
+            self.agenda.push(
+                r.end,
+                Ev::RenderDone {
+                    machine,
+                    epoch,
+                    render: r.id,
+                },
+            );
+        }
+        let inbox = std::mem::take(&mut m.inbox);
+        let reconnect = std::mem::replace(&mut m.reconnect_on_thaw, false);
+        // The heartbeat resumes at once on a session already accepted; one accepted
+        // while stopped starts its own when its `Welcome` is read below.
+        if let Some(conn) = m.conn.filter(|&c| self.conns[c].welcomed) {
+            self.agenda.push(
+                now,
+                Ev::HeartbeatTimer {
+                    machine,
+                    epoch,
+                    conn,
+                },
+            );
+        }
+        for (conn, msg) in inbox {
+            self.at_worker(conn, msg);
+        }
+        if reconnect && self.machines[machine].conn.is_none() {
+            self.connect(machine);
+        }
+        self.arm_failures(machine);
+        self.start_renders(machine);
+    }
+
+    // --- measurements ----------------------------------------------------------------
+
+    /// The scheduler's heap per job and per worker, measured on a separate scheduler as
+    /// they are added: the jobs first (queued, nothing assigned), then the run's initial
+    /// workers (each taking its credit of tiles), then the same workers alone on an
+    /// empty scheduler.
+    fn probe_memory(&self) -> Memory {
+        let cfg = self.cfg;
+        let tiles = cfg.tiles_per_job();
+        let threads: Vec<u32> = self.machines.iter().map(|m| m.threads).collect();
+        let join = |s: &mut Scheduler| {
+            for (i, &threads) in threads.iter().enumerate() {
+                drop(s.handle(Event::WorkerJoined {
+                    worker: i as WorkerId + 1,
+                    threads,
+                }));
+            }
+        };
+        let mut s = Scheduler::with_policy(cfg.policy);
+        let start = live_bytes();
+        for job in 1..=cfg.jobs as JobId {
+            drop(s.handle(Event::JobSubmitted {
+                job,
+                priority: 0,
+                scene: scene_of(job),
+                tiles,
+            }));
+        }
+        let jobs_bytes = live_bytes() - start;
+        let start = live_bytes();
+        join(&mut s);
+        let busy_bytes = live_bytes() - start;
+        let in_flight = s.tiles_in_flight();
+        drop(s);
+        let mut s = Scheduler::with_policy(cfg.policy);
+        let start = live_bytes();
+        join(&mut s);
+        let idle_bytes = live_bytes() - start;
+        drop(s);
+        let per = |bytes: i64, n: usize| bytes as f64 / n.max(1) as f64;
+        Memory {
+            per_job_queued: per(jobs_bytes, cfg.jobs),
+            per_tile_queued: per(jobs_bytes, cfg.jobs * tiles as usize),
+            per_worker_idle: per(idle_bytes, threads.len()),
+            per_worker_busy: per(busy_bytes, threads.len()),
+            per_tile_in_flight: per(busy_bytes - idle_bytes, in_flight),
+            tiles_in_flight_probed: in_flight as u64,
+            peak_bytes: 0,
+            end_bytes: 0,
+        }
+    }
+
+    /// The lower bound on the makespan (see [`Outcome::ideal_ms`]).
+    fn ideal(&self) -> (f64, f64) {
+        let start = self.jobs.iter().map(|j| j.sent).min().unwrap_or(0);
+        let work: f64 = self
+            .jobs
+            .iter()
+            .flat_map(|j| &j.costs)
+            .map(|&c| c as f64)
+            .sum();
+        let mut changes = self.capacity.clone();
+        changes.sort_by_key(|c| c.0);
+        let mut capacity = 0.0;
+        let mut i = 0;
+        while i < changes.len() && changes[i].0 <= start {
+            capacity += changes[i].1;
+            i += 1;
+        }
+        let (mut t, mut done) = (start as f64, 0.0);
+        let mut work_bound = f64::INFINITY;
+        loop {
+            let next = changes.get(i).map_or(f64::INFINITY, |c| c.0 as f64);
+            if capacity > 1e-9 && done + capacity * (next - t) >= work {
+                work_bound = t + (work - done) / capacity;
+                break;
+            }
+            if next.is_infinite() {
+                break;
+            }
+            done += capacity.max(0.0) * (next - t);
+            t = next;
+            capacity += changes[i].1;
+            i += 1;
+        }
+        let fastest = self
+            .machines
+            .iter()
+            .filter(|m| m.life != Life::Off)
+            .map(|m| m.speed)
+            .fold(0.0, f64::max);
+        let round_trip = 2.0 * self.cfg.latency_ms * MS as f64;
+        let tile_bound = self
+            .jobs
+            .iter()
+            .map(|j| {
+                let longest = j.costs.iter().copied().max().unwrap_or(0) as f64;
+                j.sent as f64 + round_trip + longest / fastest
+            })
+            .fold(0.0, f64::max);
+        let ms = |t: f64| (t - start as f64) / MS as f64;
+        (ms(work_bound), ms(tile_bound))
+    }
+
+    fn into_report(mut self, memory: Option<Memory>, wall: Duration) -> SimReport {
+        let start = self.jobs.iter().map(|j| j.sent).min().unwrap_or(0);
+        let end = if self.out.timed_out {
+            self.now
+        } else {
+            self.jobs
+                .iter()
+                .filter_map(|j| j.ended)
+                .max()
+                .unwrap_or(self.now)
+        };
+        let (work_bound, tile_bound) = self.ideal();
+        let out = &mut self.out;
+        out.threads_initial = self
+            .machines
+            .iter()
+            .take(self.cfg.workers)
+            .map(|m| u64::from(m.threads))
+            .sum();
+        out.tiles = self.jobs.iter().map(|j| j.costs.len() as u64).sum();
+        out.work_ms = self
+            .jobs
+            .iter()
+            .flat_map(|j| &j.costs)
+            .map(|&c| c as f64 / MS as f64)
+            .sum();
+        out.makespan_ms = (end - start) as f64 / MS as f64;
+        out.ideal_work_ms = work_bound;
+        out.ideal_tile_ms = tile_bound;
+        out.ideal_ms = work_bound.max(tile_bound);
+        out.efficiency = if out.makespan_ms > 0.0 && out.ideal_ms.is_finite() {
+            out.ideal_ms / out.makespan_ms
+        } else {
+            0.0
+        };
+        out.workers_at_end = self
+            .machines
+            .iter()
+            .filter(|m| m.life == Life::Running || m.life == Life::Frozen)
+            .count();
+        out.events = self.sched.costs.iter().map(|c| c.count).sum();
+        let memory = memory.map(|m| Memory {
+            peak_bytes: self.sched.peak,
+            end_bytes: self.sched.bytes,
+            ..m
+        });
+        let costs = EVENT_KINDS
+            .iter()
+            .zip(self.sched.costs)
+            .filter(|(_, c)| c.count > 0)
+            .map(|(kind, c)| EventCost {
+                kind,
+                count: c.count,
+                total: c.total,
+                max: c.max,
+            })
+            .collect();
+        SimReport {
+            outcome: self.out,
+            memory,
+            handle_time: self.sched.costs.iter().map(|c| c.total).sum(),
+            by_event: costs,
+            wall,
+        }
+    }
+}
+
+/// A distinct scene per job (each frame of an animation is its own scene).
+fn scene_of(job: JobId) -> SceneHash {
+    let mut hash = [0u8; 32];
+    hash[..8].copy_from_slice(&job.to_le_bytes());
+    hash
+}
+
+/// The cost of each tile of a frame, in reference-thread microseconds, row by row like
+/// the renderer's cut.
+fn tile_costs(cfg: &SimConfig, rng: &mut Rng) -> Vec<Micros> {
+    let (w, h, side) = (
+        f64::from(cfg.width),
+        f64::from(cfg.height),
+        f64::from(cfg.tile_size),
+    );
+    let small = w.min(h);
+    let spots: Vec<(f64, f64, f64)> = (0..cfg.hotspots)
+        .map(|_| {
+            (
+                rng.range(0.0, w),
+                rng.range(0.0, h),
+                rng.range(0.05, 0.2) * small,
+            )
+        })
+        .collect();
+    let mut costs = Vec::with_capacity(cfg.tiles_per_job() as usize);
+    for y in (0..cfg.height).step_by(cfg.tile_size as usize) {
+        for x in (0..cfg.width).step_by(cfg.tile_size as usize) {
+            let tw = f64::from(cfg.tile_size.min(cfg.width - x));
+            let th = f64::from(cfg.tile_size.min(cfg.height - y));
+            let (cx, cy) = (f64::from(x) + tw / 2.0, f64::from(y) + th / 2.0);
+            // A smooth bump of compact support: (1 - d²/r²)² inside the radius.
+            let bump = spots
+                .iter()
+                .map(|&(sx, sy, r)| {
+                    let q = ((cx - sx) * (cx - sx) + (cy - sy) * (cy - sy)) / (r * r);
+                    if q < 1.0 {
+                        (1.0 - q) * (1.0 - q)
+                    } else {
+                        0.0
+                    }
+                })
+                .fold(0.0, f64::max);
+            let factor = (1.0 + (cfg.hotspot_factor - 1.0) * bump)
+                * rng.range(1.0 - cfg.tile_noise, 1.0 + cfg.tile_noise);
+            let cost = cfg.tile_ms * MS as f64 * (tw * th) / (side * side) * factor;
+            costs.push((cost.round() as Micros).max(1));
+        }
+    }
+    costs
+}

@@ -1,0 +1,196 @@
+//! The worked examples of `docs/protocol.md` (section 3) are exactly what the encoder
+//! produces: every `text` block there, read as hex bytes, equals the frame of the
+//! message it describes, in order. A change of any message's shape fails here until
+//! the documentation shows the new bytes.
+
+use protocol::{
+    wire, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
+    Overrides, Role, Sampling, Settings, TileRect, ToWorker, Welcome, MAGIC, PROTOCOL_VERSION,
+};
+use serde::Serialize;
+
+const DOC: &str = include_str!("../../docs/protocol.md");
+const SCENE: &str = r#"{"lights": [], "objects": []}"#;
+
+/// The job of the examples: 34 × 17 pixels, adaptive sampling with a 4 × 4 budget and a
+/// target of one level.
+const SETTINGS: Settings = Settings {
+    width: 34,
+    height: 17,
+    aa: 4,
+    max_depth: 10,
+    sampling: Sampling::Adaptive { target_milli: 1000 },
+};
+
+fn scene_hash() -> [u8; 32] {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(SCENE.as_bytes()).into()
+}
+
+/// A message as a frame: big-endian length, then the body.
+fn frame<T: Serialize>(message: &T) -> Vec<u8> {
+    let body = wire::encode(message);
+    let mut out = (body.len() as u32).to_be_bytes().to_vec();
+    out.extend(body);
+    out
+}
+
+/// The examples, in the order the document gives them.
+fn examples() -> Vec<(&'static str, Vec<u8>)> {
+    vec![
+        (
+            "worker Hello",
+            frame(&Hello {
+                magic: MAGIC,
+                version: PROTOCOL_VERSION,
+                role: Role::Worker {
+                    name: "w1".into(),
+                    threads: 4,
+                },
+            }),
+        ),
+        ("client Hello", frame(&Hello::new(Role::Client))),
+        (
+            "Welcome::Accepted",
+            frame(&Welcome::Accepted {
+                version: PROTOCOL_VERSION,
+            }),
+        ),
+        (
+            "Submit",
+            frame(&ClientRequest::Submit(JobSpec {
+                scene: SCENE.into(),
+                overrides: Overrides {
+                    width: Some(34),
+                    height: Some(17),
+                    aa: Some(4),
+                    max_depth: None,
+                    tile_size: Some(16),
+                    sampling: Some(Sampling::Adaptive { target_milli: 1000 }),
+                },
+                priority: -1,
+            })),
+        ),
+        ("Status", frame(&ClientRequest::Status { job: 7 })),
+        (
+            "Job",
+            frame(&ClientResponse::Job(JobStatus {
+                id: 7,
+                state: JobState::Running,
+                settings: SETTINGS,
+                priority: -1,
+                tiles_done: 5,
+                tiles_total: 6,
+                rays: 2304,
+                elapsed_ms: 20,
+                eta_ms: Some(4),
+                error: None,
+                samples: 2304,
+                estimated_error: Some(0.0),
+            })),
+        ),
+        (
+            "Scene",
+            frame(&ToWorker::Scene {
+                hash: scene_hash(),
+                scene: SCENE.into(),
+            }),
+        ),
+        (
+            "Render",
+            frame(&ToWorker::Render {
+                job: 7,
+                tile: 5,
+                scene: scene_hash(),
+                settings: SETTINGS,
+                rect: TileRect {
+                    x: 32,
+                    y: 16,
+                    width: 2,
+                    height: 1,
+                },
+            }),
+        ),
+        (
+            "TileDone",
+            frame(&FromWorker::TileDone {
+                job: 7,
+                tile: 5,
+                rgb: vec![0xff, 0x80, 0x00, 0x10, 0x20, 0x30],
+                rays: 20,
+                render_us: 15,
+                samples: 20,
+                error_sq_sum: 2.25,
+            }),
+        ),
+    ]
+}
+
+/// The bytes of each ```text block of the worked examples: on each line, the hex
+/// pairs before the first double space (the rest is the comment).
+fn documented() -> Vec<Vec<u8>> {
+    let start = DOC
+        .find("### Worked examples")
+        .expect("docs/protocol.md has worked examples");
+    let end = start + DOC[start..].find("\n## 4.").expect("section 4 follows");
+    let mut blocks = Vec::new();
+    let mut current: Option<Vec<u8>> = None;
+    for line in DOC[start..end].lines() {
+        match (line.trim(), current.as_mut()) {
+            ("```text", None) => current = Some(Vec::new()),
+            ("```", Some(_)) => blocks.push(current.take().expect("in a block")),
+            (_, Some(bytes)) => {
+                let hex = line.split("  ").next().unwrap_or("");
+                for pair in hex.split_whitespace() {
+                    let byte = u8::from_str_radix(pair, 16)
+                        .unwrap_or_else(|_| panic!("not a hex byte: {pair:?} in {line:?}"));
+                    bytes.push(byte);
+                }
+            }
+            _ => {}
+        }
+    }
+    blocks
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes
+        .chunks(8)
+        .map(|c| {
+            c.iter()
+                .map(|b| format!("{b:02x}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn the_worked_examples_are_the_encoders_bytes() {
+    let documented = documented();
+    let examples = examples();
+    assert_eq!(documented.len(), examples.len(), "one block per example");
+    for ((name, actual), doc) in examples.iter().zip(&documented) {
+        assert!(
+            actual == doc,
+            "{name}: the document shows\n{}\nthe encoder gives\n{}",
+            hex(doc),
+            hex(actual)
+        );
+    }
+}
+
+#[test]
+fn the_client_hello_of_the_checklist_is_the_encoders() {
+    let bytes = frame(&Hello::new(Role::Client));
+    let spaced = bytes
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect::<Vec<_>>()
+        .join(" ");
+    assert!(
+        DOC.contains(&format!("`{spaced}`")),
+        "the checklist should show `{spaced}`"
+    );
+}

@@ -1,0 +1,436 @@
+//! Where the samples of a pixel go, and what the spread of their colours says about the
+//! pixel's error.
+//!
+//! Three samplers share one budget, `aa` = n: at most n × n camera samples per pixel.
+//!
+//! - [`Sampling::Grid`]: the scene format's n × n centred grid (section 3), the default
+//!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: the
+//!   same samples traced by [`Tracer::samples`] in the same groups of four, summed in
+//!   the same order and divided the same way.
+//! - [`Sampling::Jittered`]: n × n strata, one sample in each at an offset drawn from a
+//!   hash of (pixel column, pixel row, sample index).
+//! - [`Sampling::Adaptive`]: a first pass of 4 samples, then batches of 4 more while the
+//!   pixel's estimated error is above the target and the budget is not spent. The points
+//!   are a progressive low-discrepancy sequence (the first two Sobol dimensions) with a
+//!   per-pixel digital shift, so that every prefix is well stratified.
+//!
+//! Nothing here uses a global generator or shared state: each pixel's samples, and
+//! hence its bytes, depend only on the scene, the settings and its coordinates, so a
+//! tile is the same in any tiling, on any thread or worker (architecture, invariant 1).
+//! Only integer operations and +, −, ×, ÷, √ are used, which every machine computes
+//! alike.
+//!
+//! **The error estimate.** For a pixel of k ≥ 2 samples whose clipped colours have the
+//! unbiased variance s² in a channel, the standard error of their mean is
+//! 255 · √(s² / k) levels; the pixel's estimate is the largest over its 3 channels.
+//! With one sample (aa = 1) there is no spread to measure: the estimate is unknown, and
+//! such pixels add nothing to a tile's [`error_sq_sum`](crate::TileImage::error_sq_sum).
+//! The estimate measures noise only: a feature smaller than the spacing of the samples
+//! that none of them hit leaves no trace in it.
+
+use std::fmt;
+
+use thiserror::Error;
+
+use crate::tracer::{to_byte, Tracer};
+use crate::vec3::Vec3;
+
+/// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
+/// of them: at most n × n samples per pixel.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Sampling {
+    /// n × n samples at ((a + ½)/n, (b + ½)/n): the scene format's reference pattern,
+    /// byte for byte.
+    #[default]
+    Grid,
+    /// n × n strata, one sample in each at a deterministic pseudo-random offset: the
+    /// grid's cost, without its regular aliasing on edges.
+    Jittered,
+    /// Samples only where they disagree: 4 first (n² if fewer), then 4 more at a time
+    /// while the pixel's estimated error is above the target, up to n × n.
+    ///
+    /// `target_milli` is the target error in thousandths of an 8-bit level (1000 is one
+    /// level), an integer so that settings stay `Eq` and `Hash` and cross the network
+    /// exactly. Build it with [`Sampling::adaptive`], which checks the range.
+    Adaptive { target_milli: u32 },
+}
+
+/// The smallest adaptive target, in thousandths of a level.
+pub const MIN_TARGET_MILLI: u32 = 1;
+/// The largest adaptive target, in thousandths of a level: 255 levels, the whole range
+/// of a channel (any larger target would stop after the first pass anyway).
+pub const MAX_TARGET_MILLI: u32 = 255_000;
+
+/// An adaptive target that is not a number of levels Tessera can aim for. Its message
+/// says what is wrong; the caller names where the value came from
+/// (`--target-error: must be ...`).
+#[derive(Debug, Clone, Copy, PartialEq, Error)]
+#[error("must be a number of 8-bit levels from 0.001 to 255, got {0}")]
+pub struct InvalidTarget(pub f64);
+
+impl Sampling {
+    /// Adaptive sampling aiming for `levels` of estimated error per pixel (8-bit
+    /// levels, rounded to the nearest thousandth). Refuses a target that is not finite,
+    /// not above 0, or outside 0.001 ..= 255 once rounded.
+    pub fn adaptive(levels: f64) -> Result<Sampling, InvalidTarget> {
+        if !levels.is_finite() || levels <= 0.0 {
+            return Err(InvalidTarget(levels));
+        }
+        let milli = (levels * 1000.0).round();
+        if milli < f64::from(MIN_TARGET_MILLI) || milli > f64::from(MAX_TARGET_MILLI) {
+            return Err(InvalidTarget(levels));
+        }
+        Ok(Sampling::Adaptive {
+            target_milli: milli as u32,
+        })
+    }
+
+    /// The adaptive target in 8-bit levels; `None` for the grid and jittered samplers.
+    pub fn target_error(self) -> Option<f64> {
+        match self {
+            Sampling::Adaptive { target_milli } => Some(f64::from(target_milli) / 1000.0),
+            _ => None,
+        }
+    }
+
+    /// The lowercase name used on the command line and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Grid => "grid",
+            Sampling::Jittered => "jittered",
+            Sampling::Adaptive { .. } => "adaptive",
+        }
+    }
+}
+
+impl fmt::Display for Sampling {
+    /// `grid`, `jittered`, or `adaptive (target 0.5 levels)`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.target_error() {
+            Some(t) => write!(f, "{} (target {t} levels)", self.name()),
+            None => f.write_str(self.name()),
+        }
+    }
+}
+
+/// One pixel's result: its colour, the samples it took and its estimated error.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct PixelResult {
+    pub rgb: [u8; 3],
+    pub samples: u32,
+    /// The estimated error in levels; 0 when unknown (one sample).
+    pub error: f64,
+}
+
+/// Renders the pixels of one tile, one after the other, reusing its buffers.
+pub(crate) struct PixelSampler<'t> {
+    tracer: &'t Tracer,
+    /// The image points of the samples being traced, and their colours.
+    points: Vec<(f64, f64)>,
+    colors: Vec<Vec3>,
+}
+
+impl<'t> PixelSampler<'t> {
+    pub fn new(tracer: &'t Tracer) -> Self {
+        PixelSampler {
+            tracer,
+            points: Vec::new(),
+            colors: Vec::new(),
+        }
+    }
+
+    /// Renders pixel (`i`, `j`) with the tracer's sampling and budget, adding the rays
+    /// traced to `rays`.
+    pub fn render(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
+        let settings = *self.tracer.settings();
+        let n = settings.aa;
+        let budget = n * n;
+        let pattern = Points::new(settings.sampling, n, i, j);
+        let mut moments = Moments::default();
+        let mean = match settings.sampling {
+            Sampling::Grid | Sampling::Jittered => {
+                // All at once, in sample order: traced four at a time like the tracer's
+                // own pixels, and summed in the same order.
+                self.trace(&pattern, i, j, 0..budget, &mut moments, rays);
+                // The grid's own division, so that its bytes are the tracer's.
+                let nf = f64::from(n);
+                moments.sum / (nf * nf)
+            }
+            Sampling::Adaptive { target_milli } => {
+                let target = f64::from(target_milli) / 1000.0;
+                let mut k = budget.min(FIRST_PASS);
+                self.trace(&pattern, i, j, 0..k, &mut moments, rays);
+                while k < budget && moments.error() > target {
+                    let end = (k + BATCH).min(budget);
+                    self.trace(&pattern, i, j, k..end, &mut moments, rays);
+                    k = end;
+                }
+                moments.sum / f64::from(moments.count)
+            }
+        };
+        PixelResult {
+            rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
+            samples: moments.count,
+            error: moments.error(),
+        }
+    }
+
+    /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
+    fn trace(
+        &mut self,
+        pattern: &Points,
+        i: u32,
+        j: u32,
+        range: std::ops::Range<u32>,
+        moments: &mut Moments,
+        rays: &mut u64,
+    ) {
+        self.points.clear();
+        self.points.extend(range.map(|k| {
+            let (sx, sy) = pattern.offset(k);
+            (f64::from(i) + sx, f64::from(j) + sy)
+        }));
+        let count = self.points.len();
+        if self.colors.len() < count {
+            self.colors.resize(count, Vec3::ZERO);
+        }
+        let colors = &mut self.colors[..count];
+        self.tracer.samples(&self.points, colors, rays);
+        for &color in colors.iter() {
+            moments.add(color);
+        }
+    }
+}
+
+/// Samples of adaptive sampling's first pass: one in each quadrant of the pixel.
+const FIRST_PASS: u32 = 4;
+/// Samples added at a time while a pixel's error is above the target.
+const BATCH: u32 = 4;
+
+/// The offsets in [0, 1)² inside pixel (`i`, `j`) of its first `count` samples (at most
+/// the budget `aa` × `aa`), in the order they are taken. Adaptive sampling uses a prefix
+/// of this sequence, as long as the pixel needs. For tests and for documentation of the
+/// patterns.
+pub fn sample_offsets(sampling: Sampling, aa: u32, i: u32, j: u32, count: u32) -> Vec<(f64, f64)> {
+    let points = Points::new(sampling, aa, i, j);
+    (0..count.min(aa * aa)).map(|k| points.offset(k)).collect()
+}
+
+/// A pixel's sample pattern.
+enum Points {
+    /// (a + ½)/n on both axes, row by row: the tracer's own offsets.
+    Grid { n: u32 },
+    /// One point per stratum, strata row by row.
+    Jittered { n: u32, i: u32, j: u32 },
+    /// The (0, 2)-sequence, XOR-scrambled by 32-bit shifts per pixel.
+    Sobol { shift_x: u32, shift_y: u32 },
+}
+
+impl Points {
+    fn new(sampling: Sampling, n: u32, i: u32, j: u32) -> Self {
+        match sampling {
+            Sampling::Grid => Points::Grid { n },
+            Sampling::Jittered => Points::Jittered { n, i, j },
+            Sampling::Adaptive { .. } => {
+                let h = hash3(i, j, SCRAMBLE_STREAM);
+                Points::Sobol {
+                    shift_x: (h >> 32) as u32,
+                    shift_y: h as u32,
+                }
+            }
+        }
+    }
+
+    /// The offset of sample `k` inside the pixel.
+    fn offset(&self, k: u32) -> (f64, f64) {
+        match *self {
+            Points::Grid { n } => {
+                let nf = f64::from(n);
+                let (a, b) = (k % n, k / n);
+                ((f64::from(a) + 0.5) / nf, (f64::from(b) + 0.5) / nf)
+            }
+            Points::Jittered { n, i, j } => {
+                let nf = f64::from(n);
+                let (a, b) = (k % n, k / n);
+                let h = hash3(i, j, k);
+                // a + u is exact (u has 32 fractional bits), and (a + u)/n < (a + 1)/n
+                // by far more than the rounding of the division: the point stays in its
+                // stratum.
+                (
+                    (f64::from(a) + unit((h >> 32) as u32)) / nf,
+                    (f64::from(b) + unit(h as u32)) / nf,
+                )
+            }
+            Points::Sobol { shift_x, shift_y } => (
+                unit(k.reverse_bits() ^ shift_x),
+                unit(sobol_second(k) ^ shift_y),
+            ),
+        }
+    }
+}
+
+/// The hash stream of the adaptive scramble: an index no jittered sample reaches (the
+/// budget is at most 64 × 64).
+const SCRAMBLE_STREAM: u32 = u32::MAX;
+
+/// `bits` / 2³², exactly: a number in [0, 1).
+fn unit(bits: u32) -> f64 {
+    f64::from(bits) * (1.0 / 4_294_967_296.0)
+}
+
+/// SplitMix64's output function: a bijection of u64 in which every output bit depends
+/// on every input bit, so that neighbouring pixels and samples get unrelated offsets.
+fn mix(z: u64) -> u64 {
+    let mut z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// A 64-bit hash of (pixel column, pixel row, sample index or stream).
+fn hash3(i: u32, j: u32, k: u32) -> u64 {
+    mix(mix((u64::from(i) << 32) | u64::from(j)) ^ u64::from(k))
+}
+
+/// The second dimension of the Sobol sequence (the first is the van der Corput sequence,
+/// `k.reverse_bits()`), as 32 bits of a binary fraction. Its direction numbers are
+/// v₁ = 1/2 and vᵢ₊₁ = vᵢ ⊕ vᵢ/2 (the primitive polynomial x + 1): together the two
+/// dimensions form a (0, 2)-sequence, so each block of 2ᵐ consecutive points (from a
+/// multiple of 2ᵐ) puts one point in every elementary interval of area 2⁻ᵐ. The XOR
+/// shift keeps that property.
+fn sobol_second(k: u32) -> u32 {
+    let mut v = 1u32 << 31;
+    let mut out = 0;
+    let mut k = k;
+    while k != 0 {
+        if k & 1 == 1 {
+            out ^= v;
+        }
+        v ^= v >> 1;
+        k >>= 1;
+    }
+    out
+}
+
+/// Running sums of a pixel's sample colours: the plain sum for the mean (in sample
+/// order, like the tracer's grid), and sums of differences from the first sample for the
+/// variance, which stay exact for a constant colour and lose no precision to
+/// cancellation.
+#[derive(Default)]
+struct Moments {
+    count: u32,
+    sum: Vec3,
+    first: Vec3,
+    diff: [f64; 3],
+    diff_sq: [f64; 3],
+}
+
+impl Moments {
+    fn add(&mut self, c: Vec3) {
+        if self.count == 0 {
+            self.first = c;
+        }
+        self.count += 1;
+        self.sum += c;
+        let d = [c.x - self.first.x, c.y - self.first.y, c.z - self.first.z];
+        for ((sum, sum_sq), d) in self.diff.iter_mut().zip(&mut self.diff_sq).zip(d) {
+            *sum += d;
+            *sum_sq += d * d;
+        }
+    }
+
+    /// The standard error of the mean in 8-bit levels, the largest of the 3 channels:
+    /// 255 · √(s²/k) with s² the unbiased variance. 0 for fewer than 2 samples (no
+    /// estimate).
+    fn error(&self) -> f64 {
+        if self.count < 2 {
+            return 0.0;
+        }
+        let k = f64::from(self.count);
+        let mut worst: f64 = 0.0;
+        for ch in 0..3 {
+            let ss = self.diff_sq[ch] - self.diff[ch] * self.diff[ch] / k;
+            let variance = (ss / (k - 1.0)).max(0.0);
+            worst = worst.max(variance / k);
+        }
+        255.0 * worst.sqrt()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn targets_are_checked_and_kept_in_thousandths() {
+        assert_eq!(
+            Sampling::adaptive(1.0),
+            Ok(Sampling::Adaptive { target_milli: 1000 })
+        );
+        assert_eq!(Sampling::adaptive(0.25).unwrap().target_error(), Some(0.25));
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 0.0004, 255.1] {
+            assert!(Sampling::adaptive(bad).is_err(), "{bad}");
+        }
+        assert_eq!(
+            InvalidTarget(-1.0).to_string(),
+            "must be a number of 8-bit levels from 0.001 to 255, got -1"
+        );
+    }
+
+    #[test]
+    fn the_sobol_points_fill_every_quadrant_of_each_group_of_four() {
+        for shift in [(0, 0), (0xDEAD_BEEF, 0x1234_5678)] {
+            let p = Points::Sobol {
+                shift_x: shift.0,
+                shift_y: shift.1,
+            };
+            for group in 0..16 {
+                let mut quadrants: Vec<(u32, u32)> = (group * 4..group * 4 + 4)
+                    .map(|k| {
+                        let (x, y) = p.offset(k);
+                        ((x * 2.0) as u32, (y * 2.0) as u32)
+                    })
+                    .collect();
+                quadrants.sort();
+                assert_eq!(quadrants, [(0, 0), (0, 1), (1, 0), (1, 1)], "{group}");
+            }
+            // And the first 16 one in each cell of a 4 × 4 grid.
+            let mut cells: Vec<(u32, u32)> = (0..16)
+                .map(|k| {
+                    let (x, y) = p.offset(k);
+                    ((x * 4.0) as u32, (y * 4.0) as u32)
+                })
+                .collect();
+            cells.sort();
+            cells.dedup();
+            assert_eq!(cells.len(), 16);
+        }
+    }
+
+    #[test]
+    fn the_second_sobol_dimension_has_its_known_start() {
+        // Sobol's second dimension in binary (not Gray-code) order: each block of 2^m
+        // points is the same set as in Bratley and Fox's Gray-code order.
+        let expected = [0.0, 0.5, 0.75, 0.25, 0.625, 0.125, 0.375, 0.875];
+        for (k, want) in expected.iter().enumerate() {
+            assert_eq!(unit(sobol_second(k as u32)), *want, "point {k}");
+        }
+    }
+
+    #[test]
+    fn the_error_of_a_constant_colour_is_zero_and_of_a_known_spread_is_known() {
+        let mut m = Moments::default();
+        for _ in 0..9 {
+            m.add(Vec3::new(0.3, 0.7, 0.1));
+        }
+        assert_eq!(m.error(), 0.0);
+        // Samples 0 and 1 in one channel: s² = 1/2, k = 2: 255 · √(1/4) = 127.5.
+        let mut m = Moments::default();
+        m.add(Vec3::new(0.0, 0.5, 0.5));
+        m.add(Vec3::new(1.0, 0.5, 0.5));
+        assert_eq!(m.error(), 127.5);
+        let mut one = Moments::default();
+        one.add(Vec3::new(1.0, 0.0, 0.0));
+        assert_eq!(one.error(), 0.0);
+    }
+}
