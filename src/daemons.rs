@@ -49,6 +49,7 @@ pub async fn worker(
     coordinator: Endpoint,
     threads: Option<usize>,
     name: Option<String>,
+    throttle: Option<f64>,
     exit_on_stdin_eof: bool,
 ) -> Result<()> {
     let threads =
@@ -59,6 +60,7 @@ pub async fn worker(
             coordinator,
             threads,
             name,
+            throttle,
         },
         shutdown_signal(exit_on_stdin_eof),
     )

@@ -1,10 +1,14 @@
 //! `tessera`: the command line. This file only parses arguments and hands them to the
 //! modules that run each subcommand.
 
+mod bench;
 mod client_commands;
 mod daemons;
+mod local_farm;
 mod output;
+mod plot;
 mod render_command;
+mod simulate_command;
 mod up_command;
 
 use std::net::SocketAddr;
@@ -103,6 +107,94 @@ enum Command {
         #[command(flatten)]
         common: ClientArgs,
     },
+
+    /// Measure speed against error, and how time scales: tables (Markdown, CSV) and plots.
+    #[command(
+        long_about = "Measure the renderer and the farm on this machine and write the \
+            results to a directory: speed against error for every sampling setting on four \
+            scenes (bench.md, bench.csv, bench.png), and time against pixels and objects, \
+            the farm's speed-up and the pull scheduler against a static split \
+            (scaling.md, scaling.png). Build with --release.",
+        after_help = "Examples:\n  \
+            cargo run --release -- bench --out bench-results\n  \
+            cargo run --release -- bench --suite error --quick --out /tmp/check"
+    )]
+    Bench(BenchArgs),
+
+    /// Drive the scheduler with thousands of simulated workers in virtual time.
+    #[command(
+        long_about = "Run the coordinator's real scheduler against simulated workers of \
+            mixed speeds that crash, hang and join, in virtual time, and report scheduling \
+            throughput, memory and makespan against the ideal (see docs/simulation.md). \
+            A seed names a run: the same options give the same report.",
+        after_help = "Examples:\n  \
+            tessera simulate --workers 2000 --jobs 10\n  \
+            tessera simulate --table"
+    )]
+    Simulate(SimulateArgs),
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Which measurements to make.
+    #[arg(long, value_enum, default_value = "all")]
+    suite: bench::Suite,
+    /// Directory for the tables and plots.
+    #[arg(long, value_name = "DIR", default_value = "bench-results")]
+    out: PathBuf,
+    /// Frame width of the error suite.
+    #[arg(long, default_value_t = 600, value_parser = clap::value_parser!(u32).range(8..=4096))]
+    width: u32,
+    /// Frame height of the error suite.
+    #[arg(long, default_value_t = 400, value_parser = clap::value_parser!(u32).range(8..=4096))]
+    height: u32,
+    /// Rendering threads for single-machine timings [default: one per core].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+    /// Grid antialiasing of the converged reference the error is measured against.
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(2..=i64::from(MAX_AA * 4)))]
+    reference_aa: u32,
+    /// Each timing repeats until this many milliseconds have passed...
+    #[arg(long, default_value_t = 1000)]
+    min_time_ms: u64,
+    /// ...or this many runs.
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
+    max_runs: u32,
+    /// Small frames and few settings: checks that everything works, in seconds; the
+    /// figures mean nothing.
+    #[arg(long)]
+    quick: bool,
+}
+
+#[derive(Args)]
+struct SimulateArgs {
+    /// Simulated machines at the start.
+    #[arg(long, default_value_t = 1000)]
+    workers: usize,
+    /// Jobs submitted at the start.
+    #[arg(long, default_value_t = 20)]
+    jobs: usize,
+    /// Seed of the run.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Without crashes, hangs and new machines.
+    #[arg(long)]
+    no_failures: bool,
+    /// Without copies of straggling tiles for idle workers.
+    #[arg(long)]
+    no_speculation: bool,
+    /// Frame width of each job.
+    #[arg(long, default_value_t = 3840)]
+    width: u32,
+    /// Frame height of each job.
+    #[arg(long, default_value_t = 2160)]
+    height: u32,
+    /// Tile side in pixels.
+    #[arg(long, default_value_t = 32)]
+    tile: u32,
+    /// Every run of docs/simulation.md's scaling table instead of one run (minutes).
+    #[arg(long)]
+    table: bool,
 }
 
 /// Image settings that override the scene's own.
@@ -245,6 +337,9 @@ struct WorkerArgs {
     /// Name shown by `tessera workers` [default: HOST-PID].
     #[arg(long)]
     name: Option<String>,
+    /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
+    #[arg(long, hide = true, value_name = "FACTOR")]
+    throttle: Option<f64>,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -395,6 +490,19 @@ fn main() -> ExitCode {
 }
 
 fn run(command: Command) -> Result<()> {
+    if let Command::Simulate(a) = command {
+        return simulate_command::run(&simulate_command::Options {
+            workers: a.workers,
+            jobs: a.jobs,
+            seed: a.seed,
+            failures: !a.no_failures,
+            speculate: !a.no_speculation,
+            width: a.width,
+            height: a.height,
+            tile: a.tile,
+            table: a.table,
+        });
+    }
     if let Command::Render(a) = command {
         return render_command::run(render_command::Options {
             scene: a.scene,
@@ -414,7 +522,22 @@ fn run(command: Command) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async move {
         match command {
-            Command::Render(_) => unreachable!("handled above"),
+            Command::Render(_) | Command::Simulate(_) => unreachable!("handled above"),
+            Command::Bench(a) => {
+                let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+                bench::run(&bench::Options {
+                    suite: a.suite,
+                    out: a.out,
+                    width: a.width,
+                    height: a.height,
+                    threads: a.threads.map_or(cores, |n| n as usize),
+                    reference_aa: a.reference_aa,
+                    min_time: std::time::Duration::from_millis(a.min_time_ms),
+                    max_runs: a.max_runs,
+                    quick: a.quick,
+                })
+                .await
+            }
             Command::Up(a) => {
                 let workers = a.workers as usize;
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -468,6 +591,7 @@ fn run(command: Command) -> Result<()> {
                     a.peer.endpoint()?,
                     a.threads.map(|n| n as usize),
                     a.name,
+                    a.throttle,
                     a.exit_on_stdin_eof,
                 )
                 .await

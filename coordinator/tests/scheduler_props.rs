@@ -2431,12 +2431,11 @@ impl Pair {
             Event::WorkerLeft { worker } => {
                 self.live.remove(&worker);
             }
-            Event::TileDone { worker, job, tile } => {
+            Event::TileDone { worker, job, tile }
                 if actions.contains(&Action::AcceptTile { job, tile })
-                    && self.assignee.get(&(job, tile)) != Some(&worker)
-                {
-                    self.stats.accepted_from_earlier += 1;
-                }
+                    && self.assignee.get(&(job, tile)) != Some(&worker) =>
+            {
+                self.stats.accepted_from_earlier += 1;
             }
             _ => {}
         }

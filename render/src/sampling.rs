@@ -10,7 +10,12 @@
 //! - [`Sampling::Jittered`]: n × n strata, one sample in each at an offset drawn from a
 //!   hash of (pixel column, pixel row, sample index).
 //! - [`Sampling::Adaptive`]: a first pass of 4 samples, then batches of 4 more while the
-//!   pixel's estimated error is above the target and the budget is not spent. The points
+//!   pixel's estimated error is above the target and the budget is not spent. A pixel
+//!   whose first pass differs from a neighbour's by more than 4 × the target takes at
+//!   least 16 samples first: its own 4 may all have missed an edge that the contrast
+//!   with its neighbour reveals. Neighbours' first passes are pure functions of their
+//!   coordinates, so a tile computes them for a one-pixel border around itself and
+//!   decides exactly as any other tiling would. The points
 //!   are a progressive low-discrepancy sequence (the first two Sobol dimensions) with a
 //!   per-pixel digital shift, so that every prefix is well stratified.
 //!
@@ -139,40 +144,62 @@ impl<'t> PixelSampler<'t> {
         }
     }
 
-    /// Renders pixel (`i`, `j`) with the tracer's sampling and budget, adding the rays
-    /// traced to `rays`.
-    pub fn render(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
+    pub fn settings(&self) -> &crate::RenderSettings {
+        self.tracer.settings()
+    }
+
+    /// Renders pixel (`i`, `j`) with the grid or jittered sampler: all n × n samples,
+    /// adding the rays traced to `rays`.
+    pub fn render_fixed(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
         let settings = *self.tracer.settings();
         let n = settings.aa;
-        let budget = n * n;
+        debug_assert!(settings.sampling.target_error().is_none());
         let pattern = Points::new(settings.sampling, n, i, j);
         let mut moments = Moments::default();
-        let mean = match settings.sampling {
-            Sampling::Grid | Sampling::Jittered => {
-                // All at once, in sample order: traced four at a time like the tracer's
-                // own pixels, and summed in the same order.
-                self.trace(&pattern, i, j, 0..budget, &mut moments, rays);
-                // The grid's own division, so that its bytes are the tracer's.
-                let nf = f64::from(n);
-                moments.sum / (nf * nf)
-            }
-            Sampling::Adaptive { target_milli } => {
-                let target = f64::from(target_milli) / 1000.0;
-                let mut k = budget.min(FIRST_PASS);
-                self.trace(&pattern, i, j, 0..k, &mut moments, rays);
-                while k < budget && moments.error() > target {
-                    let end = (k + BATCH).min(budget);
-                    self.trace(&pattern, i, j, k..end, &mut moments, rays);
-                    k = end;
-                }
-                moments.sum / f64::from(moments.count)
-            }
-        };
-        PixelResult {
-            rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
-            samples: moments.count,
-            error: moments.error(),
+        // All at once, in sample order: traced four at a time like the tracer's own
+        // pixels, and summed in the same order.
+        self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
+        // The grid's own division, so that its bytes are the tracer's.
+        let nf = f64::from(n);
+        moments.result(moments.sum / (nf * nf))
+    }
+
+    /// Adaptive sampling's first pass of pixel (`i`, `j`): its first 4 samples (n² if
+    /// fewer).
+    pub fn first_pass(&mut self, i: u32, j: u32, rays: &mut u64) -> Moments {
+        let settings = *self.tracer.settings();
+        let pattern = Points::new(settings.sampling, settings.aa, i, j);
+        let mut moments = Moments::default();
+        let k = (settings.aa * settings.aa).min(FIRST_PASS);
+        self.trace(&pattern, i, j, 0..k, &mut moments, rays);
+        moments
+    }
+
+    /// Finishes an adaptive pixel from its first pass: more samples, 4 at a time, while
+    /// its estimated error is above the target and the budget is not spent. A pixel
+    /// whose first pass differs from a neighbour's (`contrasted`) may hold an edge that
+    /// its own 4 samples all missed, so it takes at least [`CONTRAST_PASS`] samples
+    /// before its own spread decides.
+    pub fn finish_adaptive(
+        &mut self,
+        i: u32,
+        j: u32,
+        mut moments: Moments,
+        contrasted: bool,
+        rays: &mut u64,
+    ) -> PixelResult {
+        let settings = *self.tracer.settings();
+        let target = settings.sampling.target_error().expect("adaptive sampling");
+        let budget = settings.aa * settings.aa;
+        let pattern = Points::new(settings.sampling, settings.aa, i, j);
+        let at_least = if contrasted { CONTRAST_PASS } else { 0 };
+        let mut k = moments.count;
+        while k < budget && (k < at_least || moments.error() > target) {
+            let end = (k + BATCH).min(budget);
+            self.trace(&pattern, i, j, k..end, &mut moments, rays);
+            k = end;
         }
+        moments.result(moments.sum / f64::from(moments.count))
     }
 
     /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
@@ -204,6 +231,19 @@ impl<'t> PixelSampler<'t> {
 
 /// Samples of adaptive sampling's first pass: one in each quadrant of the pixel.
 const FIRST_PASS: u32 = 4;
+/// The fewest samples of an adaptive pixel whose first pass differs from a
+/// neighbour's: one in each cell of a 4 × 4 grid.
+pub(crate) const CONTRAST_PASS: u32 = 16;
+
+/// Whether two first passes differ enough that the pixels between them may hold an
+/// edge the 4 samples missed: a channel's means more than 4 × `target` levels apart.
+/// Four samples leave at most about a quarter of the pixel unseen, so an unseen edge of
+/// that contrast could put the pixel off by more than the target.
+pub(crate) fn contrasted(a: &Moments, b: &Moments, target: f64) -> bool {
+    let (ma, mb) = (a.mean(), b.mean());
+    let limit = 4.0 * target / 255.0;
+    (ma.x - mb.x).abs() > limit || (ma.y - mb.y).abs() > limit || (ma.z - mb.z).abs() > limit
+}
 /// Samples added at a time while a pixel's error is above the target.
 const BATCH: u32 = 4;
 
@@ -316,8 +356,8 @@ fn sobol_second(k: u32) -> u32 {
 /// order, like the tracer's grid), and sums of differences from the first sample for the
 /// variance, which stay exact for a constant colour and lose no precision to
 /// cancellation.
-#[derive(Default)]
-struct Moments {
+#[derive(Clone, Default)]
+pub(crate) struct Moments {
     count: u32,
     sum: Vec3,
     first: Vec3,
@@ -326,6 +366,19 @@ struct Moments {
 }
 
 impl Moments {
+    /// The mean of the samples so far (the first pass's, for comparing neighbours).
+    fn mean(&self) -> Vec3 {
+        self.sum / f64::from(self.count.max(1))
+    }
+
+    fn result(&self, mean: Vec3) -> PixelResult {
+        PixelResult {
+            rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
+            samples: self.count,
+            error: self.error(),
+        }
+    }
+
     fn add(&mut self, c: Vec3) {
         if self.count == 0 {
             self.first = c;

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::image::Image;
-use crate::sampling::PixelSampler;
+use crate::sampling::{contrasted, Moments, PixelResult, PixelSampler};
 use crate::scene::RenderSettings;
 use crate::tracer::Tracer;
 
@@ -80,13 +80,20 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
     let mut samples = 0;
     let mut error_sq_sum = 0.0;
     let mut sampler = PixelSampler::new(tracer);
-    for j in rect.y..rect.y + rect.height {
-        for i in rect.x..rect.x + rect.width {
-            let pixel = sampler.render(i, j, &mut rays);
-            rgb.extend_from_slice(&pixel.rgb);
-            samples += u64::from(pixel.samples);
-            error_sq_sum += pixel.error * pixel.error;
+    let mut add = |pixel: PixelResult| {
+        rgb.extend_from_slice(&pixel.rgb);
+        samples += u64::from(pixel.samples);
+        error_sq_sum += pixel.error * pixel.error;
+    };
+    match tracer.settings().sampling.target_error() {
+        None => {
+            for j in rect.y..rect.y + rect.height {
+                for i in rect.x..rect.x + rect.width {
+                    add(sampler.render_fixed(i, j, &mut rays));
+                }
+            }
         }
+        Some(target) => render_adaptive(&mut sampler, rect, target, &mut rays, &mut add),
     }
     Ok(TileImage {
         rect,
@@ -95,6 +102,52 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
         samples,
         error_sq_sum,
     })
+}
+
+/// Adaptive sampling of a tile: the first pass of every pixel of the tile and of the
+/// one-pixel border around it (inside the image), then each pixel finished knowing
+/// whether its first pass differs from a neighbour's. The border's first passes are
+/// traced again by the neighbouring tile; `rays` counts each pixel's rays once (its own
+/// tile's), so that it does not depend on the tiling either.
+fn render_adaptive(
+    sampler: &mut PixelSampler,
+    rect: Rect,
+    target: f64,
+    rays: &mut u64,
+    add: &mut impl FnMut(PixelResult),
+) {
+    let settings = *sampler.settings();
+    let x0 = rect.x.saturating_sub(1);
+    let y0 = rect.y.saturating_sub(1);
+    let x1 = (rect.x + rect.width + 1).min(settings.width);
+    let y1 = (rect.y + rect.height + 1).min(settings.height);
+    let w = (x1 - x0) as usize;
+    let inside = |i: u32, j: u32| {
+        (rect.x..rect.x + rect.width).contains(&i) && (rect.y..rect.y + rect.height).contains(&j)
+    };
+    let mut first: Vec<Moments> = Vec::with_capacity(w * (y1 - y0) as usize);
+    let mut border_rays = 0;
+    for j in y0..y1 {
+        for i in x0..x1 {
+            let counter = if inside(i, j) {
+                &mut *rays
+            } else {
+                &mut border_rays
+            };
+            first.push(sampler.first_pass(i, j, counter));
+        }
+    }
+    let at = |i: u32, j: u32| &first[(j - y0) as usize * w + (i - x0) as usize];
+    for j in rect.y..rect.y + rect.height {
+        for i in rect.x..rect.x + rect.width {
+            let own = at(i, j);
+            let edge = (j.saturating_sub(1)..(j + 2).min(y1)).any(|nj| {
+                (i.saturating_sub(1)..(i + 2).min(x1))
+                    .any(|ni| (ni, nj) != (i, j) && contrasted(own, at(ni, nj), target))
+            });
+            add(sampler.finish_adaptive(i, j, own.clone(), edge, rays));
+        }
+    }
 }
 
 /// Cuts a frame into tiles of at most `size` × `size`, row by row from the top left.

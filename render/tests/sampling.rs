@@ -292,7 +292,7 @@ fn adaptive_sampling_spends_only_the_first_pass_on_a_flat_region() {
 #[test]
 fn adaptive_sampling_spends_more_on_edges_and_the_whole_budget_for_a_tiny_target() {
     let scene = seed();
-    let (w, h) = (120, 80);
+    let (w, h) = (240, 160);
     // Edges: pixels whose converged colour differs from their centre sample's, i.e.
     // pixels partly covered by two surfaces.
     let centre = frame(&tracer(&scene, w, h, 1, Sampling::Grid), 32, 2).image;
@@ -311,7 +311,7 @@ fn adaptive_sampling_spends_more_on_edges_and_the_whole_budget_for_a_tiny_target
                     "({x}, {y}) stopped at {samples} with error {error}"
                 );
             }
-            if samples > 4 {
+            if error > 0.0 {
                 // A pixel whose samples disagree takes the whole budget at a tiny target.
                 assert_eq!(pixel_cost(&tiny, x, y).0, 64, "({x}, {y})");
             }

@@ -40,6 +40,10 @@ pub struct Config {
     pub threads: usize,
     /// The name the coordinator shows for this worker.
     pub name: String,
+    /// Makes every tile take this many times its rendering time (the thread waits out
+    /// the difference), to stand for a slower machine in benchmarks of uneven farms.
+    /// `None` or 1 renders at full speed; the pixels are the same either way.
+    pub throttle: Option<f64>,
 }
 
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
@@ -70,6 +74,7 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     cancelled: Arc::new(Mutex::new(HashSet::new())),
                     alive: Arc::new(AtomicBool::new(true)),
                     in_flight: 0,
+                    throttle: config.throttle,
                 };
                 match session.run(&mut shutdown).await {
                     Ok(()) => return Ok(()),
@@ -151,6 +156,7 @@ struct Session {
     /// Cleared when the session ends: tiles of a lost connection are not rendered.
     alive: Arc<AtomicBool>,
     in_flight: usize,
+    throttle: Option<f64>,
 }
 
 impl Drop for Session {
@@ -233,6 +239,7 @@ impl Session {
                 let cancelled = Arc::clone(&self.cancelled);
                 let alive = Arc::clone(&self.alive);
                 let done = done.clone();
+                let throttle = self.throttle;
                 self.pool.spawn(move || {
                     if !alive.load(Ordering::Relaxed)
                         || cancelled.lock().expect("cancel set").contains(&job)
@@ -247,9 +254,12 @@ impl Session {
                         width: rect.width,
                         height: rect.height,
                     };
-                    let message = match tracer
-                        .and_then(|t| render::render_tile(&t, rect).map_err(|e| e.to_string()))
-                    {
+                    let rendered = tracer
+                        .and_then(|t| render::render_tile(&t, rect).map_err(|e| e.to_string()));
+                    if let Some(factor) = throttle.filter(|f| *f > 1.0) {
+                        std::thread::sleep(started.elapsed().mul_f64(factor - 1.0));
+                    }
+                    let message = match rendered {
                         Ok(image) => FromWorker::TileDone {
                             job,
                             tile,

@@ -1,0 +1,74 @@
+//! `tessera bench`: the measurements behind docs/performance.md, as one reproducible
+//! command. Each suite writes Markdown, CSV where it helps, and PNG charts.
+
+mod error_table;
+mod farm;
+mod measure;
+mod scaling;
+mod scenes;
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+
+/// Which measurements to make.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Suite {
+    /// Speed against error for every sampling setting on four scenes.
+    Error,
+    /// Time against pixels and objects, farm speed-up, pull against static split.
+    Scaling,
+    /// Both.
+    All,
+}
+
+/// How to run the benchmarks.
+pub struct Options {
+    pub suite: Suite,
+    pub out: PathBuf,
+    pub width: u32,
+    pub height: u32,
+    pub threads: usize,
+    pub reference_aa: u32,
+    /// Each timing repeats until this much time has passed...
+    pub min_time: Duration,
+    /// ...or this many runs.
+    pub max_runs: u32,
+    /// Small images and few settings: a check that everything works, not a measurement.
+    pub quick: bool,
+}
+
+/// Runs the chosen suites.
+pub async fn run(opts: &Options) -> Result<()> {
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("cannot create {}", opts.out.display()))?;
+    if matches!(opts.suite, Suite::Error | Suite::All) {
+        error_table::run(opts, &opts.out)?;
+    }
+    if matches!(opts.suite, Suite::Scaling | Suite::All) {
+        run_scaling(opts).await?;
+    }
+    eprintln!("results in {}", opts.out.display());
+    Ok(())
+}
+
+/// Writes `scaling.md` and `scaling.png`.
+async fn run_scaling(opts: &Options) -> Result<()> {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let pixels = scaling::time_against_pixels(opts)?;
+    let objects = scaling::time_against_objects(opts)?;
+    let max_workers = if opts.quick { 2 } else { (2 * cores).max(4) };
+    let speedup = farm::speedup(opts, max_workers).await?;
+    let split = farm::split(opts, 3.0).await?;
+    let mut md = scaling::curves_markdown(&pixels, &objects);
+    md.push('\n');
+    md.push_str(&farm::speedup_markdown(&speedup, cores, opts));
+    md.push('\n');
+    md.push_str(&farm::split_markdown(&split));
+    std::fs::write(opts.out.join("scaling.md"), md)?;
+    let mut panels = scaling::curves_panels(&pixels, &objects);
+    panels.push(farm::speedup_panel(&speedup));
+    crate::plot::write_png(&opts.out.join("scaling.png"), &panels, 3, (560, 440))?;
+    Ok(())
+}
