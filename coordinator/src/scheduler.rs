@@ -28,7 +28,9 @@
 //! - **Poison tiles.** A tile that fails (an error reported, or its worker dying while
 //!   holding it) is retried on other workers; after [`Policy::max_attempts`] failures
 //!   the job fails with the last error. A worker that fails
-//!   [`Policy::block_after`] tiles of a job gets no more of that job's tiles.
+//!   [`Policy::block_after`] tiles of a job gets no more of that job's tiles. Both
+//!   count per machine (the name a worker gives), so a worker that crashes and comes
+//!   back under the same name is not handed the same tiles again.
 //! - **Scenes once.** A worker is sent a scene before its first tile of it, and only
 //!   then; it may forget the scene once no active job uses it.
 
@@ -91,9 +93,14 @@ pub enum Event {
     Tick {
         now: Millis,
     },
+    /// A worker connected. `machine` is the name it gave, if any: failures and blocks
+    /// are counted per machine, so that a worker that crashes on a job's tiles and
+    /// comes back under the same name (a restarted service) is still kept from them.
+    /// A worker without one is a machine of its own.
     WorkerJoined {
         worker: WorkerId,
         threads: u32,
+        machine: Option<String>,
     },
     /// The worker is alive (any message from it counts as much).
     Heartbeat {
@@ -238,10 +245,10 @@ struct Job {
     deadlines: BTreeSet<(Millis, u32, WorkerId)>,
     remaining: u32,
     /// Failed attempts per tile, and the workers each tile failed on.
-    failures: BTreeMap<u32, (u32, BTreeSet<WorkerId>)>,
-    /// Failures per worker, and the workers blocked from this job.
-    worker_failures: BTreeMap<WorkerId, u32>,
-    blocked: BTreeSet<WorkerId>,
+    failures: BTreeMap<u32, (u32, BTreeSet<Machine>)>,
+    /// Failures per machine, and the machines blocked from this job.
+    worker_failures: BTreeMap<Machine, u32>,
+    blocked: BTreeSet<Machine>,
     /// Holders of tiles already accepted, whose copies are still to come.
     late_copies: BTreeSet<(u32, WorkerId)>,
     /// Measured tile times (assignment to result).
@@ -391,7 +398,7 @@ impl Job {
 
     /// The first waiting tile this worker may take: one that has not failed on it and
     /// that it does not still hold under an expired lease.
-    fn take_waiting_for(&mut self, worker: WorkerId) -> Option<u32> {
+    fn take_waiting_for(&mut self, worker: WorkerId, machine: &Machine) -> Option<u32> {
         if self.queued == 0 {
             // Whatever is left are entries of done tiles.
             self.waiting.clear();
@@ -408,7 +415,7 @@ impl Job {
                 && self
                     .failures
                     .get(t)
-                    .is_none_or(|(_, on)| !on.contains(&worker))
+                    .is_none_or(|(_, on)| !on.contains(machine))
                 && self
                     .in_flight
                     .get(t)
@@ -424,18 +431,26 @@ impl Job {
     /// not this worker, never failed on this worker, out the longest (earliest start
     /// among its leases, then lowest number). The candidates are kept in that order, so
     /// this skips at most the worker's own tiles and the few that failed on it.
-    fn straggler_for(&self, worker: WorkerId) -> Option<u32> {
+    fn straggler_for(&self, worker: WorkerId, machine: &Machine) -> Option<u32> {
         self.stragglers.iter().map(|&(_, t)| t).find(|t| {
             self.in_flight[t].iter().all(|l| l.worker != worker)
                 && self
                     .failures
                     .get(t)
-                    .is_none_or(|(_, on)| !on.contains(&worker))
+                    .is_none_or(|(_, on)| !on.contains(machine))
         })
     }
 }
 
+/// Who failures are counted against: the name a worker gave, or its connection.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Machine {
+    Named(String),
+    Connection(WorkerId),
+}
+
 struct Worker {
+    machine: Machine,
     credit: usize,
     holding: BTreeSet<(JobId, u32)>,
     scenes: BTreeSet<SceneHash>,
@@ -483,10 +498,15 @@ impl Scheduler {
                 self.check_leases();
                 self.fill_all(&mut actions);
             }
-            Event::WorkerJoined { worker, threads } => {
+            Event::WorkerJoined {
+                worker,
+                threads,
+                machine,
+            } => {
                 self.workers.insert(
                     worker,
                     Worker {
+                        machine: machine.map_or(Machine::Connection(worker), Machine::Named),
                         credit: 2 * threads.max(1) as usize,
                         holding: BTreeSet::new(),
                         scenes: BTreeSet::new(),
@@ -541,7 +561,9 @@ impl Scheduler {
                 // Like a result, a failure counts only from a holder of the tile. A
                 // failed copy of a tile already accepted only frees the worker's slot.
                 if self.release(worker, job, tile).is_some() {
-                    self.failed_attempt(worker, job, tile, &message, &mut actions);
+                    let machine = self.workers.get(&worker).map(|w| w.machine.clone());
+                    let machine = machine.unwrap_or(Machine::Connection(worker));
+                    self.failed_attempt(&machine, job, tile, &message, &mut actions);
                 } else if let Some(j) = self.jobs.get_mut(&job) {
                     if j.late_copies.remove(&(tile, worker)) {
                         self.drop_holding(worker, job, tile);
@@ -661,7 +683,7 @@ impl Scheduler {
         for (job, tile) in w.holding {
             if self.release(worker, job, tile).is_some() {
                 self.failed_attempt(
-                    worker,
+                    &w.machine,
                     job,
                     tile,
                     "the worker was lost while rendering it",
@@ -761,7 +783,7 @@ impl Scheduler {
     /// a worker that keeps failing, or fail the job.
     fn failed_attempt(
         &mut self,
-        worker: WorkerId,
+        machine: &Machine,
         job_id: JobId,
         tile: u32,
         message: &str,
@@ -772,12 +794,12 @@ impl Scheduler {
         };
         let (attempts, on) = job.failures.entry(tile).or_default();
         *attempts += 1;
-        on.insert(worker);
+        on.insert(machine.clone());
         let attempts = *attempts;
-        let worker_failures = job.worker_failures.entry(worker).or_default();
+        let worker_failures = job.worker_failures.entry(machine.clone()).or_default();
         *worker_failures += 1;
         if *worker_failures >= self.policy.block_after {
-            job.blocked.insert(worker);
+            job.blocked.insert(machine.clone());
         }
         if attempts >= self.policy.max_attempts {
             let message = format!("tile {tile} failed {attempts} times; last: {message}");
@@ -891,12 +913,13 @@ impl Scheduler {
     /// then fewest tiles in flight, then oldest) it is not blocked from; failing that,
     /// a straggler to duplicate.
     fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
+        let machine = &self.workers.get(&worker)?.machine;
         for &(_, _, id) in &self.order {
             let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
-            if job.blocked.contains(&worker) {
+            if job.blocked.contains(machine) {
                 continue;
             }
-            if let Some(tile) = job.take_waiting_for(worker) {
+            if let Some(tile) = job.take_waiting_for(worker, machine) {
                 return Some((id, tile));
             }
         }
@@ -906,10 +929,10 @@ impl Scheduler {
         let holding = &self.workers.get(&worker)?.holding;
         self.order.iter().find_map(|&(_, _, id)| {
             let job = &self.jobs[&id];
-            if job.blocked.contains(&worker) || job.queued > 0 {
+            if job.blocked.contains(machine) || job.queued > 0 {
                 return None;
             }
-            job.straggler_for(worker)
+            job.straggler_for(worker, machine)
                 .filter(|t| !holding.contains(&(id, *t)))
                 .map(|t| (id, t))
         })
@@ -948,6 +971,42 @@ mod tests {
         })
     }
 
+    /// A worker that crashes on a job's tiles and comes back under the same name (a
+    /// service restarted by its supervisor) is still blocked from that job and never
+    /// gets the tiles it failed on; a worker of another name gets them.
+    #[test]
+    fn blocks_follow_the_machine_name_across_reconnections() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 6);
+        let join = |s: &mut Scheduler, worker: WorkerId, name: &str| {
+            s.handle(Event::WorkerJoined {
+                worker,
+                threads: 1,
+                machine: Some(name.into()),
+            })
+        };
+        // Two lives of "crashy", each lost with its two tiles: 4 failures.
+        let first = join(&mut s, 1, "crashy");
+        assert_eq!(assigns(&first), vec![(1, 1, 0), (1, 1, 1)]);
+        s.handle(Event::WorkerLeft { worker: 1 });
+        let second = join(&mut s, 2, "crashy");
+        assert!(
+            assigns(&second).is_empty(),
+            "blocked after 2 failures: {second:?}"
+        );
+        // A healthy machine gets everything, the failed tiles first.
+        let healthy = join(&mut s, 3, "healthy");
+        assert_eq!(assigns(&healthy), vec![(3, 1, 1), (3, 1, 0)]);
+        // Unnamed workers are each their own machine.
+        s.handle(Event::WorkerLeft { worker: 2 });
+        let anon = s.handle(Event::WorkerJoined {
+            worker: 4,
+            threads: 1,
+            machine: None,
+        });
+        assert_eq!(assigns(&anon), vec![(4, 1, 2), (4, 1, 3)]);
+    }
+
     #[test]
     fn a_worker_holds_its_credit_and_gets_the_next_tile_when_it_returns_one() {
         let mut s = Scheduler::new();
@@ -955,6 +1014,7 @@ mod tests {
         let joined = s.handle(Event::WorkerJoined {
             worker: 7,
             threads: 1,
+            machine: None,
         });
         assert_eq!(joined[0], Action::SendScene { worker: 7, job: 1 });
         assert_eq!(assigns(&joined), vec![(7, 1, 0), (7, 1, 1)]);
@@ -982,10 +1042,12 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
+            machine: None,
         });
         // Tile 0 is worker 1's: worker 2's result for it is dropped.
         let stray = s.handle(Event::TileDone {
@@ -1015,10 +1077,12 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         let joined = s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
+            machine: None,
         });
         assert_eq!(assigns(&joined), vec![(2, 1, 2), (2, 1, 3)]);
         let left = s.handle(Event::WorkerLeft { worker: 1 });
@@ -1043,6 +1107,7 @@ mod tests {
         let joined = s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 2,
+            machine: None,
         });
         // Fewest tiles in flight first: the two jobs alternate.
         assert_eq!(
@@ -1067,6 +1132,7 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         let cancelled = s.handle(Event::CancelJob { job: 1 });
         assert!(cancelled.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
@@ -1087,6 +1153,7 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         s.handle(Event::WorkerDraining { worker: 1 });
         assert!(assigns(&submit(&mut s, 1, 0, SCENE_A, 3)).is_empty());
@@ -1104,6 +1171,7 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         let failed = s.handle(Event::TileFailed {
             worker: 1,
@@ -1116,6 +1184,7 @@ mod tests {
         let joined = s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
+            machine: None,
         });
         assert_eq!(assigns(&joined), vec![(2, 1, 0)]);
         let failed = s.handle(Event::TileFailed {
@@ -1139,10 +1208,12 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
+            machine: None,
         });
         // Both stay alive; worker 1 holds the tile until its lease runs out, and then
         // the tile goes to worker 2.
@@ -1188,10 +1259,12 @@ mod tests {
         s.handle(Event::WorkerJoined {
             worker: 1,
             threads: 1,
+            machine: None,
         });
         let idle = s.handle(Event::WorkerJoined {
             worker: 2,
             threads: 1,
+            machine: None,
         });
         assert_eq!(assigns(&idle), vec![(2, 1, 0)]);
         let first = s.handle(Event::TileDone {

@@ -874,6 +874,7 @@ async fn serve_worker(
         let actions = state.scheduler.handle(Event::WorkerJoined {
             worker: id,
             threads,
+            machine: Some(name.clone()),
         });
         state.apply(&shared, actions);
         id

@@ -247,7 +247,14 @@ impl Farm {
 
     fn join(&mut self, threads: u32) -> (WorkerId, Vec<Action>) {
         let worker = self.next_worker;
-        (worker, self.step(Event::WorkerJoined { worker, threads }))
+        (
+            worker,
+            self.step(Event::WorkerJoined {
+                worker,
+                threads,
+                machine: None,
+            }),
+        )
     }
 
     fn submit(&mut self, priority: i32, scene: SceneHash, tiles: u32) -> (JobId, Vec<Action>) {
@@ -475,7 +482,9 @@ impl Farm {
                     }
                 }
             }
-            Event::WorkerJoined { worker, threads } => {
+            Event::WorkerJoined {
+                worker, threads, ..
+            } => {
                 assert!(!self.workers.contains_key(&worker), "worker ids are fresh");
                 self.next_worker = self.next_worker.max(worker + 1);
                 self.workers.insert(
@@ -1189,6 +1198,7 @@ impl Farm {
             &Op::Join { threads } => Event::WorkerJoined {
                 worker: self.next_worker,
                 threads,
+                machine: None,
             },
             Op::Leave(i) => Event::WorkerLeft {
                 worker: pick(&live, i)?,
@@ -2028,10 +2038,12 @@ fn a_tile_is_not_duplicated_to_a_worker_it_failed_on() {
     s.handle(Event::WorkerJoined {
         worker: 1,
         threads: 1,
+        machine: None,
     });
     let joined = s.handle(Event::WorkerJoined {
         worker: 2,
         threads: 1,
+        machine: None,
     });
     assert_eq!(assigns(&joined), vec![(2, 1, 0)]);
     let failed = s.handle(Event::TileFailed {
@@ -2062,10 +2074,12 @@ fn a_failed_late_copy_frees_the_worker_s_slot() {
     s.handle(Event::WorkerJoined {
         worker: 1,
         threads: 1,
+        machine: None,
     });
     let joined = s.handle(Event::WorkerJoined {
         worker: 2,
         threads: 1,
+        machine: None,
     });
     assert_eq!(assigns(&joined), vec![(2, 1, 0), (2, 1, 1)]);
     let done = s.handle(Event::TileDone {
@@ -2116,7 +2130,9 @@ fn reference_event(event: &Event) -> reference::Event {
     use reference::Event as R;
     match event.clone() {
         Event::Tick { now } => R::Tick { now },
-        Event::WorkerJoined { worker, threads } => R::WorkerJoined { worker, threads },
+        Event::WorkerJoined {
+            worker, threads, ..
+        } => R::WorkerJoined { worker, threads },
         Event::Heartbeat { worker } => R::Heartbeat { worker },
         Event::WorkerLeft { worker } => R::WorkerLeft { worker },
         Event::WorkerDraining { worker } => R::WorkerDraining { worker },
@@ -2479,6 +2495,7 @@ impl Pair {
                 Event::WorkerJoined {
                     worker,
                     threads: *threads,
+                    machine: None,
                 }
             }
             RawOp::Leave(i) => match pick(&live, i) {

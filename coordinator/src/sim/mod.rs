@@ -1037,8 +1037,13 @@ impl<'a> Sim<'a> {
                 self.worker_conn.insert(worker, conn);
                 // `Accepted` goes out before anything the scheduler sends.
                 self.send_down(conn, Down::Welcome);
-                let threads = self.machines[self.conns[conn].machine].threads;
-                let actions = self.sched.handle(Event::WorkerJoined { worker, threads });
+                let machine = self.conns[conn].machine;
+                let threads = self.machines[machine].threads;
+                let actions = self.sched.handle(Event::WorkerJoined {
+                    worker,
+                    threads,
+                    machine: Some(format!("machine-{machine}")),
+                });
                 self.apply(actions, None);
             }
             Up::Heartbeat => {
@@ -1442,6 +1447,7 @@ impl<'a> Sim<'a> {
                 drop(s.handle(Event::WorkerJoined {
                     worker: i as WorkerId + 1,
                     threads,
+                    machine: None,
                 }));
             }
         };
