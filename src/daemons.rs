@@ -1,8 +1,20 @@
 //! `tessera coordinator` and `tessera worker`: the two long-running processes.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
 use anyhow::{Context, Result};
 use coordinator::transport::Endpoint;
-use tracing::info;
+use tracing::{info, warn};
+
+/// Aborts a background task when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
 /// standard input reaches its end because the parent is gone.
@@ -42,6 +54,10 @@ pub async fn coordinator(config: coordinator::Config, exit_on_stdin_eof: bool) -
     // The first line on stdout is the address, for scripts and `tessera up`.
     println!("listening on {addr}");
     info!(%addr, "coordinator listening");
+    if let Some(http) = server.http_addr()? {
+        println!("http on {http}");
+        info!(%http, "status page, metrics and health on http://{http}/");
+    }
     server.run(shutdown_signal(exit_on_stdin_eof)).await
 }
 
@@ -50,17 +66,37 @@ pub async fn worker(
     threads: Option<usize>,
     name: Option<String>,
     throttle: Option<f64>,
+    http: Option<std::net::SocketAddr>,
     exit_on_stdin_eof: bool,
 ) -> Result<()> {
     let threads =
         threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let name = name.unwrap_or_else(default_worker_name);
+    let ready = Arc::new(AtomicBool::new(false));
+    let _health = match http {
+        Some(addr) => {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("cannot listen for HTTP on {addr}"))?;
+            info!(http = %listener.local_addr()?, "health on /healthz and /readyz");
+            let flag = Arc::clone(&ready);
+            let routes =
+                coordinator::http::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
+            Some(AbortOnDrop(tokio::spawn(async move {
+                if let Err(e) = coordinator::http::serve(listener, routes).await {
+                    warn!(error = %e, "the HTTP listener failed");
+                }
+            })))
+        }
+        None => None,
+    };
     worker::run(
         worker::Config {
             coordinator,
             threads,
             name,
             throttle,
+            ready,
         },
         shutdown_signal(exit_on_stdin_eof),
     )

@@ -169,7 +169,15 @@ impl LocalFarm {
     ) -> Result<Child> {
         let log_path = self.dir.path().join(format!("{log}.log"));
         let log_file = std::fs::File::create(&log_path)?;
-        Command::new(exe)
+        let mut command = Command::new(exe);
+        // The farm is this command's own: settings meant for other daemons (a config
+        // file, an HTTP port) must not reach its processes.
+        for (key, _) in std::env::vars_os() {
+            if key.to_string_lossy().starts_with("TESSERA_") {
+                command.env_remove(key);
+            }
+        }
+        command
             .args(args)
             .arg("--exit-on-stdin-eof")
             .stdin(Stdio::piped())

@@ -3,6 +3,7 @@
 
 mod bench;
 mod client_commands;
+mod config;
 mod daemons;
 mod local_farm;
 mod output;
@@ -16,7 +17,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Result};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, CommandFactory, FromArgMatches, Parser, Subcommand, ValueEnum};
 use coordinator::transport::{ClientTls, Endpoint, ServerTls};
 use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
@@ -28,7 +29,12 @@ const DEFAULT_COORDINATOR: &str = "127.0.0.1:7878";
 /// Tessera renders ray-traced images of JSON scenes (spheres, planes, point lights,
 /// mirrors and checkerboards), on this machine or on a farm of workers.
 #[derive(Parser)]
-#[command(name = "tessera", version, propagate_version = true)]
+#[command(
+    name = "tessera",
+    version,
+    propagate_version = true,
+    args_override_self = true
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -270,56 +276,114 @@ struct UpArgs {
     tile: Option<u32>,
 }
 
+/// What both daemons take: where their settings come from, HTTP and logs.
+#[derive(Args)]
+struct DaemonArgs {
+    /// A TOML file of settings: a [coordinator] and a [worker] table whose keys are the
+    /// flags' names. Flags beat environment variables, which beat the file.
+    #[arg(long, value_name = "FILE", env = "TESSERA_CONFIG")]
+    config: Option<PathBuf>,
+    /// Print the effective settings, and where each comes from, then exit.
+    #[arg(long)]
+    print_config: bool,
+    /// Serve HTTP on this address: /healthz and /readyz, and on a coordinator also
+    /// /metrics (Prometheus) and the status page at /.
+    #[arg(long, value_name = "ADDR", env = "TESSERA_HTTP")]
+    http: Option<SocketAddr>,
+    /// How logs on stderr look: text (coloured on a terminal) or json (one object a line).
+    #[arg(
+        long,
+        value_name = "FORMAT",
+        value_enum,
+        default_value = "text",
+        env = "TESSERA_LOG_FORMAT"
+    )]
+    log_format: LogFormat,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
 #[derive(Args)]
 struct CoordinatorArgs {
+    #[command(flatten)]
+    daemon: DaemonArgs,
     /// Address to listen on.
-    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    #[arg(long, env = "TESSERA_LISTEN", value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
     listen: SocketAddr,
     /// Where jobs and images are stored.
-    #[arg(long, value_name = "DIR", default_value = "tessera-data")]
+    #[arg(
+        long,
+        env = "TESSERA_DATA",
+        value_name = "DIR",
+        default_value = "tessera-data"
+    )]
     data: PathBuf,
     /// Largest protocol frame accepted from a peer, in bytes (it bounds the scene a job
     /// may carry).
-    #[arg(long, value_name = "BYTES", default_value_t = protocol::DEFAULT_MAX_FRAME as u64,
+    #[arg(long, env = "TESSERA_MAX_FRAME", value_name = "BYTES", default_value_t = protocol::DEFAULT_MAX_FRAME as u64,
           value_parser = clap::value_parser!(u64).range(2 * 1024 * 1024..=protocol::MAX_FRAME_LIMIT as u64))]
     max_frame: u64,
     /// Connections served at once; more are refused with a message.
-    #[arg(long, value_name = "N", default_value_t = coordinator::server::DEFAULT_MAX_CONNECTIONS as u32,
+    #[arg(long, env = "TESSERA_MAX_CONNECTIONS", value_name = "N", default_value_t = coordinator::server::DEFAULT_MAX_CONNECTIONS as u32,
           value_parser = clap::value_parser!(u32).range(1..=65_536))]
     max_connections: u32,
     /// Largest scene a job may carry, in bytes.
-    #[arg(long, value_name = "BYTES", default_value_t = 8 * 1024 * 1024)]
+    #[arg(long, env = "TESSERA_MAX_SCENE_BYTES", value_name = "BYTES", default_value_t = 8 * 1024 * 1024)]
     max_scene_bytes: u64,
     /// Most objects a scene may have.
-    #[arg(long, value_name = "N", default_value_t = 100_000)]
+    #[arg(
+        long,
+        env = "TESSERA_MAX_OBJECTS",
+        value_name = "N",
+        default_value_t = 100_000
+    )]
     max_objects: u64,
     /// Most pixels an image may have.
-    #[arg(long, value_name = "N", default_value_t = 8192 * 8192)]
+    #[arg(long, env = "TESSERA_MAX_PIXELS", value_name = "N", default_value_t = 8192 * 8192)]
     max_pixels: u64,
     /// Largest antialiasing a job may ask for.
-    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
+    #[arg(long, env = "TESSERA_MAX_AA", value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
     max_aa: u32,
     /// Most jobs queued or running per client address.
-    #[arg(long, value_name = "N", default_value_t = 64)]
+    #[arg(
+        long,
+        env = "TESSERA_MAX_JOBS_PER_CLIENT",
+        value_name = "N",
+        default_value_t = 64
+    )]
     max_jobs_per_client: u64,
     #[command(flatten)]
     secret: SecretArgs,
     /// PEM certificate chain: serve TLS with it (needs --tls-key).
-    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    #[arg(
+        long,
+        env = "TESSERA_TLS_CERT",
+        value_name = "FILE",
+        requires = "tls_key"
+    )]
     tls_cert: Option<PathBuf>,
     /// PEM private key of --tls-cert.
-    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    #[arg(
+        long,
+        env = "TESSERA_TLS_KEY",
+        value_name = "FILE",
+        requires = "tls_cert"
+    )]
     tls_key: Option<PathBuf>,
     /// Milliseconds without a heartbeat after which a worker counts as lost and its
     /// tiles go to others.
-    #[arg(long, value_name = "MS", default_value_t = coordinator::scheduler::Policy::default().heartbeat_timeout,
+    #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = coordinator::scheduler::Policy::default().heartbeat_timeout,
           value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
     heartbeat_timeout_ms: u64,
     /// Accept peers without a token on a non-loopback address.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_INSECURE")]
     insecure: bool,
     /// Milliseconds a peer has to complete its handshake.
-    #[arg(long, value_name = "MS", default_value_t = coordinator::server::DEFAULT_HANDSHAKE_TIMEOUT.as_millis() as u64,
+    #[arg(long, env = "TESSERA_HANDSHAKE_TIMEOUT_MS", value_name = "MS", default_value_t = coordinator::server::DEFAULT_HANDSHAKE_TIMEOUT.as_millis() as u64,
           value_parser = clap::value_parser!(u64).range(100..=600_000))]
     handshake_timeout_ms: u64,
     /// Exit when standard input closes (used by `tessera up` for its children).
@@ -330,12 +394,14 @@ struct CoordinatorArgs {
 #[derive(Args)]
 struct WorkerArgs {
     #[command(flatten)]
+    daemon: DaemonArgs,
+    #[command(flatten)]
     peer: PeerArgs,
     /// Rendering threads [default: one per core].
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    #[arg(long, env = "TESSERA_THREADS", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
     /// Name shown by `tessera workers` [default: HOST-PID].
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_NAME")]
     name: Option<String>,
     /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
     #[arg(long, hide = true, value_name = "FACTOR")]
@@ -381,17 +447,22 @@ struct ClientArgs {
 #[derive(Args)]
 struct PeerArgs {
     /// The coordinator's address.
-    #[arg(long, value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    #[arg(long, env = "TESSERA_COORDINATOR", value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
     coordinator: String,
     #[command(flatten)]
     secret: SecretArgs,
     /// Speak TLS, trusting the certificates in this PEM file (the coordinator's own
     /// certificate or the CA that signed it).
-    #[arg(long, value_name = "FILE")]
+    #[arg(long, env = "TESSERA_TLS_CA", value_name = "FILE")]
     tls_ca: Option<PathBuf>,
     /// The name the coordinator's certificate must carry [default: the host of
     /// --coordinator].
-    #[arg(long, value_name = "NAME", requires = "tls_ca")]
+    #[arg(
+        long,
+        env = "TESSERA_TLS_SERVER_NAME",
+        value_name = "NAME",
+        requires = "tls_ca"
+    )]
     tls_server_name: Option<String>,
 }
 
@@ -413,7 +484,7 @@ impl PeerArgs {
 #[derive(Args)]
 struct SecretArgs {
     /// File holding the farm's shared secret [or set TESSERA_TOKEN to the secret itself].
-    #[arg(long, value_name = "FILE")]
+    #[arg(long, env = "TESSERA_TOKEN_FILE", value_name = "FILE")]
     token_file: Option<PathBuf>,
 }
 
@@ -479,8 +550,27 @@ impl ImageArgs {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    match run(cli.command) {
+    let cli = Cli::command();
+    let expanded = match config::expand(std::env::args_os().collect(), &cli) {
+        Ok(expanded) => expanded,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let matches = cli.clone().get_matches_from(expanded.args);
+    let parsed = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    if let Some((name, sub)) = matches.subcommand() {
+        if config::SECTIONS.contains(&name) && sub.get_flag("print_config") {
+            let command = cli.find_subcommand(name).expect("parsed subcommands exist");
+            print!(
+                "{}",
+                config::describe(name, command, sub, &expanded.from_file)
+            );
+            return ExitCode::SUCCESS;
+        }
+    }
+    match run(parsed.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
@@ -515,9 +605,10 @@ fn run(command: Command) -> Result<()> {
             threads: a.threads,
         });
     }
-    let daemon = matches!(command, Command::Coordinator(_) | Command::Worker(_));
-    if daemon {
-        init_logging();
+    match &command {
+        Command::Coordinator(a) => init_logging(a.daemon.log_format),
+        Command::Worker(a) => init_logging(a.daemon.log_format),
+        _ => {}
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async move {
@@ -575,6 +666,7 @@ fn run(command: Command) -> Result<()> {
                         max_aa: a.max_aa,
                         max_active_per_client: a.max_jobs_per_client as usize,
                     },
+                    http: a.daemon.http,
                 };
                 if !a.listen.ip().is_loopback() && config.secret.is_none() && !a.insecure {
                     anyhow::bail!(
@@ -592,6 +684,7 @@ fn run(command: Command) -> Result<()> {
                     a.threads.map(|n| n as usize),
                     a.name,
                     a.throttle,
+                    a.daemon.http,
                     a.exit_on_stdin_eof,
                 )
                 .await
@@ -629,14 +722,19 @@ fn run(command: Command) -> Result<()> {
     })
 }
 
-/// Logs of the daemons go to stderr: readable text, filtered by `RUST_LOG` (default
-/// `info`).
-fn init_logging() {
+/// Logs of the daemons go to stderr, filtered by `RUST_LOG` (default `info`): readable
+/// text, or one JSON object a line whose fields (`job`, `tile`, `worker`, ...) are
+/// top-level keys, for log collectors.
+fn init_logging(format: LogFormat) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    tracing_subscriber::fmt()
+    let logs = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
+        .with_writer(std::io::stderr);
+    match format {
+        LogFormat::Text => logs
+            .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+            .init(),
+        LogFormat::Json => logs.json().flatten_event(true).init(),
+    }
 }

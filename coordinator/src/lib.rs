@@ -7,6 +7,8 @@
 
 pub mod client;
 mod db;
+pub mod http;
+mod metrics;
 pub mod scheduler;
 pub mod server;
 pub mod sim;

@@ -288,14 +288,16 @@ impl Job {
     }
 
     /// Puts a tile that is not done back at the head of the queue, unless it waits
-    /// already.
-    fn requeue(&mut self, tile: u32) {
+    /// already. Returns whether it was put back.
+    fn requeue(&mut self, tile: u32) -> bool {
         debug_assert_ne!(self.state[tile as usize], TileState::Done);
-        if !self.is_waiting(tile) {
-            self.waiting.push_front(tile);
-            self.state[tile as usize] = TileState::Waiting;
-            self.queued += 1;
+        if self.is_waiting(tile) {
+            return false;
         }
+        self.waiting.push_front(tile);
+        self.state[tile as usize] = TileState::Waiting;
+        self.queued += 1;
+        true
     }
 
     fn live_leases(&self, tile: u32) -> usize {
@@ -364,7 +366,9 @@ impl Job {
 
     /// Marks the leases whose deadline has come as run out, and puts back in the queue
     /// (in increasing tile order, each at the head) the tiles left with no live lease.
-    fn expire_leases(&mut self, now: Millis) {
+    /// Marks the leases due by `now` expired and requeues the tiles all of whose leases
+    /// ran out; counts both.
+    fn expire_leases(&mut self, now: Millis, counters: &mut Counters) {
         let mut due = Vec::new();
         while let Some(&(deadline, tile, _)) = self.deadlines.first() {
             if deadline > now {
@@ -386,12 +390,13 @@ impl Job {
                 .filter(|l| !l.expired && l.deadline <= now)
             {
                 lease.expired = true;
+                counters.leases_expired += 1;
             }
             let all_expired = leases.iter().all(|l| l.expired);
             let after = straggler_key(leases);
             self.restraggle(tile, before, after);
-            if all_expired {
-                self.requeue(tile);
+            if all_expired && self.requeue(tile) {
+                counters.tiles_requeued += 1;
             }
         }
     }
@@ -473,6 +478,19 @@ pub struct Scheduler {
     /// full, and anything that frees a slot puts it back. Filling everyone visits only
     /// these, in id order.
     hungry: BTreeSet<WorkerId>,
+    counters: Counters,
+}
+
+/// What the scheduler has done since it started, for monitoring.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Counters {
+    /// Leases that ran out before their tile came back.
+    pub leases_expired: u64,
+    /// Tiles put back in the queue to be rendered again: their leases ran out, their
+    /// worker was lost, or they failed.
+    pub tiles_requeued: u64,
+    /// Workers dropped for missing their heartbeats.
+    pub workers_dropped: u64,
 }
 
 impl Scheduler {
@@ -613,6 +631,11 @@ impl Scheduler {
         actions
     }
 
+    /// What the scheduler has done so far.
+    pub fn counters(&self) -> Counters {
+        self.counters
+    }
+
     /// Tiles in flight on all workers (for a graceful shutdown).
     pub fn tiles_in_flight(&self) -> usize {
         self.workers.values().map(|w| w.holding.len()).sum()
@@ -704,6 +727,7 @@ impl Scheduler {
             .map(|(id, _)| *id)
             .collect();
         for worker in silent {
+            self.counters.workers_dropped += 1;
             actions.push(Action::DropWorker { worker });
             self.remove_worker(worker, actions);
         }
@@ -713,7 +737,7 @@ impl Scheduler {
     fn check_leases(&mut self) {
         let now = self.now;
         for job in self.jobs.values_mut() {
-            job.expire_leases(now);
+            job.expire_leases(now, &mut self.counters);
         }
     }
 
@@ -808,8 +832,8 @@ impl Scheduler {
                 job: job_id,
                 message,
             });
-        } else if job.live_leases(tile) == 0 {
-            job.requeue(tile);
+        } else if job.live_leases(tile) == 0 && job.requeue(tile) {
+            self.counters.tiles_requeued += 1;
         }
     }
 
@@ -1227,6 +1251,12 @@ mod tests {
             }
         }
         assert_eq!(assigns(&expired), vec![(2, 1, 0)]);
+        let counted = Counters {
+            leases_expired: 1,
+            tiles_requeued: 1,
+            workers_dropped: 0,
+        };
+        assert_eq!(s.counters(), counted);
         // Worker 1 falls silent and is dropped at the first tick past the timeout;
         // worker 2 keeps the tile.
         let mut now = policy.initial_lease;
@@ -1239,6 +1269,14 @@ mod tests {
             }
         };
         assert_eq!(dropped, vec![Action::DropWorker { worker: 1 }]);
+        // Its lease had run out already: dropping it requeues nothing more.
+        assert_eq!(
+            s.counters(),
+            Counters {
+                workers_dropped: 1,
+                ..counted
+            }
+        );
         // Its last heartbeat arrived when the clock read initial_lease - 1 s.
         assert_eq!(
             now,

@@ -27,6 +27,7 @@ use tokio_util::codec::{Framed, LengthDelimitedCodec};
 use tracing::{error, info, warn};
 
 use crate::db::{Db, StoredJob, TileWrite, Totals};
+use crate::metrics::Metrics;
 use crate::scheduler::{Action, Event, Policy, Scheduler};
 use crate::store::{JobMetadata, Store};
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
@@ -80,6 +81,10 @@ pub const DEFAULT_HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Bytes of PNG per `ImageChunk`.
 const CHUNK: usize = 1024 * 1024;
 
+mod observer;
+
+pub use observer::{FarmView, JobView, Observer, Picture, WorkerView};
+
 /// A `Watch` reports progress at most this often...
 const WATCH_MIN_INTERVAL: Duration = Duration::from_millis(50);
 /// ...and answers after this long even without progress.
@@ -103,6 +108,8 @@ pub struct Config {
     /// Heartbeat timeout, leases, retries and speculation.
     pub policy: Policy,
     pub limits: JobLimits,
+    /// Serve health, metrics and the status page over HTTP on this address, if set.
+    pub http: Option<SocketAddr>,
 }
 
 impl Config {
@@ -117,6 +124,7 @@ impl Config {
             tls: None,
             policy: Policy::default(),
             limits: JobLimits::default(),
+            http: None,
         }
     }
 }
@@ -125,6 +133,8 @@ impl Config {
 pub struct Server {
     /// Taken (closed) when the server shuts down, so new peers are refused at once.
     listener: Option<TcpListener>,
+    /// The HTTP listener, with `--http`.
+    http: Option<TcpListener>,
     /// One permit per open connection.
     connections: Arc<tokio::sync::Semaphore>,
     shared: Arc<Shared>,
@@ -148,6 +158,7 @@ struct Shared {
     max_frame: usize,
     /// Bumped whenever a job progresses or changes state, to wake `Watch`es.
     changes: tokio::sync::watch::Sender<u64>,
+    metrics: Metrics,
 }
 
 impl Shared {
@@ -277,6 +288,8 @@ struct WorkerRecord {
     connected: Instant,
     tiles_done: u64,
     rays: u64,
+    /// When each tile it holds was handed to it, for the latency metric.
+    assigned: std::collections::HashMap<(JobId, u32), Instant>,
 }
 
 /// A failure that has ended a connection, to be logged.
@@ -291,6 +304,14 @@ impl Server {
         let listener = TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
+        let http = match config.http {
+            Some(addr) => Some(
+                TcpListener::bind(addr)
+                    .await
+                    .with_context(|| format!("cannot listen for HTTP on {addr}"))?,
+            ),
+            None => None,
+        };
         let (tx, rx) = std::sync::mpsc::channel();
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
@@ -311,6 +332,7 @@ impl Server {
             tls: config.tls.clone(),
             limits: config.limits,
             changes: tokio::sync::watch::channel(0).0,
+            metrics: Metrics::new(),
         });
         let recorder = Arc::downgrade(&shared);
         let writer = std::thread::Builder::new()
@@ -320,6 +342,7 @@ impl Server {
         restore(&shared)?;
         Ok(Server {
             listener: Some(listener),
+            http,
             connections: Arc::new(tokio::sync::Semaphore::new(config.max_connections)),
             shared,
             writer: Some(writer),
@@ -335,11 +358,36 @@ impl Server {
             .local_addr()?)
     }
 
+    /// The HTTP address actually bound, with `--http`.
+    pub fn http_addr(&self) -> Result<Option<SocketAddr>> {
+        Ok(self
+            .http
+            .as_ref()
+            .map(TcpListener::local_addr)
+            .transpose()?)
+    }
+
+    /// A read-only view of the coordinator, for its HTTP endpoints.
+    pub fn observer(&self) -> Observer {
+        Observer {
+            shared: Arc::clone(&self.shared),
+        }
+    }
+
     /// Serves connections until `shutdown` completes.
     pub async fn run(mut self, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
         tokio::pin!(shutdown);
         let ticker = tokio::spawn(tick(Arc::clone(&self.shared)));
         let _stop_ticking = AbortOnDrop(ticker);
+        // The HTTP side stays up through the graceful shutdown (readiness says so).
+        let _stop_http = self.http.take().map(|listener| {
+            let routes = crate::http::coordinator_routes(self.observer());
+            AbortOnDrop(tokio::spawn(async move {
+                if let Err(e) = crate::http::serve(listener, routes).await {
+                    error!(error = %e, "the HTTP listener failed");
+                }
+            }))
+        });
         loop {
             tokio::select! {
                 accepted = self.listener.as_ref().expect("bound until shutdown").accept() => {
@@ -507,6 +555,8 @@ async fn tick(shared: Arc<Shared>) {
         if !actions.is_empty() {
             state.apply(&shared, actions);
         }
+        drop(state);
+        shared.metrics.sample_rate(Instant::now());
     }
 }
 
@@ -869,6 +919,7 @@ async fn serve_worker(
                 connected: Instant::now(),
                 tiles_done: 0,
                 rays: 0,
+                assigned: std::collections::HashMap::new(),
             },
         );
         let actions = state.scheduler.handle(Event::WorkerJoined {
@@ -1091,6 +1142,11 @@ impl State {
                     );
                 }
                 let actions = self.scheduler.handle(Event::TileDone { worker, job, tile });
+                let latency = self
+                    .workers
+                    .get_mut(&worker)
+                    .and_then(|w| w.assigned.remove(&(job, tile)))
+                    .map(|at| at.elapsed());
                 for action in &actions {
                     match *action {
                         Action::AcceptTile { job, tile } => self.accept_tile(
@@ -1103,6 +1159,7 @@ impl State {
                                 rays,
                                 samples,
                                 error_sq_sum,
+                                latency,
                             },
                         ),
                         Action::DuplicateResult { job, tile } => {
@@ -1115,6 +1172,9 @@ impl State {
             }
             FromWorker::TileFailed { job, tile, message } => {
                 warn!(worker, job, tile, %message, "tile failed");
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    w.assigned.remove(&(job, tile));
+                }
                 let message = format!("tile {tile} failed on a worker: {message}");
                 let actions = self.scheduler.handle(Event::TileFailed {
                     worker,
@@ -1171,6 +1231,7 @@ impl State {
         cost: Cost,
     ) {
         let rays = cost.rays;
+        shared.metrics.tile_accepted(rays, cost.latency);
         let name = self.workers.get_mut(&worker).map(|w| {
             w.tiles_done += 1;
             w.rays += rays;
@@ -1254,9 +1315,15 @@ impl State {
                     rect: record.tiles[tile as usize],
                 };
                 send(&self.workers, worker, message);
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    w.assigned.insert((job, tile), Instant::now());
+                }
             }
             Action::CancelOnWorker { worker, job } => {
-                send(&self.workers, worker, ToWorker::Cancel { job })
+                send(&self.workers, worker, ToWorker::Cancel { job });
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    w.assigned.retain(|(j, _), _| *j != job);
+                }
             }
             Action::ForgetScene { worker, scene } => {
                 send(&self.workers, worker, ToWorker::ForgetScene { hash: scene })
@@ -1358,11 +1425,13 @@ impl State {
     }
 }
 
-/// What a worker reports a tile cost.
+/// What a worker reports a tile cost, and how long it took to come back.
 struct Cost {
     rays: u64,
     samples: u64,
     error_sq_sum: f64,
+    /// From assignment to result, if the assignment was seen.
+    latency: Option<Duration>,
 }
 
 fn rect_pixels(r: TileRect) -> u64 {

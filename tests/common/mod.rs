@@ -444,3 +444,20 @@ impl Drop for Serial {
         );
     }
 }
+
+/// `GET PATH` from the HTTP listener at `addr` (HTTP/1.0, so the server closes when
+/// done): the status code and the body. `None` if nothing answers.
+pub fn http_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
+    use std::io::Write;
+    let mut stream = std::net::TcpStream::connect(addr).ok()?;
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .ok()?;
+    write!(stream, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).ok()?;
+    let head_end = response.windows(4).position(|w| w == b"\r\n\r\n")?;
+    let head = String::from_utf8_lossy(&response[..head_end]);
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    Some((status, response[head_end + 4..].to_vec()))
+}

@@ -44,6 +44,9 @@ pub struct Config {
     /// the difference), to stand for a slower machine in benchmarks of uneven farms.
     /// `None` or 1 renders at full speed; the pixels are the same either way.
     pub throttle: Option<f64>,
+    /// Set while the worker is connected to a coordinator and taking tiles (its
+    /// readiness, for supervisors); cleared while it reconnects or drains.
+    pub ready: Arc<AtomicBool>,
 }
 
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
@@ -76,7 +79,10 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     in_flight: 0,
                     throttle: config.throttle,
                 };
-                match session.run(&mut shutdown).await {
+                config.ready.store(true, Ordering::Relaxed);
+                let outcome = session.run(&mut shutdown, &config.ready).await;
+                config.ready.store(false, Ordering::Relaxed);
+                match outcome {
                     Ok(()) => return Ok(()),
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
@@ -171,6 +177,7 @@ impl Session {
     async fn run<F: std::future::Future<Output = ()>>(
         mut self,
         shutdown: &mut std::pin::Pin<&mut F>,
+        ready: &AtomicBool,
     ) -> Result<()> {
         let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Rendered>();
         let mut draining = false;
@@ -213,6 +220,7 @@ impl Session {
                 () = shutdown.as_mut(), if !draining => {
                     info!(in_flight = self.in_flight, "shutting down: finishing the tiles held");
                     draining = true;
+                    ready.store(false, Ordering::Relaxed);
                     self.conn.send(FromWorker::Draining).await?;
                 }
             }

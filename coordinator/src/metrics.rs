@@ -1,0 +1,249 @@
+//! The coordinator's Prometheus metrics (all named `tessera_…`).
+//!
+//! Events the daemon sees one by one (a tile accepted, its latency) are counted as
+//! they happen; what is a state (jobs by state, workers connected) or is already
+//! counted by the scheduler (leases expired, tiles requeued) is read at each scrape,
+//! so the two can never disagree.
+
+use std::collections::VecDeque;
+use std::sync::atomic::AtomicU64;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::Registry;
+use protocol::JobState;
+
+use crate::scheduler::Counters;
+
+/// Rays per second are averaged over this window.
+const RATE_WINDOW: Duration = Duration::from_secs(10);
+
+/// The state of the farm at a scrape.
+pub struct Snapshot {
+    /// Jobs known to the coordinator, by state.
+    pub jobs: Vec<(JobState, i64)>,
+    pub workers: i64,
+    pub tiles_in_flight: i64,
+    pub scheduler: Counters,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StateLabel {
+    state: String,
+}
+
+pub struct Metrics {
+    registry: Registry,
+    jobs: Family<StateLabel, Gauge>,
+    workers: Gauge,
+    tiles_in_flight: Gauge,
+    tiles_rendered: Counter,
+    rays: Counter,
+    tile_latency: Histogram,
+    leases_expired: Counter,
+    tiles_reassigned: Counter,
+    workers_dropped: Counter,
+    rays_per_second: Gauge<f64, AtomicU64>,
+    /// What the scheduler's counters were at the last scrape.
+    synced: Mutex<Counters>,
+    /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
+    rate: Mutex<VecDeque<(Instant, u64)>>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Self {
+        let mut registry = Registry::with_prefix("tessera");
+        let jobs = Family::<StateLabel, Gauge>::default();
+        registry.register(
+            "jobs",
+            "Jobs known to the coordinator, by state",
+            jobs.clone(),
+        );
+        let workers = Gauge::default();
+        registry.register("workers_connected", "Workers connected", workers.clone());
+        let tiles_in_flight = Gauge::default();
+        registry.register(
+            "tiles_in_flight",
+            "Tiles handed to workers and not yet returned",
+            tiles_in_flight.clone(),
+        );
+        let tiles_rendered = Counter::default();
+        registry.register(
+            "tiles_rendered",
+            "Tiles rendered and accepted (first results only)",
+            tiles_rendered.clone(),
+        );
+        let rays = Counter::default();
+        registry.register("rays", "Rays traced for accepted tiles", rays.clone());
+        // 1 ms to about 65 s.
+        let tile_latency = Histogram::new(exponential_buckets(0.001, 2.0, 17));
+        registry.register(
+            "tile_latency_seconds",
+            "Time from handing a tile to a worker to receiving its result",
+            tile_latency.clone(),
+        );
+        let leases_expired = Counter::default();
+        registry.register(
+            "leases_expired",
+            "Tile leases that ran out before the tile came back",
+            leases_expired.clone(),
+        );
+        let tiles_reassigned = Counter::default();
+        registry.register(
+            "tiles_reassigned",
+            "Tiles put back in the queue to be rendered by another worker (lease expired, \
+             worker lost, tile failed)",
+            tiles_reassigned.clone(),
+        );
+        let workers_dropped = Counter::default();
+        registry.register(
+            "workers_dropped",
+            "Workers dropped for missing their heartbeats",
+            workers_dropped.clone(),
+        );
+        let rays_per_second = Gauge::<f64, AtomicU64>::default();
+        registry.register(
+            "rays_per_second",
+            "Rays per second over the last 10 seconds",
+            rays_per_second.clone(),
+        );
+        Metrics {
+            registry,
+            jobs,
+            workers,
+            tiles_in_flight,
+            tiles_rendered,
+            rays,
+            tile_latency,
+            leases_expired,
+            tiles_reassigned,
+            workers_dropped,
+            rays_per_second,
+            synced: Mutex::new(Counters::default()),
+            rate: Mutex::new(VecDeque::new()),
+        }
+    }
+
+    /// Counts an accepted tile that took `latency` from assignment to result.
+    pub fn tile_accepted(&self, rays: u64, latency: Option<Duration>) {
+        self.tiles_rendered.inc();
+        self.rays.inc_by(rays);
+        if let Some(latency) = latency {
+            self.tile_latency.observe(latency.as_secs_f64());
+        }
+    }
+
+    /// Takes a sample of the ray count for the rate (called on the daemon's tick).
+    pub fn sample_rate(&self, now: Instant) {
+        let mut rate = self.rate.lock().expect("rate lock");
+        rate.push_back((now, self.rays.get()));
+        while rate
+            .front()
+            .is_some_and(|(t, _)| now.duration_since(*t) > RATE_WINDOW)
+        {
+            rate.pop_front();
+        }
+        if let (Some(&(t0, r0)), Some(&(t1, r1))) = (rate.front(), rate.back()) {
+            let seconds = t1.duration_since(t0).as_secs_f64();
+            let per_second = if seconds > 0.0 {
+                (r1 - r0) as f64 / seconds
+            } else {
+                0.0
+            };
+            self.rays_per_second.set(per_second);
+        }
+    }
+
+    /// The metrics in the text exposition format, with the state of `snapshot`.
+    pub fn render(&self, snapshot: &Snapshot) -> String {
+        for (state, n) in &snapshot.jobs {
+            self.jobs
+                .get_or_create(&StateLabel {
+                    state: state.as_str().to_owned(),
+                })
+                .set(*n);
+        }
+        self.workers.set(snapshot.workers);
+        self.tiles_in_flight.set(snapshot.tiles_in_flight);
+        {
+            let mut synced = self.synced.lock().expect("metrics lock");
+            let now = snapshot.scheduler;
+            self.leases_expired
+                .inc_by(now.leases_expired.saturating_sub(synced.leases_expired));
+            self.tiles_reassigned
+                .inc_by(now.tiles_requeued.saturating_sub(synced.tiles_requeued));
+            self.workers_dropped
+                .inc_by(now.workers_dropped.saturating_sub(synced.workers_dropped));
+            *synced = now;
+        }
+        let mut out = String::new();
+        prometheus_client::encoding::text::encode(&mut out, &self.registry)
+            .expect("writing to a String cannot fail");
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_exposition_names_every_metric_and_follows_the_scheduler() {
+        let m = Metrics::new();
+        m.tile_accepted(1000, Some(Duration::from_millis(20)));
+        let mut snapshot = Snapshot {
+            jobs: vec![(JobState::Running, 1), (JobState::Done, 2)],
+            workers: 3,
+            tiles_in_flight: 4,
+            scheduler: Counters {
+                leases_expired: 5,
+                tiles_requeued: 6,
+                workers_dropped: 7,
+            },
+        };
+        let text = m.render(&snapshot);
+        for line in [
+            "tessera_jobs{state=\"running\"} 1",
+            "tessera_jobs{state=\"done\"} 2",
+            "tessera_workers_connected 3",
+            "tessera_tiles_in_flight 4",
+            "tessera_tiles_rendered_total 1",
+            "tessera_rays_total 1000",
+            "tessera_tile_latency_seconds_count 1",
+            "tessera_leases_expired_total 5",
+            "tessera_tiles_reassigned_total 6",
+            "tessera_workers_dropped_total 7",
+        ] {
+            assert!(text.lines().any(|l| l == line), "{line} missing in\n{text}");
+        }
+        // Counters follow the scheduler's totals, not add them up again.
+        snapshot.scheduler.leases_expired = 8;
+        let text = m.render(&snapshot);
+        assert!(text.contains("tessera_leases_expired_total 8\n"), "{text}");
+        assert!(
+            text.contains("tessera_tiles_reassigned_total 6\n"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn rays_per_second_come_from_the_window() {
+        let m = Metrics::new();
+        let t0 = Instant::now();
+        m.sample_rate(t0);
+        m.tile_accepted(5000, None);
+        m.sample_rate(t0 + Duration::from_secs(2));
+        assert_eq!(m.rays_per_second.get(), 2500.0);
+    }
+}

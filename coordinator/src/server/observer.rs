@@ -1,0 +1,209 @@
+//! A read-only view of a running coordinator for its HTTP endpoints: the farm's state,
+//! previews of images being assembled, finished images and metrics.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use protocol::{JobId, JobState};
+use serde::Serialize;
+
+use super::{Shared, State};
+use crate::metrics::Snapshot;
+
+/// Previews are at most this many pixels on their longer side.
+const PREVIEW_SIDE: u32 = 1024;
+
+/// Looks at a coordinator without changing it. Cheap to clone.
+#[derive(Clone)]
+pub struct Observer {
+    pub(super) shared: Arc<Shared>,
+}
+
+/// The farm as the status page shows it.
+#[derive(Serialize)]
+pub struct FarmView {
+    /// Whether the coordinator takes new jobs (false while it shuts down).
+    pub accepting: bool,
+    pub jobs: Vec<JobView>,
+    pub workers: Vec<WorkerView>,
+}
+
+#[derive(Serialize)]
+pub struct JobView {
+    pub id: JobId,
+    pub state: &'static str,
+    pub width: u32,
+    pub height: u32,
+    pub aa: u32,
+    pub sampler: &'static str,
+    pub priority: i32,
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+    pub rays: u64,
+    pub elapsed_ms: u64,
+    pub eta_ms: Option<u64>,
+    pub samples_per_pixel: f64,
+    pub estimated_error: Option<f64>,
+    pub error: Option<String>,
+}
+
+#[derive(Serialize)]
+pub struct WorkerView {
+    pub id: u64,
+    pub name: String,
+    pub threads: u32,
+    pub tiles_in_flight: u32,
+    pub tiles_done: u64,
+    pub rays_per_second: f64,
+    pub connected_ms: u64,
+}
+
+/// An image for the page.
+pub enum Picture {
+    /// The final image, as stored.
+    Final(Arc<Vec<u8>>),
+    /// A downscaled copy of the tiles received so far (the rest black).
+    Preview(Vec<u8>),
+}
+
+impl Observer {
+    /// Whether the coordinator takes new jobs.
+    pub fn accepting(&self) -> bool {
+        !self.shared.closing.load(Ordering::SeqCst)
+    }
+
+    pub fn farm(&self) -> FarmView {
+        let state = self.shared.state.lock().expect("state lock");
+        let jobs = state
+            .jobs
+            .iter()
+            .map(|(&id, record)| {
+                let s = record.status(id);
+                let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
+                JobView {
+                    id,
+                    state: s.state.as_str(),
+                    width: s.settings.width,
+                    height: s.settings.height,
+                    aa: s.settings.aa,
+                    sampler: s.settings.sampling.name(),
+                    priority: s.priority,
+                    tiles_done: s.tiles_done,
+                    tiles_total: s.tiles_total,
+                    rays: s.rays,
+                    elapsed_ms: s.elapsed_ms,
+                    eta_ms: s.eta_ms,
+                    samples_per_pixel: s.samples as f64 / pixels.max(1) as f64,
+                    estimated_error: s.estimated_error,
+                    error: s.error,
+                }
+            })
+            .collect();
+        let workers = state
+            .workers
+            .iter()
+            .map(|(&id, w)| {
+                let s = w.status(id, state.scheduler.held_by(id));
+                WorkerView {
+                    id: s.id,
+                    name: s.name,
+                    threads: s.threads,
+                    tiles_in_flight: s.tiles_in_flight,
+                    tiles_done: s.tiles_done,
+                    rays_per_second: s.rays_per_second,
+                    connected_ms: s.connected_ms,
+                }
+            })
+            .collect();
+        FarmView {
+            accepting: self.accepting(),
+            jobs,
+            workers,
+        }
+    }
+
+    /// The job's picture: its stored image once done, else a preview of the tiles in
+    /// so far; `None` for an unknown job or one that ended without an image.
+    pub fn picture(&self, job: JobId) -> Option<Picture> {
+        let mut state = self.shared.state.lock().expect("state lock");
+        let record = state.jobs.get_mut(&job)?;
+        if record.state == JobState::Done {
+            if record.png.is_none() {
+                // Stored before a restart: read once from the data directory.
+                record.png = Some(Arc::new(self.shared.store.read_image(job).ok()?));
+            }
+            return record.png.clone().map(Picture::Final);
+        }
+        // Downscale under the lock (a bounded amount of work), encode outside it.
+        let preview = downscale(record.image.as_ref()?, PREVIEW_SIDE);
+        drop(state);
+        Some(Picture::Preview(preview.to_png()))
+    }
+
+    /// The Prometheus exposition.
+    pub fn metrics(&self) -> String {
+        let snapshot = snapshot(&self.shared.state.lock().expect("state lock"));
+        self.shared.metrics.render(&snapshot)
+    }
+}
+
+fn snapshot(state: &State) -> Snapshot {
+    let all = [
+        JobState::Queued,
+        JobState::Running,
+        JobState::Done,
+        JobState::Failed,
+        JobState::Cancelled,
+    ];
+    Snapshot {
+        jobs: all
+            .iter()
+            .map(|&s| {
+                (
+                    s,
+                    state.jobs.values().filter(|j| j.state == s).count() as i64,
+                )
+            })
+            .collect(),
+        workers: state.workers.len() as i64,
+        tiles_in_flight: state.scheduler.tiles_in_flight() as i64,
+        scheduler: state.scheduler.counters(),
+    }
+}
+
+/// A nearest-pixel copy of `image` whose longer side is at most `side`.
+fn downscale(image: &render::Image, side: u32) -> render::Image {
+    let longer = image.width.max(image.height);
+    if longer <= side {
+        return image.clone();
+    }
+    let w = (u64::from(image.width) * u64::from(side) / u64::from(longer)).max(1) as u32;
+    let h = (u64::from(image.height) * u64::from(side) / u64::from(longer)).max(1) as u32;
+    let mut out = render::Image::black(w, h);
+    for y in 0..h {
+        let sy = (u64::from(y) * u64::from(image.height) / u64::from(h)) as u32;
+        for x in 0..w {
+            let sx = (u64::from(x) * u64::from(image.width) / u64::from(w)) as u32;
+            let i = (y as usize * w as usize + x as usize) * 3;
+            out.rgb[i..i + 3].copy_from_slice(&image.pixel(sx, sy));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn previews_keep_the_aspect_and_sample_the_image() {
+        let mut image = render::Image::black(4000, 1000);
+        image.rgb[..3].copy_from_slice(&[9, 8, 7]);
+        let small = downscale(&image, 1024);
+        assert_eq!((small.width, small.height), (1024, 256));
+        assert_eq!(small.pixel(0, 0), [9, 8, 7]);
+        assert_eq!(small.pixel(1, 0), [0, 0, 0]);
+        let tiny = render::Image::black(10, 20);
+        assert_eq!(downscale(&tiny, 1024), tiny);
+    }
+}
