@@ -1171,7 +1171,7 @@ impl State {
                 self.apply(shared, actions);
             }
             FromWorker::TileFailed { job, tile, message } => {
-                warn!(worker, job, tile, %message, "tile failed");
+                warn!(worker, job, tile, error = %message, "tile failed");
                 if let Some(w) = self.workers.get_mut(&worker) {
                     w.assigned.remove(&(job, tile));
                 }
@@ -1337,7 +1337,7 @@ impl State {
             }
             Action::JobFailed { job, message } => {
                 if let Some(record) = self.jobs.get_mut(&job) {
-                    warn!(job, %message, "job failed");
+                    warn!(job, error = %message, "job failed");
                     record.state = JobState::Failed;
                     record.error = Some(message);
                     record.finished = Some(Instant::now());

@@ -278,7 +278,7 @@ impl Session {
                             error_sq_sum: image.error_sq_sum,
                         },
                         Err(message) => {
-                            warn!(job, tile, %message, "cannot render tile");
+                            warn!(job, tile, error = %message, "cannot render tile");
                             FromWorker::TileFailed { job, tile, message }
                         }
                     };
