@@ -227,7 +227,7 @@ fn markdown(rows: &[Row], opts: &Options) -> String {
         for (i, r) in rows.iter().enumerate().filter(|(_, r)| r.scene == scene) {
             let _ = writeln!(
                 md,
-                "| {} | {:.1} | {:.2} | {} | {:.3} | {} | {:.2}% | {:.2} | {} |",
+                "| {} | {:.1} | {:.2} | {} | {:.3} | {} | {:.2}% | {} | {} |",
                 r.setting,
                 r.ms,
                 r.samples_per_pixel,
@@ -235,7 +235,12 @@ fn markdown(rows: &[Row], opts: &Options) -> String {
                 r.error.rmse,
                 psnr_text(r.error.psnr),
                 r.error.share_off_by_more_than_2 * 100.0,
-                r.estimated_error,
+                // One sample per pixel has no spread to estimate an error from.
+                if r.estimated_error.is_finite() {
+                    format!("{:.2}", r.estimated_error)
+                } else {
+                    "—".to_owned()
+                },
                 if front.contains(&i) { "◆" } else { "" }
             );
         }
@@ -286,7 +291,7 @@ fn csv(rows: &[Row]) -> String {
     for r in rows {
         let _ = writeln!(
             out,
-            "{},{},{},{},{:.3},{},{:.4},{:.5},{:.3},{:.6},{:.4}",
+            "{},{},{},{},{:.3},{},{:.4},{:.5},{:.3},{:.6},{}",
             r.scene,
             r.family,
             r.aa,
@@ -297,7 +302,11 @@ fn csv(rows: &[Row]) -> String {
             r.error.rmse,
             r.error.psnr,
             r.error.share_off_by_more_than_2,
-            r.estimated_error
+            if r.estimated_error.is_finite() {
+                format!("{:.4}", r.estimated_error)
+            } else {
+                String::new()
+            }
         );
     }
     out
