@@ -4,9 +4,9 @@
 //! Three samplers share one budget, `aa` = n: at most n × n camera samples per pixel.
 //!
 //! - [`Sampling::Grid`]: the scene format's n × n centred grid (section 3), the default
-//!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: the
-//!   same samples traced by [`Tracer::samples`] in the same groups of four, summed in
-//!   the same order and divided the same way.
+//!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: it runs
+//!   the tracer's own pixel loop, which hands over each sample's colour as it sums it,
+//!   and divides the same way.
 //! - [`Sampling::Jittered`]: n × n strata, one sample in each at an offset drawn from a
 //!   hash of (pixel column, pixel row, sample index).
 //! - [`Sampling::Adaptive`]: a first pass of 4 samples, then batches of 4 more while the
@@ -38,7 +38,7 @@ use std::fmt;
 use thiserror::Error;
 
 use crate::tracer::{to_byte, Tracer};
-use crate::vec3::Vec3;
+use crate::vec3::{Vec3, F4};
 
 /// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
 /// of them: at most n × n samples per pixel.
@@ -154,11 +154,19 @@ impl<'t> PixelSampler<'t> {
         let settings = *self.tracer.settings();
         let n = settings.aa;
         debug_assert!(settings.sampling.target_error().is_none());
-        let pattern = Points::new(settings.sampling, n, i, j);
         let mut moments = Moments::default();
-        // All at once, in sample order: traced four at a time like the tracer's own
-        // pixels, and summed in the same order.
-        self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
+        if settings.sampling == Sampling::Grid {
+            // The tracer's own pixel loop, which hands over each colour as it sums it:
+            // no points to generate and no colours to store.
+            moments.sum = self
+                .tracer
+                .grid_samples(i, j, rays, |color| moments.add_spread(color));
+        } else {
+            // All at once, in sample order: traced four at a time like the tracer's
+            // own pixels, and summed in the same order.
+            let pattern = Points::new(settings.sampling, n, i, j);
+            self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
+        }
         // The grid's own division, so that its bytes are the tracer's.
         let nf = f64::from(n);
         moments.result(moments.sum / (nf * nf))
@@ -355,14 +363,15 @@ fn sobol_second(k: u32) -> u32 {
 /// Running sums of a pixel's sample colours: the plain sum for the mean (in sample
 /// order, like the tracer's grid), and sums of differences from the first sample for the
 /// variance, which stay exact for a constant colour and lose no precision to
-/// cancellation.
+/// cancellation. The three channels are held in the lanes of an [`F4`] (the fourth is
+/// always 0), so that each sample costs a few SIMD operations.
 #[derive(Clone, Default)]
 pub(crate) struct Moments {
     count: u32,
     sum: Vec3,
-    first: Vec3,
-    diff: [f64; 3],
-    diff_sq: [f64; 3],
+    first: F4,
+    diff: F4,
+    diff_sq: F4,
 }
 
 impl Moments {
@@ -380,16 +389,22 @@ impl Moments {
     }
 
     fn add(&mut self, c: Vec3) {
+        self.sum += c;
+        self.add_spread(c);
+    }
+
+    /// Counts a sample and adds it to the sums of differences, not to `sum` (which the
+    /// caller keeps).
+    #[inline(always)]
+    fn add_spread(&mut self, c: Vec3) {
+        let c = F4([c.x, c.y, c.z, 0.0]);
         if self.count == 0 {
             self.first = c;
         }
         self.count += 1;
-        self.sum += c;
-        let d = [c.x - self.first.x, c.y - self.first.y, c.z - self.first.z];
-        for ((sum, sum_sq), d) in self.diff.iter_mut().zip(&mut self.diff_sq).zip(d) {
-            *sum += d;
-            *sum_sq += d * d;
-        }
+        let d = c - self.first;
+        self.diff = self.diff + d;
+        self.diff_sq = self.diff_sq + d * d;
     }
 
     /// The standard error of the mean in 8-bit levels, the largest of the 3 channels:
@@ -400,12 +415,10 @@ impl Moments {
             return 0.0;
         }
         let k = f64::from(self.count);
-        let mut worst: f64 = 0.0;
-        for ch in 0..3 {
-            let ss = self.diff_sq[ch] - self.diff[ch] * self.diff[ch] / k;
-            let variance = (ss / (k - 1.0)).max(0.0);
-            worst = worst.max(variance / k);
-        }
+        let ss = self.diff_sq - self.diff * self.diff / k;
+        let variance = (ss / (k - 1.0)).map(|v| v.max(0.0));
+        let per_mean = variance / k;
+        let worst = per_mean.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
         255.0 * worst.sqrt()
     }
 }

@@ -285,7 +285,10 @@ impl Tracer {
         assert_eq!(points.len(), colors.len(), "one colour per point");
         self.with_ctx(rays, |ctx| {
             for (points, colors) in points.chunks(LANES).zip(colors.chunks_mut(LANES)) {
-                self.trace_points(points, colors, ctx);
+                let px = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].0));
+                let py = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].1));
+                let out = self.trace_group(px, py, points.len(), ctx);
+                colors.copy_from_slice(&out[..points.len()]);
             }
         });
     }
@@ -293,62 +296,115 @@ impl Tracer {
     /// The 8-bit colour of pixel (`i`, `j`) (column, row from the top left): the mean of
     /// its n × n clipped samples, summed in sample order. Adds the rays traced to `rays`.
     pub fn pixel(&self, i: u32, j: u32, rays: &mut u64) -> [u8; 3] {
-        let sum = self.with_ctx(rays, |ctx| {
-            if let [offset] = self.offsets[..] {
-                let dir = self
-                    .camera
-                    .direction(f64::from(i) + offset, f64::from(j) + offset);
-                return self.camera_sample(dir, ctx);
-            }
-            // Several samples: traced four at a time, summed in sample order.
-            let mut sum = Vec3::ZERO;
-            let mut points = [(0.0, 0.0); LANES];
-            let mut colors = [Vec3::ZERO; LANES];
-            let mut filled = 0;
-            for &sy in &self.offsets {
-                for &sx in &self.offsets {
-                    points[filled] = (f64::from(i) + sx, f64::from(j) + sy);
-                    filled += 1;
-                    if filled == LANES {
-                        self.trace_points(&points, &mut colors, ctx);
-                        for &color in &colors {
-                            sum += color;
-                        }
-                        filled = 0;
-                    }
-                }
-            }
-            if filled > 0 {
-                self.trace_points(&points[..filled], &mut colors[..filled], ctx);
-                for &color in &colors[..filled] {
-                    sum += color;
-                }
-            }
-            sum
-        });
+        let sum = self.grid_samples(i, j, rays, |_| {});
         let nf = f64::from(self.settings.aa);
         let mean = sum / (nf * nf);
         [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]
     }
 
-    /// Traces up to [`LANES`] camera samples: alone, or as one packet.
+    /// The sum, in sample order, of the clipped colours of pixel (`i`, `j`)'s n × n grid
+    /// samples (section 3), each also handed to `each` in sample order, so that a
+    /// sampler can keep its statistics without a buffer of its own. Adds the rays
+    /// traced to `rays`.
+    #[inline]
+    pub(crate) fn grid_samples(
+        &self,
+        i: u32,
+        j: u32,
+        rays: &mut u64,
+        mut each: impl FnMut(Vec3),
+    ) -> Vec3 {
+        self.with_ctx(rays, |ctx| {
+            #[cfg(target_arch = "x86_64")]
+            if self.avx2 {
+                // SAFETY: `avx2` is set only where the processor was found to support
+                // AVX2.
+                return unsafe { self.grid_samples_avx2(i, j, ctx, &mut each) };
+            }
+            self.grid_samples_in(i, j, ctx, &mut each)
+        })
+    }
+
+    /// [`Tracer::grid_samples`] compiled for AVX2, like [`Tracer::packet_avx2`]: the
+    /// camera directions of a group of four and its colour sums are SIMD code too.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn grid_samples_avx2(
+        &self,
+        i: u32,
+        j: u32,
+        ctx: &mut Ctx,
+        each: &mut impl FnMut(Vec3),
+    ) -> Vec3 {
+        self.grid_samples_in(i, j, ctx, each)
+    }
+
+    /// [`Tracer::grid_samples`] within a pixel's state: the samples row by row, traced
+    /// four at a time (the last group may be smaller), summed in sample order.
     #[inline(always)]
-    fn trace_points(&self, points: &[(f64, f64)], colors: &mut [Vec3], ctx: &mut Ctx) {
-        let direction = |k: usize| self.camera.direction(points[k].0, points[k].1);
-        if points.len() == 1 {
-            colors[0] = self.camera_sample(direction(0), ctx);
-            return;
+    fn grid_samples_in(&self, i: u32, j: u32, ctx: &mut Ctx, each: &mut impl FnMut(Vec3)) -> Vec3 {
+        let (x0, y0) = (f64::from(i), f64::from(j));
+        if let [offset] = self.offsets[..] {
+            let color = self.camera_sample(self.camera.direction(x0 + offset, y0 + offset), ctx);
+            each(color);
+            return color;
         }
-        let mut dirs = [Vec3::ZERO; LANES];
-        for (k, dir) in dirs.iter_mut().enumerate().take(points.len()) {
-            *dir = direction(k);
+        let mut sum = Vec3::ZERO;
+        let (mut px, mut py) = (F4::splat(0.0), F4::splat(0.0));
+        let mut filled = 0;
+        for &sy in &self.offsets {
+            for &sx in &self.offsets {
+                px.0[filled] = x0 + sx;
+                py.0[filled] = y0 + sy;
+                filled += 1;
+                if filled == LANES {
+                    self.add_group(px, py, filled, ctx, &mut sum, each);
+                    filled = 0;
+                }
+            }
         }
-        // Unused lanes repeat the first ray; their results are dropped.
-        for k in points.len()..LANES {
-            dirs[k] = dirs[0];
+        if filled > 0 {
+            // Unused lanes repeat the first point; their results are dropped.
+            for k in filled..LANES {
+                px.0[k] = px.0[0];
+                py.0[k] = py.0[0];
+            }
+            self.add_group(px, py, filled, ctx, &mut sum, each);
         }
-        let out = self.camera_packet(dirs, points.len(), ctx);
-        colors.copy_from_slice(&out[..points.len()]);
+        sum
+    }
+
+    /// Traces a group of samples (as [`Tracer::trace_group`]) and adds their colours to
+    /// `sum` and hands them to `each`, in order. A method rather than a closure, so that
+    /// it is inlined into (and compiled with the features of) its AVX2 caller.
+    #[inline(always)]
+    fn add_group(
+        &self,
+        px: F4,
+        py: F4,
+        count: usize,
+        ctx: &mut Ctx,
+        sum: &mut Vec3,
+        each: &mut impl FnMut(Vec3),
+    ) {
+        for &color in &self.trace_group(px, py, count, ctx)[..count] {
+            *sum += color;
+            each(color);
+        }
+    }
+
+    /// Traces the camera samples through the image points of the first `count` lanes
+    /// (1 to [`LANES`]) of (`px`, `py`), whose other lanes repeat the first: alone, or
+    /// as one packet.
+    #[inline(always)]
+    fn trace_group(&self, px: F4, py: F4, count: usize, ctx: &mut Ctx) -> [Vec3; LANES] {
+        if count == 1 {
+            let dir = self.camera.direction(px.0[0], py.0[0]);
+            return [self.camera_sample(dir, ctx); LANES];
+        }
+        let origin = V4::splat(self.camera.position());
+        let dir = self.camera.directions(px, py);
+        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(count), ctx)
     }
 
     /// The nearest hit, as (distance, object index).
@@ -582,14 +638,6 @@ impl Tracer {
         }
         // 6. Clip.
         clip(color)
-    }
-
-    /// Up to four camera rays (the first `active` lanes of `dirs`) traced side by side:
-    /// their clipped colours, each with the bits [`Tracer::camera_sample`] gives for it.
-    fn camera_packet(&self, dirs: [Vec3; LANES], active: usize, ctx: &mut Ctx) -> [Vec3; LANES] {
-        let origin = V4::splat(self.camera.position());
-        let dir = V4::from_lanes(dirs);
-        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(active), ctx)
     }
 
     /// [`Tracer::radiance_in`] for the rays of the lanes in `active`, all leaving object

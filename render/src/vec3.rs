@@ -99,7 +99,7 @@ pub(crate) const LANES: usize = 4;
 /// Four `f64`s handled side by side. Every operation is the scalar one applied to each
 /// lane, written as plain loops over a fixed-size array so that the compiler turns them
 /// into SIMD instructions; each lane is bit-for-bit what the scalar code computes.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct F4(pub [f64; LANES]);
 
 /// One boolean per lane, as all-ones or all-zeros bits like a SIMD comparison's result,
@@ -280,7 +280,7 @@ impl V4 {
         }
     }
 
-    #[inline(always)]
+    #[cfg(test)]
     pub fn from_lanes(v: [Vec3; LANES]) -> V4 {
         V4 {
             x: F4(v.map(|v| v.x)),
