@@ -37,8 +37,8 @@ use std::fmt;
 
 use thiserror::Error;
 
-use crate::tracer::{to_byte, Tracer};
-use crate::vec3::{Vec3, F4};
+use crate::tracer::{to_byte, GridSink, Tracer};
+use crate::vec3::{Divisor, Vec3, F4};
 
 /// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
 /// of them: at most n × n samples per pixel.
@@ -148,28 +148,39 @@ impl<'t> PixelSampler<'t> {
         self.tracer.settings()
     }
 
-    /// Renders pixel (`i`, `j`) with the grid or jittered sampler: all n × n samples,
-    /// adding the rays traced to `rays`.
-    pub fn render_fixed(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
+    /// Renders the pixels `columns` of row `j` with the grid sampler, left to right,
+    /// handing each one's result to `add` and adding the rays traced to `rays`. The
+    /// tracer's own pixel loop hands over each colour as it sums it: no points to
+    /// generate and no colours to store, and the bytes are [`Tracer::pixel`]'s.
+    pub fn render_grid_row(
+        &mut self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        rays: &mut u64,
+        add: &mut impl FnMut(PixelResult),
+    ) {
+        debug_assert_eq!(self.settings().sampling, Sampling::Grid);
+        let mut sink = GridPixels {
+            tracer: self.tracer,
+            moments: Moments::default(),
+            add,
+        };
+        self.tracer.grid_span(j, columns, rays, &mut sink);
+    }
+
+    /// Renders pixel (`i`, `j`) with the jittered sampler: all n × n samples, adding the
+    /// rays traced to `rays`.
+    pub fn render_jittered(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
         let settings = *self.tracer.settings();
         let n = settings.aa;
-        debug_assert!(settings.sampling.target_error().is_none());
+        debug_assert_eq!(settings.sampling, Sampling::Jittered);
+        let pattern = Points::new(settings.sampling, n, i, j);
         let mut moments = Moments::default();
-        if settings.sampling == Sampling::Grid {
-            // The tracer's own pixel loop, which hands over each colour as it sums it:
-            // no points to generate and no colours to store.
-            moments.sum = self
-                .tracer
-                .grid_samples(i, j, rays, |color| moments.add_spread(color));
-        } else {
-            // All at once, in sample order: traced four at a time like the tracer's
-            // own pixels, and summed in the same order.
-            let pattern = Points::new(settings.sampling, n, i, j);
-            self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
-        }
-        // The grid's own division, so that its bytes are the tracer's.
-        let nf = f64::from(n);
-        moments.result(moments.sum / (nf * nf))
+        // All at once, in sample order: traced four at a time like the tracer's own
+        // pixels, and summed in the same order.
+        self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
+        // The grid's division by n².
+        moments.result(self.tracer.grid_mean(moments.sum))
     }
 
     /// Adaptive sampling's first pass of pixel (`i`, `j`): its first 4 samples (n² if
@@ -207,7 +218,7 @@ impl<'t> PixelSampler<'t> {
             self.trace(&pattern, i, j, k..end, &mut moments, rays);
             k = end;
         }
-        moments.result(moments.sum / f64::from(moments.count))
+        moments.result(Divisor::count(moments.count).divide3(moments.sum))
     }
 
     /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
@@ -234,6 +245,29 @@ impl<'t> PixelSampler<'t> {
         for &color in colors.iter() {
             moments.add(color);
         }
+    }
+}
+
+/// The grid sampler's statistics of the pixels of a span, as the tracer hands over
+/// their colours.
+struct GridPixels<'t, 'a, F> {
+    tracer: &'t Tracer,
+    /// The pixel being traced.
+    moments: Moments,
+    add: &'a mut F,
+}
+
+impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
+    #[inline(always)]
+    fn sample(&mut self, color: Vec3) {
+        self.moments.add_spread(color);
+    }
+
+    #[inline(always)]
+    fn pixel(&mut self, sum: Vec3) {
+        let mut moments = std::mem::take(&mut self.moments);
+        moments.sum = sum;
+        (self.add)(moments.result(self.tracer.grid_mean(sum)));
     }
 }
 
@@ -414,10 +448,11 @@ impl Moments {
         if self.count < 2 {
             return 0.0;
         }
-        let k = f64::from(self.count);
-        let ss = self.diff_sq - self.diff * self.diff / k;
-        let variance = (ss / (k - 1.0)).map(|v| v.max(0.0));
-        let per_mean = variance / k;
+        // Divisions by k are multiplications when k is a power of two (same bits).
+        let k = Divisor::count(self.count);
+        let ss = self.diff_sq - k.divide4(self.diff * self.diff);
+        let variance = (ss / (f64::from(self.count) - 1.0)).map(|v| v.max(0.0));
+        let per_mean = k.divide4(variance);
         let worst = per_mean.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
         255.0 * worst.sqrt()
     }

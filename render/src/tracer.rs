@@ -5,7 +5,7 @@ use crate::bvh::{consider, has_avx2, Bvh, Stack};
 use crate::camera::Camera;
 use crate::geometry::{plane_ahead, plane_hits, sphere_hits, PlaneGeom, SphereGeom};
 use crate::scene::{Material, RenderSettings, Scene, Shape};
-use crate::vec3::{Vec3, F4, LANES, M4, V4};
+use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 
 /// A reflection path whose weight (the product of its `special` factors) is below this
 /// contributes less than a quarter of an 8-bit level, so it is not traced (section 5,
@@ -37,6 +37,10 @@ struct Surface {
     geometry: Geometry,
     color: Vec3,
     material: Material,
+    /// For a sphere whose radius is a power of two, 1 / radius (see
+    /// [`Divisor`]): the normals of a packet then cost a multiplication
+    /// instead of a division, with the same bits.
+    inverse_radius: Option<f64>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -96,8 +100,49 @@ pub struct Tracer {
     ambient: f64,
     camera: Camera,
     settings: RenderSettings,
-    /// (a + ½)/n for a in 0..n: the sample offsets inside a pixel, on both axes.
-    offsets: Vec<f64>,
+    /// The grid's sample offsets inside a pixel, in sample order, in groups of four.
+    groups: Vec<SampleGroup>,
+    /// n², by which a pixel's sum of samples is divided.
+    samples_per_pixel: Divisor,
+}
+
+/// What a grid render does with the colours it traces ([`Tracer::grid_span`]).
+pub(crate) trait GridSink {
+    /// One sample's clipped colour; a pixel's samples come in sample order.
+    fn sample(&mut self, color: Vec3);
+    /// The end of a pixel, with the sum of its samples' colours in sample order.
+    fn pixel(&mut self, sum: Vec3);
+}
+
+/// Up to [`LANES`] samples of the grid, traced together: their offsets inside the pixel
+/// in lanes (unused lanes repeat the first sample, and their results are dropped).
+#[derive(Clone, Copy, Debug)]
+struct SampleGroup {
+    sx: F4,
+    sy: F4,
+    count: usize,
+}
+
+impl SampleGroup {
+    /// The n × n grid of section 3, ((a + ½)/n, (b + ½)/n) row by row, in groups of
+    /// four.
+    fn grid(n: u32) -> Vec<SampleGroup> {
+        let offset = |a: u32| (f64::from(a) + 0.5) / f64::from(n);
+        let points: Vec<(f64, f64)> = (0..n)
+            .flat_map(|b| (0..n).map(move |a| (offset(a), offset(b))))
+            .collect();
+        points
+            .chunks(LANES)
+            .map(|chunk| {
+                let lane = |k: usize| chunk[if k < chunk.len() { k } else { 0 }];
+                SampleGroup {
+                    sx: F4(std::array::from_fn(|k| lane(k).0)),
+                    sy: F4(std::array::from_fn(|k| lane(k).1)),
+                    count: chunk.len(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// Marks a ray that leaves no surface (a camera ray); no object has this index.
@@ -145,6 +190,10 @@ impl Tracer {
                 },
                 color: o.color,
                 material: o.material,
+                inverse_radius: match o.shape {
+                    Shape::Sphere { radius, .. } => Divisor::new(radius).reciprocal(),
+                    Shape::Plane { .. } => None,
+                },
             })
             .collect();
         let mut spheres = Vec::new();
@@ -209,9 +258,8 @@ impl Tracer {
                 .collect(),
             ambient: scene.ambient,
             camera,
-            offsets: (0..settings.aa)
-                .map(|a| (f64::from(a) + 0.5) / f64::from(settings.aa))
-                .collect(),
+            groups: SampleGroup::grid(settings.aa),
+            samples_per_pixel: Divisor::new(f64::from(settings.aa) * f64::from(settings.aa)),
             settings,
         }
     }
@@ -288,7 +336,9 @@ impl Tracer {
                 let px = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].0));
                 let py = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].1));
                 let out = self.trace_group(px, py, points.len(), ctx);
-                colors.copy_from_slice(&out[..points.len()]);
+                for (k, color) in colors.iter_mut().enumerate() {
+                    *color = out.lane(k);
+                }
             }
         });
     }
@@ -296,86 +346,91 @@ impl Tracer {
     /// The 8-bit colour of pixel (`i`, `j`) (column, row from the top left): the mean of
     /// its n × n clipped samples, summed in sample order. Adds the rays traced to `rays`.
     pub fn pixel(&self, i: u32, j: u32, rays: &mut u64) -> [u8; 3] {
-        let sum = self.grid_samples(i, j, rays, |_| {});
-        let nf = f64::from(self.settings.aa);
-        let mean = sum / (nf * nf);
+        /// Keeps the pixel's sum, ignores its samples.
+        struct Sum(Vec3);
+        impl GridSink for Sum {
+            fn sample(&mut self, _: Vec3) {}
+            fn pixel(&mut self, sum: Vec3) {
+                self.0 = sum;
+            }
+        }
+        let mut sum = Sum(Vec3::ZERO);
+        self.grid_span(j, i..i + 1, rays, &mut sum);
+        let mean = self.grid_mean(sum.0);
         [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]
     }
 
-    /// The sum, in sample order, of the clipped colours of pixel (`i`, `j`)'s n × n grid
-    /// samples (section 3), each also handed to `each` in sample order, so that a
-    /// sampler can keep its statistics without a buffer of its own. Adds the rays
-    /// traced to `rays`.
+    /// A grid pixel's mean from the sum of its samples: sum / n², by a multiplication
+    /// when n² is a power of two (same bits, see [`Divisor`]).
+    #[inline(always)]
+    pub(crate) fn grid_mean(&self, sum: Vec3) -> Vec3 {
+        self.samples_per_pixel.divide3(sum)
+    }
+
+    /// Traces the n × n grid samples (section 3) of the pixels `columns` of row `j`, left
+    /// to right, and hands `sink` each sample's clipped colour in sample order, then each
+    /// pixel's sum of them, summed in sample order. A whole span at a time, so that the
+    /// constants of the loop are set up once and the sink's own work on each pixel is
+    /// compiled with the tracer's SIMD code. Adds the rays traced to `rays`.
     #[inline]
-    pub(crate) fn grid_samples(
+    pub(crate) fn grid_span(
         &self,
-        i: u32,
         j: u32,
+        columns: std::ops::Range<u32>,
         rays: &mut u64,
-        mut each: impl FnMut(Vec3),
-    ) -> Vec3 {
+        sink: &mut impl GridSink,
+    ) {
         self.with_ctx(rays, |ctx| {
             #[cfg(target_arch = "x86_64")]
             if self.avx2 {
                 // SAFETY: `avx2` is set only where the processor was found to support
                 // AVX2.
-                return unsafe { self.grid_samples_avx2(i, j, ctx, &mut each) };
+                return unsafe { self.grid_span_avx2(j, columns, ctx, sink) };
             }
-            self.grid_samples_in(i, j, ctx, &mut each)
+            self.grid_span_in(j, columns, ctx, sink)
         })
     }
 
-    /// [`Tracer::grid_samples`] compiled for AVX2, like [`Tracer::packet_avx2`]: the
-    /// camera directions of a group of four and its colour sums are SIMD code too.
+    /// [`Tracer::grid_span`] compiled for AVX2, like [`Tracer::packet_avx2`]: the
+    /// camera directions of a group of four and the sink's work are SIMD code too.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn grid_samples_avx2(
+    fn grid_span_avx2(
         &self,
-        i: u32,
         j: u32,
+        columns: std::ops::Range<u32>,
         ctx: &mut Ctx,
-        each: &mut impl FnMut(Vec3),
-    ) -> Vec3 {
-        self.grid_samples_in(i, j, ctx, each)
+        sink: &mut impl GridSink,
+    ) {
+        self.grid_span_in(j, columns, ctx, sink)
     }
 
-    /// [`Tracer::grid_samples`] within a pixel's state: the samples row by row, traced
-    /// four at a time (the last group may be smaller), summed in sample order.
+    /// [`Tracer::grid_span`] within a span's state: each pixel's samples row by row,
+    /// traced four at a time (the last group may be smaller), summed in sample order.
     #[inline(always)]
-    fn grid_samples_in(&self, i: u32, j: u32, ctx: &mut Ctx, each: &mut impl FnMut(Vec3)) -> Vec3 {
-        let (x0, y0) = (f64::from(i), f64::from(j));
-        if let [offset] = self.offsets[..] {
-            let color = self.camera_sample(self.camera.direction(x0 + offset, y0 + offset), ctx);
-            each(color);
-            return color;
-        }
-        let mut sum = Vec3::ZERO;
-        let (mut px, mut py) = (F4::splat(0.0), F4::splat(0.0));
-        let mut filled = 0;
-        for &sy in &self.offsets {
-            for &sx in &self.offsets {
-                px.0[filled] = x0 + sx;
-                py.0[filled] = y0 + sy;
-                filled += 1;
-                if filled == LANES {
-                    self.add_group(px, py, filled, ctx, &mut sum, each);
-                    filled = 0;
-                }
+    fn grid_span_in(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        ctx: &mut Ctx,
+        sink: &mut impl GridSink,
+    ) {
+        let y0 = F4::splat(f64::from(j));
+        for i in columns {
+            let x0 = F4::splat(f64::from(i));
+            let mut sum = Vec3::ZERO;
+            for group in &self.groups {
+                // Whole vectors: filling the lanes one by one through memory would stall
+                // the vector load that follows.
+                let (px, py) = (x0 + group.sx, y0 + group.sy);
+                self.add_group(px, py, group.count, ctx, &mut sum, sink);
             }
+            sink.pixel(sum);
         }
-        if filled > 0 {
-            // Unused lanes repeat the first point; their results are dropped.
-            for k in filled..LANES {
-                px.0[k] = px.0[0];
-                py.0[k] = py.0[0];
-            }
-            self.add_group(px, py, filled, ctx, &mut sum, each);
-        }
-        sum
     }
 
-    /// Traces a group of samples (as [`Tracer::trace_group`]) and adds their colours to
-    /// `sum` and hands them to `each`, in order. A method rather than a closure, so that
+    /// Traces a group of samples (as [`Tracer::trace_group`]), adds their colours to
+    /// `sum` and hands them to `sink`, in order. A method rather than a closure, so that
     /// it is inlined into (and compiled with the features of) its AVX2 caller.
     #[inline(always)]
     fn add_group(
@@ -385,11 +440,13 @@ impl Tracer {
         count: usize,
         ctx: &mut Ctx,
         sum: &mut Vec3,
-        each: &mut impl FnMut(Vec3),
+        sink: &mut impl GridSink,
     ) {
-        for &color in &self.trace_group(px, py, count, ctx)[..count] {
+        let colors = self.trace_group(px, py, count, ctx);
+        for k in 0..count {
+            let color = colors.lane(k);
             *sum += color;
-            each(color);
+            sink.sample(color);
         }
     }
 
@@ -397,10 +454,10 @@ impl Tracer {
     /// (1 to [`LANES`]) of (`px`, `py`), whose other lanes repeat the first: alone, or
     /// as one packet.
     #[inline(always)]
-    fn trace_group(&self, px: F4, py: F4, count: usize, ctx: &mut Ctx) -> [Vec3; LANES] {
+    fn trace_group(&self, px: F4, py: F4, count: usize, ctx: &mut Ctx) -> V4 {
         if count == 1 {
             let dir = self.camera.direction(px.0[0], py.0[0]);
-            return [self.camera_sample(dir, ctx); LANES];
+            return V4::splat(self.camera_sample(dir, ctx));
         }
         let origin = V4::splat(self.camera.position());
         let dir = self.camera.directions(px, py);
@@ -654,7 +711,7 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: `avx2` is set only where the processor was found to support AVX2.
@@ -678,7 +735,7 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         self.packet_lanes(origin, dir, from, depth, weight, active, ctx)
     }
 
@@ -693,11 +750,11 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         ctx.rays += active.count();
         let (t, index) = self.nearest_lanes(origin, dir, from, active, ctx);
         let hit = active.and(index.lt(F4::splat(f64::from(FROM_CAMERA))));
-        let mut colors = [Vec3::ZERO; LANES];
+        let mut colors = V4::splat(Vec3::ZERO);
         let Some(first) = (0..LANES).find(|&k| hit.get(k)) else {
             return colors;
         };
@@ -705,10 +762,11 @@ impl Tracer {
         if (0..LANES).all(|k| !hit.get(k) || index.0[k] == object) {
             return self.shade_lanes(origin, dir, t, object as u32, hit, depth, weight, ctx);
         }
-        for (k, color) in colors.iter_mut().enumerate() {
+        for k in 0..LANES {
             if hit.get(k) {
                 let (o, d) = (origin.lane(k), dir.lane(k));
-                *color = self.shade(o, d, t.0[k], index.0[k] as u32, depth, weight, ctx);
+                let color = self.shade(o, d, t.0[k], index.0[k] as u32, depth, weight, ctx);
+                colors.set_lane(k, color);
             }
         }
         colors
@@ -779,22 +837,26 @@ impl Tracer {
         depth: u32,
         weight: f64,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         let zero = F4::splat(0.0);
         let surface = &self.surfaces[index as usize];
         let p = origin + dir.scale(t);
 
         // 1. Checkerboard colour.
         let base = match surface.material {
-            Material::Checker => {
-                let white = M4::from_fn(|k| checker_white(p.lane(k)));
-                white.select3(V4::splat(Vec3::new(1.0, 1.0, 1.0)), V4::splat(Vec3::ZERO))
-            }
+            Material::Checker => checker_white_lanes(p)
+                .select3(V4::splat(Vec3::new(1.0, 1.0, 1.0)), V4::splat(Vec3::ZERO)),
             _ => V4::splat(surface.color),
         };
         // 2. Two-sided normal, facing the incoming ray.
         let normal = match surface.geometry {
-            Geometry::Sphere(ref s) => (p - V4::splat(s.center)).div(F4::splat(s.radius)),
+            Geometry::Sphere(ref s) => {
+                let offset = p - V4::splat(s.center);
+                match surface.inverse_radius {
+                    Some(inverse) => offset.scale(F4::splat(inverse)),
+                    None => offset.div(F4::splat(s.radius)),
+                }
+            }
             Geometry::Plane(ref pl) => V4::splat(pl.normal),
         };
         let normal = normal.dot(dir).gt(zero).select3(-normal, normal);
@@ -813,14 +875,7 @@ impl Tracer {
         if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT {
             let weight = weight * special;
             let c = self.packet(p, reflected, index, depth + 1, weight, hit, ctx);
-            for (k, c) in c.iter().enumerate() {
-                if hit.get(k) {
-                    let c = *c * special;
-                    acc.x.0[k] += c.x;
-                    acc.y.0[k] += c.y;
-                    acc.z.0[k] += c.z;
-                }
-            }
+            acc = hit.select3(acc + c.scale(F4::splat(special)), acc);
         }
         // 5. Direct light, diffuse and highlight, where the light is not shadowed.
         for light in &self.lights {
@@ -845,13 +900,7 @@ impl Tracer {
             }
         }
         // 6. Clip.
-        std::array::from_fn(|k| {
-            if hit.get(k) {
-                clip(acc.lane(k))
-            } else {
-                Vec3::ZERO
-            }
-        })
+        hit.select3(clip_lanes(acc), V4::splat(Vec3::ZERO))
     }
 
     /// [`Tracer::occluded`] for the shadow rays of the lanes in `lit`: from `p` along
@@ -933,6 +982,37 @@ fn checker_white(p: Vec3) -> bool {
     floor_to_int(p.x).wrapping_add(floor_to_int(p.z)) & 1 == 1
 }
 
+/// [`checker_white`] for four points at once. Where |x| and |z| are below 2⁵¹ (always,
+/// but for absurd coordinates), the parities of ⌊x⌋ and ⌊z⌋ come from SIMD additions and
+/// comparisons ([`floor_parity`]); otherwise each lane takes the scalar path, which gives
+/// the same answer.
+#[inline(always)]
+fn checker_white_lanes(p: V4) -> M4 {
+    let limit = F4::splat(FLOOR_PARITY_LIMIT);
+    let small = |x: F4| x.map(f64::abs).lt(limit);
+    if !small(p.x).and(small(p.z)).all() {
+        return M4::from_fn(|k| checker_white(p.lane(k)));
+    }
+    M4(std::array::from_fn(|k| {
+        (floor_parity(p.x.0[k]) ^ floor_parity(p.z.0[k])).wrapping_neg()
+    }))
+}
+
+/// The bound on |x| below which [`floor_parity`] is exact: 2⁵¹.
+const FLOOR_PARITY_LIMIT: f64 = 2_251_799_813_685_248.0;
+
+/// ⌊x⌋ mod 2 (0 or 1) for |x| < 2⁵¹, with float operations that vectorise. y = x + 1.5·2⁵²
+/// lies in [2⁵², 2⁵³), where the spacing of doubles is 1, so it is x rounded to the
+/// nearest integer r plus an even constant, exactly: its lowest bit is r's parity, and
+/// y − 1.5·2⁵² is r exactly. ⌊x⌋ is r, or r − 1 when r > x, which flips the parity.
+#[inline(always)]
+fn floor_parity(x: f64) -> u64 {
+    const SHIFT: f64 = 6_755_399_441_055_744.0;
+    let y = x + SHIFT;
+    let r = y - SHIFT;
+    (y.to_bits() & 1) ^ u64::from(r > x)
+}
+
 /// ⌊x⌋ as an integer, without a call into the C library. Beyond ±2⁶³ the conversion
 /// saturates, and below −2⁶³ the correction wraps around to `i64::MAX`: only the
 /// parity is used, and it is the same in every build (a plain `t - 1` would panic
@@ -973,6 +1053,42 @@ pub(crate) fn clip(c: Vec3) -> Vec3 {
         c.y.clamp(0.0, 1.0),
         c.z.clamp(0.0, 1.0),
     )
+}
+
+/// [`clip`] lane by lane, with the same operations in the same order. The spill into
+/// other channels (and its divisions) is computed only when some lane is above white.
+#[inline(always)]
+fn clip_lanes(c: V4) -> V4 {
+    let sum = c.x + c.y + c.z;
+    let three = F4::splat(3.0);
+    let over = sum.gt(three);
+    let c = if over.any() {
+        let excess = sum - three;
+        let spill = |ch: F4| ch + excess * ch / sum;
+        over.select3(
+            V4 {
+                x: spill(c.x),
+                y: spill(c.y),
+                z: spill(c.z),
+            },
+            c,
+        )
+    } else {
+        c
+    };
+    V4 {
+        x: clamp_unit(c.x),
+        y: clamp_unit(c.y),
+        z: clamp_unit(c.z),
+    }
+}
+
+/// Lane by lane `f64::clamp(x, 0, 1)`: NaN and −0 pass through unchanged.
+#[inline(always)]
+fn clamp_unit(x: F4) -> F4 {
+    let (zero, one) = (F4::splat(0.0), F4::splat(1.0));
+    let x = x.lt(zero).select(zero, x);
+    x.gt(one).select(one, x)
 }
 
 /// Section 6: round(clamp(v, 0, 1) · 255).
@@ -1065,6 +1181,76 @@ mod tests {
                 ..RenderSettings::default()
             },
             ambient: 0.2,
+        }
+    }
+
+    /// The SIMD checker and clip agree with the scalar ones, at integers, halves (where
+    /// rounding to nearest ties), signed zeros, near and beyond 2⁵¹ and on random points.
+    #[test]
+    fn lane_checker_and_clip_equal_the_scalar_ones() {
+        let mut rng = Mix(3);
+        let edges = [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            2.5,
+            -2.5,
+            1e-300,
+            -1e-300,
+            0.999_999_999_999_999_9,
+            -0.999_999_999_999_999_9,
+            FLOOR_PARITY_LIMIT - 0.5,
+            -FLOOR_PARITY_LIMIT + 0.5,
+            FLOOR_PARITY_LIMIT,
+            -FLOOR_PARITY_LIMIT,
+            4.0 * FLOOR_PARITY_LIMIT + 2.0,
+            1e300,
+            f64::INFINITY,
+            f64::NAN,
+        ];
+        for case in 0..100_000 {
+            let value = |rng: &mut Mix| match rng.next() % 3 {
+                0 => edges[(rng.next() % edges.len() as u64) as usize],
+                1 => (2.0 * rng.unit() - 1.0) * 100.0,
+                _ => (rng.next() % 2001) as f64 / 2.0 - 500.0,
+            };
+            let points: [Vec3; LANES] =
+                std::array::from_fn(|_| Vec3::new(value(&mut rng), 0.0, value(&mut rng)));
+            let p = V4 {
+                x: F4(points.map(|p| p.x)),
+                y: F4(points.map(|p| p.y)),
+                z: F4(points.map(|p| p.z)),
+            };
+            let white = checker_white_lanes(p);
+            for (k, point) in points.iter().enumerate() {
+                assert_eq!(
+                    white.get(k),
+                    checker_white(*point),
+                    "case {case}: {point:?}"
+                );
+            }
+            let colors: [Vec3; LANES] = std::array::from_fn(|_| {
+                let mut c = || match rng.next() % 4 {
+                    0 => edges[(rng.next() % edges.len() as u64) as usize],
+                    _ => 3.0 * rng.unit() - 0.5,
+                };
+                Vec3::new(c(), c(), c())
+            });
+            let c = V4 {
+                x: F4(colors.map(|c| c.x)),
+                y: F4(colors.map(|c| c.y)),
+                z: F4(colors.map(|c| c.z)),
+            };
+            let clipped = clip_lanes(c);
+            for (k, color) in colors.iter().enumerate() {
+                let bits = |c: Vec3| [c.x, c.y, c.z].map(f64::to_bits);
+                assert_eq!(bits(clipped.lane(k)), bits(clip(*color)), "case {case}");
+            }
         }
     }
 
