@@ -414,6 +414,7 @@ impl Moments {
         self.sum / f64::from(self.count.max(1))
     }
 
+    #[inline(always)]
     fn result(&self, mean: Vec3) -> PixelResult {
         PixelResult {
             rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
@@ -444,6 +445,7 @@ impl Moments {
     /// The standard error of the mean in 8-bit levels, the largest of the 3 channels:
     /// 255 · √(s²/k) with s² the unbiased variance. 0 for fewer than 2 samples (no
     /// estimate).
+    #[inline(always)]
     fn error(&self) -> f64 {
         if self.count < 2 {
             return 0.0;

@@ -151,7 +151,26 @@ const FROM_CAMERA: u32 = u32::MAX;
 /// Per-pixel working state: the ray count and, with a hierarchy, its traversal stack.
 struct Ctx<'a> {
     rays: u64,
+    /// Rays of packets, counted in lanes ([`Ctx::count`]) and added to `rays` at the
+    /// end: one vector subtraction per packet instead of a count of its mask's bits.
+    lane_rays: M4,
     stack: Option<&'a mut Stack>,
+}
+
+impl Ctx<'_> {
+    /// Counts one ray for each lane of `lanes`: a set lane is all ones, that is −1, so
+    /// subtracting it adds one.
+    #[inline(always)]
+    fn count(&mut self, lanes: M4) {
+        self.lane_rays = M4(std::array::from_fn(|k| {
+            self.lane_rays.0[k].wrapping_sub(lanes.0[k])
+        }));
+    }
+
+    /// All the rays counted.
+    fn total(&self) -> u64 {
+        self.lane_rays.0.iter().fold(self.rays, |sum, &r| sum + r)
+    }
 }
 
 impl Tracer {
@@ -273,9 +292,13 @@ impl Tracer {
     #[inline(always)]
     fn with_ctx<T>(&self, rays: &mut u64, f: impl FnOnce(&mut Ctx) -> T) -> T {
         let run = |stack: Option<&mut Stack>| {
-            let mut ctx = Ctx { rays: 0, stack };
+            let mut ctx = Ctx {
+                rays: 0,
+                lane_rays: M4::NONE,
+                stack,
+            };
             let out = f(&mut ctx);
-            *rays += ctx.rays;
+            *rays += ctx.total();
             out
         };
         if self.bvh.is_some() {
@@ -417,37 +440,38 @@ impl Tracer {
     ) {
         let y0 = F4::splat(f64::from(j));
         for i in columns {
-            let x0 = F4::splat(f64::from(i));
             let mut sum = Vec3::ZERO;
             for group in &self.groups {
-                // Whole vectors: filling the lanes one by one through memory would stall
-                // the vector load that follows.
-                let (px, py) = (x0 + group.sx, y0 + group.sy);
-                self.add_group(px, py, group.count, ctx, &mut sum, sink);
+                let dir = self.group_directions(i, y0, group);
+                let colors = self.trace_directions(dir, group.count, ctx);
+                for k in 0..group.count {
+                    let color = colors.lane(k);
+                    sum += color;
+                    sink.sample(color);
+                }
             }
             sink.pixel(sum);
         }
     }
 
-    /// Traces a group of samples (as [`Tracer::trace_group`]), adds their colours to
-    /// `sum` and hands them to `sink`, in order. A method rather than a closure, so that
-    /// it is inlined into (and compiled with the features of) its AVX2 caller.
+    /// The camera directions of a group of samples of the pixel in column `i` (row
+    /// `y0`, in every lane): whole vectors, since filling the lanes one by one through
+    /// memory would stall the vector loads that follow.
     #[inline(always)]
-    fn add_group(
-        &self,
-        px: F4,
-        py: F4,
-        count: usize,
-        ctx: &mut Ctx,
-        sum: &mut Vec3,
-        sink: &mut impl GridSink,
-    ) {
-        let colors = self.trace_group(px, py, count, ctx);
-        for k in 0..count {
-            let color = colors.lane(k);
-            *sum += color;
-            sink.sample(color);
+    fn group_directions(&self, i: u32, y0: F4, group: &SampleGroup) -> V4 {
+        let x0 = F4::splat(f64::from(i));
+        self.camera.directions(x0 + group.sx, y0 + group.sy)
+    }
+
+    /// Traces the camera samples of the first `count` lanes (1 to [`LANES`]) of `dir`,
+    /// whose other lanes repeat the first: alone, or as one packet.
+    #[inline(always)]
+    fn trace_directions(&self, dir: V4, count: usize, ctx: &mut Ctx) -> V4 {
+        if count == 1 {
+            return V4::splat(self.camera_sample(dir.lane(0), ctx));
         }
+        let origin = V4::splat(self.camera.position());
+        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(count), ctx)
     }
 
     /// Traces the camera samples through the image points of the first `count` lanes
@@ -455,13 +479,7 @@ impl Tracer {
     /// as one packet.
     #[inline(always)]
     fn trace_group(&self, px: F4, py: F4, count: usize, ctx: &mut Ctx) -> V4 {
-        if count == 1 {
-            let dir = self.camera.direction(px.0[0], py.0[0]);
-            return V4::splat(self.camera_sample(dir, ctx));
-        }
-        let origin = V4::splat(self.camera.position());
-        let dir = self.camera.directions(px, py);
-        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(count), ctx)
+        self.trace_directions(self.camera.directions(px, py), count, ctx)
     }
 
     /// The nearest hit, as (distance, object index).
@@ -751,15 +769,18 @@ impl Tracer {
         active: M4,
         ctx: &mut Ctx,
     ) -> V4 {
-        ctx.rays += active.count();
+        ctx.count(active);
         let (t, index) = self.nearest_lanes(origin, dir, from, active, ctx);
         let hit = active.and(index.lt(F4::splat(f64::from(FROM_CAMERA))));
         let mut colors = V4::splat(Vec3::ZERO);
-        let Some(first) = (0..LANES).find(|&k| hit.get(k)) else {
+        let Some(first) = hit.first_set() else {
             return colors;
         };
         let object = index.0[first];
-        if (0..LANES).all(|k| !hit.get(k) || index.0[k] == object) {
+        if !hit
+            .and_not(index.test(F4::splat(object), |a, b| a == b))
+            .any()
+        {
             return self.shade_lanes(origin, dir, t, object as u32, hit, depth, weight, ctx);
         }
         for k in 0..LANES {
@@ -888,7 +909,7 @@ impl Tracer {
             if !lit.any() {
                 continue;
             }
-            ctx.rays += lit.count();
+            ctx.count(lit);
             let unshadowed = lit.and_not(self.occluded_lanes(p, l, index, distance, lit, ctx));
             let light_color = V4::splat(light.color);
             acc = unshadowed.select3(acc + base.hadamard(light_color).scale(cos), acc);
@@ -984,34 +1005,37 @@ fn checker_white(p: Vec3) -> bool {
 
 /// [`checker_white`] for four points at once. Where |x| and |z| are below 2⁵¹ (always,
 /// but for absurd coordinates), the parities of ⌊x⌋ and ⌊z⌋ come from SIMD additions and
-/// comparisons ([`floor_parity`]); otherwise each lane takes the scalar path, which gives
+/// comparisons ([`floor_odd`]); otherwise each lane takes the scalar path, which gives
 /// the same answer.
 #[inline(always)]
 fn checker_white_lanes(p: V4) -> M4 {
     let limit = F4::splat(FLOOR_PARITY_LIMIT);
-    let small = |x: F4| x.map(f64::abs).lt(limit);
-    if !small(p.x).and(small(p.z)).all() {
+    let small = p.x.map(f64::abs).lt(limit).and(p.z.map(f64::abs).lt(limit));
+    if !small.all() {
         return M4::from_fn(|k| checker_white(p.lane(k)));
     }
-    M4(std::array::from_fn(|k| {
-        (floor_parity(p.x.0[k]) ^ floor_parity(p.z.0[k])).wrapping_neg()
-    }))
+    floor_odd(p.x).xor(floor_odd(p.z))
 }
 
-/// The bound on |x| below which [`floor_parity`] is exact: 2⁵¹.
-const FLOOR_PARITY_LIMIT: f64 = 2_251_799_813_685_248.0;
-
-/// ⌊x⌋ mod 2 (0 or 1) for |x| < 2⁵¹, with float operations that vectorise. y = x + 1.5·2⁵²
-/// lies in [2⁵², 2⁵³), where the spacing of doubles is 1, so it is x rounded to the
-/// nearest integer r plus an even constant, exactly: its lowest bit is r's parity, and
+/// Lane by lane, whether ⌊x⌋ is odd, for |x| < 2⁵¹, with operations that vectorise
+/// (AVX2 has no 64-bit arithmetic shift, hence the subtraction). y = x + 1.5·2⁵² lies
+/// in [2⁵², 2⁵³), where the spacing of doubles is 1, so it is x rounded to the nearest
+/// integer r plus an even constant, exactly: its lowest bit is r's parity, and
 /// y − 1.5·2⁵² is r exactly. ⌊x⌋ is r, or r − 1 when r > x, which flips the parity.
 #[inline(always)]
-fn floor_parity(x: f64) -> u64 {
-    const SHIFT: f64 = 6_755_399_441_055_744.0;
-    let y = x + SHIFT;
-    let r = y - SHIFT;
-    (y.to_bits() & 1) ^ u64::from(r > x)
+fn floor_odd(x: F4) -> M4 {
+    let shift = F4::splat(FLOOR_PARITY_SHIFT);
+    let y = x + shift;
+    let r = y - shift;
+    let odd = M4(y.0.map(|y| 0u64.wrapping_sub(y.to_bits() & 1)));
+    odd.xor(r.gt(x))
 }
+
+/// 1.5 · 2⁵², the shift of [`floor_odd`].
+const FLOOR_PARITY_SHIFT: f64 = 6_755_399_441_055_744.0;
+
+/// The bound on |x| below which [`floor_odd`] is exact: 2⁵¹.
+const FLOOR_PARITY_LIMIT: f64 = 2_251_799_813_685_248.0;
 
 /// ⌊x⌋ as an integer, without a call into the C library. Beyond ±2⁶³ the conversion
 /// saturates, and below −2⁶³ the correction wraps around to `i64::MAX`: only the
@@ -1064,15 +1088,12 @@ fn clip_lanes(c: V4) -> V4 {
     let over = sum.gt(three);
     let c = if over.any() {
         let excess = sum - three;
-        let spill = |ch: F4| ch + excess * ch / sum;
-        over.select3(
-            V4 {
-                x: spill(c.x),
-                y: spill(c.y),
-                z: spill(c.z),
-            },
-            c,
-        )
+        let spill = V4 {
+            x: c.x + excess * c.x / sum,
+            y: c.y + excess * c.y / sum,
+            z: c.z + excess * c.z / sum,
+        };
+        over.select3(spill, c)
     } else {
         c
     };
@@ -1092,6 +1113,7 @@ fn clamp_unit(x: F4) -> F4 {
 }
 
 /// Section 6: round(clamp(v, 0, 1) · 255).
+#[inline(always)]
 pub(crate) fn to_byte(v: f64) -> u8 {
     // round() halves away from zero; for x in [0, 255] that is trunc, plus one when the
     // (exact) fractional part is at least one half.

@@ -195,6 +195,18 @@ impl M4 {
         self.0.iter().fold(u64::MAX, |a, &b| a & b) != 0
     }
 
+    /// The first set lane, if any.
+    #[inline(always)]
+    pub fn first_set(self) -> Option<usize> {
+        let bits = (0..LANES).fold(0u32, |bits, k| bits | (u32::from(self.get(k)) << k));
+        (bits != 0).then(|| bits.trailing_zeros() as usize)
+    }
+
+    #[inline(always)]
+    pub fn xor(self, o: M4) -> M4 {
+        M4(std::array::from_fn(|k| self.0[k] ^ o.0[k]))
+    }
+
     #[inline(always)]
     pub fn and(self, o: M4) -> M4 {
         M4(std::array::from_fn(|k| self.0[k] & o.0[k]))
@@ -208,11 +220,6 @@ impl M4 {
     #[inline(always)]
     pub fn and_not(self, o: M4) -> M4 {
         M4(std::array::from_fn(|k| self.0[k] & !o.0[k]))
-    }
-
-    #[inline(always)]
-    pub fn count(self) -> u64 {
-        self.0.iter().map(|&b| b & 1).sum()
     }
 
     /// Lane by lane, `a` where the mask is set, else `b` (bit selection, so NaNs and
