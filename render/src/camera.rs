@@ -54,9 +54,25 @@ impl Camera {
     /// but one SIMD square root and division serve four rays.
     #[inline(always)]
     pub(crate) fn directions(&self, px: F4, py: F4) -> V4 {
-        let side = F4::splat(self.short_side);
-        let x = (px - F4::splat(self.half_width)) / side;
-        let y = (F4::splat(self.half_height) - py) / side;
+        self.directions_at(self.plane_x(px), self.plane_y(py))
+    }
+
+    /// The image-plane coordinate x of [`Camera::direction`] for four columns `px`.
+    #[inline(always)]
+    pub(crate) fn plane_x(&self, px: F4) -> F4 {
+        (px - F4::splat(self.half_width)) / F4::splat(self.short_side)
+    }
+
+    /// The image-plane coordinate y of [`Camera::direction`] for four rows `py`.
+    #[inline(always)]
+    pub(crate) fn plane_y(&self, py: F4) -> F4 {
+        (F4::splat(self.half_height) - py) / F4::splat(self.short_side)
+    }
+
+    /// The unit directions through the image-plane points (`x`, `y`), as
+    /// [`Camera::direction`] computes them.
+    #[inline(always)]
+    pub(crate) fn directions_at(&self, x: F4, y: F4) -> V4 {
         let v =
             V4::splat(self.forward) + V4::splat(self.right).scale(x) + V4::splat(self.up).scale(y);
         v.div(v.dot(v).sqrt())

@@ -104,7 +104,17 @@ pub struct Tracer {
     groups: Vec<SampleGroup>,
     /// n², by which a pixel's sum of samples is divided.
     samples_per_pixel: Divisor,
+    /// The image-plane coordinates of the groups' samples, x for each column and y for
+    /// each row (`[column or row][group]`, flattened), computed once so that a packet's
+    /// directions start without two divisions; empty for frames too large for it to be
+    /// worth the memory ([`PLANE_TABLE_MAX`]).
+    plane_xs: Vec<F4>,
+    plane_ys: Vec<F4>,
 }
+
+/// The most entries of the tables of image-plane coordinates ((width + height) × groups
+/// of four samples): 2 MiB.
+const PLANE_TABLE_MAX: usize = 1 << 16;
 
 /// What a grid render does with the colours it traces ([`Tracer::grid_span`]).
 pub(crate) trait GridSink {
@@ -252,6 +262,19 @@ impl Tracer {
                 })
                 .collect()
         };
+        let groups = SampleGroup::grid(settings.aa);
+        let table = |side: u32, coordinate: &dyn Fn(F4) -> F4, offset: fn(&SampleGroup) -> F4| {
+            if (settings.width as usize + settings.height as usize) * groups.len() > PLANE_TABLE_MAX
+            {
+                return Vec::new();
+            }
+            (0..side)
+                .flat_map(|a| groups.iter().map(move |g| (a, g)))
+                .map(|(a, g)| coordinate(F4::splat(f64::from(a)) + offset(g)))
+                .collect()
+        };
+        let plane_xs = table(settings.width, &|px| camera.plane_x(px), |g| g.sx);
+        let plane_ys = table(settings.height, &|py| camera.plane_y(py), |g| g.sy);
         Tracer {
             eye_planes: planes
                 .iter()
@@ -277,7 +300,9 @@ impl Tracer {
                 .collect(),
             ambient: scene.ambient,
             camera,
-            groups: SampleGroup::grid(settings.aa),
+            plane_xs,
+            plane_ys,
+            groups,
             samples_per_pixel: Divisor::new(f64::from(settings.aa) * f64::from(settings.aa)),
             settings,
         }
@@ -438,19 +463,53 @@ impl Tracer {
         ctx: &mut Ctx,
         sink: &mut impl GridSink,
     ) {
-        let y0 = F4::splat(f64::from(j));
-        for i in columns {
-            let mut sum = Vec3::ZERO;
-            for group in &self.groups {
-                let dir = self.group_directions(i, y0, group);
-                let colors = self.trace_directions(dir, group.count, ctx);
-                for k in 0..group.count {
-                    let color = colors.lane(k);
-                    sum += color;
-                    sink.sample(color);
-                }
+        if columns.is_empty() {
+            return;
+        }
+        // The directions of the next group are computed before the current group is
+        // traced: their square root and divisions are a long chain, which then
+        // overlaps with the tracing instead of delaying the start of each packet.
+        let (mut i, mut g) = (columns.start, 0);
+        let mut dir = self.directions_of(i, j, g);
+        let mut sum = Vec3::ZERO;
+        loop {
+            let count = self.groups[g].count;
+            let (next_i, next_g) = if g + 1 < self.groups.len() {
+                (i, g + 1)
+            } else {
+                (i + 1, 0)
+            };
+            let more = next_i < columns.end;
+            // No closure here: it could be compiled apart, without the AVX2 features.
+            let next = if more {
+                self.directions_of(next_i, j, next_g)
+            } else {
+                dir
+            };
+            let colors = self.trace_directions(dir, count, ctx);
+            for k in 0..count {
+                let color = colors.lane(k);
+                sum += color;
+                sink.sample(color);
             }
-            sink.pixel(sum);
+            if next_g == 0 {
+                sink.pixel(sum);
+                sum = Vec3::ZERO;
+            }
+            if !more {
+                return;
+            }
+            (i, g, dir) = (next_i, next_g, next);
+        }
+    }
+
+    /// The camera directions of group `g` of pixel (`i`, `j`).
+    #[inline(always)]
+    fn directions_of(&self, i: u32, j: u32, g: usize) -> V4 {
+        if self.plane_xs.is_empty() {
+            self.group_directions(i, F4::splat(f64::from(j)), &self.groups[g])
+        } else {
+            self.table_directions(i, j, g)
         }
     }
 
@@ -461,6 +520,16 @@ impl Tracer {
     fn group_directions(&self, i: u32, y0: F4, group: &SampleGroup) -> V4 {
         let x0 = F4::splat(f64::from(i));
         self.camera.directions(x0 + group.sx, y0 + group.sy)
+    }
+
+    /// [`Tracer::group_directions`] of group `g` of pixel (`i`, `j`) from the tables of
+    /// image-plane coordinates: the same operations, done ahead.
+    #[inline(always)]
+    fn table_directions(&self, i: u32, j: u32, g: usize) -> V4 {
+        let n = self.groups.len();
+        let x = self.plane_xs[i as usize * n + g];
+        let y = self.plane_ys[j as usize * n + g];
+        self.camera.directions_at(x, y)
     }
 
     /// Traces the camera samples of the first `count` lanes (1 to [`LANES`]) of `dir`,
@@ -719,6 +788,7 @@ impl Tracer {
     /// `from` (or the camera) at reflection depth `depth` with path weight `weight`:
     /// their clipped colours, black in other lanes. Lanes that meet the same object are
     /// shaded together; lanes that meet different objects (at a silhouette) one by one.
+    #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn packet(
         &self,
@@ -773,7 +843,7 @@ impl Tracer {
         let (t, index) = self.nearest_lanes(origin, dir, from, active, ctx);
         let hit = active.and(index.lt(F4::splat(f64::from(FROM_CAMERA))));
         let mut colors = V4::splat(Vec3::ZERO);
-        let Some(first) = hit.first_set() else {
+        let Some(first) = (0..LANES).find(|&k| hit.get(k)) else {
             return colors;
         };
         let object = index.0[first];
@@ -1272,6 +1342,34 @@ mod tests {
             for (k, color) in colors.iter().enumerate() {
                 let bits = |c: Vec3| [c.x, c.y, c.z].map(f64::to_bits);
                 assert_eq!(bits(clipped.lane(k)), bits(clip(*color)), "case {case}");
+            }
+        }
+    }
+
+    /// Grid pixels traced with the tables of image-plane coordinates have the bytes (and
+    /// the rays) of the same pixels traced without them, as in frames too large for the
+    /// tables.
+    #[test]
+    fn plane_tables_change_nothing() {
+        let mut rng = Mix(9);
+        for case in 0..40 {
+            let mut scene = random_scene(&mut rng);
+            scene.settings.aa = 1 + (case % 5);
+            let with = Tracer::new(&scene, scene.settings);
+            assert!(!with.plane_xs.is_empty());
+            let mut without = with.clone();
+            without.plane_xs.clear();
+            without.plane_ys.clear();
+            for j in 0..scene.settings.height {
+                for i in 0..scene.settings.width {
+                    let (mut a, mut b) = (0, 0);
+                    assert_eq!(
+                        with.pixel(i, j, &mut a),
+                        without.pixel(i, j, &mut b),
+                        "{case}"
+                    );
+                    assert_eq!(a, b, "case {case}: rays");
+                }
             }
         }
     }

@@ -195,13 +195,6 @@ impl M4 {
         self.0.iter().fold(u64::MAX, |a, &b| a & b) != 0
     }
 
-    /// The first set lane, if any.
-    #[inline(always)]
-    pub fn first_set(self) -> Option<usize> {
-        let bits = (0..LANES).fold(0u32, |bits, k| bits | (u32::from(self.get(k)) << k));
-        (bits != 0).then(|| bits.trailing_zeros() as usize)
-    }
-
     #[inline(always)]
     pub fn xor(self, o: M4) -> M4 {
         M4(std::array::from_fn(|k| self.0[k] ^ o.0[k]))
