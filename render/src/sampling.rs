@@ -163,6 +163,7 @@ impl<'t> PixelSampler<'t> {
         let mut sink = GridPixels {
             tracer: self.tracer,
             moments: Moments::default(),
+            spread: self.settings().aa > 1,
             add,
         };
         self.tracer.grid_span(j, columns, rays, &mut sink);
@@ -254,13 +255,20 @@ struct GridPixels<'t, 'a, F> {
     tracer: &'t Tracer,
     /// The pixel being traced.
     moments: Moments,
+    /// Whether pixels have several samples: with one (aa = 1) there is no error
+    /// estimate, and only the samples are counted.
+    spread: bool,
     add: &'a mut F,
 }
 
 impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
     #[inline(always)]
     fn sample(&mut self, color: Vec3) {
-        self.moments.add_spread(color);
+        if self.spread {
+            self.moments.add_spread(color);
+        } else {
+            self.moments.count += 1;
+        }
     }
 
     #[inline(always)]
