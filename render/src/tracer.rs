@@ -408,6 +408,35 @@ impl Tracer {
         [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]
     }
 
+    /// The 8-bit colours of the pixels `columns` of row `j`, appended to `rgb`: those of
+    /// [`Tracer::pixel`], traced a span at a time like a frame's tiles but without the
+    /// sampler's statistics. For benchmarks: the tracer's share of a frame.
+    #[doc(hidden)]
+    pub fn pixel_span(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        rays: &mut u64,
+        rgb: &mut Vec<u8>,
+    ) {
+        /// Converts each pixel's mean to bytes, ignores its samples.
+        struct Bytes<'a> {
+            tracer: &'a Tracer,
+            rgb: &'a mut Vec<u8>,
+        }
+        impl GridSink for Bytes<'_> {
+            #[inline(always)]
+            fn sample(&mut self, _: Vec3) {}
+            #[inline(always)]
+            fn pixel(&mut self, sum: Vec3) {
+                let mean = self.tracer.grid_mean(sum);
+                let bytes = [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)];
+                self.rgb.extend_from_slice(&bytes);
+            }
+        }
+        self.grid_span(j, columns, rays, &mut Bytes { tracer: self, rgb });
+    }
+
     /// A grid pixel's mean from the sum of its samples: sum / n², by a multiplication
     /// when n² is a power of two (same bits, see [`Divisor`]).
     #[inline(always)]
