@@ -146,7 +146,10 @@ pub(crate) fn sphere_hits(f: V4, c: F4, r2: F4, d: V4, leaving: M4) -> F4 {
 #[inline(always)]
 pub(crate) fn plane_hits(num: F4, denom: F4) -> F4 {
     let t = num / denom;
-    let hit = t.gt(F4::splat(0.0)).and(t.lt(F4::splat(f64::INFINITY)));
+    // `t <= f64::MAX` is `t < ∞` (both refuse NaN), but written this way the two tests
+    // stay SIMD comparisons: a bound of ∞ turns them into a test of the number's class,
+    // which the compiler evaluates lane by lane in integer code.
+    let hit = t.gt(F4::splat(0.0)).and(t.le(F4::splat(f64::MAX)));
     hit.select(t, F4::splat(f64::NAN))
 }
 

@@ -4,9 +4,9 @@
 //! Three samplers share one budget, `aa` = n: at most n × n camera samples per pixel.
 //!
 //! - [`Sampling::Grid`]: the scene format's n × n centred grid (section 3), the default
-//!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: the
-//!   same samples traced by [`Tracer::samples`] in the same groups of four, summed in
-//!   the same order and divided the same way.
+//!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: it runs
+//!   the tracer's own pixel loop, which hands over each sample's colour as it sums it,
+//!   and divides the same way.
 //! - [`Sampling::Jittered`]: n × n strata, one sample in each at an offset drawn from a
 //!   hash of (pixel column, pixel row, sample index).
 //! - [`Sampling::Adaptive`]: a first pass of 4 samples, then batches of 4 more while the
@@ -37,8 +37,8 @@ use std::fmt;
 
 use thiserror::Error;
 
-use crate::tracer::{to_byte, Tracer};
-use crate::vec3::Vec3;
+use crate::tracer::{to_byte, GridSink, Tracer};
+use crate::vec3::{Divisor, Vec3, F4};
 
 /// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
 /// of them: at most n × n samples per pixel.
@@ -148,20 +148,40 @@ impl<'t> PixelSampler<'t> {
         self.tracer.settings()
     }
 
-    /// Renders pixel (`i`, `j`) with the grid or jittered sampler: all n × n samples,
-    /// adding the rays traced to `rays`.
-    pub fn render_fixed(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
+    /// Renders the pixels `columns` of row `j` with the grid sampler, left to right,
+    /// handing each one's result to `add` and adding the rays traced to `rays`. The
+    /// tracer's own pixel loop hands over each colour as it sums it: no points to
+    /// generate and no colours to store, and the bytes are [`Tracer::pixel`]'s.
+    pub fn render_grid_row(
+        &mut self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        rays: &mut u64,
+        add: &mut impl FnMut(PixelResult),
+    ) {
+        debug_assert_eq!(self.settings().sampling, Sampling::Grid);
+        let mut sink = GridPixels {
+            tracer: self.tracer,
+            moments: Moments::default(),
+            spread: self.settings().aa > 1,
+            add,
+        };
+        self.tracer.grid_span(j, columns, rays, &mut sink);
+    }
+
+    /// Renders pixel (`i`, `j`) with the jittered sampler: all n × n samples, adding the
+    /// rays traced to `rays`.
+    pub fn render_jittered(&mut self, i: u32, j: u32, rays: &mut u64) -> PixelResult {
         let settings = *self.tracer.settings();
         let n = settings.aa;
-        debug_assert!(settings.sampling.target_error().is_none());
+        debug_assert_eq!(settings.sampling, Sampling::Jittered);
         let pattern = Points::new(settings.sampling, n, i, j);
         let mut moments = Moments::default();
         // All at once, in sample order: traced four at a time like the tracer's own
         // pixels, and summed in the same order.
         self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
-        // The grid's own division, so that its bytes are the tracer's.
-        let nf = f64::from(n);
-        moments.result(moments.sum / (nf * nf))
+        // The grid's division by n².
+        moments.result(self.tracer.grid_mean(moments.sum))
     }
 
     /// Adaptive sampling's first pass of pixel (`i`, `j`): its first 4 samples (n² if
@@ -199,7 +219,7 @@ impl<'t> PixelSampler<'t> {
             self.trace(&pattern, i, j, k..end, &mut moments, rays);
             k = end;
         }
-        moments.result(moments.sum / f64::from(moments.count))
+        moments.result(Divisor::count(moments.count).divide3(moments.sum))
     }
 
     /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
@@ -226,6 +246,36 @@ impl<'t> PixelSampler<'t> {
         for &color in colors.iter() {
             moments.add(color);
         }
+    }
+}
+
+/// The grid sampler's statistics of the pixels of a span, as the tracer hands over
+/// their colours.
+struct GridPixels<'t, 'a, F> {
+    tracer: &'t Tracer,
+    /// The pixel being traced.
+    moments: Moments,
+    /// Whether pixels have several samples: with one (aa = 1) there is no error
+    /// estimate, and only the samples are counted.
+    spread: bool,
+    add: &'a mut F,
+}
+
+impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
+    #[inline(always)]
+    fn sample(&mut self, color: Vec3) {
+        if self.spread {
+            self.moments.add_spread(color);
+        } else {
+            self.moments.count += 1;
+        }
+    }
+
+    #[inline(always)]
+    fn pixel(&mut self, sum: Vec3) {
+        let mut moments = std::mem::take(&mut self.moments);
+        moments.sum = sum;
+        (self.add)(moments.result(self.tracer.grid_mean(sum)));
     }
 }
 
@@ -355,14 +405,15 @@ fn sobol_second(k: u32) -> u32 {
 /// Running sums of a pixel's sample colours: the plain sum for the mean (in sample
 /// order, like the tracer's grid), and sums of differences from the first sample for the
 /// variance, which stay exact for a constant colour and lose no precision to
-/// cancellation.
+/// cancellation. The three channels are held in the lanes of an [`F4`] (the fourth is
+/// always 0), so that each sample costs a few SIMD operations.
 #[derive(Clone, Default)]
 pub(crate) struct Moments {
     count: u32,
     sum: Vec3,
-    first: Vec3,
-    diff: [f64; 3],
-    diff_sq: [f64; 3],
+    first: F4,
+    diff: F4,
+    diff_sq: F4,
 }
 
 impl Moments {
@@ -371,6 +422,7 @@ impl Moments {
         self.sum / f64::from(self.count.max(1))
     }
 
+    #[inline(always)]
     fn result(&self, mean: Vec3) -> PixelResult {
         PixelResult {
             rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
@@ -380,32 +432,38 @@ impl Moments {
     }
 
     fn add(&mut self, c: Vec3) {
+        self.sum += c;
+        self.add_spread(c);
+    }
+
+    /// Counts a sample and adds it to the sums of differences, not to `sum` (which the
+    /// caller keeps).
+    #[inline(always)]
+    fn add_spread(&mut self, c: Vec3) {
+        let c = F4([c.x, c.y, c.z, 0.0]);
         if self.count == 0 {
             self.first = c;
         }
         self.count += 1;
-        self.sum += c;
-        let d = [c.x - self.first.x, c.y - self.first.y, c.z - self.first.z];
-        for ((sum, sum_sq), d) in self.diff.iter_mut().zip(&mut self.diff_sq).zip(d) {
-            *sum += d;
-            *sum_sq += d * d;
-        }
+        let d = c - self.first;
+        self.diff = self.diff + d;
+        self.diff_sq = self.diff_sq + d * d;
     }
 
     /// The standard error of the mean in 8-bit levels, the largest of the 3 channels:
     /// 255 · √(s²/k) with s² the unbiased variance. 0 for fewer than 2 samples (no
     /// estimate).
+    #[inline(always)]
     fn error(&self) -> f64 {
         if self.count < 2 {
             return 0.0;
         }
-        let k = f64::from(self.count);
-        let mut worst: f64 = 0.0;
-        for ch in 0..3 {
-            let ss = self.diff_sq[ch] - self.diff[ch] * self.diff[ch] / k;
-            let variance = (ss / (k - 1.0)).max(0.0);
-            worst = worst.max(variance / k);
-        }
+        // Divisions by k are multiplications when k is a power of two (same bits).
+        let k = Divisor::count(self.count);
+        let ss = self.diff_sq - k.divide4(self.diff * self.diff);
+        let variance = (ss / (f64::from(self.count) - 1.0)).map(|v| v.max(0.0));
+        let per_mean = k.divide4(variance);
+        let worst = per_mean.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
         255.0 * worst.sqrt()
     }
 }

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::image::Image;
-use crate::sampling::{contrasted, Moments, PixelResult, PixelSampler};
+use crate::sampling::{contrasted, Moments, PixelResult, PixelSampler, Sampling};
 use crate::scene::RenderSettings;
 use crate::tracer::Tracer;
 
@@ -85,15 +85,25 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
         samples += u64::from(pixel.samples);
         error_sq_sum += pixel.error * pixel.error;
     };
-    match tracer.settings().sampling.target_error() {
-        None => {
+    let columns = rect.x..rect.x + rect.width;
+    match tracer.settings().sampling {
+        Sampling::Grid => {
             for j in rect.y..rect.y + rect.height {
-                for i in rect.x..rect.x + rect.width {
-                    add(sampler.render_fixed(i, j, &mut rays));
+                sampler.render_grid_row(j, columns.clone(), &mut rays, &mut add);
+            }
+        }
+        Sampling::Jittered => {
+            for j in rect.y..rect.y + rect.height {
+                for i in columns.clone() {
+                    add(sampler.render_jittered(i, j, &mut rays));
                 }
             }
         }
-        Some(target) => render_adaptive(&mut sampler, rect, target, &mut rays, &mut add),
+        Sampling::Adaptive { .. } => {
+            let target = tracer.settings().sampling.target_error();
+            let target = target.expect("adaptive sampling has a target");
+            render_adaptive(&mut sampler, rect, target, &mut rays, &mut add);
+        }
     }
     Ok(TileImage {
         rect,

@@ -5,7 +5,7 @@ use crate::bvh::{consider, has_avx2, Bvh, Stack};
 use crate::camera::Camera;
 use crate::geometry::{plane_ahead, plane_hits, sphere_hits, PlaneGeom, SphereGeom};
 use crate::scene::{Material, RenderSettings, Scene, Shape};
-use crate::vec3::{Vec3, F4, LANES, M4, V4};
+use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 
 /// A reflection path whose weight (the product of its `special` factors) is below this
 /// contributes less than a quarter of an 8-bit level, so it is not traced (section 5,
@@ -37,6 +37,10 @@ struct Surface {
     geometry: Geometry,
     color: Vec3,
     material: Material,
+    /// For a sphere whose radius is a power of two, 1 / radius (see
+    /// [`Divisor`]): the normals of a packet then cost a multiplication
+    /// instead of a division, with the same bits.
+    inverse_radius: Option<f64>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -96,8 +100,59 @@ pub struct Tracer {
     ambient: f64,
     camera: Camera,
     settings: RenderSettings,
-    /// (a + ½)/n for a in 0..n: the sample offsets inside a pixel, on both axes.
-    offsets: Vec<f64>,
+    /// The grid's sample offsets inside a pixel, in sample order, in groups of four.
+    groups: Vec<SampleGroup>,
+    /// n², by which a pixel's sum of samples is divided.
+    samples_per_pixel: Divisor,
+    /// The image-plane coordinates of the groups' samples, x for each column and y for
+    /// each row (`[column or row][group]`, flattened), computed once so that a packet's
+    /// directions start without two divisions; empty for frames too large for it to be
+    /// worth the memory ([`PLANE_TABLE_MAX`]).
+    plane_xs: Vec<F4>,
+    plane_ys: Vec<F4>,
+}
+
+/// The most entries of the tables of image-plane coordinates ((width + height) × groups
+/// of four samples): 2 MiB.
+const PLANE_TABLE_MAX: usize = 1 << 16;
+
+/// What a grid render does with the colours it traces ([`Tracer::grid_span`]).
+pub(crate) trait GridSink {
+    /// One sample's clipped colour; a pixel's samples come in sample order.
+    fn sample(&mut self, color: Vec3);
+    /// The end of a pixel, with the sum of its samples' colours in sample order.
+    fn pixel(&mut self, sum: Vec3);
+}
+
+/// Up to [`LANES`] samples of the grid, traced together: their offsets inside the pixel
+/// in lanes (unused lanes repeat the first sample, and their results are dropped).
+#[derive(Clone, Copy, Debug)]
+struct SampleGroup {
+    sx: F4,
+    sy: F4,
+    count: usize,
+}
+
+impl SampleGroup {
+    /// The n × n grid of section 3, ((a + ½)/n, (b + ½)/n) row by row, in groups of
+    /// four.
+    fn grid(n: u32) -> Vec<SampleGroup> {
+        let offset = |a: u32| (f64::from(a) + 0.5) / f64::from(n);
+        let points: Vec<(f64, f64)> = (0..n)
+            .flat_map(|b| (0..n).map(move |a| (offset(a), offset(b))))
+            .collect();
+        points
+            .chunks(LANES)
+            .map(|chunk| {
+                let lane = |k: usize| chunk[if k < chunk.len() { k } else { 0 }];
+                SampleGroup {
+                    sx: F4(std::array::from_fn(|k| lane(k).0)),
+                    sy: F4(std::array::from_fn(|k| lane(k).1)),
+                    count: chunk.len(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// Marks a ray that leaves no surface (a camera ray); no object has this index.
@@ -106,7 +161,26 @@ const FROM_CAMERA: u32 = u32::MAX;
 /// Per-pixel working state: the ray count and, with a hierarchy, its traversal stack.
 struct Ctx<'a> {
     rays: u64,
+    /// Rays of packets, counted in lanes ([`Ctx::count`]) and added to `rays` at the
+    /// end: one vector subtraction per packet instead of a count of its mask's bits.
+    lane_rays: M4,
     stack: Option<&'a mut Stack>,
+}
+
+impl Ctx<'_> {
+    /// Counts one ray for each lane of `lanes`: a set lane is all ones, that is −1, so
+    /// subtracting it adds one.
+    #[inline(always)]
+    fn count(&mut self, lanes: M4) {
+        self.lane_rays = M4(std::array::from_fn(|k| {
+            self.lane_rays.0[k].wrapping_sub(lanes.0[k])
+        }));
+    }
+
+    /// All the rays counted.
+    fn total(&self) -> u64 {
+        self.lane_rays.0.iter().fold(self.rays, |sum, &r| sum + r)
+    }
 }
 
 impl Tracer {
@@ -145,6 +219,10 @@ impl Tracer {
                 },
                 color: o.color,
                 material: o.material,
+                inverse_radius: match o.shape {
+                    Shape::Sphere { radius, .. } => Divisor::new(radius).reciprocal(),
+                    Shape::Plane { .. } => None,
+                },
             })
             .collect();
         let mut spheres = Vec::new();
@@ -184,6 +262,19 @@ impl Tracer {
                 })
                 .collect()
         };
+        let groups = SampleGroup::grid(settings.aa);
+        let table = |side: u32, coordinate: &dyn Fn(F4) -> F4, offset: fn(&SampleGroup) -> F4| {
+            if (settings.width as usize + settings.height as usize) * groups.len() > PLANE_TABLE_MAX
+            {
+                return Vec::new();
+            }
+            (0..side)
+                .flat_map(|a| groups.iter().map(move |g| (a, g)))
+                .map(|(a, g)| coordinate(F4::splat(f64::from(a)) + offset(g)))
+                .collect()
+        };
+        let plane_xs = table(settings.width, &|px| camera.plane_x(px), |g| g.sx);
+        let plane_ys = table(settings.height, &|py| camera.plane_y(py), |g| g.sy);
         Tracer {
             eye_planes: planes
                 .iter()
@@ -209,9 +300,10 @@ impl Tracer {
                 .collect(),
             ambient: scene.ambient,
             camera,
-            offsets: (0..settings.aa)
-                .map(|a| (f64::from(a) + 0.5) / f64::from(settings.aa))
-                .collect(),
+            plane_xs,
+            plane_ys,
+            groups,
+            samples_per_pixel: Divisor::new(f64::from(settings.aa) * f64::from(settings.aa)),
             settings,
         }
     }
@@ -225,9 +317,13 @@ impl Tracer {
     #[inline(always)]
     fn with_ctx<T>(&self, rays: &mut u64, f: impl FnOnce(&mut Ctx) -> T) -> T {
         let run = |stack: Option<&mut Stack>| {
-            let mut ctx = Ctx { rays: 0, stack };
+            let mut ctx = Ctx {
+                rays: 0,
+                lane_rays: M4::NONE,
+                stack,
+            };
             let out = f(&mut ctx);
-            *rays += ctx.rays;
+            *rays += ctx.total();
             out
         };
         if self.bvh.is_some() {
@@ -285,7 +381,12 @@ impl Tracer {
         assert_eq!(points.len(), colors.len(), "one colour per point");
         self.with_ctx(rays, |ctx| {
             for (points, colors) in points.chunks(LANES).zip(colors.chunks_mut(LANES)) {
-                self.trace_points(points, colors, ctx);
+                let px = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].0));
+                let py = F4(std::array::from_fn(|k| points[k.min(points.len() - 1)].1));
+                let out = self.trace_group(px, py, points.len(), ctx);
+                for (k, color) in colors.iter_mut().enumerate() {
+                    *color = out.lane(k);
+                }
             }
         });
     }
@@ -293,62 +394,190 @@ impl Tracer {
     /// The 8-bit colour of pixel (`i`, `j`) (column, row from the top left): the mean of
     /// its n × n clipped samples, summed in sample order. Adds the rays traced to `rays`.
     pub fn pixel(&self, i: u32, j: u32, rays: &mut u64) -> [u8; 3] {
-        let sum = self.with_ctx(rays, |ctx| {
-            if let [offset] = self.offsets[..] {
-                let dir = self
-                    .camera
-                    .direction(f64::from(i) + offset, f64::from(j) + offset);
-                return self.camera_sample(dir, ctx);
+        /// Keeps the pixel's sum, ignores its samples.
+        struct Sum(Vec3);
+        impl GridSink for Sum {
+            fn sample(&mut self, _: Vec3) {}
+            fn pixel(&mut self, sum: Vec3) {
+                self.0 = sum;
             }
-            // Several samples: traced four at a time, summed in sample order.
-            let mut sum = Vec3::ZERO;
-            let mut points = [(0.0, 0.0); LANES];
-            let mut colors = [Vec3::ZERO; LANES];
-            let mut filled = 0;
-            for &sy in &self.offsets {
-                for &sx in &self.offsets {
-                    points[filled] = (f64::from(i) + sx, f64::from(j) + sy);
-                    filled += 1;
-                    if filled == LANES {
-                        self.trace_points(&points, &mut colors, ctx);
-                        for &color in &colors {
-                            sum += color;
-                        }
-                        filled = 0;
-                    }
-                }
-            }
-            if filled > 0 {
-                self.trace_points(&points[..filled], &mut colors[..filled], ctx);
-                for &color in &colors[..filled] {
-                    sum += color;
-                }
-            }
-            sum
-        });
-        let nf = f64::from(self.settings.aa);
-        let mean = sum / (nf * nf);
+        }
+        let mut sum = Sum(Vec3::ZERO);
+        self.grid_span(j, i..i + 1, rays, &mut sum);
+        let mean = self.grid_mean(sum.0);
         [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]
     }
 
-    /// Traces up to [`LANES`] camera samples: alone, or as one packet.
+    /// The 8-bit colours of the pixels `columns` of row `j`, appended to `rgb`: those of
+    /// [`Tracer::pixel`], traced a span at a time like a frame's tiles but without the
+    /// sampler's statistics. For benchmarks: the tracer's share of a frame.
+    #[doc(hidden)]
+    pub fn pixel_span(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        rays: &mut u64,
+        rgb: &mut Vec<u8>,
+    ) {
+        /// Converts each pixel's mean to bytes, ignores its samples.
+        struct Bytes<'a> {
+            tracer: &'a Tracer,
+            rgb: &'a mut Vec<u8>,
+        }
+        impl GridSink for Bytes<'_> {
+            #[inline(always)]
+            fn sample(&mut self, _: Vec3) {}
+            #[inline(always)]
+            fn pixel(&mut self, sum: Vec3) {
+                let mean = self.tracer.grid_mean(sum);
+                let bytes = [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)];
+                self.rgb.extend_from_slice(&bytes);
+            }
+        }
+        self.grid_span(j, columns, rays, &mut Bytes { tracer: self, rgb });
+    }
+
+    /// A grid pixel's mean from the sum of its samples: sum / n², by a multiplication
+    /// when n² is a power of two (same bits, see [`Divisor`]).
     #[inline(always)]
-    fn trace_points(&self, points: &[(f64, f64)], colors: &mut [Vec3], ctx: &mut Ctx) {
-        let direction = |k: usize| self.camera.direction(points[k].0, points[k].1);
-        if points.len() == 1 {
-            colors[0] = self.camera_sample(direction(0), ctx);
+    pub(crate) fn grid_mean(&self, sum: Vec3) -> Vec3 {
+        self.samples_per_pixel.divide3(sum)
+    }
+
+    /// Traces the n × n grid samples (section 3) of the pixels `columns` of row `j`, left
+    /// to right, and hands `sink` each sample's clipped colour in sample order, then each
+    /// pixel's sum of them, summed in sample order. A whole span at a time, so that the
+    /// constants of the loop are set up once and the sink's own work on each pixel is
+    /// compiled with the tracer's SIMD code. Adds the rays traced to `rays`.
+    #[inline]
+    pub(crate) fn grid_span(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        rays: &mut u64,
+        sink: &mut impl GridSink,
+    ) {
+        self.with_ctx(rays, |ctx| {
+            #[cfg(target_arch = "x86_64")]
+            if self.avx2 {
+                // SAFETY: `avx2` is set only where the processor was found to support
+                // AVX2.
+                return unsafe { self.grid_span_avx2(j, columns, ctx, sink) };
+            }
+            self.grid_span_in(j, columns, ctx, sink)
+        })
+    }
+
+    /// [`Tracer::grid_span`] compiled for AVX2, like [`Tracer::packet_avx2`]: the
+    /// camera directions of a group of four and the sink's work are SIMD code too.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn grid_span_avx2(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        ctx: &mut Ctx,
+        sink: &mut impl GridSink,
+    ) {
+        self.grid_span_in(j, columns, ctx, sink)
+    }
+
+    /// [`Tracer::grid_span`] within a span's state: each pixel's samples row by row,
+    /// traced four at a time (the last group may be smaller), summed in sample order.
+    #[inline(always)]
+    fn grid_span_in(
+        &self,
+        j: u32,
+        columns: std::ops::Range<u32>,
+        ctx: &mut Ctx,
+        sink: &mut impl GridSink,
+    ) {
+        if columns.is_empty() {
             return;
         }
-        let mut dirs = [Vec3::ZERO; LANES];
-        for (k, dir) in dirs.iter_mut().enumerate().take(points.len()) {
-            *dir = direction(k);
+        // The directions of the next group are computed before the current group is
+        // traced: their square root and divisions are a long chain, which then
+        // overlaps with the tracing instead of delaying the start of each packet.
+        let (mut i, mut g) = (columns.start, 0);
+        let mut dir = self.directions_of(i, j, g);
+        let mut sum = Vec3::ZERO;
+        loop {
+            let count = self.groups[g].count;
+            let (next_i, next_g) = if g + 1 < self.groups.len() {
+                (i, g + 1)
+            } else {
+                (i + 1, 0)
+            };
+            let more = next_i < columns.end;
+            // No closure here: it could be compiled apart, without the AVX2 features.
+            let next = if more {
+                self.directions_of(next_i, j, next_g)
+            } else {
+                dir
+            };
+            let colors = self.trace_directions(dir, count, ctx);
+            for k in 0..count {
+                let color = colors.lane(k);
+                sum += color;
+                sink.sample(color);
+            }
+            if next_g == 0 {
+                sink.pixel(sum);
+                sum = Vec3::ZERO;
+            }
+            if !more {
+                return;
+            }
+            (i, g, dir) = (next_i, next_g, next);
         }
-        // Unused lanes repeat the first ray; their results are dropped.
-        for k in points.len()..LANES {
-            dirs[k] = dirs[0];
+    }
+
+    /// The camera directions of group `g` of pixel (`i`, `j`).
+    #[inline(always)]
+    fn directions_of(&self, i: u32, j: u32, g: usize) -> V4 {
+        if self.plane_xs.is_empty() {
+            self.group_directions(i, F4::splat(f64::from(j)), &self.groups[g])
+        } else {
+            self.table_directions(i, j, g)
         }
-        let out = self.camera_packet(dirs, points.len(), ctx);
-        colors.copy_from_slice(&out[..points.len()]);
+    }
+
+    /// The camera directions of a group of samples of the pixel in column `i` (row
+    /// `y0`, in every lane): whole vectors, since filling the lanes one by one through
+    /// memory would stall the vector loads that follow.
+    #[inline(always)]
+    fn group_directions(&self, i: u32, y0: F4, group: &SampleGroup) -> V4 {
+        let x0 = F4::splat(f64::from(i));
+        self.camera.directions(x0 + group.sx, y0 + group.sy)
+    }
+
+    /// [`Tracer::group_directions`] of group `g` of pixel (`i`, `j`) from the tables of
+    /// image-plane coordinates: the same operations, done ahead.
+    #[inline(always)]
+    fn table_directions(&self, i: u32, j: u32, g: usize) -> V4 {
+        let n = self.groups.len();
+        let x = self.plane_xs[i as usize * n + g];
+        let y = self.plane_ys[j as usize * n + g];
+        self.camera.directions_at(x, y)
+    }
+
+    /// Traces the camera samples of the first `count` lanes (1 to [`LANES`]) of `dir`,
+    /// whose other lanes repeat the first: alone, or as one packet.
+    #[inline(always)]
+    fn trace_directions(&self, dir: V4, count: usize, ctx: &mut Ctx) -> V4 {
+        if count == 1 {
+            return V4::splat(self.camera_sample(dir.lane(0), ctx));
+        }
+        let origin = V4::splat(self.camera.position());
+        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(count), ctx)
+    }
+
+    /// Traces the camera samples through the image points of the first `count` lanes
+    /// (1 to [`LANES`]) of (`px`, `py`), whose other lanes repeat the first: alone, or
+    /// as one packet.
+    #[inline(always)]
+    fn trace_group(&self, px: F4, py: F4, count: usize, ctx: &mut Ctx) -> V4 {
+        self.trace_directions(self.camera.directions(px, py), count, ctx)
     }
 
     /// The nearest hit, as (distance, object index).
@@ -584,18 +813,11 @@ impl Tracer {
         clip(color)
     }
 
-    /// Up to four camera rays (the first `active` lanes of `dirs`) traced side by side:
-    /// their clipped colours, each with the bits [`Tracer::camera_sample`] gives for it.
-    fn camera_packet(&self, dirs: [Vec3; LANES], active: usize, ctx: &mut Ctx) -> [Vec3; LANES] {
-        let origin = V4::splat(self.camera.position());
-        let dir = V4::from_lanes(dirs);
-        self.packet(origin, dir, FROM_CAMERA, 0, 1.0, M4::first(active), ctx)
-    }
-
     /// [`Tracer::radiance_in`] for the rays of the lanes in `active`, all leaving object
     /// `from` (or the camera) at reflection depth `depth` with path weight `weight`:
     /// their clipped colours, black in other lanes. Lanes that meet the same object are
     /// shaded together; lanes that meet different objects (at a silhouette) one by one.
+    #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn packet(
         &self,
@@ -606,7 +828,7 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: `avx2` is set only where the processor was found to support AVX2.
@@ -630,7 +852,7 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         self.packet_lanes(origin, dir, from, depth, weight, active, ctx)
     }
 
@@ -645,22 +867,26 @@ impl Tracer {
         weight: f64,
         active: M4,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
-        ctx.rays += active.count();
+    ) -> V4 {
+        ctx.count(active);
         let (t, index) = self.nearest_lanes(origin, dir, from, active, ctx);
         let hit = active.and(index.lt(F4::splat(f64::from(FROM_CAMERA))));
-        let mut colors = [Vec3::ZERO; LANES];
+        let mut colors = V4::splat(Vec3::ZERO);
         let Some(first) = (0..LANES).find(|&k| hit.get(k)) else {
             return colors;
         };
         let object = index.0[first];
-        if (0..LANES).all(|k| !hit.get(k) || index.0[k] == object) {
+        if !hit
+            .and_not(index.test(F4::splat(object), |a, b| a == b))
+            .any()
+        {
             return self.shade_lanes(origin, dir, t, object as u32, hit, depth, weight, ctx);
         }
-        for (k, color) in colors.iter_mut().enumerate() {
+        for k in 0..LANES {
             if hit.get(k) {
                 let (o, d) = (origin.lane(k), dir.lane(k));
-                *color = self.shade(o, d, t.0[k], index.0[k] as u32, depth, weight, ctx);
+                let color = self.shade(o, d, t.0[k], index.0[k] as u32, depth, weight, ctx);
+                colors.set_lane(k, color);
             }
         }
         colors
@@ -731,22 +957,26 @@ impl Tracer {
         depth: u32,
         weight: f64,
         ctx: &mut Ctx,
-    ) -> [Vec3; LANES] {
+    ) -> V4 {
         let zero = F4::splat(0.0);
         let surface = &self.surfaces[index as usize];
         let p = origin + dir.scale(t);
 
         // 1. Checkerboard colour.
         let base = match surface.material {
-            Material::Checker => {
-                let white = M4::from_fn(|k| checker_white(p.lane(k)));
-                white.select3(V4::splat(Vec3::new(1.0, 1.0, 1.0)), V4::splat(Vec3::ZERO))
-            }
+            Material::Checker => checker_white_lanes(p)
+                .select3(V4::splat(Vec3::new(1.0, 1.0, 1.0)), V4::splat(Vec3::ZERO)),
             _ => V4::splat(surface.color),
         };
         // 2. Two-sided normal, facing the incoming ray.
         let normal = match surface.geometry {
-            Geometry::Sphere(ref s) => (p - V4::splat(s.center)).div(F4::splat(s.radius)),
+            Geometry::Sphere(ref s) => {
+                let offset = p - V4::splat(s.center);
+                match surface.inverse_radius {
+                    Some(inverse) => offset.scale(F4::splat(inverse)),
+                    None => offset.div(F4::splat(s.radius)),
+                }
+            }
             Geometry::Plane(ref pl) => V4::splat(pl.normal),
         };
         let normal = normal.dot(dir).gt(zero).select3(-normal, normal);
@@ -765,14 +995,7 @@ impl Tracer {
         if special > 0.0 && depth < self.settings.max_depth && weight * special >= MIN_PATH_WEIGHT {
             let weight = weight * special;
             let c = self.packet(p, reflected, index, depth + 1, weight, hit, ctx);
-            for (k, c) in c.iter().enumerate() {
-                if hit.get(k) {
-                    let c = *c * special;
-                    acc.x.0[k] += c.x;
-                    acc.y.0[k] += c.y;
-                    acc.z.0[k] += c.z;
-                }
-            }
+            acc = hit.select3(acc + c.scale(F4::splat(special)), acc);
         }
         // 5. Direct light, diffuse and highlight, where the light is not shadowed.
         for light in &self.lights {
@@ -785,7 +1008,7 @@ impl Tracer {
             if !lit.any() {
                 continue;
             }
-            ctx.rays += lit.count();
+            ctx.count(lit);
             let unshadowed = lit.and_not(self.occluded_lanes(p, l, index, distance, lit, ctx));
             let light_color = V4::splat(light.color);
             acc = unshadowed.select3(acc + base.hadamard(light_color).scale(cos), acc);
@@ -797,13 +1020,7 @@ impl Tracer {
             }
         }
         // 6. Clip.
-        std::array::from_fn(|k| {
-            if hit.get(k) {
-                clip(acc.lane(k))
-            } else {
-                Vec3::ZERO
-            }
-        })
+        hit.select3(clip_lanes(acc), V4::splat(Vec3::ZERO))
     }
 
     /// [`Tracer::occluded`] for the shadow rays of the lanes in `lit`: from `p` along
@@ -885,6 +1102,40 @@ fn checker_white(p: Vec3) -> bool {
     floor_to_int(p.x).wrapping_add(floor_to_int(p.z)) & 1 == 1
 }
 
+/// [`checker_white`] for four points at once. Where |x| and |z| are below 2⁵¹ (always,
+/// but for absurd coordinates), the parities of ⌊x⌋ and ⌊z⌋ come from SIMD additions and
+/// comparisons ([`floor_odd`]); otherwise each lane takes the scalar path, which gives
+/// the same answer.
+#[inline(always)]
+fn checker_white_lanes(p: V4) -> M4 {
+    let limit = F4::splat(FLOOR_PARITY_LIMIT);
+    let small = p.x.map(f64::abs).lt(limit).and(p.z.map(f64::abs).lt(limit));
+    if !small.all() {
+        return M4::from_fn(|k| checker_white(p.lane(k)));
+    }
+    floor_odd(p.x).xor(floor_odd(p.z))
+}
+
+/// Lane by lane, whether ⌊x⌋ is odd, for |x| < 2⁵¹, with operations that vectorise
+/// (AVX2 has no 64-bit arithmetic shift, hence the subtraction). y = x + 1.5·2⁵² lies
+/// in [2⁵², 2⁵³), where the spacing of doubles is 1, so it is x rounded to the nearest
+/// integer r plus an even constant, exactly: its lowest bit is r's parity, and
+/// y − 1.5·2⁵² is r exactly. ⌊x⌋ is r, or r − 1 when r > x, which flips the parity.
+#[inline(always)]
+fn floor_odd(x: F4) -> M4 {
+    let shift = F4::splat(FLOOR_PARITY_SHIFT);
+    let y = x + shift;
+    let r = y - shift;
+    let odd = M4(y.0.map(|y| 0u64.wrapping_sub(y.to_bits() & 1)));
+    odd.xor(r.gt(x))
+}
+
+/// 1.5 · 2⁵², the shift of [`floor_odd`].
+const FLOOR_PARITY_SHIFT: f64 = 6_755_399_441_055_744.0;
+
+/// The bound on |x| below which [`floor_odd`] is exact: 2⁵¹.
+const FLOOR_PARITY_LIMIT: f64 = 2_251_799_813_685_248.0;
+
 /// ⌊x⌋ as an integer, without a call into the C library. Beyond ±2⁶³ the conversion
 /// saturates, and below −2⁶³ the correction wraps around to `i64::MAX`: only the
 /// parity is used, and it is the same in every build (a plain `t - 1` would panic
@@ -927,7 +1178,41 @@ pub(crate) fn clip(c: Vec3) -> Vec3 {
     )
 }
 
+/// [`clip`] lane by lane, with the same operations in the same order. The spill into
+/// other channels (and its divisions) is computed only when some lane is above white.
+#[inline(always)]
+fn clip_lanes(c: V4) -> V4 {
+    let sum = c.x + c.y + c.z;
+    let three = F4::splat(3.0);
+    let over = sum.gt(three);
+    let c = if over.any() {
+        let excess = sum - three;
+        let spill = V4 {
+            x: c.x + excess * c.x / sum,
+            y: c.y + excess * c.y / sum,
+            z: c.z + excess * c.z / sum,
+        };
+        over.select3(spill, c)
+    } else {
+        c
+    };
+    V4 {
+        x: clamp_unit(c.x),
+        y: clamp_unit(c.y),
+        z: clamp_unit(c.z),
+    }
+}
+
+/// Lane by lane `f64::clamp(x, 0, 1)`: NaN and −0 pass through unchanged.
+#[inline(always)]
+fn clamp_unit(x: F4) -> F4 {
+    let (zero, one) = (F4::splat(0.0), F4::splat(1.0));
+    let x = x.lt(zero).select(zero, x);
+    x.gt(one).select(one, x)
+}
+
 /// Section 6: round(clamp(v, 0, 1) · 255).
+#[inline(always)]
 pub(crate) fn to_byte(v: f64) -> u8 {
     // round() halves away from zero; for x in [0, 255] that is trunc, plus one when the
     // (exact) fractional part is at least one half.
@@ -1017,6 +1302,104 @@ mod tests {
                 ..RenderSettings::default()
             },
             ambient: 0.2,
+        }
+    }
+
+    /// The SIMD checker and clip agree with the scalar ones, at integers, halves (where
+    /// rounding to nearest ties), signed zeros, near and beyond 2⁵¹ and on random points.
+    #[test]
+    fn lane_checker_and_clip_equal_the_scalar_ones() {
+        let mut rng = Mix(3);
+        let edges = [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            2.5,
+            -2.5,
+            1e-300,
+            -1e-300,
+            0.999_999_999_999_999_9,
+            -0.999_999_999_999_999_9,
+            FLOOR_PARITY_LIMIT - 0.5,
+            -FLOOR_PARITY_LIMIT + 0.5,
+            FLOOR_PARITY_LIMIT,
+            -FLOOR_PARITY_LIMIT,
+            4.0 * FLOOR_PARITY_LIMIT + 2.0,
+            1e300,
+            f64::INFINITY,
+            f64::NAN,
+        ];
+        for case in 0..100_000 {
+            let value = |rng: &mut Mix| match rng.next() % 3 {
+                0 => edges[(rng.next() % edges.len() as u64) as usize],
+                1 => (2.0 * rng.unit() - 1.0) * 100.0,
+                _ => (rng.next() % 2001) as f64 / 2.0 - 500.0,
+            };
+            let points: [Vec3; LANES] =
+                std::array::from_fn(|_| Vec3::new(value(&mut rng), 0.0, value(&mut rng)));
+            let p = V4 {
+                x: F4(points.map(|p| p.x)),
+                y: F4(points.map(|p| p.y)),
+                z: F4(points.map(|p| p.z)),
+            };
+            let white = checker_white_lanes(p);
+            for (k, point) in points.iter().enumerate() {
+                assert_eq!(
+                    white.get(k),
+                    checker_white(*point),
+                    "case {case}: {point:?}"
+                );
+            }
+            let colors: [Vec3; LANES] = std::array::from_fn(|_| {
+                let mut c = || match rng.next() % 4 {
+                    0 => edges[(rng.next() % edges.len() as u64) as usize],
+                    _ => 3.0 * rng.unit() - 0.5,
+                };
+                Vec3::new(c(), c(), c())
+            });
+            let c = V4 {
+                x: F4(colors.map(|c| c.x)),
+                y: F4(colors.map(|c| c.y)),
+                z: F4(colors.map(|c| c.z)),
+            };
+            let clipped = clip_lanes(c);
+            for (k, color) in colors.iter().enumerate() {
+                let bits = |c: Vec3| [c.x, c.y, c.z].map(f64::to_bits);
+                assert_eq!(bits(clipped.lane(k)), bits(clip(*color)), "case {case}");
+            }
+        }
+    }
+
+    /// Grid pixels traced with the tables of image-plane coordinates have the bytes (and
+    /// the rays) of the same pixels traced without them, as in frames too large for the
+    /// tables.
+    #[test]
+    fn plane_tables_change_nothing() {
+        let mut rng = Mix(9);
+        for case in 0..40 {
+            let mut scene = random_scene(&mut rng);
+            scene.settings.aa = 1 + (case % 5);
+            let with = Tracer::new(&scene, scene.settings);
+            assert!(!with.plane_xs.is_empty());
+            let mut without = with.clone();
+            without.plane_xs.clear();
+            without.plane_ys.clear();
+            for j in 0..scene.settings.height {
+                for i in 0..scene.settings.width {
+                    let (mut a, mut b) = (0, 0);
+                    assert_eq!(
+                        with.pixel(i, j, &mut a),
+                        without.pixel(i, j, &mut b),
+                        "{case}"
+                    );
+                    assert_eq!(a, b, "case {case}: rays");
+                }
+            }
         }
     }
 

@@ -99,7 +99,7 @@ pub(crate) const LANES: usize = 4;
 /// Four `f64`s handled side by side. Every operation is the scalar one applied to each
 /// lane, written as plain loops over a fixed-size array so that the compiler turns them
 /// into SIMD instructions; each lane is bit-for-bit what the scalar code computes.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct F4(pub [f64; LANES]);
 
 /// One boolean per lane, as all-ones or all-zeros bits like a SIMD comparison's result,
@@ -191,6 +191,16 @@ impl M4 {
     }
 
     #[inline(always)]
+    pub fn all(self) -> bool {
+        self.0.iter().fold(u64::MAX, |a, &b| a & b) != 0
+    }
+
+    #[inline(always)]
+    pub fn xor(self, o: M4) -> M4 {
+        M4(std::array::from_fn(|k| self.0[k] ^ o.0[k]))
+    }
+
+    #[inline(always)]
     pub fn and(self, o: M4) -> M4 {
         M4(std::array::from_fn(|k| self.0[k] & o.0[k]))
     }
@@ -203,11 +213,6 @@ impl M4 {
     #[inline(always)]
     pub fn and_not(self, o: M4) -> M4 {
         M4(std::array::from_fn(|k| self.0[k] & !o.0[k]))
-    }
-
-    #[inline(always)]
-    pub fn count(self) -> u64 {
-        self.0.iter().map(|&b| b & 1).sum()
     }
 
     /// Lane by lane, `a` where the mask is set, else `b` (bit selection, so NaNs and
@@ -280,7 +285,7 @@ impl V4 {
         }
     }
 
-    #[inline(always)]
+    #[cfg(test)]
     pub fn from_lanes(v: [Vec3; LANES]) -> V4 {
         V4 {
             x: F4(v.map(|v| v.x)),
@@ -292,6 +297,13 @@ impl V4 {
     #[inline(always)]
     pub fn lane(&self, k: usize) -> Vec3 {
         Vec3::new(self.x.0[k], self.y.0[k], self.z.0[k])
+    }
+
+    #[inline(always)]
+    pub fn set_lane(&mut self, k: usize, v: Vec3) {
+        self.x.0[k] = v.x;
+        self.y.0[k] = v.y;
+        self.z.0[k] = v.z;
     }
 
     #[inline(always)]
@@ -359,6 +371,125 @@ impl Neg for V4 {
             x: -self.x,
             y: -self.y,
             z: -self.z,
+        }
+    }
+}
+
+/// A divisor fixed in advance. When it is a power of two whose reciprocal is a normal
+/// number, 1/d is exact, and y · (1/d) and y / d are the same real number rounded once:
+/// the multiplication, much cheaper, gives the bits of the division for every y.
+/// Otherwise it divides.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Divisor {
+    value: f64,
+    reciprocal: Option<f64>,
+}
+
+impl Divisor {
+    pub fn new(value: f64) -> Self {
+        const MANTISSA: u64 = (1 << 52) - 1;
+        let inverse = 1.0 / value;
+        let exact = value.is_normal() && inverse.is_normal() && value.to_bits() & MANTISSA == 0;
+        Divisor {
+            value,
+            reciprocal: exact.then_some(inverse),
+        }
+    }
+
+    /// A count of samples, k ≥ 1, as a divisor, without a division of its own when k
+    /// is a power of two (2⁻ᵉ is built from its exponent bits).
+    #[inline(always)]
+    pub fn count(k: u32) -> Self {
+        let reciprocal = k
+            .is_power_of_two()
+            .then(|| f64::from_bits(u64::from(1023 - k.trailing_zeros()) << 52));
+        Divisor {
+            value: f64::from(k),
+            reciprocal,
+        }
+    }
+
+    /// 1 / the divisor, when it is exact.
+    pub fn reciprocal(self) -> Option<f64> {
+        self.reciprocal
+    }
+
+    #[inline(always)]
+    pub fn divide4(self, y: F4) -> F4 {
+        match self.reciprocal {
+            Some(r) => y * r,
+            None => y / self.value,
+        }
+    }
+
+    #[inline(always)]
+    pub fn divide3(self, y: Vec3) -> Vec3 {
+        match self.reciprocal {
+            Some(r) => y * r,
+            None => y / self.value,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Dividing through a [`Divisor`] gives the bits of the division, for powers of two
+    /// (multiplied) and other divisors (divided), on normal, subnormal, huge, zero,
+    /// infinite and NaN dividends.
+    #[test]
+    fn divisors_give_the_bits_of_the_division() {
+        let mut state = 0x1234_5678_9ABC_DEF0_u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            state
+        };
+        let divisors = [
+            1.0,
+            2.0,
+            4.0,
+            0.5,
+            3.0,
+            9.0,
+            1024.0,
+            0.1,
+            1e-300,
+            2f64.powi(-1022),
+            2f64.powi(1023),
+        ];
+        for k in 1..=70u32 {
+            let by_count = Divisor::count(k);
+            let by_value = Divisor::new(f64::from(k));
+            assert_eq!(by_count.reciprocal.is_some(), k.is_power_of_two(), "{k}");
+            assert_eq!(by_count.reciprocal, by_value.reciprocal, "{k}");
+        }
+        for case in 0..200_000 {
+            let d = if case % 2 == 0 {
+                divisors[case % divisors.len()]
+            } else {
+                f64::from(next() as u32 % 70 + 1)
+            };
+            let y = match case % 7 {
+                0 => f64::from_bits(next() & !(0x7FF << 52)),
+                1 => [
+                    0.0,
+                    -0.0,
+                    f64::INFINITY,
+                    f64::NAN,
+                    f64::MAX,
+                    f64::MIN_POSITIVE,
+                ][case % 6],
+                _ => f64::from_bits(next()),
+            };
+            let got = Divisor::new(d).divide4(F4::splat(y)).0[0];
+            let want = y / d;
+            assert!(
+                got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
+                "{y:e} / {d:e}: {got:e} against {want:e}"
+            );
         }
     }
 }
