@@ -13,6 +13,10 @@ use crate::metrics::Snapshot;
 /// Previews are at most this many pixels on their longer side.
 const PREVIEW_SIDE: u32 = 1024;
 
+/// The page lists every active job and this many of the most recent ended ones, so
+/// that a coordinator that has run for months still answers a poll in microseconds.
+pub const ENDED_JOBS_SHOWN: usize = 50;
+
 /// Looks at a coordinator without changing it. Cheap to clone.
 #[derive(Clone)]
 pub struct Observer {
@@ -74,9 +78,12 @@ impl Observer {
 
     pub fn farm(&self) -> FarmView {
         let state = self.shared.state.lock().expect("state lock");
+        let oldest_ended_shown =
+            oldest_ended_shown(state.jobs.iter().map(|(&id, r)| (id, r.state)));
         let jobs = state
             .jobs
             .iter()
+            .filter(|(&id, r)| !r.state.is_final() || id >= oldest_ended_shown)
             .map(|(&id, record)| {
                 let s = record.status(id);
                 let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
@@ -147,6 +154,15 @@ impl Observer {
     }
 }
 
+/// The lowest id of an ended job the page shows, from the jobs in id order: the
+/// [`ENDED_JOBS_SHOWN`] most recent ended jobs are at or above it.
+fn oldest_ended_shown(jobs: impl DoubleEndedIterator<Item = (JobId, JobState)>) -> JobId {
+    jobs.rev()
+        .filter(|(_, state)| state.is_final())
+        .nth(ENDED_JOBS_SHOWN)
+        .map_or(0, |(id, _)| id + 1)
+}
+
 fn snapshot(state: &State) -> Snapshot {
     let all = [
         JobState::Queued,
@@ -194,6 +210,28 @@ fn downscale(image: &render::Image, side: u32) -> render::Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_page_shows_active_jobs_and_the_most_recent_ended_ones() {
+        let jobs = |running: JobId| {
+            (1..=80).map(move |id| {
+                let state = if id == running {
+                    JobState::Running
+                } else {
+                    JobState::Done
+                };
+                (id, state)
+            })
+        };
+        // 79 ended jobs: the 50 most recent are 31..=80 (the running job 3 is shown anyway).
+        assert_eq!(oldest_ended_shown(jobs(3)), 31);
+        // The running job among the recent ones leaves room for one more ended job.
+        assert_eq!(oldest_ended_shown(jobs(70)), 30);
+        assert_eq!(
+            oldest_ended_shown((1..=10).map(|id| (id, JobState::Done))),
+            0
+        );
+    }
 
     #[test]
     fn previews_keep_the_aspect_and_sample_the_image() {
