@@ -400,7 +400,8 @@ struct WorkerArgs {
     /// Rendering threads [default: one per core].
     #[arg(long, env = "TESSERA_THREADS", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
-    /// Name shown by `tessera workers` [default: HOST-PID].
+    /// Name shown by `tessera workers`, under which the coordinator counts this worker's
+    /// failed tiles: keep it stable across restarts (the host name) [default: HOST-PID].
     #[arg(long, env = "TESSERA_NAME")]
     name: Option<String>,
     /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
