@@ -5,16 +5,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use coordinator::transport::Endpoint;
-use tracing::{info, warn};
-
-/// Aborts a background task when dropped.
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
-
-impl Drop for AbortOnDrop {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
-}
+use tracing::info;
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
 /// standard input reaches its end because the parent is gone.
@@ -82,11 +73,7 @@ pub async fn worker(
             let flag = Arc::clone(&ready);
             let routes =
                 coordinator::http::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
-            Some(AbortOnDrop(tokio::spawn(async move {
-                if let Err(e) = coordinator::http::serve(listener, routes).await {
-                    warn!(error = %e, "the HTTP listener failed");
-                }
-            })))
+            Some(coordinator::http::spawn(listener, routes))
         }
         None => None,
     };

@@ -47,9 +47,23 @@ pub fn worker_routes(ready: Arc<dyn Fn() -> bool + Send + Sync>) -> Router {
         )
 }
 
-/// Serves `routes` on `listener` until the task is dropped.
-pub async fn serve(listener: TcpListener, routes: Router) -> std::io::Result<()> {
-    axum::serve(listener, routes).await
+/// Serves `routes` on `listener` in the background until the returned guard is
+/// dropped.
+pub fn spawn(listener: TcpListener, routes: Router) -> Serving {
+    Serving(tokio::spawn(async move {
+        if let Err(e) = axum::serve(listener, routes).await {
+            tracing::error!(error = %e, "the HTTP listener failed");
+        }
+    }))
+}
+
+/// An HTTP listener serving in the background; dropping it stops the listener.
+pub struct Serving(tokio::task::JoinHandle<()>);
+
+impl Drop for Serving {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
 }
 
 fn readiness(ready: bool, yes: &'static str, no: &'static str) -> Response {

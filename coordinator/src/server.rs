@@ -381,12 +381,7 @@ impl Server {
         let _stop_ticking = AbortOnDrop(ticker);
         // The HTTP side stays up through the graceful shutdown (readiness says so).
         let _stop_http = self.http.take().map(|listener| {
-            let routes = crate::http::coordinator_routes(self.observer());
-            AbortOnDrop(tokio::spawn(async move {
-                if let Err(e) = crate::http::serve(listener, routes).await {
-                    error!(error = %e, "the HTTP listener failed");
-                }
-            }))
+            crate::http::spawn(listener, crate::http::coordinator_routes(self.observer()))
         });
         loop {
             tokio::select! {

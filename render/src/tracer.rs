@@ -1342,11 +1342,7 @@ mod tests {
             };
             let points: [Vec3; LANES] =
                 std::array::from_fn(|_| Vec3::new(value(&mut rng), 0.0, value(&mut rng)));
-            let p = V4 {
-                x: F4(points.map(|p| p.x)),
-                y: F4(points.map(|p| p.y)),
-                z: F4(points.map(|p| p.z)),
-            };
+            let p = V4::from_lanes(points);
             let white = checker_white_lanes(p);
             for (k, point) in points.iter().enumerate() {
                 assert_eq!(
@@ -1362,11 +1358,7 @@ mod tests {
                 };
                 Vec3::new(c(), c(), c())
             });
-            let c = V4 {
-                x: F4(colors.map(|c| c.x)),
-                y: F4(colors.map(|c| c.y)),
-                z: F4(colors.map(|c| c.z)),
-            };
+            let c = V4::from_lanes(colors);
             let clipped = clip_lanes(c);
             for (k, color) in colors.iter().enumerate() {
                 let bits = |c: Vec3| [c.x, c.y, c.z].map(f64::to_bits);
