@@ -290,6 +290,15 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
     slow.kill9();
     let _fast = start_worker_with(dir.path(), &addr, "fast", &[]);
     wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    // The tiles rendered again give the same image.
+    let fetched = fetch(dir.path(), &addr, job, "fetched.png");
+    let reference = render_reference(
+        dir.path(),
+        &seed,
+        "reference.png",
+        &["--width", "128", "--height", "64"],
+    );
+    assert_same_png(&fetched, &reference, "after a worker was killed");
     let text = get_ok(&http, "/metrics");
     assert!(
         metric(&text, "tessera_tiles_reassigned_total").unwrap() >= 1.0,
