@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
-use coordinator::transport::Endpoint;
+use transport::Endpoint;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, Sampling, Settings, WorkerStatus};
 use render::RenderSettings;

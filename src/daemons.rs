@@ -4,7 +4,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use coordinator::transport::Endpoint;
+use transport::Endpoint;
 use tracing::info;
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when

@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
 use coordinator::client::Client;
-use coordinator::transport::Endpoint;
+use transport::Endpoint;
 
 /// One worker process of a local farm.
 #[derive(Clone, Debug)]

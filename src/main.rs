@@ -18,7 +18,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Result};
 use clap::{Args, CommandFactory, FromArgMatches, Parser, Subcommand, ValueEnum};
-use coordinator::transport::{ClientTls, Endpoint, ServerTls};
+use transport::{ClientTls, Endpoint, ServerTls};
 use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 use render::Sampling;
@@ -376,7 +376,7 @@ struct CoordinatorArgs {
     tls_key: Option<PathBuf>,
     /// Milliseconds without a heartbeat after which a worker counts as lost and its
     /// tiles go to others.
-    #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = coordinator::scheduler::Policy::default().heartbeat_timeout,
+    #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = scheduler::Policy::default().heartbeat_timeout,
           value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
     heartbeat_timeout_ms: u64,
     /// Accept peers without a token on a non-loopback address.
@@ -656,7 +656,7 @@ fn run(command: Command) -> Result<()> {
                         (Some(cert), Some(key)) => Some(ServerTls::from_pem_files(cert, key)?),
                         _ => None,
                     },
-                    policy: coordinator::scheduler::Policy {
+                    policy: scheduler::Policy {
                         heartbeat_timeout: a.heartbeat_timeout_ms,
                         ..Default::default()
                     },

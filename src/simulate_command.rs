@@ -2,7 +2,7 @@
 //! workers in virtual time (see docs/simulation.md). Reproducible: a seed names a run.
 
 use anyhow::{bail, Result};
-use coordinator::sim::{self, SimConfig};
+use scheduler::sim::{self, SimConfig};
 
 /// What to simulate.
 pub struct Options {

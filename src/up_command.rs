@@ -9,7 +9,7 @@ use std::path::PathBuf;
 
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
-use coordinator::transport::Endpoint;
+use transport::Endpoint;
 use protocol::Overrides;
 
 use crate::client_commands::{fetch_to, submit, summary, wait};

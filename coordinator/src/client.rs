@@ -9,7 +9,7 @@ use protocol::{
 };
 use tokio_util::codec::Framed;
 
-use crate::transport::{self, Endpoint, Stream};
+use transport::{self, Endpoint, Stream};
 
 /// An open, handshaken connection to a coordinator.
 pub struct Client {

@@ -9,11 +9,8 @@ pub mod client;
 mod db;
 pub mod http;
 mod metrics;
-pub mod scheduler;
 pub mod server;
-pub mod sim;
 mod store;
 mod tiling;
-pub mod transport;
 
 pub use crate::server::{serve, Config};

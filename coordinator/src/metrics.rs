@@ -18,7 +18,7 @@ use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
 use protocol::JobState;
 
-use crate::scheduler::Counters;
+use scheduler::Counters;
 
 /// Rays per second are averaged over this window.
 const RATE_WINDOW: Duration = Duration::from_secs(10);

@@ -28,10 +28,10 @@ use tracing::{error, info, warn};
 
 use crate::db::{Db, StoredJob, TileWrite, Totals};
 use crate::metrics::Metrics;
-use crate::scheduler::{Action, Event, Policy, Scheduler};
+use scheduler::{Action, Event, Policy, Scheduler};
 use crate::store::{JobMetadata, Store};
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
-use crate::transport::{ServerTls, Stream, TLS_HANDSHAKE_RECORD};
+use transport::{ServerTls, Stream, TLS_HANDSHAKE_RECORD};
 
 /// What a job may ask for. Each bound keeps one client from taking the farm's memory
 /// or time from everyone else; exceeding one is a clear error at submission.

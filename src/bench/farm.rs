@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use coordinator::client::Client;
-use coordinator::transport::Endpoint;
+use transport::Endpoint;
 use protocol::{JobSpec, JobState, Overrides};
 use render::{render_tile, Rect, RenderSettings, Tracer};
 

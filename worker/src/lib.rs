@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use coordinator::transport::{self, DialError, Endpoint, Stream};
+use transport::{self, DialError, Endpoint, Stream};
 use futures_util::{SinkExt, StreamExt};
 use protocol::{FromWorker, JobId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
 use tokio::sync::mpsc;

@@ -18,7 +18,7 @@ use std::cell::Cell;
 ///
 /// ```ignore
 /// #[global_allocator]
-/// static ALLOC: coordinator::sim::CountingAlloc = coordinator::sim::CountingAlloc;
+/// static ALLOC: scheduler::sim::CountingAlloc = scheduler::sim::CountingAlloc;
 /// ```
 pub struct CountingAlloc;
 

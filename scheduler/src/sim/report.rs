@@ -401,7 +401,7 @@ impl fmt::Display for SimReport {
         match &self.memory {
             None => writeln!(
                 f,
-                "Not measured: install `coordinator::sim::CountingAlloc` as the global \
+                "Not measured: install `scheduler::sim::CountingAlloc` as the global \
                  allocator."
             )?,
             Some(m) => {

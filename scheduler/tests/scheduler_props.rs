@@ -55,7 +55,7 @@
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-use coordinator::scheduler::{Action, Event, Millis, Policy, Scheduler};
+use scheduler::{Action, Event, Millis, Policy, Scheduler};
 use proptest::prelude::*;
 use proptest::sample::Index;
 use proptest::strategy::ValueTree;

@@ -1,4 +1,4 @@
-//! The scheduler core driven by the farm simulation ([`coordinator::sim`]): what must
+//! The scheduler core driven by the farm simulation ([`scheduler::sim`]): what must
 //! hold at any scale, checked on runs small enough for every build.
 //!
 //! Every run is checked for: no tile lost or accepted twice, every job ended, the
@@ -10,7 +10,7 @@
 //! cargo test --release -p coordinator --test sim -- --ignored --nocapture scaling_table
 //! ```
 
-use coordinator::sim::{self, CountingAlloc, MachineClass, SimConfig, SimReport};
+use scheduler::sim::{self, CountingAlloc, MachineClass, SimConfig, SimReport};
 
 #[global_allocator]
 static ALLOC: CountingAlloc = CountingAlloc;

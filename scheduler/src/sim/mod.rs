@@ -2,7 +2,7 @@
 //!
 //! One machine cannot host a farm of thousands of workers, but the [`Scheduler`] owns no
 //! socket, clock or thread, so it can be driven by a discrete-event simulation instead:
-//! [`run`] feeds it the same events in the same order as the daemon ([`crate::server`])
+//! [`run`] feeds it the same events in the same order as the daemon (the coordinator)
 //! would, from simulated workers with heterogeneous speeds that crash, hang, reconnect
 //! and join, over links with latency, and carries out its actions the way the daemon
 //! does. Time is virtual (a binary heap of timed events), so a run of hours of farm time
@@ -45,7 +45,7 @@ use std::time::{Duration, Instant};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
-use crate::scheduler::{Action, Event, Millis, Policy, Scheduler};
+use crate::tiles::{Action, Event, Millis, Policy, Scheduler};
 
 pub use alloc::{counting, live_bytes, CountingAlloc};
 pub use report::{EventCost, LastTile, Memory, Outcome, SimReport};

@@ -1,0 +1,19 @@
+//! Tessera's decisions, as pure state machines.
+//!
+//! Nothing here owns a socket, a file, a clock or a thread: the coordinator daemon
+//! feeds events (with the time on each) and carries out the actions returned, and the
+//! tests and the simulator feed scripted or random events with a virtual clock. The
+//! crate depends on nothing but the protocol's ids, so the compiler keeps I/O out.
+//!
+//! - [`tiles`]: which tile goes to which worker, leases, heartbeats, stragglers,
+//!   retries and blocks.
+//! - [`lifecycle`]: the jobs themselves: admission, Queued → Running → Done, Failed or
+//!   Cancelled, when each change is stored, and when a failure is final.
+//! - [`sim`]: a farm of simulated workers driving both, to show the design holds far
+//!   beyond one machine.
+
+pub mod lifecycle;
+pub mod sim;
+pub mod tiles;
+
+pub use tiles::{Action, Counters, Event, Millis, Policy, Scheduler};
