@@ -668,6 +668,7 @@ fn run(command: Command) -> Result<()> {
                         max_active_per_client: a.max_jobs_per_client as usize,
                     },
                     http: a.daemon.http,
+                    retention: None,
                 };
                 if !a.listen.ip().is_loopback() && config.secret.is_none() && !a.insecure {
                     anyhow::bail!(

@@ -110,6 +110,9 @@ pub struct Config {
     pub limits: JobLimits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
+    /// Finished jobs (done, failed or cancelled) are deleted this long after they
+    /// ended; `None` keeps them until `tessera delete`.
+    pub retention: Option<Duration>,
 }
 
 impl Config {
@@ -125,6 +128,7 @@ impl Config {
             policy: Policy::default(),
             limits: JobLimits::default(),
             http: None,
+            retention: None,
         }
     }
 }
@@ -874,6 +878,9 @@ fn respond(shared: &Arc<Shared>, request: ClientRequest, peer: std::net::IpAddr)
                     message: format!("job {job} has no image: it is {}", s.as_str()),
                 },
             },
+        },
+        ClientRequest::Delete { job } => ClientResponse::Error {
+            message: format!("cannot delete job {job}: not implemented by this coordinator"),
         },
         ClientRequest::Workers => ClientResponse::Workers(
             state

@@ -116,6 +116,11 @@ pub enum ClientRequest {
         job: JobId,
         after_tiles: u32,
     },
+    /// Forget a job that has ended: its image, scene and records are removed from the
+    /// coordinator's disk. A job still queued or running must be cancelled first.
+    Delete {
+        job: JobId,
+    },
 }
 
 /// The coordinator's answer to a [`ClientRequest`].
@@ -140,6 +145,9 @@ pub enum ClientResponse {
     /// The request was refused; `message` says why, in one line.
     Error {
         message: String,
+    },
+    Deleted {
+        job: JobId,
     },
 }
 
