@@ -1,0 +1,780 @@
+//! The job lifecycle: admission, Queued → Running → Done, Failed or Cancelled, when each
+//! change is stored, and when a failure is final.
+//!
+//! A pure state machine like [`crate::tiles`]: the daemon reports what happened
+//! ([`Event`], with the time) and carries out the [`Action`]s. It decides:
+//!
+//! - **Admission.** A submission is checked against the [`Limits`] and the state of the
+//!   storage *before* anything is written: a job is refused while the coordinator cannot
+//!   store it, and a client may have at most [`Limits::max_active_per_client`] jobs
+//!   queued or running (jobs being stored count). An admitted job gets the next id,
+//!   which is never given twice (the daemon records the highest id issued durably
+//!   beside the database).
+//! - **Durable before acknowledged.** An admitted job is `Storing` until the daemon
+//!   reports its row written ([`Event::Stored`]); only then is the client told its id
+//!   and the tiles handed to the tile scheduler. A failed write releases the id's slot
+//!   and the client is told why; the id itself is not reused.
+//! - **Final means durable.** When the tiles are all in, the image is stored
+//!   ([`Action::StoreImage`]); a job is `Done` for clients only once the image *and* the
+//!   final state are written. A failure to store is not a failure of the job: the store
+//!   is retried (at [`Limits::retry_ms`]) until the disk is usable again. A job is
+//!   `Failed` only for reasons that are final (its tiles failed), and that too becomes
+//!   visible once written. Cancelling is final at once for the farm (its tiles are
+//!   withdrawn) and written like the others.
+//! - **Retention.** A job that ended is deleted (its files and rows) `retention` after
+//!   it ended, or when a client asks ([`Event::Delete`]); only ended jobs may be deleted.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::net::IpAddr;
+
+use protocol::{JobId, JobState};
+
+use crate::Millis;
+
+/// What a job may ask for, and how the lifecycle is timed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Bytes of scene text.
+    pub max_scene_bytes: usize,
+    /// Objects in a scene.
+    pub max_objects: usize,
+    /// Pixels of an image.
+    pub max_pixels: u64,
+    /// Antialiasing (it bounds the budget of every sampler).
+    pub max_aa: u32,
+    /// Jobs queued, running or being stored per client address.
+    pub max_active_per_client: usize,
+    /// An ended job is deleted this long after it ended (`None`: kept until deleted).
+    pub retention: Option<Millis>,
+    /// How long after a failed store of an image it is tried again.
+    pub retry_ms: Millis,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_scene_bytes: 8 * 1024 * 1024,
+            max_objects: 100_000,
+            max_pixels: 8192 * 8192,
+            max_aa: 16,
+            max_active_per_client: 64,
+            retention: None,
+            retry_ms: 500,
+        }
+    }
+}
+
+/// What a submission asks for, as the daemon measured it (it parses the scene outside
+/// any lock; the lifecycle only compares numbers).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Request {
+    pub client: Option<IpAddr>,
+    pub scene_bytes: usize,
+    pub objects: usize,
+    pub width: u32,
+    pub height: u32,
+    pub aa: u32,
+}
+
+/// Where a job stands, as the lifecycle sees it (finer than [`JobState`], which is what
+/// clients see).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// Admitted, its row being written; not yet acknowledged.
+    Storing,
+    /// Stored, no tile handed out yet.
+    Queued,
+    /// Tiles handed out.
+    Running,
+    /// Every tile is in; the image is being stored (again after a failure, at `retry_at`).
+    Finishing { retry_at: Option<Millis> },
+    /// The job ended as `state`; `recorded` once the state is written.
+    Ended {
+        state: JobState,
+        error: Option<String>,
+        recorded: bool,
+    },
+}
+
+impl Phase {
+    /// What clients are told. A job whose end is not yet written still shows running.
+    pub fn visible(&self) -> JobState {
+        match self {
+            Phase::Storing | Phase::Queued => JobState::Queued,
+            Phase::Running | Phase::Finishing { .. } => JobState::Running,
+            Phase::Ended {
+                recorded: false,
+                state: JobState::Cancelled,
+                ..
+            } => JobState::Cancelled,
+            Phase::Ended {
+                recorded: false, ..
+            } => JobState::Running,
+            Phase::Ended { state, .. } => *state,
+        }
+    }
+
+    /// Whether the job no longer needs the farm.
+    pub fn has_ended(&self) -> bool {
+        matches!(self, Phase::Ended { .. })
+    }
+}
+
+/// One job's lifecycle.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Job {
+    pub phase: Phase,
+    pub client: Option<IpAddr>,
+    /// When the job was submitted, started rendering, and ended (daemon's clock; for a
+    /// restored job, the times recorded before the restart are the daemon's to keep).
+    pub submitted: Millis,
+    pub started: Option<Millis>,
+    pub ended: Option<Millis>,
+}
+
+/// Something that happened to jobs.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Event {
+    /// The job's row is written: acknowledge it and hand its tiles out.
+    Stored { job: JobId },
+    /// The job's row could not be written.
+    StoreFailed { job: JobId, message: String },
+    /// A job found in the database at startup, with the state it had.
+    Restored {
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+        /// Whether some of its tiles are done (it had started).
+        started: bool,
+    },
+    /// The tile scheduler handed out a tile of the job.
+    TileAssigned { job: JobId },
+    /// The tile scheduler has every tile of the job.
+    TilesComplete { job: JobId },
+    /// The tile scheduler gave up on the job (final).
+    TilesFailed { job: JobId, message: String },
+    /// The image was stored (`Ok`) or could not be (`Err`, transient).
+    ImageStored {
+        job: JobId,
+        result: Result<(), String>,
+    },
+    /// The final state of the job is written.
+    EndRecorded { job: JobId },
+    /// A client cancels the job.
+    Cancel { job: JobId },
+    /// A client deletes the job.
+    Delete { job: JobId },
+    /// The job's files and rows are gone.
+    Deleted { job: JobId },
+    /// Storage cannot write now / can again.
+    StorageUnavailable { reason: String },
+    StorageAvailable,
+    /// The time has come (see [`Lifecycle::next_deadline`]).
+    Timeout,
+}
+
+/// What the daemon must do.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Action {
+    /// Tell the client its job is accepted, and give its tiles to the tile scheduler.
+    Acknowledge { job: JobId },
+    /// Tell the client the job could not be stored.
+    RefuseStored { job: JobId, message: String },
+    /// Assemble, encode and store the image, then report [`Event::ImageStored`].
+    StoreImage { job: JobId },
+    /// Withdraw the job's tiles from the tile scheduler.
+    CancelTiles { job: JobId },
+    /// Write the job's final state, then report [`Event::EndRecorded`].
+    RecordEnd {
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+    },
+    /// Remove the job's files and rows, then report [`Event::Deleted`].
+    DeleteStored { job: JobId },
+    /// Reply to a client's request on a job.
+    Reply { job: JobId, result: Result<Reply, String> },
+}
+
+/// A successful answer to a client's request on a job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reply {
+    Cancelled,
+    Deleting,
+}
+
+/// Every job's lifecycle.
+#[derive(Clone, Debug, Default)]
+pub struct Lifecycle {
+    limits: Limits,
+    now: Millis,
+    jobs: BTreeMap<JobId, Job>,
+    /// The next id to give: above every id ever issued.
+    next_id: JobId,
+    /// Why storage cannot write, while it cannot.
+    storage_down: Option<String>,
+    /// Ended jobs by the time they are to be deleted.
+    expiry: BTreeSet<(Millis, JobId)>,
+    /// Jobs being deleted.
+    deleting: BTreeSet<JobId>,
+}
+
+impl Lifecycle {
+    /// A lifecycle whose next job id is `next_id` (above every id ever issued).
+    pub fn new(limits: Limits, next_id: JobId) -> Self {
+        Lifecycle {
+            limits,
+            next_id: next_id.max(1),
+            ..Self::default()
+        }
+    }
+
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    pub fn job(&self, job: JobId) -> Option<&Job> {
+        self.jobs.get(&job)
+    }
+
+    pub fn jobs(&self) -> impl DoubleEndedIterator<Item = (JobId, &Job)> {
+        self.jobs.iter().map(|(&id, j)| (id, j))
+    }
+
+    /// The id the next admitted job will get.
+    pub fn next_id(&self) -> JobId {
+        self.next_id
+    }
+
+    /// Why storage cannot write, while it cannot.
+    pub fn storage_down(&self) -> Option<&str> {
+        self.storage_down.as_deref()
+    }
+
+    /// Checks a submission and, if it may be stored, gives it an id and enters it as
+    /// [`Phase::Storing`]. The error is the one-line message for the client.
+    pub fn admit(&mut self, now: Millis, request: &Request) -> Result<JobId, String> {
+        self.now = self.now.max(now);
+        let limits = &self.limits;
+        if let Some(reason) = &self.storage_down {
+            return Err(format!(
+                "the coordinator cannot store new jobs now (storage unavailable: {reason}): \
+                 submit again later"
+            ));
+        }
+        if request.scene_bytes > limits.max_scene_bytes {
+            return Err(format!(
+                "the scene is {} bytes, more than this coordinator's limit of {}",
+                request.scene_bytes, limits.max_scene_bytes
+            ));
+        }
+        if request.objects > limits.max_objects {
+            return Err(format!(
+                "objects: {} objects, more than this coordinator's limit of {}",
+                request.objects, limits.max_objects
+            ));
+        }
+        let pixels = u64::from(request.width) * u64::from(request.height);
+        if pixels > limits.max_pixels {
+            return Err(format!(
+                "image: {}x{} is {pixels} pixels, more than this coordinator's limit of {}",
+                request.width, request.height, limits.max_pixels
+            ));
+        }
+        if request.aa > limits.max_aa {
+            return Err(format!(
+                "image.aa: {} is more than this coordinator's limit of {}",
+                request.aa, limits.max_aa
+            ));
+        }
+        if let Some(client) = request.client {
+            let active = self
+                .jobs
+                .values()
+                .filter(|j| j.client == Some(client) && !j.phase.has_ended())
+                .count();
+            if active >= limits.max_active_per_client {
+                return Err(format!(
+                    "{client} already has {active} jobs queued or running, this coordinator's \
+                     limit: wait for some to finish"
+                ));
+            }
+        }
+        let id = self.next_id;
+        self.next_id += 1;
+        self.jobs.insert(
+            id,
+            Job {
+                phase: Phase::Storing,
+                client: request.client,
+                submitted: self.now,
+                started: None,
+                ended: None,
+            },
+        );
+        Ok(id)
+    }
+
+    /// The earliest time at which [`Event::Timeout`] has something to do.
+    pub fn next_deadline(&self) -> Option<Millis> {
+        let retry = self
+            .jobs
+            .values()
+            .filter_map(|j| match j.phase {
+                Phase::Finishing { retry_at } => retry_at,
+                _ => None,
+            })
+            .min();
+        let expiry = self.expiry.first().map(|&(at, _)| at);
+        retry.into_iter().chain(expiry).min()
+    }
+
+    /// Applies one event at time `now` and returns what to do, in order.
+    pub fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
+        self.now = self.now.max(now);
+        let now = self.now;
+        let mut actions = Vec::new();
+        match event {
+            Event::Stored { job } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    if j.phase == Phase::Storing {
+                        j.phase = Phase::Queued;
+                        actions.push(Action::Acknowledge { job });
+                    }
+                }
+            }
+            Event::StoreFailed { job, message } => {
+                if self.jobs.get(&job).is_some_and(|j| j.phase == Phase::Storing) {
+                    self.jobs.remove(&job);
+                    actions.push(Action::RefuseStored { job, message });
+                }
+            }
+            Event::Restored {
+                job,
+                state,
+                error,
+                started,
+            } => {
+                self.next_id = self.next_id.max(job + 1);
+                let phase = if state.is_final() {
+                    Phase::Ended {
+                        state,
+                        error,
+                        recorded: true,
+                    }
+                } else if started {
+                    Phase::Running
+                } else {
+                    Phase::Queued
+                };
+                let ended = phase.has_ended().then_some(now);
+                self.jobs.insert(
+                    job,
+                    Job {
+                        phase,
+                        client: None,
+                        submitted: now,
+                        started: started.then_some(now),
+                        ended,
+                    },
+                );
+                if ended.is_some() {
+                    self.schedule_expiry(job, now);
+                }
+            }
+            Event::TileAssigned { job } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    if j.phase == Phase::Queued {
+                        j.phase = Phase::Running;
+                        j.started = Some(now);
+                    }
+                }
+            }
+            Event::TilesComplete { job } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    if matches!(j.phase, Phase::Queued | Phase::Running) {
+                        j.started.get_or_insert(now);
+                        j.phase = Phase::Finishing { retry_at: None };
+                        actions.push(Action::StoreImage { job });
+                    }
+                }
+            }
+            Event::TilesFailed { job, message } => {
+                self.end(job, JobState::Failed, Some(message), &mut actions);
+            }
+            Event::ImageStored { job, result } => {
+                let retry = self.limits.retry_ms;
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    if matches!(j.phase, Phase::Finishing { .. }) {
+                        match result {
+                            Ok(()) => self.end(job, JobState::Done, None, &mut actions),
+                            Err(_) => {
+                                j.phase = Phase::Finishing {
+                                    retry_at: Some(now + retry),
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            Event::EndRecorded { job } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    if let Phase::Ended { recorded, .. } = &mut j.phase {
+                        *recorded = true;
+                    }
+                }
+            }
+            Event::Cancel { job } => {
+                let result = match self.jobs.get(&job).map(|j| &j.phase) {
+                    None | Some(Phase::Storing) => Err(unknown(job)),
+                    Some(Phase::Ended { state, .. }) => {
+                        Err(format!("job {job} is already {}", state.as_str()))
+                    }
+                    Some(_) => {
+                        actions.push(Action::CancelTiles { job });
+                        self.end(job, JobState::Cancelled, None, &mut actions);
+                        Ok(Reply::Cancelled)
+                    }
+                };
+                actions.push(Action::Reply { job, result });
+            }
+            Event::Delete { job } => {
+                let result = match self.jobs.get(&job).map(|j| &j.phase) {
+                    None | Some(Phase::Storing) => Err(unknown(job)),
+                    Some(Phase::Ended { recorded: true, .. }) => {
+                        if self.deleting.insert(job) {
+                            actions.push(Action::DeleteStored { job });
+                        }
+                        Ok(Reply::Deleting)
+                    }
+                    Some(phase) => Err(format!(
+                        "job {job} is {}: cancel it first",
+                        phase.visible().as_str()
+                    )),
+                };
+                actions.push(Action::Reply { job, result });
+            }
+            Event::Deleted { job } => {
+                self.deleting.remove(&job);
+                if let Some(j) = self.jobs.remove(&job) {
+                    if let Some(ended) = j.ended {
+                        if let Some(keep) = self.limits.retention {
+                            self.expiry.remove(&(ended + keep, job));
+                        }
+                    }
+                }
+            }
+            Event::StorageUnavailable { reason } => self.storage_down = Some(reason),
+            Event::StorageAvailable => {
+                self.storage_down = None;
+                // Images waiting for a retry are stored at once.
+                for (&job, j) in &mut self.jobs {
+                    if let Phase::Finishing { retry_at } = &mut j.phase {
+                        if retry_at.take().is_some() {
+                            actions.push(Action::StoreImage { job });
+                        }
+                    }
+                }
+            }
+            Event::Timeout => {
+                for (&job, j) in &mut self.jobs {
+                    if let Phase::Finishing { retry_at } = &mut j.phase {
+                        if retry_at.is_some_and(|at| at <= now) {
+                            *retry_at = None;
+                            actions.push(Action::StoreImage { job });
+                        }
+                    }
+                }
+                while let Some(&(at, job)) = self.expiry.first() {
+                    if at > now {
+                        break;
+                    }
+                    self.expiry.pop_first();
+                    if self.deleting.insert(job) {
+                        actions.push(Action::DeleteStored { job });
+                    }
+                }
+            }
+        }
+        actions
+    }
+
+    /// Ends an active job as `state` and has the end written.
+    fn end(
+        &mut self,
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+        actions: &mut Vec<Action>,
+    ) {
+        let now = self.now;
+        let Some(j) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        if j.phase.has_ended() || j.phase == Phase::Storing {
+            return;
+        }
+        j.phase = Phase::Ended {
+            state,
+            error: error.clone(),
+            recorded: false,
+        };
+        j.ended = Some(now);
+        actions.push(Action::RecordEnd { job, state, error });
+        self.schedule_expiry(job, now);
+    }
+
+    fn schedule_expiry(&mut self, job: JobId, ended: Millis) {
+        if let Some(keep) = self.limits.retention {
+            self.expiry.insert((ended + keep, job));
+        }
+    }
+}
+
+fn unknown(job: JobId) -> String {
+    format!("no job {job} on this coordinator")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn request(client: u8) -> Request {
+        Request {
+            client: Some(IpAddr::from([127, 0, 0, client])),
+            scene_bytes: 100,
+            objects: 3,
+            width: 64,
+            height: 48,
+            aa: 2,
+        }
+    }
+
+    fn stored(l: &mut Lifecycle, now: Millis) -> JobId {
+        let job = l.admit(now, &request(1)).unwrap();
+        assert_eq!(
+            l.handle(now, Event::Stored { job }),
+            [Action::Acknowledge { job }]
+        );
+        job
+    }
+
+    #[test]
+    fn a_job_is_acknowledged_only_once_stored_and_done_only_once_its_end_is_written() {
+        let mut l = Lifecycle::new(Limits::default(), 7);
+        let job = l.admit(0, &request(1)).unwrap();
+        assert_eq!(job, 7);
+        assert_eq!(l.job(job).unwrap().phase.visible(), JobState::Queued);
+        assert_eq!(
+            l.handle(1, Event::Stored { job }),
+            [Action::Acknowledge { job }]
+        );
+        l.handle(2, Event::TileAssigned { job });
+        assert_eq!(l.job(job).unwrap().phase, Phase::Running);
+        assert_eq!(
+            l.handle(3, Event::TilesComplete { job }),
+            [Action::StoreImage { job }]
+        );
+        let ended = l.handle(
+            4,
+            Event::ImageStored {
+                job,
+                result: Ok(()),
+            },
+        );
+        assert_eq!(
+            ended,
+            [Action::RecordEnd {
+                job,
+                state: JobState::Done,
+                error: None
+            }]
+        );
+        assert_eq!(l.job(job).unwrap().phase.visible(), JobState::Running);
+        l.handle(5, Event::EndRecorded { job });
+        assert_eq!(l.job(job).unwrap().phase.visible(), JobState::Done);
+        assert_eq!(l.job(job).unwrap().ended, Some(4));
+    }
+
+    #[test]
+    fn a_failed_store_releases_the_slot_and_never_reuses_the_id() {
+        let mut l = Lifecycle::new(
+            Limits {
+                max_active_per_client: 1,
+                ..Limits::default()
+            },
+            1,
+        );
+        let job = l.admit(0, &request(1)).unwrap();
+        assert!(l.admit(0, &request(1)).unwrap_err().contains("already has 1"));
+        let refused = l.handle(
+            1,
+            Event::StoreFailed {
+                job,
+                message: "disk full".into(),
+            },
+        );
+        assert_eq!(
+            refused,
+            [Action::RefuseStored {
+                job,
+                message: "disk full".into()
+            }]
+        );
+        assert!(l.job(job).is_none());
+        assert_eq!(l.admit(2, &request(1)), Ok(job + 1));
+    }
+
+    #[test]
+    fn storage_down_refuses_submissions_and_retries_images_until_it_is_back() {
+        let mut l = Lifecycle::new(Limits::default(), 1);
+        let job = stored(&mut l, 0);
+        l.handle(1, Event::TilesComplete { job });
+        l.handle(
+            2,
+            Event::StorageUnavailable {
+                reason: "No space left on device".into(),
+            },
+        );
+        let refused = l.admit(3, &request(2)).unwrap_err();
+        assert!(refused.contains("cannot store new jobs"), "{refused}");
+        assert!(refused.contains("No space left"), "{refused}");
+        // A failed store is not a failure of the job: it is retried.
+        l.handle(
+            4,
+            Event::ImageStored {
+                job,
+                result: Err("No space left on device".into()),
+            },
+        );
+        assert_eq!(l.job(job).unwrap().phase.visible(), JobState::Running);
+        assert_eq!(l.next_deadline(), Some(504));
+        assert!(l.handle(100, Event::Timeout).is_empty());
+        assert_eq!(
+            l.handle(504, Event::Timeout),
+            [Action::StoreImage { job }]
+        );
+        l.handle(
+            505,
+            Event::ImageStored {
+                job,
+                result: Err("still full".into()),
+            },
+        );
+        // Storage back: the image is stored at once, not at the next retry.
+        assert_eq!(
+            l.handle(600, Event::StorageAvailable),
+            [Action::StoreImage { job }]
+        );
+        assert_eq!(l.admit(601, &request(2)), Ok(job + 1));
+    }
+
+    #[test]
+    fn failure_and_cancel_are_final_and_written_and_only_ended_jobs_are_deleted() {
+        let mut l = Lifecycle::new(Limits::default(), 1);
+        let a = stored(&mut l, 0);
+        let b = stored(&mut l, 0);
+        let failed = l.handle(
+            1,
+            Event::TilesFailed {
+                job: a,
+                message: "tile 3 failed 5 times".into(),
+            },
+        );
+        assert!(matches!(
+            &failed[..],
+            [Action::RecordEnd {
+                state: JobState::Failed,
+                ..
+            }]
+        ));
+        // A late completion changes nothing.
+        assert!(l.handle(2, Event::TilesComplete { job: a }).is_empty());
+        let delete_running = l.handle(3, Event::Delete { job: b });
+        assert_eq!(
+            delete_running,
+            [Action::Reply {
+                job: b,
+                result: Err(format!("job {b} is queued: cancel it first"))
+            }]
+        );
+        let cancelled = l.handle(4, Event::Cancel { job: b });
+        assert_eq!(cancelled[0], Action::CancelTiles { job: b });
+        assert_eq!(
+            cancelled.last(),
+            Some(&Action::Reply {
+                job: b,
+                result: Ok(Reply::Cancelled)
+            })
+        );
+        assert_eq!(l.job(b).unwrap().phase.visible(), JobState::Cancelled);
+        let again = l.handle(5, Event::Cancel { job: b });
+        assert_eq!(
+            again,
+            [Action::Reply {
+                job: b,
+                result: Err(format!("job {b} is already cancelled"))
+            }]
+        );
+        l.handle(6, Event::EndRecorded { job: b });
+        let deleting = l.handle(7, Event::Delete { job: b });
+        assert_eq!(deleting[0], Action::DeleteStored { job: b });
+        l.handle(8, Event::Deleted { job: b });
+        assert!(l.job(b).is_none());
+        assert_eq!(
+            l.handle(9, Event::Cancel { job: 99 }),
+            [Action::Reply {
+                job: 99,
+                result: Err("no job 99 on this coordinator".into())
+            }]
+        );
+    }
+
+    #[test]
+    fn ended_jobs_are_deleted_after_the_retention() {
+        let mut l = Lifecycle::new(
+            Limits {
+                retention: Some(1_000),
+                ..Limits::default()
+            },
+            1,
+        );
+        let job = stored(&mut l, 0);
+        l.handle(10, Event::Cancel { job });
+        l.handle(11, Event::EndRecorded { job });
+        assert_eq!(l.next_deadline(), Some(1_010));
+        assert!(l.handle(1_009, Event::Timeout).is_empty());
+        assert_eq!(
+            l.handle(1_010, Event::Timeout),
+            [Action::DeleteStored { job }]
+        );
+        l.handle(1_011, Event::Deleted { job });
+        assert_eq!(l.next_deadline(), None);
+    }
+
+    #[test]
+    fn restored_jobs_keep_their_state_and_ids_continue_above_them() {
+        let mut l = Lifecycle::new(Limits::default(), 1);
+        l.handle(
+            0,
+            Event::Restored {
+                job: 4,
+                state: JobState::Queued,
+                error: None,
+                started: true,
+            },
+        );
+        l.handle(
+            0,
+            Event::Restored {
+                job: 9,
+                state: JobState::Done,
+                error: None,
+                started: true,
+            },
+        );
+        assert_eq!(l.job(4).unwrap().phase.visible(), JobState::Running);
+        assert_eq!(l.job(9).unwrap().phase.visible(), JobState::Done);
+        assert_eq!(l.admit(1, &request(1)), Ok(10));
+    }
+}
