@@ -136,9 +136,14 @@ pub struct Job {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Event {
     /// The job's row is written: acknowledge it and hand its tiles out.
-    Stored { job: JobId },
+    Stored {
+        job: JobId,
+    },
     /// The job's row could not be written.
-    StoreFailed { job: JobId, message: String },
+    StoreFailed {
+        job: JobId,
+        message: String,
+    },
     /// A job found in the database at startup, with the state it had.
     Restored {
         job: JobId,
@@ -148,26 +153,43 @@ pub enum Event {
         started: bool,
     },
     /// The tile scheduler handed out a tile of the job.
-    TileAssigned { job: JobId },
+    TileAssigned {
+        job: JobId,
+    },
     /// The tile scheduler has every tile of the job.
-    TilesComplete { job: JobId },
+    TilesComplete {
+        job: JobId,
+    },
     /// The tile scheduler gave up on the job (final).
-    TilesFailed { job: JobId, message: String },
+    TilesFailed {
+        job: JobId,
+        message: String,
+    },
     /// The image was stored (`Ok`) or could not be (`Err`, transient).
     ImageStored {
         job: JobId,
         result: Result<(), String>,
     },
     /// The final state of the job is written.
-    EndRecorded { job: JobId },
+    EndRecorded {
+        job: JobId,
+    },
     /// A client cancels the job.
-    Cancel { job: JobId },
+    Cancel {
+        job: JobId,
+    },
     /// A client deletes the job.
-    Delete { job: JobId },
+    Delete {
+        job: JobId,
+    },
     /// The job's files and rows are gone.
-    Deleted { job: JobId },
+    Deleted {
+        job: JobId,
+    },
     /// Storage cannot write now / can again.
-    StorageUnavailable { reason: String },
+    StorageUnavailable {
+        reason: String,
+    },
     StorageAvailable,
     /// The time has come (see [`Lifecycle::next_deadline`]).
     Timeout,
@@ -193,7 +215,10 @@ pub enum Action {
     /// Remove the job's files and rows, then report [`Event::Deleted`].
     DeleteStored { job: JobId },
     /// Reply to a client's request on a job.
-    Reply { job: JobId, result: Result<Reply, String> },
+    Reply {
+        job: JobId,
+        result: Result<Reply, String>,
+    },
 }
 
 /// A successful answer to a client's request on a job.
@@ -344,7 +369,11 @@ impl Lifecycle {
                 }
             }
             Event::StoreFailed { job, message } => {
-                if self.jobs.get(&job).is_some_and(|j| j.phase == Phase::Storing) {
+                if self
+                    .jobs
+                    .get(&job)
+                    .is_some_and(|j| j.phase == Phase::Storing)
+                {
                     self.jobs.remove(&job);
                     actions.push(Action::RefuseStored { job, message });
                 }
@@ -606,7 +635,10 @@ mod tests {
             1,
         );
         let job = l.admit(0, &request(1)).unwrap();
-        assert!(l.admit(0, &request(1)).unwrap_err().contains("already has 1"));
+        assert!(l
+            .admit(0, &request(1))
+            .unwrap_err()
+            .contains("already has 1"));
         let refused = l.handle(
             1,
             Event::StoreFailed {
@@ -650,10 +682,7 @@ mod tests {
         assert_eq!(l.job(job).unwrap().phase.visible(), JobState::Running);
         assert_eq!(l.next_deadline(), Some(504));
         assert!(l.handle(100, Event::Timeout).is_empty());
-        assert_eq!(
-            l.handle(504, Event::Timeout),
-            [Action::StoreImage { job }]
-        );
+        assert_eq!(l.handle(504, Event::Timeout), [Action::StoreImage { job }]);
         l.handle(
             505,
             Event::ImageStored {

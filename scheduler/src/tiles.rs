@@ -2,8 +2,8 @@
 //! a job is finished or has failed.
 //!
 //! A pure state machine. It owns no socket, no clock and no thread: the daemon feeds it
-//! [`Event`]s (time arrives as [`Event::Tick`]) and carries out the [`Action`]s it
-//! returns, and tests feed it scripted or random events with a virtual clock. Every
+//! [`Event`]s, each with the time it happened, and carries out the [`Action`]s it
+//! returns; tests feed it scripted or random events with a virtual clock. Every
 //! decision of the farm is made here.
 //!
 //! Policy:
@@ -25,27 +25,67 @@
 //!   holders per tile). The first result wins; a later copy is checked equal.
 //! - **First result wins.** A result or a failure for a tile the sender does not hold
 //!   (any more) changes nothing.
-//! - **Poison tiles.** A tile that fails (an error reported, or its worker dying while
-//!   holding it) is retried on other workers; after [`Policy::max_attempts`] failures
-//!   the job fails with the last error. A worker that fails
-//!   [`Policy::block_after`] tiles of a job gets no more of that job's tiles. Both
-//!   count per machine (the name a worker gives), so a worker that crashes and comes
-//!   back under the same name is not handed the same tiles again.
+//! - **Poison tiles, reported.** A tile the worker reports failed ([`Event::TileFailed`])
+//!   is retried on other machines, never on one it failed on; after
+//!   [`Policy::max_attempts`] reports the job fails with the last error. A machine that
+//!   reports [`Policy::block_after`] failed tiles of a job gets no more of that job's
+//!   tiles. Both count per machine (the name a worker gives), so a worker that comes
+//!   back under the same name is not handed again what it failed.
+//! - **Lost connections are not failures.** A worker whose connection closes or that
+//!   misses its heartbeats may have crashed on a tile, but just as well been restarted,
+//!   cut off by the network or stopped by its host: a closed connection proves nothing
+//!   about the machine. So its tiles go back to the queue and nothing counts against the
+//!   machine: no block, no attempt, and the tiles may go to the same name again once it
+//!   reconnects (a supervised worker restarted under its name is not locked out of the
+//!   job). Poison tiles that kill their workers are still caught: each tile counts the
+//!   times it was lost with its worker, and its job fails at [`Policy::max_losses`].
+//!   Healthy tiles are lost with a crash or a cut only by ill luck, a few times at
+//!   most; a tile that takes down every worker it reaches is lost every time.
+//! - **No job waits forever.** A job with tiles waiting, while live workers are
+//!   connected (not draining) and none of them may take any of its waiting tiles (each
+//!   machine is blocked from the job, or the tile failed on it), fails once that has
+//!   lasted [`Policy::stall_timeout`], with a message naming a tile and the machines.
+//!   Without any worker connected a job just waits: a worker may come.
+//! - **Storage first.** While the daemon cannot record results
+//!   ([`Event::StorageUnavailable`]) no tile is handed out, copies included: a result
+//!   that cannot be stored is work thrown away. Results of tiles already out are still
+//!   accepted, and [`Event::StorageAvailable`] fills every worker again.
 //! - **Scenes once.** A worker is sent a scene before its first tile of it, and only
 //!   then; it may forget the scene once no active job uses it.
-
+//!
+//! Time: every event carries the daemon's monotonic clock, and [`Event::Timeout`] is
+//! where time alone acts (silent workers are dropped, leases run out, stalled jobs
+//! fail). [`Scheduler::next_deadline`] tells when the next call is due: the earliest
+//! heartbeat expiry, lease deadline or stall timeout, and never later than the last
+//! call plus [`Policy::wake_interval`] while any worker is connected.
+//!
+//! **Pauses are not failures.** Because a running daemon calls at least every
+//! `wake_interval`, a gap between two calls longer than [`Policy::pause_threshold`]
+//! means the coordinator itself did not run (stopped by a signal, a paused VM, a swap
+//! storm), not that its peers fell silent: their messages are waiting unread in the
+//! sockets. So the scheduler keeps its own clock, which follows the daemon's except
+//! that such a gap counts only as one `wake_interval`. Heartbeat timeouts, leases, tile
+//! times and stall timeouts all run on that clock: after a pause the daemon reads what
+//! its peers sent before anyone's silence can reach the timeout. (A `wake_interval`
+//! above `pause_threshold` is taken as `pause_threshold`, so that a daemon keeping to
+//! [`Scheduler::next_deadline`] is never mistaken for a paused one.)
 //!
 //! Cost: the farm may have thousands of workers and hundreds of thousands of tiles, and
 //! the daemon holds its lock for the whole of [`Scheduler::handle`]. So no event walks
 //! every tile or every lease: each job keeps its tiles' state next to its queue, its
 //! straggler candidates in the order they are chosen, and its live leases by deadline;
-//! the jobs are kept in the order they are served; and only workers with free credit
-//! are visited to be filled. An event costs time logarithmic in the tiles, times what
-//! it changes, times the workers it fills. These indexes only speed the decisions up:
-//! they are the same, event for event, as a search of every tile would make.
+//! the jobs are kept in the order they are served; the workers by when they were last
+//! heard from, and the machines ready for work with their count of workers; and only
+//! workers with free credit are visited to be filled. An event costs time logarithmic
+//! in the tiles, times what it changes, times the workers it fills. The stall check at
+//! a timeout looks at the jobs, and in each at most the waiting tiles that failed
+//! before (a tile that never failed may go to any machine not blocked). These indexes
+//! only speed the decisions up: they are the same, event for event, as a search of
+//! every tile would make.
 
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::fmt;
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -64,12 +104,25 @@ pub struct Policy {
     /// A lease lasts this many times the job's slowest measured tile (and at least
     /// four times its mean).
     pub lease_factor: u64,
-    /// Failed attempts at one tile before its job fails.
+    /// Failures of one tile reported by workers before its job fails.
     pub max_attempts: u32,
-    /// Failures of one job's tiles on one worker before the worker is blocked from it.
+    /// Failures of one job's tiles reported by one machine before the machine is
+    /// blocked from the job.
     pub block_after: u32,
     /// Whether to duplicate stragglers near the end of a job.
     pub speculate: bool,
+    /// Times one tile may be lost with its worker (connection closed, or dropped for
+    /// silence, while holding it) before its job fails: a tile that crashes whoever
+    /// renders it, or a farm whose workers keep losing their connection.
+    pub max_losses: u32,
+    /// How long a job with tiles waiting may go with workers connected but none that
+    /// may take any of them before it fails.
+    pub stall_timeout: Millis,
+    /// A gap between two calls longer than this is a pause of the coordinator itself,
+    /// and counts only as one `wake_interval` (see the module doc).
+    pub pause_threshold: Millis,
+    /// The longest the daemon may wait between two calls while a worker is connected.
+    pub wake_interval: Millis,
 }
 
 impl Default for Policy {
@@ -82,19 +135,30 @@ impl Default for Policy {
             max_attempts: 5,
             block_after: 2,
             speculate: true,
+            max_losses: 8,
+            stall_timeout: 30_000,
+            pause_threshold: 2_000,
+            wake_interval: 1_000,
         }
+    }
+}
+
+impl Policy {
+    /// The wake interval in effect: at least 1 ms, and no more than the pause threshold,
+    /// so that a daemon keeping to [`Scheduler::next_deadline`] never looks paused.
+    fn wake(&self) -> Millis {
+        self.wake_interval.clamp(1, self.pause_threshold.max(1))
     }
 }
 
 /// Something that happened, as the daemon saw it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Event {
-    /// The clock moved on: leases and heartbeats are checked.
-    Tick {
-        now: Millis,
-    },
-    /// A worker connected. `machine` is the name it gave, if any: failures and blocks
-    /// are counted per machine, so that a worker that crashes on a job's tiles and
+    /// The deadline of [`Scheduler::next_deadline`] came (or the daemon looks anyway):
+    /// silent workers are dropped, leases run out, stalled jobs fail.
+    Timeout,
+    /// A worker connected. `machine` is the name it gave, if any: reported failures and
+    /// blocks are counted per machine, so that a worker that fails a job's tiles and
     /// comes back under the same name (a restarted service) is still kept from them.
     /// A worker without one is a machine of its own.
     WorkerJoined {
@@ -106,8 +170,9 @@ pub enum Event {
     Heartbeat {
         worker: WorkerId,
     },
-    /// The worker's connection is gone; its tiles go back to their queues, and count as
-    /// failed attempts (the worker may have died of them).
+    /// The worker's connection is gone; its tiles go back to their queues. Nothing
+    /// counts against its machine: a lost connection proves nothing about it. Each
+    /// tile it held counts one loss towards [`Policy::max_losses`].
     WorkerLeft {
         worker: WorkerId,
     },
@@ -136,6 +201,11 @@ pub enum Event {
     CancelJob {
         job: JobId,
     },
+    /// Storage cannot record results: hand out no new tile (results of tiles already
+    /// out are still accepted) until `StorageAvailable`.
+    StorageUnavailable,
+    /// Storage records results again: every worker is filled.
+    StorageAvailable,
 }
 
 /// What the daemon must do.
@@ -241,11 +311,16 @@ struct Job {
     /// worker with free credit finds its straggler without walking every tile in
     /// flight.
     stragglers: BTreeSet<(Millis, u32)>,
-    /// The live leases by deadline, so that a tick looks only at those that ran out.
+    /// The live leases by deadline, so that a timeout looks only at those that ran out.
     deadlines: BTreeSet<(Millis, u32, WorkerId)>,
     remaining: u32,
-    /// Failed attempts per tile, and the workers each tile failed on.
+    /// Failures reported per tile, and the machines each tile failed on.
     failures: BTreeMap<u32, (u32, BTreeSet<Machine>)>,
+    /// Times each tile was lost with its worker.
+    losses: BTreeMap<u32, u32>,
+    /// Since when (on the scheduler's clock) no connected worker may take any waiting
+    /// tile, as last seen at a timeout.
+    stalled_since: Option<Millis>,
     /// Failures per machine, and the machines blocked from this job.
     worker_failures: BTreeMap<Machine, u32>,
     blocked: BTreeSet<Machine>,
@@ -270,6 +345,8 @@ impl Job {
             deadlines: BTreeSet::new(),
             remaining: tiles,
             failures: BTreeMap::new(),
+            losses: BTreeMap::new(),
+            stalled_since: None,
             worker_failures: BTreeMap::new(),
             blocked: BTreeSet::new(),
             late_copies: BTreeSet::new(),
@@ -432,6 +509,73 @@ impl Job {
         Some(tile)
     }
 
+    /// The first waiting tile (in queue order) if no machine of `ready` (those with a
+    /// live worker that is not draining) may take any waiting tile: each is blocked
+    /// from the job or the tile failed on it. `None` while one may, or nothing waits.
+    ///
+    /// Cheap enough for every timeout: a tile that never failed may go to any machine
+    /// not blocked, so the walk stops at the first such tile; and a tile fails on fewer
+    /// than `max_attempts` machines before its job fails, so with that many machines
+    /// open nothing is stalled. The walk is over the waiting tiles that failed before.
+    fn stalled_tile(&self, ready: &BTreeMap<Machine, u32>, max_attempts: u32) -> Option<u32> {
+        if self.queued == 0 || ready.is_empty() {
+            return None;
+        }
+        let limit = (max_attempts as usize).max(1);
+        let open: Vec<&Machine> = ready
+            .keys()
+            .filter(|m| !self.blocked.contains(*m))
+            .take(limit)
+            .collect();
+        if open.len() >= limit {
+            return None;
+        }
+        let mut first = None;
+        for &t in &self.waiting {
+            if self.state[t as usize] != TileState::Waiting {
+                continue;
+            }
+            let takeable = match self.failures.get(&t) {
+                None => !open.is_empty(),
+                Some((_, on)) => open.iter().any(|m| !on.contains(*m)),
+            };
+            if takeable {
+                return None;
+            }
+            first.get_or_insert(t);
+            if open.is_empty() {
+                break;
+            }
+        }
+        first
+    }
+
+    /// Why no machine of `ready` may take the tile, in one line.
+    fn stall_message(&self, tile: u32, ready: &BTreeMap<Machine, u32>, block_after: u32) -> String {
+        let on = self.failures.get(&tile).map(|(_, on)| on);
+        let (failed, blocked): (Vec<&Machine>, Vec<&Machine>) = ready
+            .keys()
+            .partition(|m| on.is_some_and(|on| on.contains(*m)));
+        let head = format!("no connected worker may render tile {tile}");
+        match (failed.is_empty(), blocked.is_empty()) {
+            (_, true) => format!(
+                "{head}: it failed on every one of them ({})",
+                name_list(&failed)
+            ),
+            (true, false) => format!(
+                "{head}: every one of them is blocked from the job after failing \
+                 {block_after} of its tiles ({})",
+                name_list(&blocked)
+            ),
+            (false, false) => format!(
+                "{head}: it failed on some of them ({}) and the others are blocked from \
+                 the job after failing {block_after} of its tiles ({})",
+                name_list(&failed),
+                name_list(&blocked)
+            ),
+        }
+    }
+
     /// The tile to duplicate for an idle worker: in flight with one live holder that is
     /// not this worker, never failed on this worker, out the longest (earliest start
     /// among its leases, then lowest number). The candidates are kept in that order, so
@@ -454,6 +598,26 @@ enum Machine {
     Connection(WorkerId),
 }
 
+impl fmt::Display for Machine {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Machine::Named(name) => f.write_str(name),
+            Machine::Connection(id) => write!(f, "worker {id}"),
+        }
+    }
+}
+
+/// Machines named in a message: the first few, so that a farm of thousands keeps the
+/// message on one readable line.
+fn name_list(machines: &[&Machine]) -> String {
+    const SHOWN: usize = 8;
+    let mut list: Vec<String> = machines.iter().take(SHOWN).map(|m| m.to_string()).collect();
+    if machines.len() > SHOWN {
+        list.push(format!("and {} more", machines.len() - SHOWN));
+    }
+    list.join(", ")
+}
+
 struct Worker {
     machine: Machine,
     credit: usize,
@@ -467,17 +631,28 @@ struct Worker {
 #[derive(Default)]
 pub struct Scheduler {
     policy: Policy,
+    /// The scheduler's own clock: the daemon's, less the pauses (see the module doc).
     now: Millis,
+    /// The daemon's clock at the last call, once there was one.
+    wall: Option<Millis>,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
     /// The active jobs in the order a free slot serves them ([`Job::rank`]).
     order: BTreeSet<JobRank>,
     workers: BTreeMap<WorkerId, Worker>,
+    /// The workers by when they were last heard from, so that a timeout looks only at
+    /// those that fell silent.
+    by_last_seen: BTreeSet<(Millis, WorkerId)>,
+    /// The machines with a live worker that is not draining, and how many: those that
+    /// could take a tile, for the stall check.
+    ready: BTreeMap<Machine, u32>,
     /// Every live worker that is not draining and holds less than its credit, and
     /// perhaps some that are full again: filling a worker drops it from here once it is
     /// full, and anything that frees a slot puts it back. Filling everyone visits only
     /// these, in id order.
     hungry: BTreeSet<WorkerId>,
+    /// Storage cannot record results: no tile goes out.
+    storage_down: bool,
     counters: Counters,
 }
 
@@ -506,14 +681,16 @@ impl Scheduler {
         }
     }
 
-    /// Applies one event and returns what to do, in order.
-    pub fn handle(&mut self, event: Event) -> Vec<Action> {
+    /// Applies one event at time `now` (ms on a monotonic clock; never decreasing, a
+    /// smaller value is taken as the last one) and returns the actions, in order.
+    pub fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
+        self.advance(now);
         let mut actions = Vec::new();
         match event {
-            Event::Tick { now } => {
-                self.now = self.now.max(now);
+            Event::Timeout => {
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
             }
             Event::WorkerJoined {
@@ -521,33 +698,40 @@ impl Scheduler {
                 threads,
                 machine,
             } => {
-                self.workers.insert(
-                    worker,
-                    Worker {
-                        machine: machine.map_or(Machine::Connection(worker), Machine::Named),
-                        credit: 2 * threads.max(1) as usize,
-                        holding: BTreeSet::new(),
-                        scenes: BTreeSet::new(),
-                        draining: false,
-                        last_seen: self.now,
-                    },
-                );
+                let machine = machine.map_or(Machine::Connection(worker), Machine::Named);
+                let joined = Worker {
+                    machine: machine.clone(),
+                    credit: 2 * threads.max(1) as usize,
+                    holding: BTreeSet::new(),
+                    scenes: BTreeSet::new(),
+                    draining: false,
+                    last_seen: self.now,
+                };
+                // A second hello on a live id replaces the worker (a daemon bug, but
+                // the indexes must stay true).
+                if let Some(old) = self.workers.insert(worker, joined) {
+                    self.by_last_seen.remove(&(old.last_seen, worker));
+                    if !old.draining {
+                        self.unready(&old.machine);
+                    }
+                }
+                self.by_last_seen.insert((self.now, worker));
+                *self.ready.entry(machine).or_default() += 1;
                 self.hungry.insert(worker);
                 self.fill(worker, &mut actions);
             }
-            Event::Heartbeat { worker } => {
-                if let Some(w) = self.workers.get_mut(&worker) {
-                    w.last_seen = self.now;
-                }
-            }
+            Event::Heartbeat { worker } => self.seen(worker),
             Event::WorkerLeft { worker } => {
                 self.remove_worker(worker, &mut actions);
                 self.fill_all(&mut actions);
             }
             Event::WorkerDraining { worker } => {
+                self.seen(worker);
                 if let Some(w) = self.workers.get_mut(&worker) {
-                    w.draining = true;
-                    w.last_seen = self.now;
+                    if !std::mem::replace(&mut w.draining, true) {
+                        let machine = w.machine.clone();
+                        self.unready(&machine);
+                    }
                 }
             }
             Event::JobSubmitted {
@@ -566,7 +750,8 @@ impl Scheduler {
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
                 self.tile_done(worker, job, tile, &mut actions);
-                // Holders of a finished job's last copies are filled at the next tick.
+                // Holders of a finished job's last copies are filled at the next event
+                // that fills everyone (a timeout at the latest).
                 self.fill(worker, &mut actions);
             }
             Event::TileFailed {
@@ -595,8 +780,43 @@ impl Scheduler {
                 }
                 self.fill_all(&mut actions);
             }
+            Event::StorageUnavailable => self.storage_down = true,
+            Event::StorageAvailable => {
+                self.storage_down = false;
+                self.fill_all(&mut actions);
+            }
         }
         actions
+    }
+
+    /// When the daemon must next call `handle(t, Event::Timeout)` at the latest; `None`
+    /// when nothing waits on time (no worker connected and no lease live).
+    ///
+    /// The earliest of: a worker's heartbeat timeout, a lease's deadline, a stalled
+    /// job's timeout, and the last call plus the wake interval while a worker is
+    /// connected or a lease live (the regular wake-up that tells a pause of the daemon
+    /// from a quiet farm). Never earlier than the last call.
+    pub fn next_deadline(&self) -> Option<Millis> {
+        let wall = self.wall?;
+        let mut at: Option<Millis> = None;
+        let mut sooner = |t: Millis| at = Some(at.map_or(t, |a| a.min(t)));
+        let mut waiting = !self.workers.is_empty();
+        if let Some(&(seen, _)) = self.by_last_seen.first() {
+            sooner(seen + self.policy.heartbeat_timeout + 1);
+        }
+        for job in self.jobs.values() {
+            if let Some(&(deadline, _, _)) = job.deadlines.first() {
+                sooner(deadline);
+                waiting = true;
+            }
+            if let Some(since) = job.stalled_since {
+                sooner(since + self.policy.stall_timeout);
+            }
+        }
+        if waiting {
+            sooner(self.now + self.policy.wake());
+        }
+        at.map(|t| wall + t.saturating_sub(self.now))
     }
 
     /// Takes back a job found in durable storage after a restart, with the tiles
@@ -604,12 +824,14 @@ impl Scheduler {
     /// is part of rebuilding the state, not something that happens to a running farm.)
     pub fn resume_job(
         &mut self,
+        now: Millis,
         job: JobId,
         priority: i32,
         scene: SceneHash,
         tiles: u32,
         done: &[u32],
     ) -> Vec<Action> {
+        self.advance(now);
         let mut actions = Vec::new();
         let mut j = Job::new(priority, scene, tiles);
         for &tile in done.iter().filter(|t| **t < tiles) {
@@ -658,9 +880,54 @@ impl Scheduler {
         self.workers.get(&worker).map_or(0, |w| w.holding.len())
     }
 
+    /// The scheduler's own clock (the daemon's less its pauses), for the simulation's
+    /// account of leases.
+    pub(crate) fn clock(&self) -> Millis {
+        self.now
+    }
+
+    /// Moves the clock to the daemon's time `wall`: by the time since the last call,
+    /// or by one wake interval if that gap shows the daemon itself was paused.
+    fn advance(&mut self, wall: Millis) {
+        match self.wall {
+            None => {
+                self.now = self.now.max(wall);
+                self.wall = Some(wall);
+            }
+            Some(last) => {
+                let wall = wall.max(last);
+                let gap = wall - last;
+                self.now += if gap > self.policy.pause_threshold {
+                    self.policy.wake()
+                } else {
+                    gap
+                };
+                self.wall = Some(wall);
+            }
+        }
+    }
+
     fn seen(&mut self, worker: WorkerId) {
         if let Some(w) = self.workers.get_mut(&worker) {
+            self.by_last_seen.remove(&(w.last_seen, worker));
             w.last_seen = self.now;
+            self.by_last_seen.insert((self.now, worker));
+        }
+    }
+
+    /// One worker of the machine is gone or draining. When no machine is left ready,
+    /// every stall ends: a job without a worker to take its tiles just waits.
+    fn unready(&mut self, machine: &Machine) {
+        if let Some(count) = self.ready.get_mut(machine) {
+            *count -= 1;
+            if *count == 0 {
+                self.ready.remove(machine);
+            }
+        }
+        if self.ready.is_empty() {
+            for job in self.jobs.values_mut() {
+                job.stalled_since = None;
+            }
         }
     }
 
@@ -698,34 +965,37 @@ impl Scheduler {
         }
     }
 
+    /// The worker is gone (its connection closed, or it was dropped): every tile it
+    /// held goes back to the queue, as one loss of the tile, and nothing counts against
+    /// its machine.
     fn remove_worker(&mut self, worker: WorkerId, actions: &mut Vec<Action>) {
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
         self.hungry.remove(&worker);
+        self.by_last_seen.remove(&(w.last_seen, worker));
+        if !w.draining {
+            self.unready(&w.machine);
+        }
         for (job, tile) in w.holding {
             if self.release(worker, job, tile).is_some() {
-                self.failed_attempt(
-                    &w.machine,
-                    job,
-                    tile,
-                    "the worker was lost while rendering it",
-                    actions,
-                );
+                self.lost(job, tile, actions);
             } else if let Some(j) = self.jobs.get_mut(&job) {
                 j.late_copies.remove(&(tile, worker));
             }
         }
     }
 
+    /// Drops the workers silent for longer than the heartbeat timeout, in id order.
     fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
         let timeout = self.policy.heartbeat_timeout;
-        let silent: Vec<WorkerId> = self
-            .workers
+        let mut silent: Vec<WorkerId> = self
+            .by_last_seen
             .iter()
-            .filter(|(_, w)| self.now.saturating_sub(w.last_seen) > timeout)
-            .map(|(id, _)| *id)
+            .take_while(|(seen, _)| self.now.saturating_sub(*seen) > timeout)
+            .map(|&(_, id)| id)
             .collect();
+        silent.sort_unstable();
         for worker in silent {
             self.counters.workers_dropped += 1;
             actions.push(Action::DropWorker { worker });
@@ -738,6 +1008,29 @@ impl Scheduler {
         let now = self.now;
         for job in self.jobs.values_mut() {
             job.expire_leases(now, &mut self.counters);
+        }
+    }
+
+    /// Follows each job's stall (tiles waiting that no connected worker may take), and
+    /// fails the jobs stalled for the stall timeout, in id order.
+    fn check_stalls(&mut self, actions: &mut Vec<Action>) {
+        let now = self.now;
+        let mut failed = Vec::new();
+        for (&id, job) in &mut self.jobs {
+            match job.stalled_tile(&self.ready, self.policy.max_attempts) {
+                None => job.stalled_since = None,
+                Some(tile) => {
+                    let since = *job.stalled_since.get_or_insert(now);
+                    if now - since >= self.policy.stall_timeout {
+                        let message = job.stall_message(tile, &self.ready, self.policy.block_after);
+                        failed.push((id, message));
+                    }
+                }
+            }
+        }
+        for (job, message) in failed {
+            self.end_job(job, actions);
+            actions.push(Action::JobFailed { job, message });
         }
     }
 
@@ -803,8 +1096,8 @@ impl Scheduler {
         }
     }
 
-    /// Counts a failed attempt at a tile (already released): retry it elsewhere, block
-    /// a worker that keeps failing, or fail the job.
+    /// Counts a failure a worker reported for a tile (already released): retry it
+    /// elsewhere, block a machine that keeps failing, or fail the job.
     fn failed_attempt(
         &mut self,
         machine: &Machine,
@@ -827,6 +1120,30 @@ impl Scheduler {
         }
         if attempts >= self.policy.max_attempts {
             let message = format!("tile {tile} failed {attempts} times; last: {message}");
+            self.end_job(job_id, actions);
+            actions.push(Action::JobFailed {
+                job: job_id,
+                message,
+            });
+        } else if job.live_leases(tile) == 0 && job.requeue(tile) {
+            self.counters.tiles_requeued += 1;
+        }
+    }
+
+    /// Counts a loss of a tile (already released) with its worker: retry it, or fail
+    /// the job when the tile has been lost too often.
+    fn lost(&mut self, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let losses = job.losses.entry(tile).or_default();
+        *losses += 1;
+        let losses = *losses;
+        if losses >= self.policy.max_losses {
+            let message = format!(
+                "tile {tile} was lost with its worker {losses} times (a tile that crashes \
+                 workers, or workers that keep losing their connection)"
+            );
             self.end_job(job_id, actions);
             actions.push(Action::JobFailed {
                 job: job_id,
@@ -886,6 +1203,10 @@ impl Scheduler {
 
     /// Gives the worker tiles until its credit is used or nothing is left for it.
     fn fill(&mut self, worker_id: WorkerId, actions: &mut Vec<Action>) {
+        if self.storage_down {
+            // The worker stays hungry: `StorageAvailable` fills it.
+            return;
+        }
         loop {
             let Some(worker) = self.workers.get(&worker_id) else {
                 self.hungry.remove(&worker_id);

@@ -55,12 +55,12 @@
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-use scheduler::{Action, Event, Millis, Policy, Scheduler};
 use proptest::prelude::*;
 use proptest::sample::Index;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
 use protocol::{JobId, SceneHash, WorkerId};
+use scheduler::{Action, Event, Millis, Policy, Scheduler};
 
 /// The scheduler as it was before its indexes, frozen: the oracle of the equivalence
 /// properties (section "The indexed scheduler against the reference").

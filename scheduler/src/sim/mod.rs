@@ -9,19 +9,32 @@
 //! takes seconds, and a seed names one run exactly.
 //!
 //! What is modelled, mirroring the daemon and the worker:
-//! - **Coordinator**: a `Tick` every 100 ms carrying the virtual clock in milliseconds;
-//!   `WorkerJoined` when a worker's hello arrives, its `Accepted` sent first;
-//!   `Heartbeat` and `TileDone` as they arrive; `WorkerLeft` when a connection closes,
-//!   and right after a `DropWorker` (the daemon closes the connection, whose task then
-//!   reports it). Messages on a connection the coordinator dropped are not read.
+//! - **Coordinator**: every event handed over with the virtual clock in milliseconds,
+//!   and a `Timeout` when the scheduler's [`Scheduler::next_deadline`] comes (the
+//!   daemon's timer, re-armed after every call); `WorkerJoined` when a worker's hello
+//!   arrives (under its machine's name), its `Accepted` sent first; `Heartbeat` and
+//!   `TileDone` as they arrive; `WorkerLeft` when a connection closes, and right after a
+//!   `DropWorker` (the daemon closes the connection, whose task then reports it).
+//!   Messages on a connection the coordinator dropped are not read.
+//! - **Coordinator pauses** (a Poisson process, off by default): the whole daemon
+//!   stops, as with `SIGSTOP` or a paused VM, for a random time. What arrives meanwhile
+//!   waits in its sockets; when it runs again its timer fires first (the worst case: the
+//!   scheduler sees the gap before any message), then it reads the backlog in order.
 //! - **Links**: a one-way latency (base plus jitter) per message, in order per direction
 //!   (TCP).
+//! - **Network cuts** (a Poisson process per machine, off by default): for a random
+//!   time nothing crosses between the machine and the coordinator in either direction;
+//!   TCP delivers what was sent during the cut once it heals. A cut longer than the
+//!   heartbeat timeout gets the worker dropped; it reads the close after the cut and
+//!   reconnects under its name.
 //! - **Workers**: `threads` rendering slots fed first-in first-out from the tiles
 //!   received; a tile of a job cancelled before it starts is skipped; a heartbeat every
 //!   second from the moment the handshake is accepted; when the coordinator closes the
 //!   connection the worker drops its queue (the tiles being rendered finish, unsent) and
 //!   reconnects after 100 ms × [0.5, 1) as a new worker.
-//! - **Failures**: crashes (the process dies; its connection closes after a latency) and
+//! - **Failures**: crashes (the process dies; its connection closes after a latency;
+//!   with [`SimConfig::restart_after_ms`] its supervisor starts it again after that
+//!   delay, under the same machine name, as systemd or Kubernetes would) and
 //!   hangs (the whole process stops, as with `SIGSTOP`, for a random time: its renders
 //!   pause, messages wait in its socket, no heartbeats; if the coordinator dropped it
 //!   meanwhile it finds the connection closed when it wakes, and reconnects), each a
@@ -110,8 +123,19 @@ pub struct SimConfig {
     pub latency_jitter_ms: f64,
     /// The worker's heartbeat period (its own constant: 1 s).
     pub heartbeat_ms: u64,
-    /// The daemon's tick period (its own constant: 100 ms).
-    pub tick_ms: u64,
+    /// A crashed machine's supervisor restarts its worker after this long, under the
+    /// same name (`None`: a crashed machine stays down).
+    pub restart_after_ms: Option<u64>,
+    /// Pauses of the whole coordinator per hour of farm time (Poisson), each lasting a
+    /// time uniform in [min, max).
+    pub coordinator_pauses_per_hour: f64,
+    pub coordinator_pause_min_ms: u64,
+    pub coordinator_pause_max_ms: u64,
+    /// Network cuts per machine per hour of farm time (Poisson), each lasting a time
+    /// uniform in [min, max).
+    pub cuts_per_worker_hour: f64,
+    pub cut_min_ms: u64,
+    pub cut_max_ms: u64,
     /// The worker's first reconnection delay (its own constant: 100 ms), scaled by a
     /// random factor in [0.5, 1).
     pub reconnect_ms: u64,
@@ -168,7 +192,13 @@ impl Default for SimConfig {
             latency_ms: 0.5,
             latency_jitter_ms: 0.5,
             heartbeat_ms: 1_000,
-            tick_ms: 100,
+            restart_after_ms: None,
+            coordinator_pauses_per_hour: 0.0,
+            coordinator_pause_min_ms: 3_000,
+            coordinator_pause_max_ms: 10_000,
+            cuts_per_worker_hour: 0.0,
+            cut_min_ms: 1_000,
+            cut_max_ms: 10_000,
             reconnect_ms: 100,
             policy: Policy::default(),
             max_virtual_ms: 24 * 3_600_000,
@@ -201,6 +231,8 @@ impl SimConfig {
             crashes_per_worker_hour: 0.0,
             hangs_per_worker_hour: 0.0,
             joins_per_minute: 0.0,
+            coordinator_pauses_per_hour: 0.0,
+            cuts_per_worker_hour: 0.0,
             ..self
         }
     }
@@ -243,6 +275,8 @@ impl SimConfig {
             self.crashes_per_worker_hour,
             self.hangs_per_worker_hour,
             self.joins_per_minute,
+            self.coordinator_pauses_per_hour,
+            self.cuts_per_worker_hour,
             self.latency_ms,
             self.latency_jitter_ms,
         ]
@@ -252,11 +286,13 @@ impl SimConfig {
             return Err("rates and latencies must be finite and not negative".into());
         }
         if self.hang_min_ms > self.hang_max_ms
-            || self.heartbeat_ms == 0
-            || self.tick_ms == 0
-            || self.reconnect_ms == 0
+            || self.coordinator_pause_min_ms > self.coordinator_pause_max_ms
+            || self.cut_min_ms > self.cut_max_ms
         {
-            return Err("hang_min_ms <= hang_max_ms, and positive periods".into());
+            return Err("each minimum duration must not exceed its maximum".into());
+        }
+        if self.heartbeat_ms == 0 || self.reconnect_ms == 0 || self.restart_after_ms == Some(0) {
+            return Err("heartbeat_ms, reconnect_ms and restart_after_ms must be positive".into());
         }
         Ok(())
     }
@@ -341,6 +377,8 @@ const STREAM_TILES: u64 = 2;
 const STREAM_FAILURES: u64 = 3;
 const STREAM_NETWORK: u64 = 4;
 const STREAM_JOINS: u64 = 5;
+const STREAM_PAUSES: u64 = 6;
+const STREAM_CUTS: u64 = 7;
 
 /// Worker to coordinator.
 #[derive(Clone, Copy, Debug)]
@@ -377,7 +415,8 @@ enum Down {
 
 #[derive(Clone, Copy, Debug)]
 enum Ev {
-    Tick,
+    /// The daemon's timer, armed for the scheduler's next deadline.
+    Wake,
     /// A client's submission reaches the coordinator.
     Submit {
         job: JobId,
@@ -425,6 +464,27 @@ enum Ev {
     Thaw {
         machine: usize,
     },
+    /// A crashed machine's supervisor starts its worker again.
+    Restart {
+        machine: usize,
+    },
+    /// The network between the machine and the coordinator goes down.
+    Cut {
+        machine: usize,
+    },
+    /// The whole coordinator stops, and runs again.
+    CoordinatorPause,
+    CoordinatorResume,
+}
+
+impl Ev {
+    /// Whether the coordinator handles it (and so, while paused, it waits).
+    fn at_coordinator(&self) -> bool {
+        matches!(
+            self,
+            Ev::Wake | Ev::Submit { .. } | Ev::Arrival { .. } | Ev::ConnectionTaskLeft { .. }
+        )
+    }
 }
 
 struct Scheduled {
@@ -513,6 +573,8 @@ struct Machine {
     /// Messages that arrived while the process was stopped.
     inbox: Vec<(usize, Down)>,
     reconnect_on_thaw: bool,
+    /// Nothing crosses the network to or from it before this time.
+    cut_until: Micros,
 }
 
 impl Machine {
@@ -553,8 +615,8 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 9] = [
-    "Tick",
+const EVENT_KINDS: [&str; 11] = [
+    "Timeout",
     "WorkerJoined",
     "Heartbeat",
     "WorkerLeft",
@@ -563,11 +625,13 @@ const EVENT_KINDS: [&str; 9] = [
     "TileDone",
     "TileFailed",
     "CancelJob",
+    "StorageUnavailable",
+    "StorageAvailable",
 ];
 
 fn kind_of(event: &Event) -> usize {
     match event {
-        Event::Tick { .. } => 0,
+        Event::Timeout => 0,
         Event::WorkerJoined { .. } => 1,
         Event::Heartbeat { .. } => 2,
         Event::WorkerLeft { .. } => 3,
@@ -576,6 +640,8 @@ fn kind_of(event: &Event) -> usize {
         Event::TileDone { .. } => 6,
         Event::TileFailed { .. } => 7,
         Event::CancelJob { .. } => 8,
+        Event::StorageUnavailable => 9,
+        Event::StorageAvailable => 10,
     }
 }
 
@@ -603,15 +669,15 @@ struct Metered {
     scheduler: Scheduler,
     bytes: i64,
     peak: i64,
-    costs: [Cost; 9],
+    costs: [Cost; EVENT_KINDS.len()],
 }
 
 impl Metered {
-    fn handle(&mut self, event: Event) -> Vec<Action> {
+    fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
         let kind = kind_of(&event);
         let before = live_bytes();
         let start = Instant::now();
-        let actions = self.scheduler.handle(event);
+        let actions = self.scheduler.handle(now, event);
         let took = start.elapsed();
         self.bytes += live_bytes() - before - heap_of(&actions);
         self.peak = self.peak.max(self.bytes);
@@ -794,6 +860,13 @@ struct Sim<'a> {
     failures_rng: Rng,
     network_rng: Rng,
     joins_rng: Rng,
+    pauses_rng: Rng,
+    cuts_rng: Rng,
+    /// When the daemon's timer is armed for (the earliest wake pending), if it is.
+    wake_at: Option<Micros>,
+    /// The coordinator is stopped: what it should handle waits here, in order.
+    paused: bool,
+    backlog: Vec<Ev>,
     /// (time, change) of the farm's rendering capacity, in reference threads.
     capacity: Vec<(Micros, f64)>,
     next_render: u64,
@@ -828,7 +901,7 @@ impl<'a> Sim<'a> {
                 scheduler: Scheduler::with_policy(cfg.policy),
                 bytes: 0,
                 peak: 0,
-                costs: [Cost::default(); 9],
+                costs: [Cost::default(); EVENT_KINDS.len()],
             },
             worker_conn: BTreeMap::new(),
             next_worker: 1,
@@ -840,6 +913,11 @@ impl<'a> Sim<'a> {
             failures_rng: Rng::new(cfg.seed, STREAM_FAILURES),
             network_rng: Rng::new(cfg.seed, STREAM_NETWORK),
             joins_rng: Rng::new(cfg.seed, STREAM_JOINS),
+            pauses_rng: Rng::new(cfg.seed, STREAM_PAUSES),
+            cuts_rng: Rng::new(cfg.seed, STREAM_CUTS),
+            wake_at: None,
+            paused: false,
+            backlog: Vec::new(),
             capacity: Vec::new(),
             next_render: 0,
             jobs_open: cfg.jobs,
@@ -866,7 +944,7 @@ impl<'a> Sim<'a> {
             let gap = sim.join_gap();
             sim.agenda.push(gap, Ev::NextJoin);
         }
-        sim.agenda.push(0, Ev::Tick);
+        sim.arm_coordinator_pause();
         sim
     }
 
@@ -894,6 +972,7 @@ impl<'a> Sim<'a> {
             running: Vec::new(),
             inbox: Vec::new(),
             reconnect_on_thaw: false,
+            cut_until: 0,
         });
         self.machines.len() - 1
     }
@@ -908,48 +987,139 @@ impl<'a> Sim<'a> {
         (self.joins_rng.exponential(mean).round() as Micros).max(1)
     }
 
+    /// When a message sent now over the connection arrives: after the latency, after
+    /// the messages sent before it, and not before a cut of its machine heals.
+    fn arrival(&mut self, conn: usize, last: Micros) -> Micros {
+        let latency = self.latency();
+        let cut = self.machines[self.conns[conn].machine].cut_until;
+        (self.now.max(cut) + latency).max(last)
+    }
+
     fn send_up(&mut self, conn: usize, msg: Up) {
-        let at = (self.now + self.latency()).max(self.conns[conn].up_last);
+        let at = self.arrival(conn, self.conns[conn].up_last);
         self.conns[conn].up_last = at;
         self.agenda.push(at, Ev::Arrival { conn, msg });
     }
 
     fn send_down(&mut self, conn: usize, msg: Down) {
-        let at = (self.now + self.latency()).max(self.conns[conn].down_last);
+        let at = self.arrival(conn, self.conns[conn].down_last);
         self.conns[conn].down_last = at;
         self.agenda.push(at, Ev::Delivery { conn, msg });
     }
 
     fn run(&mut self) {
         let limit = self.cfg.max_virtual_ms * MS;
-        while let Some(Scheduled { at, ev, .. }) = self.agenda.heap.pop() {
+        loop {
+            let Some(Scheduled { at, ev, .. }) = self.agenda.heap.pop() else {
+                // Nothing can happen any more, and jobs are left.
+                self.out.timed_out = true;
+                break;
+            };
             if at > limit {
                 self.out.timed_out = true;
                 self.now = limit;
                 break;
             }
             self.now = at;
-            self.dispatch(ev);
+            if self.paused && ev.at_coordinator() {
+                self.backlog.push(ev);
+            } else {
+                self.dispatch(ev);
+            }
             if self.jobs_open == 0 {
                 break;
             }
         }
     }
 
+    /// Hands one event to the scheduler at the current virtual time, brings the lease
+    /// account to the scheduler's clock, and re-arms the daemon's timer for the
+    /// scheduler's next deadline, as the daemon does after every call.
+    fn handle(&mut self, event: Event) -> Vec<Action> {
+        let actions = self.sched.handle(self.now / MS, event);
+        self.model.now = self.model.now.max(self.sched.scheduler.clock());
+        if let Some(deadline) = self.sched.scheduler.next_deadline() {
+            let at = (deadline * MS).max(self.now);
+            if self.wake_at.is_none_or(|armed| at < armed) {
+                self.wake_at = Some(at);
+                self.agenda.push(at, Ev::Wake);
+            }
+        }
+        actions
+    }
+
+    /// The daemon's timer fires: a `Timeout`. (Only the earliest armed wake counts;
+    /// one superseded by an earlier deadline is void, and a later deadline is re-armed
+    /// by the call.)
+    fn timeout(&mut self) {
+        self.wake_at = None;
+        self.out.timeouts += 1;
+        // The scheduler drops silent workers before it looks at leases; the model
+        // expires leases once those drops are applied (see `apply`).
+        let actions = self.handle(Event::Timeout);
+        let clock = self.sched.scheduler.clock();
+        self.apply(actions, Some(clock));
+    }
+
     fn dispatch(&mut self, ev: Ev) {
         match ev {
-            Ev::Tick => {
-                let now = self.now / MS;
-                // The scheduler drops silent workers before it looks at leases; the model
-                // expires leases once those drops are applied (see `apply`).
-                self.model.now = self.model.now.max(now);
-                let actions = self.sched.handle(Event::Tick { now });
-                self.apply(actions, Some(now));
-                self.agenda.push(self.now + self.cfg.tick_ms * MS, Ev::Tick);
+            Ev::Wake => {
+                if self.wake_at == Some(self.now) {
+                    self.timeout();
+                }
+            }
+            Ev::CoordinatorPause => {
+                self.paused = true;
+                self.out.coordinator_pauses += 1;
+                let span = self.pauses_rng.range(
+                    self.cfg.coordinator_pause_min_ms as f64,
+                    self.cfg.coordinator_pause_max_ms as f64,
+                );
+                self.agenda.push(
+                    self.now + (span * MS as f64).round() as Micros,
+                    Ev::CoordinatorResume,
+                );
+            }
+            Ev::CoordinatorResume => {
+                self.paused = false;
+                // Its timer is long overdue and fires first; then it reads what waited.
+                self.timeout();
+                for ev in std::mem::take(&mut self.backlog) {
+                    if !matches!(ev, Ev::Wake) {
+                        self.dispatch(ev);
+                    }
+                }
+                self.arm_coordinator_pause();
+            }
+            Ev::Restart { machine } => {
+                let m = &mut self.machines[machine];
+                if m.life == Life::Dead {
+                    m.life = Life::Running;
+                    m.epoch += 1;
+                    self.out.restarts += 1;
+                    let capacity = m.capacity();
+                    self.capacity.push((self.now, capacity));
+                    self.arm_failures(machine);
+                    self.connect(machine);
+                }
+            }
+            Ev::Cut { machine } => {
+                if self.machines[machine].life == Life::Dead && self.cfg.restart_after_ms.is_none()
+                {
+                    // The machine is gone for good: its chain of cuts ends.
+                    return;
+                }
+                let span = self
+                    .cuts_rng
+                    .range(self.cfg.cut_min_ms as f64, self.cfg.cut_max_ms as f64);
+                let until = self.now + (span * MS as f64).round() as Micros;
+                self.machines[machine].cut_until = until;
+                self.out.network_cuts += 1;
+                self.arm_cut(machine, until);
             }
             Ev::Submit { job } => {
                 let tiles = self.jobs[job as usize - 1].costs.len() as u32;
-                let actions = self.sched.handle(Event::JobSubmitted {
+                let actions = self.handle(Event::JobSubmitted {
                     job,
                     priority: 0,
                     scene: scene_of(job),
@@ -963,6 +1133,7 @@ impl<'a> Sim<'a> {
                 let capacity = m.capacity();
                 self.capacity.push((self.now, capacity));
                 self.arm_failures(machine);
+                self.arm_cut(machine, self.now);
                 self.connect(machine);
             }
             Ev::Reconnect { machine } => match self.machines[machine].life {
@@ -1039,7 +1210,7 @@ impl<'a> Sim<'a> {
                 self.send_down(conn, Down::Welcome);
                 let machine = self.conns[conn].machine;
                 let threads = self.machines[machine].threads;
-                let actions = self.sched.handle(Event::WorkerJoined {
+                let actions = self.handle(Event::WorkerJoined {
                     worker,
                     threads,
                     machine: Some(format!("machine-{machine}")),
@@ -1048,7 +1219,7 @@ impl<'a> Sim<'a> {
             }
             Up::Heartbeat => {
                 let worker = self.conns[conn].worker.expect("hello first");
-                let actions = self.sched.handle(Event::Heartbeat { worker });
+                let actions = self.handle(Event::Heartbeat { worker });
                 self.apply(actions, None);
             }
             Up::TileDone {
@@ -1059,7 +1230,7 @@ impl<'a> Sim<'a> {
             } => {
                 let worker = self.conns[conn].worker.expect("hello first");
                 let held = self.model.holds(worker, job, tile);
-                let actions = self.sched.handle(Event::TileDone { worker, job, tile });
+                let actions = self.handle(Event::TileDone { worker, job, tile });
                 let accepted = actions.contains(&Action::AcceptTile { job, tile });
                 let duplicate = actions.contains(&Action::DuplicateResult { job, tile });
                 if held != accepted {
@@ -1101,7 +1272,7 @@ impl<'a> Sim<'a> {
         };
         self.worker_conn.remove(&worker);
         self.model.remove_worker(worker);
-        let actions = self.sched.handle(Event::WorkerLeft { worker });
+        let actions = self.handle(Event::WorkerLeft { worker });
         self.apply(actions, None);
     }
 
@@ -1360,6 +1531,33 @@ impl<'a> Sim<'a> {
         if let Some(conn) = m.conn.take() {
             self.send_up(conn, Up::Closed);
         }
+        if let Some(after) = self.cfg.restart_after_ms {
+            self.agenda.push(now + after * MS, Ev::Restart { machine });
+        }
+    }
+
+    /// The machine's next network cut, after `from` (Poisson).
+    fn arm_cut(&mut self, machine: usize, from: Micros) {
+        if self.cfg.cuts_per_worker_hour > 0.0 {
+            let hour = 3_600_000.0 * MS as f64;
+            let after = self
+                .cuts_rng
+                .exponential(hour / self.cfg.cuts_per_worker_hour);
+            self.agenda
+                .push(from + after.round() as Micros, Ev::Cut { machine });
+        }
+    }
+
+    /// The coordinator's next pause (Poisson), while it runs.
+    fn arm_coordinator_pause(&mut self) {
+        if self.cfg.coordinator_pauses_per_hour > 0.0 {
+            let hour = 3_600_000.0 * MS as f64;
+            let after = self
+                .pauses_rng
+                .exponential(hour / self.cfg.coordinator_pauses_per_hour);
+            self.agenda
+                .push(self.now + after.round() as Micros, Ev::CoordinatorPause);
+        }
     }
 
     fn hang(&mut self, machine: usize, epoch: u32) {
@@ -1444,22 +1642,28 @@ impl<'a> Sim<'a> {
         let threads: Vec<u32> = self.machines.iter().map(|m| m.threads).collect();
         let join = |s: &mut Scheduler| {
             for (i, &threads) in threads.iter().enumerate() {
-                drop(s.handle(Event::WorkerJoined {
-                    worker: i as WorkerId + 1,
-                    threads,
-                    machine: None,
-                }));
+                drop(s.handle(
+                    0,
+                    Event::WorkerJoined {
+                        worker: i as WorkerId + 1,
+                        threads,
+                        machine: None,
+                    },
+                ));
             }
         };
         let mut s = Scheduler::with_policy(cfg.policy);
         let start = live_bytes();
         for job in 1..=cfg.jobs as JobId {
-            drop(s.handle(Event::JobSubmitted {
-                job,
-                priority: 0,
-                scene: scene_of(job),
-                tiles,
-            }));
+            drop(s.handle(
+                0,
+                Event::JobSubmitted {
+                    job,
+                    priority: 0,
+                    scene: scene_of(job),
+                    tiles,
+                },
+            ));
         }
         let jobs_bytes = live_bytes() - start;
         let start = live_bytes();

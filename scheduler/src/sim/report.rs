@@ -20,6 +20,14 @@ pub struct Outcome {
     pub drops: u64,
     /// Sessions a worker ended because the coordinator closed them, then reconnected.
     pub reconnects: u64,
+    /// Crashed workers started again by their supervisor, under the same name.
+    pub restarts: u64,
+    /// Times the whole coordinator stopped for a while.
+    pub coordinator_pauses: u64,
+    /// Network cuts between a machine and the coordinator.
+    pub network_cuts: u64,
+    /// `Timeout`s: the daemon's timer firing at the scheduler's next deadline.
+    pub timeouts: u64,
 
     pub jobs: usize,
     pub jobs_done: usize,
@@ -92,7 +100,8 @@ pub struct Outcome {
     /// Disagreements between the scheduler's actions and the simulation's account of
     /// leases and connections (must be 0).
     pub model_mismatches: u64,
-    /// The run reached `max_virtual_ms` with jobs left.
+    /// The run reached `max_virtual_ms` with jobs left, or nothing was left to happen
+    /// (no worker, no event to come) with jobs left.
     pub timed_out: bool,
 }
 
@@ -275,8 +284,15 @@ impl fmt::Display for SimReport {
         )?;
         writeln!(
             f,
-            "- {} crashes, {} hangs, {} workers dropped for silence, {} reconnections",
-            o.crashes, o.hangs, o.drops, o.reconnects
+            "- {} crashes ({} restarted under their name), {} hangs, {} network cuts, {} \
+             workers dropped for silence, {} reconnections; {} coordinator pauses",
+            o.crashes,
+            o.restarts,
+            o.hangs,
+            o.network_cuts,
+            o.drops,
+            o.reconnects,
+            o.coordinator_pauses
         )?;
         writeln!(
             f,
