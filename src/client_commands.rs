@@ -1,15 +1,16 @@
-//! `tessera submit`, `status`, `list`, `cancel`, `fetch` and `workers`.
+//! `tessera submit`, `status`, `list`, `cancel`, `delete`, `fetch` and `workers`.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
-use coordinator::client::Client;
-use transport::Endpoint;
+use coordinator::client::{Client, ConnectionLost};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, Sampling, Settings, WorkerStatus};
 use render::RenderSettings;
 use serde_json::{json, Value};
+use transport::{DialError, Endpoint};
 
 use crate::output::{default_output, write_atomically};
 use crate::render_command::sampling_summary;
@@ -39,14 +40,122 @@ pub async fn submit(
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
 }
 
+/// How long a lost coordinator is tried again before following a job gives up.
+const RECONNECT_FOR: Duration = Duration::from_secs(300);
+/// The pause before the first try to reconnect; it doubles after each failed one...
+const FIRST_RETRY: Duration = Duration::from_millis(100);
+/// ...up to this.
+const LONGEST_RETRY: Duration = Duration::from_secs(2);
+/// A coordinator answers a watch within a second even without progress, so a
+/// connection silent for this long is lost (a cut network, a stopped coordinator).
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(15);
+
+/// A connection to a coordinator that is opened again, with backoff, whenever it is
+/// lost: what `submit --wait` and `up` follow a job through. Only requests that are
+/// safe to repeat (watching, fetching) go through it.
+pub struct Session {
+    endpoint: Endpoint,
+    client: Client,
+    /// When the current outage began: the connection was lost and no request has
+    /// succeeded since.
+    outage: Option<Instant>,
+    /// The progress bar shown, so that messages do not tear it.
+    bar: ProgressBar,
+}
+
+impl Session {
+    pub async fn connect(endpoint: &Endpoint) -> Result<Session> {
+        let mut client = Client::connect(endpoint).await?;
+        client.set_answer_timeout(ANSWER_TIMEOUT);
+        Ok(Session {
+            endpoint: endpoint.clone(),
+            client,
+            outage: None,
+            bar: ProgressBar::hidden(),
+        })
+    }
+
+    /// The connection as it is now, for a request that must not be repeated.
+    pub fn client(&mut self) -> &mut Client {
+        &mut self.client
+    }
+
+    /// Makes `call` on the connection; if the connection is lost, says so (once per
+    /// outage), reconnects and makes it again, for up to [`RECONNECT_FOR`].
+    async fn retrying<T>(
+        &mut self,
+        mut call: impl AsyncFnMut(&mut Client) -> Result<T>,
+    ) -> Result<T> {
+        loop {
+            let error = match call(&mut self.client).await {
+                Ok(value) => {
+                    self.outage = None;
+                    return Ok(value);
+                }
+                Err(e) => e,
+            };
+            let Some(lost) = ConnectionLost::of(&error) else {
+                return Err(error);
+            };
+            let since = match self.outage {
+                Some(since) => since,
+                None => {
+                    let reason = &lost.reason;
+                    self.bar
+                        .suspend(|| eprintln!("lost the coordinator ({reason}): reconnecting"));
+                    *self.outage.insert(Instant::now())
+                }
+            };
+            self.reconnect(since + RECONNECT_FOR).await?;
+        }
+    }
+
+    /// Dials until the coordinator answers, pausing 100 ms, then twice as long after
+    /// each failure up to 2 s; gives up at `deadline`, or at once if the coordinator
+    /// answers but refuses this client.
+    async fn reconnect(&mut self, deadline: Instant) -> Result<()> {
+        let mut pause = FIRST_RETRY;
+        loop {
+            tokio::time::sleep(pause).await;
+            match Client::dial(&self.endpoint).await {
+                Ok(mut client) => {
+                    client.set_answer_timeout(ANSWER_TIMEOUT);
+                    self.client = client;
+                    return Ok(());
+                }
+                Err(DialError::Refused(e)) => return Err(e),
+                Err(DialError::Unreachable(e)) if Instant::now() + pause >= deadline => {
+                    return Err(e.context(format!(
+                        "lost the coordinator at {} and could not reconnect within {} min",
+                        self.endpoint.address,
+                        RECONNECT_FOR.as_secs() / 60
+                    )))
+                }
+                Err(DialError::Unreachable(_)) => pause = (pause * 2).min(LONGEST_RETRY),
+            }
+        }
+    }
+
+    async fn watch(&mut self, job: JobId, after_tiles: u32) -> Result<JobStatus> {
+        self.retrying(async |client: &mut Client| client.watch(job, after_tiles).await)
+            .await
+    }
+
+    async fn fetch(&mut self, job: JobId) -> Result<Vec<u8>> {
+        self.retrying(async |client: &mut Client| client.fetch(job).await)
+            .await
+    }
+}
+
 /// Follows a job until it ends, with a progress bar on a terminal, and returns its
 /// final status. A job that fails or is cancelled is an error.
-pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
+pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
     let bar = if std::io::stderr().is_terminal() {
         ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr())
     } else {
         ProgressBar::hidden()
     };
+    session.bar = bar.clone();
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles {msg}",
@@ -55,7 +164,14 @@ pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
     );
     let mut seen = 0;
     let status = loop {
-        let status = client.watch(job, seen).await?;
+        let status = match session.watch(job, seen).await {
+            Ok(status) => status,
+            Err(e) => {
+                bar.abandon();
+                session.bar = ProgressBar::hidden();
+                return Err(e);
+            }
+        };
         seen = status.tiles_done;
         bar.set_length(u64::from(status.tiles_total));
         bar.set_position(u64::from(status.tiles_done));
@@ -69,6 +185,7 @@ pub async fn wait(client: &mut Client, job: JobId) -> Result<JobStatus> {
         }
     };
     bar.finish_and_clear();
+    session.bar = ProgressBar::hidden();
     match status.state {
         JobState::Done => Ok(status),
         JobState::Failed => Err(anyhow!(
@@ -84,6 +201,32 @@ pub async fn fetch_to(client: &mut Client, job: JobId, output: &Path) -> Result<
     let png = client.fetch(job).await?;
     write_atomically(output, &png)?;
     Ok(png.len())
+}
+
+/// Fetches a finished job's image through a session, reconnecting if need be, and
+/// writes it; a file that cannot be written is reported with how to fetch the image
+/// again.
+pub async fn fetch_through(session: &mut Session, job: JobId, output: &Path) -> Result<usize> {
+    let png = session.fetch(job).await?;
+    write_atomically(output, &png).map_err(|e| {
+        anyhow!("job {job} is done, but {e:#}: `tessera fetch {job} -o PATH` recovers it")
+    })?;
+    Ok(png.len())
+}
+
+/// `error` with the job's id in front, unless it names the job already: whatever ends
+/// the wait for a submitted job, the user learns its id.
+fn naming_job(job: JobId, error: anyhow::Error) -> anyhow::Error {
+    let text = format!("{error:#}");
+    let name = format!("job {job}");
+    let named = text
+        .match_indices(&name)
+        .any(|(at, _)| !text[at + name.len()..].starts_with(|c: char| c.is_ascii_digit()));
+    if named {
+        error
+    } else {
+        error.context(name)
+    }
 }
 
 /// The one-line summary of a finished job: size, samples spent, estimated error, tiles,
@@ -131,8 +274,8 @@ pub async fn run_submit(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
-    let mut client = Client::connect(coordinator).await?;
-    let job = submit(&mut client, scene, overrides, priority).await?;
+    let mut session = Session::connect(coordinator).await?;
+    let job = submit(session.client(), scene, overrides, priority).await?;
     if !wait_for_it {
         if json_out {
             println!("{}", json!({ "id": job, "state": "queued" }));
@@ -141,9 +284,15 @@ pub async fn run_submit(
         }
         return Ok(());
     }
-    let status = wait(&mut client, job).await?;
+    eprintln!("submitted job {job}");
     let output = output.unwrap_or_else(|| default_output(scene));
-    fetch_to(&mut client, job, &output).await?;
+    let status = async {
+        let status = wait(&mut session, job).await?;
+        fetch_through(&mut session, job, &output).await?;
+        Ok(status)
+    }
+    .await
+    .map_err(|e| naming_job(job, e))?;
     if json_out {
         let mut v = status_json(&status);
         v["output"] = json!(output.display().to_string());
@@ -184,6 +333,16 @@ pub async fn run_cancel(coordinator: &Endpoint, job: JobId, json_out: bool) -> R
         println!("{}", json!({ "id": job, "state": "cancelled" }));
     } else {
         println!("job {job} cancelled");
+    }
+    Ok(())
+}
+
+pub async fn run_delete(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
+    Client::connect(coordinator).await?.delete(job).await?;
+    if json_out {
+        println!("{}", json!({ "id": job, "state": "deleted" }));
+    } else {
+        println!("job {job} deleted");
     }
     Ok(())
 }
@@ -296,4 +455,27 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "connected_ms": w.connected_ms,
         "rays_per_second": w.rays_per_second,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_error_that_ends_a_wait_names_the_job() {
+        let named = |job, text: &str| format!("{:#}", naming_job(job, anyhow!(text.to_owned())));
+        assert_eq!(named(7, "job 7 failed: boom"), "job 7 failed: boom");
+        assert_eq!(
+            named(7, "no job 70 on this coordinator"),
+            "job 7: no job 70 on this coordinator"
+        );
+        assert_eq!(
+            named(7, "the image is damaged"),
+            "job 7: the image is damaged"
+        );
+        assert_eq!(
+            named(12, "lost the coordinator: no job 12"),
+            "lost the coordinator: no job 12"
+        );
+    }
 }

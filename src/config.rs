@@ -9,10 +9,15 @@
 //! that clap checks their values exactly as it checks typed ones, and a flag given
 //! later on the command line overrides them; keys whose environment variable is set
 //! are left out, so the environment wins over the file.
+//!
+//! A few flags are one-off actions rather than settings (`--reset-database`): they
+//! have no environment variable and a config file may not give them, so that they
+//! never apply to more starts than the one they were typed for.
 
 use std::collections::BTreeSet;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::parser::ValueSource;
@@ -22,6 +27,45 @@ pub const SECTIONS: [&str; 2] = ["coordinator", "worker"];
 
 /// Settings that are not settings: they say where the settings come from.
 const NOT_SETTINGS: [&str; 2] = ["config", "print-config"];
+
+/// Flags that act on one start only: never read from a config file.
+const COMMAND_LINE_ONLY: [&str; 1] = ["reset-database"];
+
+/// The longest duration an option takes: 100 years.
+const MAX_DURATION_SECS: u64 = 36_500 * 86_400;
+
+/// A duration option's value: a whole number and a unit, `s`, `m`, `h` or `d` (`90s`,
+/// `30m`, `12h`, `7d`), more than zero and at most 36500 days. The error says what is
+/// wrong with the value (clap adds the option's name).
+pub fn parse_duration(text: &str) -> Result<Duration, String> {
+    const FORMS: &str = "a whole number and a unit, s, m, h or d (90s, 30m, 12h, 7d)";
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !c.is_ascii_digit())
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    if number.is_empty() {
+        return Err(format!("not a duration: give {FORMS}"));
+    }
+    let seconds_per_unit: u64 = match unit {
+        "s" => 1,
+        "m" => 60,
+        "h" => 3600,
+        "d" => 86_400,
+        "" => return Err(format!("no unit: give {FORMS}")),
+        other => return Err(format!("unknown unit `{other}`: give {FORMS}")),
+    };
+    let seconds = number
+        .parse::<u64>()
+        .ok()
+        .and_then(|n| n.checked_mul(seconds_per_unit))
+        .filter(|&s| s <= MAX_DURATION_SECS)
+        .ok_or_else(|| "too long: at most 36500d".to_string())?;
+    if seconds == 0 {
+        return Err("must be longer than zero".into());
+    }
+    Ok(Duration::from_secs(seconds))
+}
 
 /// The command line with the config file's settings put in, and the names of the
 /// settings that came from the file (and were not typed again on the command line).
@@ -139,6 +183,12 @@ fn settings_of(
                     "{file}: [{section}] {key}: unknown setting (see `tessera {section} --help`)"
                 )
             })?;
+        if COMMAND_LINE_ONLY.contains(&key.as_str()) {
+            bail!(
+                "{file}: [{section}] {key}: not a setting: give --{key} on the command line \
+                 of the one start that needs it"
+            );
+        }
         if arg
             .get_env()
             .is_some_and(|var| std::env::var_os(var).is_some())
@@ -182,6 +232,12 @@ pub fn describe(
             continue;
         }
         let id = arg.get_id().as_str();
+        if COMMAND_LINE_ONLY.contains(&long) {
+            if matches.get_flag(id) {
+                out.push_str(&format!("# {long}: given, for this start only\n"));
+            }
+            continue;
+        }
         let source = match matches.value_source(id) {
             Some(ValueSource::CommandLine) if from_file.contains(long) => "config file",
             Some(ValueSource::CommandLine) => "flag",
@@ -215,4 +271,43 @@ pub fn describe(
     };
     out.push_str(&format!("# shared secret: {secret}\n"));
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_take_seconds_minutes_hours_and_days() {
+        assert_eq!(parse_duration("90s"), Ok(Duration::from_secs(90)));
+        assert_eq!(parse_duration("30m"), Ok(Duration::from_secs(30 * 60)));
+        assert_eq!(parse_duration("12h"), Ok(Duration::from_secs(12 * 3600)));
+        assert_eq!(parse_duration("7d"), Ok(Duration::from_secs(7 * 86_400)));
+        assert_eq!(parse_duration(" 1s "), Ok(Duration::from_secs(1)));
+        assert_eq!(
+            parse_duration("36500d"),
+            Ok(Duration::from_secs(MAX_DURATION_SECS))
+        );
+    }
+
+    #[test]
+    fn a_bad_duration_says_what_is_wrong() {
+        let error = |text: &str| parse_duration(text).unwrap_err();
+        assert!(error("90").starts_with("no unit"), "{}", error("90"));
+        assert!(
+            error("2w").starts_with("unknown unit `w`"),
+            "{}",
+            error("2w")
+        );
+        assert!(error("1h30m").starts_with("unknown unit `h30m`"));
+        assert!(error("1.5h").starts_with("unknown unit `.5h`"));
+        assert!(error("").starts_with("not a duration"));
+        assert!(error("d").starts_with("not a duration"));
+        assert!(error("-5s").starts_with("not a duration"));
+        assert!(error("forever").starts_with("not a duration"));
+        assert_eq!(error("0s"), "must be longer than zero");
+        assert_eq!(error("36501d"), "too long: at most 36500d");
+        assert_eq!(error("99999999999999999999s"), "too long: at most 36500d");
+        assert_eq!(error("999999999999999999d"), "too long: at most 36500d");
+    }
 }

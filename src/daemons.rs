@@ -4,8 +4,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use transport::Endpoint;
 use tracing::info;
+use transport::Endpoint;
 
 /// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
 /// standard input reaches its end because the parent is gone.

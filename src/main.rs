@@ -15,13 +15,14 @@ mod up_command;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
 use clap::{Args, CommandFactory, FromArgMatches, Parser, Subcommand, ValueEnum};
-use transport::{ClientTls, Endpoint, ServerTls};
 use protocol::{JobId, Overrides};
 use render::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 use render::Sampling;
+use transport::{ClientTls, Endpoint, ServerTls};
 
 /// The coordinator's default address.
 const DEFAULT_COORDINATOR: &str = "127.0.0.1:7878";
@@ -93,6 +94,21 @@ enum Command {
 
     /// Cancel a job: its tiles stop being rendered.
     Cancel {
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Delete an ended job (done, failed or cancelled) and its image from the coordinator.
+    #[command(
+        long_about = "Delete an ended job (done, failed or cancelled) from the coordinator: \
+            its image, scene and records are removed from its disk and `tessera status` \
+            no longer knows it. A queued or running job must be cancelled first. Its id \
+            is never given to another job.",
+        after_help = "Example:\n  tessera delete 7"
+    )]
+    Delete {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
         job: JobId,
         #[command(flatten)]
         common: ClientArgs,
@@ -386,6 +402,17 @@ struct CoordinatorArgs {
     #[arg(long, env = "TESSERA_HANDSHAKE_TIMEOUT_MS", value_name = "MS", default_value_t = coordinator::server::DEFAULT_HANDSHAKE_TIMEOUT.as_millis() as u64,
           value_parser = clap::value_parser!(u64).range(100..=600_000))]
     handshake_timeout_ms: u64,
+    /// Delete a finished job (done, failed or cancelled) this long after it ended: a
+    /// whole number and a unit, s, m, h or d (90s, 30m, 12h, 7d) [default: keep jobs
+    /// until `tessera delete`].
+    #[arg(long, env = "TESSERA_RETENTION", value_name = "DURATION", value_parser = config::parse_duration)]
+    retention: Option<Duration>,
+    /// If the job database is missing or unreadable although the data directory has
+    /// held jobs, start a new empty one instead of refusing to start (unfinished jobs
+    /// are lost; new ids continue after the highest ever issued). For this start only:
+    /// no environment variable or config file key.
+    #[arg(long)]
+    reset_database: bool,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -624,7 +651,7 @@ fn run(command: Command) -> Result<()> {
                     height: a.height,
                     threads: a.threads.map_or(cores, |n| n as usize),
                     reference_aa: a.reference_aa,
-                    min_time: std::time::Duration::from_millis(a.min_time_ms),
+                    min_time: Duration::from_millis(a.min_time_ms),
                     max_runs: a.max_runs,
                     quick: a.quick,
                 })
@@ -650,7 +677,7 @@ fn run(command: Command) -> Result<()> {
                     data: a.data,
                     max_frame: a.max_frame as usize,
                     max_connections: a.max_connections as usize,
-                    handshake_timeout: std::time::Duration::from_millis(a.handshake_timeout_ms),
+                    handshake_timeout: Duration::from_millis(a.handshake_timeout_ms),
                     secret: a.secret.load()?,
                     tls: match (&a.tls_cert, &a.tls_key) {
                         (Some(cert), Some(key)) => Some(ServerTls::from_pem_files(cert, key)?),
@@ -668,7 +695,8 @@ fn run(command: Command) -> Result<()> {
                         max_active_per_client: a.max_jobs_per_client as usize,
                     },
                     http: a.daemon.http,
-                    retention: None,
+                    retention: a.retention,
+                    reset_database: a.reset_database,
                 };
                 if !a.listen.ip().is_loopback() && config.secret.is_none() && !a.insecure {
                     anyhow::bail!(
@@ -711,6 +739,9 @@ fn run(command: Command) -> Result<()> {
             }
             Command::Cancel { job, common } => {
                 client_commands::run_cancel(&common.target()?, job, common.json).await
+            }
+            Command::Delete { job, common } => {
+                client_commands::run_delete(&common.target()?, job, common.json).await
             }
             Command::Fetch {
                 job,

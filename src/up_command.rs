@@ -8,11 +8,10 @@
 use std::path::PathBuf;
 
 use anyhow::{anyhow, Context, Result};
-use coordinator::client::Client;
-use transport::Endpoint;
 use protocol::Overrides;
+use transport::Endpoint;
 
-use crate::client_commands::{fetch_to, submit, summary, wait};
+use crate::client_commands::{fetch_through, submit, summary, wait, Session};
 use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::output::default_output;
 
@@ -47,14 +46,14 @@ pub async fn run(opts: Options) -> Result<()> {
 }
 
 async fn render_on(address: &str, opts: &Options) -> Result<()> {
-    let mut client = Client::connect(&Endpoint::plain(address)).await?;
-    let job = submit(&mut client, &opts.scene, opts.overrides, 0).await?;
-    let status = wait(&mut client, job).await?;
+    let mut session = Session::connect(&Endpoint::plain(address)).await?;
+    let job = submit(session.client(), &opts.scene, opts.overrides, 0).await?;
+    let status = wait(&mut session, job).await?;
     let output = opts
         .output
         .clone()
         .unwrap_or_else(|| default_output(&opts.scene));
-    fetch_to(&mut client, job, &output).await?;
+    fetch_through(&mut session, job, &output).await?;
     eprintln!("{} ({} workers)", summary(&output, &status), opts.workers);
     Ok(())
 }

@@ -1,50 +1,100 @@
 //! The client side of the protocol: what `tessera submit`, `status`, `list`, `cancel`,
-//! `fetch` and `workers` (and `tessera up`) use to talk to a coordinator.
+//! `delete`, `fetch` and `workers` (and `tessera up`) use to talk to a coordinator.
 
-use anyhow::{anyhow, bail, Context, Result};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Result};
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, JobId, JobSpec, JobStatus, MessageCodec, Role, WorkerStatus,
-    DEFAULT_MAX_FRAME,
+    ClientRequest, ClientResponse, FrameError, JobId, JobSpec, JobStatus, MessageCodec, Role,
+    WorkerStatus, DEFAULT_MAX_FRAME,
 };
 use tokio_util::codec::Framed;
 
-use transport::{self, Endpoint, Stream};
+use transport::{self, DialError, Endpoint, Stream};
+
+/// The connection to the coordinator broke (closed, reset, or silent for longer than
+/// the answer timeout): the request may be tried again on a new connection. Requests
+/// return it inside their `anyhow::Error`; find it with [`ConnectionLost::of`].
+#[derive(Debug, thiserror::Error)]
+#[error("lost the coordinator at {address}: {reason}")]
+pub struct ConnectionLost {
+    pub address: String,
+    /// What happened, without the address: "connection closed", "no answer for 15 s", ...
+    pub reason: String,
+}
+
+impl ConnectionLost {
+    /// The lost connection behind `error`, if that is what it is.
+    pub fn of(error: &anyhow::Error) -> Option<&ConnectionLost> {
+        error.downcast_ref()
+    }
+}
 
 /// An open, handshaken connection to a coordinator.
 pub struct Client {
     conn: Framed<Stream, MessageCodec<ClientResponse, ClientRequest>>,
     address: String,
+    /// A request whose answer takes longer than this counts as a lost connection.
+    answer_timeout: Option<Duration>,
 }
 
 impl Client {
     /// Connects and handshakes (over TLS if the endpoint says so), proving the
     /// endpoint's secret if the coordinator asks for it. Errors name the address tried.
     pub async fn connect(endpoint: &Endpoint) -> Result<Client> {
-        let raw = transport::dial(endpoint, Role::Client)
-            .await
-            .map_err(transport::DialError::into_inner)?;
+        Client::dial(endpoint).await.map_err(DialError::into_inner)
+    }
+
+    /// [`Client::connect`], telling a coordinator that cannot be reached now (worth
+    /// trying again) from one that refuses this client as configured.
+    pub async fn dial(endpoint: &Endpoint) -> Result<Client, DialError> {
+        let raw = transport::dial(endpoint, Role::Client).await?;
         Ok(Client {
             conn: raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)),
             address: endpoint.address.clone(),
+            answer_timeout: None,
         })
     }
 
+    /// From now on, a request not answered within `timeout` fails with
+    /// [`ConnectionLost`] (by default a request waits as long as the connection lasts).
+    pub fn set_answer_timeout(&mut self, timeout: Duration) {
+        self.answer_timeout = Some(timeout);
+    }
+
     /// Sends one request and reads its response; a refusal becomes an error carrying
-    /// the coordinator's message.
+    /// the coordinator's message, a broken connection a [`ConnectionLost`].
     pub async fn request(&mut self, request: ClientRequest) -> Result<ClientResponse> {
-        self.conn
-            .send(request)
-            .await
-            .with_context(|| format!("lost the coordinator at {}", self.address))?;
-        match self.conn.next().await {
-            Some(Ok(ClientResponse::Error { message })) => Err(anyhow!(message)),
-            Some(Ok(response)) => Ok(response),
-            Some(Err(e)) => {
-                Err(anyhow!(e)).with_context(|| format!("lost the coordinator at {}", self.address))
-            }
-            None => bail!("the coordinator at {} closed the connection", self.address),
+        let exchange = async {
+            self.conn.send(request).await?;
+            self.conn.next().await.transpose()
+        };
+        let answer = match self.answer_timeout {
+            Some(limit) => match tokio::time::timeout(limit, exchange).await {
+                Ok(answer) => answer,
+                Err(_) => return Err(self.lost(format!("no answer for {} s", limit.as_secs_f64()))),
+            },
+            None => exchange.await,
+        };
+        match answer {
+            Ok(Some(ClientResponse::Error { message })) => Err(anyhow!(message)),
+            Ok(Some(response)) => Ok(response),
+            Ok(None) => Err(self.lost("connection closed".into())),
+            Err(FrameError::Io(e)) => Err(self.lost(e.to_string())),
+            Err(e) => Err(anyhow!(e).context(format!(
+                "cannot understand the coordinator at {}",
+                self.address
+            ))),
         }
+    }
+
+    fn lost(&self, reason: String) -> anyhow::Error {
+        ConnectionLost {
+            address: self.address.clone(),
+            reason,
+        }
+        .into()
     }
 
     pub async fn submit(&mut self, spec: JobSpec) -> Result<JobId> {
@@ -83,6 +133,14 @@ impl Client {
     pub async fn cancel(&mut self, job: JobId) -> Result<()> {
         match self.request(ClientRequest::Cancel { job }).await? {
             ClientResponse::Cancelled { .. } => Ok(()),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// Removes an ended job from the coordinator (see [`ClientRequest::Delete`]).
+    pub async fn delete(&mut self, job: JobId) -> Result<()> {
+        match self.request(ClientRequest::Delete { job }).await? {
+            ClientResponse::Deleted { job: deleted } if deleted == job => Ok(()),
             other => Err(unexpected(&other)),
         }
     }

@@ -113,6 +113,10 @@ pub struct Config {
     /// Finished jobs (done, failed or cancelled) are deleted this long after they
     /// ended; `None` keeps them until `tessera delete`.
     pub retention: Option<Duration>,
+    /// Start with a new, empty job database when the one in `data` is missing or
+    /// unreadable although the directory has held jobs (ids continue after the highest
+    /// ever issued); without it, such a start is refused.
+    pub reset_database: bool,
 }
 
 impl Config {
@@ -129,6 +133,7 @@ impl Config {
             limits: JobLimits::default(),
             http: None,
             retention: None,
+            reset_database: false,
         }
     }
 }

@@ -6,9 +6,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use coordinator::client::Client;
-use transport::Endpoint;
 use protocol::{JobSpec, JobState, Overrides};
 use render::{render_tile, Rect, RenderSettings, Tracer};
+use transport::Endpoint;
 
 use super::measure;
 use super::scenes::{self, BenchScene};
