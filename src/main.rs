@@ -586,7 +586,16 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let matches = cli.clone().get_matches_from(expanded.args);
+    let matches = match cli.clone().try_get_matches_from(expanded.args) {
+        Ok(matches) => matches,
+        // A bad value is one line that names the option and says what is wrong.
+        Err(e) if e.kind() == clap::error::ErrorKind::ValueValidation => {
+            let text = e.render().to_string();
+            eprintln!("{}", text.lines().next().unwrap_or_default());
+            return ExitCode::from(2);
+        }
+        Err(e) => e.exit(),
+    };
     let parsed = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     if let Some((name, sub)) = matches.subcommand() {
         if config::SECTIONS.contains(&name) && sub.get_flag("print_config") {
