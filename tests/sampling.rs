@@ -40,9 +40,16 @@ fn args<'a>(parts: &[&[&'a str]]) -> Vec<&'a str> {
     parts.iter().flat_map(|p| p.iter().copied()).collect()
 }
 
-/// The one summary line of a successful run (on stderr).
+/// The one summary line of a successful run (on stderr), after the `submitted job N`
+/// that `submit --wait` prints first.
 fn summary_line(run: &Run) -> String {
-    let lines: Vec<&str> = run.stderr.lines().collect();
+    let mut lines: Vec<&str> = run.stderr.lines().collect();
+    if lines
+        .first()
+        .is_some_and(|l| l.starts_with("submitted job "))
+    {
+        lines.remove(0);
+    }
     assert_eq!(lines.len(), 1, "one summary line: {:?}", run.stderr);
     lines[0].to_owned()
 }
