@@ -7,16 +7,23 @@
 //! pixels are stored, in batches, so that a restarted coordinator re-renders only the
 //! tiles it had not recorded.
 //!
+//! Nothing read back is trusted: every tile's pixels carry a SHA-256 checked when they
+//! are loaded, and a row that cannot be read is reported alone (and its tile rendered
+//! again) instead of failing the start. Space is given back: a job's tiles are deleted
+//! once it has ended (its image stored and verified), the write-ahead log is
+//! checkpointed and freed pages return to the filesystem (`auto_vacuum = INCREMENTAL`
+//! for databases created since).
+//!
 //! A database written by an earlier version opens unchanged: the columns added since
 //! (the sampling of each job, the samples and error estimate of each tile, a finished
 //! job's totals) are added on open, empty or with the value the earlier version implied.
 
 use std::path::Path;
-use std::sync::Mutex;
 
 use anyhow::{Context, Result};
 use protocol::{JobId, JobState, Sampling, SceneHash, Settings};
 use rusqlite::{params, Connection, OptionalExtension};
+use sha2::{Digest, Sha256};
 
 /// A job as stored.
 #[derive(Clone, Debug)]
@@ -32,6 +39,19 @@ pub struct StoredJob {
     /// What the job cost, recorded when it ended (its tiles are deleted then); `None`
     /// while it runs, and for jobs that ended under an earlier version.
     pub totals: Option<Totals>,
+    /// Wall-clock times (milliseconds since the Unix epoch): submitted, first tile
+    /// handed out, ended. `None` where not reached, or recorded by an earlier version.
+    pub times: Times,
+    /// The SHA-256 of the stored image, once the job is done.
+    pub image_sha256: Option<[u8; 32]>,
+}
+
+/// A job's wall-clock times, in milliseconds since the Unix epoch.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Times {
+    pub submitted: Option<u64>,
+    pub started: Option<u64>,
+    pub ended: Option<u64>,
 }
 
 /// A job's accumulated cost and error estimate.
@@ -45,7 +65,7 @@ pub struct Totals {
     pub error_pixels: u64,
 }
 
-/// A finished tile as stored.
+/// A finished tile as stored, its checksum verified.
 pub struct StoredTile {
     pub tile: u32,
     pub rgb: Vec<u8>,
@@ -79,13 +99,14 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "total_samples", "INTEGER"),
     ("jobs", "total_error_sq_sum", "REAL"),
     ("jobs", "total_error_pixels", "INTEGER"),
+    ("jobs", "submitted_ms", "INTEGER"),
+    ("jobs", "started_ms", "INTEGER"),
+    ("jobs", "ended_ms", "INTEGER"),
+    ("jobs", "image_sha256", "BLOB"),
     ("tiles", "samples", "INTEGER"),
     ("tiles", "error_sq_sum", "REAL"),
+    ("tiles", "sha256", "BLOB"),
 ];
-
-fn sampler_name(sampling: Sampling) -> &'static str {
-    sampling.name()
-}
 
 fn target_milli(sampling: Sampling) -> u32 {
     match sampling {
@@ -94,12 +115,29 @@ fn target_milli(sampling: Sampling) -> u32 {
     }
 }
 
-fn parse_sampling(name: &str, target_milli: u32) -> Sampling {
+fn parse_sampling(name: &str, target_milli: u32) -> Option<Sampling> {
     match name {
-        "jittered" => Sampling::Jittered,
-        "adaptive" => Sampling::Adaptive { target_milli },
-        _ => Sampling::Grid,
+        "grid" => Some(Sampling::Grid),
+        "jittered" => Some(Sampling::Jittered),
+        "adaptive" => Some(Sampling::Adaptive { target_milli }),
+        _ => None,
     }
+}
+
+fn parse_state(name: &str) -> Option<JobState> {
+    match name {
+        "queued" => Some(JobState::Queued),
+        "running" => Some(JobState::Running),
+        "done" => Some(JobState::Done),
+        "failed" => Some(JobState::Failed),
+        "cancelled" => Some(JobState::Cancelled),
+        _ => None,
+    }
+}
+
+/// The checksum stored beside every tile's pixels.
+pub fn tile_checksum(rgb: &[u8]) -> [u8; 32] {
+    Sha256::digest(rgb).into()
 }
 
 /// Adds the columns of [`ADDED_COLUMNS`] that `conn`'s tables lack.
@@ -121,29 +159,39 @@ fn add_missing_columns(conn: &Connection) -> Result<()> {
     Ok(())
 }
 
+/// The job database. Owned by the persistence thread (writes) and used once at startup
+/// (reads): never shared behind the daemon's state lock.
 pub struct Db {
-    conn: Mutex<Connection>,
+    conn: Connection,
 }
 
-fn state_name(state: JobState) -> &'static str {
-    state.as_str()
-}
-
-fn parse_state(name: &str) -> JobState {
-    match name {
-        "queued" => JobState::Queued,
-        "running" => JobState::Running,
-        "done" => JobState::Done,
-        "failed" => JobState::Failed,
-        _ => JobState::Cancelled,
-    }
+/// A stored row that cannot be used, with why.
+#[derive(Debug)]
+pub struct BadRow {
+    pub what: String,
 }
 
 impl Db {
-    /// Opens (creating if needed) the database file.
-    pub fn open(path: &Path) -> Result<Db> {
+    /// Opens the database file, creating its tables when `create` is set (a new data
+    /// directory); otherwise a file without Tessera's tables is an error.
+    pub fn open(path: &Path, create: bool) -> Result<Db> {
         let conn = Connection::open(path)
             .with_context(|| format!("cannot open the job database {}", path.display()))?;
+        let has_jobs: bool = conn
+            .query_row(
+                "SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name = 'jobs'",
+                [],
+                |r| r.get::<_, i64>(0),
+            )
+            .with_context(|| format!("{} is not a readable job database", path.display()))?
+            > 0;
+        if !has_jobs && !create {
+            anyhow::bail!("{} holds no job table", path.display());
+        }
+        if !has_jobs {
+            // Freed pages go back to the filesystem (set before any table exists).
+            conn.pragma_update(None, "auto_vacuum", "INCREMENTAL")?;
+        }
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "FULL")?;
         conn.execute_batch(
@@ -171,32 +219,26 @@ impl Db {
         )
         .context("cannot create the job tables")?;
         add_missing_columns(&conn).context("cannot upgrade the job database")?;
-        Ok(Db {
-            conn: Mutex::new(conn),
-        })
+        Ok(Db { conn })
     }
 
-    fn conn(&self) -> std::sync::MutexGuard<'_, Connection> {
-        self.conn.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// The largest job id ever stored.
+    /// The largest job id stored.
     pub fn max_job_id(&self) -> Result<JobId> {
         let max: Option<i64> = self
-            .conn()
+            .conn
             .query_row("SELECT MAX(id) FROM jobs", [], |r| r.get(0))
             .optional()?
             .flatten();
-        Ok(max.map_or(0, |m| m as JobId))
+        Ok(max.map_or(0, |m| m.max(0) as JobId))
     }
 
     /// Stores a new job durably.
     pub fn insert_job(&self, job: &StoredJob) -> Result<()> {
-        self.conn()
+        self.conn
             .execute(
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
-                                   priority, state, error, sampler, target_milli)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)",
+                                   priority, state, error, sampler, target_milli, submitted_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -207,24 +249,25 @@ impl Db {
                     job.settings.max_depth,
                     job.tile_size,
                     job.priority,
-                    state_name(job.state),
+                    job.state.as_str(),
                     job.error,
-                    sampler_name(job.settings.sampling),
+                    job.settings.sampling.name(),
                     target_milli(job.settings.sampling),
+                    job.times.submitted.map(|t| t as i64),
                 ],
             )
             .context("cannot store the job")?;
         Ok(())
     }
 
-    /// Records finished tiles, all in one transaction.
-    pub fn save_tiles(&self, tiles: &[TileWrite]) -> Result<()> {
-        let mut conn = self.conn();
-        let tx = conn.transaction()?;
+    /// Records finished tiles with their checksums, all in one transaction.
+    pub fn save_tiles(&mut self, tiles: &[TileWrite]) -> Result<()> {
+        let tx = self.conn.transaction()?;
         {
             let mut insert = tx.prepare_cached(
-                "INSERT OR IGNORE INTO tiles (job, tile, rgb, rays, worker, samples, error_sq_sum)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                "INSERT OR IGNORE INTO tiles (job, tile, rgb, rays, worker, samples, error_sq_sum,
+                                              sha256)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
             )?;
             for t in tiles {
                 insert.execute(params![
@@ -235,6 +278,7 @@ impl Db {
                     t.worker,
                     t.samples as i64,
                     t.error_sq_sum,
+                    &tile_checksum(&t.rgb)[..],
                 ])?;
             }
         }
@@ -242,113 +286,228 @@ impl Db {
         Ok(())
     }
 
-    /// Records a job's new state, and its totals when given; a job that has ended no
-    /// longer needs its tiles, so its totals are what remains of them.
-    pub fn set_state(
-        &self,
-        job: JobId,
-        state: JobState,
-        error: Option<&str>,
-        totals: Option<Totals>,
-    ) -> Result<()> {
-        let mut conn = self.conn();
-        let tx = conn.transaction()?;
-        tx.execute(
-            "UPDATE jobs SET state = ?2, error = ?3 WHERE id = ?1",
-            params![job as i64, state_name(state), error],
-        )?;
-        if let Some(t) = totals {
-            tx.execute(
-                "UPDATE jobs SET total_rays = ?2, total_samples = ?3, total_error_sq_sum = ?4,
-                                 total_error_pixels = ?5
-                 WHERE id = ?1",
-                params![
-                    job as i64,
-                    t.rays as i64,
-                    t.samples as i64,
-                    t.error_sq_sum,
-                    t.error_pixels as i64
-                ],
-            )?;
-        }
-        if state.is_final() {
-            tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
-        }
-        tx.commit().context("cannot record the job's state")?;
+    /// Records when the job's first tile was handed out.
+    pub fn set_started(&self, job: JobId, started_ms: u64) -> Result<()> {
+        self.conn
+            .execute(
+                "UPDATE jobs SET state = 'running', started_ms = ?2 WHERE id = ?1",
+                params![job as i64, started_ms as i64],
+            )
+            .context("cannot record that the job started")?;
         Ok(())
     }
 
-    pub fn load_jobs(&self) -> Result<Vec<StoredJob>> {
-        let conn = self.conn();
-        let mut query = conn.prepare(
-            "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
-                    error, sampler, target_milli, total_rays, total_samples,
-                    total_error_sq_sum, total_error_pixels
-             FROM jobs ORDER BY id",
+    /// Records a job's end: its final state, totals, times and image checksum. Its
+    /// tiles are no longer needed (the image is stored and verified, or the job will
+    /// not have one): they are deleted, and the space they took given back.
+    pub fn set_ended(
+        &mut self,
+        job: JobId,
+        state: JobState,
+        error: Option<&str>,
+        totals: Totals,
+        times: Times,
+        image_sha256: Option<[u8; 32]>,
+    ) -> Result<()> {
+        let tx = self.conn.transaction()?;
+        tx.execute(
+            "UPDATE jobs SET state = ?2, error = ?3, total_rays = ?4, total_samples = ?5,
+                             total_error_sq_sum = ?6, total_error_pixels = ?7,
+                             started_ms = ?8, ended_ms = ?9, image_sha256 = ?10
+             WHERE id = ?1",
+            params![
+                job as i64,
+                state.as_str(),
+                error,
+                totals.rays as i64,
+                totals.samples as i64,
+                totals.error_sq_sum,
+                totals.error_pixels as i64,
+                times.started.map(|t| t as i64),
+                times.ended.map(|t| t as i64),
+                image_sha256.as_ref().map(|h| &h[..]),
+            ],
         )?;
-        let jobs = query
-            .query_map([], |r| {
-                let hash: Vec<u8> = r.get(2)?;
-                let state: String = r.get(9)?;
-                let sampler: String = r.get(11)?;
-                let totals = match (
-                    r.get::<_, Option<i64>>(13)?,
-                    r.get::<_, Option<i64>>(14)?,
-                    r.get::<_, Option<f64>>(15)?,
-                    r.get::<_, Option<i64>>(16)?,
-                ) {
-                    (Some(rays), Some(samples), Some(error_sq_sum), Some(error_pixels)) => {
-                        Some(Totals {
-                            rays: rays as u64,
-                            samples: samples as u64,
-                            error_sq_sum,
-                            error_pixels: error_pixels as u64,
-                        })
-                    }
-                    _ => None,
-                };
-                Ok(StoredJob {
-                    id: r.get::<_, i64>(0)? as JobId,
-                    scene: r.get(1)?,
-                    hash: hash.try_into().unwrap_or([0; 32]),
-                    settings: Settings {
-                        width: r.get(3)?,
-                        height: r.get(4)?,
-                        aa: r.get(5)?,
-                        max_depth: r.get(6)?,
-                        sampling: parse_sampling(&sampler, r.get(12)?),
-                    },
-                    tile_size: r.get(7)?,
-                    priority: r.get(8)?,
-                    state: parse_state(&state),
-                    error: r.get(10)?,
-                    totals,
-                })
-            })?
-            .collect::<rusqlite::Result<Vec<_>>>()?;
-        Ok(jobs)
+        tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
+        tx.commit().context("cannot record the job's end")?;
+        self.give_back_space();
+        Ok(())
     }
 
-    pub fn load_tiles(&self, job: JobId) -> Result<Vec<StoredTile>> {
-        let conn = self.conn();
-        let mut query = conn.prepare(
-            "SELECT tile, rgb, rays, worker, samples, error_sq_sum FROM tiles WHERE job = ?1
-             ORDER BY tile",
-        )?;
-        let tiles = query
-            .query_map(params![job as i64], |r| {
-                Ok(StoredTile {
-                    tile: r.get(0)?,
-                    rgb: r.get(1)?,
-                    rays: r.get::<_, i64>(2)? as u64,
-                    worker: r.get(3)?,
-                    samples: r.get::<_, Option<i64>>(4)?.map(|n| n as u64),
-                    error_sq_sum: r.get(5)?,
-                })
-            })?
-            .collect::<rusqlite::Result<Vec<_>>>()?;
-        Ok(tiles)
+    /// Deletes a job and its tiles.
+    pub fn delete_job(&mut self, job: JobId) -> Result<()> {
+        let tx = self.conn.transaction()?;
+        tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
+        tx.execute("DELETE FROM jobs WHERE id = ?1", params![job as i64])?;
+        tx.commit().context("cannot delete the job")?;
+        self.give_back_space();
+        Ok(())
     }
+
+    /// Deletes one stored tile (found damaged at startup).
+    pub fn delete_tile(&self, job: JobId, tile: i64) -> Result<()> {
+        self.conn
+            .execute(
+                "DELETE FROM tiles WHERE job = ?1 AND tile = ?2",
+                params![job as i64, tile],
+            )
+            .context("cannot delete a damaged tile")?;
+        Ok(())
+    }
+
+    /// A small write that succeeds only when the database can be written: how the
+    /// daemon learns that storage is usable again.
+    pub fn probe(&self) -> Result<()> {
+        self.conn
+            .execute_batch(
+                "CREATE TABLE IF NOT EXISTS probe (n INTEGER);
+                 BEGIN IMMEDIATE; DELETE FROM probe; INSERT INTO probe VALUES (1); COMMIT;",
+            )
+            .context("cannot write the job database")?;
+        Ok(())
+    }
+
+    /// Checkpoints the write-ahead log into the database (truncating it) and returns
+    /// freed pages to the filesystem. Failures only cost space: they are ignored.
+    fn give_back_space(&self) {
+        let _ = self.conn.execute_batch("PRAGMA incremental_vacuum;");
+        let _ = self
+            .conn
+            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));
+    }
+
+    /// Every stored job. A row that cannot be read (a damaged database) is returned as
+    /// a [`BadRow`] instead of failing the whole load.
+    pub fn load_jobs(&self) -> Result<Vec<Result<StoredJob, BadRow>>> {
+        let mut query = self.conn.prepare(
+            "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
+                    error, sampler, target_milli, total_rays, total_samples,
+                    total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
+                    image_sha256
+             FROM jobs ORDER BY id",
+        )?;
+        let rows = query
+            .query_map([], |r| Ok(read_job(r)))?
+            .map(|row| row.unwrap_or_else(|e| Err(bad(format!("unreadable job row: {e}")))))
+            .collect();
+        Ok(rows)
+    }
+
+    /// The job's stored tiles whose checksum matches; the others are returned as
+    /// [`BadRow`]s with their tile number (when readable), to be deleted and rendered
+    /// again.
+    pub fn load_tiles(&self, job: JobId) -> Result<Vec<Result<StoredTile, (Option<i64>, BadRow)>>> {
+        let mut query = self.conn.prepare(
+            "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256 FROM tiles
+             WHERE job = ?1 ORDER BY tile",
+        )?;
+        let rows = query
+            .query_map(params![job as i64], |r| Ok(read_tile(r)))?
+            .map(|row| {
+                row.unwrap_or_else(|e| Err((None, bad(format!("unreadable tile row: {e}")))))
+            })
+            .collect();
+        Ok(rows)
+    }
+}
+
+fn bad(what: String) -> BadRow {
+    BadRow { what }
+}
+
+fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
+    let id: i64 = r.get(0).map_err(|e| bad(format!("job id: {e}")))?;
+    let field = |e: rusqlite::Error| bad(format!("job {id}: {e}"));
+    let hash: Vec<u8> = r.get(2).map_err(field)?;
+    let state: String = r.get(9).map_err(field)?;
+    let sampler: String = r.get(11).map_err(field)?;
+    let totals = match (
+        r.get::<_, Option<i64>>(13).map_err(field)?,
+        r.get::<_, Option<i64>>(14).map_err(field)?,
+        r.get::<_, Option<f64>>(15).map_err(field)?,
+        r.get::<_, Option<i64>>(16).map_err(field)?,
+    ) {
+        (Some(rays), Some(samples), Some(error_sq_sum), Some(error_pixels)) => Some(Totals {
+            rays: rays.max(0) as u64,
+            samples: samples.max(0) as u64,
+            error_sq_sum,
+            error_pixels: error_pixels.max(0) as u64,
+        }),
+        _ => None,
+    };
+    let time = |i: usize| -> Result<Option<u64>, BadRow> {
+        Ok(r.get::<_, Option<i64>>(i)
+            .map_err(field)?
+            .map(|t| t.max(0) as u64))
+    };
+    let image_sha256 = match r.get::<_, Option<Vec<u8>>>(20).map_err(field)? {
+        None => None,
+        Some(h) => Some(
+            <[u8; 32]>::try_from(h.as_slice())
+                .map_err(|_| bad(format!("job {id}: an image checksum of {} bytes", h.len())))?,
+        ),
+    };
+    Ok(StoredJob {
+        id: JobId::try_from(id).map_err(|_| bad(format!("job id {id}")))?,
+        scene: r.get(1).map_err(field)?,
+        hash: hash
+            .try_into()
+            .map_err(|_| bad(format!("job {id}: a scene hash that is not 32 bytes")))?,
+        settings: Settings {
+            width: r.get(3).map_err(field)?,
+            height: r.get(4).map_err(field)?,
+            aa: r.get(5).map_err(field)?,
+            max_depth: r.get(6).map_err(field)?,
+            sampling: parse_sampling(&sampler, r.get(12).map_err(field)?)
+                .ok_or_else(|| bad(format!("job {id}: unknown sampler {sampler:?}")))?,
+        },
+        tile_size: r.get(7).map_err(field)?,
+        priority: r.get(8).map_err(field)?,
+        state: parse_state(&state)
+            .ok_or_else(|| bad(format!("job {id}: unknown state {state:?}")))?,
+        error: r.get(10).map_err(field)?,
+        totals,
+        times: Times {
+            submitted: time(17)?,
+            started: time(18)?,
+            ended: time(19)?,
+        },
+        image_sha256,
+    })
+}
+
+fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, (Option<i64>, BadRow)> {
+    let tile: i64 = r
+        .get(0)
+        .map_err(|e| (None, bad(format!("tile number: {e}"))))?;
+    let field = |e: rusqlite::Error| (Some(tile), bad(format!("tile {tile}: {e}")));
+    let rgb: Vec<u8> = r.get(1).map_err(field)?;
+    let sha: Option<Vec<u8>> = r.get(6).map_err(field)?;
+    // Tiles recorded by an earlier version carry no checksum; their length is still
+    // checked against the tile's rectangle by the caller.
+    if let Some(sha) = sha {
+        if sha.as_slice() != tile_checksum(&rgb) {
+            return Err((
+                Some(tile),
+                bad(format!(
+                    "tile {tile}: its pixels do not match their checksum"
+                )),
+            ));
+        }
+    }
+    let tile_number =
+        u32::try_from(tile).map_err(|_| (Some(tile), bad(format!("tile number {tile}"))))?;
+    Ok(StoredTile {
+        tile: tile_number,
+        rgb,
+        rays: r.get::<_, i64>(2).map_err(field)?.max(0) as u64,
+        worker: r.get(3).map_err(field)?,
+        samples: r
+            .get::<_, Option<i64>>(4)
+            .map_err(field)?
+            .map(|n| n.max(0) as u64),
+        error_sq_sum: r.get(5).map_err(field)?,
+    })
 }
 
 #[cfg(test)]
@@ -387,7 +546,20 @@ mod tests {
             state: JobState::Queued,
             error: None,
             totals: None,
+            times: Times {
+                submitted: Some(1_000),
+                ..Times::default()
+            },
+            image_sha256: None,
         }
+    }
+
+    fn jobs(db: &Db) -> Vec<StoredJob> {
+        db.load_jobs()
+            .unwrap()
+            .into_iter()
+            .map(|j| j.unwrap())
+            .collect()
     }
 
     #[test]
@@ -399,15 +571,19 @@ mod tests {
             .execute_batch(FIRST_SCHEMA)
             .unwrap();
 
-        let db = Db::open(&path).unwrap();
-        let jobs = db.load_jobs().unwrap();
-        assert_eq!(jobs.len(), 1);
-        assert_eq!(jobs[0].settings.sampling, Sampling::Grid);
-        assert_eq!((jobs[0].settings.aa, jobs[0].state), (2, JobState::Running));
-        assert!(jobs[0].totals.is_none());
+        let mut db = Db::open(&path, false).unwrap();
+        let loaded = jobs(&db);
+        assert_eq!(loaded.len(), 1);
+        assert_eq!(loaded[0].settings.sampling, Sampling::Grid);
+        assert_eq!(
+            (loaded[0].settings.aa, loaded[0].state),
+            (2, JobState::Running)
+        );
+        assert!(loaded[0].totals.is_none());
         let tiles = db.load_tiles(3).unwrap();
-        assert_eq!(tiles[0].rgb, [1, 2, 3]);
-        assert_eq!((tiles[0].samples, tiles[0].error_sq_sum), (None, None));
+        let tile = tiles[0].as_ref().ok().unwrap();
+        assert_eq!(tile.rgb, [1, 2, 3]);
+        assert_eq!((tile.samples, tile.error_sq_sum), (None, None));
 
         // New jobs and tiles carry the new columns, and survive another opening.
         let adaptive = Sampling::Adaptive { target_milli: 500 };
@@ -429,19 +605,74 @@ mod tests {
             error_sq_sum: 3.25,
             error_pixels: 64,
         };
-        db.set_state(5, JobState::Done, None, Some(totals)).unwrap();
+        let times = Times {
+            submitted: Some(1_000),
+            started: Some(1_500),
+            ended: Some(2_000),
+        };
+        db.set_ended(5, JobState::Done, None, totals, times, Some([9; 32]))
+            .unwrap();
         drop(db);
 
-        let db = Db::open(&path).unwrap();
-        let jobs = db.load_jobs().unwrap();
-        let sampling: Vec<Sampling> = jobs.iter().map(|j| j.settings.sampling).collect();
+        let db = Db::open(&path, false).unwrap();
+        let loaded = jobs(&db);
+        let sampling: Vec<Sampling> = loaded.iter().map(|j| j.settings.sampling).collect();
         assert_eq!(sampling, [Sampling::Grid, adaptive, Sampling::Jittered]);
-        assert_eq!(jobs[2].totals, Some(totals));
-        assert_eq!(jobs[2].state, JobState::Done);
+        assert_eq!(loaded[2].totals, Some(totals));
+        assert_eq!(loaded[2].state, JobState::Done);
+        assert_eq!(loaded[2].times, times);
+        assert_eq!(loaded[2].image_sha256, Some([9; 32]));
         let tiles = db.load_tiles(4).unwrap();
-        assert_eq!(
-            (tiles[0].samples, tiles[0].error_sq_sum),
-            (Some(272), Some(12.5))
-        );
+        let tile = tiles[0].as_ref().ok().unwrap();
+        assert_eq!((tile.samples, tile.error_sq_sum), (Some(272), Some(12.5)));
+    }
+
+    #[test]
+    fn damaged_rows_are_reported_one_by_one_not_fatal() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tessera.db");
+        let mut db = Db::open(&path, true).unwrap();
+        db.insert_job(&job(1, Sampling::Grid)).unwrap();
+        db.insert_job(&job(2, Sampling::Grid)).unwrap();
+        let tile = |tile| TileWrite {
+            job: 1,
+            tile,
+            rgb: vec![tile as u8; 192],
+            rays: 1,
+            worker: "w".into(),
+            samples: 64,
+            error_sq_sum: None,
+        };
+        db.save_tiles(&[tile(0), tile(1), tile(2)]).unwrap();
+        db.conn
+            .execute_batch(
+                "UPDATE tiles SET rgb = x'00' WHERE tile = 1;
+                 UPDATE tiles SET rays = 'many' WHERE tile = 2;
+                 UPDATE jobs SET state = 'sideways' WHERE id = 2;",
+            )
+            .unwrap();
+        let loaded = db.load_jobs().unwrap();
+        assert!(loaded[0].is_ok());
+        assert!(loaded[1].as_ref().unwrap_err().what.contains("sideways"));
+        let tiles = db.load_tiles(1).unwrap();
+        assert_eq!(tiles[0].as_ref().ok().map(|t| t.tile), Some(0));
+        assert_eq!(tiles[1].as_ref().err().map(|(t, _)| *t), Some(Some(1)));
+        assert_eq!(tiles[2].as_ref().err().map(|(t, _)| *t), Some(Some(2)));
+    }
+
+    #[test]
+    fn a_file_that_is_not_a_job_database_is_refused_unless_new() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tessera.db");
+        std::fs::write(
+            &path,
+            b"garbage that is not SQLite at all, not even close....",
+        )
+        .unwrap();
+        assert!(Db::open(&path, false).is_err());
+        let empty = dir.path().join("empty.db");
+        std::fs::write(&empty, b"").unwrap();
+        assert!(Db::open(&empty, false).is_err());
+        assert!(Db::open(&empty, true).is_ok());
     }
 }

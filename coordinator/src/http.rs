@@ -79,7 +79,10 @@ fn readiness(ready: bool, yes: &'static str, no: &'static str) -> Response {
 }
 
 async fn coordinator_ready(State(observer): State<Observer>) -> Response {
-    readiness(observer.accepting(), "accepting jobs", "shutting down")
+    match observer.not_ready() {
+        None => (StatusCode::OK, "ready: accepting jobs\n").into_response(),
+        Some(reason) => (StatusCode::SERVICE_UNAVAILABLE, format!("{reason}\n")).into_response(),
+    }
 }
 
 async fn status(State(observer): State<Observer>) -> Response {
@@ -93,7 +96,7 @@ async fn status(State(observer): State<Observer>) -> Response {
 async fn picture(State(observer): State<Observer>, Path(id): Path<JobId>) -> Response {
     let picture = tokio::task::spawn_blocking(move || observer.picture(id)).await;
     let png = match picture {
-        Ok(Some(Picture::Final(png))) => png.as_ref().clone(),
+        Ok(Some(Picture::Final(png))) => png,
         Ok(Some(Picture::Preview(png))) => png,
         Ok(None) => {
             return (StatusCode::NOT_FOUND, format!("no image for job {id}\n")).into_response()

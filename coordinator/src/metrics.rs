@@ -30,6 +30,8 @@ pub struct Snapshot {
     pub workers: i64,
     pub tiles_in_flight: i64,
     pub scheduler: Counters,
+    /// Whether storage can write (a gauge of 1 or 0).
+    pub storage_available: bool,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -49,6 +51,8 @@ pub struct Metrics {
     tiles_reassigned: Counter,
     workers_dropped: Counter,
     rays_per_second: Gauge<f64, AtomicU64>,
+    storage_available: Gauge,
+    storage_outages: Counter,
     /// What the scheduler's counters were at the last scrape.
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
@@ -118,8 +122,23 @@ impl Metrics {
             "Rays per second over the last 10 seconds",
             rays_per_second.clone(),
         );
+        let storage_available = Gauge::default();
+        registry.register(
+            "storage_available",
+            "1 while the data directory can be written, 0 while it cannot (full, read-only \
+             or stalled): no new tiles are handed out then",
+            storage_available.clone(),
+        );
+        let storage_outages = Counter::default();
+        registry.register(
+            "storage_outages",
+            "Times the data directory stopped being writable",
+            storage_outages.clone(),
+        );
         Metrics {
             registry,
+            storage_available,
+            storage_outages,
             jobs,
             workers,
             tiles_in_flight,
@@ -144,7 +163,12 @@ impl Metrics {
         }
     }
 
-    /// Takes a sample of the ray count for the rate (called on the daemon's tick).
+    /// Counts an outage of storage (it just became unavailable).
+    pub fn storage_outage(&self) {
+        self.storage_outages.inc();
+    }
+
+    /// Takes a sample of the ray count for the rate (called every half second).
     pub fn sample_rate(&self, now: Instant) {
         let mut rate = self.rate.lock().expect("rate lock");
         rate.push_back((now, self.rays.get()));
@@ -175,6 +199,8 @@ impl Metrics {
                 .set(*n);
         }
         self.workers.set(snapshot.workers);
+        self.storage_available
+            .set(i64::from(snapshot.storage_available));
         self.tiles_in_flight.set(snapshot.tiles_in_flight);
         {
             let mut synced = self.synced.lock().expect("metrics lock");
@@ -211,7 +237,9 @@ mod tests {
                 tiles_requeued: 6,
                 workers_dropped: 7,
             },
+            storage_available: true,
         };
+        m.storage_outage();
         let text = m.render(&snapshot);
         for line in [
             "tessera_jobs{state=\"running\"} 1",
@@ -224,12 +252,16 @@ mod tests {
             "tessera_leases_expired_total 5",
             "tessera_tiles_reassigned_total 6",
             "tessera_workers_dropped_total 7",
+            "tessera_storage_available 1",
+            "tessera_storage_outages_total 1",
         ] {
             assert!(text.lines().any(|l| l == line), "{line} missing in\n{text}");
         }
         // Counters follow the scheduler's totals, not add them up again.
         snapshot.scheduler.leases_expired = 8;
+        snapshot.storage_available = false;
         let text = m.render(&snapshot);
+        assert!(text.contains("tessera_storage_available 0\n"), "{text}");
         assert!(text.contains("tessera_leases_expired_total 8\n"), "{text}");
         assert!(
             text.contains("tessera_tiles_reassigned_total 6\n"),

@@ -1,16 +1,19 @@
 //! The data directory: one folder per finished job holding its image, its scene and a
-//! JSON metadata file. Every file is written to a temporary name and renamed, so a
-//! crash never leaves a half-written file under its real name.
+//! JSON metadata file, and `last-job-id`, the highest job id ever issued. Every file is
+//! written to a temporary name, synced and renamed, so a crash never leaves a
+//! half-written file under its real name; an image is read back and its SHA-256
+//! compared before it counts as stored, and compared again whenever it is served.
 
-use std::io::Write;
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use protocol::JobId;
 use serde::Serialize;
+use sha2::{Digest, Sha256};
 
 /// What is stored beside each image.
-#[derive(Serialize)]
+#[derive(Clone, Serialize)]
 pub struct JobMetadata {
     pub id: JobId,
     pub state: &'static str,
@@ -37,6 +40,12 @@ pub struct JobMetadata {
     /// The renderer's RMS error estimate in 8-bit levels (absent with one sample per
     /// pixel).
     pub estimated_error: Option<f64>,
+    /// When the job was submitted, first handed out, and ended (ms since the Unix epoch).
+    pub submitted_unix_ms: u64,
+    pub started_unix_ms: u64,
+    pub ended_unix_ms: u64,
+    /// The SHA-256 of `image.png`, in hex.
+    pub image_sha256: String,
 }
 
 pub struct Store {
@@ -53,20 +62,51 @@ impl Store {
         })
     }
 
-    /// The first job id not used by a job already in the directory, so ids stay
-    /// unique across restarts.
-    pub fn next_job_id(&self) -> Result<JobId> {
-        let mut next = 1;
-        for entry in std::fs::read_dir(self.root.join("jobs"))? {
+    /// The highest job id the directory has seen: in `last-job-id` or as a job folder.
+    /// Zero for a directory that never held a job.
+    pub fn highest_job_id(&self) -> Result<JobId> {
+        let mut highest = self.recorded_last_id()?;
+        let jobs = self.root.join("jobs");
+        for entry in
+            std::fs::read_dir(&jobs).with_context(|| format!("cannot read {}", jobs.display()))?
+        {
             if let Some(id) = entry?
                 .file_name()
                 .to_str()
                 .and_then(|n| n.parse::<JobId>().ok())
             {
-                next = next.max(id + 1);
+                highest = highest.max(id);
             }
         }
-        Ok(next)
+        Ok(highest)
+    }
+
+    fn last_id_path(&self) -> PathBuf {
+        self.root.join("last-job-id")
+    }
+
+    fn recorded_last_id(&self) -> Result<JobId> {
+        let path = self.last_id_path();
+        match std::fs::read_to_string(&path) {
+            Ok(text) => text.trim().parse().with_context(|| {
+                format!(
+                    "{} does not hold a job id: {:?}",
+                    path.display(),
+                    text.trim()
+                )
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
+            Err(e) => Err(e).with_context(|| format!("cannot read {}", path.display())),
+        }
+    }
+
+    /// Records durably that ids up to `id` have been issued, so they are never issued
+    /// again, whatever happens to the database.
+    pub fn record_last_id(&self, id: JobId) -> Result<()> {
+        if self.recorded_last_id().unwrap_or(0) >= id {
+            return Ok(());
+        }
+        write_atomically(&self.last_id_path(), format!("{id}\n").as_bytes())
     }
 
     fn job_dir(&self, job: JobId) -> PathBuf {
@@ -74,28 +114,98 @@ impl Store {
         self.root.join("jobs").join(job.to_string())
     }
 
-    /// The stored image of a finished job.
-    pub fn read_image(&self, job: JobId) -> Result<Vec<u8>> {
-        let path = self.job_dir(job).join("image.png");
-        std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))
+    fn image_path(&self, job: JobId) -> PathBuf {
+        self.job_dir(job).join("image.png")
+    }
+
+    /// Checks the stored image of a finished job against its checksum, reading it in
+    /// chunks; returns its length.
+    pub fn verify_image(&self, job: JobId, sha256: &[u8; 32]) -> Result<u64> {
+        let path = self.image_path(job);
+        let mut file = std::fs::File::open(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let mut hasher = Sha256::new();
+        let mut buf = vec![0u8; 256 * 1024];
+        let mut len = 0u64;
+        loop {
+            let n = file
+                .read(&mut buf)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            if n == 0 {
+                break;
+            }
+            hasher.update(&buf[..n]);
+            len += n as u64;
+        }
+        let actual: [u8; 32] = hasher.finalize().into();
+        anyhow::ensure!(
+            &actual == sha256,
+            "{} is damaged: its SHA-256 does not match the one recorded",
+            path.display()
+        );
+        Ok(len)
+    }
+
+    /// Up to `len` bytes of a finished job's image from `offset`, and the image's size.
+    pub fn read_image_chunk(&self, job: JobId, offset: u64, len: usize) -> Result<(u64, Vec<u8>)> {
+        let path = self.image_path(job);
+        let mut file = std::fs::File::open(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let total = file
+            .metadata()
+            .with_context(|| format!("cannot read {}", path.display()))?
+            .len();
+        let start = offset.min(total);
+        file.seek(SeekFrom::Start(start))
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let mut bytes = Vec::with_capacity(len.min((total - start) as usize));
+        file.take(len as u64)
+            .read_to_end(&mut bytes)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        Ok((total, bytes))
     }
 
     /// Stores a finished job: scene, image, then metadata (the metadata's presence
-    /// means the job is complete).
-    pub fn save(&self, meta: &JobMetadata, scene: &str, png: &[u8]) -> Result<()> {
+    /// means the job is complete). The image is read back and compared with `png`'s
+    /// checksum before this returns.
+    pub fn save(&self, meta: &JobMetadata, scene: &str, png: &[u8]) -> Result<[u8; 32]> {
         let dir = self.job_dir(meta.id);
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
         write_atomically(&dir.join("scene.json"), scene.as_bytes())?;
-        write_atomically(&dir.join("image.png"), png)?;
-        let json = serde_json::to_vec_pretty(meta).expect("metadata serialises");
+        write_atomically(&self.image_path(meta.id), png)?;
+        let sha: [u8; 32] = Sha256::digest(png).into();
+        self.verify_image(meta.id, &sha)?;
+        let meta = JobMetadata {
+            image_sha256: sha.iter().map(|b| format!("{b:02x}")).collect(),
+            ..meta.clone()
+        };
+        let json = serde_json::to_vec_pretty(&meta).expect("metadata serialises");
         write_atomically(&dir.join("job.json"), &json)?;
-        Ok(())
+        Ok(sha)
+    }
+
+    /// Removes a job's folder, if any.
+    pub fn delete(&self, job: JobId) -> Result<()> {
+        let dir = self.job_dir(job);
+        match std::fs::remove_dir_all(&dir) {
+            Ok(()) => Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+            Err(e) => Err(e).with_context(|| format!("cannot delete {}", dir.display())),
+        }
+    }
+
+    /// Writes and removes a small file: succeeds only when the directory can be
+    /// written, which is how the daemon learns that storage is usable again.
+    pub fn probe(&self) -> Result<()> {
+        let path = self.root.join(".probe");
+        write_atomically(&path, &[0u8; 4096])?;
+        std::fs::remove_file(&path).with_context(|| format!("cannot remove {}", path.display()))
     }
 }
 
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path.parent().expect("stored files live in a job folder");
+    let dir = path.parent().expect("stored files live in a folder");
     let mut tmp = tempfile::NamedTempFile::new_in(dir)
         .with_context(|| format!("cannot write {}", path.display()))?;
     tmp.write_all(bytes)
@@ -104,5 +214,9 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     tmp.persist(path)
         .map_err(|e| e.error)
         .with_context(|| format!("cannot write {}", path.display()))?;
+    // The rename itself is durable only once the folder is synced.
+    std::fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .with_context(|| format!("cannot sync {}", dir.display()))?;
     Ok(())
 }

@@ -7,7 +7,8 @@ use std::sync::Arc;
 use protocol::{JobId, JobState};
 use serde::Serialize;
 
-use super::{Shared, State};
+use super::core::Core;
+use super::Shared;
 use crate::metrics::Snapshot;
 
 /// Previews are at most this many pixels on their longer side.
@@ -65,7 +66,7 @@ pub struct WorkerView {
 /// An image for the page.
 pub enum Picture {
     /// The final image, as stored.
-    Final(Arc<Vec<u8>>),
+    Final(Vec<u8>),
     /// A downscaled copy of the tiles received so far (the rest black).
     Preview(Vec<u8>),
 }
@@ -76,19 +77,32 @@ impl Observer {
         !self.shared.closing.load(Ordering::SeqCst)
     }
 
+    /// Why the coordinator cannot take jobs now, if it cannot: shutting down, or
+    /// storage unavailable (with the reason). Never waits on storage.
+    pub fn not_ready(&self) -> Option<String> {
+        if !self.accepting() {
+            return Some("not ready: shutting down".into());
+        }
+        self.shared
+            .lock()
+            .lifecycle
+            .storage_down()
+            .map(|reason| format!("storage unavailable: {reason}"))
+    }
+
     pub fn farm(&self) -> FarmView {
-        let state = self.shared.state.lock().expect("state lock");
+        let core = self.shared.lock();
         let oldest_ended_shown =
-            oldest_ended_shown(state.jobs.iter().map(|(&id, r)| (id, r.state)));
-        let jobs = state
-            .jobs
-            .iter()
-            .filter(|(&id, r)| !r.state.is_final() || id >= oldest_ended_shown)
-            .map(|(&id, record)| {
-                let s = record.status(id);
+            oldest_ended_shown(core.lifecycle.jobs().map(|(id, j)| (id, j.phase.visible())));
+        let jobs = core
+            .lifecycle
+            .jobs()
+            .filter(|(id, j)| !j.phase.visible().is_final() || *id >= oldest_ended_shown)
+            .filter_map(|(id, _)| core.status(id))
+            .map(|s| {
                 let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
                 JobView {
-                    id,
+                    id: s.id,
                     state: s.state.as_str(),
                     width: s.settings.width,
                     height: s.settings.height,
@@ -106,50 +120,46 @@ impl Observer {
                 }
             })
             .collect();
-        let workers = state
-            .workers
-            .iter()
-            .map(|(&id, w)| {
-                let s = w.status(id, state.scheduler.held_by(id));
-                WorkerView {
-                    id: s.id,
-                    name: s.name,
-                    threads: s.threads,
-                    tiles_in_flight: s.tiles_in_flight,
-                    tiles_done: s.tiles_done,
-                    rays_per_second: s.rays_per_second,
-                    connected_ms: s.connected_ms,
-                }
+        let workers = core
+            .worker_statuses()
+            .into_iter()
+            .map(|s| WorkerView {
+                id: s.id,
+                name: s.name,
+                threads: s.threads,
+                tiles_in_flight: s.tiles_in_flight,
+                tiles_done: s.tiles_done,
+                rays_per_second: s.rays_per_second,
+                connected_ms: s.connected_ms,
             })
             .collect();
+        drop(core);
         FarmView {
-            accepting: self.accepting(),
+            accepting: self.not_ready().is_none(),
             jobs,
             workers,
         }
     }
 
-    /// The job's picture: its stored image once done, else a preview of the tiles in
-    /// so far; `None` for an unknown job or one that ended without an image.
+    /// The job's picture: the stored image once done (read from disk, never kept in
+    /// memory), a downscaled preview of the frame being assembled before.
     pub fn picture(&self, job: JobId) -> Option<Picture> {
-        let mut state = self.shared.state.lock().expect("state lock");
-        let record = state.jobs.get_mut(&job)?;
-        if record.state == JobState::Done {
-            if record.png.is_none() {
-                // Stored before a restart: read once from the data directory.
-                record.png = Some(Arc::new(self.shared.store.read_image(job).ok()?));
-            }
-            return record.png.clone().map(Picture::Final);
+        let core = self.shared.lock();
+        if core.status(job)?.state == JobState::Done {
+            drop(core);
+            let store = &self.shared.store;
+            let (total, _) = store.read_image_chunk(job, 0, 0).ok()?;
+            let (_, png) = store.read_image_chunk(job, 0, total as usize).ok()?;
+            return Some(Picture::Final(png));
         }
-        // Downscale under the lock (a bounded amount of work), encode outside it.
-        let preview = downscale(record.image.as_ref()?, PREVIEW_SIDE);
-        drop(state);
+        let image = core.jobs.get(&job)?.image.as_ref()?;
+        let preview = downscale(image, PREVIEW_SIDE);
+        drop(core);
         Some(Picture::Preview(preview.to_png()))
     }
 
-    /// The Prometheus exposition.
     pub fn metrics(&self) -> String {
-        let snapshot = snapshot(&self.shared.state.lock().expect("state lock"));
+        let snapshot = snapshot(&self.shared.lock());
         self.shared.metrics.render(&snapshot)
     }
 }
@@ -163,7 +173,7 @@ fn oldest_ended_shown(jobs: impl DoubleEndedIterator<Item = (JobId, JobState)>) 
         .map_or(0, |(id, _)| id + 1)
 }
 
-fn snapshot(state: &State) -> Snapshot {
+fn snapshot(core: &Core) -> Snapshot {
     let all = [
         JobState::Queued,
         JobState::Running,
@@ -177,13 +187,17 @@ fn snapshot(state: &State) -> Snapshot {
             .map(|&s| {
                 (
                     s,
-                    state.jobs.values().filter(|j| j.state == s).count() as i64,
+                    core.lifecycle
+                        .jobs()
+                        .filter(|(_, j)| j.phase.visible() == s)
+                        .count() as i64,
                 )
             })
             .collect(),
-        workers: state.workers.len() as i64,
-        tiles_in_flight: state.scheduler.tiles_in_flight() as i64,
-        scheduler: state.scheduler.counters(),
+        workers: core.workers.len() as i64,
+        tiles_in_flight: core.tiles.tiles_in_flight() as i64,
+        scheduler: core.tiles.counters(),
+        storage_available: core.lifecycle.storage_down().is_none(),
     }
 }
 

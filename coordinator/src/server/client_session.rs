@@ -1,0 +1,297 @@
+//! A client's connection: one request, one answer, in order.
+//!
+//! Whatever may take time runs outside the state lock: a submitted scene is parsed on
+//! the blocking pool, its row written by the persistence thread (the answer waits for
+//! it, nobody else does), and images are read from disk in chunks on the blocking
+//! pool.
+
+use std::net::IpAddr;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Result;
+use futures_util::{SinkExt, StreamExt};
+use protocol::{
+    ClientRequest, ClientResponse, JobId, JobSpec, JobState, MessageCodec, SceneHash, Settings,
+};
+use scheduler::lifecycle::{self, Reply};
+use sha2::{Digest, Sha256};
+use tokio_util::codec::Framed;
+use transport::Stream;
+
+use super::core::Prepared;
+use super::persistence::Write;
+use super::Shared;
+use crate::tiling::{self, MAX_TILE, MIN_TILE};
+
+type ClientConn = Framed<Stream, MessageCodec<ClientRequest, ClientResponse>>;
+
+/// Bytes of PNG per `ImageChunk`.
+const CHUNK: usize = 1024 * 1024;
+
+/// A `Watch` reports progress at most this often...
+const WATCH_MIN_INTERVAL: Duration = Duration::from_millis(50);
+/// ...and answers after this long even without progress.
+const WATCH_TIMEOUT: Duration = Duration::from_secs(1);
+
+pub(super) async fn serve(shared: Arc<Shared>, mut conn: ClientConn, peer: IpAddr) -> Result<()> {
+    while let Some(request) = conn.next().await {
+        let response = match request {
+            Ok(request) => respond(&shared, request, peer).await,
+            Err(e) => {
+                let message = format!(
+                    "bad request: {e} (this coordinator takes frames of at most {} bytes)",
+                    shared.max_frame
+                );
+                let _ = conn.send(ClientResponse::Error { message }).await;
+                // Let the peer finish sending and read the answer: closing with its
+                // bytes unread would reset the connection and lose the message.
+                let mut stream = conn.into_inner();
+                use tokio::io::AsyncWriteExt;
+                let _ = stream.shutdown().await;
+                let _ = tokio::time::timeout(Duration::from_secs(2), async {
+                    let mut sink = [0u8; 64 * 1024];
+                    while let Ok(n) = tokio::io::AsyncReadExt::read(&mut stream, &mut sink).await {
+                        if n == 0 {
+                            break;
+                        }
+                    }
+                })
+                .await;
+                return Err(e.into());
+            }
+        };
+        conn.send(response).await?;
+    }
+    Ok(())
+}
+
+async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> ClientResponse {
+    match request {
+        ClientRequest::Submit(spec) => submit(sh, spec, peer).await,
+        ClientRequest::Watch { job, after_tiles } => watch(sh, job, after_tiles).await,
+        ClientRequest::Status { job } => match sh.lock().status(job) {
+            Some(status) => ClientResponse::Job(status),
+            None => unknown_job(job),
+        },
+        ClientRequest::List => {
+            let core = sh.lock();
+            let jobs = core
+                .lifecycle
+                .jobs()
+                .filter_map(|(id, _)| core.status(id))
+                .collect();
+            ClientResponse::Jobs(jobs)
+        }
+        ClientRequest::Cancel { job } => {
+            let replies = sh.lock().life_event(sh, lifecycle::Event::Cancel { job });
+            match replies.into_iter().next() {
+                Some(Ok(_)) => ClientResponse::Cancelled { job },
+                Some(Err(message)) => ClientResponse::Error { message },
+                None => unknown_job(job),
+            }
+        }
+        ClientRequest::Delete { job } => {
+            let replies = sh.lock().life_event(sh, lifecycle::Event::Delete { job });
+            match replies.into_iter().next() {
+                Some(Ok(Reply::Deleting)) => wait_deleted(sh, job).await,
+                Some(Ok(Reply::Cancelled)) | None => unknown_job(job),
+                Some(Err(message)) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::Fetch { job, offset } => fetch(sh, job, offset).await,
+        ClientRequest::Workers => ClientResponse::Workers(sh.lock().worker_statuses()),
+    }
+}
+
+/// Checks and measures a submission (parsing its scene) without the lock, has the
+/// lifecycle admit it, and answers once its row is written.
+async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse {
+    if sh.closing.load(Ordering::SeqCst) {
+        return ClientResponse::Error {
+            message: "the coordinator is shutting down: submit again when it is back".into(),
+        };
+    }
+    let limits = sh.limits;
+    let prepared = match tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await {
+        Ok(Ok(prepared)) => prepared,
+        Ok(Err(message)) => return ClientResponse::Error { message },
+        Err(_) => {
+            return ClientResponse::Error {
+                message: "the scene could not be checked: try again".into(),
+            }
+        }
+    };
+    let (reply, answer) = tokio::sync::oneshot::channel();
+    let stored = match sh.lock().admit(sh, prepared, reply) {
+        Ok(stored) => stored,
+        Err(message) => return ClientResponse::Error { message },
+    };
+    let id = stored.id;
+    let shared = Arc::clone(sh);
+    sh.persistence.write(Write::InsertJob {
+        job: Box::new(stored),
+        then: Box::new(move |result| {
+            let event = match result {
+                Ok(()) => lifecycle::Event::Stored { job: id },
+                Err(message) => lifecycle::Event::StoreFailed { job: id, message },
+            };
+            shared.lock().life_event(&shared, event);
+        }),
+    });
+    answer.await.unwrap_or_else(|_| ClientResponse::Error {
+        message: "the coordinator stopped before storing the job: submit again".into(),
+    })
+}
+
+/// Parses and checks a job: the settings it will render with, its tiles and what the
+/// lifecycle needs to admit it.
+fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<Prepared, String> {
+    limits.check_scene_bytes(spec.scene.len())?;
+    let scene = render::parse_scene(&spec.scene).map_err(|e| e.to_string())?;
+    let o = spec.overrides;
+    let mut s = scene.settings;
+    s.width = o.width.unwrap_or(s.width);
+    s.height = o.height.unwrap_or(s.height);
+    s.aa = o.aa.unwrap_or(s.aa);
+    s.max_depth = o.max_depth.unwrap_or(s.max_depth);
+    s.sampling = o.sampling.map_or(s.sampling, tiling::render_sampling);
+    render::validate_settings(&s, "").map_err(|e| format!("overrides: {e}"))?;
+    let settings = Settings {
+        width: s.width,
+        height: s.height,
+        aa: s.aa,
+        max_depth: s.max_depth,
+        sampling: o.sampling.unwrap_or_default(),
+    };
+    let tile_size = match o.tile_size {
+        Some(t) if !(MIN_TILE..=MAX_TILE).contains(&t) => {
+            return Err(format!(
+                "overrides: tile: must be between {MIN_TILE} and {MAX_TILE}, got {t}"
+            ))
+        }
+        Some(t) => t,
+        None => tiling::default_tile_size(&settings),
+    };
+    let hash: SceneHash = Sha256::digest(spec.scene.as_bytes()).into();
+    let request = lifecycle::Request {
+        client: Some(client),
+        scene_bytes: spec.scene.len(),
+        objects: scene.objects.len(),
+        width: s.width,
+        height: s.height,
+        aa: s.aa,
+    };
+    // Checked here too (the lifecycle checks again when it admits the job), so that
+    // the tiles of a huge image are never cut.
+    limits.check(&request)?;
+    let tiles = tiling::cut(&settings, tile_size);
+    Ok(Prepared {
+        scene: spec.scene,
+        hash,
+        settings,
+        tile_size,
+        tiles,
+        priority: spec.priority,
+        request,
+    })
+}
+
+/// Answers a `Watch`: waits until the job has progressed past `after_tiles` (and at
+/// least [`WATCH_MIN_INTERVAL`] has passed) or has ended, or [`WATCH_TIMEOUT`] is up.
+async fn watch(sh: &Shared, job: JobId, after_tiles: u32) -> ClientResponse {
+    let started = tokio::time::Instant::now();
+    let mut changes = sh.changes.subscribe();
+    loop {
+        let Some(status) = sh.lock().status(job) else {
+            return unknown_job(job);
+        };
+        let progressed = status.tiles_done > after_tiles;
+        let elapsed = started.elapsed();
+        if status.state.is_final()
+            || (progressed && elapsed >= WATCH_MIN_INTERVAL)
+            || elapsed >= WATCH_TIMEOUT
+        {
+            return ClientResponse::Job(status);
+        }
+        let until = started
+            + if progressed {
+                WATCH_MIN_INTERVAL
+            } else {
+                WATCH_TIMEOUT
+            };
+        tokio::select! {
+            _ = changes.changed() => {}
+            () = tokio::time::sleep_until(until) => {}
+        }
+    }
+}
+
+/// Waits (briefly) for a deletion to be carried out, so that the client's next
+/// request already finds the job gone.
+async fn wait_deleted(sh: &Shared, job: JobId) -> ClientResponse {
+    let mut changes = sh.changes.subscribe();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while sh.lock().lifecycle.job(job).is_some() {
+        tokio::select! {
+            _ = changes.changed() => {}
+            () = tokio::time::sleep_until(deadline) => {
+                return ClientResponse::Error {
+                    message: format!(
+                        "job {job} is being deleted, but the disk is slow: it will be gone shortly"
+                    ),
+                };
+            }
+        }
+    }
+    ClientResponse::Deleted { job }
+}
+
+/// A chunk of a finished job's image, read from disk; the whole file is checked
+/// against its recorded checksum when the first chunk is asked for.
+async fn fetch(sh: &Arc<Shared>, job: JobId, offset: u64) -> ClientResponse {
+    let sha = {
+        let core = sh.lock();
+        match core.status(job) {
+            None => return unknown_job(job),
+            Some(s) if s.state != JobState::Done => {
+                return ClientResponse::Error {
+                    message: format!("job {job} has no image: it is {}", s.state.as_str()),
+                }
+            }
+            Some(_) => core.jobs.get(&job).and_then(|r| r.image_sha256),
+        }
+    };
+    let store = Arc::clone(&sh.store);
+    let read = tokio::task::spawn_blocking(move || -> anyhow::Result<(u64, Vec<u8>)> {
+        if let (0, Some(sha)) = (offset, sha) {
+            store.verify_image(job, &sha)?;
+        }
+        store.read_image_chunk(job, offset, CHUNK)
+    })
+    .await;
+    match read {
+        Ok(Ok((total, bytes))) => ClientResponse::ImageChunk {
+            job,
+            total,
+            offset: offset.min(total),
+            bytes,
+        },
+        Ok(Err(e)) => ClientResponse::Error {
+            message: format!(
+                "cannot serve the image of job {job}: {e:#} (its scene is in the job's folder: \
+                 submit it again to render it anew)"
+            ),
+        },
+        Err(_) => ClientResponse::Error {
+            message: format!("cannot read the image of job {job}: try again"),
+        },
+    }
+}
+
+fn unknown_job(job: JobId) -> ClientResponse {
+    ClientResponse::Error {
+        message: format!("no job {job} on this coordinator"),
+    }
+}

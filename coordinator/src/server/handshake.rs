@@ -1,0 +1,174 @@
+//! The first moments of a connection: TLS, the `Hello`, authentication; then the
+//! peer is handed to its session ([`super::client_session`] or
+//! [`super::worker_session`]).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Result;
+use bytes::Bytes;
+use futures_util::{SinkExt, StreamExt};
+use protocol::{AuthProof, Hello, MessageCodec, Role, Welcome};
+use tokio::net::TcpStream;
+use tokio_util::codec::{Framed, LengthDelimitedCodec};
+use transport::{Stream, TLS_HANDSHAKE_RECORD};
+
+use super::{client_session, worker_session, Shared};
+
+/// Sends a refusal the peer can read, then closes.
+pub(super) async fn refuse(stream: Stream, reason: String) {
+    let mut framed = Framed::new(stream, LengthDelimitedCodec::new());
+    let refusal = protocol::wire::encode(&Welcome::Refused { reason });
+    let _ = framed.send(Bytes::from(refusal)).await;
+}
+
+/// Challenge-response: the peer proves it knows the secret with an HMAC of a fresh
+/// nonce. A wrong or missing proof is refused.
+async fn authenticate(
+    framed: &mut Framed<Stream, LengthDelimitedCodec>,
+    secret: &[u8],
+    timeout: Duration,
+) -> Result<()> {
+    let mut nonce = [0u8; 32];
+    getrandom::fill(&mut nonce).map_err(|e| anyhow::anyhow!("no randomness for a nonce: {e}"))?;
+    framed
+        .send(Bytes::from(protocol::wire::encode(&Welcome::Challenge {
+            nonce,
+        })))
+        .await?;
+    let proof = match tokio::time::timeout(timeout, framed.next()).await {
+        Ok(Some(Ok(frame))) => protocol::wire::decode::<AuthProof>(&frame).ok(),
+        _ => None,
+    };
+    if proof.is_some_and(|p| protocol::verify(secret, &nonce, &p)) {
+        return Ok(());
+    }
+    let refusal = Welcome::Refused {
+        reason: "authentication failed: the token does not match this coordinator's".into(),
+    };
+    let _ = framed
+        .send(Bytes::from(protocol::wire::encode(&refusal)))
+        .await;
+    anyhow::bail!("authentication failed")
+}
+
+/// Completes the TLS handshake when the coordinator serves TLS (by `deadline`); a peer
+/// that speaks plain protocol to it is told, in plain protocol, what to do instead.
+pub(super) async fn secure(
+    shared: &Shared,
+    stream: TcpStream,
+    deadline: tokio::time::Instant,
+) -> Result<Stream> {
+    let Some(tls) = &shared.tls else {
+        return Ok(Box::new(stream));
+    };
+    let mut first = [0u8; 1];
+    match tokio::time::timeout_at(deadline, stream.peek(&mut first)).await {
+        Ok(Ok(1)) if first[0] == TLS_HANDSHAKE_RECORD => {}
+        Ok(Ok(1)) => {
+            refuse(
+                Box::new(stream),
+                "this coordinator speaks TLS only: connect with --tls-ca".into(),
+            )
+            .await;
+            anyhow::bail!("a plain connection to the TLS port");
+        }
+        _ => anyhow::bail!("no TLS handshake within the time limit"),
+    }
+    match tokio::time::timeout_at(deadline, tls.accept(stream)).await {
+        Ok(Ok(stream)) => Ok(stream),
+        Ok(Err(e)) => Err(anyhow::Error::from(e).context("TLS handshake failed")),
+        Err(_) => anyhow::bail!("no TLS handshake within the time limit"),
+    }
+}
+
+/// What a browser or `curl` sees when pointed at the protocol port.
+const NOT_HTTP: &[u8] = b"HTTP/1.0 400 Bad Request\r\nContent-Type: text/plain\r\nConnection: close\r\n\r\nThis port speaks the Tessera protocol, not HTTP (see docs/protocol.md).\r\n";
+
+pub(super) async fn handle_connection(
+    shared: Arc<Shared>,
+    mut stream: TcpStream,
+    peer: std::net::IpAddr,
+) -> Result<()> {
+    stream.set_nodelay(true)?;
+    // An HTTP request would read as a frame length of over a gigabyte: answer it in
+    // its own language instead.
+    let mut start = [0u8; 4];
+    // One deadline for the whole handshake, however its reads are split.
+    let deadline = tokio::time::Instant::now() + shared.handshake_timeout;
+    if let Ok(Ok(4)) = tokio::time::timeout_at(deadline, stream.peek(&mut start)).await {
+        if [
+            &b"GET "[..],
+            b"POST",
+            b"HEAD",
+            b"PUT ",
+            b"OPTI",
+            b"DELE",
+            b"PATC",
+            b"CONN",
+        ]
+        .contains(&&start[..])
+        {
+            use tokio::io::AsyncWriteExt;
+            let _ = stream.write_all(NOT_HTTP).await;
+            let _ = stream.shutdown().await;
+            anyhow::bail!("an HTTP request on the protocol port");
+        }
+    }
+    let stream = secure(&shared, stream, deadline).await?;
+    let mut framed = Framed::new(stream, protocol::frame_codec(shared.max_frame));
+    let first = match tokio::time::timeout_at(deadline, framed.next()).await {
+        Err(_) => {
+            let refusal = Welcome::Refused {
+                reason: format!(
+                    "no handshake within {} ms",
+                    shared.handshake_timeout.as_millis()
+                ),
+            };
+            let _ = framed
+                .send(Bytes::from(protocol::wire::encode(&refusal)))
+                .await;
+            anyhow::bail!("no handshake within the time limit");
+        }
+        Ok(None) => anyhow::bail!("peer closed before its handshake"),
+        Ok(Some(Err(e))) => {
+            // Too long a frame (refused from its length prefix) or a broken stream.
+            let refusal = Welcome::Refused {
+                reason: format!("unreadable handshake: {e}"),
+            };
+            let _ = framed
+                .send(Bytes::from(protocol::wire::encode(&refusal)))
+                .await;
+            return Err(anyhow::Error::from(e).context("unreadable handshake"));
+        }
+        Ok(Some(Ok(frame))) => frame,
+    };
+    let hello = match Hello::from_frame(&first) {
+        Ok(hello) => hello,
+        Err(e) => {
+            let refusal = protocol::wire::encode(&Welcome::Refused {
+                reason: e.to_string(),
+            });
+            let _ = framed.send(Bytes::from(refusal)).await;
+            return Err(e.into());
+        }
+    };
+    if let Some(secret) = &shared.secret {
+        authenticate(&mut framed, secret, shared.handshake_timeout).await?;
+    }
+    let accepted = protocol::wire::encode(&Welcome::Accepted {
+        version: protocol::PROTOCOL_VERSION,
+    });
+    framed.send(Bytes::from(accepted)).await?;
+    let max_frame = shared.max_frame;
+    match hello.role {
+        Role::Client => {
+            let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
+            client_session::serve(shared, framed, peer).await
+        }
+        Role::Worker { name, threads } => {
+            let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
+            worker_session::serve(shared, framed, name, threads).await
+        }
+    }
+}

@@ -1,0 +1,368 @@
+//! Persistence: the one thread that writes to the data directory.
+//!
+//! Every write (a new job, finished tiles, a job's start and end, an image, a
+//! deletion) is queued here and carried out in order on this thread, never under the
+//! daemon's state lock: a slow, full or frozen disk delays only what waits for it.
+//! What the daemon must know comes back through [`Hooks`] and the callbacks of the
+//! writes.
+//!
+//! Failures are transient until proven otherwise. A write that fails (disk full,
+//! read-only filesystem, I/O error) marks storage unavailable (one log line, through
+//! [`Hooks::storage`]) and is retried every [`RETRY`] on a freshly opened database,
+//! in order, until it succeeds; then storage is available again, by itself. A write
+//! that does not complete within [`STALL`] (a frozen or hung filesystem) marks storage
+//! unavailable the same way ([`Persistence::check_stall`]), until it completes. The one
+//! exception is a new job: its client is waiting, so a failed insert is answered at
+//! once, and the thread then probes the disk until it can write again.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, Sender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use protocol::{JobId, JobState};
+use tracing::{info, warn};
+
+use crate::db::{Db, StoredJob, TileWrite, Times, Totals};
+use crate::store::{JobMetadata, Store};
+
+/// How long after a failed write it is tried again.
+pub const RETRY: Duration = Duration::from_millis(500);
+
+/// A write running longer than this means the disk has stalled.
+pub const STALL: Duration = Duration::from_secs(2);
+
+/// Tiles written in one transaction at most.
+const TILE_BATCH: usize = 256;
+
+/// Called with a write's outcome (on the persistence thread).
+pub type Then<T> = Box<dyn FnOnce(Result<T, String>) + Send>;
+
+/// What the daemon learns from the persistence thread.
+pub trait Hooks: Send + Sync {
+    /// Tiles are durably recorded.
+    fn tiles_recorded(&self, tiles: &[(JobId, u32)]);
+    /// Storage became unavailable (`Err` with the reason) or available again.
+    fn storage(&self, status: Result<(), String>);
+}
+
+/// One write, with what to do once it is done.
+pub enum Write {
+    InsertJob {
+        job: Box<StoredJob>,
+        then: Then<()>,
+    },
+    Tile(TileWrite),
+    Started {
+        job: JobId,
+        at_unix_ms: u64,
+    },
+    /// Stores the image files; `then` gets the image's checksum.
+    Image {
+        meta: Box<JobMetadata>,
+        scene: Arc<str>,
+        png: Vec<u8>,
+        then: Then<[u8; 32]>,
+    },
+    End {
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+        totals: Totals,
+        times: Times,
+        image_sha256: Option<[u8; 32]>,
+        then: Then<()>,
+    },
+    Delete {
+        job: JobId,
+        then: Then<()>,
+    },
+}
+
+/// The handle the daemon queues writes on.
+pub struct Persistence {
+    queue: Mutex<Option<Sender<Write>>>,
+    status: Arc<Status>,
+    thread: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+/// What the thread shows of itself to the stall check.
+struct Status {
+    started: Instant,
+    /// When the write in progress started (ms since `started`, plus one), or 0.
+    busy_since: AtomicU64,
+    /// Whether storage is reported unavailable.
+    down: AtomicBool,
+}
+
+impl Status {
+    fn report(&self, hooks: &dyn Hooks, status: Result<(), String>) {
+        let down = status.is_err();
+        if self.down.swap(down, Ordering::SeqCst) != down {
+            match &status {
+                Err(reason) => warn!(
+                    reason = %reason,
+                    "storage unavailable: {reason}; handing out no new tiles and taking no new \
+                     jobs until it recovers"
+                ),
+                Ok(()) => info!("storage available again: resuming"),
+            }
+            hooks.storage(status);
+        }
+    }
+}
+
+impl Persistence {
+    /// Starts the thread, which owns the database.
+    pub fn start(
+        db: Db,
+        db_path: PathBuf,
+        store: Arc<Store>,
+        hooks: Arc<dyn Hooks>,
+    ) -> Persistence {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let status = Arc::new(Status {
+            started: Instant::now(),
+            busy_since: AtomicU64::new(0),
+            down: AtomicBool::new(false),
+        });
+        let writer = Writer {
+            db: Some(db),
+            db_path,
+            store,
+            hooks,
+            status: Arc::clone(&status),
+        };
+        let thread = std::thread::Builder::new()
+            .name("persistence".into())
+            .spawn(move || writer.run(rx))
+            .expect("the system cannot start a thread");
+        Persistence {
+            queue: Mutex::new(Some(tx)),
+            status,
+            thread: Mutex::new(Some(thread)),
+        }
+    }
+
+    /// Queues a write (never blocks). After [`Persistence::close`] writes are dropped.
+    pub fn write(&self, write: Write) {
+        if let Some(tx) = self.queue.lock().expect("queue lock").as_ref() {
+            let _ = tx.send(write);
+        }
+    }
+
+    /// Reports a stall if the write in progress has run past [`STALL`]. Called
+    /// periodically from outside the thread, which may be stuck in the kernel.
+    pub fn check_stall(&self, hooks: &dyn Hooks) {
+        let since = self.status.busy_since.load(Ordering::SeqCst);
+        if since == 0 {
+            return;
+        }
+        let now = self.status.started.elapsed().as_millis() as u64 + 1;
+        let busy = Duration::from_millis(now.saturating_sub(since));
+        if busy >= STALL && !self.status.down.load(Ordering::SeqCst) {
+            self.status.report(
+                hooks,
+                Err(format!(
+                    "the data directory has not completed a write for {} s (stalled)",
+                    busy.as_secs()
+                )),
+            );
+        }
+    }
+
+    /// Stops taking writes and waits (at most `grace`) for those queued to be done.
+    /// Returns whether everything was written.
+    pub fn close(&self, grace: Duration) -> bool {
+        self.queue.lock().expect("queue lock").take();
+        let Some(thread) = self.thread.lock().expect("thread lock").take() else {
+            return true;
+        };
+        let deadline = Instant::now() + grace;
+        while !thread.is_finished() {
+            if Instant::now() >= deadline {
+                warn!("storage did not finish its writes in time: unwritten work is redone after a restart");
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let _ = thread.join();
+        true
+    }
+}
+
+struct Writer {
+    /// `None` after a failure closed it; reopened before the next attempt.
+    db: Option<Db>,
+    db_path: PathBuf,
+    store: Arc<Store>,
+    hooks: Arc<dyn Hooks>,
+    status: Arc<Status>,
+}
+
+/// A write taken off the queue, with the tiles batched.
+enum Step {
+    Tiles(Vec<TileWrite>),
+    One(Write),
+    /// Checks that the disk can be written again (after a failed insert).
+    Probe,
+}
+
+impl Writer {
+    fn run(mut self, rx: Receiver<Write>) {
+        let mut next: Option<Write> = None;
+        let mut probing = false;
+        loop {
+            let step = if probing {
+                Step::Probe
+            } else {
+                let first = match next.take() {
+                    Some(w) => w,
+                    None => match rx.recv() {
+                        Ok(w) => w,
+                        Err(_) => return,
+                    },
+                };
+                match first {
+                    Write::Tile(t) => {
+                        let mut batch = vec![t];
+                        while batch.len() < TILE_BATCH {
+                            match rx.try_recv() {
+                                Ok(Write::Tile(t)) => batch.push(t),
+                                Ok(other) => {
+                                    next = Some(other);
+                                    break;
+                                }
+                                Err(_) => break,
+                            }
+                        }
+                        Step::Tiles(batch)
+                    }
+                    other => Step::One(other),
+                }
+            };
+            probing = self.carry_out(step);
+        }
+    }
+
+    /// Carries a step out, retrying until it succeeds (but a new job's insert, which is
+    /// answered at once). Returns whether the disk must now be probed.
+    fn carry_out(&mut self, step: Step) -> bool {
+        match step {
+            Step::Probe => {
+                let store = Arc::clone(&self.store);
+                self.until_done(|db| db.probe().and_then(|()| store.probe()));
+                false
+            }
+            Step::Tiles(batch) => {
+                self.until_done(|db| db.save_tiles(&batch));
+                let done: Vec<(JobId, u32)> = batch.iter().map(|t| (t.job, t.tile)).collect();
+                self.hooks.tiles_recorded(&done);
+                false
+            }
+            Step::One(Write::InsertJob { job, then }) => {
+                if self.status.down.load(Ordering::SeqCst) {
+                    then(Err("storage is unavailable".into()));
+                    return false;
+                }
+                let store = Arc::clone(&self.store);
+                let result = self.attempt(|db| {
+                    store.record_last_id(job.id)?;
+                    db.insert_job(&job)
+                });
+                match result {
+                    Ok(()) => {
+                        then(Ok(()));
+                        false
+                    }
+                    Err(e) => {
+                        then(Err(e));
+                        true
+                    }
+                }
+            }
+            Step::One(Write::Tile(t)) => self.carry_out(Step::Tiles(vec![t])),
+            Step::One(Write::Started { job, at_unix_ms }) => {
+                self.until_done(|db| db.set_started(job, at_unix_ms));
+                false
+            }
+            Step::One(Write::Image {
+                meta,
+                scene,
+                png,
+                then,
+            }) => {
+                let store = Arc::clone(&self.store);
+                let sha = self.until_done(|_| store.save(&meta, &scene, &png));
+                then(Ok(sha));
+                false
+            }
+            Step::One(Write::End {
+                job,
+                state,
+                error,
+                totals,
+                times,
+                image_sha256,
+                then,
+            }) => {
+                self.until_done(|db| {
+                    db.set_ended(job, state, error.as_deref(), totals, times, image_sha256)
+                });
+                then(Ok(()));
+                false
+            }
+            Step::One(Write::Delete { job, then }) => {
+                let store = Arc::clone(&self.store);
+                self.until_done(|db| {
+                    db.delete_job(job)?;
+                    store.delete(job)
+                });
+                then(Ok(()));
+                false
+            }
+        }
+    }
+
+    /// Runs `f` until it succeeds, every [`RETRY`].
+    fn until_done<T>(&mut self, mut f: impl FnMut(&mut Db) -> anyhow::Result<T>) -> T {
+        loop {
+            match self.attempt(&mut f) {
+                Ok(value) => return value,
+                Err(_) => std::thread::sleep(RETRY),
+            }
+        }
+    }
+
+    /// Runs `f` once on the database (reopened if a failure closed it), timing it for
+    /// the stall check and reporting storage available or not.
+    fn attempt<T>(&mut self, f: impl FnOnce(&mut Db) -> anyhow::Result<T>) -> Result<T, String> {
+        let since = self.status.started.elapsed().as_millis() as u64 + 1;
+        self.status.busy_since.store(since, Ordering::SeqCst);
+        let result = match self.db.as_mut() {
+            Some(db) => f(db),
+            None => Db::open(&self.db_path, false).and_then(|db| f(self.db.insert(db))),
+        };
+        self.status.busy_since.store(0, Ordering::SeqCst);
+        match result {
+            Ok(value) => {
+                self.status.report(self.hooks.as_ref(), Ok(()));
+                Ok(value)
+            }
+            Err(e) => {
+                let reason = one_line(&e);
+                // A connection that failed may keep failing (an I/O error latches in
+                // it): the next attempt opens a fresh one.
+                self.db = None;
+                self.status.report(self.hooks.as_ref(), Err(reason.clone()));
+                Err(reason)
+            }
+        }
+    }
+}
+
+/// An error and its causes on one line.
+fn one_line(e: &anyhow::Error) -> String {
+    format!("{e:#}").replace('\n', " ")
+}

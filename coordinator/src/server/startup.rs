@@ -1,0 +1,211 @@
+//! Opening the data directory: nothing on disk is trusted without a check.
+//!
+//! - A directory that has held jobs (a `last-job-id` file or job folders) must still
+//!   have its database: a missing, empty or unreadable `tessera.db` stops the start
+//!   with a message that names the file and what to do (restore it, or
+//!   `--reset-database`, which sets the bad file aside and starts a new one). A silent
+//!   empty start would lose the queue and reuse job ids.
+//! - Job ids continue above every id ever issued: the database's, the job folders' and
+//!   `last-job-id`'s, whichever is highest.
+//! - A row that cannot be read, a scene whose hash does not match, a tile whose pixels
+//!   fail their checksum or do not fit its rectangle: each is reported in one log line
+//!   and dropped (a dropped tile is rendered again; a job whose scene is damaged
+//!   fails, saying so). Nothing here panics on what it reads.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use protocol::{JobId, JobState};
+use sha2::{Digest, Sha256};
+use tracing::{info, warn};
+
+use crate::db::{Db, StoredJob, StoredTile, Times, Totals};
+use crate::store::Store;
+use crate::tiling;
+
+/// The data directory, checked, with the jobs to take back.
+pub struct Opened {
+    pub db: Db,
+    pub db_path: PathBuf,
+    pub store: Store,
+    /// Above every id ever issued.
+    pub next_id: JobId,
+    pub jobs: Vec<RestoredJob>,
+}
+
+/// A stored job and, if it is unfinished, its valid tiles.
+pub struct RestoredJob {
+    pub job: StoredJob,
+    pub tiles: Vec<StoredTile>,
+}
+
+pub fn open(data: &Path, reset: bool) -> Result<Opened> {
+    let store = Store::open(data)?;
+    let highest = store.highest_job_id()?;
+    let db_path = data.join("tessera.db");
+    let advice = |problem: &str| {
+        format!(
+            "the job database {} {problem}, but {} has held jobs (ids up to {highest}): \
+             restore it, or start with --reset-database to begin a new one (unfinished jobs \
+             are lost; new ids continue after {highest})",
+            db_path.display(),
+            data.display()
+        )
+    };
+    let problem = match std::fs::metadata(&db_path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            (highest > 0).then(|| "is missing".to_owned())
+        }
+        Err(e) => Some(format!("cannot be read ({e})")),
+        Ok(m) if m.len() == 0 => (highest > 0).then(|| "is empty".to_owned()),
+        Ok(_) => None,
+    };
+    let fresh = std::fs::metadata(&db_path).map_or(true, |m| m.len() == 0);
+    let opened = match problem {
+        Some(problem) => Err(advice(&problem)),
+        None => Db::open(&db_path, fresh)
+            .and_then(|db| db.load_jobs().map(|rows| (db, rows)))
+            .map_err(|e| advice(&format!("is not a readable job database ({e:#})"))),
+    };
+    let (mut db, rows) = match opened {
+        Ok(opened) => opened,
+        Err(message) if !reset => bail!(message),
+        Err(message) => {
+            warn!(error = %message, "--reset-database: starting a new job database");
+            set_aside(&db_path)?;
+            let db = Db::open(&db_path, true)?;
+            (db, Vec::new())
+        }
+    };
+    let mut jobs = Vec::new();
+    let mut highest = highest;
+    for row in rows {
+        match row {
+            Ok(job) => {
+                highest = highest.max(job.id);
+                if let Some(job) = check_job(&mut db, job)? {
+                    jobs.push(job);
+                }
+            }
+            Err(bad) => warn!(error = %bad.what, "skipping a damaged job row"),
+        }
+    }
+    highest = highest.max(db.max_job_id().unwrap_or(0));
+    if highest > 0 {
+        store
+            .record_last_id(highest)
+            .context("cannot record the highest job id")?;
+    }
+    Ok(Opened {
+        db,
+        db_path,
+        store,
+        next_id: highest + 1,
+        jobs,
+    })
+}
+
+/// Moves a bad database (and its journal files) aside rather than deleting it.
+fn set_aside(db_path: &Path) -> Result<()> {
+    let stamp = super::unix_ms();
+    for suffix in ["", "-wal", "-shm"] {
+        let path = PathBuf::from(format!("{}{suffix}", db_path.display()));
+        if path.exists() {
+            let aside = PathBuf::from(format!("{}.damaged-{stamp}", path.display()));
+            std::fs::rename(&path, &aside).with_context(|| {
+                format!(
+                    "cannot move {} aside to {}",
+                    path.display(),
+                    aside.display()
+                )
+            })?;
+            info!(from = %path.display(), to = %aside.display(), "set the old database aside");
+        }
+    }
+    Ok(())
+}
+
+/// Checks a stored job and loads the tiles of an unfinished one; a job that cannot be
+/// rendered any more is recorded as failed.
+fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
+    let id = job.id;
+    let s = &job.settings;
+    let sane = s.width > 0
+        && s.height > 0
+        && s.aa > 0
+        && (tiling::MIN_TILE..=tiling::MAX_TILE).contains(&job.tile_size)
+        && u64::from(s.width) * u64::from(s.height) <= 1 << 30;
+    if !sane {
+        warn!(job = id, "skipping a job row with impossible settings");
+        return Ok(None);
+    }
+    if job.state.is_final() {
+        return Ok(Some(RestoredJob {
+            job,
+            tiles: Vec::new(),
+        }));
+    }
+    let hash: [u8; 32] = Sha256::digest(job.scene.as_bytes()).into();
+    let damaged = if hash != job.hash {
+        Some("its stored scene does not match its hash".to_owned())
+    } else {
+        render::parse_scene(&job.scene)
+            .err()
+            .map(|e| format!("its stored scene no longer parses: {e}"))
+    };
+    if let Some(reason) = damaged {
+        let message = format!("job {id} cannot be resumed: {reason}");
+        warn!(job = id, error = %message, "failing a damaged job");
+        let times = Times {
+            ended: Some(super::unix_ms()),
+            ..job.times
+        };
+        db.set_ended(
+            id,
+            JobState::Failed,
+            Some(&message),
+            Totals::default(),
+            times,
+            None,
+        )?;
+        return Ok(Some(RestoredJob {
+            job: StoredJob {
+                state: JobState::Failed,
+                error: Some(message),
+                times,
+                ..job
+            },
+            tiles: Vec::new(),
+        }));
+    }
+    let rects = tiling::cut(&job.settings, job.tile_size);
+    let mut tiles = Vec::new();
+    for row in db.load_tiles(id)? {
+        let (number, why) = match row {
+            Ok(t) => match rects.get(t.tile as usize) {
+                Some(r) if t.rgb.len() == r.width as usize * r.height as usize * 3 => {
+                    tiles.push(t);
+                    continue;
+                }
+                Some(_) => (
+                    Some(i64::from(t.tile)),
+                    format!(
+                        "tile {}: {} bytes of pixels for its rectangle",
+                        t.tile,
+                        t.rgb.len()
+                    ),
+                ),
+                None => (
+                    Some(i64::from(t.tile)),
+                    format!("tile {}: the job has {} tiles", t.tile, rects.len()),
+                ),
+            },
+            Err((number, bad)) => (number, bad.what),
+        };
+        warn!(job = id, error = %why, "dropping a damaged stored tile: it is rendered again");
+        if let Some(number) = number {
+            db.delete_tile(id, number)?;
+        }
+    }
+    Ok(Some(RestoredJob { job, tiles }))
+}
