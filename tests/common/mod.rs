@@ -461,3 +461,177 @@ pub fn http_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
     let status = head.split_whitespace().nth(1)?.parse().ok()?;
     Some((status, response[head_end + 4..].to_vec()))
 }
+
+// ---------------------------------------------------------------------------------
+// Helpers of the coordinator, storage and integrity fault tests.
+// ---------------------------------------------------------------------------------
+
+/// Like [`tessera`], but a run still going after `timeout` is killed and reported as
+/// `None` instead of failing the test.
+pub fn tessera_within<S: AsRef<OsStr>>(dir: &Path, args: &[S], timeout: Duration) -> Option<Run> {
+    let mut child = Command::new(BIN)
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot start the tessera binary");
+    let stdout = drain(child.stdout.take().expect("stdout is piped"));
+    let stderr = drain(child.stderr.take().expect("stderr is piped"));
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("cannot wait for tessera") {
+            break Some(status);
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        thread::sleep(Duration::from_millis(5));
+    };
+    let (stdout, stderr) = (
+        stdout.join().expect("stdout reader panicked"),
+        stderr.join().expect("stderr reader panicked"),
+    );
+    status.map(|status| Run {
+        status,
+        stdout,
+        stderr,
+    })
+}
+
+/// Starts `tessera ARGS` in the background in `dir`, its stderr in `DIR/LOG_NAME` and
+/// its stdout in `DIR/LOG_NAME.out`, under a guard.
+pub fn spawn_tessera(dir: &Path, args: &[&str], log_name: &str) -> Daemon {
+    let log = dir.join(log_name);
+    let child = Command::new(BIN)
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(
+            std::fs::File::create(dir.join(format!("{log_name}.out")))
+                .expect("cannot create the output file"),
+        )
+        .stderr(std::fs::File::create(&log).expect("cannot create the log"))
+        .spawn()
+        .expect("cannot start the tessera binary");
+    Daemon {
+        name: log_name.trim_end_matches(".log").to_owned(),
+        child,
+        log: Some(log),
+    }
+}
+
+/// [`start_coordinator`] for a coordinator that may refuse to start: `Err` says how
+/// it exited (or that it printed nothing) and what it logged.
+pub fn try_start_coordinator(
+    dir: &Path,
+    data: &Path,
+    listen: &str,
+    extra: &[&str],
+    log_name: &str,
+) -> Result<(Daemon, String), String> {
+    let log = dir.join(log_name);
+    let mut child = Command::new(BIN)
+        .args(["coordinator", "--listen", listen, "--data"])
+        .arg(data)
+        .args(extra)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("cannot create the log"))
+        .spawn()
+        .expect("cannot start the coordinator");
+    let stdout = child.stdout.take().expect("stdout is piped");
+    let mut daemon = Daemon {
+        name: log_name.trim_end_matches(".log").to_owned(),
+        child,
+        log: Some(log),
+    };
+    let line = first_line(stdout, Duration::from_secs(10));
+    let addr = line
+        .as_deref()
+        .and_then(|l| l.trim().strip_prefix("listening on "))
+        .map(str::to_owned);
+    match addr {
+        Some(addr) => {
+            assert!(addr.starts_with("127.0.0.1:"), "listening on {addr}");
+            Ok((daemon, addr))
+        }
+        None => {
+            let exit = daemon.wait_exit(Duration::from_secs(2));
+            Err(format!(
+                "the coordinator did not start (first line {line:?}, exit {exit:?}); its \
+                 stderr:\n{}",
+                daemon.log_text()
+            ))
+        }
+    }
+}
+
+/// `workers --json`, or `None` if the coordinator cannot be reached.
+pub fn try_workers(dir: &Path, addr: &str) -> Option<Vec<serde_json::Value>> {
+    let run = tessera_within(
+        dir,
+        &["workers", "--json", "--coordinator", addr],
+        Duration::from_secs(30),
+    )?;
+    if !run.status.success() {
+        return None;
+    }
+    match serde_json::from_str(run.stdout.trim()) {
+        Ok(serde_json::Value::Array(workers)) => Some(workers),
+        other => panic!("workers --json: {other:?}"),
+    }
+}
+
+/// [`http_get`] with its own limit on connecting and reading.
+pub fn http_get_within(addr: &str, path: &str, timeout: Duration) -> Option<(u16, Vec<u8>)> {
+    use std::io::Write;
+    let socket: std::net::SocketAddr = addr.parse().ok()?;
+    let mut stream = std::net::TcpStream::connect_timeout(&socket, timeout).ok()?;
+    stream.set_read_timeout(Some(timeout)).ok()?;
+    stream.set_write_timeout(Some(timeout)).ok()?;
+    write!(stream, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).ok()?;
+    let head_end = response.windows(4).position(|w| w == b"\r\n\r\n")?;
+    let head = String::from_utf8_lossy(&response[..head_end]);
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    Some((status, response[head_end + 4..].to_vec()))
+}
+
+/// The value of an unlabelled sample `NAME VALUE` in a Prometheus exposition.
+pub fn metric_value(exposition: &str, name: &str) -> Option<f64> {
+    exposition.lines().find_map(|line| {
+        let rest = line.strip_prefix(name)?.strip_prefix(' ')?;
+        rest.split_whitespace().next()?.parse().ok()
+    })
+}
+
+/// Checks whose failure does not stop a test: each failed one is recorded (and printed
+/// at once), and [`Findings::finish`] fails the test with all of them.
+#[derive(Default)]
+pub struct Findings(Vec<String>);
+
+impl Findings {
+    pub fn check(&mut self, ok: bool, what: impl FnOnce() -> String) {
+        if !ok {
+            let what = what();
+            eprintln!("FAILED CHECK: {what}");
+            self.0.push(what);
+        }
+    }
+
+    /// Fails the test if any check failed.
+    pub fn finish(self) {
+        assert!(
+            self.0.is_empty(),
+            "{} check(s) failed:\n- {}",
+            self.0.len(),
+            self.0.join("\n- ")
+        );
+    }
+}
