@@ -64,6 +64,46 @@ impl Default for Limits {
     }
 }
 
+impl Limits {
+    /// Checks the size of a scene's text (before parsing it, so that an oversized
+    /// scene costs nothing).
+    pub fn check_scene_bytes(&self, bytes: usize) -> Result<(), String> {
+        if bytes > self.max_scene_bytes {
+            return Err(format!(
+                "the scene is {bytes} bytes, more than this coordinator's limit of {}",
+                self.max_scene_bytes
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks a submission against every bound; the error is the one-line message for
+    /// the client.
+    pub fn check(&self, request: &Request) -> Result<(), String> {
+        self.check_scene_bytes(request.scene_bytes)?;
+        if request.objects > self.max_objects {
+            return Err(format!(
+                "objects: {} objects, more than this coordinator's limit of {}",
+                request.objects, self.max_objects
+            ));
+        }
+        let pixels = u64::from(request.width) * u64::from(request.height);
+        if pixels > self.max_pixels {
+            return Err(format!(
+                "image: {}x{} is {pixels} pixels, more than this coordinator's limit of {}",
+                request.width, request.height, self.max_pixels
+            ));
+        }
+        if request.aa > self.max_aa {
+            return Err(format!(
+                "image.aa: {} is more than this coordinator's limit of {}",
+                request.aa, self.max_aa
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// What a submission asks for, as the daemon measured it (it parses the scene outside
 /// any lock; the lifecycle only compares numbers).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -287,31 +327,7 @@ impl Lifecycle {
                  submit again later"
             ));
         }
-        if request.scene_bytes > limits.max_scene_bytes {
-            return Err(format!(
-                "the scene is {} bytes, more than this coordinator's limit of {}",
-                request.scene_bytes, limits.max_scene_bytes
-            ));
-        }
-        if request.objects > limits.max_objects {
-            return Err(format!(
-                "objects: {} objects, more than this coordinator's limit of {}",
-                request.objects, limits.max_objects
-            ));
-        }
-        let pixels = u64::from(request.width) * u64::from(request.height);
-        if pixels > limits.max_pixels {
-            return Err(format!(
-                "image: {}x{} is {pixels} pixels, more than this coordinator's limit of {}",
-                request.width, request.height, limits.max_pixels
-            ));
-        }
-        if request.aa > limits.max_aa {
-            return Err(format!(
-                "image.aa: {} is more than this coordinator's limit of {}",
-                request.aa, limits.max_aa
-            ));
-        }
+        limits.check(request)?;
         if let Some(client) = request.client {
             let active = self
                 .jobs
@@ -449,7 +465,12 @@ impl Lifecycle {
             Event::EndRecorded { job } => {
                 if let Some(j) = self.jobs.get_mut(&job) {
                     if let Phase::Ended { recorded, .. } = &mut j.phase {
-                        *recorded = true;
+                        if !*recorded {
+                            *recorded = true;
+                            // Retention counts from the end; only a written end expires.
+                            let ended = j.ended.unwrap_or(now);
+                            self.schedule_expiry(job, ended);
+                        }
                     }
                 }
             }
@@ -550,7 +571,6 @@ impl Lifecycle {
         };
         j.ended = Some(now);
         actions.push(Action::RecordEnd { job, state, error });
-        self.schedule_expiry(job, now);
     }
 
     fn schedule_expiry(&mut self, job: JobId, ended: Millis) {
