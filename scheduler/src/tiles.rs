@@ -707,8 +707,10 @@ impl Scheduler {
                     draining: false,
                     last_seen: self.now,
                 };
+                *self.ready.entry(machine).or_default() += 1;
                 // A second hello on a live id replaces the worker (a daemon bug, but
-                // the indexes must stay true).
+                // the indexes must stay true). The new one counts first: a worker stays
+                // connected throughout, so no stall ends.
                 if let Some(old) = self.workers.insert(worker, joined) {
                     self.by_last_seen.remove(&(old.last_seen, worker));
                     if !old.draining {
@@ -716,7 +718,6 @@ impl Scheduler {
                     }
                 }
                 self.by_last_seen.insert((self.now, worker));
-                *self.ready.entry(machine).or_default() += 1;
                 self.hungry.insert(worker);
                 self.fill(worker, &mut actions);
             }
@@ -1301,6 +1302,13 @@ mod tests {
             .collect()
     }
 
+    fn failure(actions: &[Action], job: JobId) -> Option<&str> {
+        actions.iter().find_map(|a| match a {
+            Action::JobFailed { job: j, message } if *j == job => Some(message.as_str()),
+            _ => None,
+        })
+    }
+
     fn submit(
         s: &mut Scheduler,
         job: JobId,
@@ -1308,66 +1316,464 @@ mod tests {
         scene: SceneHash,
         tiles: u32,
     ) -> Vec<Action> {
-        s.handle(Event::JobSubmitted {
-            job,
-            priority,
-            scene,
-            tiles,
-        })
+        s.handle(
+            0,
+            Event::JobSubmitted {
+                job,
+                priority,
+                scene,
+                tiles,
+            },
+        )
     }
 
-    /// A worker that crashes on a job's tiles and comes back under the same name (a
-    /// service restarted by its supervisor) is still blocked from that job and never
-    /// gets the tiles it failed on; a worker of another name gets them.
+    fn join_at(
+        s: &mut Scheduler,
+        now: Millis,
+        worker: WorkerId,
+        threads: u32,
+        name: Option<&str>,
+    ) -> Vec<Action> {
+        s.handle(
+            now,
+            Event::WorkerJoined {
+                worker,
+                threads,
+                machine: name.map(str::to_string),
+            },
+        )
+    }
+
+    fn join(s: &mut Scheduler, worker: WorkerId, threads: u32) -> Vec<Action> {
+        join_at(s, 0, worker, threads, None)
+    }
+
+    fn fail(
+        s: &mut Scheduler,
+        now: Millis,
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+    ) -> Vec<Action> {
+        s.handle(
+            now,
+            Event::TileFailed {
+                worker,
+                job,
+                tile,
+                message: "boom".into(),
+            },
+        )
+    }
+
+    /// A machine that reports failures on a job's tiles is blocked from the job, also
+    /// when it comes back under the same name (a service restarted by its supervisor),
+    /// and never gets the tiles it failed on; a machine of another name gets them.
     #[test]
-    fn blocks_follow_the_machine_name_across_reconnections() {
+    fn reported_failures_block_the_machine_name_across_reconnections() {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 6);
-        let join = |s: &mut Scheduler, worker: WorkerId, name: &str| {
-            s.handle(Event::WorkerJoined {
-                worker,
-                threads: 1,
-                machine: Some(name.into()),
-            })
-        };
-        // Two lives of "crashy", each lost with its two tiles: 4 failures.
-        let first = join(&mut s, 1, "crashy");
+        let first = join_at(&mut s, 0, 1, 1, Some("flaky"));
         assert_eq!(assigns(&first), vec![(1, 1, 0), (1, 1, 1)]);
-        s.handle(Event::WorkerLeft { worker: 1 });
-        let second = join(&mut s, 2, "crashy");
+        fail(&mut s, 0, 1, 1, 0);
+        fail(&mut s, 0, 1, 1, 1);
+        s.handle(0, Event::WorkerLeft { worker: 1 });
+        let second = join_at(&mut s, 0, 2, 1, Some("flaky"));
         assert!(
             assigns(&second).is_empty(),
             "blocked after 2 failures: {second:?}"
         );
-        // A healthy machine gets everything, the failed tiles first.
-        let healthy = join(&mut s, 3, "healthy");
-        assert_eq!(assigns(&healthy), vec![(3, 1, 1), (3, 1, 0)]);
+        // A healthy machine gets the tiles put back first: tile 2, which "flaky" held
+        // when it left, then the failed ones.
+        let healthy = join_at(&mut s, 0, 3, 1, Some("healthy"));
+        assert_eq!(assigns(&healthy), vec![(3, 1, 2), (3, 1, 1)]);
         // Unnamed workers are each their own machine.
-        s.handle(Event::WorkerLeft { worker: 2 });
-        let anon = s.handle(Event::WorkerJoined {
-            worker: 4,
-            threads: 1,
-            machine: None,
+        let anon = join(&mut s, 4, 1);
+        assert_eq!(assigns(&anon), vec![(4, 1, 0), (4, 1, 3)]);
+    }
+
+    /// Losing a connection is not proof a worker is bad: a worker killed while holding
+    /// tiles and restarted under its name, again and again, is never blocked, gets its
+    /// lost tiles back, and the job finishes. With one worker and with two.
+    #[test]
+    fn a_worker_killed_and_rejoining_under_its_name_5_times_finishes_the_job() {
+        for workers in [1, 2] {
+            let mut s = Scheduler::new();
+            submit(&mut s, 1, 0, SCENE_A, 12);
+            let names = ["a", "b"];
+            let mut next_id = 1;
+            let mut ids = Vec::new();
+            for name in &names[..workers] {
+                join_at(&mut s, 0, next_id, 1, Some(name));
+                ids.push(next_id);
+                next_id += 1;
+            }
+            let mut now = 0;
+            for _kill in 0..5 {
+                now += 100;
+                for i in 0..workers {
+                    assert_eq!(s.held_by(ids[i]), 2, "{workers} workers");
+                    let left = s.handle(now, Event::WorkerLeft { worker: ids[i] });
+                    assert!(failure(&left, 1).is_none(), "{left:?}");
+                    let back = join_at(&mut s, now, next_id, 1, Some(names[i]));
+                    assert_eq!(assigns(&back).len(), 2, "not blocked: {back:?}");
+                    ids[i] = next_id;
+                    next_id += 1;
+                }
+            }
+            // Now they render everything.
+            let mut done = false;
+            while !done {
+                now += 100;
+                for &worker in &ids {
+                    let held: Vec<(JobId, u32)> =
+                        s.workers[&worker].holding.iter().copied().collect();
+                    for (job, tile) in held {
+                        let actions = s.handle(now, Event::TileDone { worker, job, tile });
+                        done |= actions.contains(&Action::JobDone { job: 1 });
+                    }
+                }
+            }
+            assert!(!s.is_active(1));
+        }
+    }
+
+    /// A tile that takes down every worker it reaches is lost with each one; at
+    /// `max_losses` its job fails with a message that says so.
+    #[test]
+    fn a_tile_lost_with_its_worker_max_losses_times_fails_its_job() {
+        let max = Policy::default().max_losses;
+        let mut s = Scheduler::with_policy(Policy {
+            speculate: false,
+            ..Policy::default()
         });
-        assert_eq!(assigns(&anon), vec![(4, 1, 2), (4, 1, 3)]);
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        for worker in 1..max as WorkerId {
+            assert_eq!(assigns(&join(&mut s, worker, 1)), vec![(worker, 1, 0)]);
+            let left = s.handle(0, Event::WorkerLeft { worker });
+            assert!(failure(&left, 1).is_none(), "loss {worker}: {left:?}");
+        }
+        join(&mut s, max as WorkerId, 1);
+        let left = s.handle(
+            0,
+            Event::WorkerLeft {
+                worker: max as WorkerId,
+            },
+        );
+        assert_eq!(
+            failure(&left, 1),
+            Some(
+                "tile 0 was lost with its worker 8 times (a tile that crashes workers, or \
+                 workers that keep losing their connection)"
+            )
+        );
+        assert!(!s.is_active(1));
+    }
+
+    /// A worker dropped for silence loses its tiles the same way: one loss each, no
+    /// block, no attempt; the same name gets the tiles back when it rejoins.
+    #[test]
+    fn a_network_cut_past_the_heartbeat_timeout_blocks_nobody() {
+        let policy = Policy::default();
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 2);
+        join_at(&mut s, 0, 1, 1, Some("far"));
+        let mut now = 0;
+        let dropped = loop {
+            now += policy.wake_interval;
+            let actions = s.handle(now, Event::Timeout);
+            if !actions.is_empty() {
+                break actions;
+            }
+        };
+        assert_eq!(dropped, vec![Action::DropWorker { worker: 1 }]);
+        assert_eq!(now, 6_000);
+        let job = &s.jobs[&1];
+        assert!(job.failures.is_empty() && job.blocked.is_empty());
+        assert_eq!(job.losses, BTreeMap::from([(0, 1), (1, 1)]));
+        let back = join_at(&mut s, now, 2, 1, Some("far"));
+        assert_eq!(assigns(&back), vec![(2, 1, 1), (2, 1, 0)]);
+    }
+
+    /// The coordinator stopped for 7 s (no heartbeat read meanwhile) drops nobody: the
+    /// gap counts as one wake interval, and the heartbeats waiting in the sockets are
+    /// read before anyone comes near the timeout. Leases do not run out either.
+    #[test]
+    fn a_pause_of_7_s_drops_nobody() {
+        let policy = Policy {
+            initial_lease: 6_000,
+            ..Policy::default()
+        };
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 4);
+        join(&mut s, 1, 1);
+        join(&mut s, 2, 1);
+        for now in [1_000, 2_000, 3_000] {
+            for worker in [1, 2] {
+                s.handle(now, Event::Heartbeat { worker });
+            }
+            assert!(s.handle(now, Event::Timeout).is_empty());
+        }
+        // Stopped at 3 s, running again at 10 s: the timer fires first.
+        let woken = s.handle(10_000, Event::Timeout);
+        assert!(woken.is_empty(), "{woken:?}");
+        assert_eq!(s.counters(), Counters::default());
+        for worker in [1, 2] {
+            s.handle(10_000, Event::Heartbeat { worker });
+            assert_eq!(s.held_by(worker), 2);
+        }
+        // The clock goes on from there: silence counts again.
+        assert_eq!(s.next_deadline(), Some(11_000));
+        assert!(s.handle(11_000, Event::Timeout).is_empty());
+        // A real silence is still caught: 1 s counted for the pause, 4 s of ticks.
+        let mut dropped = Vec::new();
+        for now in (12_000..=20_000).step_by(1_000) {
+            s.handle(now, Event::Heartbeat { worker: 2 });
+            dropped.extend(s.handle(now, Event::Timeout));
+        }
+        assert_eq!(dropped.first(), Some(&Action::DropWorker { worker: 1 }));
+    }
+
+    /// The same pause without the coordinator's regular wake-ups would look the same to
+    /// it: a gap is a pause only beyond the threshold, and at most a wake interval of
+    /// it counts.
+    #[test]
+    fn only_gaps_beyond_the_pause_threshold_are_pauses() {
+        let policy = Policy::default();
+        let mut s = Scheduler::with_policy(policy);
+        join(&mut s, 1, 1);
+        // Gaps up to the threshold count in full: 5 s of them, then one more ms.
+        s.handle(2_000, Event::Timeout);
+        s.handle(4_000, Event::Timeout);
+        assert!(s.handle(5_000, Event::Timeout).is_empty());
+        assert_eq!(
+            s.handle(5_001, Event::Timeout),
+            vec![Action::DropWorker { worker: 1 }]
+        );
+        // A time from before is taken as the last one.
+        let mut s = Scheduler::with_policy(policy);
+        join_at(&mut s, 0, 1, 1, None);
+        s.handle(4_000, Event::Heartbeat { worker: 1 });
+        s.handle(3_000, Event::Timeout);
+        assert_eq!(s.next_deadline(), Some(5_000));
+    }
+
+    /// While a worker is connected the daemon is told to call at least every wake
+    /// interval, earlier for a heartbeat timeout or a lease deadline; with none,
+    /// nothing waits on time.
+    #[test]
+    fn next_deadline_is_the_earliest_thing_that_waits_on_time() {
+        let policy = Policy {
+            initial_lease: 1_500,
+            ..Policy::default()
+        };
+        let mut s = Scheduler::with_policy(policy);
+        assert_eq!(s.next_deadline(), None);
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        assert_eq!(s.next_deadline(), None, "a job without workers just waits");
+        join_at(&mut s, 100, 1, 1, None);
+        assert_eq!(s.next_deadline(), Some(1_100));
+        s.handle(1_100, Event::Timeout);
+        assert_eq!(s.next_deadline(), Some(1_600), "the lease of tile 0");
+        s.handle(1_600, Event::Timeout);
+        assert_eq!(s.next_deadline(), Some(2_600));
+        s.handle(2_600, Event::Heartbeat { worker: 1 });
+        s.handle(2_600, Event::WorkerLeft { worker: 1 });
+        assert_eq!(s.next_deadline(), None);
+        // A heartbeat timeout shorter than the wake interval.
+        let mut s = Scheduler::with_policy(Policy {
+            heartbeat_timeout: 300,
+            ..policy
+        });
+        join_at(&mut s, 0, 1, 1, None);
+        assert_eq!(s.next_deadline(), Some(301));
+        assert_eq!(
+            s.handle(301, Event::Timeout),
+            vec![Action::DropWorker { worker: 1 }]
+        );
+        assert_eq!(s.next_deadline(), None);
+    }
+
+    /// A job whose waiting tiles failed on every connected machine fails after the
+    /// stall timeout, with a message naming the tile and the machines; a job without
+    /// any worker connected just waits; a new machine ends the stall.
+    #[test]
+    fn a_job_no_connected_worker_may_take_fails_after_the_stall_timeout() {
+        let policy = Policy {
+            speculate: false,
+            ..Policy::default()
+        };
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        fail(&mut s, 0, 1, 1, 0);
+        join_at(&mut s, 0, 2, 1, Some("b"));
+        fail(&mut s, 0, 2, 1, 0);
+        // Nobody may take tile 0 now. The stall starts at the first timeout.
+        let heartbeat = |s: &mut Scheduler, now| {
+            for worker in [1, 2] {
+                s.handle(now, Event::Heartbeat { worker });
+            }
+        };
+        let mut now = 0;
+        let failed = loop {
+            now += 1_000;
+            heartbeat(&mut s, now);
+            let actions = s.handle(now, Event::Timeout);
+            if !actions.is_empty() {
+                break actions;
+            }
+        };
+        assert_eq!(now, 1_000 + policy.stall_timeout);
+        assert_eq!(
+            failed,
+            vec![
+                Action::ForgetScene {
+                    worker: 1,
+                    scene: SCENE_A
+                },
+                Action::ForgetScene {
+                    worker: 2,
+                    scene: SCENE_A
+                },
+                Action::JobFailed {
+                    job: 1,
+                    message: "no connected worker may render tile 0: it failed on every one \
+                              of them (a, b)"
+                        .into()
+                },
+            ]
+        );
+
+        // Without any worker, the same job waits, however long.
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        fail(&mut s, 0, 1, 1, 0);
+        s.handle(10, Event::Timeout);
+        assert!(s.jobs[&1].stalled_since.is_some());
+        s.handle(20, Event::WorkerLeft { worker: 1 });
+        assert_eq!(s.jobs[&1].stalled_since, None);
+        assert_eq!(s.next_deadline(), None);
+        assert!(s.handle(100_000, Event::Timeout).is_empty());
+        assert!(s.is_active(1));
+        // The stall counts again from when a worker that may not take it is back...
+        join_at(&mut s, 100_000, 2, 1, Some("a"));
+        s.handle(101_000, Event::Timeout);
+        assert!(s.jobs[&1].stalled_since.is_some());
+        // ...and ends when a machine that may take it joins: it gets the tile.
+        let fresh = join_at(&mut s, 101_500, 3, 1, Some("b"));
+        assert_eq!(assigns(&fresh), vec![(3, 1, 0)]);
+        s.handle(101_500, Event::Heartbeat { worker: 2 });
+        s.handle(102_000, Event::Timeout);
+        assert_eq!(s.jobs[&1].stalled_since, None);
+    }
+
+    /// Machines blocked from a job (too many of its tiles failed on them) stall it
+    /// too, and the message says so.
+    #[test]
+    fn a_job_every_connected_machine_is_blocked_from_fails_with_the_reason() {
+        let policy = Policy {
+            speculate: false,
+            stall_timeout: 0,
+            ..Policy::default()
+        };
+        let done = |s: &mut Scheduler, worker, tile| {
+            s.handle(
+                0,
+                Event::TileDone {
+                    worker,
+                    job: 1,
+                    tile,
+                },
+            )
+        };
+        // "a" fails tiles 0 and 1 and is blocked; it leaves with tile 2, which goes
+        // back to the head of the queue, and comes back.
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 4);
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        assert_eq!(assigns(&fail(&mut s, 0, 1, 1, 0)), vec![(1, 1, 2)]);
+        assert!(assigns(&fail(&mut s, 0, 1, 1, 1)).is_empty());
+        s.handle(0, Event::WorkerLeft { worker: 1 });
+        assert!(assigns(&join_at(&mut s, 0, 2, 1, Some("a"))).is_empty());
+        let timeout = s.handle(0, Event::Timeout);
+        assert_eq!(
+            failure(&timeout, 1),
+            Some(
+                "no connected worker may render tile 2: every one of them is blocked from \
+                 the job after failing 2 of its tiles (a)"
+            )
+        );
+
+        // Tile 3 failed on "b", and the other machine (unnamed, so named by its
+        // connection) is blocked.
+        let mut s = Scheduler::with_policy(policy);
+        submit(&mut s, 1, 0, SCENE_A, 4);
+        join(&mut s, 1, 1);
+        assert_eq!(assigns(&fail(&mut s, 0, 1, 1, 0)), vec![(1, 1, 2)]);
+        assert!(assigns(&fail(&mut s, 0, 1, 1, 1)).is_empty());
+        assert!(assigns(&done(&mut s, 1, 2)).is_empty());
+        let b = join_at(&mut s, 0, 2, 1, Some("b"));
+        assert_eq!(assigns(&b), vec![(2, 1, 1), (2, 1, 0)]);
+        assert_eq!(assigns(&done(&mut s, 2, 1)), vec![(2, 1, 3)]);
+        assert!(assigns(&fail(&mut s, 0, 2, 1, 3)).is_empty());
+        let timeout = s.handle(0, Event::Timeout);
+        assert_eq!(
+            failure(&timeout, 1),
+            Some(
+                "no connected worker may render tile 3: it failed on some of them (b) and \
+                 the others are blocked from the job after failing 2 of its tiles (worker 1)"
+            )
+        );
+        assert!(timeout.contains(&Action::CancelOnWorker { worker: 2, job: 1 }));
+    }
+
+    /// While storage cannot record results no tile goes out, results of tiles out are
+    /// still accepted, and once it can every worker is filled again.
+    #[test]
+    fn storage_unavailable_assigns_nothing_and_resumes() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 6);
+        join(&mut s, 1, 1);
+        assert!(s.handle(0, Event::StorageUnavailable).is_empty());
+        let done = s.handle(
+            10,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert_eq!(done, vec![Action::AcceptTile { job: 1, tile: 0 }]);
+        assert!(assigns(&join(&mut s, 2, 1)).is_empty());
+        assert!(assigns(&submit(&mut s, 2, 0, SCENE_B, 2)).is_empty());
+        assert!(assigns(&s.handle(1_000, Event::Timeout)).is_empty());
+        // No straggler copies either.
+        assert_eq!((s.held_by(1), s.held_by(2)), (1, 0));
+        let back = s.handle(1_500, Event::StorageAvailable);
+        assert_eq!(
+            assigns(&back),
+            vec![(1, 2, 0), (2, 1, 2), (2, 2, 1)],
+            "{back:?}"
+        );
     }
 
     #[test]
     fn a_worker_holds_its_credit_and_gets_the_next_tile_when_it_returns_one() {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 10);
-        let joined = s.handle(Event::WorkerJoined {
-            worker: 7,
-            threads: 1,
-            machine: None,
-        });
+        let joined = join(&mut s, 7, 1);
         assert_eq!(joined[0], Action::SendScene { worker: 7, job: 1 });
         assert_eq!(assigns(&joined), vec![(7, 1, 0), (7, 1, 1)]);
-        let done = s.handle(Event::TileDone {
-            worker: 7,
-            job: 1,
-            tile: 0,
-        });
+        let done = s.handle(
+            0,
+            Event::TileDone {
+                worker: 7,
+                job: 1,
+                tile: 0,
+            },
+        );
         assert_eq!(done[0], Action::AcceptTile { job: 1, tile: 0 });
         assert_eq!(assigns(&done), vec![(7, 1, 2)]);
         assert_eq!(s.held_by(7), 2);
@@ -1384,34 +1790,24 @@ mod tests {
     fn results_are_accepted_once_and_only_from_the_holder() {
         let mut s = without_speculation();
         submit(&mut s, 1, 0, SCENE_A, 3);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        s.handle(Event::WorkerJoined {
-            worker: 2,
-            threads: 1,
-            machine: None,
-        });
+        join(&mut s, 1, 1);
+        join(&mut s, 2, 1);
+        let done = |s: &mut Scheduler, worker| {
+            s.handle(
+                0,
+                Event::TileDone {
+                    worker,
+                    job: 1,
+                    tile: 0,
+                },
+            )
+        };
         // Tile 0 is worker 1's: worker 2's result for it is dropped.
-        let stray = s.handle(Event::TileDone {
-            worker: 2,
-            job: 1,
-            tile: 0,
-        });
+        let stray = done(&mut s, 2);
         assert!(!stray.iter().any(|a| matches!(a, Action::AcceptTile { .. })));
-        let first = s.handle(Event::TileDone {
-            worker: 1,
-            job: 1,
-            tile: 0,
-        });
+        let first = done(&mut s, 1);
         assert!(first.contains(&Action::AcceptTile { job: 1, tile: 0 }));
-        let again = s.handle(Event::TileDone {
-            worker: 1,
-            job: 1,
-            tile: 0,
-        });
+        let again = done(&mut s, 1);
         assert!(!again.iter().any(|a| matches!(a, Action::AcceptTile { .. })));
     }
 
@@ -1419,26 +1815,21 @@ mod tests {
     fn a_leaving_worker_s_tiles_go_to_another_and_the_job_finishes() {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 4);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        let joined = s.handle(Event::WorkerJoined {
-            worker: 2,
-            threads: 1,
-            machine: None,
-        });
+        join(&mut s, 1, 1);
+        let joined = join(&mut s, 2, 1);
         assert_eq!(assigns(&joined), vec![(2, 1, 2), (2, 1, 3)]);
-        let left = s.handle(Event::WorkerLeft { worker: 1 });
+        let left = s.handle(0, Event::WorkerLeft { worker: 1 });
         assert!(assigns(&left).is_empty(), "worker 2 is at its credit");
         let mut actions = Vec::new();
         for tile in [2, 3, 0, 1] {
-            actions.extend(s.handle(Event::TileDone {
-                worker: 2,
-                job: 1,
-                tile,
-            }));
+            actions.extend(s.handle(
+                0,
+                Event::TileDone {
+                    worker: 2,
+                    job: 1,
+                    tile,
+                },
+            ));
         }
         assert!(actions.contains(&Action::JobDone { job: 1 }));
         assert!(!s.is_active(1));
@@ -1449,11 +1840,7 @@ mod tests {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 100);
         submit(&mut s, 2, 0, SCENE_A, 4);
-        let joined = s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 2,
-            machine: None,
-        });
+        let joined = join(&mut s, 1, 2);
         // Fewest tiles in flight first: the two jobs alternate.
         assert_eq!(
             assigns(&joined),
@@ -1461,11 +1848,14 @@ mod tests {
         );
         let urgent = submit(&mut s, 3, 5, SCENE_B, 2);
         assert!(assigns(&urgent).is_empty(), "the worker is at its credit");
-        let next = s.handle(Event::TileDone {
-            worker: 1,
-            job: 1,
-            tile: 0,
-        });
+        let next = s.handle(
+            0,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile: 0,
+            },
+        );
         assert_eq!(assigns(&next), vec![(1, 3, 0)]);
         assert!(next.contains(&Action::SendScene { worker: 1, job: 3 }));
     }
@@ -1474,12 +1864,8 @@ mod tests {
     fn cancelling_tells_the_holders_and_forgets_the_scene() {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 10);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        let cancelled = s.handle(Event::CancelJob { job: 1 });
+        join(&mut s, 1, 1);
+        let cancelled = s.handle(0, Event::CancelJob { job: 1 });
         assert!(cancelled.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
         assert!(cancelled.contains(&Action::ForgetScene {
             worker: 1,
@@ -1495,12 +1881,8 @@ mod tests {
     #[test]
     fn a_draining_worker_gets_nothing_more() {
         let mut s = Scheduler::new();
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        s.handle(Event::WorkerDraining { worker: 1 });
+        join(&mut s, 1, 1);
+        s.handle(0, Event::WorkerDraining { worker: 1 });
         assert!(assigns(&submit(&mut s, 1, 0, SCENE_A, 3)).is_empty());
         assert_eq!(s.held_by(1), 0);
     }
@@ -1513,35 +1895,17 @@ mod tests {
             ..Policy::default()
         });
         submit(&mut s, 1, 0, SCENE_A, 1);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        let failed = s.handle(Event::TileFailed {
-            worker: 1,
-            job: 1,
-            tile: 0,
-            message: "boom".into(),
-        });
+        join(&mut s, 1, 1);
+        let failed = fail(&mut s, 0, 1, 1, 0);
         // Not given back to the worker it failed on.
         assert!(assigns(&failed).is_empty());
-        let joined = s.handle(Event::WorkerJoined {
-            worker: 2,
-            threads: 1,
-            machine: None,
-        });
+        let joined = join(&mut s, 2, 1);
         assert_eq!(assigns(&joined), vec![(2, 1, 0)]);
-        let failed = s.handle(Event::TileFailed {
-            worker: 2,
-            job: 1,
-            tile: 0,
-            message: "boom".into(),
-        });
-        assert!(failed.contains(&Action::JobFailed {
-            job: 1,
-            message: "tile 0 failed 2 times; last: boom".into()
-        }));
+        let failed = fail(&mut s, 0, 2, 1, 0);
+        assert_eq!(
+            failure(&failed, 1),
+            Some("tile 0 failed 2 times; last: boom")
+        );
         assert!(!s.is_active(1));
     }
 
@@ -1550,23 +1914,15 @@ mod tests {
         let policy = Policy::default();
         let mut s = without_speculation();
         submit(&mut s, 1, 0, SCENE_A, 1);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        s.handle(Event::WorkerJoined {
-            worker: 2,
-            threads: 1,
-            machine: None,
-        });
+        join(&mut s, 1, 1);
+        join(&mut s, 2, 1);
         // Both stay alive; worker 1 holds the tile until its lease runs out, and then
         // the tile goes to worker 2.
         let mut expired = Vec::new();
         for now in (1_000..=policy.initial_lease).step_by(1_000) {
-            s.handle(Event::Heartbeat { worker: 1 });
-            s.handle(Event::Heartbeat { worker: 2 });
-            expired = s.handle(Event::Tick { now });
+            s.handle(now, Event::Heartbeat { worker: 1 });
+            s.handle(now, Event::Heartbeat { worker: 2 });
+            expired = s.handle(now, Event::Timeout);
             if !expired.is_empty() {
                 break;
             }
@@ -1578,13 +1934,13 @@ mod tests {
             workers_dropped: 0,
         };
         assert_eq!(s.counters(), counted);
-        // Worker 1 falls silent and is dropped at the first tick past the timeout;
+        // Worker 1 falls silent and is dropped at the first timeout past the limit;
         // worker 2 keeps the tile.
         let mut now = policy.initial_lease;
         let dropped = loop {
             now += 1_000;
-            s.handle(Event::Heartbeat { worker: 2 });
-            let actions = s.handle(Event::Tick { now });
+            s.handle(now, Event::Heartbeat { worker: 2 });
+            let actions = s.handle(now, Event::Timeout);
             if !actions.is_empty() {
                 break actions;
             }
@@ -1598,16 +1954,17 @@ mod tests {
                 ..counted
             }
         );
-        // Its last heartbeat arrived when the clock read initial_lease - 1 s.
-        assert_eq!(
+        // Its last heartbeat arrived at initial_lease; the first timeout more than the
+        // heartbeat timeout later drops it.
+        assert_eq!(now, policy.initial_lease + policy.heartbeat_timeout + 1_000);
+        let done = s.handle(
             now,
-            policy.initial_lease - 1_000 + policy.heartbeat_timeout + 1_000
+            Event::TileDone {
+                worker: 2,
+                job: 1,
+                tile: 0,
+            },
         );
-        let done = s.handle(Event::TileDone {
-            worker: 2,
-            job: 1,
-            tile: 0,
-        });
         assert!(done.contains(&Action::JobDone { job: 1 }));
     }
 
@@ -1615,22 +1972,17 @@ mod tests {
     fn a_straggler_is_duplicated_and_the_first_result_wins() {
         let mut s = Scheduler::new();
         submit(&mut s, 1, 0, SCENE_A, 1);
-        s.handle(Event::WorkerJoined {
-            worker: 1,
-            threads: 1,
-            machine: None,
-        });
-        let idle = s.handle(Event::WorkerJoined {
-            worker: 2,
-            threads: 1,
-            machine: None,
-        });
+        join(&mut s, 1, 1);
+        let idle = join(&mut s, 2, 1);
         assert_eq!(assigns(&idle), vec![(2, 1, 0)]);
-        let first = s.handle(Event::TileDone {
-            worker: 2,
-            job: 1,
-            tile: 0,
-        });
+        let first = s.handle(
+            0,
+            Event::TileDone {
+                worker: 2,
+                job: 1,
+                tile: 0,
+            },
+        );
         assert!(first.contains(&Action::AcceptTile { job: 1, tile: 0 }));
         assert!(first.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
         assert!(first.contains(&Action::JobDone { job: 1 }));

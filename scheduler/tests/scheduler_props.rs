@@ -1,20 +1,22 @@
 //! The scheduler core against a model of the daemon that carries out its actions.
 //!
-//! [`Farm`] feeds events to the [`Scheduler`] and replays every returned action the way
-//! the daemon would: it tracks which tiles each worker holds and under which lease (from
-//! `Assign`, `CancelOnWorker`, `DropWorker` and the worker's own results), which scenes
-//! each worker has (from `SendScene` and `ForgetScene`), which tiles were accepted, the
-//! failed attempts per tile and per worker, the measured tile times that set the lease
-//! length, when each worker was last heard from, and how each job ended. Before handing
-//! an event to the scheduler it works out what the event must cause (which result is
-//! accepted or is a duplicate, which workers are dropped, which leases run out, which jobs
-//! end); after it, it checks the actions against that and the invariants below, so the
-//! unit tests get them for free.
+//! [`Farm`] feeds events to the [`Scheduler`], each at a time of the daemon's clock, and
+//! replays every returned action the way the daemon would: it tracks which tiles each
+//! worker holds and under which lease (from `Assign`, `CancelOnWorker`, `DropWorker` and
+//! the worker's own results), which scenes each worker has (from `SendScene` and
+//! `ForgetScene`), which tiles were accepted, the failures reported per tile and per
+//! machine, the losses per tile, the measured tile times that set the lease length, when
+//! each worker was last heard from, the scheduler's clock, and how each job ended.
+//! Before handing an event to the scheduler it works out what the event must cause
+//! (which result is accepted or is a duplicate, which workers are dropped, which leases
+//! run out, which jobs end and why); after it, it checks the actions against that and the
+//! invariants below, so the unit tests get them for free.
 //!
 //! Checked after every event (a violation panics with the event that caused it):
 //! - **Assignments**: only to a live, non-draining worker, under its credit (twice its
-//!   threads), after the scene; never a tile the worker holds already, has failed, or of
-//!   a job it is blocked from; never an accepted tile or one of an ended job.
+//!   threads), after the scene, and never while storage is unavailable; never a tile
+//!   the worker holds already, that failed on its machine, or of a job its machine is
+//!   blocked from; never an accepted tile or one of an ended job.
 //! - **Policy order**: a waiting tile goes to the job the module doc names: highest
 //!   priority with a tile the worker may take, then fewest tiles in flight, then oldest.
 //! - **Stragglers**: a tile with a live holder is given again only with speculation on,
@@ -22,35 +24,60 @@
 //!   waiting at all; it is the tile out longest of the first job in policy order, with
 //!   exactly one live holder; so a tile has at most two live holders (one without
 //!   speculation), and never twice the same worker.
-//! - **Work conservation**: no worker with free credit idles next to a tile it may take
-//!   (except right after a `TileDone` that completed a job still out on other workers:
-//!   the scheduler then fills only the sender, and the holders freed by the
-//!   `CancelOnWorker` wait for the next event that fills everyone, at most one tick).
+//! - **Work conservation**: while storage is available, no worker with free credit idles
+//!   next to a tile it may take (except right after a `TileDone` that completed a job
+//!   still out on other workers: the scheduler then fills only the sender, and the
+//!   holders freed by the `CancelOnWorker` wait for the next event that fills everyone,
+//!   a timeout at the latest).
 //! - **Scenes once**: a `SendScene` right before the first `Assign` of a scene to a
 //!   worker, never twice, and `ForgetScene` once no active job uses it.
 //! - **Results**: `AcceptTile` exactly when a holder returns a tile not yet accepted
 //!   (also under a lease that ran out), `DuplicateResult` exactly when a holder returns a
 //!   tile already accepted; everything else is dropped.
-//! - **Time**: at a `Tick`, `DropWorker` exactly for the workers silent for more than
-//!   the heartbeat timeout; leases run out at their deadline (start + lease length,
-//!   which follows the job's measured tile times), and the tile waits again once every
-//!   live lease on it ran out.
-//! - **Failures**: a failure from a holder (`TileFailed`, or its worker leaving or being
-//!   dropped) counts one attempt; the job fails (`JobFailed`, naming the tile and the last
-//!   error) exactly when a tile reaches `max_attempts`; a worker with `block_after`
-//!   failures in a job is blocked from it.
+//! - **Time**: the scheduler's clock follows the daemon's, except that a gap between two
+//!   events longer than `pause_threshold` counts as one `wake_interval` (the coordinator
+//!   was paused, its peers were not silent). At a `Timeout`, `DropWorker` exactly for the
+//!   workers silent on that clock for more than the heartbeat timeout; leases run out at
+//!   their deadline (start + lease length, which follows the job's measured tile times),
+//!   and the tile waits again once every live lease on it ran out. `next_deadline` is
+//!   exactly the earliest heartbeat expiry, live lease deadline or stall timeout, and the
+//!   last event plus the wake interval while a worker is connected; `None` without
+//!   workers or leases.
+//! - **Failures**: a failure reported by a holder (`TileFailed`) counts one attempt
+//!   against the tile and the worker's machine; the job fails (naming the tile and the
+//!   last error) exactly when a tile reaches `max_attempts`; a machine with
+//!   `block_after` reported failures in a job is blocked from it. A worker leaving or
+//!   dropped counts nothing against its machine: each tile it held (not yet accepted)
+//!   counts one loss, and the job fails exactly when a tile reaches `max_losses`, with
+//!   the message the scheduler documents.
+//! - **Stalls**: at each timeout a job is stalled when tiles wait, a live non-draining
+//!   worker is connected, and no such worker's machine may take any waiting tile; it
+//!   fails (the message naming a waiting tile and the machines) exactly when stalled at
+//!   timeouts throughout `stall_timeout`; without a ready worker the stall ends.
 //! - **Endings**: `JobDone` once, when all tiles are accepted; every live worker still
 //!   holding tiles of an ended job (copies included) gets `CancelOnWorker`, and only
 //!   those; `is_active`, `has_started`, `held_by` and `tiles_in_flight` agree.
 //!
-//! Liveness: after each random history a fresh worker joins that answers every tile at
-//! once; without a clock every other worker returns its tiles too, with one the others
-//! fall silent and the clock runs. Every job must then end within a bound.
+//! The histories also restart workers under the same machine name (a supervised
+//! service), cut workers off the network past the heartbeat timeout and have them
+//! rejoin under their name, pause the coordinator longer than the heartbeat timeout
+//! (the timer firing before any message is read), and take storage away and back.
 //!
-//! The issue-3 properties run without speculation and without ticks (no lease runs out,
-//! nobody is dropped); the clocked ones with the default policy. Two scheduler bugs
-//! these tests found are pinned by `a_tile_is_not_duplicated_to_a_worker_it_failed_on`
-//! and `a_failed_late_copy_frees_the_worker_s_slot`.
+//! **Liveness**, the property the histories end on: after any history, once storage is
+//! available and a healthy worker is connected that heartbeats and answers every tile it
+//! gets, every job ends within a bound (the others' heartbeat timeout plus the rounds the
+//! healthy worker alone needs for the tiles left): `JobDone`, or `JobFailed` with its
+//! reason, never stuck. A job none of whose tiles was ever reported failed (tiles only
+//! lost with their workers: crashes, restarts, cuts, pauses) ends `JobDone`, unless one
+//! of its tiles was lost `max_losses` times. Without a clock the same holds with every
+//! worker returning its tiles.
+//!
+//! The issue-3 properties run without speculation and without timeouts (no lease runs
+//! out, nobody is dropped); the clocked ones with the default policy but a short stall
+//! timeout. Both use tighter limits on reports and losses per tile, so that jobs fail
+//! for each reason within a history. Two scheduler bugs these tests found are pinned by
+//! `a_tile_is_not_duplicated_to_a_worker_it_failed_on` and
+//! `a_failed_late_copy_frees_the_worker_s_slot`.
 
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
@@ -62,7 +89,7 @@ use proptest::test_runner::TestRunner;
 use protocol::{JobId, SceneHash, WorkerId};
 use scheduler::{Action, Event, Millis, Policy, Scheduler};
 
-/// The scheduler as it was before its indexes, frozen: the oracle of the equivalence
+/// The scheduler's decisions written without indexes: the oracle of the equivalence
 /// properties (section "The indexed scheduler against the reference").
 #[allow(dead_code)]
 #[path = "reference/scheduler.rs"]
@@ -72,13 +99,39 @@ const SCENE_A: SceneHash = [1; 32];
 const SCENE_B: SceneHash = [2; 32];
 const SCENE_C: SceneHash = [3; 32];
 const SCENES: [SceneHash; 3] = [SCENE_A, SCENE_B, SCENE_C];
+/// Machine names the histories' workers give: few, so that names come back.
+const NAMES: [&str; 3] = ["m0", "m1", "m2"];
 
-/// The issue-3 setting: no duplicates (and, with no ticks, no lease runs out).
+/// The issue-3 setting: no duplicates (and, with no timeouts, no lease runs out).
 fn no_speculation() -> Policy {
     Policy {
         speculate: false,
         ..Policy::default()
     }
+}
+
+/// The clocked histories' policy: the default, but a stall fails its job after 4 s
+/// rather than 30, so that stalls happen within a history.
+fn clocked_policy() -> Policy {
+    Policy {
+        stall_timeout: 4_000,
+        ..Policy::default()
+    }
+}
+
+/// The random histories' limits: a tile fails its job after 3 reports or 4 losses (8
+/// and 5 by default), so that histories of a few hundred events reach both.
+fn tight(policy: Policy) -> Policy {
+    Policy {
+        max_attempts: 3,
+        max_losses: 4,
+        ..policy
+    }
+}
+
+/// The wake interval in effect, as the scheduler's doc states it.
+fn wake(policy: &Policy) -> Millis {
+    policy.wake_interval.clamp(1, policy.pause_threshold.max(1))
 }
 
 // ---------------------------------------------------------------------------------------
@@ -92,17 +145,51 @@ enum Fate {
     Cancelled,
 }
 
+/// Why a job failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Why {
+    Attempts,
+    Losses,
+    Stall,
+}
+
+/// Who reported failures count against: the name a worker gave, or its connection.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Machine {
+    Named(String),
+    Connection(WorkerId),
+}
+
+impl Machine {
+    fn of(worker: WorkerId, name: Option<&str>) -> Machine {
+        name.map_or(Machine::Connection(worker), |n| Machine::Named(n.into()))
+    }
+
+    /// As a message names it.
+    fn label(&self) -> String {
+        match self {
+            Machine::Named(name) => name.clone(),
+            Machine::Connection(id) => format!("worker {id}"),
+        }
+    }
+}
+
 struct ModelJob {
     priority: i32,
     scene: SceneHash,
     tiles: u32,
     accepted: BTreeSet<u32>,
     fate: Fate,
-    /// Failed attempts per tile, and the (tile, worker) pairs that failed.
+    why: Option<Why>,
+    /// Failures reported per tile, and the (tile, machine) pairs that failed.
     attempts: BTreeMap<u32, u32>,
-    failed_on: BTreeSet<(u32, WorkerId)>,
-    worker_failures: BTreeMap<WorkerId, u32>,
-    blocked: BTreeSet<WorkerId>,
+    failed_on: BTreeSet<(u32, Machine)>,
+    machine_failures: BTreeMap<Machine, u32>,
+    blocked: BTreeSet<Machine>,
+    /// Losses per tile with its worker.
+    losses: BTreeMap<u32, u32>,
+    /// Stalled at every timeout since then (on the scheduler's clock).
+    stalled_since: Option<Millis>,
     /// Accepted results: how many, their total and longest time from assignment.
     measured: u32,
     total_time: Millis,
@@ -122,14 +209,20 @@ impl ModelJob {
             .max(policy.min_lease)
     }
 
-    fn failed_on(&self, tile: u32, worker: WorkerId) -> bool {
-        self.failed_on.contains(&(tile, worker))
+    fn failed_on(&self, tile: u32, machine: &Machine) -> bool {
+        self.failed_on.contains(&(tile, machine.clone()))
+    }
+
+    /// Whether a worker of the machine may take the waiting tile.
+    fn open_to(&self, tile: u32, machine: &Machine) -> bool {
+        !self.blocked.contains(machine) && !self.failed_on(tile, machine)
     }
 }
 
 /// One tile a worker holds, as the daemon sees it.
 #[derive(Clone, Copy, Debug)]
 struct Held {
+    /// On the scheduler's clock.
     started: Millis,
     deadline: Millis,
     /// The lease ran out (the tile may have gone to another worker since).
@@ -137,13 +230,17 @@ struct Held {
 }
 
 struct ModelWorker {
+    machine: Machine,
+    threads: u32,
     credit: usize,
     draining: bool,
     /// Tiles held: under a live or expired lease, or a copy of a tile already accepted.
     holding: BTreeMap<(JobId, u32), Held>,
     scenes: BTreeSet<SceneHash>,
+    /// On the scheduler's clock.
     last_seen: Millis,
-    /// Test driver only: the worker sends nothing any more (it hung).
+    /// Test driver only: the worker sends nothing any more (it hung, or the network
+    /// to it is cut).
     silent: bool,
 }
 
@@ -159,6 +256,17 @@ struct Stats {
     blocked: usize,
     jobs_failed: usize,
     jobs_done: usize,
+    /// Jobs failed by a tile reported failed `max_attempts` times, by a tile lost
+    /// `max_losses` times, and by a stall.
+    failed_by_attempts: usize,
+    failed_by_losses: usize,
+    failed_by_stall: usize,
+    /// Workers that joined under a name a worker had before.
+    rejoined_under_a_name: usize,
+    /// Gaps beyond the pause threshold.
+    pauses: usize,
+    /// Events handled while storage was unavailable.
+    while_storage_down: usize,
 }
 
 impl Stats {
@@ -172,7 +280,27 @@ impl Stats {
         self.blocked += o.blocked;
         self.jobs_failed += o.jobs_failed;
         self.jobs_done += o.jobs_done;
+        self.failed_by_attempts += o.failed_by_attempts;
+        self.failed_by_losses += o.failed_by_losses;
+        self.failed_by_stall += o.failed_by_stall;
+        self.rejoined_under_a_name += o.rejoined_under_a_name;
+        self.pauses += o.pauses;
+        self.while_storage_down += o.while_storage_down;
     }
+}
+
+/// A `JobFailed` to come, and what its message must say.
+enum Failure {
+    /// A tile reached `max_attempts`: the message names it and the last error.
+    Attempts { tile: u32, error: String },
+    /// A tile reached `max_losses`.
+    Losses { tile: u32, losses: u32 },
+    /// No ready machine may take a waiting tile: the message names one of them, and the
+    /// machines.
+    Stall {
+        tiles: Vec<u32>,
+        machines: Vec<String>,
+    },
 }
 
 /// What an event must cause, worked out before the scheduler sees it.
@@ -182,13 +310,12 @@ struct Expect {
     accepted: bool,
     duplicate: Option<(JobId, u32)>,
     duplicated: bool,
-    /// Workers silent past the timeout at this tick.
+    /// Workers silent past the timeout at this timeout.
     drops: BTreeSet<WorkerId>,
     /// `JobDone` still to come.
     done: BTreeSet<JobId>,
-    /// `JobFailed` still to come: the tile that reached the limit and its last error
-    /// (none when the failure was a lost worker).
-    failed: BTreeMap<JobId, (u32, Option<String>)>,
+    /// `JobFailed` still to come.
+    failed: BTreeMap<JobId, Failure>,
     /// Jobs that ended with this event: their holders are told.
     ended: BTreeSet<JobId>,
 }
@@ -203,13 +330,25 @@ struct Farm {
     /// Fail on the two known scheduler bugs; otherwise accept them and keep checking the
     /// rest (see the ignored tests).
     strict: bool,
+    /// The daemon's clock: the time of the next event.
     now: Millis,
+    /// The daemon's clock at the last event, and the scheduler's own clock.
+    last: Option<Millis>,
+    clock: Millis,
+    storage_down: bool,
     workers: BTreeMap<WorkerId, ModelWorker>,
+    /// Workers being dropped by the event at hand, until their `DropWorker` is replayed:
+    /// the scheduler may still cancel or forget on them before it.
+    dropping: BTreeMap<WorkerId, ModelWorker>,
     /// Workers that left or were dropped, with the tiles they held then.
     departed: Vec<(WorkerId, Vec<(JobId, u32)>)>,
     jobs: BTreeMap<JobId, ModelJob>,
     next_worker: WorkerId,
     next_job: JobId,
+    /// Names workers have given so far.
+    names: BTreeSet<String>,
+    /// Named workers cut off the network, that may rejoin: (name, threads).
+    cut_off: Vec<(String, u32)>,
     /// Tiles accepted per worker whose result was kept.
     rendered_by: BTreeMap<WorkerId, usize>,
     /// A `TileDone` completed a job and freed other holders, which the scheduler fills
@@ -222,7 +361,7 @@ struct Farm {
 type Holders = BTreeMap<(JobId, u32), Vec<(WorkerId, Held)>>;
 
 impl Farm {
-    /// The issue-3 farm: no speculation, and no ticks unless a test sends them.
+    /// The issue-3 farm: no speculation, and no timeouts unless a test sends them.
     fn new() -> Self {
         Farm::with_policy(no_speculation(), true)
     }
@@ -234,11 +373,17 @@ impl Farm {
             policy,
             strict,
             now: 0,
+            last: None,
+            clock: 0,
+            storage_down: false,
             workers: BTreeMap::new(),
+            dropping: BTreeMap::new(),
             departed: Vec::new(),
             jobs: BTreeMap::new(),
             next_worker: 1,
             next_job: 1,
+            names: BTreeSet::new(),
+            cut_off: Vec::new(),
             rendered_by: BTreeMap::new(),
             unfilled: false,
             stats: Stats::default(),
@@ -246,13 +391,17 @@ impl Farm {
     }
 
     fn join(&mut self, threads: u32) -> (WorkerId, Vec<Action>) {
+        self.join_as(threads, None)
+    }
+
+    fn join_as(&mut self, threads: u32, name: Option<&str>) -> (WorkerId, Vec<Action>) {
         let worker = self.next_worker;
         (
             worker,
             self.step(Event::WorkerJoined {
                 worker,
                 threads,
-                machine: None,
+                machine: name.map(str::to_string),
             }),
         )
     }
@@ -281,12 +430,14 @@ impl Farm {
         })
     }
 
-    /// The `alive` workers heartbeat, then the clock reads `now`.
+    /// The daemon's clock reads `now`: the `alive` workers heartbeat, then the timer
+    /// fires.
     fn tick(&mut self, now: Millis, alive: &[WorkerId]) -> Vec<Action> {
+        self.now = self.now.max(now);
         for &worker in alive {
             self.step(Event::Heartbeat { worker });
         }
-        self.step(Event::Tick { now })
+        self.step(Event::Timeout)
     }
 
     /// The tiles the worker holds, oldest job first.
@@ -345,20 +496,23 @@ impl Farm {
             .is_some_and(|w| w.holding.contains_key(&(job, tile)))
     }
 
-    /// A waiting tile the worker may take: not failed on it, not held by it already.
+    /// A waiting tile the worker may take: not failed on its machine, not held by it
+    /// already.
     fn takeable(&self, holders: &Holders, worker: WorkerId, job: JobId) -> bool {
         let j = &self.jobs[&job];
+        let machine = &self.workers[&worker].machine;
         self.waiting(holders, job)
             .into_iter()
-            .any(|t| !j.failed_on(t, worker) && !self.holds(worker, job, t))
+            .any(|t| !j.failed_on(t, machine) && !self.holds(worker, job, t))
     }
 
-    /// Active jobs the worker is not blocked from, in policy order.
+    /// Active jobs the worker's machine is not blocked from, in policy order.
     fn policy_order(&self, holders: &Holders, worker: WorkerId) -> Vec<JobId> {
+        let machine = &self.workers[&worker].machine;
         let mut order: Vec<JobId> = self
             .jobs
             .iter()
-            .filter(|(_, j)| j.fate == Fate::Active && !j.blocked.contains(&worker))
+            .filter(|(_, j)| j.fate == Fate::Active && !j.blocked.contains(machine))
             .map(|(&id, _)| id)
             .collect();
         order.sort_by_key(|&id| {
@@ -380,8 +534,9 @@ impl Farm {
 
     /// The tile to duplicate for the worker: in the first job in policy order with
     /// nothing waiting, the tile with exactly one live holder, not this worker, out
-    /// longest. (Leniently, a tile the worker failed on counts too.)
+    /// longest. (Leniently, a tile that failed on its machine counts too.)
     fn straggler_for(&self, holders: &Holders, worker: WorkerId) -> Option<(JobId, u32)> {
+        let machine = &self.workers[&worker].machine;
         self.policy_order(holders, worker)
             .into_iter()
             .filter(|&id| self.waiting(holders, id).is_empty())
@@ -392,23 +547,50 @@ impl Farm {
                     .filter(|(key, hs)| {
                         hs.iter().all(|(w, _)| *w != worker)
                             && hs.iter().filter(|(_, h)| !h.expired).count() == 1
-                            && (!self.strict || !j.failed_on(key.1, worker))
+                            && (!self.strict || !j.failed_on(key.1, machine))
                     })
                     .min_by_key(|(key, hs)| (hs.iter().map(|(_, h)| h.started).min(), key.1))
                     .map(|(&key, _)| key)
             })
     }
 
-    /// Counts a failed attempt by a holder of a tile not yet accepted.
+    /// The machines of the live workers that are not draining.
+    fn ready(&self) -> BTreeSet<Machine> {
+        self.workers
+            .values()
+            .filter(|w| !w.draining)
+            .map(|w| w.machine.clone())
+            .collect()
+    }
+
+    /// With no ready worker left, no job is stalled: its stall clock starts over.
+    fn end_stalls_without_workers(&mut self) {
+        if self.ready().is_empty() {
+            for j in self.jobs.values_mut() {
+                j.stalled_since = None;
+            }
+        }
+    }
+
+    fn end(&mut self, job: JobId, why: Why, failure: Failure, expect: &mut Expect) {
+        let j = self.jobs.get_mut(&job).expect("a known job");
+        j.fate = Fate::Failed;
+        j.why = Some(why);
+        expect.failed.insert(job, failure);
+        expect.ended.insert(job);
+    }
+
+    /// Counts a failure reported by a holder of a tile not yet accepted.
     fn count_failure(
         &mut self,
         worker: WorkerId,
         job: JobId,
         tile: u32,
-        error: Option<&str>,
+        error: &str,
         expect: &mut Expect,
     ) {
         let policy = self.policy;
+        let machine = self.workers[&worker].machine.clone();
         let j = self
             .jobs
             .get_mut(&job)
@@ -419,34 +601,135 @@ impl Farm {
         let attempts = j.attempts.entry(tile).or_default();
         *attempts += 1;
         let attempts = *attempts;
-        j.failed_on.insert((tile, worker));
-        let failures = j.worker_failures.entry(worker).or_default();
+        j.failed_on.insert((tile, machine.clone()));
+        let failures = j.machine_failures.entry(machine.clone()).or_default();
         *failures += 1;
-        if *failures >= policy.block_after && j.blocked.insert(worker) {
+        if *failures >= policy.block_after && j.blocked.insert(machine) {
             self.stats.blocked += 1;
         }
         if attempts >= policy.max_attempts {
-            j.fate = Fate::Failed;
-            expect.failed.insert(job, (tile, error.map(str::to_string)));
-            expect.ended.insert(job);
+            let error = error.to_string();
+            self.end(
+                job,
+                Why::Attempts,
+                Failure::Attempts { tile, error },
+                expect,
+            );
         }
     }
 
-    /// A worker is gone: each tile it held (not yet accepted) is a failed attempt.
-    fn remove_worker(&mut self, worker: WorkerId, expect: &mut Expect) {
-        let Some(w) = self.workers.remove(&worker) else {
-            return;
-        };
+    /// A worker is gone: each tile it held (not yet accepted, of an active job) is one
+    /// loss of the tile; nothing counts against its machine.
+    fn remove_worker(&mut self, worker: WorkerId, expect: &mut Expect) -> Option<ModelWorker> {
+        let w = self.workers.remove(&worker)?;
+        self.end_stalls_without_workers();
         let held: Vec<(JobId, u32)> = w.holding.keys().copied().collect();
         for &(job, tile) in &held {
-            self.count_failure(worker, job, tile, None, expect);
+            let j = self
+                .jobs
+                .get_mut(&job)
+                .expect("held tiles are of known jobs");
+            if j.fate != Fate::Active || j.accepted.contains(&tile) {
+                continue;
+            }
+            let losses = j.losses.entry(tile).or_default();
+            *losses += 1;
+            let losses = *losses;
+            if losses >= self.policy.max_losses {
+                self.end(job, Why::Losses, Failure::Losses { tile, losses }, expect);
+            }
         }
         self.departed.push((worker, held));
+        Some(w)
     }
 
-    /// Applies one event to the scheduler, replays its actions and checks every
-    /// invariant. Returns the actions.
+    /// At a timeout, after the drops and the leases: follows each job's stall, and
+    /// fails those stalled for the stall timeout.
+    fn check_stalls(&mut self, expect: &mut Expect) {
+        let ready = self.ready();
+        let holders = self.holders();
+        let mut verdicts = Vec::new();
+        for (&id, j) in self.jobs.iter().filter(|(_, j)| j.fate == Fate::Active) {
+            let waiting = self.waiting(&holders, id);
+            let stalled = !ready.is_empty()
+                && !waiting.is_empty()
+                && waiting
+                    .iter()
+                    .all(|&t| ready.iter().all(|m| !j.open_to(t, m)));
+            verdicts.push((id, stalled.then_some(waiting)));
+        }
+        for (id, stalled) in verdicts {
+            let j = self.jobs.get_mut(&id).expect("listed above");
+            let Some(tiles) = stalled else {
+                j.stalled_since = None;
+                continue;
+            };
+            let since = *j.stalled_since.get_or_insert(self.clock);
+            if self.clock - since >= self.policy.stall_timeout {
+                let machines = ready.iter().map(Machine::label).collect();
+                self.end(id, Why::Stall, Failure::Stall { tiles, machines }, expect);
+            }
+        }
+    }
+
+    /// When the scheduler must be called next, by the rule its doc states, computed
+    /// from the model.
+    fn expected_deadline(&self) -> Option<Millis> {
+        let last = self.last?;
+        let mut times = Vec::new();
+        let mut live_lease = false;
+        for w in self.workers.values() {
+            times.push(w.last_seen + self.policy.heartbeat_timeout + 1);
+            for (&(job, tile), held) in &w.holding {
+                let j = &self.jobs[&job];
+                if !held.expired && j.fate == Fate::Active && !j.accepted.contains(&tile) {
+                    times.push(held.deadline);
+                    live_lease = true;
+                }
+            }
+        }
+        for j in self.jobs.values().filter(|j| j.fate == Fate::Active) {
+            if let Some(since) = j.stalled_since {
+                times.push(since + self.policy.stall_timeout);
+            }
+        }
+        if !self.workers.is_empty() || live_lease {
+            times.push(self.clock + wake(&self.policy));
+        }
+        let at = times.into_iter().min()?;
+        Some(last + at.saturating_sub(self.clock))
+    }
+
+    /// Applies one event to the scheduler at the daemon's time `now`, replays its
+    /// actions and checks every invariant. Returns the actions.
     fn step(&mut self, event: Event) -> Vec<Action> {
+        self.step_at(self.now, event)
+    }
+
+    /// The same at a time of the daemon's clock that may be earlier than the last (the
+    /// scheduler takes it as the last).
+    fn step_at(&mut self, now: Millis, event: Event) -> Vec<Action> {
+        // The scheduler's clock: the gaps between events, but a gap beyond the pause
+        // threshold counts as one wake interval.
+        match self.last {
+            None => self.clock = self.clock.max(now),
+            Some(last) => {
+                let gap = now.max(last) - last;
+                if gap > self.policy.pause_threshold {
+                    self.clock += wake(&self.policy);
+                    self.stats.pauses += 1;
+                } else {
+                    self.clock += gap;
+                }
+            }
+        }
+        let now = self.last.map_or(now, |last| now.max(last));
+        self.last = Some(now);
+        self.now = self.now.max(now);
+        if self.storage_down {
+            self.stats.while_storage_down += 1;
+        }
+
         let mut expect = Expect::default();
         // Any message from a worker shows it alive.
         if let Event::Heartbeat { worker }
@@ -455,56 +738,72 @@ impl Farm {
         | Event::TileFailed { worker, .. } = event
         {
             if let Some(w) = self.workers.get_mut(&worker) {
-                w.last_seen = self.now;
+                w.last_seen = self.clock;
             }
         }
         match event {
-            Event::Tick { now } => {
-                self.now = self.now.max(now);
-                let (now, timeout) = (self.now, self.policy.heartbeat_timeout);
+            Event::Timeout => {
+                let (clock, timeout) = (self.clock, self.policy.heartbeat_timeout);
                 expect.drops = self
                     .workers
                     .iter()
-                    .filter(|(_, w)| now - w.last_seen > timeout)
+                    .filter(|(_, w)| clock - w.last_seen > timeout)
                     .map(|(&id, _)| id)
                     .collect();
-                // Leases run out at their deadline. (Whether before or after the drops
-                // makes no difference: a dropped holder's lease is gone either way.)
+                // The scheduler drops them in id order, each tile lost one at a time.
+                for &worker in &expect.drops.clone() {
+                    let w = self.remove_worker(worker, &mut expect).expect("live");
+                    self.dropping.insert(worker, w);
+                }
+                // Leases run out at their deadline.
                 let jobs = &self.jobs;
                 for w in self.workers.values_mut() {
                     for (&(job, tile), held) in &mut w.holding {
                         if !held.expired
-                            && held.deadline <= now
+                            && held.deadline <= clock
                             && !jobs[&job].accepted.contains(&tile)
                         {
                             held.expired = true;
                         }
                     }
                 }
+                self.check_stalls(&mut expect);
             }
             Event::WorkerJoined {
-                worker, threads, ..
+                worker,
+                threads,
+                ref machine,
             } => {
                 assert!(!self.workers.contains_key(&worker), "worker ids are fresh");
                 self.next_worker = self.next_worker.max(worker + 1);
+                if let Some(name) = machine {
+                    if !self.names.insert(name.clone()) {
+                        self.stats.rejoined_under_a_name += 1;
+                    }
+                }
                 self.workers.insert(
                     worker,
                     ModelWorker {
+                        machine: Machine::of(worker, machine.as_deref()),
+                        threads,
                         credit: 2 * threads.max(1) as usize,
                         draining: false,
                         holding: BTreeMap::new(),
                         scenes: BTreeSet::new(),
-                        last_seen: self.now,
+                        last_seen: self.clock,
                         silent: false,
                     },
                 );
             }
             Event::Heartbeat { .. } => {}
-            Event::WorkerLeft { worker } => self.remove_worker(worker, &mut expect),
+            Event::WorkerLeft { worker } => {
+                self.remove_worker(worker, &mut expect);
+            }
             Event::WorkerDraining { worker } => {
                 if let Some(w) = self.workers.get_mut(&worker) {
                     w.draining = true;
                 }
+                self.end_stalls_without_workers();
             }
             Event::JobSubmitted {
                 job,
@@ -529,10 +828,13 @@ impl Farm {
                         tiles,
                         accepted: BTreeSet::new(),
                         fate,
+                        why: None,
                         attempts: BTreeMap::new(),
                         failed_on: BTreeSet::new(),
-                        worker_failures: BTreeMap::new(),
+                        machine_failures: BTreeMap::new(),
                         blocked: BTreeSet::new(),
+                        losses: BTreeMap::new(),
+                        stalled_since: None,
                         measured: 0,
                         total_time: 0,
                         slowest: 0,
@@ -550,7 +852,7 @@ impl Farm {
                         .get_mut(&job)
                         .expect("held tiles are of known jobs");
                     if j.accepted.insert(tile) {
-                        let took = self.now - held.started;
+                        let took = self.clock - held.started;
                         j.measured += 1;
                         j.total_time += took;
                         j.slowest = j.slowest.max(took);
@@ -579,7 +881,7 @@ impl Farm {
                 // A copy of a tile already accepted: the worker is rid of it, and
                 // nothing else changes.
                 if held.is_some() {
-                    self.count_failure(worker, job, tile, Some(message), &mut expect);
+                    self.count_failure(worker, job, tile, message, &mut expect);
                 }
             }
             Event::CancelJob { job } => {
@@ -588,24 +890,27 @@ impl Farm {
                     expect.ended.insert(job);
                 }
             }
+            Event::StorageUnavailable => self.storage_down = true,
+            Event::StorageAvailable => self.storage_down = false,
         }
         // These events end by filling every worker.
         if matches!(
             event,
-            Event::Tick { .. }
+            Event::Timeout
                 | Event::WorkerLeft { .. }
                 | Event::JobSubmitted { .. }
                 | Event::TileFailed { .. }
                 | Event::CancelJob { .. }
+                | Event::StorageAvailable
         ) {
             self.unfilled = false;
         }
 
-        let actions = self.scheduler.handle(event.clone());
+        let actions = self.scheduler.handle(now, event.clone());
         if let Some(twin) = &mut self.reference {
-            twin.check(&self.scheduler, &event, &actions);
+            twin.check(&self.scheduler, now, &event, &actions);
         }
-        let context = || format!("after {event:?}\nactions: {actions:?}");
+        let context = || format!("after {event:?} at {now}\nactions: {actions:?}");
 
         let mut forgotten = Vec::new();
         let mut dropped = BTreeSet::new();
@@ -650,10 +955,13 @@ impl Farm {
                         "cancel of a job not ending {}",
                         context()
                     );
-                    let w = self
-                        .workers
-                        .get_mut(&worker)
-                        .unwrap_or_else(|| panic!("cancel to a gone worker {}", context()));
+                    let w = match self.workers.get_mut(&worker) {
+                        Some(w) => w,
+                        None => self
+                            .dropping
+                            .get_mut(&worker)
+                            .unwrap_or_else(|| panic!("cancel to a gone worker {}", context())),
+                    };
                     let before = w.holding.len();
                     w.holding.retain(|&(j, _), _| j != job);
                     assert!(
@@ -667,10 +975,12 @@ impl Farm {
                     }
                 }
                 Action::ForgetScene { worker, scene } => {
-                    let w = self
-                        .workers
-                        .get_mut(&worker)
-                        .unwrap_or_else(|| panic!("ForgetScene to a gone worker {}", context()));
+                    let w = match self.workers.get_mut(&worker) {
+                        Some(w) => w,
+                        None => self.dropping.get_mut(&worker).unwrap_or_else(|| {
+                            panic!("ForgetScene to a gone worker {}", context())
+                        }),
+                    };
                     assert!(
                         w.scenes.remove(&scene),
                         "forgot an unknown scene {}",
@@ -685,7 +995,7 @@ impl Farm {
                         context()
                     );
                     assert!(dropped.insert(worker), "dropped twice {}", context());
-                    self.remove_worker(worker, &mut expect);
+                    self.dropping.remove(&worker);
                     self.stats.dropped += 1;
                 }
                 Action::JobDone { job } => {
@@ -693,23 +1003,17 @@ impl Farm {
                     self.stats.jobs_done += 1;
                 }
                 Action::JobFailed { job, ref message } => {
-                    let (tile, error) = expect
+                    let failure = expect
                         .failed
                         .remove(&job)
                         .unwrap_or_else(|| panic!("unexpected JobFailed {}", context()));
-                    assert!(
-                        names_tile(message, tile),
-                        "message does not name tile {tile} {}",
-                        context()
-                    );
-                    if let Some(error) = error {
-                        assert!(
-                            message.contains(&error),
-                            "message without the last error {}",
-                            context()
-                        );
-                    }
+                    check_failure(message, &failure, &context);
                     self.stats.jobs_failed += 1;
+                    match failure {
+                        Failure::Attempts { .. } => self.stats.failed_by_attempts += 1,
+                        Failure::Losses { .. } => self.stats.failed_by_losses += 1,
+                        Failure::Stall { .. } => self.stats.failed_by_stall += 1,
+                    }
                 }
             }
         }
@@ -728,7 +1032,12 @@ impl Farm {
         );
         assert_eq!(dropped, expect.drops, "silent workers {}", context());
         assert!(expect.done.is_empty(), "JobDone missing {}", context());
-        assert!(expect.failed.is_empty(), "JobFailed missing {}", context());
+        assert!(
+            expect.failed.is_empty(),
+            "JobFailed missing for {:?} {}",
+            expect.failed.keys().collect::<Vec<_>>(),
+            context()
+        );
 
         self.check_state(&forgotten, &context);
         actions
@@ -736,6 +1045,11 @@ impl Farm {
 
     /// Checks an `Assign` against the state before it, then records it.
     fn assign(&mut self, worker: WorkerId, job: JobId, tile: u32, context: &dyn Fn() -> String) {
+        assert!(
+            !self.storage_down,
+            "assigned while storage is down {}",
+            context()
+        );
         assert!(self.active(job), "tile of an ended job {}", context());
         let j = &self.jobs[&job];
         assert!(tile < j.tiles, "no such tile {}", context());
@@ -760,16 +1074,16 @@ impl Farm {
             context()
         );
         assert!(
-            !j.blocked.contains(&worker),
-            "a blocked worker got a tile of the job {}",
+            !j.blocked.contains(&w.machine),
+            "a blocked machine got a tile of the job {}",
             context()
         );
         let holders = self.holders();
         let live = Self::live_holders(&holders, job, tile);
         if live.is_empty() {
             assert!(
-                !j.failed_on(tile, worker),
-                "re-assigned to a worker it failed on {}",
+                !j.failed_on(tile, &w.machine),
+                "re-assigned to a machine it failed on {}",
                 context()
             );
             assert_eq!(
@@ -781,8 +1095,8 @@ impl Farm {
         } else {
             assert!(self.policy.speculate, "double assignment {}", context());
             assert!(
-                !self.strict || !j.failed_on(tile, worker),
-                "duplicated to a worker it failed on {}",
+                !self.strict || !j.failed_on(tile, &w.machine),
+                "duplicated to a machine it failed on {}",
                 context()
             );
             assert_eq!(
@@ -811,12 +1125,12 @@ impl Farm {
         {
             self.stats.reassigned_after_expiry += 1;
         }
-        let deadline = self.now + j.lease_length(&self.policy);
+        let deadline = self.clock + j.lease_length(&self.policy);
         let w = self.workers.get_mut(&worker).expect("checked above");
         w.holding.insert(
             (job, tile),
             Held {
-                started: self.now,
+                started: self.clock,
                 deadline,
                 expired: false,
             },
@@ -899,7 +1213,14 @@ impl Farm {
             }
         }
 
-        if !self.unfilled {
+        assert_eq!(
+            self.scheduler.next_deadline(),
+            self.expected_deadline(),
+            "next deadline {}",
+            context()
+        );
+
+        if !self.unfilled && !self.storage_down {
             for (&id, w) in &self.workers {
                 if !w.draining && w.holding.len() < w.credit {
                     assert_eq!(
@@ -918,6 +1239,9 @@ impl Farm {
     /// `ceil(remaining tiles / 4) + 1` rounds (the new worker alone renders 4 tiles a
     /// round whenever any tile waits). Returns the number of rounds.
     fn run_to_completion(&mut self) -> usize {
+        if self.storage_down {
+            self.step(Event::StorageAvailable);
+        }
         let (finisher, _) = self.join(2);
         let credit = self.workers[&finisher].credit;
         let remaining = self.remaining();
@@ -940,23 +1264,26 @@ impl Farm {
                 }
             }
         }
-        for (id, j) in &self.jobs {
-            assert_ne!(j.fate, Fate::Active, "job {id} never finished");
-        }
+        self.check_liveness();
         rounds
     }
 
-    /// With a clock: a fresh worker joins that heartbeats and returns every tile it
-    /// gets; the others fall silent; the clock moves a second a round. The others are
-    /// dropped within the heartbeat timeout, and then the finisher alone renders 4 tiles
-    /// a round, so every job ends (done, or failed by the drops) within a bound.
+    /// With a clock: storage is available and a fresh worker joins that heartbeats
+    /// and returns every tile it gets; the others fall silent; the clock moves a wake
+    /// interval a round. The others are dropped within the heartbeat timeout, and then
+    /// the finisher alone renders 4 tiles a round; it may take any tile (a machine of
+    /// its own), so no job stalls: every job ends (done, or failed by the drops) within
+    /// a bound.
     fn run_with_clock(&mut self) -> usize {
-        const STEP: Millis = 1_000;
+        let step = wake(&self.policy);
+        if self.storage_down {
+            self.step(Event::StorageAvailable);
+        }
         let (finisher, _) = self.join(2);
         let credit = self.workers[&finisher].credit;
         let remaining = self.remaining();
         let bound =
-            (self.policy.heartbeat_timeout / STEP) as usize + 2 + remaining.div_ceil(credit) + 1;
+            (self.policy.heartbeat_timeout / step) as usize + 2 + remaining.div_ceil(credit) + 1;
         let mut rounds = 0;
         while self.jobs.values().any(|j| j.fate == Fate::Active) {
             rounds += 1;
@@ -967,11 +1294,28 @@ impl Farm {
                     self.done(finisher, job, tile);
                 }
             }
-            self.step(Event::Tick {
-                now: self.now + STEP,
-            });
+            self.now += step;
+            self.step(Event::Timeout);
         }
+        self.check_liveness();
         rounds
+    }
+
+    /// The end of the liveness property: every job ended, and one whose tiles were
+    /// only ever lost with their workers (never reported failed) is done unless a tile
+    /// was lost `max_losses` times.
+    fn check_liveness(&self) {
+        for (id, j) in &self.jobs {
+            assert_ne!(j.fate, Fate::Active, "job {id} never finished");
+            if j.attempts.is_empty() && j.fate == Fate::Failed {
+                assert_eq!(j.why, Some(Why::Losses), "job {id}");
+                assert!(
+                    j.losses.values().any(|&n| n >= self.policy.max_losses),
+                    "job {id} failed with {:?} losses",
+                    j.losses
+                );
+            }
+        }
     }
 
     /// Tiles of active jobs not yet accepted.
@@ -981,6 +1325,51 @@ impl Farm {
             .filter(|j| j.fate == Fate::Active)
             .map(|j| j.tiles as usize - j.accepted.len())
             .sum()
+    }
+}
+
+/// Checks a `JobFailed` message against why the job had to fail.
+fn check_failure(message: &str, failure: &Failure, context: &dyn Fn() -> String) {
+    match failure {
+        Failure::Attempts { tile, error } => {
+            assert!(
+                names_tile(message, *tile),
+                "message does not name tile {tile} {}",
+                context()
+            );
+            assert!(
+                message.contains(error.as_str()),
+                "message without the last error {}",
+                context()
+            );
+        }
+        Failure::Losses { tile, losses } => assert_eq!(
+            message,
+            format!(
+                "tile {tile} was lost with its worker {losses} times (a tile that crashes \
+                 workers, or workers that keep losing their connection)"
+            ),
+            "{}",
+            context()
+        ),
+        Failure::Stall { tiles, machines } => {
+            assert!(
+                message.starts_with("no connected worker may render tile "),
+                "{}",
+                context()
+            );
+            assert!(
+                tiles.iter().any(|&t| names_tile(message, t)),
+                "message names no waiting tile of {tiles:?} {}",
+                context()
+            );
+            if machines.len() <= 8 {
+                for m in machines {
+                    assert!(message.contains(m.as_str()), "{m} not named {}", context());
+                }
+            }
+            assert!(!message.contains('\n'), "one line {}", context());
+        }
     }
 }
 
@@ -1031,9 +1420,14 @@ enum Stray {
 
 #[derive(Clone, Debug)]
 enum Op {
+    /// A worker joins, under one of [`NAMES`] or none.
     Join {
         threads: u32,
+        name: Option<usize>,
     },
+    /// A named worker's connection closes and it comes back at once under its name,
+    /// with a new id: a service killed and restarted by its supervisor.
+    Reconnect(Index),
     Leave(Index),
     Drain(Index),
     Submit {
@@ -1062,15 +1456,26 @@ enum Op {
         kind: Stray,
     },
     Cancel(Index),
-    /// The clock moves on by this much.
+    /// The clock moves on by this much (no more than the pause threshold), and the
+    /// timer fires.
     Tick(Millis),
-    /// A tick with a time already past: the clock does not go back.
+    /// A timeout at a time already past: the clock does not go back.
     StaleTick(Millis),
     Heartbeat(Index),
     /// Every worker not silent heartbeats.
     Pulse,
     /// A worker hangs: it sends nothing any more.
     Silence(Index),
+    /// The coordinator stops for this long (beyond the pause threshold); when it runs
+    /// again its timer fires before it reads anything.
+    Pause(Millis),
+    /// The network to a named worker is cut: it falls silent, and may rejoin.
+    Cut(Index),
+    /// A worker cut off connects again under its name (its old connection may not be
+    /// dropped yet).
+    Rejoin(Index),
+    /// Storage becomes unavailable (true) or available again.
+    Storage(bool),
 }
 
 fn stray() -> impl Strategy<Value = Stray> {
@@ -1085,7 +1490,9 @@ fn stray() -> impl Strategy<Value = Stray> {
 /// Operations of the issue-3 histories: no clock.
 fn op() -> impl Strategy<Value = Op> {
     prop_oneof![
-        3 => (1u32..=4).prop_map(|threads| Op::Join { threads }),
+        3 => (1u32..=4, prop::option::weighted(0.6, 0..NAMES.len()))
+            .prop_map(|(threads, name)| Op::Join { threads, name }),
+        1 => any::<Index>().prop_map(Op::Reconnect),
         2 => any::<Index>().prop_map(Op::Leave),
         1 => any::<Index>().prop_map(Op::Drain),
         3 => (-1i32..=2, 0..SCENES.len(), 0u32..=30)
@@ -1100,20 +1507,29 @@ fn op() -> impl Strategy<Value = Op> {
     ]
 }
 
-/// Operations of the clocked histories: ticks, heartbeats and hangs too.
+/// Operations of the clocked histories: time, heartbeats, hangs, pauses, network cuts
+/// and storage outages too. (Times fit the default pause threshold of 2 s.)
 fn clocked_op() -> impl Strategy<Value = Op> {
     prop_oneof![
         25 => op(),
-        6 => (0..3_000 as Millis).prop_map(Op::Tick),
+        6 => (0..=2_000 as Millis).prop_map(Op::Tick),
         1 => (0..3_000 as Millis).prop_map(Op::StaleTick),
         2 => any::<Index>().prop_map(Op::Heartbeat),
         4 => Just(Op::Pulse),
         1 => any::<Index>().prop_map(Op::Silence),
+        1 => (2_001..12_000 as Millis).prop_map(Op::Pause),
+        1 => any::<Index>().prop_map(Op::Cut),
+        1 => any::<Index>().prop_map(Op::Rejoin),
+        1 => any::<bool>().prop_map(Op::Storage),
     ]
 }
 
 fn pick<T: Copy>(items: &[T], index: &Index) -> Option<T> {
     (!items.is_empty()).then(|| items[index.index(items.len())])
+}
+
+fn pick_named(items: &[(WorkerId, String, u32)], index: &Index) -> Option<(WorkerId, String, u32)> {
+    (!items.is_empty()).then(|| items[index.index(items.len())].clone())
 }
 
 impl Farm {
@@ -1130,12 +1546,53 @@ impl Farm {
                     self.workers.get_mut(&worker).expect("live").silent = true;
                 }
             }
+            Op::Reconnect(i) => {
+                if let Some((worker, name, threads)) = pick_named(&self.named(false), i) {
+                    self.step(Event::WorkerLeft { worker });
+                    self.join_as(threads, Some(&name));
+                }
+            }
+            Op::Cut(i) => {
+                if let Some((worker, name, threads)) = pick_named(&self.named(true), i) {
+                    self.workers.get_mut(&worker).expect("live").silent = true;
+                    self.cut_off.push((name, threads));
+                }
+            }
+            Op::Rejoin(i) => {
+                if !self.cut_off.is_empty() {
+                    let (name, threads) = self.cut_off.remove(i.index(self.cut_off.len()));
+                    self.join_as(threads, Some(&name));
+                }
+            }
+            &Op::Pause(gap) => {
+                self.now += gap;
+                self.step(Event::Timeout);
+            }
+            &Op::Tick(advance) => {
+                self.now += advance;
+                self.step(Event::Timeout);
+            }
+            &Op::StaleTick(back) => {
+                self.step_at(self.now.saturating_sub(back), Event::Timeout);
+            }
             _ => {
                 if let Some(event) = self.event(op) {
                     self.step(event);
                 }
             }
         }
+    }
+
+    /// Live named workers (only those still talking, if `talking`): id, name, threads.
+    fn named(&self, talking: bool) -> Vec<(WorkerId, String, u32)> {
+        self.workers
+            .iter()
+            .filter(|(_, w)| !(talking && w.silent))
+            .filter_map(|(&id, w)| match &w.machine {
+                Machine::Named(name) => Some((id, name.clone(), w.threads)),
+                Machine::Connection(_) => None,
+            })
+            .collect()
     }
 
     /// Live workers that still send messages.
@@ -1195,10 +1652,10 @@ impl Farm {
             .filter(|w| !self.workers[w].holding.is_empty())
             .collect();
         Some(match op {
-            &Op::Join { threads } => Event::WorkerJoined {
+            &Op::Join { threads, name } => Event::WorkerJoined {
                 worker: self.next_worker,
                 threads,
-                machine: None,
+                machine: name.map(|n| NAMES[n].to_string()),
             },
             Op::Leave(i) => Event::WorkerLeft {
                 worker: pick(&live, i)?,
@@ -1274,16 +1731,24 @@ impl Farm {
                     job: pick(&ids, i)?,
                 }
             }
-            &Op::Tick(advance) => Event::Tick {
-                now: self.now + advance,
-            },
-            &Op::StaleTick(back) => Event::Tick {
-                now: self.now.saturating_sub(back),
-            },
             Op::Heartbeat(i) => Event::Heartbeat {
                 worker: pick(&self.talking(), i)?,
             },
-            Op::Pulse | Op::Silence(_) => return None,
+            &Op::Storage(down) => {
+                if down {
+                    Event::StorageUnavailable
+                } else {
+                    Event::StorageAvailable
+                }
+            }
+            Op::Tick(_)
+            | Op::StaleTick(_)
+            | Op::Pulse
+            | Op::Silence(_)
+            | Op::Reconnect(_)
+            | Op::Cut(_)
+            | Op::Rejoin(_)
+            | Op::Pause(_) => return None,
         })
     }
 }
@@ -1299,7 +1764,7 @@ fn config(cases: u32) -> ProptestConfig {
 
 /// A clocked history, then the clocked liveness phase.
 fn clocked_history(ops: &[Op], strict: bool) -> Farm {
-    let mut farm = Farm::with_policy(Policy::default(), strict);
+    let mut farm = Farm::with_policy(tight(clocked_policy()), strict);
     for op in ops {
         farm.apply(op);
     }
@@ -1308,17 +1773,17 @@ fn clocked_history(ops: &[Op], strict: bool) -> Farm {
 }
 
 proptest! {
-    #![proptest_config(config(1000))]
+    #![proptest_config(config(600))]
 
     /// Issue 3: every invariant after every event of a random history without a clock
-    /// or speculation (failures are retried, jobs fail only at `max_attempts`), then
-    /// every surviving job finishes once one steady worker joins and everyone returns
-    /// their tiles.
+    /// or speculation (failures are retried, jobs fail only at `max_attempts` or
+    /// `max_losses`; workers restart under their names), then every surviving job
+    /// finishes once one steady worker joins and everyone returns their tiles.
     #[test]
     fn random_histories_keep_the_invariants_and_finish_every_job(
         ops in prop::collection::vec(op(), 0..150),
     ) {
-        let mut farm = Farm::new();
+        let mut farm = Farm::with_policy(tight(no_speculation()), true);
         for op in &ops {
             farm.apply(op);
         }
@@ -1355,24 +1820,25 @@ proptest! {
 }
 
 proptest! {
-    #![proptest_config(config(2000))]
+    #![proptest_config(config(1200))]
 
-    /// Issue 4: with the default policy (speculation on), random ticks of up to 3 s,
-    /// heartbeats and hanging workers, every invariant holds after every event, and
-    /// every job ends once a steady worker joins and the clock runs.
+    /// Issue 4 and 12: with the default policy (speculation on; a short stall
+    /// timeout), random timeouts, heartbeats, hanging workers, restarts and network
+    /// cuts with rejoins under the same name, coordinator pauses and storage outages,
+    /// every invariant holds after every event, and the liveness property holds: every
+    /// job ends once a healthy worker joins and the clock runs, and one whose tiles were
+    /// only lost with workers ends done unless a tile reached `max_losses`.
     #[test]
     fn clocked_histories_keep_the_invariants_and_end_every_job(
         ops in prop::collection::vec(clocked_op(), 0..200),
     ) {
-        let farm = clocked_history(&ops, true);
-        for (id, j) in &farm.jobs {
-            prop_assert_ne!(j.fate, Fate::Active, "job {}", id);
-        }
+        clocked_history(&ops, true).check_liveness();
     }
 }
 
 /// The generators reach every case the properties are about: expired leases, late
-/// results, duplicates, drops, blocked workers, failed jobs (fixed seed).
+/// results, duplicates, drops, blocked machines, workers back under their name,
+/// coordinator pauses, storage outages, jobs failed for each reason (fixed seed).
 #[test]
 fn the_histories_exercise_every_feature() {
     let mut runner = TestRunner::deterministic();
@@ -1382,7 +1848,7 @@ fn the_histories_exercise_every_feature() {
             .new_tree(&mut runner)
             .expect("a history")
             .current();
-        let mut farm = Farm::new();
+        let mut farm = Farm::with_policy(tight(no_speculation()), true);
         for op in &ops {
             farm.apply(op);
         }
@@ -1397,7 +1863,9 @@ fn the_histories_exercise_every_feature() {
     }
     println!("no clock: {plain:?}\nclocked: {clocked:?}");
     assert!(plain.blocked > 0 && plain.jobs_failed > 0 && plain.jobs_done > 0);
-    assert_eq!(plain.duplicates_assigned + plain.dropped, 0);
+    assert!(plain.failed_by_attempts > 0 && plain.failed_by_losses > 0);
+    assert!(plain.rejoined_under_a_name > 0);
+    assert_eq!(plain.duplicates_assigned + plain.dropped + plain.pauses, 0);
     let Stats {
         accepted_late,
         reassigned_after_expiry,
@@ -1408,6 +1876,12 @@ fn the_histories_exercise_every_feature() {
         blocked,
         jobs_failed,
         jobs_done,
+        failed_by_attempts,
+        failed_by_losses,
+        failed_by_stall,
+        rejoined_under_a_name,
+        pauses,
+        while_storage_down,
     } = clocked;
     for (what, count) in [
         ("accepted_late", accepted_late),
@@ -1419,6 +1893,12 @@ fn the_histories_exercise_every_feature() {
         ("blocked", blocked),
         ("jobs_failed", jobs_failed),
         ("jobs_done", jobs_done),
+        ("failed_by_attempts", failed_by_attempts),
+        ("failed_by_losses", failed_by_losses),
+        ("failed_by_stall", failed_by_stall),
+        ("rejoined_under_a_name", rejoined_under_a_name),
+        ("pauses", pauses),
+        ("while_storage_down", while_storage_down),
     ] {
         assert!(count > 0, "no {what} in the clocked histories");
     }
@@ -1860,8 +2340,9 @@ fn a_silent_worker_is_dropped_and_its_tiles_go_elsewhere() {
             },
         ]
     );
-    // Each lost tile counts one failed attempt on the lost worker.
-    assert_eq!(farm.jobs[&job].attempts, BTreeMap::from([(0, 1), (1, 1)]));
+    // Each tile counts one loss; nothing counts against the silent worker's machine.
+    assert_eq!(farm.jobs[&job].losses, BTreeMap::from([(0, 1), (1, 1)]));
+    assert!(farm.jobs[&job].attempts.is_empty() && farm.jobs[&job].blocked.is_empty());
     // The heartbeating worker keeps its tiles, however long it takes.
     for now in (6_000..=50_000).step_by(1_000) {
         assert!(farm.tick(now, &[steady, spare]).is_empty(), "at {now}");
@@ -1995,12 +2476,12 @@ fn a_worker_failing_block_after_tiles_of_a_job_gets_none_of_it_but_others_jobs()
 }
 
 #[test]
-fn a_worker_crashing_with_a_tile_counts_one_attempt() {
-    let max = Policy::default().max_attempts;
+fn a_worker_crashing_with_a_tile_counts_a_loss_not_an_attempt() {
+    let policy = Policy::default();
     let mut farm = Farm::new();
     let (job, _) = farm.submit(0, SCENE_A, 1);
-    // max - 2 failures reported, then a crash: one attempt short.
-    for attempt in 1..=max - 2 {
+    // max - 1 failures reported, then crashes: the attempts stay one short.
+    for attempt in 1..policy.max_attempts {
         let (w, _) = farm.join(1);
         assert!(job_failed(&farm.fail(w, job, 0, "bad"), job).is_none());
         assert_eq!(farm.jobs[&job].attempts[&0], attempt);
@@ -2010,11 +2491,175 @@ fn a_worker_crashing_with_a_tile_counts_one_attempt() {
     let (next, _) = farm.join(1); // nothing waits: no tile
     let left = farm.step(Event::WorkerLeft { worker: crash });
     assert_eq!(assigns(&left), vec![(next, job, 0)]);
-    assert_eq!(farm.jobs[&job].attempts[&0], max - 1);
-    // The next crash is the last attempt.
-    let left = farm.step(Event::WorkerLeft { worker: next });
-    let message = job_failed(&left, job).expect("failed at max_attempts");
+    assert_eq!(farm.jobs[&job].attempts[&0], policy.max_attempts - 1);
+    assert_eq!(farm.jobs[&job].losses[&0], 1);
+    // Crashes alone fail it only at max_losses.
+    let mut holder = next;
+    for loss in 2..policy.max_losses {
+        let (spare, _) = farm.join(1);
+        let left = farm.step(Event::WorkerLeft { worker: holder });
+        assert!(job_failed(&left, job).is_none(), "loss {loss}");
+        assert_eq!(assigns(&left), vec![(spare, job, 0)]);
+        holder = spare;
+    }
+    let left = farm.step(Event::WorkerLeft { worker: holder });
+    let message = job_failed(&left, job).expect("failed at max_losses");
     assert!(names_tile(message, 0), "{message}");
+    assert!(
+        message.contains("lost with its worker 8 times"),
+        "{message}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------
+// Focused tests, issue 12: lost connections, restarts under the same name, pauses,
+// stalls and storage outages.
+
+/// One and two workers, each killed while holding its tiles and restarted under its
+/// name five times: never blocked, they get their tiles back, and the job is done.
+#[test]
+fn workers_killed_and_restarted_under_their_names_finish_the_job() {
+    for workers in [1, 2] {
+        let mut farm = Farm::with_policy(clocked_policy(), true);
+        let (job, _) = farm.submit(0, SCENE_A, 20);
+        let names = ["a", "b"];
+        let mut ids: Vec<WorkerId> = names[..workers]
+            .iter()
+            .map(|name| farm.join_as(1, Some(name)).0)
+            .collect();
+        for _ in 0..5 {
+            farm.now += 300;
+            for (i, name) in names[..workers].iter().enumerate() {
+                farm.step(Event::WorkerLeft { worker: ids[i] });
+                let (id, back) = farm.join_as(1, Some(name));
+                assert_eq!(assigns(&back).len(), 2, "{back:?}");
+                ids[i] = id;
+            }
+        }
+        assert!(farm.jobs[&job].blocked.is_empty());
+        while farm.active(job) {
+            farm.now += 500;
+            for &worker in &ids {
+                for (job, tile) in farm.held(worker) {
+                    farm.done(worker, job, tile);
+                }
+            }
+            farm.step(Event::Timeout);
+        }
+        assert_eq!(farm.jobs[&job].fate, Fate::Done, "{workers} workers");
+    }
+}
+
+/// The coordinator stopped for 7 s, past the heartbeat timeout: its timer fires first
+/// when it runs again, and nobody is dropped; the heartbeats waiting in the sockets
+/// are read next. No lease runs out for the pause either.
+#[test]
+fn a_coordinator_paused_for_7_s_drops_nobody() {
+    let mut farm = Farm::with_policy(
+        Policy {
+            initial_lease: 8_000,
+            ..clocked_policy()
+        },
+        true,
+    );
+    let (job, _) = farm.submit(0, SCENE_A, 4);
+    let (w1, _) = farm.join(1);
+    let (w2, _) = farm.join(1);
+    for now in [1_000, 2_000, 3_000] {
+        assert!(farm.tick(now, &[w1, w2]).is_empty());
+    }
+    farm.now = 10_000;
+    assert!(farm.step(Event::Timeout).is_empty());
+    for worker in [w1, w2] {
+        farm.step(Event::Heartbeat { worker });
+    }
+    assert_eq!(farm.scheduler.next_deadline(), Some(11_000));
+    // 3 s before the pause, 1 s for it, 3 s after: 7 s of the 8-s leases.
+    for now in (11_000..=13_000).step_by(1_000) {
+        assert!(farm.tick(now, &[w1, w2]).is_empty(), "at {now}");
+    }
+    assert_eq!(farm.held(w1), vec![(job, 0), (job, 1)]);
+    let counters = farm.scheduler.counters();
+    assert_eq!((counters.workers_dropped, counters.leases_expired), (0, 0));
+}
+
+/// A worker cut off past the heartbeat timeout is dropped; its tiles go to another
+/// machine meanwhile, and it rejoins under its name, unblocked, for the rest.
+#[test]
+fn a_worker_cut_off_rejoins_under_its_name_and_gets_tiles() {
+    let mut farm = Farm::with_policy(
+        Policy {
+            speculate: false,
+            ..clocked_policy()
+        },
+        true,
+    );
+    let (job, _) = farm.submit(0, SCENE_A, 8);
+    let (far, _) = farm.join_as(1, Some("far"));
+    let (near, _) = farm.join_as(1, Some("near"));
+    let mut dropped = Vec::new();
+    for now in (1_000..=8_000).step_by(1_000) {
+        dropped.extend(farm.tick(now, &[near]));
+    }
+    assert_eq!(dropped, vec![Action::DropWorker { worker: far }]);
+    assert_eq!(farm.jobs[&job].losses, BTreeMap::from([(0, 1), (1, 1)]));
+    let (back, joined) = farm.join_as(1, Some("far"));
+    assert_eq!(assigns(&joined), vec![(back, job, 1), (back, job, 0)]);
+    let _ = near;
+}
+
+/// Every connected machine failed the job's last waiting tile: the job fails after
+/// the stall timeout, naming the tile and the machines.
+#[test]
+fn a_job_no_connected_machine_may_take_fails_after_the_stall_timeout() {
+    let policy = Policy {
+        speculate: false,
+        ..clocked_policy()
+    };
+    let mut farm = Farm::with_policy(policy, true);
+    let (job, _) = farm.submit(0, SCENE_A, 1);
+    let (a, _) = farm.join_as(1, Some("a"));
+    farm.fail(a, job, 0, "out of memory");
+    let (b, _) = farm.join_as(1, Some("b"));
+    farm.fail(b, job, 0, "out of memory");
+    let mut failed = None;
+    for now in (1_000..=10_000).step_by(1_000) {
+        let actions = farm.tick(now, &[a, b]);
+        if let Some(message) = job_failed(&actions, job) {
+            failed = Some((now, message.to_string()));
+            break;
+        }
+    }
+    assert_eq!(
+        failed,
+        Some((
+            1_000 + policy.stall_timeout,
+            "no connected worker may render tile 0: it failed on every one of them (a, b)"
+                .to_string()
+        ))
+    );
+}
+
+/// While storage is unavailable nothing goes out, results still count; when it is back
+/// every worker is filled.
+#[test]
+fn a_storage_outage_assigns_nothing_then_fills_everyone() {
+    let mut farm = Farm::with_policy(clocked_policy(), true);
+    let (job, _) = farm.submit(0, SCENE_A, 6);
+    let (w1, _) = farm.join(1);
+    assert!(farm.step(Event::StorageUnavailable).is_empty());
+    assert_eq!(
+        farm.done(w1, job, 0),
+        vec![Action::AcceptTile { job, tile: 0 }]
+    );
+    let (w2, joined) = farm.join(1);
+    assert!(joined.is_empty());
+    assert!(assigns(&farm.tick(1_000, &[w1, w2])).is_empty());
+    let back = farm.step(Event::StorageAvailable);
+    assert_eq!(
+        assigns(&back),
+        vec![(w1, job, 2), (w2, job, 3), (w2, job, 4)]
+    );
 }
 
 // ---------------------------------------------------------------------------------------
@@ -2029,29 +2674,41 @@ fn a_worker_crashing_with_a_tile_counts_one_attempt() {
 #[test]
 fn a_tile_is_not_duplicated_to_a_worker_it_failed_on() {
     let mut s = Scheduler::new();
-    s.handle(Event::JobSubmitted {
-        job: 1,
-        priority: 0,
-        scene: SCENE_A,
-        tiles: 1,
-    });
-    s.handle(Event::WorkerJoined {
-        worker: 1,
-        threads: 1,
-        machine: None,
-    });
-    let joined = s.handle(Event::WorkerJoined {
-        worker: 2,
-        threads: 1,
-        machine: None,
-    });
+    s.handle(
+        0,
+        Event::JobSubmitted {
+            job: 1,
+            priority: 0,
+            scene: SCENE_A,
+            tiles: 1,
+        },
+    );
+    s.handle(
+        0,
+        Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+            machine: None,
+        },
+    );
+    let joined = s.handle(
+        0,
+        Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+            machine: None,
+        },
+    );
     assert_eq!(assigns(&joined), vec![(2, 1, 0)]);
-    let failed = s.handle(Event::TileFailed {
-        worker: 1,
-        job: 1,
-        tile: 0,
-        message: "boom".into(),
-    });
+    let failed = s.handle(
+        0,
+        Event::TileFailed {
+            worker: 1,
+            job: 1,
+            tile: 0,
+            message: "boom".into(),
+        },
+    );
     assert_eq!(assigns(&failed), vec![], "tile 0 failed on worker 1");
 }
 
@@ -2065,42 +2722,60 @@ fn a_tile_is_not_duplicated_to_a_worker_it_failed_on() {
 #[test]
 fn a_failed_late_copy_frees_the_worker_s_slot() {
     let mut s = Scheduler::new();
-    s.handle(Event::JobSubmitted {
-        job: 1,
-        priority: 0,
-        scene: SCENE_A,
-        tiles: 2,
-    });
-    s.handle(Event::WorkerJoined {
-        worker: 1,
-        threads: 1,
-        machine: None,
-    });
-    let joined = s.handle(Event::WorkerJoined {
-        worker: 2,
-        threads: 1,
-        machine: None,
-    });
+    s.handle(
+        0,
+        Event::JobSubmitted {
+            job: 1,
+            priority: 0,
+            scene: SCENE_A,
+            tiles: 2,
+        },
+    );
+    s.handle(
+        0,
+        Event::WorkerJoined {
+            worker: 1,
+            threads: 1,
+            machine: None,
+        },
+    );
+    let joined = s.handle(
+        0,
+        Event::WorkerJoined {
+            worker: 2,
+            threads: 1,
+            machine: None,
+        },
+    );
     assert_eq!(assigns(&joined), vec![(2, 1, 0), (2, 1, 1)]);
-    let done = s.handle(Event::TileDone {
-        worker: 1,
-        job: 1,
-        tile: 0,
-    });
+    let done = s.handle(
+        0,
+        Event::TileDone {
+            worker: 1,
+            job: 1,
+            tile: 0,
+        },
+    );
     assert!(done.contains(&Action::AcceptTile { job: 1, tile: 0 }));
-    s.handle(Event::TileFailed {
-        worker: 2,
-        job: 1,
-        tile: 0,
-        message: "out of memory".into(),
-    });
+    s.handle(
+        0,
+        Event::TileFailed {
+            worker: 2,
+            job: 1,
+            tile: 0,
+            message: "out of memory".into(),
+        },
+    );
     assert_eq!(s.held_by(2), 1, "worker 2 renders only tile 1 now");
-    let submitted = s.handle(Event::JobSubmitted {
-        job: 2,
-        priority: 0,
-        scene: SCENE_A,
-        tiles: 4,
-    });
+    let submitted = s.handle(
+        0,
+        Event::JobSubmitted {
+            job: 2,
+            priority: 0,
+            scene: SCENE_A,
+            tiles: 4,
+        },
+    );
     assert_eq!(assigns(&submitted), vec![(1, 2, 0), (2, 2, 1)]);
 }
 
@@ -2109,10 +2784,11 @@ fn a_failed_late_copy_frees_the_worker_s_slot() {
 //
 // The scheduler keeps indexes (each tile's state next to the queue, the straggler
 // candidates in the order they are chosen, the leases by deadline, the jobs in serving
-// order, the workers with free credit) so that no event walks every tile or every
-// worker. They must change no decision: for the same events, the same actions in the
-// same order as the scheduler had before them, kept verbatim in `reference/scheduler.rs`,
-// and the same answers to every query.
+// order, the workers by when they were last heard from and with free credit, the ready
+// machines) so that no event walks every tile or every worker. They must change no
+// decision: for the same events at the same times, the same actions in the same order
+// as the plain scheduler of `reference/scheduler.rs` (which walks everything), and the
+// same answers to every query, `next_deadline` included.
 
 fn reference_policy(p: &Policy) -> reference::Policy {
     reference::Policy {
@@ -2123,16 +2799,26 @@ fn reference_policy(p: &Policy) -> reference::Policy {
         max_attempts: p.max_attempts,
         block_after: p.block_after,
         speculate: p.speculate,
+        max_losses: p.max_losses,
+        stall_timeout: p.stall_timeout,
+        pause_threshold: p.pause_threshold,
+        wake_interval: p.wake_interval,
     }
 }
 
 fn reference_event(event: &Event) -> reference::Event {
     use reference::Event as R;
     match event.clone() {
-        Event::Tick { now } => R::Tick { now },
+        Event::Timeout => R::Timeout,
         Event::WorkerJoined {
-            worker, threads, ..
-        } => R::WorkerJoined { worker, threads },
+            worker,
+            threads,
+            machine,
+        } => R::WorkerJoined {
+            worker,
+            threads,
+            machine,
+        },
         Event::Heartbeat { worker } => R::Heartbeat { worker },
         Event::WorkerLeft { worker } => R::WorkerLeft { worker },
         Event::WorkerDraining { worker } => R::WorkerDraining { worker },
@@ -2160,6 +2846,8 @@ fn reference_event(event: &Event) -> reference::Event {
             message,
         },
         Event::CancelJob { job } => R::CancelJob { job },
+        Event::StorageUnavailable => R::StorageUnavailable,
+        Event::StorageAvailable => R::StorageAvailable,
     }
 }
 
@@ -2197,9 +2885,9 @@ impl Twin {
 
     /// Gives the reference the event the real scheduler answered with `actions`, and
     /// checks that it answers the same and that both then agree on every query.
-    fn check(&mut self, real: &Scheduler, event: &Event, actions: &[Action]) {
+    fn check(&mut self, real: &Scheduler, now: Millis, event: &Event, actions: &[Action]) {
         match *event {
-            Event::Tick { .. } => {}
+            Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}
             Event::WorkerJoined { worker, .. }
             | Event::Heartbeat { worker }
             | Event::WorkerLeft { worker }
@@ -2216,28 +2904,29 @@ impl Twin {
         }
         let expected: Vec<Action> = self
             .scheduler
-            .handle(reference_event(event))
+            .handle(now, reference_event(event))
             .into_iter()
             .map(from_reference)
             .collect();
         assert_eq!(
             actions, expected,
-            "the reference decides otherwise after {event:?}"
+            "the reference decides otherwise after {event:?} at {now}"
         );
-        self.agree(real, &|| format!("after {event:?}"));
+        self.agree(real, &|| format!("after {event:?} at {now}"));
     }
 
     /// Resumes the same job on the reference and checks the answer.
     fn check_resume(
         &mut self,
         real: &Scheduler,
+        now: Millis,
         (job, priority, scene, tiles, done): (JobId, i32, SceneHash, u32, &[u32]),
         actions: &[Action],
     ) {
         self.jobs.insert(job);
         let expected: Vec<Action> = self
             .scheduler
-            .resume_job(job, priority, scene, tiles, done)
+            .resume_job(now, job, priority, scene, tiles, done)
             .into_iter()
             .map(from_reference)
             .collect();
@@ -2253,6 +2942,12 @@ impl Twin {
 
     fn agree(&self, real: &Scheduler, context: &dyn Fn() -> String) {
         let reference = &self.scheduler;
+        assert_eq!(
+            real.next_deadline(),
+            reference.next_deadline(),
+            "next deadline {}",
+            context()
+        );
         assert_eq!(
             real.tiles_in_flight(),
             reference.tiles_in_flight(),
@@ -2282,11 +2977,21 @@ impl Twin {
 /// including what it never should (a worker id joining twice, a job id submitted twice).
 #[derive(Clone, Debug)]
 enum RawOp {
-    /// A worker joins: a fresh id, or now and then the id of a live one.
+    /// A worker joins: a fresh id, or now and then the id of a live one; under one of
+    /// [`NAMES`] or none.
     Join {
         threads: u32,
         reuse: Option<Index>,
+        name: Option<usize>,
     },
+    /// A named worker leaves and comes back at once under its name with a new id.
+    Reconnect(Index),
+    /// A worker stops heartbeating (hung, or cut off); a named one may rejoin.
+    Cut(Index),
+    /// A worker cut off joins again under its name.
+    Rejoin(Index),
+    /// Storage goes away (true) or comes back.
+    Storage(bool),
     Leave(Index),
     Drain(Index),
     Heartbeat(Index),
@@ -2321,12 +3026,22 @@ enum RawOp {
     Cancel(Index),
     Tick(Millis),
     StaleTick(Millis),
+    /// A long gap: the coordinator was stopped, and its timer fires first.
+    Pause(Millis),
 }
 
 fn raw_op() -> impl Strategy<Value = RawOp> {
     prop_oneof![
-        3 => (1u32..=4, prop::option::weighted(0.1, any::<Index>()))
-            .prop_map(|(threads, reuse)| RawOp::Join { threads, reuse }),
+        3 => (
+            1u32..=4,
+            prop::option::weighted(0.1, any::<Index>()),
+            prop::option::weighted(0.6, 0..NAMES.len()),
+        )
+            .prop_map(|(threads, reuse, name)| RawOp::Join { threads, reuse, name }),
+        1 => any::<Index>().prop_map(RawOp::Reconnect),
+        1 => any::<Index>().prop_map(RawOp::Cut),
+        1 => any::<Index>().prop_map(RawOp::Rejoin),
+        1 => any::<bool>().prop_map(RawOp::Storage),
         1 => any::<Index>().prop_map(RawOp::Leave),
         1 => any::<Index>().prop_map(RawOp::Drain),
         1 => any::<Index>().prop_map(RawOp::Heartbeat),
@@ -2357,29 +3072,42 @@ fn raw_op() -> impl Strategy<Value = RawOp> {
         1 => any::<Index>().prop_map(RawOp::Cancel),
         6 => (0..3_000 as Millis).prop_map(RawOp::Tick),
         1 => (0..3_000 as Millis).prop_map(RawOp::StaleTick),
+        1 => (0..12_000 as Millis).prop_map(RawOp::Pause),
     ]
 }
 
-/// Any policy, leases and timeouts short enough to run out within a history.
+/// Any policy, leases and timeouts short enough to run out within a history (a wake
+/// interval beyond the pause threshold included, which the scheduler clamps).
 fn any_policy() -> impl Strategy<Value = Policy> {
     (
-        1..8_000 as Millis,
-        1..20_000 as Millis,
-        1..3_000 as Millis,
-        1..5u64,
-        1..7u32,
-        1..4u32,
-        prop::bool::weighted(0.75),
+        (
+            1..8_000 as Millis,
+            1..20_000 as Millis,
+            1..3_000 as Millis,
+            1..5u64,
+            1..7u32,
+            1..4u32,
+            prop::bool::weighted(0.75),
+        ),
+        (
+            1..10u32,
+            0..15_000 as Millis,
+            1..5_000 as Millis,
+            0..3_000 as Millis,
+        ),
     )
         .prop_map(
             |(
-                heartbeat_timeout,
-                initial_lease,
-                min_lease,
-                lease_factor,
-                max_attempts,
-                block_after,
-                speculate,
+                (
+                    heartbeat_timeout,
+                    initial_lease,
+                    min_lease,
+                    lease_factor,
+                    max_attempts,
+                    block_after,
+                    speculate,
+                ),
+                (max_losses, stall_timeout, pause_threshold, wake_interval),
             )| Policy {
                 heartbeat_timeout,
                 initial_lease,
@@ -2388,6 +3116,10 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                 max_attempts,
                 block_after,
                 speculate,
+                max_losses,
+                stall_timeout,
+                pause_threshold,
+                wake_interval,
             },
         )
 }
@@ -2404,14 +3136,26 @@ struct RawStats {
     cancels: usize,
     jobs_done: usize,
     jobs_failed: usize,
+    /// Jobs failed for a tile lost too often, and for a stall.
+    failed_by_losses: usize,
+    failed_by_stall: usize,
+    /// Workers back under a name, and gaps beyond the pause threshold.
+    rejoins: usize,
+    pauses: usize,
 }
 
 /// The real scheduler and the reference fed the same raw history.
 struct Pair {
     real: Scheduler,
     twin: Twin,
+    policy: Policy,
     now: Millis,
     live: BTreeSet<WorkerId>,
+    /// Live workers that heartbeat no more, and the names (with threads) of live named
+    /// workers and of those cut off that may rejoin.
+    silent: BTreeSet<WorkerId>,
+    names: BTreeMap<WorkerId, (String, u32)>,
+    cut_off: Vec<(String, u32)>,
     next_worker: WorkerId,
     next_job: JobId,
     /// Assignments not yet reported on.
@@ -2426,8 +3170,12 @@ impl Pair {
         Pair {
             real: Scheduler::with_policy(*policy),
             twin: Twin::new(policy),
+            policy: *policy,
             now: 0,
             live: BTreeSet::new(),
+            silent: BTreeSet::new(),
+            names: BTreeMap::new(),
+            cut_off: Vec::new(),
             next_worker: 1,
             next_job: 1,
             assigned: Vec::new(),
@@ -2437,15 +3185,34 @@ impl Pair {
     }
 
     fn step(&mut self, event: Event) {
-        let actions = self.real.handle(event.clone());
-        self.twin.check(&self.real, &event, &actions);
+        self.step_at(self.now, event);
+    }
+
+    fn step_at(&mut self, now: Millis, event: Event) {
+        let actions = self.real.handle(now, event.clone());
+        self.twin.check(&self.real, now, &event, &actions);
         match event {
-            Event::Tick { now } => self.now = self.now.max(now),
-            Event::WorkerJoined { worker, .. } => {
+            Event::WorkerJoined {
+                worker,
+                threads,
+                ref machine,
+            } => {
                 self.live.insert(worker);
+                self.silent.remove(&worker);
+                match machine {
+                    Some(name) => {
+                        if self.names.values().any(|(n, _)| n == name) {
+                            self.stats.rejoins += 1;
+                        }
+                        self.names.insert(worker, (name.clone(), threads));
+                    }
+                    None => {
+                        self.names.remove(&worker);
+                    }
+                }
             }
             Event::WorkerLeft { worker } => {
-                self.live.remove(&worker);
+                self.forget(worker);
             }
             Event::TileDone { worker, job, tile }
                 if actions.contains(&Action::AcceptTile { job, tile })
@@ -2468,23 +3235,96 @@ impl Pair {
                     }
                 }
                 Action::DropWorker { worker } => {
-                    self.live.remove(&worker);
+                    self.forget(worker);
                     self.stats.drops += 1;
                 }
                 Action::DuplicateResult { .. } => self.stats.duplicates += 1,
                 Action::CancelOnWorker { .. } => self.stats.cancels += 1,
                 Action::JobDone { .. } => self.stats.jobs_done += 1,
-                Action::JobFailed { .. } => self.stats.jobs_failed += 1,
+                Action::JobFailed { ref message, .. } => {
+                    self.stats.jobs_failed += 1;
+                    if message.contains("was lost with its worker") {
+                        self.stats.failed_by_losses += 1;
+                    }
+                    if message.starts_with("no connected worker may render") {
+                        self.stats.failed_by_stall += 1;
+                    }
+                }
                 _ => {}
             }
         }
     }
 
+    /// The worker is gone (left or dropped).
+    fn forget(&mut self, worker: WorkerId) {
+        self.live.remove(&worker);
+        self.silent.remove(&worker);
+        self.names.remove(&worker);
+    }
+
+    /// Live workers that still heartbeat.
+    fn talking(&self) -> Vec<WorkerId> {
+        self.live.difference(&self.silent).copied().collect()
+    }
+
     fn apply(&mut self, op: &RawOp) {
         let live: Vec<WorkerId> = self.live.iter().copied().collect();
         let jobs: Vec<JobId> = (1..self.next_job.max(2)).collect();
+        let named: Vec<WorkerId> = self.names.keys().copied().collect();
         let event = match op {
-            RawOp::Join { threads, reuse } => {
+            RawOp::Reconnect(i) => {
+                let Some(worker) = pick(&named, i) else {
+                    return;
+                };
+                let (name, threads) = self.names[&worker].clone();
+                self.step(Event::WorkerLeft { worker });
+                self.next_worker += 1;
+                Event::WorkerJoined {
+                    worker: self.next_worker - 1,
+                    threads,
+                    machine: Some(name),
+                }
+            }
+            RawOp::Cut(i) => {
+                if let Some(worker) = pick(&self.talking(), i) {
+                    self.silent.insert(worker);
+                    if let Some(named) = self.names.get(&worker) {
+                        self.cut_off.push(named.clone());
+                    }
+                }
+                return;
+            }
+            RawOp::Rejoin(i) => {
+                if self.cut_off.is_empty() {
+                    return;
+                }
+                let (name, threads) = self.cut_off.remove(i.index(self.cut_off.len()));
+                self.next_worker += 1;
+                Event::WorkerJoined {
+                    worker: self.next_worker - 1,
+                    threads,
+                    machine: Some(name),
+                }
+            }
+            &RawOp::Storage(down) => {
+                if down {
+                    Event::StorageUnavailable
+                } else {
+                    Event::StorageAvailable
+                }
+            }
+            &RawOp::Pause(gap) => {
+                if gap > self.policy.pause_threshold {
+                    self.stats.pauses += 1;
+                }
+                self.now += gap;
+                Event::Timeout
+            }
+            RawOp::Join {
+                threads,
+                reuse,
+                name,
+            } => {
                 let worker = match reuse.as_ref().and_then(|i| pick(&live, i)) {
                     Some(worker) => worker,
                     None => {
@@ -2495,7 +3335,7 @@ impl Pair {
                 Event::WorkerJoined {
                     worker,
                     threads: *threads,
-                    machine: None,
+                    machine: name.map(|n| NAMES[n].to_string()),
                 }
             }
             RawOp::Leave(i) => match pick(&live, i) {
@@ -2506,12 +3346,12 @@ impl Pair {
                 Some(worker) => Event::WorkerDraining { worker },
                 None => return,
             },
-            RawOp::Heartbeat(i) => match pick(&live, i) {
+            RawOp::Heartbeat(i) => match pick(&self.talking(), i) {
                 Some(worker) => Event::Heartbeat { worker },
                 None => return,
             },
             RawOp::Pulse => {
-                for worker in live {
+                for worker in self.talking() {
                     self.step(Event::Heartbeat { worker });
                 }
                 return;
@@ -2544,11 +3384,12 @@ impl Pair {
             } => {
                 let job = self.next_job;
                 self.next_job += 1;
-                let actions = self
-                    .real
-                    .resume_job(job, *priority, SCENES[*scene], *tiles, done);
+                let actions =
+                    self.real
+                        .resume_job(self.now, job, *priority, SCENES[*scene], *tiles, done);
                 self.twin.check_resume(
                     &self.real,
+                    self.now,
                     (job, *priority, SCENES[*scene], *tiles, done),
                     &actions,
                 );
@@ -2591,12 +3432,17 @@ impl Pair {
             RawOp::Cancel(i) => Event::CancelJob {
                 job: pick(&jobs, i).expect("never empty"),
             },
-            RawOp::Tick(advance) => Event::Tick {
-                now: self.now + advance,
-            },
-            RawOp::StaleTick(back) => Event::Tick {
-                now: self.now.saturating_sub(*back),
-            },
+            RawOp::Tick(advance) => {
+                if *advance > self.policy.pause_threshold {
+                    self.stats.pauses += 1;
+                }
+                self.now += advance;
+                Event::Timeout
+            }
+            RawOp::StaleTick(back) => {
+                self.step_at(self.now.saturating_sub(*back), Event::Timeout);
+                return;
+            }
         };
         self.step(event);
     }
@@ -2608,15 +3454,15 @@ impl Pair {
             if self.assigned.is_empty() {
                 break;
             }
+            self.step(Event::StorageAvailable);
             for worker in self.live.clone() {
                 self.step(Event::Heartbeat { worker });
             }
             for (worker, job, tile) in std::mem::take(&mut self.assigned) {
                 self.step(Event::TileDone { worker, job, tile });
             }
-            self.step(Event::Tick {
-                now: self.now + 1_000,
-            });
+            self.now += 1_000;
+            self.step(Event::Timeout);
         }
     }
 }
@@ -2651,7 +3497,7 @@ proptest! {
         speculate in prop::bool::weighted(0.75),
         ops in prop::collection::vec(clocked_op(), 0..200),
     ) {
-        let policy = Policy { speculate, ..Policy::default() };
+        let policy = Policy { speculate, ..tight(clocked_policy()) };
         let mut farm = Farm::with_policy(policy, true);
         farm.reference = Some(Twin::new(&policy));
         for op in &ops {
@@ -2663,7 +3509,8 @@ proptest! {
 
 /// The raw histories reach what the indexes are about: tiles reassigned (after their
 /// leases ran out, or copied), results accepted from an earlier holder, duplicates,
-/// drops, cancellations, and jobs done and failed (fixed seed).
+/// drops, cancellations, jobs done and failed (for tiles lost too often and for stalls
+/// too), workers back under a name, and pauses (fixed seed).
 #[test]
 fn the_raw_histories_exercise_every_feature() {
     let mut runner = TestRunner::deterministic();
@@ -2685,6 +3532,10 @@ fn the_raw_histories_exercise_every_feature() {
         stats.cancels += s.cancels;
         stats.jobs_done += s.jobs_done;
         stats.jobs_failed += s.jobs_failed;
+        stats.failed_by_losses += s.failed_by_losses;
+        stats.failed_by_stall += s.failed_by_stall;
+        stats.rejoins += s.rejoins;
+        stats.pauses += s.pauses;
     }
     println!("{stats:?}");
     let RawStats {
@@ -2695,6 +3546,10 @@ fn the_raw_histories_exercise_every_feature() {
         cancels,
         jobs_done,
         jobs_failed,
+        failed_by_losses,
+        failed_by_stall,
+        rejoins,
+        pauses,
     } = stats;
     for (what, count) in [
         ("reassigned", reassigned),
@@ -2704,6 +3559,10 @@ fn the_raw_histories_exercise_every_feature() {
         ("cancels", cancels),
         ("jobs_done", jobs_done),
         ("jobs_failed", jobs_failed),
+        ("failed_by_losses", failed_by_losses),
+        ("failed_by_stall", failed_by_stall),
+        ("rejoins", rejoins),
+        ("pauses", pauses),
     ] {
         assert!(count > 0, "no {what} in the raw histories");
     }

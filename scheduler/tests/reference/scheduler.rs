@@ -1,44 +1,18 @@
-// The scheduler as it was before its indexes (per-tile queue state, the straggler and
-// deadline indexes, the maintained job order, the set of workers with free credit):
-// a verbatim copy of its decisions, kept as the oracle that
+// The scheduler's decisions written the plain way, without its indexes (per-tile queue
+// state, the straggler, deadline and last-heard indexes, the maintained job order, the
+// set of workers with free credit, the count of ready machines): every search walks
+// every tile, lease or worker. It is the oracle that
 // `the_indexed_scheduler_decides_as_the_reference_does` (scheduler_props.rs) compares
-// the real one against. Do not change it: the point is that it stays the old code.
+// the real one against, event by event. Change it when the decisions change (as for
+// lost connections, stalls, pauses and storage outages), never to follow an
+// optimisation of the real one: the point is that it stays obviously right.
 
-//! The scheduler core: which tile goes to which worker, when a lease runs out, and when
-//! a job is finished or has failed.
-//!
-//! A pure state machine. It owns no socket, no clock and no thread: the daemon feeds it
-//! [`Event`]s (time arrives as [`Event::Tick`]) and carries out the [`Action`]s it
-//! returns, and tests feed it scripted or random events with a virtual clock. Every
-//! decision of the farm is made here.
-//!
-//! Policy:
-//! - **Pull with credit.** A worker holds at most its credit of tiles (twice its
-//!   threads); it is sent the next one as soon as it returns one, so faster workers
-//!   render more tiles.
-//! - **Priority, then fair share, then FIFO.** A free slot goes to the highest-priority
-//!   job with tiles waiting; among jobs of that priority, to the one with the fewest
-//!   tiles in flight; among those, to the oldest. One job alone gets the whole farm;
-//!   two jobs of equal priority split it evenly, so a small job behind a huge one
-//!   finishes in about twice its solo time instead of waiting for the huge one.
-//! - **Leases.** Every assignment has a deadline: a few times the job's measured tile
-//!   time (a generous default before the first tile is measured). A tile whose lease
-//!   runs out goes back to the queue; its first holder may still deliver it.
-//! - **Liveness from heartbeats.** A worker not heard from within the heartbeat
-//!   timeout is dropped and its tiles go back to the queue.
-//! - **Stragglers.** When a job has no tile left waiting, a worker with free credit is
-//!   also given a tile still in flight elsewhere (the one out longest, at most two
-//!   holders per tile). The first result wins; a later copy is checked equal.
-//! - **First result wins.** A result or a failure for a tile the sender does not hold
-//!   (any more) changes nothing.
-//! - **Poison tiles.** A tile that fails (an error reported, or its worker dying while
-//!   holding it) is retried on other workers; after [`Policy::max_attempts`] failures
-//!   the job fails with the last error. A worker that fails
-//!   [`Policy::block_after`] tiles of a job gets no more of that job's tiles.
-//! - **Scenes once.** A worker is sent a scene before its first tile of it, and only
-//!   then; it may forget the scene once no active job uses it.
+//! The scheduler core, plainly: which tile goes to which worker, when a lease runs out,
+//! and when a job is finished or has failed. See `scheduler::tiles` for the policy.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
+
+use std::fmt;
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -63,6 +37,14 @@ pub struct Policy {
     pub block_after: u32,
     /// Whether to duplicate stragglers near the end of a job.
     pub speculate: bool,
+    /// Losses of one tile with its worker before its job fails.
+    pub max_losses: u32,
+    /// How long a job may stay stalled (no connected worker may take any waiting tile).
+    pub stall_timeout: Millis,
+    /// A longer gap between two calls is a pause, counted as one wake interval.
+    pub pause_threshold: Millis,
+    /// The longest gap between calls the daemon is told to leave.
+    pub wake_interval: Millis,
 }
 
 impl Default for Policy {
@@ -75,27 +57,36 @@ impl Default for Policy {
             max_attempts: 5,
             block_after: 2,
             speculate: true,
+            max_losses: 8,
+            stall_timeout: 30_000,
+            pause_threshold: 2_000,
+            wake_interval: 1_000,
         }
+    }
+}
+
+impl Policy {
+    fn wake(&self) -> Millis {
+        self.wake_interval.clamp(1, self.pause_threshold.max(1))
     }
 }
 
 /// Something that happened, as the daemon saw it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Event {
-    /// The clock moved on: leases and heartbeats are checked.
-    Tick {
-        now: Millis,
-    },
+    /// Time acts: heartbeats, leases and stalls are checked.
+    Timeout,
     WorkerJoined {
         worker: WorkerId,
         threads: u32,
+        machine: Option<String>,
     },
     /// The worker is alive (any message from it counts as much).
     Heartbeat {
         worker: WorkerId,
     },
-    /// The worker's connection is gone; its tiles go back to their queues, and count as
-    /// failed attempts (the worker may have died of them).
+    /// The worker's connection is gone; its tiles go back to their queues, each one
+    /// loss of the tile; nothing counts against the machine.
     WorkerLeft {
         worker: WorkerId,
     },
@@ -124,6 +115,9 @@ pub enum Event {
     CancelJob {
         job: JobId,
     },
+    /// No tile goes out until `StorageAvailable`.
+    StorageUnavailable,
+    StorageAvailable,
 }
 
 /// What the daemon must do.
@@ -191,11 +185,15 @@ struct Job {
     in_flight: BTreeMap<u32, Vec<Lease>>,
     done: Vec<bool>,
     remaining: u32,
-    /// Failed attempts per tile, and the workers each tile failed on.
-    failures: BTreeMap<u32, (u32, BTreeSet<WorkerId>)>,
-    /// Failures per worker, and the workers blocked from this job.
-    worker_failures: BTreeMap<WorkerId, u32>,
-    blocked: BTreeSet<WorkerId>,
+    /// Failures reported per tile, and the machines each tile failed on.
+    failures: BTreeMap<u32, (u32, BTreeSet<Machine>)>,
+    /// Failures per machine, and the machines blocked from this job.
+    worker_failures: BTreeMap<Machine, u32>,
+    blocked: BTreeSet<Machine>,
+    /// Losses per tile with its worker.
+    losses: BTreeMap<u32, u32>,
+    /// Since when no ready machine may take any waiting tile, as seen at timeouts.
+    stalled_since: Option<Millis>,
     /// Holders of tiles already accepted, whose copies are still to come.
     late_copies: BTreeSet<(u32, WorkerId)>,
     /// Measured tile times (assignment to result).
@@ -216,6 +214,8 @@ impl Job {
             failures: BTreeMap::new(),
             worker_failures: BTreeMap::new(),
             blocked: BTreeSet::new(),
+            losses: BTreeMap::new(),
+            stalled_since: None,
             late_copies: BTreeSet::new(),
             measured: 0,
             total_time: 0,
@@ -239,13 +239,18 @@ impl Job {
             .max(policy.min_lease)
     }
 
-    /// The first waiting tile this worker may take: one that has not failed on it and
-    /// that it does not still hold under an expired lease.
-    fn take_waiting_for(&mut self, worker: WorkerId) -> Option<u32> {
+    /// Whether the tile failed on the machine.
+    fn failed_on(&self, tile: u32, machine: &Machine) -> bool {
+        self.failures
+            .get(&tile)
+            .is_some_and(|(_, on)| on.contains(machine))
+    }
+
+    /// The first waiting tile this worker may take: one that has not failed on its
+    /// machine and that it does not still hold under an expired lease.
+    fn take_waiting_for(&mut self, worker: WorkerId, machine: &Machine) -> Option<u32> {
         let pos = self.waiting.iter().position(|t| {
-            self.failures
-                .get(t)
-                .is_none_or(|(_, on)| !on.contains(&worker))
+            !self.failed_on(*t, machine)
                 && self
                     .in_flight
                     .get(t)
@@ -255,24 +260,47 @@ impl Job {
     }
 
     /// The tile to duplicate for an idle worker: in flight with one live holder that is
-    /// not this worker, never failed on this worker, out the longest.
-    fn straggler_for(&self, worker: WorkerId) -> Option<u32> {
+    /// not this worker, never failed on its machine, out the longest.
+    fn straggler_for(&self, worker: WorkerId, machine: &Machine) -> Option<u32> {
         self.in_flight
             .iter()
             .filter(|(t, ls)| {
                 ls.iter().all(|l| l.worker != worker)
                     && ls.iter().filter(|l| !l.expired).count() == 1
-                    && self
-                        .failures
-                        .get(t)
-                        .is_none_or(|(_, on)| !on.contains(&worker))
+                    && !self.failed_on(**t, machine)
             })
             .min_by_key(|(t, ls)| (ls.iter().map(|l| l.started).min(), **t))
             .map(|(t, _)| *t)
     }
 }
 
+/// Who failures are counted against: the name a worker gave, or its connection.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Machine {
+    Named(String),
+    Connection(WorkerId),
+}
+
+impl fmt::Display for Machine {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Machine::Named(name) => f.write_str(name),
+            Machine::Connection(id) => write!(f, "worker {id}"),
+        }
+    }
+}
+
+/// The first eight machines, then how many more.
+fn name_list(machines: &[&Machine]) -> String {
+    let mut list: Vec<String> = machines.iter().take(8).map(|m| m.to_string()).collect();
+    if machines.len() > 8 {
+        list.push(format!("and {} more", machines.len() - 8));
+    }
+    list.join(", ")
+}
+
 struct Worker {
+    machine: Machine,
     credit: usize,
     holding: BTreeSet<(JobId, u32)>,
     scenes: BTreeSet<SceneHash>,
@@ -284,7 +312,11 @@ struct Worker {
 #[derive(Default)]
 pub struct Scheduler {
     policy: Policy,
+    /// The scheduler's clock: the daemon's less its pauses.
     now: Millis,
+    /// The daemon's clock at the last call.
+    wall: Option<Millis>,
+    storage_down: bool,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
     workers: BTreeMap<WorkerId, Worker>,
@@ -303,20 +335,26 @@ impl Scheduler {
         }
     }
 
-    /// Applies one event and returns what to do, in order.
-    pub fn handle(&mut self, event: Event) -> Vec<Action> {
+    /// Applies one event at the daemon's time `now` and returns what to do, in order.
+    pub fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
+        self.advance(now);
         let mut actions = Vec::new();
         match event {
-            Event::Tick { now } => {
-                self.now = self.now.max(now);
+            Event::Timeout => {
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
             }
-            Event::WorkerJoined { worker, threads } => {
+            Event::WorkerJoined {
+                worker,
+                threads,
+                machine,
+            } => {
                 self.workers.insert(
                     worker,
                     Worker {
+                        machine: machine.map_or(Machine::Connection(worker), Machine::Named),
                         credit: 2 * threads.max(1) as usize,
                         holding: BTreeSet::new(),
                         scenes: BTreeSet::new(),
@@ -324,6 +362,7 @@ impl Scheduler {
                         last_seen: self.now,
                     },
                 );
+                self.end_stalls_without_workers();
                 self.fill(worker, &mut actions);
             }
             Event::Heartbeat { worker } => {
@@ -340,6 +379,7 @@ impl Scheduler {
                     w.draining = true;
                     w.last_seen = self.now;
                 }
+                self.end_stalls_without_workers();
             }
             Event::JobSubmitted {
                 job,
@@ -357,7 +397,8 @@ impl Scheduler {
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
                 self.tile_done(worker, job, tile, &mut actions);
-                // Holders of a finished job's last copies are filled at the next tick.
+                // Holders of a finished job's last copies are filled at the next event
+                // that fills everyone.
                 self.fill(worker, &mut actions);
             }
             Event::TileFailed {
@@ -370,7 +411,11 @@ impl Scheduler {
                 // Like a result, a failure counts only from a holder of the tile. A
                 // failed copy of a tile already accepted only frees the worker's slot.
                 if self.release(worker, job, tile).is_some() {
-                    self.failed_attempt(worker, job, tile, &message, &mut actions);
+                    let machine = self
+                        .workers
+                        .get(&worker)
+                        .map_or(Machine::Connection(worker), |w| w.machine.clone());
+                    self.failed_attempt(&machine, job, tile, &message, &mut actions);
                 } else if let Some(j) = self.jobs.get_mut(&job) {
                     if j.late_copies.remove(&(tile, worker)) {
                         if let Some(w) = self.workers.get_mut(&worker) {
@@ -386,8 +431,130 @@ impl Scheduler {
                 }
                 self.fill_all(&mut actions);
             }
+            Event::StorageUnavailable => self.storage_down = true,
+            Event::StorageAvailable => {
+                self.storage_down = false;
+                self.fill_all(&mut actions);
+            }
         }
         actions
+    }
+
+    /// The earliest of every heartbeat timeout, live lease deadline and stall timeout,
+    /// and the last call plus the wake interval while a worker or a live lease exists.
+    pub fn next_deadline(&self) -> Option<Millis> {
+        let wall = self.wall?;
+        let mut times: Vec<Millis> = Vec::new();
+        for w in self.workers.values() {
+            times.push(w.last_seen + self.policy.heartbeat_timeout + 1);
+        }
+        let mut live_lease = false;
+        for job in self.jobs.values() {
+            for lease in job.in_flight.values().flatten().filter(|l| !l.expired) {
+                times.push(lease.deadline);
+                live_lease = true;
+            }
+            if let Some(since) = job.stalled_since {
+                times.push(since + self.policy.stall_timeout);
+            }
+        }
+        if !self.workers.is_empty() || live_lease {
+            times.push(self.now + self.policy.wake());
+        }
+        let at = times.into_iter().min()?;
+        Some(wall + at.saturating_sub(self.now))
+    }
+
+    /// A gap beyond the pause threshold counts as one wake interval.
+    fn advance(&mut self, wall: Millis) {
+        match self.wall {
+            None => {
+                self.now = self.now.max(wall);
+                self.wall = Some(wall);
+            }
+            Some(last) => {
+                let wall = wall.max(last);
+                let gap = wall - last;
+                self.now += if gap > self.policy.pause_threshold {
+                    self.policy.wake()
+                } else {
+                    gap
+                };
+                self.wall = Some(wall);
+            }
+        }
+    }
+
+    /// The machines of the live workers that are not draining.
+    fn ready(&self) -> BTreeSet<Machine> {
+        self.workers
+            .values()
+            .filter(|w| !w.draining)
+            .map(|w| w.machine.clone())
+            .collect()
+    }
+
+    /// Without a ready machine no job is stalled: its clock starts again.
+    fn end_stalls_without_workers(&mut self) {
+        if self.ready().is_empty() {
+            for job in self.jobs.values_mut() {
+                job.stalled_since = None;
+            }
+        }
+    }
+
+    /// Per job, in id order: stalled if some tile waits and no ready machine may take
+    /// any waiting tile; fails once stalled for the stall timeout.
+    fn check_stalls(&mut self, actions: &mut Vec<Action>) {
+        let ready = self.ready();
+        let now = self.now;
+        let mut failed = Vec::new();
+        for (&id, job) in &mut self.jobs {
+            let takeable = |t: u32| {
+                ready
+                    .iter()
+                    .any(|m| !job.blocked.contains(m) && !job.failed_on(t, m))
+            };
+            let stalled = !ready.is_empty()
+                && !job.waiting.is_empty()
+                && !job.waiting.iter().any(|&t| takeable(t));
+            if !stalled {
+                job.stalled_since = None;
+                continue;
+            }
+            let since = *job.stalled_since.get_or_insert(now);
+            if now - since >= self.policy.stall_timeout {
+                let tile = job.waiting[0];
+                let (failed_here, blocked): (Vec<&Machine>, Vec<&Machine>) =
+                    ready.iter().partition(|m| job.failed_on(tile, m));
+                let head = format!("no connected worker may render tile {tile}");
+                let k = self.policy.block_after;
+                let message = if blocked.is_empty() {
+                    format!(
+                        "{head}: it failed on every one of them ({})",
+                        name_list(&failed_here)
+                    )
+                } else if failed_here.is_empty() {
+                    format!(
+                        "{head}: every one of them is blocked from the job after failing {k} \
+                         of its tiles ({})",
+                        name_list(&blocked)
+                    )
+                } else {
+                    format!(
+                        "{head}: it failed on some of them ({}) and the others are blocked \
+                         from the job after failing {k} of its tiles ({})",
+                        name_list(&failed_here),
+                        name_list(&blocked)
+                    )
+                };
+                failed.push((id, message));
+            }
+        }
+        for (job, message) in failed {
+            self.end_job(job, actions);
+            actions.push(Action::JobFailed { job, message });
+        }
     }
 
     /// Takes back a job found in durable storage after a restart, with the tiles
@@ -395,12 +562,14 @@ impl Scheduler {
     /// is part of rebuilding the state, not something that happens to a running farm.)
     pub fn resume_job(
         &mut self,
+        now: Millis,
         job: JobId,
         priority: i32,
         scene: SceneHash,
         tiles: u32,
         done: &[u32],
     ) -> Vec<Action> {
+        self.advance(now);
         let mut actions = Vec::new();
         let mut j = Job::new(priority, scene, tiles);
         for &tile in done.iter().filter(|t| **t < tiles) {
@@ -447,22 +616,41 @@ impl Scheduler {
         }
     }
 
+    /// Its tiles go back, each one loss; nothing counts against its machine.
     fn remove_worker(&mut self, worker: WorkerId, actions: &mut Vec<Action>) {
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
+        self.end_stalls_without_workers();
         for (job, tile) in w.holding {
             if self.release(worker, job, tile).is_some() {
-                self.failed_attempt(
-                    worker,
-                    job,
-                    tile,
-                    "the worker was lost while rendering it",
-                    actions,
-                );
+                self.lost(job, tile, actions);
             } else if let Some(j) = self.jobs.get_mut(&job) {
                 j.late_copies.remove(&(tile, worker));
             }
+        }
+    }
+
+    /// One more loss of the tile: retry it, or fail the job at `max_losses`.
+    fn lost(&mut self, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let losses = job.losses.entry(tile).or_default();
+        *losses += 1;
+        let losses = *losses;
+        if losses >= self.policy.max_losses {
+            let message = format!(
+                "tile {tile} was lost with its worker {losses} times (a tile that crashes \
+                 workers, or workers that keep losing their connection)"
+            );
+            self.end_job(job_id, actions);
+            actions.push(Action::JobFailed {
+                job: job_id,
+                message,
+            });
+        } else if job.live_leases(tile) == 0 && !job.waiting.contains(&tile) {
+            job.waiting.push_front(tile);
         }
     }
 
@@ -572,7 +760,7 @@ impl Scheduler {
     /// a worker that keeps failing, or fail the job.
     fn failed_attempt(
         &mut self,
-        worker: WorkerId,
+        machine: &Machine,
         job_id: JobId,
         tile: u32,
         message: &str,
@@ -583,12 +771,12 @@ impl Scheduler {
         };
         let (attempts, on) = job.failures.entry(tile).or_default();
         *attempts += 1;
-        on.insert(worker);
+        on.insert(machine.clone());
         let attempts = *attempts;
-        let worker_failures = job.worker_failures.entry(worker).or_default();
+        let worker_failures = job.worker_failures.entry(machine.clone()).or_default();
         *worker_failures += 1;
         if *worker_failures >= self.policy.block_after {
-            job.blocked.insert(worker);
+            job.blocked.insert(machine.clone());
         }
         if attempts >= self.policy.max_attempts {
             let message = format!("tile {tile} failed {attempts} times; last: {message}");
@@ -647,6 +835,9 @@ impl Scheduler {
 
     /// Gives the worker tiles until its credit is used or nothing is left for it.
     fn fill(&mut self, worker_id: WorkerId, actions: &mut Vec<Action>) {
+        if self.storage_down {
+            return;
+        }
         loop {
             let Some(worker) = self.workers.get(&worker_id) else {
                 return;
@@ -691,16 +882,17 @@ impl Scheduler {
     /// then fewest tiles in flight, then oldest) it is not blocked from; failing that,
     /// a straggler to duplicate.
     fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
+        let machine = self.workers.get(&worker)?.machine.clone();
         let mut candidates: Vec<(&JobId, &Job)> = self
             .jobs
             .iter()
-            .filter(|(_, j)| !j.blocked.contains(&worker))
+            .filter(|(_, j)| !j.blocked.contains(&machine))
             .collect();
         candidates.sort_by_key(|(id, j)| (std::cmp::Reverse(j.priority), j.in_flight.len(), **id));
         let order: Vec<JobId> = candidates.iter().map(|(id, _)| **id).collect();
         for id in &order {
             let job = self.jobs.get_mut(id).expect("listed above");
-            if let Some(tile) = job.take_waiting_for(worker) {
+            if let Some(tile) = job.take_waiting_for(worker, &machine) {
                 return Some((*id, tile));
             }
         }
@@ -713,7 +905,7 @@ impl Scheduler {
             if !job.waiting.is_empty() {
                 return None;
             }
-            job.straggler_for(worker)
+            job.straggler_for(worker, &machine)
                 .filter(|t| !holding.contains(&(*id, *t)))
                 .map(|t| (*id, t))
         })
