@@ -259,6 +259,31 @@ impl Farm {
     }
 }
 
+/// Waits for the job to have more than `since` tiles done (or be done), at most
+/// [`STALL`]; returns when. Fails with the job's status and the workers if it does not.
+fn wait_progress(farm: &Farm, job: u64, since: u64, what: &str) -> Instant {
+    let deadline = Instant::now() + STALL;
+    loop {
+        let status = farm.status(job);
+        assert_not_ended_badly(job, &status);
+        if tiles_done(&status) > since || status["state"] == "done" {
+            return Instant::now();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "job {job} made no progress within {STALL:?} {what} ({}/{} tiles, state {}, \
+             eta_ms {}); workers connected: {}",
+            status["tiles_done"],
+            status["tiles_total"],
+            status["state"],
+            status["eta_ms"],
+            farm.try_workers()
+                .map_or("(unreachable)".to_owned(), |w| Value::Array(w).to_string()),
+        );
+        thread::sleep(common::POLL);
+    }
+}
+
 /// A job that failed or was cancelled fails the test at once.
 fn assert_not_ended_badly(job: u64, status: &Value) {
     let state = status["state"].as_str().expect("state is a string");
@@ -361,10 +386,20 @@ fn kill_and_restart(
     );
     // Its next tile: the restarted worker is not kept from the job.
     let deadline = registered + STALL;
+    let mut left_at_registration = None;
     loop {
         let status = farm.status(job);
         assert_not_ended_badly(job, &status);
+        let left = tiles_total(&status) - tiles_done(&status);
+        let left_then = *left_at_registration.get_or_insert(left);
         if status["state"] == "done" {
+            // Others may finish the last few tiles first; not a job's worth of them.
+            assert!(
+                left_then <= 50,
+                "{name}, restarted under its own name (round {round}), got none of the \
+                 {left_then} tiles left when it registered: the other workers rendered them \
+                 all"
+            );
             return None;
         }
         let worker = farm
@@ -500,11 +535,7 @@ fn an_eight_second_network_cut_ends_with_the_job_done() {
     proxy.restore();
     let restored = Instant::now();
 
-    let resumed = common::poll("the job to progress after the cut", STALL, || {
-        let status = farm.status(job);
-        assert_not_ended_badly(job, &status);
-        (tiles_done(&status) > during || status["state"] == "done").then(Instant::now)
-    });
+    let resumed = wait_progress(&farm, job, during, "after the link was restored");
     let status = farm.wait_done(job, STALL);
     let done = restored.elapsed();
     assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
@@ -550,12 +581,21 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
     let continued = Instant::now();
     let at_cont = tiles_done(&farm.status(job));
 
-    let resumed = common::poll("the job to progress after the pause", STALL, || {
-        let status = farm.status(job);
-        assert_not_ended_badly(job, &status);
-        (tiles_done(&status) > at_cont || status["state"] == "done").then(Instant::now)
-    });
+    // Whatever happens next, the pause must not have dropped anyone.
     let mut findings = Findings::default();
+    let dropped: Vec<String> = farm
+        .coordinator_logs()
+        .lines()
+        .filter(|l| l.contains("dropping the worker"))
+        .map(str::to_owned)
+        .collect();
+    findings.check(dropped.is_empty(), || {
+        format!(
+            "the coordinator dropped workers after a 7 s pause:\n{}",
+            dropped.join("\n")
+        )
+    });
+    let resumed = wait_progress(&farm, job, at_cont, "after SIGCONT");
     let mut after: Vec<(String, u64)> = farm
         .try_workers()
         .unwrap_or_default()
@@ -575,18 +615,6 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
     });
     let status = farm.wait_done(job, STALL);
     assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
-    let dropped: Vec<String> = farm
-        .coordinator_logs()
-        .lines()
-        .filter(|l| l.contains("dropping the worker"))
-        .map(str::to_owned)
-        .collect();
-    findings.check(dropped.is_empty(), || {
-        format!(
-            "the coordinator dropped workers after a 7 s pause:\n{}",
-            dropped.join("\n")
-        )
-    });
     eprintln!(
         "coordinator paused 7 s at {at_cont}/{total} tiles; the job progressed {} ms after \
          SIGCONT; workers dropped: {}",
@@ -597,10 +625,10 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
     findings.finish();
 }
 
-/// The job id a `submit --wait` printed on stderr (`submitted job N`), waiting up to
-/// `timeout` for it.
-fn submitted_line(client: &Daemon, timeout: Duration) -> Option<(u64, Duration)> {
-    let started = Instant::now();
+/// The job id a `submit --wait` started at `started` printed on stderr (`submitted job
+/// N`), and how long after its start it was seen; waits up to `timeout` for it.
+fn submitted_line(client: &Daemon, started: Instant, timeout: Duration) -> Option<(u64, Duration)> {
+    let deadline = Instant::now() + timeout;
     loop {
         let text = client.log_text();
         if let Some(id) = text
@@ -610,7 +638,7 @@ fn submitted_line(client: &Daemon, timeout: Duration) -> Option<(u64, Duration)>
         {
             return Some((id, started.elapsed()));
         }
-        if started.elapsed() > timeout {
+        if Instant::now() > deadline {
             return None;
         }
         thread::sleep(Duration::from_millis(10));
@@ -635,38 +663,39 @@ fn submit_wait_prints_its_job_and_rides_through_a_coordinator_restart() {
         "--coordinator",
         &farm.addr,
     ]);
+    let spawned = Instant::now();
     let mut client = common::spawn_tessera(farm.dir(), &args, "submit-wait.log");
     let mut findings = Findings::default();
 
-    let printed = submitted_line(&client, Duration::from_secs(10));
+    // The job, as the coordinator lists it; the client must have printed its line by
+    // then, or very soon after.
+    let listed = common::poll("the job to be listed", Duration::from_secs(10), || {
+        let run = common::client(farm.dir(), &farm.addr, &["list", "--json"]);
+        let jobs: Value = serde_json::from_str(run.stdout.trim()).ok()?;
+        jobs.as_array()?.first()?["id"].as_u64()
+    });
+    let printed = submitted_line(&client, spawned, Duration::from_secs(2));
     findings.check(printed.is_some(), || {
         format!(
-            "submit --wait printed no `submitted job N` line within 10 s; its stderr: {:?}",
+            "submit --wait printed no `submitted job N` line within 2 s of the job being \
+             listed; its stderr: {:?}",
             client.log_text()
         )
     });
-    let job = match printed {
-        Some((job, after)) => {
-            let first = client.log_text().lines().next().unwrap_or("").to_owned();
-            findings.check(first == format!("submitted job {job}"), || {
-                format!("`submitted job {job}` is not the first line on stderr: {first:?}")
-            });
-            eprintln!(
-                "submit --wait printed `submitted job {job}` after {} ms",
-                after.as_millis()
-            );
-            job
-        }
-        None => {
-            // Find the job another way, to test the rest.
-            let jobs = common::poll("the job to be listed", Duration::from_secs(10), || {
-                let run = common::client(farm.dir(), &farm.addr, &["list", "--json"]);
-                let jobs: Value = serde_json::from_str(run.stdout.trim()).ok()?;
-                (jobs.as_array()?.len() == 1).then_some(jobs)
-            });
-            jobs[0]["id"].as_u64().expect("id")
-        }
-    };
+    let job = listed;
+    if let Some((id, after)) = printed {
+        findings.check(id == listed, || {
+            format!("submit --wait printed `submitted job {id}`, but the job is {listed}")
+        });
+        let first = client.log_text().lines().next().unwrap_or("").to_owned();
+        findings.check(first == format!("submitted job {id}"), || {
+            format!("`submitted job {id}` is not the first line on stderr: {first:?}")
+        });
+        eprintln!(
+            "submit --wait printed `submitted job {id}` {} ms after it started",
+            after.as_millis()
+        );
+    }
     let total = tiles_total(&farm.wait_for_tiles(job, 1));
     farm.wait_for_tiles(job, total / 5);
 
@@ -712,7 +741,7 @@ fn submit_wait_prints_its_job_and_rides_through_a_coordinator_restart() {
 /// The largest growth of the coordinator's resident set allowed from its 4th to its
 /// 15th job: a few frames' worth of allocator slack, far less than the 11 finished
 /// images (about 0.5 MB each) it would hold if it kept them.
-const RSS_GROWTH_LIMIT_KIB: u64 = 3 * 1024;
+const RSS_GROWTH_LIMIT_KIB: u64 = 4 * 1024;
 /// The largest `tessera.db` allowed once 15 jobs have ended: their rows, not their
 /// tiles (a 1080p job's tile blobs take 6 MB).
 const DB_LIMIT_BYTES: u64 = 2 * 1024 * 1024;
@@ -776,7 +805,7 @@ fn memory_and_disk_stay_bounded_over_15_sequential_1080p_jobs() {
     findings.finish();
 }
 
-/// A job whose coordinator is killed late in the job and restarted: right after the
+/// A job whose coordinator is killed late in the job (7/8 of its tiles done) and restarted: right after the
 /// restart it reports `running` (tiles are done), its `elapsed_ms` counts from the
 /// original submission, and once done its `job.json` gives the rays per second of the
 /// rendering time actually spent (not of the time since the restart).
@@ -788,7 +817,7 @@ fn a_restored_job_reports_its_true_state_time_and_speed() {
     let submitted = Instant::now();
     let job = farm.submit(&lights, JOB);
     let total = tiles_total(&farm.status(job));
-    farm.wait_for_tiles(job, total * 3 / 4);
+    farm.wait_for_tiles(job, total * 7 / 8);
 
     farm.coordinator.kill9();
     let killed = Instant::now();
@@ -855,7 +884,7 @@ fn a_restored_job_reports_its_true_state_time_and_speed() {
     // to the end; the coordinator was down in between.
     let rendering = (killed - submitted) + done_at.saturating_duration_since(rejoined_at);
     let lower = rendering
-        .mul_f64(0.8)
+        .mul_f64(0.85)
         .saturating_sub(Duration::from_millis(300));
     let upper = wall + Duration::from_millis(500);
     eprintln!(

@@ -203,7 +203,7 @@ fn assert_refuses_to_start(dir: &Path, data: &Path, what: &str) -> String {
         db.display(),
         lines[0]
     );
-    eprintln!("{what}: exit {exit}: {}", lines[0]);
+    eprintln!("{what}: {exit}: {}", lines[0]);
     lines[0].to_owned()
 }
 
@@ -383,9 +383,9 @@ impl Interrupted {
         assert_eq!(changed, 1, "{sql} changed {changed} rows");
     }
 
-    /// Flips bits of one byte in the middle of the tile's pixels, keeping the length
-    /// (and any checksum) as it was.
-    fn alter_pixels(&self, tile: i64) {
+    /// Changes the tile's pixels with `change`, keeping their checksum (if any) as it
+    /// was.
+    fn edit_pixels(&self, tile: i64, change: impl FnOnce(&mut Vec<u8>)) {
         let db = self.open_db();
         let mut rgb: Vec<u8> = db
             .query_row(
@@ -394,13 +394,21 @@ impl Interrupted {
                 |r| r.get(0),
             )
             .expect("the tile's pixels");
-        let middle = rgb.len() / 2;
-        rgb[middle] ^= 0x5a;
+        change(&mut rgb);
         db.execute(
             "UPDATE tiles SET rgb = ?3 WHERE job = ?1 AND tile = ?2",
             params![self.job as i64, tile, rgb],
         )
         .expect("alter the tile");
+    }
+
+    /// Flips bits of one byte in the middle of the tile's pixels, keeping the length
+    /// (and any checksum) as it was.
+    fn alter_pixels(&self, tile: i64) {
+        self.edit_pixels(tile, |rgb| {
+            let middle = rgb.len() / 2;
+            rgb[middle] ^= 0x5a;
+        });
     }
 
     /// Restarts the coordinator on the damaged data directory: it must start, resume
@@ -504,14 +512,9 @@ fn tile_blobs_of_the_wrong_length_are_rendered_again() {
         s[0],
         "UPDATE tiles SET rgb = substr(rgb, 1, length(rgb) / 2) WHERE job = ?1 AND tile = ?2",
     );
-    farm.damage(
-        s[1],
-        "UPDATE tiles SET rgb = rgb || x'00ff' WHERE job = ?1 AND tile = ?2",
-    );
-    farm.damage(
-        s[2],
-        "UPDATE tiles SET rgb = x'' WHERE job = ?1 AND tile = ?2",
-    );
+    // Edited in Rust: SQL's `||` would turn the blob into text.
+    farm.edit_pixels(s[1], |rgb| rgb.extend([0, 0xff]));
+    farm.edit_pixels(s[2], Vec::clear);
     farm.restart_and_finish(
         farm.stored.len() as u64 - 3,
         "tile blobs of the wrong length",
@@ -526,10 +529,9 @@ fn altered_tile_blobs_are_caught_by_their_checksum() {
     let _serial = common::serial();
     let farm = Interrupted::new();
     let checksums = farm.has_checksums();
-    let mut middle = farm.stored.len() / 2;
-    for _ in 0..3 {
-        farm.alter_pixels(farm.stored[middle]);
-        middle += 1;
+    let middle = farm.stored.len() / 2;
+    for &tile in &farm.stored[middle..middle + 3] {
+        farm.alter_pixels(tile);
     }
     farm.restart_and_finish(farm.stored.len() as u64 - 3, "altered tile blobs");
     assert!(

@@ -51,6 +51,10 @@ use tempfile::TempDir;
 const JOB: &[&str] = &[
     "--width", "1600", "--height", "1200", "--aa", "5", "--tile", "32",
 ];
+/// Some 9 CPU-seconds in 1,900 tiles: still running when a stall is noticed.
+const LONG_JOB: &[&str] = &[
+    "--width", "1600", "--height", "1200", "--aa", "8", "--tile", "32",
+];
 /// Longest a job may take once the storage is back.
 const JOB_TIMEOUT: Duration = Duration::from_secs(60);
 /// Longest the coordinator may take to notice that the storage fails.
@@ -345,11 +349,7 @@ fn files_under(dir: &Path, out: &mut Vec<PathBuf>) {
         let path = entry.path();
         match entry.file_type() {
             Ok(t) if t.is_dir() => files_under(&path, out),
-            Ok(t) if t.is_file() => {
-                if !path.to_string_lossy().ends_with("-shm") {
-                    out.push(path);
-                }
-            }
+            Ok(t) if t.is_file() && !path.to_string_lossy().ends_with("-shm") => out.push(path),
             _ => {}
         }
     }
@@ -945,7 +945,7 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
     let farm = Farm::start(dir.path(), &data, &["w1", "w2"]);
     let lights = common::scene_path("lights.json");
     let seed = common::scene_path("seed.json");
-    let job = farm.submit(&lights, JOB);
+    let job = farm.submit(&lights, LONG_JOB);
     let total = tiles_total(&farm.status(job));
     farm.wait_for_tiles(job, total / 6);
     let connections = |farm: &Farm| -> Vec<(String, u64)> {
@@ -1075,6 +1075,7 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
     });
 
     let at_thaw = tiles_done(&farm.status(job));
+    eprintln!("frozen: {at_thaw}/{total} tiles done at the thaw");
     let resumed = common::poll("the job to resume after the thaw", RECOVER_TIMEOUT, || {
         let status = farm.status(job);
         assert_not_ended_badly(job, &status);
@@ -1111,7 +1112,12 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
         ready.as_millis(),
         thawed.elapsed().as_secs_f64()
     );
-    farm.assert_job_image(job, &lights, JOB, "the job through a frozen file system");
+    farm.assert_job_image(
+        job,
+        &lights,
+        LONG_JOB,
+        "the job through a frozen file system",
+    );
     for late in accepted {
         farm.wait_done(late);
         farm.assert_job_image(
