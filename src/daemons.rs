@@ -40,6 +40,7 @@ pub async fn shutdown_signal(exit_on_stdin_eof: bool) {
 }
 
 pub async fn coordinator(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<()> {
+    return_large_blocks_to_the_system();
     let server = coordinator::server::Server::bind(config).await?;
     let addr = server.local_addr()?;
     // The first line on stdout is the address, for scripts and `tessera up`.
@@ -99,4 +100,32 @@ fn default_worker_name() -> String {
         .filter(|h| !h.is_empty())
         .unwrap_or_else(|| "worker".into());
     format!("{host}-{}", std::process::id())
+}
+
+/// Has the C allocator give every large block (a frame being assembled, an encoded
+/// image) straight back to the system when it is freed.
+///
+/// glibc otherwise raises its threshold for such blocks each time one is freed, and
+/// then serves the next ones from its heap, which keeps the memory of past frames:
+/// a coordinator's resident memory would follow the largest frames it ever finished,
+/// not the frames it is assembling now. A fixed threshold keeps it to the active jobs
+/// (measured in `tests/coordinator_faults.rs`, and in docs/reliability.md).
+fn return_large_blocks_to_the_system() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        /// `M_MMAP_THRESHOLD` of glibc's `<malloc.h>`.
+        const M_MMAP_THRESHOLD: std::os::raw::c_int = -3;
+        extern "C" {
+            fn mallopt(
+                param: std::os::raw::c_int,
+                value: std::os::raw::c_int,
+            ) -> std::os::raw::c_int;
+        }
+        // SAFETY: mallopt only sets a tuning parameter of the allocator; it is called
+        // at startup, before the daemon allocates frames, and its failure (return 0)
+        // leaves the default behaviour.
+        unsafe {
+            mallopt(M_MMAP_THRESHOLD, 256 * 1024);
+        }
+    }
 }

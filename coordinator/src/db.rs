@@ -370,7 +370,15 @@ impl Db {
     /// Checkpoints the write-ahead log into the database (truncating it) and returns
     /// freed pages to the filesystem. Failures only cost space: they are ignored.
     fn give_back_space(&self) {
-        let _ = self.conn.execute_batch("PRAGMA incremental_vacuum;");
+        // Each step of `incremental_vacuum` frees pages: it must be run to its end.
+        let _ = self
+            .conn
+            .prepare("PRAGMA incremental_vacuum")
+            .and_then(|mut stmt| {
+                let mut rows = stmt.query([])?;
+                while rows.next()?.is_some() {}
+                Ok(())
+            });
         let _ = self
             .conn
             .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |_| Ok(()));

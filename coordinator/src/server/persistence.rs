@@ -16,7 +16,7 @@
 //! once, and the thread then probes the disk until it can write again.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -92,14 +92,22 @@ struct Status {
     started: Instant,
     /// When the write in progress started (ms since `started`, plus one), or 0.
     busy_since: AtomicU64,
-    /// Whether storage is reported unavailable.
-    down: AtomicBool,
+    /// Whether storage is reported unavailable. A mutex, not an atomic: the change
+    /// and its report to the daemon must be in the same order for every reporter (the
+    /// thread and the stall check), or an old "unavailable" could arrive last.
+    down: Mutex<bool>,
 }
 
 impl Status {
+    fn is_down(&self) -> bool {
+        *self.down.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     fn report(&self, hooks: &dyn Hooks, status: Result<(), String>) {
         let down = status.is_err();
-        if self.down.swap(down, Ordering::SeqCst) != down {
+        let mut current = self.down.lock().unwrap_or_else(|e| e.into_inner());
+        if *current != down {
+            *current = down;
             match &status {
                 Err(reason) => warn!(
                     reason = %reason,
@@ -125,7 +133,7 @@ impl Persistence {
         let status = Arc::new(Status {
             started: Instant::now(),
             busy_since: AtomicU64::new(0),
-            down: AtomicBool::new(false),
+            down: Mutex::new(false),
         });
         let writer = Writer {
             db: Some(db),
@@ -161,7 +169,7 @@ impl Persistence {
         }
         let now = self.status.started.elapsed().as_millis() as u64 + 1;
         let busy = Duration::from_millis(now.saturating_sub(since));
-        if busy >= STALL && !self.status.down.load(Ordering::SeqCst) {
+        if busy >= STALL && !self.status.is_down() {
             self.status.report(
                 hooks,
                 Err(format!(
@@ -169,6 +177,11 @@ impl Persistence {
                     busy.as_secs()
                 )),
             );
+            // The write may have completed meanwhile (and found storage not yet down):
+            // then storage is available again at once.
+            if self.status.busy_since.load(Ordering::SeqCst) != since {
+                self.status.report(hooks, Ok(()));
+            }
         }
     }
 
@@ -262,7 +275,7 @@ impl Writer {
                 false
             }
             Step::One(Write::InsertJob { job, then }) => {
-                if self.status.down.load(Ordering::SeqCst) {
+                if self.status.is_down() {
                     then(Err("storage is unavailable".into()));
                     return false;
                 }
