@@ -1525,7 +1525,7 @@ mod tests {
         // The clock goes on from there: silence counts again.
         assert_eq!(s.next_deadline(), Some(11_000));
         assert!(s.handle(11_000, Event::Timeout).is_empty());
-        // A real silence is still caught: 1 s counted for the pause, 4 s of ticks.
+        // A real silence is still caught: 1 s counted for the pause, then 4 s of timeouts.
         let mut dropped = Vec::new();
         for now in (12_000..=20_000).step_by(1_000) {
             s.handle(now, Event::Heartbeat { worker: 2 });

@@ -1773,7 +1773,7 @@ fn clocked_history(ops: &[Op], strict: bool) -> Farm {
 }
 
 proptest! {
-    #![proptest_config(config(600))]
+    #![proptest_config(config(1000))]
 
     /// Issue 3: every invariant after every event of a random history without a clock
     /// or speculation (failures are retried, jobs fail only at `max_attempts` or
@@ -1820,7 +1820,7 @@ proptest! {
 }
 
 proptest! {
-    #![proptest_config(config(1200))]
+    #![proptest_config(config(2000))]
 
     /// Issue 4 and 12: with the default policy (speculation on; a short stall
     /// timeout), random timeouts, heartbeats, hanging workers, restarts and network

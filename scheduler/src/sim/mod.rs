@@ -31,7 +31,7 @@
 //!   received; a tile of a job cancelled before it starts is skipped; a heartbeat every
 //!   second from the moment the handshake is accepted; when the coordinator closes the
 //!   connection the worker drops its queue (the tiles being rendered finish, unsent) and
-//!   reconnects after 100 ms × [0.5, 1) as a new worker.
+//!   reconnects after 100 ms × [0.5, 1) as a new worker under the same machine name.
 //! - **Failures**: crashes (the process dies; its connection closes after a latency;
 //!   with [`SimConfig::restart_after_ms`] its supervisor starts it again after that
 //!   delay, under the same machine name, as systemd or Kubernetes would) and
@@ -46,7 +46,7 @@
 //! What is not: bandwidth (scenes and results cross the network instantly whatever
 //! their size), the database, image assembly and PNG encoding, the daemon's own
 //! bookkeeping around the scheduler, failed tiles (`TileFailed`), draining, cancelled
-//! jobs and priorities (every job has priority 0).
+//! jobs, storage outages and priorities (every job has priority 0).
 
 mod alloc;
 mod report;
@@ -1276,15 +1276,15 @@ impl<'a> Sim<'a> {
         self.apply(actions, None);
     }
 
-    /// Carries out the scheduler's actions as the daemon does. `tick`: the clock of a
-    /// `Tick` whose lease expiries the model still has to apply (before its first
-    /// assignment, after its drops).
-    fn apply(&mut self, actions: Vec<Action>, mut tick: Option<Millis>) {
+    /// Carries out the scheduler's actions as the daemon does. `timeout`: the
+    /// scheduler's clock at a `Timeout` whose lease expiries the model still has to
+    /// apply (before its first assignment, after its drops).
+    fn apply(&mut self, actions: Vec<Action>, mut timeout: Option<Millis>) {
         for action in actions {
             match action {
                 Action::SendScene { .. } => self.out.scenes_sent += 1,
                 Action::Assign { worker, job, tile } => {
-                    if let Some(now) = tick.take() {
+                    if let Some(now) = timeout.take() {
                         self.out.leases_expired += self.model.expire(now);
                     }
                     self.out.assignments += 1;
@@ -1338,7 +1338,7 @@ impl<'a> Sim<'a> {
                 }
             }
         }
-        if let Some(now) = tick {
+        if let Some(now) = timeout {
             self.out.leases_expired += self.model.expire(now);
         }
     }
