@@ -577,7 +577,7 @@ impl Job {
     }
 
     /// The tile to duplicate for an idle worker: in flight with one live holder that is
-    /// not this worker, never failed on this worker, out the longest (earliest start
+    /// not this worker, never failed on its machine, out the longest (earliest start
     /// among its leases, then lowest number). The candidates are kept in that order, so
     /// this skips at most the worker's own tiles and the few that failed on it.
     fn straggler_for(&self, worker: WorkerId, machine: &Machine) -> Option<u32> {
@@ -608,10 +608,12 @@ impl fmt::Display for Machine {
 }
 
 /// Machines named in a message: the first few, so that a farm of thousands keeps the
-/// message on one readable line.
+/// message on one readable line (and no control character a worker put in its name
+/// breaks it).
 fn name_list(machines: &[&Machine]) -> String {
     const SHOWN: usize = 8;
-    let mut list: Vec<String> = machines.iter().take(SHOWN).map(|m| m.to_string()).collect();
+    let printable = |m: &&Machine| m.to_string().replace(char::is_control, "?");
+    let mut list: Vec<String> = machines.iter().take(SHOWN).map(printable).collect();
     if machines.len() > SHOWN {
         list.push(format!("and {} more", machines.len() - SHOWN));
     }
@@ -1727,6 +1729,34 @@ mod tests {
             )
         );
         assert!(timeout.contains(&Action::CancelOnWorker { worker: 2, job: 1 }));
+    }
+
+    /// However many machines, and whatever their names hold, the message is one line.
+    #[test]
+    fn a_stall_message_stays_on_one_line() {
+        let mut s = Scheduler::with_policy(Policy {
+            speculate: false,
+            stall_timeout: 0,
+            max_attempts: 20,
+            ..Policy::default()
+        });
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        for worker in 0..10 {
+            let name = format!("m\n{worker}");
+            assert_eq!(
+                assigns(&join_at(&mut s, 0, worker, 1, Some(&name))),
+                vec![(worker, 1, 0)]
+            );
+            fail(&mut s, 0, worker, 1, 0);
+        }
+        let timeout = s.handle(0, Event::Timeout);
+        assert_eq!(
+            failure(&timeout, 1),
+            Some(
+                "no connected worker may render tile 0: it failed on every one of them (m?0, \
+                 m?1, m?2, m?3, m?4, m?5, m?6, m?7, and 2 more)"
+            )
+        );
     }
 
     /// While storage cannot record results no tile goes out, results of tiles out are

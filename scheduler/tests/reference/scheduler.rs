@@ -290,9 +290,13 @@ impl fmt::Display for Machine {
     }
 }
 
-/// The first eight machines, then how many more.
+/// The first eight machines (control characters shown as '?'), then how many more.
 fn name_list(machines: &[&Machine]) -> String {
-    let mut list: Vec<String> = machines.iter().take(8).map(|m| m.to_string()).collect();
+    let mut list: Vec<String> = machines
+        .iter()
+        .take(8)
+        .map(|m| m.to_string().replace(char::is_control, "?"))
+        .collect();
     if machines.len() > 8 {
         list.push(format!("and {} more", machines.len() - 8));
     }
