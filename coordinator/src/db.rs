@@ -169,6 +169,8 @@ pub struct Db {
 #[derive(Debug)]
 pub struct BadRow {
     pub what: String,
+    /// The tile number of a bad tile row, when it could be read.
+    pub tile: Option<i64>,
 }
 
 impl Db {
@@ -404,23 +406,28 @@ impl Db {
     /// The job's stored tiles whose checksum matches; the others are returned as
     /// [`BadRow`]s with their tile number (when readable), to be deleted and rendered
     /// again.
-    pub fn load_tiles(&self, job: JobId) -> Result<Vec<Result<StoredTile, (Option<i64>, BadRow)>>> {
+    pub fn load_tiles(&self, job: JobId) -> Result<Vec<Result<StoredTile, BadRow>>> {
         let mut query = self.conn.prepare(
             "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256 FROM tiles
              WHERE job = ?1 ORDER BY tile",
         )?;
         let rows = query
             .query_map(params![job as i64], |r| Ok(read_tile(r)))?
-            .map(|row| {
-                row.unwrap_or_else(|e| Err((None, bad(format!("unreadable tile row: {e}")))))
-            })
+            .map(|row| row.unwrap_or_else(|e| Err(bad(format!("unreadable tile row: {e}")))))
             .collect();
         Ok(rows)
     }
 }
 
 fn bad(what: String) -> BadRow {
-    BadRow { what }
+    BadRow { what, tile: None }
+}
+
+fn bad_tile(tile: i64, what: String) -> BadRow {
+    BadRow {
+        what,
+        tile: Some(tile),
+    }
 }
 
 fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
@@ -484,27 +491,23 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
     })
 }
 
-fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, (Option<i64>, BadRow)> {
-    let tile: i64 = r
-        .get(0)
-        .map_err(|e| (None, bad(format!("tile number: {e}"))))?;
-    let field = |e: rusqlite::Error| (Some(tile), bad(format!("tile {tile}: {e}")));
+fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, BadRow> {
+    let tile: i64 = r.get(0).map_err(|e| bad(format!("tile number: {e}")))?;
+    let field = |e: rusqlite::Error| bad_tile(tile, format!("tile {tile}: {e}"));
     let rgb: Vec<u8> = r.get(1).map_err(field)?;
     let sha: Option<Vec<u8>> = r.get(6).map_err(field)?;
     // Tiles recorded by an earlier version carry no checksum; their length is still
     // checked against the tile's rectangle by the caller.
     if let Some(sha) = sha {
         if sha.as_slice() != tile_checksum(&rgb) {
-            return Err((
-                Some(tile),
-                bad(format!(
-                    "tile {tile}: its pixels do not match their checksum"
-                )),
+            return Err(bad_tile(
+                tile,
+                format!("tile {tile}: its pixels do not match their checksum"),
             ));
         }
     }
     let tile_number =
-        u32::try_from(tile).map_err(|_| (Some(tile), bad(format!("tile number {tile}"))))?;
+        u32::try_from(tile).map_err(|_| bad_tile(tile, format!("tile number {tile}")))?;
     Ok(StoredTile {
         tile: tile_number,
         rgb,
@@ -664,8 +667,8 @@ mod tests {
         assert!(loaded[1].as_ref().unwrap_err().what.contains("sideways"));
         let tiles = db.load_tiles(1).unwrap();
         assert_eq!(tiles[0].as_ref().ok().map(|t| t.tile), Some(0));
-        assert_eq!(tiles[1].as_ref().err().map(|(t, _)| *t), Some(Some(1)));
-        assert_eq!(tiles[2].as_ref().err().map(|(t, _)| *t), Some(Some(2)));
+        assert_eq!(tiles[1].as_ref().err().map(|b| b.tile), Some(Some(1)));
+        assert_eq!(tiles[2].as_ref().err().map(|b| b.tile), Some(Some(2)));
     }
 
     #[test]

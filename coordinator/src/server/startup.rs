@@ -200,7 +200,7 @@ fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
                     format!("tile {}: the job has {} tiles", t.tile, rects.len()),
                 ),
             },
-            Err((number, bad)) => (number, bad.what),
+            Err(bad) => (bad.tile, bad.what),
         };
         warn!(job = id, error = %why, "dropping a damaged stored tile: it is rendered again");
         if let Some(number) = number {
