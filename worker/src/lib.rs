@@ -14,12 +14,12 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use transport::{self, DialError, Endpoint, Stream};
 use futures_util::{SinkExt, StreamExt};
 use protocol::{FromWorker, JobId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
 use tracing::{info, warn};
+use transport::{self, DialError, Endpoint, Stream};
 
 use crate::cache::SceneCache;
 
