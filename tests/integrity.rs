@@ -606,7 +606,7 @@ fn check_damaged_fetch(
         )
     });
     eprintln!(
-        "{what}: fetch of job {job}: exit {}: {}",
+        "{what}: fetch of job {job}: {}: {}",
         run.status,
         run.stderr.trim()
     );

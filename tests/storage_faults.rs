@@ -87,7 +87,12 @@ fn privileged<T>(test: &str, setup: impl FnOnce() -> Result<T, String>) -> Optio
             panic!("{test}: TESSERA_REQUIRE_PRIVILEGED is set, but {reason}")
         }
         Err(reason) => {
-            eprintln!("skipped: {test}: {reason} (with TESSERA_REQUIRE_PRIVILEGED=1 this fails)");
+            // Straight to the process's stderr, past the test harness's capture, so that
+            // a skip shows in every run.
+            let _ = writeln!(
+                std::io::stderr(),
+                "skipped: {test}: {reason} (with TESSERA_REQUIRE_PRIVILEGED=1 this fails)"
+            );
             None
         }
     }
