@@ -145,6 +145,7 @@ impl Config {
             max_pixels: l.max_pixels,
             max_aa: l.max_aa,
             max_active_per_client: l.max_active_per_client,
+            max_active_pixels: lifecycle::Limits::default().max_active_pixels,
             retention: self.retention.map(|d| d.as_millis() as Millis),
             retry_ms: persistence::RETRY.as_millis() as Millis,
         }

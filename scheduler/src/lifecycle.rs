@@ -44,6 +44,9 @@ pub struct Limits {
     pub max_aa: u32,
     /// Jobs queued, running or being stored per client address.
     pub max_active_per_client: usize,
+    /// Pixels of all the jobs queued, running or being stored: what bounds the memory
+    /// of the frames being assembled (3 bytes a pixel).
+    pub max_active_pixels: u64,
     /// An ended job is deleted this long after it ended (`None`: kept until deleted).
     pub retention: Option<Millis>,
     /// How long after a failed store of an image it is tried again.
@@ -58,6 +61,8 @@ impl Default for Limits {
             max_pixels: 8192 * 8192,
             max_aa: 16,
             max_active_per_client: 64,
+            // Four of the largest frames: 768 MiB of frames being assembled at most.
+            max_active_pixels: 4 * 8192 * 8192,
             retention: None,
             retry_ms: 500,
         }
@@ -165,6 +170,8 @@ impl Phase {
 pub struct Job {
     pub phase: Phase,
     pub client: Option<IpAddr>,
+    /// The image's pixels (what its frame costs while it is active).
+    pub pixels: u64,
     /// When the job was submitted, started rendering, and ended (daemon's clock; for a
     /// restored job, the times recorded before the restart are the daemon's to keep).
     pub submitted: Millis,
@@ -191,6 +198,8 @@ pub enum Event {
         error: Option<String>,
         /// Whether some of its tiles are done (it had started).
         started: bool,
+        /// The image's pixels.
+        pixels: u64,
     },
     /// The tile scheduler handed out a tile of the job.
     TileAssigned {
@@ -341,6 +350,20 @@ impl Lifecycle {
                 ));
             }
         }
+        let pixels = u64::from(request.width) * u64::from(request.height);
+        let active: u64 = self
+            .jobs
+            .values()
+            .filter(|j| !j.phase.has_ended())
+            .map(|j| j.pixels)
+            .sum();
+        if active.saturating_add(pixels) > limits.max_active_pixels {
+            return Err(format!(
+                "the coordinator has jobs of {active} pixels queued or running; this one's \
+                 {pixels} would pass its limit of {}: submit again when some have finished",
+                limits.max_active_pixels
+            ));
+        }
         let id = self.next_id;
         self.next_id += 1;
         self.jobs.insert(
@@ -348,6 +371,7 @@ impl Lifecycle {
             Job {
                 phase: Phase::Storing,
                 client: request.client,
+                pixels,
                 submitted: self.now,
                 started: None,
                 ended: None,
@@ -399,6 +423,7 @@ impl Lifecycle {
                 state,
                 error,
                 started,
+                pixels,
             } => {
                 self.next_id = self.next_id.max(job + 1);
                 let phase = if state.is_final() {
@@ -418,6 +443,7 @@ impl Lifecycle {
                     Job {
                         phase,
                         client: None,
+                        pixels,
                         submitted: now,
                         started: started.then_some(now),
                         ended,
@@ -811,6 +837,7 @@ mod tests {
                 state: JobState::Queued,
                 error: None,
                 started: true,
+                pixels: 64,
             },
         );
         l.handle(
@@ -820,10 +847,31 @@ mod tests {
                 state: JobState::Done,
                 error: None,
                 started: true,
+                pixels: 64,
             },
         );
         assert_eq!(l.job(4).unwrap().phase.visible(), JobState::Running);
         assert_eq!(l.job(9).unwrap().phase.visible(), JobState::Done);
         assert_eq!(l.admit(1, &request(1)), Ok(10));
+    }
+
+    #[test]
+    fn the_pixels_of_active_jobs_are_bounded() {
+        let mut l = Lifecycle::new(
+            Limits {
+                max_active_pixels: 64 * 48 * 2,
+                ..Limits::default()
+            },
+            1,
+        );
+        let a = stored(&mut l, 0);
+        stored(&mut l, 0);
+        let refused = l.admit(1, &request(2)).unwrap_err();
+        assert!(
+            refused.contains("would pass its limit of 6144"),
+            "{refused}"
+        );
+        l.handle(2, Event::Cancel { job: a });
+        assert!(l.admit(3, &request(2)).is_ok());
     }
 }

@@ -393,6 +393,7 @@ fn restored_ids_keep_new_ids_above_them() {
                 state,
                 error: None,
                 started: true,
+                pixels: 1,
             },
         );
     }

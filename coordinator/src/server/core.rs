@@ -240,6 +240,7 @@ impl Core {
                     state: stored.state,
                     error: stored.error,
                     started: true,
+                    pixels: 0,
                 },
             );
             return;
@@ -271,6 +272,7 @@ impl Core {
                 state: stored.state,
                 error: None,
                 started: !done.is_empty() || stored.times.started.is_some(),
+                pixels: u64::from(stored.settings.width) * u64::from(stored.settings.height),
             },
         );
         let actions = self
