@@ -10,9 +10,8 @@
 //!   `SIGCONT` the farm still serves.
 //! - **The coordinator killed** (`kill -9`) and restarted on the same port and data
 //!   directory: the job keeps its id and the tiles recorded before the kill, the
-//!   workers come back by themselves, and only the missing tiles are rendered. (An
-//!   ignored test documents a product bug: tiles `status` reported done just before
-//!   the kill may be lost.)
+//!   workers come back by themselves, and only the missing tiles are rendered; every
+//!   tile `status` reported done before the kill is still done after the restart.
 //! - **The coordinator stopped** (`SIGTERM`): it exits 0 within 12 s, a job submitted
 //!   meanwhile is refused without harm, and after a restart the job resumes.
 //! - **A worker stopped** (`SIGTERM`): it finishes its tiles and exits 0 promptly; the

@@ -15,9 +15,9 @@
 //! slot was released), its open files are back to what they were, and its resident
 //! memory stayed below 300 MB throughout.
 //!
-//! Smaller tests: a scene above `--max-frame` is refused with one error line, and (two
-//! ignored tests documenting product bugs) the exact handshake deadline of a silent peer
-//! and the refusal of an oversized submit reaching its client every time.
+//! Smaller tests: a scene above `--max-frame` is refused with one error line, the exact
+//! handshake deadline of a silent peer, and the refusal of an oversized submit reaching
+//! its client every time.
 //!
 //! Every wait has a deadline, and every process is killed and reaped by a guard, also
 //! when an assertion fails. The tests of this file run one at a time.
