@@ -77,6 +77,8 @@ pub struct StoredTile {
     /// The tile's sum of squared error estimates; `None` when unknown (recorded by an
     /// earlier version, or not a finite number).
     pub error_sq_sum: Option<f64>,
+    /// When it was accepted (ms since the Unix epoch); `None` from an earlier version.
+    pub done_ms: Option<u64>,
 }
 
 /// A tile to record.
@@ -88,6 +90,8 @@ pub struct TileWrite {
     pub worker: String,
     pub samples: u64,
     pub error_sq_sum: Option<f64>,
+    /// When it was accepted (ms since the Unix epoch).
+    pub done_ms: u64,
 }
 
 /// Columns added after the first version, with their definitions: added on open when
@@ -106,6 +110,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("tiles", "samples", "INTEGER"),
     ("tiles", "error_sq_sum", "REAL"),
     ("tiles", "sha256", "BLOB"),
+    ("tiles", "done_ms", "INTEGER"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -268,8 +273,8 @@ impl Db {
         {
             let mut insert = tx.prepare_cached(
                 "INSERT OR IGNORE INTO tiles (job, tile, rgb, rays, worker, samples, error_sq_sum,
-                                              sha256)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+                                              sha256, done_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
             )?;
             for t in tiles {
                 insert.execute(params![
@@ -281,6 +286,7 @@ impl Db {
                     t.samples as i64,
                     t.error_sq_sum,
                     &tile_checksum(&t.rgb)[..],
+                    t.done_ms as i64,
                 ])?;
             }
         }
@@ -408,7 +414,7 @@ impl Db {
     /// again.
     pub fn load_tiles(&self, job: JobId) -> Result<Vec<Result<StoredTile, BadRow>>> {
         let mut query = self.conn.prepare(
-            "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256 FROM tiles
+            "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256, done_ms FROM tiles
              WHERE job = ?1 ORDER BY tile",
         )?;
         let rows = query
@@ -518,6 +524,10 @@ fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, BadRow> {
             .map_err(field)?
             .map(|n| n.max(0) as u64),
         error_sq_sum: r.get(5).map_err(field)?,
+        done_ms: r
+            .get::<_, Option<i64>>(7)
+            .map_err(field)?
+            .map(|t| t.max(0) as u64),
     })
 }
 
@@ -608,6 +618,7 @@ mod tests {
             worker: "w2".into(),
             samples: 272,
             error_sq_sum: Some(12.5),
+            done_ms: 1_234,
         }])
         .unwrap();
         let totals = Totals {
@@ -653,6 +664,7 @@ mod tests {
             worker: "w".into(),
             samples: 64,
             error_sq_sum: None,
+            done_ms: 1_234,
         };
         db.save_tiles(&[tile(0), tile(1), tile(2)]).unwrap();
         db.conn

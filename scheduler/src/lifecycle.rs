@@ -200,6 +200,9 @@ pub enum Event {
         started: bool,
         /// The image's pixels.
         pixels: u64,
+        /// For a job that had ended: how long before the restart it ended (its
+        /// retention runs from its end, not from the restart).
+        ended_ago: Millis,
     },
     /// The tile scheduler handed out a tile of the job.
     TileAssigned {
@@ -424,6 +427,7 @@ impl Lifecycle {
                 error,
                 started,
                 pixels,
+                ended_ago,
             } => {
                 self.next_id = self.next_id.max(job + 1);
                 let phase = if state.is_final() {
@@ -450,7 +454,10 @@ impl Lifecycle {
                     },
                 );
                 if ended.is_some() {
-                    self.schedule_expiry(job, now);
+                    if let Some(keep) = self.limits.retention {
+                        let at = (now + keep).saturating_sub(ended_ago);
+                        self.expiry.insert((at, job));
+                    }
                 }
             }
             Event::TileAssigned { job } => {
@@ -532,12 +539,9 @@ impl Lifecycle {
             }
             Event::Deleted { job } => {
                 self.deleting.remove(&job);
-                if let Some(j) = self.jobs.remove(&job) {
-                    if let Some(ended) = j.ended {
-                        if let Some(keep) = self.limits.retention {
-                            self.expiry.remove(&(ended + keep, job));
-                        }
-                    }
+                if self.jobs.remove(&job).is_some() {
+                    // Deletions are rare: a walk of the expiry list costs nothing much.
+                    self.expiry.retain(|&(_, j)| j != job);
                 }
             }
             Event::StorageUnavailable { reason } => self.storage_down = Some(reason),
@@ -838,6 +842,7 @@ mod tests {
                 error: None,
                 started: true,
                 pixels: 64,
+                ended_ago: 0,
             },
         );
         l.handle(
@@ -848,11 +853,39 @@ mod tests {
                 error: None,
                 started: true,
                 pixels: 64,
+                ended_ago: 0,
             },
         );
         assert_eq!(l.job(4).unwrap().phase.visible(), JobState::Running);
         assert_eq!(l.job(9).unwrap().phase.visible(), JobState::Done);
         assert_eq!(l.admit(1, &request(1)), Ok(10));
+    }
+
+    #[test]
+    fn a_job_that_ended_before_a_restart_expires_from_its_end() {
+        let mut l = Lifecycle::new(
+            Limits {
+                retention: Some(10_000),
+                ..Limits::default()
+            },
+            1,
+        );
+        l.handle(
+            0,
+            Event::Restored {
+                job: 2,
+                state: JobState::Done,
+                error: None,
+                started: true,
+                pixels: 64,
+                ended_ago: 9_000,
+            },
+        );
+        assert_eq!(l.next_deadline(), Some(1_000));
+        assert_eq!(
+            l.handle(1_000, Event::Timeout),
+            [Action::DeleteStored { job: 2 }]
+        );
     }
 
     #[test]

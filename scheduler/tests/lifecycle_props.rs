@@ -394,6 +394,7 @@ fn restored_ids_keep_new_ids_above_them() {
                 error: None,
                 started: true,
                 pixels: 1,
+                ended_ago: 0,
             },
         );
     }

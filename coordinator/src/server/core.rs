@@ -53,6 +53,11 @@ pub struct JobRecord {
     pub image: Option<render::Image>,
     /// Wall-clock times, kept across restarts.
     pub times: Times,
+    /// Rendering time spent before the last restart (from its first tile handed out
+    /// to its last tile recorded), and when rendering resumed in this run: the
+    /// coordinator's own downtime is not rendering time.
+    pub rendered_before_ms: u64,
+    pub running_since: Option<u64>,
     /// Tiles accepted, and of those, written to the database (the progress reported).
     pub tiles_accepted: u32,
     pub tiles_recorded: u32,
@@ -191,6 +196,8 @@ impl Core {
                 priority: prepared.priority,
                 image: None,
                 times: stored.times,
+                rendered_before_ms: 0,
+                running_since: None,
                 tiles_accepted: 0,
                 tiles_recorded: 0,
                 totals: Totals::default(),
@@ -221,6 +228,8 @@ impl Core {
                 submitted: stored.times.submitted.or(Some(unix_ms())),
                 ..stored.times
             },
+            rendered_before_ms: 0,
+            running_since: None,
             tiles_accepted: 0,
             tiles_recorded: 0,
             totals: stored.totals.unwrap_or_default(),
@@ -241,12 +250,20 @@ impl Core {
                     error: stored.error,
                     started: true,
                     pixels: 0,
+                    ended_ago: stored
+                        .times
+                        .ended
+                        .map_or(0, |ended| unix_ms().saturating_sub(ended)),
                 },
             );
             return;
         }
         let mut image = render::Image::black(stored.settings.width, stored.settings.height);
         let mut done = Vec::new();
+        let last_done = restored.tiles.iter().filter_map(|t| t.done_ms).max();
+        if let (Some(started), Some(last)) = (stored.times.started, last_done) {
+            record.rendered_before_ms = last.saturating_sub(started);
+        }
         for t in restored.tiles {
             let rect = record.tiles[t.tile as usize];
             image.put_rect(to_render_rect(rect), &t.rgb);
@@ -273,6 +290,7 @@ impl Core {
                 error: None,
                 started: !done.is_empty() || stored.times.started.is_some(),
                 pixels: u64::from(stored.settings.width) * u64::from(stored.settings.height),
+                ended_ago: 0,
             },
         );
         let actions = self
@@ -455,6 +473,7 @@ impl Core {
             worker: name,
             samples: cost.samples,
             error_sq_sum,
+            done_ms: unix_ms(),
         }));
     }
 
@@ -524,9 +543,12 @@ impl Core {
             settings: record.settings,
             rect,
         };
+        if record.running_since.is_none() {
+            record.running_since = Some(unix_ms());
+        }
         let first = record.times.started.is_none();
         if first {
-            let at = unix_ms();
+            let at = record.running_since.unwrap_or_else(unix_ms);
             record.times.started = Some(at);
             sh.persistence.write(Write::Started {
                 job,
@@ -748,11 +770,11 @@ impl JobRecord {
             .then(|| (t.error_sq_sum / t.error_pixels as f64).sqrt())
     }
 
-    /// Rays per second of rendering: from the first tile handed out to the end (a
-    /// job's wait in the queue is not rendering).
+    /// Rays per second of rendering: from the first tile handed out to the end, less
+    /// the time the job waited in the queue or the coordinator was down.
     fn rays_per_second(&self, until: u64) -> f64 {
-        let started = self.times.started.unwrap_or(until);
-        let seconds = until.saturating_sub(started) as f64 / 1000.0;
+        let this_run = until.saturating_sub(self.running_since.unwrap_or(until));
+        let seconds = (self.rendered_before_ms + this_run) as f64 / 1000.0;
         self.totals.rays as f64 / seconds.max(1e-3)
     }
 
