@@ -35,7 +35,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use common::proxy::CutProxy;
-use common::{Daemon, Findings};
+use common::{assert_not_ended_badly, render_args, tiles_done, tiles_total, Daemon, Findings};
 use serde_json::Value;
 use tempfile::TempDir;
 
@@ -282,37 +282,6 @@ fn wait_progress(farm: &Farm, job: u64, since: u64, what: &str) -> Instant {
         );
         thread::sleep(common::POLL);
     }
-}
-
-/// A job that failed or was cancelled fails the test at once.
-fn assert_not_ended_badly(job: u64, status: &Value) {
-    let state = status["state"].as_str().expect("state is a string");
-    assert!(
-        !matches!(state, "failed" | "cancelled"),
-        "job {job} ended {state}: {status}"
-    );
-}
-
-fn tiles_done(status: &Value) -> u64 {
-    status["tiles_done"].as_u64().expect("tiles_done")
-}
-
-fn tiles_total(status: &Value) -> u64 {
-    status["tiles_total"].as_u64().expect("tiles_total")
-}
-
-/// The job's arguments less `--tile`, which `tessera render` does not take.
-fn render_args<'a>(args: &[&'a str]) -> Vec<&'a str> {
-    let mut out = Vec::new();
-    let mut it = args.iter();
-    while let Some(&arg) = it.next() {
-        if arg == "--tile" {
-            it.next();
-        } else {
-            out.push(arg);
-        }
-    }
-    out
 }
 
 /// The connected worker named `name`.

@@ -29,7 +29,7 @@ use std::process::{Command, Stdio};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use common::{Daemon, Findings, SplitMix};
+use common::{render_args, Daemon, Findings, SplitMix};
 use rusqlite::{params, Connection};
 use serde_json::Value;
 use tempfile::TempDir;
@@ -45,20 +45,6 @@ const JOB: &[&str] = &[
 
 fn path_str(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
-}
-
-/// The job's arguments less `--tile`, which `tessera render` does not take.
-fn render_args<'a>(args: &[&'a str]) -> Vec<&'a str> {
-    let mut out = Vec::new();
-    let mut it = args.iter();
-    while let Some(&arg) = it.next() {
-        if arg == "--tile" {
-            it.next();
-        } else {
-            out.push(arg);
-        }
-    }
-    out
 }
 
 fn submit(dir: &Path, addr: &str, scene: &str, args: &[&str]) -> u64 {

@@ -635,3 +635,36 @@ impl Findings {
         );
     }
 }
+
+/// A job that failed or was cancelled fails the test at once.
+pub fn assert_not_ended_badly(job: u64, status: &serde_json::Value) {
+    let state = status["state"].as_str().expect("state is a string");
+    assert!(
+        !matches!(state, "failed" | "cancelled"),
+        "job {job} ended {state}: {status}"
+    );
+}
+
+/// A job status's `tiles_done`.
+pub fn tiles_done(status: &serde_json::Value) -> u64 {
+    status["tiles_done"].as_u64().expect("tiles_done")
+}
+
+/// A job status's `tiles_total`.
+pub fn tiles_total(status: &serde_json::Value) -> u64 {
+    status["tiles_total"].as_u64().expect("tiles_total")
+}
+
+/// A job's arguments less `--tile`, which `tessera render` does not take.
+pub fn render_args<'a>(args: &[&'a str]) -> Vec<&'a str> {
+    let mut out = Vec::new();
+    let mut it = args.iter();
+    while let Some(&arg) = it.next() {
+        if arg == "--tile" {
+            it.next();
+        } else {
+            out.push(arg);
+        }
+    }
+    out
+}
