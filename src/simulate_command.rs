@@ -1,5 +1,6 @@
-//! `tessera simulate`: the coordinator's scheduler driven by thousands of simulated
-//! workers in virtual time (see docs/simulation.md). Reproducible: a seed names a run.
+//! `tessera simulate`: the coordinator's core (the tile scheduler and the job lifecycle)
+//! driven by thousands of simulated workers, clients and a simulated disk in virtual
+//! time (see docs/simulation.md). Reproducible: a seed names a run.
 
 use anyhow::{bail, Result};
 use scheduler::sim::{self, SimConfig};

@@ -1,25 +1,56 @@
-//! A farm of thousands of workers, simulated in virtual time around the real scheduler.
+//! A farm of thousands of workers, simulated in virtual time around the real core.
 //!
-//! One machine cannot host a farm of thousands of workers, but the [`Scheduler`] owns no
-//! socket, clock or thread, so it can be driven by a discrete-event simulation instead:
-//! [`run`] feeds it the same events in the same order as the daemon (the coordinator)
-//! would, from simulated workers with heterogeneous speeds that crash, hang, reconnect
-//! and join, over links with latency, and carries out its actions the way the daemon
-//! does. Time is virtual (a binary heap of timed events), so a run of hours of farm time
-//! takes seconds, and a seed names one run exactly.
+//! One machine cannot host a farm of thousands of workers, but the coordinator's core
+//! (the tile [`Scheduler`] and the job [`Lifecycle`]) owns no socket, clock, file or
+//! thread, so it can be driven by a discrete-event simulation instead: [`run`] feeds
+//! both state machines the same events in the same order as the daemon (the
+//! coordinator) would, from simulated clients, workers with heterogeneous speeds that
+//! crash, hang, reconnect and join, over links with latency, and a simulated disk that
+//! fails now and then; and it carries out their actions the way the daemon does. Time
+//! is virtual (a binary heap of timed events), so a run of hours of farm time takes
+//! seconds, and a seed names one run exactly.
 //!
-//! What is modelled, mirroring the daemon and the worker:
+//! What is modelled, mirroring the daemon, its persistence thread, the client and the
+//! worker:
 //! - **Coordinator**: every event handed over with the virtual clock in milliseconds,
-//!   and a `Timeout` when the scheduler's [`Scheduler::next_deadline`] comes (the
-//!   daemon's timer, re-armed after every call); `WorkerJoined` when a worker's hello
-//!   arrives (under its machine's name), its `Accepted` sent first; `Heartbeat` and
-//!   `TileDone` as they arrive; `WorkerLeft` when a connection closes, and right after a
+//!   and a `Timeout` to both machines (the tile scheduler first) when the earlier of
+//!   [`Scheduler::next_deadline`] and [`Lifecycle::next_deadline`] comes (the daemon's
+//!   timer, re-armed after every call); `WorkerJoined` when a worker's hello arrives
+//!   (under its machine's name), its `Accepted` sent first; `Heartbeat` and `TileDone`
+//!   as they arrive; `WorkerLeft` when a connection closes, and right after a
 //!   `DropWorker` (the daemon closes the connection, whose task then reports it).
 //!   Messages on a connection the coordinator dropped are not read.
+//! - **The two machines glued as the daemon glues them**: a submission is checked by
+//!   [`Lifecycle::admit`] and its row written before the tile scheduler hears of the
+//!   job (`Stored` → `Acknowledge` → `JobSubmitted`); every `Assign` is reported as
+//!   `TileAssigned` (the first one also writes the job's start); every accepted tile is
+//!   written; the tile scheduler's `JobDone` and `JobFailed` become `TilesComplete` and
+//!   `TilesFailed`; `StoreImage` encodes the frame (off the writer) and writes it, then
+//!   `ImageStored`; `RecordEnd` writes the end, then `EndRecorded`; `CancelTiles`
+//!   becomes `CancelJob` and `DeleteStored` a write reported as `Deleted` (retention
+//!   from [`SimConfig::limits`]). A job counts as done only once the lifecycle shows
+//!   it `Done`: its image and its end written.
+//! - **Persistence**: one writer carrying out the writes in order, each taking its
+//!   latency (consecutive tiles in batches of up to 256, as the daemon's thread
+//!   batches them). A write that fails reports storage unavailable (once: the tile
+//!   scheduler then the lifecycle hear `StorageUnavailable`) and is tried again every
+//!   [`Limits::retry_ms`](crate::lifecycle::Limits::retry_ms) while the writes behind
+//!   it wait; the first write that succeeds reports storage available again (the
+//!   lifecycle then the tile scheduler hear `StorageAvailable`). A job's insert that
+//!   fails is not retried: its client is answered at once (`StoreFailed`) and the
+//!   writer probes the disk until it can write again.
+//! - **Storage outages** (a Poisson process, off by default): for a random time every
+//!   write fails at once, as on a full or read-only disk; a write under way when the
+//!   outage begins fails too. The daemon learns of an outage only from a failed write.
+//! - **Clients**: each job is submitted once, at its time, by the same client address;
+//!   a submission refused (the lifecycle's limits on active jobs, or storage known to
+//!   be unavailable) or whose insert failed is submitted again
+//!   [`SimConfig::resubmit_ms`] after the answer arrives, until it is acknowledged.
 //! - **Coordinator pauses** (a Poisson process, off by default): the whole daemon
 //!   stops, as with `SIGSTOP` or a paused VM, for a random time. What arrives meanwhile
-//!   waits in its sockets; when it runs again its timer fires first (the worst case: the
-//!   scheduler sees the gap before any message), then it reads the backlog in order.
+//!   waits in its sockets, and its persistence thread and encoder stop with it; when it
+//!   runs again its timer fires first (the worst case: the tile scheduler sees the gap
+//!   before any message), then it reads the backlog in order.
 //! - **Links**: a one-way latency (base plus jitter) per message, in order per direction
 //!   (TCP).
 //! - **Network cuts** (a Poisson process per machine, off by default): for a random
@@ -44,9 +75,11 @@
 //!   random factor); a worker renders it in cost / speed of one of its threads.
 //!
 //! What is not: bandwidth (scenes and results cross the network instantly whatever
-//! their size), the database, image assembly and PNG encoding, the daemon's own
-//! bookkeeping around the scheduler, failed tiles (`TileFailed`), draining, cancelled
-//! jobs, storage outages and priorities (every job has priority 0).
+//! their size), image assembly, the daemon's bookkeeping around the two machines, a
+//! frozen disk (whose writes hang rather than fail, caught by the daemon's stall
+//! check), restarts of the coordinator, failed tiles (`TileFailed`), draining,
+//! cancellations and deletions asked by clients (deletions after the retention are
+//! modelled), and priorities (every job has priority 0).
 
 mod alloc;
 mod report;
@@ -54,10 +87,13 @@ mod rng;
 
 use std::cmp::{Ordering, Reverse};
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, VecDeque};
+use std::mem::Discriminant;
+use std::net::IpAddr;
 use std::time::{Duration, Instant};
 
-use protocol::{JobId, SceneHash, WorkerId};
+use protocol::{JobId, JobState, SceneHash, WorkerId};
 
+use crate::lifecycle::{self, Lifecycle, Limits};
 use crate::tiles::{Action, Event, Millis, Policy, Scheduler};
 
 pub use alloc::{counting, live_bytes, CountingAlloc};
@@ -139,8 +175,27 @@ pub struct SimConfig {
     /// The worker's first reconnection delay (its own constant: 100 ms), scaled by a
     /// random factor in [0.5, 1).
     pub reconnect_ms: u64,
-    /// The scheduler's policy, as the daemon would set it.
+    /// The tile scheduler's policy, as the daemon would set it.
     pub policy: Policy,
+    /// The lifecycle's limits, as the daemon would set them. Its `retry_ms` is also the
+    /// persistence thread's pause between two attempts of a failed write (the daemon
+    /// sets both to 500 ms).
+    pub limits: Limits,
+    /// One write of rows on the persistence thread, synced to the disk: a job's
+    /// insert, a batch of tiles, a job's start, its end, a deletion.
+    pub storage_write_ms: f64,
+    /// Encoding a finished job's image, on the blocking pool (off the writer).
+    pub image_encode_ms: f64,
+    /// Writing a finished job's image files, on the persistence thread.
+    pub image_write_ms: f64,
+    /// Outages of the disk per hour of farm time (Poisson), each lasting a time uniform
+    /// in [min, max): every write fails meanwhile.
+    pub storage_outages_per_hour: f64,
+    pub storage_outage_min_ms: u64,
+    pub storage_outage_max_ms: u64,
+    /// A client whose submission is refused submits it again this long after the
+    /// answer arrives.
+    pub resubmit_ms: u64,
     /// The run stops here even if jobs remain (reported as timed out).
     pub max_virtual_ms: u64,
 }
@@ -201,6 +256,14 @@ impl Default for SimConfig {
             cut_max_ms: 10_000,
             reconnect_ms: 100,
             policy: Policy::default(),
+            limits: Limits::default(),
+            storage_write_ms: 5.0,
+            image_encode_ms: 300.0,
+            image_write_ms: 50.0,
+            storage_outages_per_hour: 0.0,
+            storage_outage_min_ms: 1_000,
+            storage_outage_max_ms: 30_000,
+            resubmit_ms: 1_000,
             max_virtual_ms: 24 * 3_600_000,
         }
     }
@@ -233,7 +296,21 @@ impl SimConfig {
             joins_per_minute: 0.0,
             coordinator_pauses_per_hour: 0.0,
             cuts_per_worker_hour: 0.0,
+            storage_outages_per_hour: 0.0,
             ..self
+        }
+    }
+
+    /// What every job asks of the lifecycle: the frame, a small scene, from one client
+    /// address (a pipeline submitting the frames of an animation).
+    pub fn request(&self) -> lifecycle::Request {
+        lifecycle::Request {
+            client: Some(IpAddr::from([10, 0, 0, 1])),
+            scene_bytes: 4_096,
+            objects: 16,
+            width: self.width,
+            height: self.height,
+            aa: 1,
         }
     }
 
@@ -279,20 +356,32 @@ impl SimConfig {
             self.cuts_per_worker_hour,
             self.latency_ms,
             self.latency_jitter_ms,
+            self.storage_outages_per_hour,
+            self.storage_write_ms,
+            self.image_encode_ms,
+            self.image_write_ms,
         ]
         .into_iter()
         .all(rate)
         {
-            return Err("rates and latencies must be finite and not negative".into());
+            return Err("rates, latencies and write times must be finite and not negative".into());
         }
         if self.hang_min_ms > self.hang_max_ms
             || self.coordinator_pause_min_ms > self.coordinator_pause_max_ms
             || self.cut_min_ms > self.cut_max_ms
+            || self.storage_outage_min_ms > self.storage_outage_max_ms
         {
             return Err("each minimum duration must not exceed its maximum".into());
         }
         if self.heartbeat_ms == 0 || self.reconnect_ms == 0 || self.restart_after_ms == Some(0) {
             return Err("heartbeat_ms, reconnect_ms and restart_after_ms must be positive".into());
+        }
+        if self.resubmit_ms == 0 || self.limits.retry_ms == 0 {
+            return Err("resubmit_ms and limits.retry_ms must be positive".into());
+        }
+        // A job the lifecycle refuses on its own would be submitted again forever.
+        if let Err(reason) = Lifecycle::new(self.limits, 1).admit(0, &self.request()) {
+            return Err(format!("the lifecycle refuses every job: {reason}"));
         }
         Ok(())
     }
@@ -379,6 +468,13 @@ const STREAM_NETWORK: u64 = 4;
 const STREAM_JOINS: u64 = 5;
 const STREAM_PAUSES: u64 = 6;
 const STREAM_CUTS: u64 = 7;
+const STREAM_STORAGE: u64 = 8;
+
+/// Why a write failed, as the simulated daemon reports it.
+const STORAGE_DOWN: &str = "the simulated disk takes no writes";
+
+/// Tiles written in one transaction at most (the daemon's batch).
+const TILE_BATCH: u32 = 256;
 
 /// Worker to coordinator.
 #[derive(Clone, Copy, Debug)]
@@ -415,10 +511,19 @@ enum Down {
 
 #[derive(Clone, Copy, Debug)]
 enum Ev {
-    /// The daemon's timer, armed for the scheduler's next deadline.
+    /// The daemon's timer, armed for the earlier of the two machines' next deadlines.
     Wake,
-    /// A client's submission reaches the coordinator.
+    /// A client's submission of the job (its index in the run) reaches the coordinator.
     Submit {
+        job: usize,
+    },
+    /// The write in progress on the persistence thread ends (it succeeded unless the
+    /// disk failed meanwhile).
+    WriteDone,
+    /// The persistence thread tries a failed write again.
+    WriteRetry,
+    /// A finished job's image is encoded: it goes to the writer.
+    ImageEncoded {
         job: JobId,
     },
     /// A machine starts (at the beginning or joining later).
@@ -475,14 +580,23 @@ enum Ev {
     /// The whole coordinator stops, and runs again.
     CoordinatorPause,
     CoordinatorResume,
+    /// The disk stops taking writes, and takes them again.
+    StorageOutage,
+    StorageRecovered,
 }
 
 impl Ev {
-    /// Whether the coordinator handles it (and so, while paused, it waits).
+    /// Whether the coordinator's process handles it (and so, while paused, it waits).
     fn at_coordinator(&self) -> bool {
         matches!(
             self,
-            Ev::Wake | Ev::Submit { .. } | Ev::Arrival { .. } | Ev::ConnectionTaskLeft { .. }
+            Ev::Wake
+                | Ev::Submit { .. }
+                | Ev::Arrival { .. }
+                | Ev::ConnectionTaskLeft { .. }
+                | Ev::WriteDone
+                | Ev::WriteRetry
+                | Ev::ImageEncoded { .. }
         )
     }
 }
@@ -604,11 +718,19 @@ struct Conn {
 struct SimJob {
     /// Reference-thread microseconds per tile.
     costs: Vec<Micros>,
+    /// When its client first sent it.
     sent: Micros,
+    /// The lifecycle's id, once admitted (a new one after a failed insert).
+    id: Option<JobId>,
     accepted: Vec<u8>,
     assigned: Vec<u16>,
     /// When each tile was last sent out.
     last_sent: Vec<Micros>,
+    /// Whether a tile went out (its start is written then).
+    started: bool,
+    /// When the tile scheduler reported it done or failed.
+    tiles_ended: Option<Micros>,
+    /// When its end was written.
     ended: Option<Micros>,
 }
 
@@ -664,6 +786,23 @@ struct Cost {
     max: Duration,
 }
 
+impl Cost {
+    fn add(&mut self, took: Duration) {
+        self.count += 1;
+        self.total += took;
+        self.max = self.max.max(took);
+    }
+
+    fn report(&self, kind: &str) -> EventCost {
+        EventCost {
+            kind: kind.to_string(),
+            count: self.count,
+            total: self.total,
+            max: self.max,
+        }
+    }
+}
+
 /// The real scheduler, with the time spent in and the heap held by it.
 struct Metered {
     scheduler: Scheduler,
@@ -681,12 +820,85 @@ impl Metered {
         let took = start.elapsed();
         self.bytes += live_bytes() - before - heap_of(&actions);
         self.peak = self.peak.max(self.bytes);
-        let cost = &mut self.costs[kind];
-        cost.count += 1;
-        cost.total += took;
-        cost.max = cost.max.max(took);
+        self.costs[kind].add(took);
         actions
     }
+}
+
+/// The real lifecycle, with the time spent in it.
+struct MeteredLife {
+    lifecycle: Lifecycle,
+    admit: Cost,
+    /// Per kind of event, in the order first seen, named after the variant.
+    costs: Vec<(Discriminant<lifecycle::Event>, String, Cost)>,
+}
+
+impl MeteredLife {
+    fn admit(&mut self, now: Millis, request: &lifecycle::Request) -> Result<JobId, String> {
+        let start = Instant::now();
+        let result = self.lifecycle.admit(now, request);
+        self.admit.add(start.elapsed());
+        result
+    }
+
+    fn handle(&mut self, now: Millis, event: lifecycle::Event) -> Vec<lifecycle::Action> {
+        let kind = std::mem::discriminant(&event);
+        let index = match self.costs.iter().position(|(k, _, _)| *k == kind) {
+            Some(index) => index,
+            None => {
+                let name = format!("{event:?}")
+                    .chars()
+                    .take_while(char::is_ascii_alphanumeric)
+                    .collect();
+                self.costs.push((kind, name, Cost::default()));
+                self.costs.len() - 1
+            }
+        };
+        let start = Instant::now();
+        let actions = self.lifecycle.handle(now, event);
+        self.costs[index].2.add(start.elapsed());
+        actions
+    }
+
+    /// Calls, the admissions included.
+    fn calls(&self) -> u64 {
+        self.admit.count + self.costs.iter().map(|(_, _, c)| c.count).sum::<u64>()
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The persistence thread: one writer, in order.
+
+/// One write queued on the persistence thread.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Write {
+    /// A new job's row (its client waits for the answer).
+    Insert(JobId),
+    /// Accepted tiles (consecutive ones are one entry, written in batches).
+    Tiles(u32),
+    /// A job's first tile went out.
+    Started(JobId),
+    Image(JobId),
+    End(JobId),
+    Delete(JobId),
+    /// Not queued: after a failed insert, checks that the disk can be written again.
+    Probe,
+}
+
+#[derive(Default)]
+struct Writer {
+    queue: VecDeque<Write>,
+    /// The write being carried out (attempted, or waiting to be tried again).
+    current: Option<Write>,
+    /// The disk is probed before any other write.
+    probing: bool,
+    /// Storage is reported unavailable, since `down_since`.
+    down: bool,
+    down_since: Micros,
+    /// The disk's outage count when the attempt in progress began, and whether the disk
+    /// was down then (the attempt fails at once).
+    attempt_epoch: u64,
+    attempt_doomed: bool,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -851,7 +1063,18 @@ struct Sim<'a> {
     machines: Vec<Machine>,
     conns: Vec<Conn>,
     jobs: Vec<SimJob>,
+    /// The index in `jobs` of each job id the lifecycle gave (`usize::MAX`: none).
+    by_id: Vec<usize>,
     sched: Metered,
+    life: MeteredLife,
+    writer: Writer,
+    /// The disk fails every write, and how many outages began.
+    disk_down: bool,
+    disk_epoch: u64,
+    /// Write times, in virtual microseconds.
+    row_write: Micros,
+    image_encode: Micros,
+    image_write: Micros,
     /// The daemon's table of connected workers.
     worker_conn: BTreeMap<WorkerId, usize>,
     next_worker: WorkerId,
@@ -862,6 +1085,7 @@ struct Sim<'a> {
     joins_rng: Rng,
     pauses_rng: Rng,
     cuts_rng: Rng,
+    storage_rng: Rng,
     /// When the daemon's timer is armed for (the earliest wake pending), if it is.
     wake_at: Option<Micros>,
     /// The coordinator is stopped: what it should handle waits here, in order.
@@ -886,6 +1110,9 @@ impl<'a> Sim<'a> {
                     last_sent: vec![0; costs.len()],
                     costs,
                     sent: j as Micros * cfg.job_interval_ms * MS,
+                    id: None,
+                    started: false,
+                    tiles_ended: None,
                     ended: None,
                 }
             })
@@ -897,12 +1124,24 @@ impl<'a> Sim<'a> {
             machines: Vec::new(),
             conns: Vec::new(),
             jobs,
+            by_id: Vec::new(),
             sched: Metered {
                 scheduler: Scheduler::with_policy(cfg.policy),
                 bytes: 0,
                 peak: 0,
                 costs: [Cost::default(); EVENT_KINDS.len()],
             },
+            life: MeteredLife {
+                lifecycle: Lifecycle::new(cfg.limits, 1),
+                admit: Cost::default(),
+                costs: Vec::new(),
+            },
+            writer: Writer::default(),
+            disk_down: false,
+            disk_epoch: 0,
+            row_write: micros(cfg.storage_write_ms),
+            image_encode: micros(cfg.image_encode_ms),
+            image_write: micros(cfg.image_write_ms),
             worker_conn: BTreeMap::new(),
             next_worker: 1,
             model: LeaseModel {
@@ -915,6 +1154,7 @@ impl<'a> Sim<'a> {
             joins_rng: Rng::new(cfg.seed, STREAM_JOINS),
             pauses_rng: Rng::new(cfg.seed, STREAM_PAUSES),
             cuts_rng: Rng::new(cfg.seed, STREAM_CUTS),
+            storage_rng: Rng::new(cfg.seed, STREAM_STORAGE),
             wake_at: None,
             paused: false,
             backlog: Vec::new(),
@@ -931,20 +1171,16 @@ impl<'a> Sim<'a> {
             let m = sim.new_machine();
             sim.agenda.push(0, Ev::Boot { machine: m });
         }
-        for j in 0..cfg.jobs {
-            let at = sim.jobs[j].sent + sim.latency();
-            sim.agenda.push(
-                at,
-                Ev::Submit {
-                    job: j as JobId + 1,
-                },
-            );
+        for job in 0..cfg.jobs {
+            let at = sim.jobs[job].sent + sim.latency();
+            sim.agenda.push(at, Ev::Submit { job });
         }
         if cfg.joins_per_minute > 0.0 {
             let gap = sim.join_gap();
             sim.agenda.push(gap, Ev::NextJoin);
         }
         sim.arm_coordinator_pause();
+        sim.arm_storage_outage();
         sim
     }
 
@@ -1032,25 +1268,38 @@ impl<'a> Sim<'a> {
         }
     }
 
-    /// Hands one event to the scheduler at the current virtual time, brings the lease
-    /// account to the scheduler's clock, and re-arms the daemon's timer for the
+    /// Hands one event to the tile scheduler at the current virtual time, brings the
+    /// lease account to the scheduler's clock, and re-arms the daemon's timer for the
     /// scheduler's next deadline, as the daemon does after every call.
     fn handle(&mut self, event: Event) -> Vec<Action> {
         let actions = self.sched.handle(self.now / MS, event);
         self.model.now = self.model.now.max(self.sched.scheduler.clock());
-        if let Some(deadline) = self.sched.scheduler.next_deadline() {
+        self.arm_wake(self.sched.scheduler.next_deadline());
+        actions
+    }
+
+    /// Hands one event to the lifecycle, re-arms the timer for its next deadline (which
+    /// changes only when it handles something), and carries out its actions.
+    fn life(&mut self, event: lifecycle::Event) {
+        let actions = self.life.handle(self.now / MS, event);
+        self.arm_wake(self.life.lifecycle.next_deadline());
+        self.apply_life(actions);
+    }
+
+    /// The daemon's timer fires at the earliest deadline either machine gave.
+    fn arm_wake(&mut self, deadline: Option<Millis>) {
+        if let Some(deadline) = deadline {
             let at = (deadline * MS).max(self.now);
             if self.wake_at.is_none_or(|armed| at < armed) {
                 self.wake_at = Some(at);
                 self.agenda.push(at, Ev::Wake);
             }
         }
-        actions
     }
 
-    /// The daemon's timer fires: a `Timeout`. (Only the earliest armed wake counts;
-    /// one superseded by an earlier deadline is void, and a later deadline is re-armed
-    /// by the call.)
+    /// The daemon's timer fires: a `Timeout` for the tile scheduler, then for the
+    /// lifecycle. (Only the earliest armed wake counts; one superseded by an earlier
+    /// deadline is void, and a later deadline is re-armed by the calls.)
     fn timeout(&mut self) {
         self.wake_at = None;
         self.out.timeouts += 1;
@@ -1059,6 +1308,7 @@ impl<'a> Sim<'a> {
         let actions = self.handle(Event::Timeout);
         let clock = self.sched.scheduler.clock();
         self.apply(actions, Some(clock));
+        self.life(lifecycle::Event::Timeout);
     }
 
     fn dispatch(&mut self, ev: Ev) {
@@ -1117,15 +1367,24 @@ impl<'a> Sim<'a> {
                 self.out.network_cuts += 1;
                 self.arm_cut(machine, until);
             }
-            Ev::Submit { job } => {
-                let tiles = self.jobs[job as usize - 1].costs.len() as u32;
-                let actions = self.handle(Event::JobSubmitted {
-                    job,
-                    priority: 0,
-                    scene: scene_of(job),
-                    tiles,
-                });
-                self.apply(actions, None);
+            Ev::Submit { job } => self.submit(job),
+            Ev::WriteDone => self.write_done(),
+            Ev::WriteRetry => self.attempt_write(),
+            Ev::ImageEncoded { job } => self.persist(Write::Image(job)),
+            Ev::StorageOutage => {
+                self.disk_down = true;
+                self.disk_epoch += 1;
+                self.out.storage_outages += 1;
+                let span = self.storage_rng.range(
+                    self.cfg.storage_outage_min_ms as f64,
+                    self.cfg.storage_outage_max_ms as f64,
+                );
+                self.agenda
+                    .push(self.now + micros(span), Ev::StorageRecovered);
+            }
+            Ev::StorageRecovered => {
+                self.disk_down = false;
+                self.arm_storage_outage();
             }
             Ev::Boot { machine } => {
                 let m = &mut self.machines[machine];
@@ -1238,7 +1497,7 @@ impl<'a> Sim<'a> {
                 }
                 if accepted {
                     self.model.accepted(worker, job, tile);
-                    let j = &self.jobs[job as usize - 1];
+                    let j = &self.jobs[self.slot(job)];
                     self.out.last_tile = Some(LastTile {
                         job,
                         tile,
@@ -1288,7 +1547,9 @@ impl<'a> Sim<'a> {
                         self.out.leases_expired += self.model.expire(now);
                     }
                     self.out.assignments += 1;
-                    let j = &mut self.jobs[job as usize - 1];
+                    let slot = self.slot(job);
+                    let j = &mut self.jobs[slot];
+                    let first = !std::mem::replace(&mut j.started, true);
                     let before = j.assigned[tile as usize] > 0;
                     j.assigned[tile as usize] = j.assigned[tile as usize].saturating_add(1);
                     j.last_sent[tile as usize] = self.now;
@@ -1299,6 +1560,9 @@ impl<'a> Sim<'a> {
                         AssignKind::Speculative => self.out.speculative_copies += 1,
                         AssignKind::Unexplained => self.out.model_mismatches += 1,
                     }
+                    if first {
+                        self.persist(Write::Started(job));
+                    }
                     match self.worker_conn.get(&worker) {
                         Some(&conn) => {
                             let sent = self.now;
@@ -1306,14 +1570,17 @@ impl<'a> Sim<'a> {
                         }
                         None => self.out.model_mismatches += 1,
                     }
+                    self.life(lifecycle::Event::TileAssigned { job });
                 }
                 Action::AcceptTile { job, tile } => {
-                    let count = &mut self.jobs[job as usize - 1].accepted[tile as usize];
+                    let slot = self.slot(job);
+                    let count = &mut self.jobs[slot].accepted[tile as usize];
                     *count = count.saturating_add(1);
                     if *count > 1 {
                         self.out.tiles_accepted_twice += 1;
                     }
                     self.out.tiles_accepted += 1;
+                    self.persist(Write::Tiles(1));
                 }
                 Action::DuplicateResult { .. } => self.out.duplicate_results += 1,
                 Action::CancelOnWorker { worker, job } => {
@@ -1331,10 +1598,13 @@ impl<'a> Sim<'a> {
                         self.send_down(conn, Down::Close);
                     }
                 }
-                Action::JobDone { job } => self.job_ended(job, true),
+                Action::JobDone { job } => {
+                    self.tiles_ended(job, true);
+                    self.life(lifecycle::Event::TilesComplete { job });
+                }
                 Action::JobFailed { job, message } => {
-                    self.job_ended(job, false);
-                    self.out.job_failures.push((job, message));
+                    self.tiles_ended(job, false);
+                    self.life(lifecycle::Event::TilesFailed { job, message });
                 }
             }
         }
@@ -1343,21 +1613,276 @@ impl<'a> Sim<'a> {
         }
     }
 
-    fn job_ended(&mut self, job: JobId, done: bool) {
-        let j = &mut self.jobs[job as usize - 1];
+    /// The tile scheduler is done with the job (every tile in, or failed).
+    fn tiles_ended(&mut self, job: JobId, done: bool) {
+        let slot = self.slot(job);
+        let j = &mut self.jobs[slot];
+        if j.tiles_ended.is_some() {
+            self.out.model_mismatches += 1;
+            return;
+        }
+        j.tiles_ended = Some(self.now);
+        if done {
+            self.out.tiles_missing += j.accepted.iter().filter(|&&c| c == 0).count() as u64;
+        }
+        self.model.end_job(job);
+    }
+
+    /// The index in `jobs` of a job id the lifecycle gave.
+    fn slot(&self, job: JobId) -> usize {
+        self.by_id[job as usize]
+    }
+
+    // --- the clients' side and the lifecycle -----------------------------------------
+
+    /// A submission reaches the coordinator: the lifecycle admits it (and its row is
+    /// queued for writing) or refuses it (and the client submits it again later).
+    fn submit(&mut self, slot: usize) {
+        if self.jobs[slot].id.is_some() {
+            self.out.model_mismatches += 1;
+            return;
+        }
+        match self.life.admit(self.now / MS, &self.cfg.request()) {
+            Ok(job) => {
+                let i = job as usize;
+                if self.by_id.len() <= i {
+                    self.by_id.resize(i + 1, usize::MAX);
+                }
+                if self.by_id[i] != usize::MAX {
+                    // An id given twice.
+                    self.out.model_mismatches += 1;
+                }
+                self.by_id[i] = slot;
+                self.jobs[slot].id = Some(job);
+                self.out.jobs_admitted += 1;
+                self.persist(Write::Insert(job));
+            }
+            Err(_) => {
+                self.out.admissions_refused += 1;
+                self.resubmit(slot);
+            }
+        }
+    }
+
+    /// The client hears its submission was refused, waits, and submits it again.
+    fn resubmit(&mut self, slot: usize) {
+        let answer = self.latency();
+        let again = self.latency();
+        let at = self.now + answer + self.cfg.resubmit_ms * MS + again;
+        self.agenda.push(at, Ev::Submit { job: slot });
+    }
+
+    /// Carries out the lifecycle's actions as the daemon does.
+    fn apply_life(&mut self, actions: Vec<lifecycle::Action>) {
+        use lifecycle::Action as A;
+        for action in actions {
+            match action {
+                A::Acknowledge { job } => {
+                    let slot = self.slot(job);
+                    let j = &self.jobs[slot];
+                    let tiles = j.costs.len() as u32;
+                    let waited = (self.now - j.sent) as f64 / MS as f64;
+                    self.out.jobs_acknowledged += 1;
+                    self.out.longest_admission_ms = self.out.longest_admission_ms.max(waited);
+                    let actions = self.handle(Event::JobSubmitted {
+                        job,
+                        priority: 0,
+                        scene: scene_of(job),
+                        tiles,
+                    });
+                    self.apply(actions, None);
+                }
+                A::RefuseStored { job, .. } => {
+                    let slot = self.slot(job);
+                    self.by_id[job as usize] = usize::MAX;
+                    self.jobs[slot].id = None;
+                    self.out.stores_refused += 1;
+                    self.resubmit(slot);
+                }
+                A::StoreImage { job } => {
+                    self.agenda
+                        .push(self.now + self.image_encode, Ev::ImageEncoded { job });
+                }
+                A::CancelTiles { job } => {
+                    let actions = self.handle(Event::CancelJob { job });
+                    self.apply(actions, None);
+                }
+                A::RecordEnd { job, state, error } => {
+                    if state == JobState::Failed {
+                        self.out.job_failures.push((job, error.unwrap_or_default()));
+                    }
+                    self.persist(Write::End(job));
+                }
+                A::DeleteStored { job } => self.persist(Write::Delete(job)),
+                // Nobody cancels or deletes: no client waits for a reply.
+                A::Reply { .. } => {}
+            }
+        }
+    }
+
+    /// A job's end is written: it is over for the farm, and `Done` for its client if
+    /// the lifecycle says so.
+    fn end_recorded(&mut self, job: JobId) {
+        self.life(lifecycle::Event::EndRecorded { job });
+        let state = self.life.lifecycle.job(job).map(|j| j.phase.visible());
+        let now = self.now;
+        let slot = self.slot(job);
+        let j = &mut self.jobs[slot];
         if j.ended.is_some() {
             self.out.model_mismatches += 1;
             return;
         }
-        j.ended = Some(self.now);
+        j.ended = Some(now);
         self.jobs_open -= 1;
-        if done {
-            self.out.jobs_done += 1;
-            self.out.tiles_missing += j.accepted.iter().filter(|&&c| c == 0).count() as u64;
-        } else {
-            self.out.jobs_failed += 1;
+        match state {
+            Some(JobState::Done) => {
+                self.out.jobs_done += 1;
+                let last_tile = j.tiles_ended.unwrap_or(now);
+                let finish = (now - last_tile) as f64 / MS as f64;
+                self.out.longest_finish_ms = self.out.longest_finish_ms.max(finish);
+            }
+            Some(JobState::Failed) => self.out.jobs_failed += 1,
+            // Nobody cancels: an end written must be done or failed.
+            _ => self.out.model_mismatches += 1,
         }
-        self.model.end_job(job);
+    }
+
+    // --- persistence -----------------------------------------------------------------
+
+    /// Queues a write; the writer takes it up at once if it is idle.
+    fn persist(&mut self, write: Write) {
+        match (write, self.writer.queue.back_mut()) {
+            (Write::Tiles(n), Some(Write::Tiles(queued))) => *queued += n,
+            _ => self.writer.queue.push_back(write),
+        }
+        self.next_write();
+    }
+
+    /// The writer, if idle, takes the next write (the probe first, after a failed
+    /// insert; consecutive tiles in one batch) and attempts it.
+    fn next_write(&mut self) {
+        if self.writer.current.is_some() {
+            return;
+        }
+        let write = if self.writer.probing {
+            Write::Probe
+        } else {
+            match self.writer.queue.pop_front() {
+                None => return,
+                Some(Write::Tiles(n)) if n > TILE_BATCH => {
+                    self.writer.queue.push_front(Write::Tiles(n - TILE_BATCH));
+                    Write::Tiles(TILE_BATCH)
+                }
+                Some(write) => write,
+            }
+        };
+        self.writer.current = Some(write);
+        self.attempt_write();
+    }
+
+    /// One attempt of the current write: it fails at once on a disk that is down, and
+    /// otherwise ends after its write time (failed if the disk went down meanwhile).
+    fn attempt_write(&mut self) {
+        let Some(write) = self.writer.current else {
+            return;
+        };
+        self.writer.attempt_epoch = self.disk_epoch;
+        self.writer.attempt_doomed = self.disk_down;
+        let took = match write {
+            Write::Image(_) => self.image_write,
+            _ => self.row_write,
+        };
+        let at = if self.disk_down {
+            self.now
+        } else {
+            self.now + took
+        };
+        self.agenda.push(at, Ev::WriteDone);
+    }
+
+    /// The attempt in progress ends: storage is reported available or not (on a
+    /// change), and the write's outcome goes where the daemon's callbacks send it.
+    fn write_done(&mut self) {
+        let Some(write) = self.writer.current.take() else {
+            return;
+        };
+        let ok = !self.writer.attempt_doomed && self.writer.attempt_epoch == self.disk_epoch;
+        if !ok {
+            self.out.write_failures += 1;
+            self.storage_status(false);
+            if let Write::Insert(job) = write {
+                // Its client is waiting: it is answered at once, and the disk is probed
+                // before anything else is written.
+                self.writer.probing = true;
+                self.life(lifecycle::Event::StoreFailed {
+                    job,
+                    message: STORAGE_DOWN.into(),
+                });
+                self.next_write();
+            } else {
+                self.writer.current = Some(write);
+                self.agenda
+                    .push(self.now + self.cfg.limits.retry_ms * MS, Ev::WriteRetry);
+            }
+            return;
+        }
+        self.out.writes += 1;
+        self.storage_status(true);
+        match write {
+            Write::Probe => self.writer.probing = false,
+            Write::Insert(job) => self.life(lifecycle::Event::Stored { job }),
+            Write::Tiles(n) => self.out.tiles_written += u64::from(n),
+            Write::Started(_) => {}
+            Write::Image(job) => {
+                self.out.images_stored += 1;
+                self.life(lifecycle::Event::ImageStored {
+                    job,
+                    result: Ok(()),
+                });
+            }
+            Write::End(job) => self.end_recorded(job),
+            Write::Delete(job) => {
+                self.out.jobs_deleted += 1;
+                self.life(lifecycle::Event::Deleted { job });
+            }
+        }
+        self.next_write();
+    }
+
+    /// Storage became unavailable or available again: both machines hear it, in the
+    /// daemon's order (the tile scheduler stops first and resumes last).
+    fn storage_status(&mut self, available: bool) {
+        if self.writer.down != available {
+            return;
+        }
+        self.writer.down = !available;
+        if available {
+            self.out.storage_unavailable_ms +=
+                (self.now - self.writer.down_since) as f64 / MS as f64;
+            self.life(lifecycle::Event::StorageAvailable);
+            let actions = self.handle(Event::StorageAvailable);
+            self.apply(actions, None);
+        } else {
+            self.writer.down_since = self.now;
+            self.out.storage_unavailable += 1;
+            let actions = self.handle(Event::StorageUnavailable);
+            self.apply(actions, None);
+            self.life(lifecycle::Event::StorageUnavailable {
+                reason: STORAGE_DOWN.into(),
+            });
+        }
+    }
+
+    /// The disk's next outage (Poisson), while it works.
+    fn arm_storage_outage(&mut self) {
+        if self.cfg.storage_outages_per_hour > 0.0 {
+            let hour = 3_600_000.0 * MS as f64;
+            let after = self
+                .storage_rng
+                .exponential(hour / self.cfg.storage_outages_per_hour);
+            self.agenda
+                .push(self.now + after.round() as Micros, Ev::StorageOutage);
+        }
     }
 
     // --- the workers' side -----------------------------------------------------------
@@ -1436,7 +1961,7 @@ impl<'a> Sim<'a> {
                 self.out.tasks_skipped += 1;
                 continue;
             }
-            let cost = self.jobs[task.job as usize - 1].costs[task.tile as usize];
+            let cost = self.jobs[self.by_id[task.job as usize]].costs[task.tile as usize];
             let took = ((cost as f64 / m.speed).round() as Micros).max(1);
             let id = self.next_render;
             self.next_render += 1;
@@ -1692,6 +2217,14 @@ impl<'a> Sim<'a> {
     /// The lower bound on the makespan (see [`Outcome::ideal_ms`]).
     fn ideal(&self) -> (f64, f64) {
         let start = self.jobs.iter().map(|j| j.sent).min().unwrap_or(0);
+        // Before a job's first tile can start: its submission crosses the network, its
+        // row is written, the tile crosses the network. After its last tile: the
+        // result crosses the network, the image is encoded and written, the end is
+        // written.
+        let latency = micros(self.cfg.latency_ms);
+        let before = (latency + self.row_write + latency) as f64;
+        let after = (latency + self.image_encode + self.image_write + self.row_write) as f64;
+        let first = start as f64 + before;
         let work: f64 = self
             .jobs
             .iter()
@@ -1702,16 +2235,16 @@ impl<'a> Sim<'a> {
         changes.sort_by_key(|c| c.0);
         let mut capacity = 0.0;
         let mut i = 0;
-        while i < changes.len() && changes[i].0 <= start {
+        while i < changes.len() && changes[i].0 as f64 <= first {
             capacity += changes[i].1;
             i += 1;
         }
-        let (mut t, mut done) = (start as f64, 0.0);
+        let (mut t, mut done) = (first, 0.0);
         let mut work_bound = f64::INFINITY;
         loop {
             let next = changes.get(i).map_or(f64::INFINITY, |c| c.0 as f64);
             if capacity > 1e-9 && done + capacity * (next - t) >= work {
-                work_bound = t + (work - done) / capacity;
+                work_bound = t + (work - done) / capacity + after;
                 break;
             }
             if next.is_infinite() {
@@ -1728,13 +2261,12 @@ impl<'a> Sim<'a> {
             .filter(|m| m.life != Life::Off)
             .map(|m| m.speed)
             .fold(0.0, f64::max);
-        let round_trip = 2.0 * self.cfg.latency_ms * MS as f64;
         let tile_bound = self
             .jobs
             .iter()
             .map(|j| {
                 let longest = j.costs.iter().copied().max().unwrap_or(0) as f64;
-                j.sent as f64 + round_trip + longest / fastest
+                j.sent as f64 + before + longest / fastest + after
             })
             .fold(0.0, f64::max);
         let ms = |t: f64| (t - start as f64) / MS as f64;
@@ -1782,6 +2314,10 @@ impl<'a> Sim<'a> {
             .filter(|m| m.life == Life::Running || m.life == Life::Frozen)
             .count();
         out.events = self.sched.costs.iter().map(|c| c.count).sum();
+        out.lifecycle_events = self.life.calls();
+        if self.writer.down {
+            out.storage_unavailable_ms += (self.now - self.writer.down_since) as f64 / MS as f64;
+        }
         let memory = memory.map(|m| Memory {
             peak_bytes: self.sched.peak,
             end_bytes: self.sched.bytes,
@@ -1791,21 +2327,28 @@ impl<'a> Sim<'a> {
             .iter()
             .zip(self.sched.costs)
             .filter(|(_, c)| c.count > 0)
-            .map(|(kind, c)| EventCost {
-                kind,
-                count: c.count,
-                total: c.total,
-                max: c.max,
-            })
+            .map(|(kind, c)| c.report(kind))
+            .collect();
+        let life = &self.life;
+        let lifecycle_by_event: Vec<EventCost> = std::iter::once(life.admit.report("admit"))
+            .filter(|c| c.count > 0)
+            .chain(life.costs.iter().map(|(_, kind, c)| c.report(kind)))
             .collect();
         SimReport {
             outcome: self.out,
             memory,
             handle_time: self.sched.costs.iter().map(|c| c.total).sum(),
             by_event: costs,
+            lifecycle_time: lifecycle_by_event.iter().map(|c| c.total).sum(),
+            lifecycle_by_event,
             wall,
         }
     }
+}
+
+/// Virtual microseconds of a time in milliseconds.
+fn micros(ms: f64) -> Micros {
+    (ms * MS as f64).round() as Micros
 }
 
 /// A distinct scene per job (each frame of an animation is its own scene).

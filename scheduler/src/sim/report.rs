@@ -26,14 +26,57 @@ pub struct Outcome {
     pub coordinator_pauses: u64,
     /// Network cuts between a machine and the coordinator.
     pub network_cuts: u64,
-    /// `Timeout`s: the daemon's timer firing at the scheduler's next deadline.
+    /// `Timeout`s: the daemon's timer firing at the earlier of the two machines' next
+    /// deadlines.
     pub timeouts: u64,
 
     pub jobs: usize,
+    /// Jobs the lifecycle shows `Done`: every tile in, the image stored and the end
+    /// written.
     pub jobs_done: usize,
+    /// Jobs the lifecycle shows `Failed` (the end written).
     pub jobs_failed: usize,
-    /// Each failed job and the scheduler's reason.
+    /// Each failed job and the reason written with its end.
     pub job_failures: Vec<(u64, String)>,
+
+    /// Submissions the lifecycle admitted (an id given, the row to be written):
+    /// one per job, plus one per insert that failed.
+    pub jobs_admitted: u64,
+    /// Jobs acknowledged: the row written, the tiles handed to the tile scheduler.
+    pub jobs_acknowledged: usize,
+    /// Submissions the lifecycle refused (storage known to be unavailable, or a limit on
+    /// active jobs reached); the client submitted them again.
+    pub admissions_refused: u64,
+    /// Submissions admitted whose row could not be written (the client is told at
+    /// once, and submitted again).
+    pub stores_refused: u64,
+    /// The longest a job waited from its client's first submission to its
+    /// acknowledgement, refusals included.
+    pub longest_admission_ms: f64,
+    /// The longest from a done job's last tile to its end written (the image encoded
+    /// and stored, the end written, and the waits for the disk).
+    pub longest_finish_ms: f64,
+    /// Jobs deleted after the lifecycle's retention.
+    pub jobs_deleted: u64,
+
+    /// Outages of the disk (every write fails while one lasts).
+    pub storage_outages: u64,
+    /// Times a failed write made the daemon report storage unavailable to both machines
+    /// (each followed by `StorageAvailable` once a write succeeds again, unless the run
+    /// ended first).
+    pub storage_unavailable: u64,
+    /// Virtual time during which storage was reported unavailable.
+    pub storage_unavailable_ms: f64,
+    /// Writes carried out on the persistence thread (inserts, batches of tiles, starts,
+    /// images, ends, deletions and probes of the disk).
+    pub writes: u64,
+    /// Attempts of a write that failed (each retried, but a job's insert, answered
+    /// at once).
+    pub write_failures: u64,
+    /// Accepted tiles written.
+    pub tiles_written: u64,
+    /// Images stored.
+    pub images_stored: u64,
     pub tiles: u64,
     /// `AcceptTile` actions: one per tile when nothing is lost or counted twice.
     pub tiles_accepted: u64,
@@ -77,18 +120,22 @@ pub struct Outcome {
     /// included.
     pub work_spent_ms: f64,
 
-    /// From the first submission to the end of the last job.
+    /// From the first submission to the last job's end written.
     pub makespan_ms: f64,
     /// A lower bound on the makespan: the larger of `ideal_work_ms` and `ideal_tile_ms`.
     pub ideal_ms: f64,
-    /// The time at which the farm's capacity, integrated from the first submission,
-    /// reaches the jobs' total work: capacity is the sum of threads × thread speed of the
-    /// machines up at each instant (from boot, less crashed and stopped ones; joiners
-    /// counted from the moment they start), as if every tile were infinitely divisible
-    /// and no tile were ever rendered twice.
+    /// The time at which the farm's capacity, integrated from the moment the first
+    /// job's first tile could reach a worker (its submission and that tile crossing the
+    /// network at base latency, its row written), reaches the jobs' total work, plus
+    /// what must follow the last tile (its result crossing the network, the image
+    /// encoded and written, the end written): capacity is the sum of threads × thread
+    /// speed of the machines up at each instant (from boot, less crashed and stopped
+    /// ones; joiners counted from the moment they start), as if every tile were
+    /// infinitely divisible and no tile were ever rendered twice.
     pub ideal_work_ms: f64,
-    /// No job ends before its submission, a round trip of base latency and its costliest
-    /// tile rendered by the fastest thread that ever ran in the farm.
+    /// No job ends before its submission, the same steps before its first tile and
+    /// after its last, and its costliest tile rendered by the fastest thread that ever
+    /// ran in the farm.
     pub ideal_tile_ms: f64,
     /// `ideal_ms / makespan_ms`: 1 would be a perfect schedule.
     pub efficiency: f64,
@@ -97,6 +144,8 @@ pub struct Outcome {
 
     /// Calls to `Scheduler::handle`.
     pub events: u64,
+    /// Calls to `Lifecycle::handle` and `Lifecycle::admit`.
+    pub lifecycle_events: u64,
     /// Disagreements between the scheduler's actions and the simulation's account of
     /// leases and connections (must be 0).
     pub model_mismatches: u64,
@@ -147,10 +196,10 @@ pub struct Memory {
     pub end_bytes: i64,
 }
 
-/// Real time spent in `Scheduler::handle` for one kind of event.
+/// Real time spent in `Scheduler::handle` (or the lifecycle) for one kind of event.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EventCost {
-    pub kind: &'static str,
+    pub kind: String,
     pub count: u64,
     pub total: Duration,
     /// The longest single call: the daemon holds its state lock that long.
@@ -158,7 +207,7 @@ pub struct EventCost {
 }
 
 /// The result of [`super::run`]: the outcome in virtual time, the memory held by the
-/// scheduler, and the real time it took to decide.
+/// tile scheduler, and the real time the two state machines took to decide.
 #[derive(Clone, Debug)]
 pub struct SimReport {
     pub outcome: Outcome,
@@ -168,6 +217,10 @@ pub struct SimReport {
     /// read of some tens of nanoseconds is included per call).
     pub handle_time: Duration,
     pub by_event: Vec<EventCost>,
+    /// Real time inside `Lifecycle::handle` and `Lifecycle::admit`, in all and by kind
+    /// (`admit` first).
+    pub lifecycle_time: Duration,
+    pub lifecycle_by_event: Vec<EventCost>,
     /// Real time of the whole run, the simulation's own work included.
     pub wall: Duration,
 }
@@ -240,6 +293,15 @@ fn seconds(ms: f64) -> String {
     }
 }
 
+/// A virtual time, in milliseconds below a second.
+fn span(ms: f64) -> String {
+    if ms < 1e3 {
+        format!("{ms:.0} ms")
+    } else {
+        seconds(ms)
+    }
+}
+
 fn duration(d: Duration) -> String {
     let s = d.as_secs_f64();
     if s >= 1.0 {
@@ -271,6 +333,24 @@ fn bytes(b: f64) -> String {
     }
 }
 
+/// The real time of each kind of event, as a Markdown table.
+fn cost_table(f: &mut fmt::Formatter<'_>, costs: &[EventCost]) -> fmt::Result {
+    writeln!(f, "| event | calls | total | mean | longest |")?;
+    writeln!(f, "| --- | ---: | ---: | ---: | ---: |")?;
+    for c in costs {
+        writeln!(
+            f,
+            "| {} | {} | {} | {} | {} |",
+            c.kind,
+            c.count,
+            duration(c.total),
+            duration(c.total / u32::try_from(c.count).unwrap_or(u32::MAX).max(1)),
+            duration(c.max)
+        )?;
+    }
+    Ok(())
+}
+
 impl fmt::Display for SimReport {
     /// A Markdown summary, for the command line and for pasting into a report.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -296,7 +376,7 @@ impl fmt::Display for SimReport {
         )?;
         writeln!(
             f,
-            "- {} jobs: {} done, {} failed{}",
+            "- {} jobs: {} done (image and end written), {} failed{}",
             o.jobs,
             o.jobs_done,
             o.jobs_failed,
@@ -313,6 +393,38 @@ impl fmt::Display for SimReport {
             f,
             "- {} tiles: {} accepted, {} twice, {} missing",
             o.tiles, o.tiles_accepted, o.tiles_accepted_twice, o.tiles_missing
+        )?;
+        writeln!(f)?;
+        writeln!(f, "## Admission and storage")?;
+        writeln!(f)?;
+        writeln!(
+            f,
+            "- {} submissions admitted, {} acknowledged once stored; {} refused by the \
+             lifecycle and {} whose insert failed (each submitted again); the longest wait \
+             for an acknowledgement {}",
+            o.jobs_admitted,
+            o.jobs_acknowledged,
+            o.admissions_refused,
+            o.stores_refused,
+            span(o.longest_admission_ms)
+        )?;
+        writeln!(
+            f,
+            "- {} disk outages; storage reported unavailable {} times, for {} in all",
+            o.storage_outages,
+            o.storage_unavailable,
+            span(o.storage_unavailable_ms)
+        )?;
+        writeln!(
+            f,
+            "- {} writes ({} tiles, {} images), {} failed attempts; the longest from a \
+             job's last tile to its end written {}; {} jobs deleted after their retention",
+            o.writes,
+            o.tiles_written,
+            o.images_stored,
+            o.write_failures,
+            span(o.longest_finish_ms),
+            o.jobs_deleted
         )?;
         writeln!(f)?;
         writeln!(f, "## Makespan")?;
@@ -398,19 +510,18 @@ impl fmt::Display for SimReport {
             duration(self.wall)
         )?;
         writeln!(f)?;
-        writeln!(f, "| event | calls | total | mean | longest |")?;
-        writeln!(f, "| --- | ---: | ---: | ---: | ---: |")?;
-        for c in &self.by_event {
-            writeln!(
-                f,
-                "| {} | {} | {} | {} | {} |",
-                c.kind,
-                c.count,
-                duration(c.total),
-                duration(c.total / u32::try_from(c.count).unwrap_or(u32::MAX).max(1)),
-                duration(c.max)
-            )?;
-        }
+        cost_table(f, &self.by_event)?;
+        writeln!(f)?;
+        writeln!(f, "## Lifecycle time (real)")?;
+        writeln!(f)?;
+        writeln!(
+            f,
+            "{} calls in {}",
+            o.lifecycle_events,
+            duration(self.lifecycle_time)
+        )?;
+        writeln!(f)?;
+        cost_table(f, &self.lifecycle_by_event)?;
         writeln!(f)?;
         writeln!(f, "## Scheduler memory")?;
         writeln!(f)?;
