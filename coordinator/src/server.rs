@@ -385,20 +385,12 @@ impl Server {
     }
 }
 
-/// Timer slack: a wake-up is put off to the next multiple of this, so that the
-/// deadlines of many leases and workers falling close together cost one wake-up, not
-/// one each (at most ten a second; none at all when idle).
-const TIMER_SLACK: Millis = 100;
-
-/// Wakes the state machines when their next deadline comes (and when something
-/// changed, to look at the deadline again). No periodic tick: an idle coordinator
-/// sleeps.
+/// Wakes the state machines when their next deadline comes, with the timer slack of
+/// [`scheduler::TIMER_SLACK`] (and when something changed, to look at the deadline
+/// again). No periodic tick: an idle coordinator sleeps.
 async fn timer(sh: Arc<Shared>) {
     loop {
-        let deadline = sh
-            .lock()
-            .next_deadline()
-            .map(|at| at.div_ceil(TIMER_SLACK) * TIMER_SLACK);
+        let deadline = sh.lock().next_deadline().map(scheduler::wake_time);
         let sleep = async {
             match deadline {
                 Some(at) => {

@@ -17,3 +17,14 @@ pub mod sim;
 pub mod tiles;
 
 pub use tiles::{Action, Counters, Event, Millis, Policy, Scheduler};
+
+/// Timer slack: a daemon (and the simulator) puts a wake-up for a deadline off to the
+/// next multiple of this, so that the deadlines of many leases and workers falling
+/// close together cost one wake-up, not one each. Late by at most this, a `Timeout`
+/// decides the same; it is far below the pause threshold.
+pub const TIMER_SLACK: Millis = 100;
+
+/// The time at which to wake for `deadline`, with [`TIMER_SLACK`].
+pub fn wake_time(deadline: Millis) -> Millis {
+    deadline.div_ceil(TIMER_SLACK) * TIMER_SLACK
+}

@@ -1289,7 +1289,8 @@ impl<'a> Sim<'a> {
     /// The daemon's timer fires at the earliest deadline either machine gave.
     fn arm_wake(&mut self, deadline: Option<Millis>) {
         if let Some(deadline) = deadline {
-            let at = (deadline * MS).max(self.now);
+            // With the daemon's timer slack.
+            let at = (crate::wake_time(deadline) * MS).max(self.now);
             if self.wake_at.is_none_or(|armed| at < armed) {
                 self.wake_at = Some(at);
                 self.agenda.push(at, Ev::Wake);
