@@ -90,7 +90,9 @@ impl Store {
         match std::fs::read_to_string(&path) {
             Ok(text) => text.trim().parse().with_context(|| {
                 format!(
-                    "{} does not hold a job id: {:?}",
+                    "{} does not hold a job id ({:?}): write the highest job id ever issued \
+                     into it, or remove it (ids then continue above the database's and the \
+                     job folders')",
                     path.display(),
                     text.trim()
                 )

@@ -100,7 +100,9 @@ pub fn open(data: &Path, reset: bool) -> Result<Opened> {
         db,
         db_path,
         store,
-        next_id: highest + 1,
+        next_id: highest
+            .checked_add(1)
+            .context("every job id has been issued: this data directory can take no more jobs")?,
         jobs,
     })
 }
@@ -208,4 +210,30 @@ fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
         }
     }
     Ok(Some(RestoredJob { job, tiles }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_damaged_id_watermark_stops_the_start_and_says_what_to_do() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("last-job-id"), "garbage\n").unwrap();
+        let error = format!("{:#}", open(dir.path(), false).err().unwrap());
+        assert!(error.contains("last-job-id does not hold a job id"), "{error}");
+        assert!(error.contains("remove it"), "{error}");
+    }
+
+    #[test]
+    fn ids_continue_above_the_watermark_and_cannot_overflow() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("last-job-id"), "41\n").unwrap();
+        let opened = open(dir.path(), true).unwrap();
+        assert_eq!(opened.next_id, 42);
+        drop(opened);
+        std::fs::write(dir.path().join("last-job-id"), format!("{}\n", u64::MAX)).unwrap();
+        let error = format!("{:#}", open(dir.path(), true).err().unwrap());
+        assert!(error.contains("every job id has been issued"), "{error}");
+    }
 }
