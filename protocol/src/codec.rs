@@ -6,7 +6,7 @@ use std::marker::PhantomData;
 
 use bytes::{Bytes, BytesMut};
 use serde::{de::DeserializeOwned, Serialize};
-use tokio_util::codec::{Decoder, Encoder, LengthDelimitedCodec};
+use tokio_util::codec::{Decoder, Encoder, LengthDelimitedCodec, LengthDelimitedCodecError};
 
 use crate::wire::{self, DecodeError};
 
@@ -21,7 +21,9 @@ pub const MAX_FRAME_LIMIT: usize = 64 * 1024 * 1024;
 /// Why a frame could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum FrameError {
-    #[error("connection error: {0}")]
+    /// The connection failed, or a frame's length prefix is above the limit (an error
+    /// of kind `InvalidData` then, whose text says so).
+    #[error("{}", io_text(.0))]
     Io(#[from] std::io::Error),
     #[error(transparent)]
     Decode(#[from] DecodeError),
@@ -53,12 +55,45 @@ pub fn frame_codec(max_frame: usize) -> LengthDelimitedCodec {
         .new_codec()
 }
 
+/// A length prefix above the frame limit.
+#[derive(Debug, thiserror::Error)]
+#[error("a frame of {length} bytes is too long")]
+struct FrameTooLong {
+    length: u64,
+}
+
+fn io_text(e: &std::io::Error) -> String {
+    match e
+        .get_ref()
+        .and_then(|inner| inner.downcast_ref::<FrameTooLong>())
+    {
+        Some(too_long) => too_long.to_string(),
+        None => format!("connection error: {e}"),
+    }
+}
+
 impl<In: DeserializeOwned, Out> Decoder for MessageCodec<In, Out> {
     type Item = In;
     type Error = FrameError;
 
     fn decode(&mut self, src: &mut BytesMut) -> Result<Option<In>, FrameError> {
-        match self.frames.decode(src)? {
+        let frame = match self.frames.decode(src) {
+            Ok(frame) => frame,
+            // Refused from its prefix, which is still at the head of `src`.
+            Err(e)
+                if src.len() >= 4
+                    && e.get_ref()
+                        .is_some_and(|inner| inner.is::<LengthDelimitedCodecError>()) =>
+            {
+                let length = u64::from(u32::from_be_bytes([src[0], src[1], src[2], src[3]]));
+                return Err(FrameError::Io(std::io::Error::new(
+                    std::io::ErrorKind::InvalidData,
+                    FrameTooLong { length },
+                )));
+            }
+            Err(e) => return Err(e.into()),
+        };
+        match frame {
             Some(frame) => Ok(Some(wire::decode(&frame)?)),
             None => Ok(None),
         }

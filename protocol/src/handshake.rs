@@ -163,7 +163,7 @@ impl Hello {
                 theirs,
             });
         }
-        wire::decode(frame).map_err(|e| HelloError::Malformed(e.to_string()))
+        wire::decode(frame).map_err(|e| HelloError::Malformed(e.detail().to_string()))
     }
 
     /// The frame body of this hello.

@@ -24,10 +24,65 @@ fn decode_within<T: DeserializeOwned, const LIMIT: usize>(
     bincode::serde::decode_from_slice(bytes, encoding().with_limit::<LIMIT>())
 }
 
-/// A message that could not be decoded.
+/// A message that could not be decoded: which message, and what is wrong with it in
+/// one line (never the decoder's debug output).
 #[derive(Debug, thiserror::Error)]
-#[error("malformed message: {0}")]
-pub struct DecodeError(String);
+#[error("unreadable {message}: {detail}")]
+pub struct DecodeError {
+    message: &'static str,
+    detail: String,
+}
+
+impl DecodeError {
+    fn new<T>(detail: String) -> Self {
+        let name = std::any::type_name::<T>();
+        let name = name.split('<').next().unwrap_or(name);
+        DecodeError {
+            message: name.rsplit("::").next().unwrap_or(name),
+            detail,
+        }
+    }
+
+    /// What is wrong, without the name of the message.
+    pub fn detail(&self) -> &str {
+        &self.detail
+    }
+}
+
+/// One line saying what is wrong with the bytes, for the peer that sent them.
+fn describe(e: &bincode::error::DecodeError) -> String {
+    use bincode::error::DecodeError as E;
+    match e {
+        E::UnexpectedEnd { .. } => "the frame ends in the middle of a field".into(),
+        E::LimitExceeded | E::OutsideUsizeRange(_) => {
+            "a length claims more bytes than the frame holds".into()
+        }
+        E::Utf8 { .. } => "a string is not valid UTF-8".into(),
+        E::InvalidBooleanValue(v) => format!("a bool is {v}, not 0 or 1"),
+        E::UnexpectedVariant {
+            type_name, found, ..
+        } if type_name.starts_with("Option") => format!("an Option tag is {found}, not 0 or 1"),
+        E::UnexpectedVariant { found, .. } => format!("unknown variant {found}"),
+        E::OtherString(text) => unknown_variant(text).unwrap_or_else(|| text.clone()),
+        E::Other(text) => (*text).into(),
+        _ => "not a valid encoding".into(),
+    }
+}
+
+/// Serde's "invalid value: integer `9`, expected variant index 0 <= i < 8" as
+/// "unknown variant 9 (variants go from 0 to 7)".
+fn unknown_variant(text: &str) -> Option<String> {
+    let rest = text.strip_prefix("invalid value: integer `")?;
+    let (found, rest) = rest.split_once('`')?;
+    let count: u64 = rest
+        .strip_prefix(", expected variant index 0 <= i < ")?
+        .parse()
+        .ok()?;
+    Some(format!(
+        "unknown variant {found} (variants go from 0 to {})",
+        count.checked_sub(1)?
+    ))
+}
 
 /// Encodes one message.
 pub fn encode<T: Serialize>(message: &T) -> Vec<u8> {
@@ -49,11 +104,12 @@ pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, DecodeError> {
         n if n <= 16 * 1024 * KIB => decode_within::<T, { 16 * 1024 * KIB }>(bytes),
         _ => decode_within::<T, MAX_FRAME_LIMIT>(bytes),
     };
-    let (message, used) = decoded.map_err(|e| DecodeError(e.to_string()))?;
+    let (message, used) = decoded.map_err(|e| DecodeError::new::<T>(describe(&e)))?;
     if used != bytes.len() {
-        return Err(DecodeError(format!(
-            "{} trailing bytes after the message",
-            bytes.len() - used
+        let extra = bytes.len() - used;
+        return Err(DecodeError::new::<T>(format!(
+            "{extra} byte{} after the end of the message",
+            if extra == 1 { "" } else { "s" }
         )));
     }
     Ok(message)

@@ -27,6 +27,11 @@ fn scene_hash() -> [u8; 32] {
     Sha256::digest(SCENE.as_bytes()).into()
 }
 
+/// The nonce of the authentication examples: 00, 01, … 1f.
+fn nonce() -> [u8; 32] {
+    std::array::from_fn(|i| i as u8)
+}
+
 /// A message as a frame: big-endian length, then the body.
 fn frame<T: Serialize>(message: &T) -> Vec<u8> {
     let body = wire::encode(message);
@@ -123,6 +128,11 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 error_sq_sum: 2.25,
             }),
         ),
+        (
+            "Welcome::Challenge",
+            frame(&Welcome::Challenge { nonce: nonce() }),
+        ),
+        ("AuthProof", frame(&protocol::prove(b"s3cret", &nonce()))),
     ]
 }
 

@@ -809,3 +809,79 @@ fn a_hello_of_this_version_with_a_damaged_body_is_malformed() {
         Err(HelloError::Malformed(_))
     ));
 }
+
+// ---------------------------------------------------------------------------------------
+// The texts of decoding errors: one line a peer can read, never debug output.
+
+fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
+    wire::decode::<T>(bytes).unwrap_err().to_string()
+}
+
+#[test]
+fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
+    assert_eq!(
+        decode_error::<ClientRequest>(&9u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 9 (variants go from 0 to 7)"
+    );
+    let mut status = wire::encode(&ClientRequest::Status { job: 1 });
+    assert_eq!(
+        decode_error::<ClientRequest>(&status[..6]),
+        "unreadable ClientRequest: the frame ends in the middle of a field"
+    );
+    status.push(0);
+    assert_eq!(
+        decode_error::<ClientRequest>(&status),
+        "unreadable ClientRequest: 1 byte after the end of the message"
+    );
+    let submit = |overrides| {
+        wire::encode(&ClientRequest::Submit(JobSpec {
+            scene: "x".into(),
+            overrides,
+            priority: 0,
+        }))
+    };
+    let mut tagged = submit(Overrides::default());
+    tagged[13] = 2; // overrides.width's Option tag
+    assert_eq!(
+        decode_error::<ClientRequest>(&tagged),
+        "unreadable ClientRequest: an Option tag is 2, not 0 or 1"
+    );
+    let mut nested = submit(Overrides {
+        sampling: Some(Sampling::Grid),
+        ..Default::default()
+    });
+    let at = nested.len() - 8; // the Sampling variant, before the priority
+    nested[at] = 7;
+    assert_eq!(
+        decode_error::<ClientRequest>(&nested),
+        "unreadable ClientRequest: unknown variant 7 (variants go from 0 to 2)"
+    );
+    let scene = wire::encode(&ToWorker::Scene {
+        hash: [0; 32],
+        scene: "ab".into(),
+    });
+    let mut bad_utf8 = scene.clone();
+    *bad_utf8.last_mut().unwrap() = 0xff;
+    assert_eq!(
+        decode_error::<ToWorker>(&bad_utf8),
+        "unreadable ToWorker: a string is not valid UTF-8"
+    );
+    let mut long = scene;
+    long[40] = 0xff; // the string's length: 2 + 2^32
+    assert_eq!(
+        decode_error::<ToWorker>(&long),
+        "unreadable ToWorker: a length claims more bytes than the frame holds"
+    );
+    let mut hello = Hello::new(Role::Client).to_frame();
+    hello[6] = 7;
+    assert_eq!(
+        Hello::from_frame(&hello).unwrap_err().to_string(),
+        "malformed hello: unknown variant 7 (variants go from 0 to 1)"
+    );
+    let mut codec = MessageCodec::<FromWorker, FromWorker>::new(1024);
+    let mut prefix = BytesMut::from(&1025u32.to_be_bytes()[..]);
+    assert_eq!(
+        codec.decode(&mut prefix).unwrap_err().to_string(),
+        "a frame of 1025 bytes is too long"
+    );
+}
