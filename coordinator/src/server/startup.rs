@@ -221,7 +221,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("last-job-id"), "garbage\n").unwrap();
         let error = format!("{:#}", open(dir.path(), false).err().unwrap());
-        assert!(error.contains("last-job-id does not hold a job id"), "{error}");
+        assert!(
+            error.contains("last-job-id does not hold a job id"),
+            "{error}"
+        );
         assert!(error.contains("remove it"), "{error}");
     }
 
