@@ -172,10 +172,8 @@ pub struct Job {
     pub client: Option<IpAddr>,
     /// The image's pixels (what its frame costs while it is active).
     pub pixels: u64,
-    /// When the job was submitted, started rendering, and ended (daemon's clock; for a
-    /// restored job, the times recorded before the restart are the daemon's to keep).
-    pub submitted: Millis,
-    pub started: Option<Millis>,
+    /// When the job ended (the lifecycle's clock), which its retention runs from. The
+    /// wall-clock times shown to users are the daemon's to keep.
     pub ended: Option<Millis>,
 }
 
@@ -375,8 +373,6 @@ impl Lifecycle {
                 phase: Phase::Storing,
                 client: request.client,
                 pixels,
-                submitted: self.now,
-                started: None,
                 ended: None,
             },
         );
@@ -448,8 +444,6 @@ impl Lifecycle {
                         phase,
                         client: None,
                         pixels,
-                        submitted: now,
-                        started: started.then_some(now),
                         ended,
                     },
                 );
@@ -464,14 +458,12 @@ impl Lifecycle {
                 if let Some(j) = self.jobs.get_mut(&job) {
                     if j.phase == Phase::Queued {
                         j.phase = Phase::Running;
-                        j.started = Some(now);
                     }
                 }
             }
             Event::TilesComplete { job } => {
                 if let Some(j) = self.jobs.get_mut(&job) {
                     if matches!(j.phase, Phase::Queued | Phase::Running) {
-                        j.started.get_or_insert(now);
                         j.phase = Phase::Finishing { retry_at: None };
                         actions.push(Action::StoreImage { job });
                     }

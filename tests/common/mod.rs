@@ -182,32 +182,7 @@ pub fn start_coordinator(
     extra: &[&str],
     log_name: &str,
 ) -> (Daemon, String) {
-    let log = dir.join(log_name);
-    let mut child = Command::new(BIN)
-        .args(["coordinator", "--listen", listen, "--data"])
-        .arg(data)
-        .args(extra)
-        .current_dir(dir)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("cannot create the log"))
-        .spawn()
-        .expect("cannot start the coordinator");
-    let stdout = child.stdout.take().expect("stdout is piped");
-    let daemon = Daemon {
-        name: log_name.trim_end_matches(".log").to_owned(),
-        child,
-        log: Some(log),
-    };
-    let line = first_line(stdout, Duration::from_secs(10))
-        .expect("the coordinator printed no first line within 10 s");
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_owned();
-    assert!(addr.starts_with("127.0.0.1:"), "listening on {addr}");
-    (daemon, addr)
+    try_start_coordinator(dir, data, listen, extra, log_name).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// Starts `tessera worker --coordinator ADDR --threads 1 --name NAME` (log in

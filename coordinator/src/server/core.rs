@@ -58,8 +58,7 @@ pub struct JobRecord {
     /// coordinator's own downtime is not rendering time.
     pub rendered_before_ms: u64,
     pub running_since: Option<u64>,
-    /// Tiles accepted, and of those, written to the database (the progress reported).
-    pub tiles_accepted: u32,
+    /// Tiles written to the database: the progress reported.
     pub tiles_recorded: u32,
     pub totals: Totals,
     pub tiles_per_worker: BTreeMap<String, u64>,
@@ -198,7 +197,6 @@ impl Core {
                 times: stored.times,
                 rendered_before_ms: 0,
                 running_since: None,
-                tiles_accepted: 0,
                 tiles_recorded: 0,
                 totals: Totals::default(),
                 tiles_per_worker: BTreeMap::new(),
@@ -230,7 +228,6 @@ impl Core {
             },
             rendered_before_ms: 0,
             running_since: None,
-            tiles_accepted: 0,
             tiles_recorded: 0,
             totals: stored.totals.unwrap_or_default(),
             tiles_per_worker: BTreeMap::new(),
@@ -238,7 +235,6 @@ impl Core {
         };
         if final_state {
             if stored.state == JobState::Done {
-                record.tiles_accepted = record.tiles_total;
                 record.tiles_recorded = record.tiles_total;
             }
             self.jobs.insert(id, record);
@@ -267,7 +263,6 @@ impl Core {
         for t in restored.tiles {
             let rect = record.tiles[t.tile as usize];
             image.put_rect(to_render_rect(rect), &t.rgb);
-            record.tiles_accepted += 1;
             record.tiles_recorded += 1;
             // A tile recorded by an earlier version was a grid render: aa² per pixel.
             let pixels = rect_pixels(rect);
@@ -347,7 +342,7 @@ impl Core {
         worker: WorkerId,
         job: JobId,
         tile: u32,
-        rgb: &[u8],
+        rgb: Vec<u8>,
         cost: Cost,
     ) -> anyhow::Result<()> {
         if let Some(record) = self.jobs.get(&job) {
@@ -370,14 +365,20 @@ impl Core {
             .get_mut(&worker)
             .and_then(|w| w.assigned.remove(&(job, tile)))
             .map(|at| at.elapsed());
+        // A result is either accepted (its pixels move on to the database) or a copy.
+        let mut rgb = Some(rgb);
         for action in &actions {
             match *action {
                 Action::AcceptTile { job, tile } => {
                     sh.metrics.tile_accepted(cost.rays, latency);
-                    self.accept_tile(sh, worker, job, tile, rgb, &cost);
+                    if let Some(rgb) = rgb.take() {
+                        self.accept_tile(sh, worker, job, tile, rgb, &cost);
+                    }
                 }
                 Action::DuplicateResult { job, tile } => {
-                    self.check_duplicate(worker, job, tile, rgb)
+                    if let Some(rgb) = &rgb {
+                        self.check_duplicate(worker, job, tile, rgb);
+                    }
                 }
                 _ => {}
             }
@@ -441,7 +442,7 @@ impl Core {
         worker: WorkerId,
         job: JobId,
         tile: u32,
-        rgb: &[u8],
+        rgb: Vec<u8>,
         cost: &Cost,
     ) {
         let name = self.workers.get_mut(&worker).map(|w| {
@@ -456,9 +457,8 @@ impl Core {
             return;
         };
         if let Some(image) = record.image.as_mut() {
-            image.put_rect(to_render_rect(rect), rgb);
+            image.put_rect(to_render_rect(rect), &rgb);
         }
-        record.tiles_accepted += 1;
         // An estimate that is not a sum of squares (a broken worker) counts as unknown.
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
             .then_some(cost.error_sq_sum);
@@ -468,7 +468,7 @@ impl Core {
         sh.persistence.write(Write::Tile(crate::db::TileWrite {
             job,
             tile,
-            rgb: rgb.to_vec(),
+            rgb,
             rays: cost.rays,
             worker: name,
             samples: cost.samples,

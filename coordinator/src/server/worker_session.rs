@@ -103,7 +103,7 @@ fn on_message(sh: &Arc<Shared>, worker: protocol::WorkerId, message: FromWorker)
                 samples,
                 error_sq_sum,
             };
-            sh.lock().tile_done(sh, worker, job, tile, &rgb, cost)?;
+            sh.lock().tile_done(sh, worker, job, tile, rgb, cost)?;
         }
         FromWorker::TileFailed { job, tile, message } => {
             sh.lock().tile_failed(sh, worker, job, tile, message);
