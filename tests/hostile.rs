@@ -293,6 +293,7 @@ fn lying_worker(addr: &str) -> String {
     let hello = Hello::new(Role::Worker {
         name: "liar".into(),
         threads: 1,
+        build: render::build_identity(),
     });
     send_frame(&mut stream, &hello.to_frame());
     match read_welcome(&mut stream, what) {

@@ -11,7 +11,7 @@ use crate::wire;
 pub const MAGIC: [u8; 4] = *b"TSRA";
 
 /// Bumped whenever any message changes shape.
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// The peer's first frame.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -27,7 +27,13 @@ pub enum Role {
     /// Submits jobs and asks about them.
     Client,
     /// Renders tiles with `threads` threads; `name` identifies it in listings and logs.
-    Worker { name: String, threads: u32 },
+    /// `build` names the worker's renderer build (version, target, profile): shown in
+    /// listings and logs, and named when its canary render does not match.
+    Worker {
+        name: String,
+        threads: u32,
+        build: String,
+    },
 }
 
 /// The coordinator's answer to a `Hello` (and to an [`AuthProof`]).

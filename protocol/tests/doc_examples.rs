@@ -51,6 +51,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 role: Role::Worker {
                     name: "w1".into(),
                     threads: 4,
+                    build: "b".into(),
                 },
             }),
         ),

@@ -265,7 +265,11 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
 fn role() -> impl Strategy<Value = Role> {
     prop_oneof![
         Just(Role::Client),
-        (text(), any::<u32>()).prop_map(|(name, threads)| Role::Worker { name, threads }),
+        (text(), any::<u32>(), text()).prop_map(|(name, threads, build)| Role::Worker {
+            name,
+            threads,
+            build
+        }),
     ]
 }
 

@@ -36,3 +36,17 @@ pub use crate::tile::{
 };
 pub use crate::tracer::{Hit, Tracer};
 pub use crate::vec3::Vec3;
+
+/// This renderer's build: version, target and profile (and the packager's stamp from
+/// `TESSERA_BUILD` at compile time, if any). Workers announce it; the canary render,
+/// not this name, decides whether two builds agree.
+pub fn build_identity() -> String {
+    let profile = if cfg!(debug_assertions) { "debug" } else { "release" };
+    let stamp = option_env!("TESSERA_BUILD").map_or(String::new(), |s| format!(", {s}"));
+    format!(
+        "tessera {} ({}-{}, {profile}{stamp})",
+        env!("CARGO_PKG_VERSION"),
+        std::env::consts::ARCH,
+        std::env::consts::OS
+    )
+}

@@ -141,6 +141,7 @@ async fn connect(config: &Config) -> Result<Conn, DialError> {
     let role = Role::Worker {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
+        build: render::build_identity(),
     };
     let raw = transport::dial(&config.coordinator, role).await?;
     Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))

@@ -166,7 +166,11 @@ pub(super) async fn handle_connection(
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
             client_session::serve(shared, framed, peer).await
         }
-        Role::Worker { name, threads } => {
+        Role::Worker {
+            name,
+            threads,
+            build: _,
+        } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
             worker_session::serve(shared, framed, name, threads).await
         }
