@@ -7,7 +7,9 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::{Client, ConnectionLost};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use protocol::{JobId, JobSpec, JobState, JobStatus, Overrides, Sampling, Settings, WorkerStatus};
+use protocol::{
+    JobId, JobSpec, JobState, JobStatus, Overrides, Sampling, Settings, Verification, WorkerStatus,
+};
 use render::RenderSettings;
 use serde_json::{json, Value};
 use transport::{DialError, Endpoint};
@@ -28,6 +30,7 @@ pub async fn submit(
     scene_path: &Path,
     overrides: Overrides,
     priority: i32,
+    verification: Verification,
 ) -> Result<JobId> {
     let scene = read_scene(scene_path)?;
     client
@@ -35,6 +38,7 @@ pub async fn submit(
             scene,
             overrides,
             priority,
+            verification,
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
@@ -270,12 +274,13 @@ pub async fn run_submit(
     scene: &Path,
     overrides: Overrides,
     priority: i32,
+    verification: Verification,
     wait_for_it: bool,
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
     let mut session = Session::connect(coordinator).await?;
-    let job = submit(session.client(), scene, overrides, priority).await?;
+    let job = submit(session.client(), scene, overrides, priority, verification).await?;
     if !wait_for_it {
         if json_out {
             println!("{}", json!({ "id": job, "state": "queued" }));

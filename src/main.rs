@@ -451,6 +451,11 @@ struct SubmitArgs {
     /// Priority: higher runs first; equal priorities share the farm.
     #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
     priority: i32,
+    /// How results are checked: `sampled` (spot checks and a random share of tiles
+    /// rendered twice) or `full` (every tile rendered by two different machines, which
+    /// must agree byte for byte; needs two workers).
+    #[arg(long, value_enum, default_value_t = VerifyArg::Sampled, value_name = "MODE")]
+    verify: VerifyArg,
     /// Wait for the job, showing progress, and write its image.
     #[arg(long)]
     wait: bool,
@@ -459,6 +464,22 @@ struct SubmitArgs {
     output: Option<PathBuf>,
     #[command(flatten)]
     common: ClientArgs,
+}
+
+/// `--verify`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum VerifyArg {
+    Sampled,
+    Full,
+}
+
+impl From<VerifyArg> for protocol::Verification {
+    fn from(v: VerifyArg) -> Self {
+        match v {
+            VerifyArg::Sampled => protocol::Verification::Sampled,
+            VerifyArg::Full => protocol::Verification::Full,
+        }
+    }
 }
 
 /// What every client command takes.
@@ -734,6 +755,7 @@ fn run(command: Command) -> Result<()> {
                     &a.scene,
                     a.image.overrides(a.tile)?,
                     a.priority,
+                    a.verify.into(),
                     a.wait,
                     a.output,
                     a.common.json,

@@ -47,7 +47,14 @@ pub async fn run(opts: Options) -> Result<()> {
 
 async fn render_on(address: &str, opts: &Options) -> Result<()> {
     let mut session = Session::connect(&Endpoint::plain(address)).await?;
-    let job = submit(session.client(), &opts.scene, opts.overrides, 0).await?;
+    let job = submit(
+        session.client(),
+        &opts.scene,
+        opts.overrides,
+        0,
+        protocol::Verification::default(),
+    )
+    .await?;
     let status = wait(&mut session, job).await?;
     let output = opts
         .output

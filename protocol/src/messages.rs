@@ -90,6 +90,33 @@ pub struct JobSpec {
     pub overrides: Overrides,
     /// Higher runs first; jobs of equal priority share the farm (see docs/protocol.md).
     pub priority: i32,
+    /// How the workers' results are checked before they count.
+    pub verification: Verification,
+}
+
+/// How a job's tile results are checked before they count (docs/reliability.md has the
+/// guarantees in numbers). Every result is spot-checked either way: the coordinator
+/// renders a few of its pixels, chosen at random once the result has arrived.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Verification {
+    /// Spot checks, and a small random share of tiles rendered again by another machine
+    /// and compared byte for byte.
+    #[default]
+    Sampled,
+    /// Spot checks, and every tile rendered by two different machines whose results
+    /// must be identical: a corrupted tile counts only if two machines return the
+    /// same wrong bytes.
+    Full,
+}
+
+impl Verification {
+    /// The lowercase name used on the command line and in listings.
+    pub fn name(self) -> &'static str {
+        match self {
+            Verification::Sampled => "sampled",
+            Verification::Full => "full",
+        }
+    }
 }
 
 /// A client's request. Each gets exactly one [`ClientResponse`], in order.
@@ -221,6 +248,22 @@ pub struct WorkerStatus {
     pub connected_ms: u64,
     /// Rays per second over the worker's connection so far.
     pub rays_per_second: f64,
+    /// The worker's renderer build, as its hello gave it.
+    pub build: String,
+    /// Why the worker gets no more tiles, once one of its results was found wrong.
+    pub quarantined: Option<String>,
+    /// The round-trip time last measured to the worker, in microseconds.
+    pub rtt_us: Option<u64>,
+    /// Tiles the worker may hold at once: enough to keep its threads busy across the
+    /// round trip.
+    pub credit: u32,
+}
+
+/// One render of the canary: the settings and the rectangle of the canary scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CanaryRender {
+    pub settings: Settings,
+    pub rect: TileRect,
 }
 
 /// Coordinator to worker.
@@ -244,6 +287,19 @@ pub enum ToWorker {
     /// The coordinator is alive. Sent every second, so that a worker cut off from it
     /// notices (it hears nothing) and reconnects instead of waiting forever.
     Heartbeat,
+    /// The first message to a worker, before any tile: render this small fixed scene
+    /// once per entry of `renders` and answer with [`FromWorker::CanaryDone`]. The
+    /// bytes must equal the coordinator's own render, or the worker is refused.
+    Canary {
+        scene: String,
+        renders: Vec<CanaryRender>,
+    },
+    /// The worker is refused and the connection closes: do not reconnect, `reason`
+    /// says why in one line.
+    Refuse { reason: String },
+    /// Answer at once with [`FromWorker::Pong`] carrying the same `token`: the
+    /// coordinator measures the round trip to size the worker's credit.
+    Ping { token: u64 },
 }
 
 /// Worker to coordinator.
@@ -275,4 +331,11 @@ pub enum FromWorker {
     /// The worker is alive. Sent every second; a worker silent for longer than the
     /// coordinator's heartbeat timeout loses its tiles.
     Heartbeat,
+    /// The canary's renders, one RGB8 buffer per entry of [`ToWorker::Canary`]'s
+    /// `renders`, in order; or why the worker could not render them.
+    CanaryDone {
+        images: Result<Vec<Vec<u8>>, String>,
+    },
+    /// The answer to [`ToWorker::Ping`].
+    Pong { token: u64 },
 }

@@ -5,7 +5,8 @@
 
 use protocol::{
     wire, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
-    Overrides, Role, Sampling, Settings, TileRect, ToWorker, Welcome, MAGIC, PROTOCOL_VERSION,
+    Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome, MAGIC,
+    PROTOCOL_VERSION,
 };
 use serde::Serialize;
 
@@ -75,6 +76,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     sampling: Some(Sampling::Adaptive { target_milli: 1000 }),
                 },
                 priority: -1,
+                verification: Verification::Sampled,
             })),
         ),
         ("Status", frame(&ClientRequest::Status { job: 7 })),

@@ -27,7 +27,8 @@ use proptest::prelude::*;
 use protocol::{
     wire, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError, JobSpec,
     JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings, TileRect, ToWorker,
-    Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT, PROTOCOL_VERSION,
+    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
+    PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -134,9 +135,11 @@ prop_compose! {
 }
 
 prop_compose! {
-    fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>())
+    fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
+                  full in any::<bool>())
                  -> JobSpec {
-        JobSpec { scene, overrides, priority }
+        let verification = if full { Verification::Full } else { Verification::Sampled };
+        JobSpec { scene, overrides, priority, verification }
     }
 }
 
@@ -169,11 +172,13 @@ prop_compose! {
     fn worker_status()(
         id in any::<u64>(), name in text(), threads in any::<u32>(),
         tiles_in_flight in any::<u32>(), tiles_done in any::<u64>(), rays in any::<u64>(),
-        connected_ms in any::<u64>(), rays_per_second in rate(),
+        connected_ms in any::<u64>(), rays_per_second in rate(), build in text(),
+        quarantined in prop::option::of(text()), rtt_us in any::<Option<u64>>(),
+        credit in any::<u32>(),
     ) -> WorkerStatus {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
-            rays_per_second,
+            rays_per_second, build, quarantined, rtt_us, credit,
         }
     }
 }
@@ -772,6 +777,10 @@ fn nan_rates_keep_their_bits() {
         rays: 0,
         connected_ms: 0,
         rays_per_second: f64::from_bits(0x7FF8_0000_0000_0123),
+        build: String::new(),
+        quarantined: None,
+        rtt_us: None,
+        credit: 2,
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {
@@ -842,6 +851,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             scene: "x".into(),
             overrides,
             priority: 0,
+            verification: Verification::Sampled,
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -854,7 +864,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         sampling: Some(Sampling::Grid),
         ..Default::default()
     });
-    let at = nested.len() - 8; // the Sampling variant, before the priority
+    let at = nested.len() - 9; // the Sampling variant, before the priority and verification
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

@@ -46,6 +46,7 @@ async fn run_job(
             scene: bench.json.clone(),
             overrides,
             priority: 0,
+            verification: protocol::Verification::default(),
         })
         .await?;
     let mut seen = 0;

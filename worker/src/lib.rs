@@ -233,6 +233,7 @@ impl Session {
             ToWorker::Scene { hash, scene } => self.cache.insert(hash, scene),
             ToWorker::ForgetScene { hash } => self.cache.forget(&hash),
             ToWorker::Heartbeat => {}
+            ToWorker::Canary { .. } | ToWorker::Refuse { .. } | ToWorker::Ping { .. } => {}
             ToWorker::Cancel { job } => {
                 self.cancelled.lock().expect("cancel set").insert(job);
             }

@@ -69,6 +69,8 @@ pub struct JobRecord {
 /// A connected worker.
 pub struct WorkerRecord {
     pub name: String,
+    /// The renderer build its hello named.
+    pub build: String,
     pub threads: u32,
     pub outbox: mpsc::UnboundedSender<ToWorker>,
     /// Notified when the scheduler drops the worker: its connection is closed.
@@ -861,6 +863,10 @@ impl WorkerRecord {
             rays: self.rays,
             connected_ms: connected.as_millis() as u64,
             rays_per_second: self.rays as f64 / connected.as_secs_f64().max(1e-9),
+            build: self.build.clone(),
+            quarantined: None,
+            rtt_us: None,
+            credit: 2 * self.threads.max(1),
         }
     }
 }

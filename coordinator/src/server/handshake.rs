@@ -169,10 +169,10 @@ pub(super) async fn handle_connection(
         Role::Worker {
             name,
             threads,
-            build: _,
+            build,
         } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            worker_session::serve(shared, framed, name, threads).await
+            worker_session::serve(shared, framed, name, threads, build).await
         }
     }
 }

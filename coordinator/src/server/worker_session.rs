@@ -28,12 +28,14 @@ pub(super) async fn serve(
     conn: WorkerConn,
     name: String,
     threads: u32,
+    build: String,
 ) -> Result<()> {
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
     let dropped = Arc::new(tokio::sync::Notify::new());
     let record = WorkerRecord {
         name: name.clone(),
+        build,
         threads,
         outbox,
         dropped: Arc::clone(&dropped),
@@ -111,6 +113,9 @@ fn on_message(sh: &Arc<Shared>, worker: protocol::WorkerId, message: FromWorker)
         FromWorker::Draining => {
             info!(worker, "worker draining");
             sh.lock().tiles_event(sh, Event::WorkerDraining { worker });
+        }
+        FromWorker::CanaryDone { .. } | FromWorker::Pong { .. } => {
+            sh.lock().tiles_event(sh, Event::Heartbeat { worker });
         }
         FromWorker::Heartbeat => {
             sh.lock().tiles_event(sh, Event::Heartbeat { worker });
