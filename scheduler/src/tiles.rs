@@ -7,9 +7,25 @@
 //! decision of the farm is made here.
 //!
 //! Policy:
-//! - **Pull with credit.** A worker holds at most its credit of tiles (twice its
-//!   threads); it is sent the next one as soon as it returns one, so faster workers
-//!   render more tiles.
+//! - **Pull with credit.** A worker holds at most its credit of tiles; it is sent the
+//!   next one as soon as it returns one, so faster workers render more tiles. The
+//!   credit is twice its threads, plus what covers the round trip once the daemon has
+//!   measured it ([`Event::WorkerPace`]): each thread finishes a tile every tile time,
+//!   so `threads × ⌈rtt / tile time⌉` more tiles keep its threads busy while results
+//!   and new assignments cross the network (the bandwidth-delay product, in tiles).
+//!   It is capped at [`Policy::max_credit_per_thread`] per thread, so that the tail of
+//!   a job never waits behind a deep queue; stragglers are still copied.
+//! - **Results confirmed by another machine.** A result the daemon wants confirmed
+//!   ([`Event::TileToConfirm`]: every tile of a job in full verification, a random
+//!   share of the others) is held, not accepted: the tile goes back to the queue for
+//!   any machine but the one that rendered it, and is done when another machine's
+//!   identical result comes ([`Event::TileDone`] on a held tile). An optional
+//!   confirmation that no connected machine may give is dropped at a timeout and the
+//!   held result accepted as it is ([`Action::AcceptHeld`]); a required one waits,
+//!   and its job stalls like any tile no machine may take.
+//! - **Quarantine.** A machine caught returning wrong pixels ([`Event::Quarantine`])
+//!   gets no tile again; its tiles go back to the queue, its held results are
+//!   dropped, and the tiles it had done that the daemon revokes are rendered again.
 //! - **Priority, then fair share, then FIFO.** A free slot goes to the highest-priority
 //!   job with tiles waiting; among jobs of that priority, to the one with the fewest
 //!   tiles in flight; among those, to the oldest. One job alone gets the whole farm;
@@ -118,6 +134,8 @@ pub struct Policy {
     /// How long a job with tiles waiting may go with workers connected but none that
     /// may take any of them before it fails.
     pub stall_timeout: Millis,
+    /// The most tiles a worker may hold per thread, however long its round trip.
+    pub max_credit_per_thread: u32,
     /// A gap between two calls longer than this is a pause of the coordinator itself,
     /// and counts only as one `wake_interval` (see the module doc).
     pub pause_threshold: Millis,
@@ -137,6 +155,7 @@ impl Default for Policy {
             speculate: true,
             max_losses: 8,
             stall_timeout: 30_000,
+            max_credit_per_thread: 64,
             pause_threshold: 2_000,
             wake_interval: 1_000,
         }
@@ -186,10 +205,36 @@ pub enum Event {
         scene: SceneHash,
         tiles: u32,
     },
+    /// A result from the worker that counts: either alone, or, on a tile whose result
+    /// from another machine is held, as its confirmation (the daemon found the two
+    /// identical).
     TileDone {
         worker: WorkerId,
         job: JobId,
         tile: u32,
+    },
+    /// A result that counts only once another machine returns the same bytes: it is
+    /// held, and the tile goes to another machine. `required` confirmations wait for
+    /// a machine; optional ones (audits) are given up when none may give them.
+    TileToConfirm {
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        required: bool,
+    },
+    /// The machine returned wrong pixels: it gets no tile again, its tiles and held
+    /// results go back to the queue, and so do the done tiles of `revoke` (those the
+    /// daemon accepted from it in active jobs).
+    Quarantine {
+        machine: String,
+        revoke: Vec<(JobId, u32)>,
+    },
+    /// The daemon measured the worker's round trip and its time per tile (on one
+    /// thread): its credit follows.
+    WorkerPace {
+        worker: WorkerId,
+        rtt: Millis,
+        tile: Millis,
     },
     /// The worker could not render the tile.
     TileFailed {
@@ -229,6 +274,17 @@ pub enum Action {
     },
     /// A second result for a tile already accepted: it must equal the first.
     DuplicateResult {
+        job: JobId,
+        tile: u32,
+    },
+    /// Keep this result aside: it counts once another machine's result equals it.
+    HoldResult {
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+    },
+    /// No connected machine may confirm the held result: accept it as it is.
+    AcceptHeld {
         job: JobId,
         tile: u32,
     },
@@ -326,6 +382,9 @@ struct Job {
     blocked: BTreeSet<Machine>,
     /// Holders of tiles already accepted, whose copies are still to come.
     late_copies: BTreeSet<(u32, WorkerId)>,
+    /// Tiles whose result is held for confirmation: the machine that rendered it (it
+    /// may not confirm itself) and whether the confirmation is required.
+    held: BTreeMap<u32, (Machine, bool)>,
     /// Measured tile times (assignment to result).
     measured: u32,
     total_time: Millis,
@@ -350,6 +409,7 @@ impl Job {
             worker_failures: BTreeMap::new(),
             blocked: BTreeSet::new(),
             late_copies: BTreeSet::new(),
+            held: BTreeMap::new(),
             measured: 0,
             total_time: 0,
             slowest: 0,
@@ -362,6 +422,12 @@ impl Job {
 
     fn is_waiting(&self, tile: u32) -> bool {
         self.state.get(tile as usize) == Some(&TileState::Waiting)
+    }
+
+    /// Whether the tile's result is held from this machine, which may then not render
+    /// it again.
+    fn held_from(&self, tile: u32, machine: &Machine) -> bool {
+        self.held.get(&tile).is_some_and(|(m, _)| m == machine)
     }
 
     /// Puts a tile that is not done back at the head of the queue, unless it waits
@@ -498,6 +564,7 @@ impl Job {
                     .failures
                     .get(t)
                     .is_none_or(|(_, on)| !on.contains(machine))
+                && !self.held_from(*t, machine)
                 && self
                     .in_flight
                     .get(t)
@@ -535,9 +602,12 @@ impl Job {
             if self.state[t as usize] != TileState::Waiting {
                 continue;
             }
-            let takeable = match self.failures.get(&t) {
-                None => !open.is_empty(),
-                Some((_, on)) => open.iter().any(|m| !on.contains(*m)),
+            let takeable = match (self.failures.get(&t), self.held.get(&t)) {
+                (None, None) => !open.is_empty(),
+                (failures, held) => open.iter().any(|m| {
+                    failures.is_none_or(|(_, on)| !on.contains(*m))
+                        && held.is_none_or(|(from, _)| from != *m)
+                }),
             };
             if takeable {
                 return None;
@@ -587,6 +657,7 @@ impl Job {
                     .failures
                     .get(t)
                     .is_none_or(|(_, on)| !on.contains(machine))
+                && !self.held_from(*t, machine)
         })
     }
 }
@@ -622,6 +693,7 @@ fn name_list(machines: &[&Machine]) -> String {
 
 struct Worker {
     machine: Machine,
+    threads: u32,
     credit: usize,
     holding: BTreeSet<(JobId, u32)>,
     scenes: BTreeSet<SceneHash>,
@@ -655,6 +727,8 @@ pub struct Scheduler {
     hungry: BTreeSet<WorkerId>,
     /// Storage cannot record results: no tile goes out.
     storage_down: bool,
+    /// Machines caught returning wrong pixels: they get no tile again.
+    quarantined: BTreeSet<Machine>,
     counters: Counters,
 }
 
@@ -692,6 +766,7 @@ impl Scheduler {
             Event::Timeout => {
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.give_up_confirmations(&mut actions);
                 self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
             }
@@ -703,13 +778,23 @@ impl Scheduler {
                 let machine = machine.map_or(Machine::Connection(worker), Machine::Named);
                 let joined = Worker {
                     machine: machine.clone(),
+                    threads: threads.max(1),
                     credit: 2 * threads.max(1) as usize,
                     holding: BTreeSet::new(),
                     scenes: BTreeSet::new(),
                     draining: false,
                     last_seen: self.now,
                 };
-                *self.ready.entry(machine).or_default() += 1;
+                let quarantined = self.quarantined.contains(&machine);
+                // A quarantined machine's worker is kept like a draining one: connected
+                // (so that listings show it), never given a tile.
+                let joined = Worker {
+                    draining: quarantined,
+                    ..joined
+                };
+                if !quarantined {
+                    *self.ready.entry(machine).or_default() += 1;
+                }
                 // A second hello on a live id replaces the worker (a daemon bug, but
                 // the indexes must stay true). The new one counts first: a worker stays
                 // connected throughout, so no stall ends.
@@ -756,6 +841,32 @@ impl Scheduler {
                 // Holders of a finished job's last copies are filled at the next event
                 // that fills everyone (a timeout at the latest).
                 self.fill(worker, &mut actions);
+            }
+            Event::TileToConfirm {
+                worker,
+                job,
+                tile,
+                required,
+            } => {
+                self.seen(worker);
+                self.tile_to_confirm(worker, job, tile, required, &mut actions);
+                self.fill_all(&mut actions);
+            }
+            Event::Quarantine { machine, revoke } => {
+                self.quarantine(Machine::Named(machine), &revoke, &mut actions);
+                self.fill_all(&mut actions);
+            }
+            Event::WorkerPace { worker, rtt, tile } => {
+                let cap = self.policy.max_credit_per_thread.max(2) as usize;
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    let threads = w.threads as usize;
+                    let cover = rtt.div_ceil(tile.max(1)) as usize;
+                    w.credit = (threads * (2 + cover)).min(threads * cap);
+                    if w.holding.len() < w.credit {
+                        self.hungry.insert(worker);
+                        self.fill(worker, &mut actions);
+                    }
+                }
             }
             Event::TileFailed {
                 worker,
@@ -1057,10 +1168,17 @@ impl Scheduler {
             actions.push(Action::DuplicateResult { job: job_id, tile });
             return;
         }
+        let machine = self.machine_of(worker);
+        if self.jobs[&job_id].held_from(tile, &machine) {
+            // A machine does not confirm its own result: this copy only frees its slot.
+            self.release_unconfirming(worker, job_id, tile);
+            return;
+        }
         let Some(lease) = self.release(worker, job_id, tile) else {
             return;
         };
         let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+        job.held.remove(&tile);
         let took = self.now.saturating_sub(lease.started);
         job.measured += 1;
         job.total_time += took;
@@ -1096,6 +1214,170 @@ impl Scheduler {
             }
             actions.push(Action::JobDone { job: job_id });
             self.forget_unused_scenes(actions);
+        }
+    }
+
+    /// The machine a worker counts as (its connection, once it has left).
+    fn machine_of(&self, worker: WorkerId) -> Machine {
+        self.workers
+            .get(&worker)
+            .map_or(Machine::Connection(worker), |w| w.machine.clone())
+    }
+
+    /// A result to be confirmed by another machine: held, and the tile goes back to the
+    /// queue for the others unless another machine is rendering it already.
+    fn tile_to_confirm(
+        &mut self,
+        worker: WorkerId,
+        job_id: JobId,
+        tile: u32,
+        required: bool,
+        actions: &mut Vec<Action>,
+    ) {
+        let machine = self.machine_of(worker);
+        match self.jobs.get(&job_id).and_then(|j| j.held.get(&tile)) {
+            // Held from another machine: the daemon compares before it asks for a
+            // confirmation, so this is one.
+            Some((from, _)) if *from != machine => {
+                return self.tile_done(worker, job_id, tile, actions);
+            }
+            Some(_) => return self.release_unconfirming(worker, job_id, tile),
+            None => {}
+        }
+        if self
+            .jobs
+            .get(&job_id)
+            .is_some_and(|j| j.late_copies.contains(&(tile, worker)))
+        {
+            // Already accepted: this is a straggler's copy, compared as such.
+            return self.tile_done(worker, job_id, tile, actions);
+        }
+        if self.release(worker, job_id, tile).is_none() {
+            return;
+        }
+        let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+        job.held.insert(tile, (machine, required));
+        actions.push(Action::HoldResult {
+            worker,
+            job: job_id,
+            tile,
+        });
+        if job.live_leases(tile) == 0 && job.requeue(tile) {
+            self.counters.tiles_requeued += 1;
+        }
+    }
+
+    /// Frees the slot of a copy from the machine whose result is held (it cannot
+    /// confirm itself); the tile goes back to the queue if no one else renders it.
+    fn release_unconfirming(&mut self, worker: WorkerId, job_id: JobId, tile: u32) {
+        if self.release(worker, job_id, tile).is_some() {
+            let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+            if job.live_leases(tile) == 0 && job.requeue(tile) {
+                self.counters.tiles_requeued += 1;
+            }
+        }
+    }
+
+    /// Shuts the machine out: its workers get nothing more, their tiles and its held
+    /// results go back to the queue, and so do the revoked done tiles.
+    fn quarantine(&mut self, machine: Machine, revoke: &[(JobId, u32)], actions: &mut Vec<Action>) {
+        if !self.quarantined.insert(machine.clone()) {
+            // Already shut out; revoked tiles still go back.
+        }
+        let workers: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.machine == machine)
+            .map(|(&id, _)| id)
+            .collect();
+        for worker in workers {
+            let w = self.workers.get_mut(&worker).expect("listed above");
+            let was_ready = !std::mem::replace(&mut w.draining, true);
+            let holding: Vec<(JobId, u32)> = w.holding.iter().copied().collect();
+            if was_ready {
+                self.unready(&machine);
+            }
+            for (job, tile) in holding {
+                if self.release(worker, job, tile).is_some() {
+                    if let Some(j) = self.jobs.get_mut(&job) {
+                        if j.live_leases(tile) == 0 && j.requeue(tile) {
+                            self.counters.tiles_requeued += 1;
+                        }
+                    }
+                } else if let Some(j) = self.jobs.get_mut(&job) {
+                    j.late_copies.remove(&(tile, worker));
+                    self.drop_holding(worker, job, tile);
+                }
+            }
+        }
+        for job in self.jobs.values_mut() {
+            let dropped: Vec<u32> = job
+                .held
+                .iter()
+                .filter(|(_, (m, _))| *m == machine)
+                .map(|(&t, _)| t)
+                .collect();
+            for tile in dropped {
+                job.held.remove(&tile);
+            }
+        }
+        for &(job_id, tile) in revoke {
+            let Some(job) = self.jobs.get_mut(&job_id) else {
+                continue;
+            };
+            if job.state.get(tile as usize) != Some(&TileState::Done) {
+                continue;
+            }
+            let before = job.rank(job_id);
+            job.state[tile as usize] = TileState::Out;
+            job.remaining += 1;
+            job.requeue(tile);
+            self.counters.tiles_requeued += 1;
+            self.rerank(job_id, before);
+        }
+        let _ = actions;
+    }
+
+    /// Accepts the held results of optional confirmations that no connected machine
+    /// may give (every other machine is blocked from the job, failed the tile, or
+    /// there is none), in job then tile order.
+    fn give_up_confirmations(&mut self, actions: &mut Vec<Action>) {
+        let mut finished = Vec::new();
+        for (&id, job) in &mut self.jobs {
+            if job.held.is_empty() {
+                continue;
+            }
+            let accepted: Vec<u32> = job
+                .held
+                .iter()
+                .filter(|&(&t, (from, required))| {
+                    !required
+                        && job.live_leases(t) == 0
+                        && !self.ready.keys().any(|m| {
+                            m != from
+                                && !job.blocked.contains(m)
+                                && job.failures.get(&t).is_none_or(|(_, on)| !on.contains(m))
+                        })
+                })
+                .map(|(&t, _)| t)
+                .collect();
+            for tile in accepted {
+                job.held.remove(&tile);
+                if job.state[tile as usize] == TileState::Waiting {
+                    job.queued -= 1;
+                }
+                job.take_leases(tile);
+                job.state[tile as usize] = TileState::Done;
+                job.remaining -= 1;
+                actions.push(Action::AcceptHeld { job: id, tile });
+            }
+            if job.remaining == 0 {
+                finished.push(id);
+            }
+        }
+        for id in finished {
+            self.end_job(id, actions);
+            actions.push(Action::JobDone { job: id });
         }
     }
 
@@ -2016,5 +2298,180 @@ mod tests {
         assert!(first.contains(&Action::AcceptTile { job: 1, tile: 0 }));
         assert!(first.contains(&Action::CancelOnWorker { worker: 1, job: 1 }));
         assert!(first.contains(&Action::JobDone { job: 1 }));
+    }
+
+    fn to_confirm(
+        s: &mut Scheduler,
+        now: Millis,
+        worker: WorkerId,
+        tile: u32,
+        required: bool,
+    ) -> Vec<Action> {
+        s.handle(
+            now,
+            Event::TileToConfirm {
+                worker,
+                job: 1,
+                tile,
+                required,
+            },
+        )
+    }
+
+    #[test]
+    fn a_held_result_is_confirmed_only_by_another_machine() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        assert_eq!(
+            assigns(&join_at(&mut s, 0, 1, 1, Some("a"))),
+            vec![(1, 1, 0)]
+        );
+        // Worker 2 of the same machine takes a straggler copy.
+        assert_eq!(
+            assigns(&join_at(&mut s, 0, 2, 1, Some("a"))),
+            vec![(2, 1, 0)]
+        );
+        let held = to_confirm(&mut s, 10, 1, 0, true);
+        assert!(held.contains(&Action::HoldResult {
+            worker: 1,
+            job: 1,
+            tile: 0
+        }));
+        // Worker 2 is the same machine: it may not confirm. A third machine joins.
+        assert!(!assigns(&held).iter().any(|&(w, _, _)| w == 1 || w == 2));
+        let copy = s.handle(
+            15,
+            Event::TileDone {
+                worker: 2,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert!(!copy.iter().any(|a| matches!(a, Action::AcceptTile { .. })));
+        assert!(assigns(&copy).is_empty(), "machine a may not take it again");
+        assert_eq!(
+            assigns(&join_at(&mut s, 20, 3, 1, Some("b"))),
+            vec![(3, 1, 0)]
+        );
+        let done = s.handle(
+            30,
+            Event::TileDone {
+                worker: 3,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert!(done.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        assert!(done.contains(&Action::JobDone { job: 1 }));
+    }
+
+    #[test]
+    fn an_optional_confirmation_no_machine_may_give_is_given_up_a_required_one_stalls() {
+        for required in [false, true] {
+            let mut s = Scheduler::new();
+            submit(&mut s, 1, 0, SCENE_A, 1);
+            join_at(&mut s, 0, 1, 1, Some("a"));
+            to_confirm(&mut s, 10, 1, 0, required);
+            let mut actions = Vec::new();
+            for t in (1..=40).map(|k| k * 1_000) {
+                s.handle(t, Event::Heartbeat { worker: 1 });
+                actions.extend(s.handle(t, Event::Timeout));
+            }
+            if required {
+                let message = failure(&actions, 1).expect("the job stalls and fails");
+                assert!(message.contains("tile 0"), "{message}");
+            } else {
+                assert!(actions.contains(&Action::AcceptHeld { job: 1, tile: 0 }));
+                assert!(actions.contains(&Action::JobDone { job: 1 }));
+                assert!(failure(&actions, 1).is_none());
+            }
+        }
+    }
+
+    #[test]
+    fn a_quarantined_machine_loses_its_tiles_held_results_and_revoked_tiles() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 6);
+        assert_eq!(assigns(&join_at(&mut s, 0, 1, 1, Some("liar"))).len(), 2);
+        let done = s.handle(
+            5,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert!(done.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        to_confirm(&mut s, 6, 1, 1, false);
+        assert_eq!(s.held_by(1), 2, "tiles 2 and 3");
+        let q = s.handle(
+            7,
+            Event::Quarantine {
+                machine: "liar".into(),
+                revoke: vec![(1, 0)],
+            },
+        );
+        assert!(assigns(&q).is_empty(), "nobody else is connected");
+        assert_eq!(s.held_by(1), 0);
+        // An honest machine gets every tile, the revoked and the held one included.
+        let honest = assigns(&join_at(&mut s, 8, 2, 3, Some("honest")));
+        assert_eq!(honest.len(), 6);
+        let mut accepted = Vec::new();
+        for &(_, _, tile) in &honest {
+            let actions = s.handle(
+                9,
+                Event::TileDone {
+                    worker: 2,
+                    job: 1,
+                    tile,
+                },
+            );
+            accepted.extend(actions);
+        }
+        for tile in 0..6 {
+            assert!(accepted.contains(&Action::AcceptTile { job: 1, tile }));
+        }
+        assert!(accepted.contains(&Action::JobDone { job: 1 }));
+        // The liar, back under its name, is given nothing.
+        assert!(assigns(&join_at(&mut s, 11, 3, 4, Some("liar"))).is_empty());
+    }
+
+    #[test]
+    fn credit_covers_the_round_trip_within_its_cap() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 1000);
+        assert_eq!(assigns(&join_at(&mut s, 0, 1, 2, Some("far"))).len(), 4);
+        let more = s.handle(
+            1,
+            Event::WorkerPace {
+                worker: 1,
+                rtt: 200,
+                tile: 20,
+            },
+        );
+        assert_eq!(
+            assigns(&more).len(),
+            2 * 10,
+            "two threads, ten tiles per round trip"
+        );
+        assert_eq!(s.held_by(1), 24);
+        s.handle(
+            2,
+            Event::WorkerPace {
+                worker: 1,
+                rtt: 10_000,
+                tile: 1,
+            },
+        );
+        assert_eq!(s.held_by(1), 2 * 64, "capped per thread");
+        s.handle(
+            3,
+            Event::WorkerPace {
+                worker: 1,
+                rtt: 0,
+                tile: 20,
+            },
+        );
+        assert_eq!(s.held_by(1), 128, "a smaller credit takes nothing back");
     }
 }

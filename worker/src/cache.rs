@@ -4,8 +4,8 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use protocol::{Sampling, SceneHash, Settings};
-use render::{RenderSettings, Scene, Tracer};
+use protocol::{SceneHash, Settings};
+use render::{Scene, Tracer};
 use sha2::{Digest, Sha256};
 
 /// A scene as received: parsed, or why it could not be used.
@@ -50,19 +50,7 @@ impl SceneCache {
                 )
             }
         };
-        let settings_r = RenderSettings {
-            width: settings.width,
-            height: settings.height,
-            aa: settings.aa,
-            max_depth: settings.max_depth,
-            sampling: match settings.sampling {
-                Sampling::Grid => render::Sampling::Grid,
-                Sampling::Jittered => render::Sampling::Jittered,
-                Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
-            },
-        };
-        render::validate_settings(&settings_r, "").map_err(|e| format!("invalid settings: {e}"))?;
-        let tracer = Arc::new(Tracer::new(&scene, settings_r));
+        let tracer = Arc::new(verify::tracer(&scene, &settings)?);
         self.tracers.insert((*hash, settings), Arc::clone(&tracer));
         Ok(tracer)
     }

@@ -78,12 +78,14 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     alive: Arc::new(AtomicBool::new(true)),
                     in_flight: 0,
                     throttle: config.throttle,
+                    pongs: Vec::new(),
                 };
                 config.ready.store(true, Ordering::Relaxed);
                 let outcome = session.run(&mut shutdown, &config.ready).await;
                 config.ready.store(false, Ordering::Relaxed);
                 match outcome {
                     Ok(()) => return Ok(()),
+                    Err(e) if e.is::<Refused>() => return Err(e),
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
             }
@@ -164,6 +166,8 @@ struct Session {
     alive: Arc<AtomicBool>,
     in_flight: usize,
     throttle: Option<f64>,
+    /// Pings read and not yet answered.
+    pongs: Vec<u64>,
 }
 
 impl Drop for Session {
@@ -193,8 +197,12 @@ impl Session {
                 message = self.conn.next(), if !draining => {
                     last_heard = tokio::time::Instant::now();
                     match message {
-                        Some(message) => self.handle(message?, &done_tx),
+                        Some(message) => self.handle(message?, &done_tx)?,
                         None => bail!("the coordinator closed the connection"),
+                    }
+                    // Pongs go out at once, ahead of any result: they time the link.
+                    for token in self.pongs.drain(..) {
+                        self.conn.send(FromWorker::Pong { token }).await?;
                     }
                 }
                 () = tokio::time::sleep_until(last_heard + COORDINATOR_SILENCE), if !draining => {
@@ -228,12 +236,26 @@ impl Session {
         }
     }
 
-    fn handle(&mut self, message: ToWorker, done: &mpsc::UnboundedSender<Rendered>) {
+    fn handle(
+        &mut self,
+        message: ToWorker,
+        done: &mpsc::UnboundedSender<Rendered>,
+    ) -> Result<(), Refused> {
         match message {
             ToWorker::Scene { hash, scene } => self.cache.insert(hash, scene),
             ToWorker::ForgetScene { hash } => self.cache.forget(&hash),
             ToWorker::Heartbeat => {}
-            ToWorker::Canary { .. } | ToWorker::Refuse { .. } | ToWorker::Ping { .. } => {}
+            ToWorker::Canary { scene, renders } => {
+                // Rendered on the pool like a tile, so that heartbeats keep flowing.
+                self.in_flight += 1;
+                let done = done.clone();
+                self.pool.spawn(move || {
+                    let images = verify::canary::render(&scene, &renders);
+                    let _ = done.send(Rendered::Done(FromWorker::CanaryDone { images }));
+                });
+            }
+            ToWorker::Ping { token } => self.pongs.push(token),
+            ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
                 self.cancelled.lock().expect("cancel set").insert(job);
             }
@@ -288,5 +310,19 @@ impl Session {
                 });
             }
         }
+        Ok(())
     }
 }
+
+/// The coordinator refused this worker for good (its canary render differs from the
+/// coordinator's, say): reconnecting cannot help.
+#[derive(Debug)]
+struct Refused(String);
+
+impl std::fmt::Display for Refused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "the coordinator refused this worker: {}", self.0)
+    }
+}
+
+impl std::error::Error for Refused {}

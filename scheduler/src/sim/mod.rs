@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 11] = [
+const EVENT_KINDS: [&str; 14] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -749,6 +749,9 @@ const EVENT_KINDS: [&str; 11] = [
     "CancelJob",
     "StorageUnavailable",
     "StorageAvailable",
+    "TileToConfirm",
+    "Quarantine",
+    "WorkerPace",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -764,6 +767,9 @@ fn kind_of(event: &Event) -> usize {
         Event::CancelJob { .. } => 8,
         Event::StorageUnavailable => 9,
         Event::StorageAvailable => 10,
+        Event::TileToConfirm { .. } => 11,
+        Event::Quarantine { .. } => 12,
+        Event::WorkerPace { .. } => 13,
     }
 }
 
@@ -1584,6 +1590,10 @@ impl<'a> Sim<'a> {
                     self.persist(Write::Tiles(1));
                 }
                 Action::DuplicateResult { .. } => self.out.duplicate_results += 1,
+                // The simulated workers are honest: no result is held for confirmation.
+                Action::HoldResult { .. } | Action::AcceptHeld { .. } => {
+                    self.out.model_mismatches += 1
+                }
                 Action::CancelOnWorker { worker, job } => {
                     if let Some(&conn) = self.worker_conn.get(&worker) {
                         self.send_down(conn, Down::Cancel { job });
