@@ -25,8 +25,9 @@ use clap::parser::ValueSource;
 /// The subcommands a config file configures.
 pub const SECTIONS: [&str; 2] = ["coordinator", "worker"];
 
-/// Settings that are not settings: they say where the settings come from.
-const NOT_SETTINGS: [&str; 2] = ["config", "print-config"];
+/// Settings that are not settings: they say where the settings come from, or print
+/// something and exit.
+const NOT_SETTINGS: [&str; 3] = ["config", "print-config", "print-fingerprint"];
 
 /// Flags that act on one start only: never read from a config file.
 const COMMAND_LINE_ONLY: [&str; 1] = ["reset-database"];
@@ -174,6 +175,13 @@ fn settings_of(
     };
     let mut flags = Vec::new();
     for (key, value) in settings {
+        if section == "coordinator" && key == "token-file" {
+            bail!(
+                "{file}: [coordinator] token-file: a coordinator takes two tokens, one for \
+                 workers and one for clients: set worker-token-file and client-token-file \
+                 (two different secrets) instead"
+            );
+        }
         let arg = sub
             .get_arguments()
             .find(|a| a.get_long() == Some(key.as_str()) && !a.is_hide_set())
@@ -261,15 +269,27 @@ pub fn describe(
             None => out.push_str(&format!("# {long}: not set\n")),
         }
     }
-    let secret = match (
-        matches.get_raw("token_file").is_some(),
-        std::env::var_os("TESSERA_TOKEN"),
+    // The secrets themselves are never printed: only where they come from.
+    let source = |file_id: &str, variable: &str| match (
+        matches.try_get_raw(file_id).ok().flatten().is_some(),
+        std::env::var_os(variable),
     ) {
-        (true, _) => "the token file",
-        (false, Some(_)) => "TESSERA_TOKEN (set)",
-        (false, None) => "none",
+        (true, _) => "a token file".to_string(),
+        (false, Some(_)) => format!("{variable} (set)"),
+        (false, None) => "none".to_string(),
     };
-    out.push_str(&format!("# shared secret: {secret}\n"));
+    if section == "coordinator" {
+        out.push_str(&format!(
+            "# worker token: {}\n# client token: {}\n",
+            source("worker_token_file", "TESSERA_WORKER_TOKEN"),
+            source("client_token_file", "TESSERA_CLIENT_TOKEN")
+        ));
+    } else {
+        out.push_str(&format!(
+            "# token: {}\n",
+            source("token_file", "TESSERA_TOKEN")
+        ));
+    }
     out
 }
 

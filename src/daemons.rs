@@ -41,14 +41,28 @@ pub async fn shutdown_signal(exit_on_stdin_eof: bool) {
 
 pub async fn coordinator(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<()> {
     return_large_blocks_to_the_system();
+    let fingerprint = config
+        .tls
+        .as_ref()
+        .map(|tls| transport::fingerprint_hex(&tls.fingerprint()));
+    let (workers_prove, clients_prove) = (
+        config.worker_secret.is_some(),
+        config.client_secret.is_some(),
+    );
     let server = coordinator::server::Server::bind(config).await?;
     let addr = server.local_addr()?;
     // The first line on stdout is the address, for scripts and `tessera up`.
     println!("listening on {addr}");
-    info!(%addr, "coordinator listening");
+    info!(%addr, workers_prove, clients_prove, "coordinator listening");
     if let Some(http) = server.http_addr()? {
         println!("http on {http}");
         info!(%http, "status page, metrics and health on http://{http}/");
+    }
+    if let Some(fingerprint) = fingerprint {
+        // Peers pin this (`--tls-fingerprint`) instead of needing a copy of the
+        // certificate.
+        println!("tls fingerprint {fingerprint}");
+        info!(%fingerprint, "TLS certificate's SHA-256 fingerprint: pin it with --tls-fingerprint");
     }
     server.run(shutdown_signal(exit_on_stdin_eof)).await
 }

@@ -373,7 +373,16 @@ struct CoordinatorArgs {
     )]
     max_jobs_per_client: u64,
     #[command(flatten)]
-    secret: SecretArgs,
+    secrets: CoordinatorSecretArgs,
+    /// Serve TLS with a self-signed certificate made on first start and kept under
+    /// --data (tls/cert.pem, tls/key.pem, mode 0600); its SHA-256 fingerprint is printed
+    /// at startup for peers to pin with --tls-fingerprint.
+    #[arg(long, env = "TESSERA_TLS_AUTO", conflicts_with_all = ["tls_cert", "tls_key"])]
+    tls_auto: bool,
+    /// Print the SHA-256 fingerprint of the TLS certificate (with --tls-auto, making it
+    /// if there is none yet) and exit.
+    #[arg(long)]
+    print_fingerprint: bool,
     /// PEM certificate chain: serve TLS with it (needs --tls-key).
     #[arg(
         long,
@@ -395,7 +404,8 @@ struct CoordinatorArgs {
     #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = scheduler::Policy::default().heartbeat_timeout,
           value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
     heartbeat_timeout_ms: u64,
-    /// Accept peers without a token on a non-loopback address.
+    /// Listen on a non-loopback address without both tokens: peers whose role has no
+    /// token are accepted without proof.
     #[arg(long, env = "TESSERA_INSECURE")]
     insecure: bool,
     /// Milliseconds a peer has to complete its handshake.
@@ -504,6 +514,16 @@ struct PeerArgs {
     /// certificate or the CA that signed it).
     #[arg(long, env = "TESSERA_TLS_CA", value_name = "FILE")]
     tls_ca: Option<PathBuf>,
+    /// Speak TLS, trusting exactly the coordinator certificate with this SHA-256
+    /// fingerprint (64 hex digits, as the coordinator prints at startup).
+    #[arg(
+        long,
+        env = "TESSERA_TLS_FINGERPRINT",
+        value_name = "SHA256HEX",
+        conflicts_with = "tls_ca",
+        value_parser = transport::parse_fingerprint
+    )]
+    tls_fingerprint: Option<[u8; 32]>,
     /// The name the coordinator's certificate must carry [default: the host of
     /// --coordinator].
     #[arg(
@@ -517,22 +537,28 @@ struct PeerArgs {
 
 impl PeerArgs {
     fn endpoint(&self) -> Result<Endpoint> {
+        let tls = match (&self.tls_ca, self.tls_fingerprint) {
+            (Some(ca), _) => Some(ClientTls::from_ca_file(
+                ca,
+                self.tls_server_name.as_deref(),
+            )?),
+            (None, Some(pin)) => Some(ClientTls::pinned(pin)?),
+            (None, None) => None,
+        };
         Ok(Endpoint {
             address: self.coordinator.clone(),
-            tls: self
-                .tls_ca
-                .as_deref()
-                .map(|ca| ClientTls::from_ca_file(ca, self.tls_server_name.as_deref()))
-                .transpose()?,
+            tls,
             secret: self.secret.load()?,
         })
     }
 }
 
-/// The shared secret of a farm that requires one.
+/// The secret of a worker or a client: the worker token or the client token of its
+/// farm, whichever its role needs.
 #[derive(Args)]
 struct SecretArgs {
-    /// File holding the farm's shared secret [or set TESSERA_TOKEN to the secret itself].
+    /// File holding this peer's token: the farm's worker token for a worker, its client
+    /// token for a client [or set TESSERA_TOKEN to the token itself].
     #[arg(long, env = "TESSERA_TOKEN_FILE", value_name = "FILE")]
     token_file: Option<PathBuf>,
 }
@@ -540,19 +566,77 @@ struct SecretArgs {
 impl SecretArgs {
     /// The secret from --token-file, else from TESSERA_TOKEN, else none.
     fn load(&self) -> Result<Option<Vec<u8>>> {
-        let secret = match &self.token_file {
-            Some(path) => std::fs::read_to_string(path).map_err(|e| {
+        load_secret(self.token_file.as_deref(), "TESSERA_TOKEN")
+    }
+}
+
+/// The coordinator's two secrets: one that workers prove, one that clients prove.
+#[derive(Args)]
+struct CoordinatorSecretArgs {
+    /// File holding the token workers must prove (and that the coordinator proves to
+    /// them) [or set TESSERA_WORKER_TOKEN to the token itself].
+    #[arg(long, env = "TESSERA_WORKER_TOKEN_FILE", value_name = "FILE")]
+    worker_token_file: Option<PathBuf>,
+    /// File holding the token clients must prove (and that the coordinator proves to
+    /// them); it must differ from the worker token [or set TESSERA_CLIENT_TOKEN to the
+    /// token itself].
+    #[arg(long, env = "TESSERA_CLIENT_TOKEN_FILE", value_name = "FILE")]
+    client_token_file: Option<PathBuf>,
+    /// No longer a coordinator setting: refused with an explanation.
+    #[arg(long, hide = true, value_name = "FILE")]
+    token_file: Option<PathBuf>,
+}
+
+/// Why a coordinator does not take one shared token any more.
+const ONE_TOKEN_RETIRED: &str = "a coordinator takes two tokens, one for workers and one for \
+    clients, so that a client's credential cannot join as a worker: give \
+    --worker-token-file FILE and --client-token-file FILE (TESSERA_WORKER_TOKEN_FILE, \
+    TESSERA_CLIENT_TOKEN_FILE), two different secrets, e.g. each from `openssl rand -hex 32`";
+
+impl CoordinatorSecretArgs {
+    /// The worker secret and the client secret. One shared token (`--token-file`,
+    /// `TESSERA_TOKEN_FILE`, `TESSERA_TOKEN`) is refused rather than silently applied to
+    /// both roles or ignored, and so are two equal secrets.
+    fn load(&self) -> Result<(Option<Vec<u8>>, Option<Vec<u8>>)> {
+        if self.token_file.is_some() {
+            bail!("--token-file: {ONE_TOKEN_RETIRED}");
+        }
+        for variable in ["TESSERA_TOKEN_FILE", "TESSERA_TOKEN"] {
+            if std::env::var_os(variable).is_some() {
+                bail!("{variable} is set (unset it for the coordinator): {ONE_TOKEN_RETIRED}");
+            }
+        }
+        let worker = load_secret(self.worker_token_file.as_deref(), "TESSERA_WORKER_TOKEN")?;
+        let client = load_secret(self.client_token_file.as_deref(), "TESSERA_CLIENT_TOKEN")?;
+        if worker.is_some() && worker == client {
+            bail!(
+                "the worker token and the client token are the same secret, so any client could \
+                 join as a worker: give two different secrets (e.g. each from `openssl rand \
+                 -hex 32`)"
+            );
+        }
+        Ok((worker, client))
+    }
+}
+
+/// A token from `file`, else from the environment variable `variable` holding the token
+/// itself, else none: whitespace trimmed at both ends, used as bytes.
+fn load_secret(file: Option<&std::path::Path>, variable: &str) -> Result<Option<Vec<u8>>> {
+    let (secret, source) = match file {
+        Some(path) => (
+            std::fs::read_to_string(path).map_err(|e| {
                 anyhow::anyhow!("cannot read the token file {}: {e}", path.display())
             })?,
-            None => match std::env::var("TESSERA_TOKEN") {
-                Ok(token) => token,
-                Err(_) => return Ok(None),
-            },
-        };
-        let secret = secret.trim();
-        anyhow::ensure!(!secret.is_empty(), "the token is empty");
-        Ok(Some(secret.as_bytes().to_vec()))
-    }
+            format!("the token file {}", path.display()),
+        ),
+        None => match std::env::var(variable) {
+            Ok(token) => (token, variable.to_string()),
+            Err(_) => return Ok(None),
+        },
+    };
+    let secret = secret.trim();
+    anyhow::ensure!(!secret.is_empty(), "the token is empty ({source})");
+    Ok(Some(secret.as_bytes().to_vec()))
 }
 
 impl ClientArgs {
@@ -702,17 +786,50 @@ fn run(command: Command) -> Result<()> {
                 .await
             }
             Command::Coordinator(a) => {
+                let tls = match (&a.tls_cert, &a.tls_key) {
+                    (Some(cert), Some(key)) => Some(ServerTls::from_pem_files(cert, key)?),
+                    _ if a.tls_auto => {
+                        Some(ServerTls::auto(&a.data.join(transport::AUTO_TLS_DIR))?)
+                    }
+                    _ => None,
+                };
+                if a.print_fingerprint {
+                    let tls = tls.ok_or_else(|| {
+                        anyhow!(
+                            "--print-fingerprint: this coordinator has no certificate: give \
+                             --tls-auto (or --tls-cert and --tls-key)"
+                        )
+                    })?;
+                    println!("{}", transport::fingerprint_hex(&tls.fingerprint()));
+                    return Ok(());
+                }
+                let (worker_secret, client_secret) = a.secrets.load()?;
+                if !a.listen.ip().is_loopback()
+                    && (worker_secret.is_none() || client_secret.is_none())
+                    && !a.insecure
+                {
+                    let missing = match (&worker_secret, &client_secret) {
+                        (None, None) => "a token for workers and one for clients",
+                        (None, Some(_)) => "a token for workers",
+                        _ => "a token for clients",
+                    };
+                    anyhow::bail!(
+                        "refusing to listen on {} without {missing}: anyone who can reach it \
+                         could submit jobs or pose as a worker. Give --worker-token-file FILE \
+                         and --client-token-file FILE (or pass --insecure to accept peers \
+                         without proof)",
+                        a.listen
+                    );
+                }
                 let config = coordinator::Config {
                     listen: a.listen,
                     data: a.data,
                     max_frame: a.max_frame as usize,
                     max_connections: a.max_connections as usize,
                     handshake_timeout: Duration::from_millis(a.handshake_timeout_ms),
-                    secret: a.secret.load()?,
-                    tls: match (&a.tls_cert, &a.tls_key) {
-                        (Some(cert), Some(key)) => Some(ServerTls::from_pem_files(cert, key)?),
-                        _ => None,
-                    },
+                    worker_secret,
+                    client_secret,
+                    tls,
                     policy: scheduler::Policy {
                         heartbeat_timeout: a.heartbeat_timeout_ms,
                         ..Default::default()
@@ -728,14 +845,6 @@ fn run(command: Command) -> Result<()> {
                     retention: a.retention,
                     reset_database: a.reset_database,
                 };
-                if !a.listen.ip().is_loopback() && config.secret.is_none() && !a.insecure {
-                    anyhow::bail!(
-                        "refusing to listen on {} without a token: anyone who can reach it could \
-                         submit jobs and pose as a worker. Give --token-file FILE or set \
-                         TESSERA_TOKEN (or pass --insecure to accept anyone)",
-                        a.listen
-                    );
-                }
                 daemons::coordinator(config, a.exit_on_stdin_eof).await
             }
             Command::Worker(a) => {

@@ -102,8 +102,11 @@ pub struct Config {
     pub max_connections: usize,
     /// A peer must complete its handshake within this time.
     pub handshake_timeout: Duration,
-    /// The shared secret peers must prove, if any.
-    pub secret: Option<Vec<u8>>,
+    /// The secret workers must prove, and that the coordinator proves to them, if any.
+    pub worker_secret: Option<Vec<u8>>,
+    /// The secret clients must prove, and that the coordinator proves to them, if any.
+    /// Distinct from the workers' so that a client's credential cannot render tiles.
+    pub client_secret: Option<Vec<u8>>,
     /// Serve TLS with this certificate, if set; plain TCP otherwise.
     pub tls: Option<ServerTls>,
     /// Heartbeat timeout, leases, retries and speculation.
@@ -127,7 +130,8 @@ impl Config {
             max_frame: DEFAULT_MAX_FRAME,
             max_connections: DEFAULT_MAX_CONNECTIONS,
             handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
-            secret: None,
+            worker_secret: None,
+            client_secret: None,
             tls: None,
             policy: Policy::default(),
             limits: JobLimits::default(),
@@ -161,7 +165,8 @@ struct Shared {
     clock: Instant,
     runtime: tokio::runtime::Handle,
     handshake_timeout: Duration,
-    secret: Option<Vec<u8>>,
+    worker_secret: Option<Vec<u8>>,
+    client_secret: Option<Vec<u8>>,
     tls: Option<ServerTls>,
     limits: lifecycle::Limits,
     /// Set on shutdown: new jobs are refused.
@@ -274,7 +279,8 @@ impl Server {
             closing: AtomicBool::new(false),
             max_frame: config.max_frame,
             handshake_timeout: config.handshake_timeout,
-            secret: config.secret.clone(),
+            worker_secret: config.worker_secret.clone(),
+            client_secret: config.client_secret.clone(),
             tls: config.tls.clone(),
             limits,
             changes: tokio::sync::watch::channel(0).0,

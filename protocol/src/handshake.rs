@@ -19,6 +19,10 @@ pub struct Hello {
     pub magic: [u8; 4],
     pub version: u16,
     pub role: Role,
+    /// Fresh random bytes of the peer, so that the coordinator's proof (in
+    /// [`Welcome::Challenge`]) is made for this connection and cannot be replayed from
+    /// an earlier one. A peer without a secret checks nothing and may send zeros.
+    pub nonce: [u8; 32],
 }
 
 /// What the peer is.
@@ -36,6 +40,40 @@ pub enum Role {
     },
 }
 
+/// The two kinds of peer, each with its own secret: a client's token cannot join as a
+/// worker, and a worker's token cannot submit jobs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum AuthRole {
+    Client,
+    Worker,
+}
+
+impl AuthRole {
+    /// "client" or "worker", as messages name the role.
+    pub fn name(self) -> &'static str {
+        match self {
+            AuthRole::Client => "client",
+            AuthRole::Worker => "worker",
+        }
+    }
+}
+
+impl std::fmt::Display for AuthRole {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl Role {
+    /// Which secret this role proves.
+    pub fn auth_role(&self) -> AuthRole {
+        match self {
+            Role::Client => AuthRole::Client,
+            Role::Worker { .. } => AuthRole::Worker,
+        }
+    }
+}
+
 /// The coordinator's answer to a `Hello` (and to an [`AuthProof`]).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Welcome {
@@ -43,46 +81,108 @@ pub enum Welcome {
     Accepted { version: u16 },
     /// The connection is refused and will be closed; `reason` says why.
     Refused { reason: String },
-    /// The coordinator requires the shared secret: answer with an [`AuthProof`] for
-    /// this fresh nonce. The secret itself never crosses the network.
-    Challenge { nonce: [u8; 32] },
+    /// The coordinator requires the role's secret. It proves first that it knows it
+    /// (`proof`, see [`coordinator_proof`]) over the peer's nonce and its own fresh
+    /// `nonce`; the peer checks that proof, then answers with an [`AuthProof`]. Neither
+    /// secret ever crosses the network.
+    Challenge { nonce: [u8; 32], proof: [u8; 32] },
 }
 
-/// The peer's answer to a [`Welcome::Challenge`]: HMAC-SHA256, keyed with the shared
-/// secret, of [`AUTH_CONTEXT`] followed by the nonce.
+/// The peer's answer to a [`Welcome::Challenge`] whose proof it accepted: see
+/// [`peer_proof`].
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct AuthProof {
     pub mac: [u8; 32],
 }
 
-/// Bound into every proof, so that a MAC made for anything else never passes.
-pub const AUTH_CONTEXT: &[u8] = b"tessera-auth-v1";
-
-/// The proof of knowing `secret` for `nonce`.
-pub fn prove(secret: &[u8], nonce: &[u8; 32]) -> AuthProof {
-    use hmac::{KeyInit, Mac};
-    let mut mac =
-        hmac::Hmac::<sha2::Sha256>::new_from_slice(secret).expect("HMAC takes keys of any length");
-    mac.update(AUTH_CONTEXT);
-    mac.update(nonce);
-    AuthProof {
-        mac: mac.finalize().into_bytes().into(),
+/// Who proves to whom: the first bytes of every MAC, one label per direction and role,
+/// so that no proof can pass for another direction or for the other role. All four are
+/// 30 ASCII bytes long, so none is a prefix of another.
+pub fn auth_label(by_coordinator: bool, role: AuthRole) -> &'static [u8] {
+    match (by_coordinator, role) {
+        (true, AuthRole::Worker) => b"tessera-v3 coordinator->worker",
+        (true, AuthRole::Client) => b"tessera-v3 coordinator->client",
+        (false, AuthRole::Worker) => b"tessera-v3 worker->coordinator",
+        (false, AuthRole::Client) => b"tessera-v3 client->coordinator",
     }
 }
 
-/// Checks a proof in constant time.
-pub fn verify(secret: &[u8], nonce: &[u8; 32], proof: &AuthProof) -> bool {
+/// HMAC-SHA256 keyed with `secret` over `label ‖ peer_nonce ‖ coordinator_nonce`.
+fn mac(
+    secret: &[u8],
+    label: &[u8],
+    peer_nonce: &[u8; 32],
+    coordinator_nonce: &[u8; 32],
+) -> hmac::Hmac<sha2::Sha256> {
     use hmac::{KeyInit, Mac};
     let mut mac =
         hmac::Hmac::<sha2::Sha256>::new_from_slice(secret).expect("HMAC takes keys of any length");
-    mac.update(AUTH_CONTEXT);
-    mac.update(nonce);
-    mac.verify_slice(&proof.mac).is_ok()
+    mac.update(label);
+    mac.update(peer_nonce);
+    mac.update(coordinator_nonce);
+    mac
 }
 
-/// The peer side of the handshake, without I/O: say what to send, read what comes back.
+/// The coordinator's proof of knowing `role`'s secret, for this pair of nonces.
+pub fn coordinator_proof(
+    secret: &[u8],
+    role: AuthRole,
+    peer_nonce: &[u8; 32],
+    coordinator_nonce: &[u8; 32],
+) -> [u8; 32] {
+    use hmac::Mac;
+    mac(
+        secret,
+        auth_label(true, role),
+        peer_nonce,
+        coordinator_nonce,
+    )
+    .finalize()
+    .into_bytes()
+    .into()
+}
+
+/// The peer's proof of knowing `role`'s secret, for this pair of nonces.
+pub fn peer_proof(
+    secret: &[u8],
+    role: AuthRole,
+    peer_nonce: &[u8; 32],
+    coordinator_nonce: &[u8; 32],
+) -> AuthProof {
+    use hmac::Mac;
+    AuthProof {
+        mac: mac(
+            secret,
+            auth_label(false, role),
+            peer_nonce,
+            coordinator_nonce,
+        )
+        .finalize()
+        .into_bytes()
+        .into(),
+    }
+}
+
+/// Checks a MAC in constant time.
+fn verify_mac(
+    secret: &[u8],
+    label: &[u8],
+    peer_nonce: &[u8; 32],
+    coordinator_nonce: &[u8; 32],
+    claimed: &[u8; 32],
+) -> bool {
+    use hmac::Mac;
+    mac(secret, label, peer_nonce, coordinator_nonce)
+        .verify_slice(claimed)
+        .is_ok()
+}
+
+/// The peer side of the handshake, without I/O: the `Hello` to send, then what to do
+/// with each `Welcome` that comes back.
 pub struct PeerHandshake {
+    role: Role,
     secret: Option<Vec<u8>>,
+    nonce: [u8; 32],
     proved: bool,
 }
 
@@ -95,42 +195,138 @@ pub enum PeerStep {
     Accepted,
 }
 
-/// Why a peer's handshake failed.
+/// Why a peer's handshake failed. Each text is one line, meant to follow "the
+/// coordinator at ADDR: ".
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum PeerHandshakeError {
     #[error("refused: {0}")]
     Refused(String),
-    #[error("a token is required: give --token-file FILE or set TESSERA_TOKEN")]
-    TokenRequired,
+    #[error(
+        "a token is required: it asks {role}s for the farm's {role} token (give --token-file \
+         FILE or set TESSERA_TOKEN)"
+    )]
+    TokenRequired { role: AuthRole },
+    /// It accepted without proving that it knows the secret this peer holds.
+    #[error(
+        "authentication failed: it accepted this {role} without proving that it knows the \
+         {role} token, so it is not the farm's coordinator (or it runs without a {role} \
+         token); refusing it"
+    )]
+    Unproven { role: AuthRole },
+    /// Its proof does not match the secret this peer holds. The peer cannot tell an
+    /// impostor from a token of the wrong role or farm: both look the same from here.
+    #[error(
+        "authentication failed: it does not prove that it knows this {role} token (it is not \
+         the farm's coordinator, or this is not the farm's {role} token: another role's, \
+         another farm's, or mistyped); refusing it"
+    )]
+    WrongProof { role: AuthRole },
     #[error("does not answer like a Tessera coordinator: {0}")]
     NotACoordinator(String),
 }
 
 impl PeerHandshake {
-    /// A handshake that proves `secret` if the coordinator asks for it.
-    pub fn new(secret: Option<Vec<u8>>) -> Self {
+    /// A handshake as `role`, proving `secret` (and requiring the coordinator to prove
+    /// it) if there is one. `nonce` must be fresh random bytes for every connection.
+    pub fn new(role: Role, secret: Option<Vec<u8>>, nonce: [u8; 32]) -> Self {
         PeerHandshake {
+            role,
             secret,
+            nonce,
             proved: false,
         }
     }
 
+    /// The first frame body to send.
+    pub fn hello(&self) -> Vec<u8> {
+        Hello::with_nonce(self.role.clone(), self.nonce).to_frame()
+    }
+
     /// Reads one `Welcome` frame.
     pub fn on_frame(&mut self, frame: &[u8]) -> Result<PeerStep, PeerHandshakeError> {
+        let role = self.role.auth_role();
         match wire::decode::<Welcome>(frame) {
+            Ok(Welcome::Accepted { .. }) if self.secret.is_some() && !self.proved => {
+                Err(PeerHandshakeError::Unproven { role })
+            }
             Ok(Welcome::Accepted { .. }) => Ok(PeerStep::Accepted),
             Ok(Welcome::Refused { reason }) => Err(PeerHandshakeError::Refused(reason)),
-            Ok(Welcome::Challenge { nonce }) if !self.proved => match &self.secret {
-                Some(secret) => {
-                    self.proved = true;
-                    Ok(PeerStep::Send(wire::encode(&prove(secret, &nonce))))
+            Ok(Welcome::Challenge { .. }) if self.proved => Err(
+                PeerHandshakeError::NotACoordinator("a second challenge".into()),
+            ),
+            Ok(Welcome::Challenge { nonce, proof }) => {
+                let Some(secret) = &self.secret else {
+                    return Err(PeerHandshakeError::TokenRequired { role });
+                };
+                let label = auth_label(true, role);
+                if !verify_mac(secret, label, &self.nonce, &nonce, &proof) {
+                    return Err(PeerHandshakeError::WrongProof { role });
                 }
-                None => Err(PeerHandshakeError::TokenRequired),
-            },
-            Ok(Welcome::Challenge { .. }) => Err(PeerHandshakeError::NotACoordinator(
-                "a second challenge".into(),
-            )),
+                self.proved = true;
+                Ok(PeerStep::Send(wire::encode(&peer_proof(
+                    secret,
+                    role,
+                    &self.nonce,
+                    &nonce,
+                ))))
+            }
             Err(e) => Err(PeerHandshakeError::NotACoordinator(e.to_string())),
+        }
+    }
+}
+
+/// The coordinator side of authentication, without I/O: the challenge for a peer's
+/// `Hello`, then the check of its answer.
+pub struct CoordinatorChallenge {
+    role: AuthRole,
+    secret: Vec<u8>,
+    peer_nonce: [u8; 32],
+    nonce: [u8; 32],
+}
+
+/// Why a peer's answer to a challenge is refused.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("authentication failed: the proof does not match this coordinator's {role} token")]
+pub struct AuthFailure {
+    pub role: AuthRole,
+}
+
+impl CoordinatorChallenge {
+    /// A challenge for `hello`'s role, proving `secret` (that role's); `nonce` must be
+    /// fresh random bytes.
+    pub fn new(hello: &Hello, secret: &[u8], nonce: [u8; 32]) -> Self {
+        CoordinatorChallenge {
+            role: hello.role.auth_role(),
+            secret: secret.to_vec(),
+            peer_nonce: hello.nonce,
+            nonce,
+        }
+    }
+
+    /// The `Welcome::Challenge` to send.
+    pub fn welcome(&self) -> Welcome {
+        Welcome::Challenge {
+            nonce: self.nonce,
+            proof: coordinator_proof(&self.secret, self.role, &self.peer_nonce, &self.nonce),
+        }
+    }
+
+    /// Checks the peer's answer: exactly an [`AuthProof`] whose MAC matches, compared
+    /// in constant time.
+    pub fn check(&self, frame: &[u8]) -> Result<(), AuthFailure> {
+        let failure = AuthFailure { role: self.role };
+        let proof = wire::decode::<AuthProof>(frame).map_err(|_| failure.clone())?;
+        let label = auth_label(false, self.role);
+        if verify_mac(
+            &self.secret,
+            label,
+            &self.peer_nonce,
+            &self.nonce,
+            &proof.mac,
+        ) {
+            Ok(())
+        } else {
+            Err(failure)
         }
     }
 }
@@ -147,12 +343,19 @@ pub enum HelloError {
 }
 
 impl Hello {
-    /// This version's hello for `role`.
+    /// This version's hello for `role`, with an all-zero nonce: for a peer without a
+    /// secret, which checks no proof.
     pub fn new(role: Role) -> Self {
+        Hello::with_nonce(role, [0; 32])
+    }
+
+    /// This version's hello for `role`, with the peer's fresh `nonce`.
+    pub fn with_nonce(role: Role, nonce: [u8; 32]) -> Self {
         Hello {
             magic: MAGIC,
             version: PROTOCOL_VERSION,
             role,
+            nonce,
         }
     }
 
@@ -182,41 +385,222 @@ impl Hello {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_proof_passes_only_with_the_same_secret_and_nonce() {
-        let nonce = [7u8; 32];
-        let proof = prove(b"s3cret", &nonce);
-        assert!(verify(b"s3cret", &nonce, &proof));
-        assert!(!verify(b"s3cre", &nonce, &proof));
-        assert!(!verify(b"s3cret", &[8u8; 32], &proof));
+    const PEER_NONCE: [u8; 32] = [1; 32];
+    const COORDINATOR_NONCE: [u8; 32] = [2; 32];
+
+    fn worker() -> Role {
+        Role::Worker {
+            name: "w".into(),
+            threads: 1,
+            build: "b".into(),
+        }
+    }
+
+    fn accepted() -> Vec<u8> {
+        wire::encode(&Welcome::Accepted {
+            version: PROTOCOL_VERSION,
+        })
+    }
+
+    /// The coordinator's side for `peer`'s hello, proving `secret`.
+    fn challenger(peer: &PeerHandshake, secret: &[u8]) -> CoordinatorChallenge {
+        let hello = Hello::from_frame(&peer.hello()).unwrap();
+        CoordinatorChallenge::new(&hello, secret, COORDINATOR_NONCE)
     }
 
     #[test]
-    fn the_peer_answers_a_challenge_once_and_needs_a_secret() {
-        let challenge = wire::encode(&Welcome::Challenge { nonce: [1; 32] });
-        let accepted = wire::encode(&Welcome::Accepted {
-            version: PROTOCOL_VERSION,
-        });
-        let mut peer = PeerHandshake::new(Some(b"k".to_vec()));
-        let PeerStep::Send(frame) = peer.on_frame(&challenge).unwrap() else {
-            panic!("expected a proof");
-        };
-        let proof: AuthProof = wire::decode(&frame).unwrap();
-        assert!(verify(b"k", &[1; 32], &proof));
-        assert!(peer.on_frame(&challenge).is_err(), "a second challenge");
-        assert_eq!(peer.on_frame(&accepted).unwrap(), PeerStep::Accepted);
+    fn both_sides_prove_the_secret_and_the_connection_opens() {
+        for role in [Role::Client, worker()] {
+            let mut peer = PeerHandshake::new(role.clone(), Some(b"k".to_vec()), PEER_NONCE);
+            let hello = Hello::from_frame(&peer.hello()).unwrap();
+            assert_eq!(
+                hello.nonce, PEER_NONCE,
+                "the hello carries the peer's nonce"
+            );
+            assert_eq!(hello.role, role);
+            let coordinator = challenger(&peer, b"k");
+            let PeerStep::Send(answer) = peer
+                .on_frame(&wire::encode(&coordinator.welcome()))
+                .unwrap()
+            else {
+                panic!("expected the peer's proof");
+            };
+            assert_eq!(coordinator.check(&answer), Ok(()));
+            assert_eq!(peer.on_frame(&accepted()).unwrap(), PeerStep::Accepted);
+        }
+    }
 
-        let mut anonymous = PeerHandshake::new(None);
+    #[test]
+    fn a_peer_refuses_a_coordinator_that_does_not_prove_the_secret() {
+        // Accepted without any challenge.
+        let mut peer = PeerHandshake::new(worker(), Some(b"k".to_vec()), PEER_NONCE);
+        assert_eq!(
+            peer.on_frame(&accepted()).unwrap_err(),
+            PeerHandshakeError::Unproven {
+                role: AuthRole::Worker
+            }
+        );
+        // A challenge whose proof is made with another secret, or garbage.
+        let mut peer = PeerHandshake::new(worker(), Some(b"k".to_vec()), PEER_NONCE);
+        let impostor = challenger(&peer, b"not k");
+        assert_eq!(
+            peer.on_frame(&wire::encode(&impostor.welcome()))
+                .unwrap_err(),
+            PeerHandshakeError::WrongProof {
+                role: AuthRole::Worker
+            }
+        );
+        let mut peer = PeerHandshake::new(Role::Client, Some(b"k".to_vec()), PEER_NONCE);
+        let garbage = Welcome::Challenge {
+            nonce: COORDINATOR_NONCE,
+            proof: [0; 32],
+        };
+        assert!(matches!(
+            peer.on_frame(&wire::encode(&garbage)),
+            Err(PeerHandshakeError::WrongProof { .. })
+        ));
+        // After a refused challenge the peer never accepts either.
+        assert!(peer.on_frame(&accepted()).is_err());
+    }
+
+    #[test]
+    fn a_proof_for_another_role_direction_or_nonce_never_passes() {
+        let secret = b"shared by mistake";
+        // The coordinator's proof for a client does not pass for a worker.
+        let mut as_worker = PeerHandshake::new(worker(), Some(secret.to_vec()), PEER_NONCE);
+        let client_proof =
+            coordinator_proof(secret, AuthRole::Client, &PEER_NONCE, &COORDINATOR_NONCE);
+        let replay = Welcome::Challenge {
+            nonce: COORDINATOR_NONCE,
+            proof: client_proof,
+        };
+        assert!(matches!(
+            as_worker.on_frame(&wire::encode(&replay)),
+            Err(PeerHandshakeError::WrongProof { .. })
+        ));
+        // A peer's own proof reflected back as the coordinator's does not pass.
+        let mut peer = PeerHandshake::new(worker(), Some(secret.to_vec()), PEER_NONCE);
+        let reflected = peer_proof(secret, AuthRole::Worker, &PEER_NONCE, &COORDINATOR_NONCE);
+        let reflection = Welcome::Challenge {
+            nonce: COORDINATOR_NONCE,
+            proof: reflected.mac,
+        };
+        assert!(peer.on_frame(&wire::encode(&reflection)).is_err());
+        // The coordinator's proof does not pass as a peer's, nor a client's as a worker's.
+        let worker_hello = Hello::with_nonce(worker(), PEER_NONCE);
+        let coordinator = CoordinatorChallenge::new(&worker_hello, secret, COORDINATOR_NONCE);
+        let Welcome::Challenge { proof, .. } = coordinator.welcome() else {
+            panic!("a challenge");
+        };
+        let failure = AuthFailure {
+            role: AuthRole::Worker,
+        };
+        assert_eq!(
+            coordinator.check(&wire::encode(&AuthProof { mac: proof })),
+            Err(failure.clone())
+        );
+        let as_client = peer_proof(secret, AuthRole::Client, &PEER_NONCE, &COORDINATOR_NONCE);
+        assert_eq!(
+            coordinator.check(&wire::encode(&as_client)),
+            Err(failure.clone())
+        );
+        // A proof for another coordinator nonce or another peer nonce fails too.
+        let stale = peer_proof(secret, AuthRole::Worker, &PEER_NONCE, &[9; 32]);
+        assert_eq!(
+            coordinator.check(&wire::encode(&stale)),
+            Err(failure.clone())
+        );
+        let other_peer = peer_proof(secret, AuthRole::Worker, &[9; 32], &COORDINATOR_NONCE);
+        assert_eq!(
+            coordinator.check(&wire::encode(&other_peer)),
+            Err(failure.clone())
+        );
+        // Not an AuthProof at all.
+        assert_eq!(coordinator.check(b"short"), Err(failure));
+        assert_eq!(
+            coordinator.check(&wire::encode(&peer_proof(
+                secret,
+                AuthRole::Worker,
+                &PEER_NONCE,
+                &COORDINATOR_NONCE
+            ))),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn the_peer_answers_one_challenge_and_needs_a_secret() {
+        let mut peer = PeerHandshake::new(Role::Client, Some(b"k".to_vec()), PEER_NONCE);
+        let coordinator = challenger(&peer, b"k");
+        let challenge = wire::encode(&coordinator.welcome());
+        assert!(matches!(peer.on_frame(&challenge), Ok(PeerStep::Send(_))));
+        assert_eq!(
+            peer.on_frame(&challenge).unwrap_err(),
+            PeerHandshakeError::NotACoordinator("a second challenge".into())
+        );
+
+        let mut anonymous = PeerHandshake::new(worker(), None, PEER_NONCE);
         assert_eq!(
             anonymous.on_frame(&challenge).unwrap_err(),
-            PeerHandshakeError::TokenRequired
+            PeerHandshakeError::TokenRequired {
+                role: AuthRole::Worker
+            }
         );
+        // Without a secret, a coordinator without one is fine.
+        let mut open = PeerHandshake::new(Role::Client, None, PEER_NONCE);
+        assert_eq!(open.on_frame(&accepted()).unwrap(), PeerStep::Accepted);
         let refused = wire::encode(&Welcome::Refused {
             reason: "no".into(),
         });
         assert_eq!(
             anonymous.on_frame(&refused).unwrap_err(),
             PeerHandshakeError::Refused("no".into())
+        );
+        assert!(matches!(
+            anonymous.on_frame(b"\x07\x00\x00\x00"),
+            Err(PeerHandshakeError::NotACoordinator(_))
+        ));
+    }
+
+    #[test]
+    fn the_labels_are_distinct_and_equally_long() {
+        let labels: Vec<&[u8]> = [true, false]
+            .into_iter()
+            .flat_map(|c| [AuthRole::Client, AuthRole::Worker].map(|r| auth_label(c, r)))
+            .collect();
+        for (i, a) in labels.iter().enumerate() {
+            assert_eq!(a.len(), 30, "{}", String::from_utf8_lossy(a));
+            for b in &labels[i + 1..] {
+                assert_ne!(a, b);
+            }
+        }
+    }
+
+    #[test]
+    fn failures_are_one_line_naming_the_role() {
+        for error in [
+            PeerHandshakeError::TokenRequired {
+                role: AuthRole::Client,
+            },
+            PeerHandshakeError::Unproven {
+                role: AuthRole::Client,
+            },
+            PeerHandshakeError::WrongProof {
+                role: AuthRole::Client,
+            },
+        ] {
+            let text = error.to_string();
+            assert!(
+                !text.contains('\n') && text.contains("client token"),
+                "{text}"
+            );
+        }
+        assert_eq!(
+            AuthFailure {
+                role: AuthRole::Worker
+            }
+            .to_string(),
+            "authentication failed: the proof does not match this coordinator's worker token"
         );
     }
 }

@@ -16,7 +16,8 @@ pub mod wire;
 
 pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
 pub use crate::handshake::{
-    prove, verify, AuthProof, Hello, HelloError, PeerHandshake, PeerHandshakeError, PeerStep, Role,
-    Welcome, AUTH_CONTEXT, MAGIC, PROTOCOL_VERSION,
+    auth_label, coordinator_proof, peer_proof, AuthFailure, AuthProof, AuthRole,
+    CoordinatorChallenge, Hello, HelloError, PeerHandshake, PeerHandshakeError, PeerStep, Role,
+    Welcome, MAGIC, PROTOCOL_VERSION,
 };
 pub use crate::messages::*;

@@ -4,7 +4,7 @@
 //! the documentation shows the new bytes.
 
 use protocol::{
-    wire, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
+    wire, AuthRole, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
     Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome, MAGIC,
     PROTOCOL_VERSION,
 };
@@ -28,10 +28,18 @@ fn scene_hash() -> [u8; 32] {
     Sha256::digest(SCENE.as_bytes()).into()
 }
 
-/// The nonce of the authentication examples: 00, 01, … 1f.
+/// The coordinator's nonce in the authentication examples: 00, 01, … 1f.
 fn nonce() -> [u8; 32] {
     std::array::from_fn(|i| i as u8)
 }
+
+/// The peer's nonce in the examples' hellos: 20, 21, … 3f.
+fn peer_nonce() -> [u8; 32] {
+    std::array::from_fn(|i| 0x20 + i as u8)
+}
+
+/// The secret of the authentication examples: a client token file holding `s3cret`.
+const SECRET: &[u8] = b"s3cret";
 
 /// A message as a frame: big-endian length, then the body.
 fn frame<T: Serialize>(message: &T) -> Vec<u8> {
@@ -54,9 +62,13 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     threads: 4,
                     build: "b".into(),
                 },
+                nonce: peer_nonce(),
             }),
         ),
-        ("client Hello", frame(&Hello::new(Role::Client))),
+        (
+            "client Hello",
+            frame(&Hello::with_nonce(Role::Client, peer_nonce())),
+        ),
         (
             "Welcome::Accepted",
             frame(&Welcome::Accepted {
@@ -133,9 +145,25 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "Welcome::Challenge",
-            frame(&Welcome::Challenge { nonce: nonce() }),
+            frame(&Welcome::Challenge {
+                nonce: nonce(),
+                proof: protocol::coordinator_proof(
+                    SECRET,
+                    AuthRole::Client,
+                    &peer_nonce(),
+                    &nonce(),
+                ),
+            }),
         ),
-        ("AuthProof", frame(&protocol::prove(b"s3cret", &nonce()))),
+        (
+            "AuthProof",
+            frame(&protocol::peer_proof(
+                SECRET,
+                AuthRole::Client,
+                &peer_nonce(),
+                &nonce(),
+            )),
+        ),
     ]
 }
 
@@ -196,8 +224,9 @@ fn the_worked_examples_are_the_encoders_bytes() {
 
 #[test]
 fn the_client_hello_of_the_checklist_is_the_encoders() {
+    // The checklist shows the bytes before the nonce, which is the peer's own.
     let bytes = frame(&Hello::new(Role::Client));
-    let spaced = bytes
+    let spaced = bytes[..bytes.len() - 32]
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect::<Vec<_>>()
@@ -206,4 +235,17 @@ fn the_client_hello_of_the_checklist_is_the_encoders() {
         DOC.contains(&format!("`{spaced}`")),
         "the checklist should show `{spaced}`"
     );
+}
+
+#[test]
+fn the_labels_of_section_4_are_the_codes() {
+    for by_coordinator in [true, false] {
+        for role in [AuthRole::Client, AuthRole::Worker] {
+            let label = std::str::from_utf8(protocol::auth_label(by_coordinator, role)).unwrap();
+            assert!(
+                DOC.contains(&format!("`{label}`")),
+                "docs/protocol.md should name the label `{label}`"
+            );
+        }
+    }
 }

@@ -280,8 +280,13 @@ fn role() -> impl Strategy<Value = Role> {
 
 prop_compose! {
     /// Any hello, also with a foreign magic or version: the encoding must carry them too.
-    fn hello()(magic in any::<[u8; 4]>(), version in any::<u16>(), role in role()) -> Hello {
-        Hello { magic, version, role }
+    fn hello()(
+        magic in any::<[u8; 4]>(),
+        version in any::<u16>(),
+        role in role(),
+        nonce in any::<[u8; 32]>(),
+    ) -> Hello {
+        Hello { magic, version, role, nonce }
     }
 }
 
@@ -289,7 +294,8 @@ fn welcome() -> impl Strategy<Value = Welcome> {
     prop_oneof![
         any::<u16>().prop_map(|version| Welcome::Accepted { version }),
         text().prop_map(|reason| Welcome::Refused { reason }),
-        any::<[u8; 32]>().prop_map(|nonce| Welcome::Challenge { nonce }),
+        (any::<[u8; 32]>(), any::<[u8; 32]>())
+            .prop_map(|(nonce, proof)| Welcome::Challenge { nonce, proof }),
     ]
 }
 
@@ -530,8 +536,8 @@ proptest! {
     }
 
     #[test]
-    fn hello_accepts_this_version_for_any_role(role in role()) {
-        let hello = Hello::new(role);
+    fn hello_accepts_this_version_for_any_role(role in role(), nonce in any::<[u8; 32]>()) {
+        let hello = Hello::with_nonce(role, nonce);
         let frame = hello.to_frame();
         // The fixed prefix every version keeps: magic, then the version little-endian.
         prop_assert_eq!(&frame[..4], &MAGIC[..]);
@@ -554,7 +560,7 @@ proptest! {
         theirs in any::<u16>().prop_filter("another version", |v| *v != PROTOCOL_VERSION),
         role in role(),
     ) {
-        let frame = Hello { magic: MAGIC, version: theirs, role }.to_frame();
+        let frame = Hello { magic: MAGIC, version: theirs, role, nonce: [0; 32] }.to_frame();
         let error = Hello::from_frame(&frame).unwrap_err();
         prop_assert_eq!(&error, &HelloError::VersionMismatch { ours: PROTOCOL_VERSION, theirs });
         let text = error.to_string();
@@ -864,7 +870,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         sampling: Some(Sampling::Grid),
         ..Default::default()
     });
-    let at = nested.len() - 9; // the Sampling variant, before the priority and verification
+    let at = nested.len() - 12; // the Sampling variant, before the priority and verification
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

@@ -1,6 +1,10 @@
 //! The byte stream under the protocol: plain TCP, or TLS (rustls) when the farm has a
 //! certificate. Above this module every peer sees the same framed stream either way,
 //! and the handshake of clients and workers ([`dial`]) is written once.
+//!
+//! A coordinator's certificate comes from PEM files, or is made here once and kept in
+//! its data directory ([`ServerTls::auto`]); peers trust it through a CA file, or by
+//! pinning its SHA-256 fingerprint ([`ClientTls::pinned`]), which needs no file at all.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -9,9 +13,13 @@ use std::time::Duration;
 use anyhow::{anyhow, Context, Result};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use protocol::{Hello, PeerHandshake, PeerStep, Role, DEFAULT_MAX_FRAME};
+use protocol::{PeerHandshake, PeerStep, Role, DEFAULT_MAX_FRAME};
+use rustls::client::danger::{HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier};
+use rustls::crypto::WebPkiSupportedAlgorithms;
 use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName};
+use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName, UnixTime};
+use rustls::{DigitallySignedStruct, SignatureScheme};
+use sha2::{Digest, Sha256};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
@@ -34,7 +42,43 @@ fn crypto() -> Arc<rustls::crypto::CryptoProvider> {
 #[derive(Clone)]
 pub struct ServerTls {
     acceptor: tokio_rustls::TlsAcceptor,
+    /// SHA-256 of the leaf certificate's DER bytes: what peers pin.
+    fingerprint: [u8; 32],
 }
+
+/// The SHA-256 fingerprint of a certificate: the hash of its DER bytes, which is what
+/// `openssl x509 -noout -fingerprint -sha256` shows too (there with colons).
+pub fn fingerprint(certificate: &[u8]) -> [u8; 32] {
+    Sha256::digest(certificate).into()
+}
+
+/// A fingerprint as 64 lowercase hex digits, the form the coordinator prints and
+/// `--tls-fingerprint` takes.
+pub fn fingerprint_hex(fingerprint: &[u8; 32]) -> String {
+    fingerprint.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Reads a fingerprint: 64 hex digits, in either case, optionally in pairs separated by
+/// colons (as openssl prints them). The error says what is wrong.
+pub fn parse_fingerprint(text: &str) -> Result<[u8; 32], String> {
+    let digits: String = text.trim().chars().filter(|&c| c != ':').collect();
+    if digits.len() != 64 || !digits.chars().all(|c| c.is_ascii_hexdigit()) {
+        return Err(format!(
+            "not a SHA-256 fingerprint: expected 64 hex digits (as the coordinator prints at \
+             startup), got {:?}",
+            text.trim()
+        ));
+    }
+    let mut out = [0u8; 32];
+    for (i, byte) in out.iter_mut().enumerate() {
+        *byte = u8::from_str_radix(&digits[2 * i..2 * i + 2], 16).expect("checked hex digits");
+    }
+    Ok(out)
+}
+
+/// Where [`ServerTls::auto`] keeps the certificate and its key, under the data
+/// directory.
+pub const AUTO_TLS_DIR: &str = "tls";
 
 impl std::fmt::Debug for ServerTls {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -46,6 +90,7 @@ impl ServerTls {
     /// Reads a PEM certificate chain (leaf first) and a PEM private key.
     pub fn from_pem_files(cert: &Path, key: &Path) -> Result<ServerTls> {
         let chain = read_certificates(cert)?;
+        let chain_leaf = chain[0].clone();
         let key = PrivateKeyDer::from_pem_file(key)
             .map_err(|e| anyhow!("cannot read a private key from {}: {e}", key.display()))?;
         let config = rustls::ServerConfig::builder_with_provider(crypto())
@@ -61,13 +106,186 @@ impl ServerTls {
             })?;
         Ok(ServerTls {
             acceptor: tokio_rustls::TlsAcceptor::from(Arc::new(config)),
+            fingerprint: fingerprint(chain_leaf.as_ref()),
         })
+    }
+
+    /// The coordinator's own certificate, made on first use and kept in `dir`
+    /// (`cert.pem` and `key.pem`, both mode 0600, in a directory of mode 0700), so that
+    /// its fingerprint stays the same across restarts and peers pinned to it keep
+    /// working. A farm needs no CA, no openssl and no file copied to the peers: they
+    /// pin the fingerprint printed at startup.
+    pub fn auto(dir: &Path) -> Result<ServerTls> {
+        let cert = dir.join("cert.pem");
+        let key = dir.join("key.pem");
+        match (cert.exists(), key.exists()) {
+            (true, true) => {}
+            (true, false) => anyhow::bail!(
+                "{} exists without its key {}: restore the key, or remove the certificate to \
+                 make a new one (its fingerprint changes: pin the new one on every peer)",
+                cert.display(),
+                key.display()
+            ),
+            // Nothing yet, or a key whose certificate was never written (a start cut
+            // short while making them): make both.
+            _ => generate_certificate(dir, &cert, &key)?,
+        }
+        ServerTls::from_pem_files(&cert, &key)
+    }
+
+    /// The SHA-256 fingerprint of the certificate served: what peers pin with
+    /// `--tls-fingerprint`.
+    pub fn fingerprint(&self) -> [u8; 32] {
+        self.fingerprint
     }
 
     /// Completes the server side of a TLS handshake.
     pub async fn accept(&self, tcp: TcpStream) -> std::io::Result<Stream> {
         Ok(Box::new(self.acceptor.accept(tcp).await?))
     }
+}
+
+/// Makes a self-signed certificate (ECDSA P-256) and its key, and writes them to
+/// `cert` and `key` in `dir` through temporary files renamed into place, key first:
+/// a certificate on disk always has its key beside it.
+fn generate_certificate(dir: &Path, cert: &Path, key: &Path) -> Result<()> {
+    create_private_dir(dir)?;
+    let mut names = vec!["localhost".to_string(), "127.0.0.1".into(), "::1".into()];
+    if let Some(host) = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty() && h != "localhost")
+    {
+        names.push(host);
+    }
+    let key_pair = rcgen::KeyPair::generate().context("cannot make a TLS key")?;
+    let mut params = rcgen::CertificateParams::new(names)
+        .or_else(|_| rcgen::CertificateParams::new(vec!["localhost".to_string()]))
+        .context("cannot make a TLS certificate")?;
+    params.distinguished_name = rcgen::DistinguishedName::new();
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "tessera coordinator");
+    let certificate = params
+        .self_signed(&key_pair)
+        .context("cannot make a TLS certificate")?;
+    write_private(key, key_pair.serialize_pem().as_bytes())?;
+    write_private(cert, certificate.pem().as_bytes())?;
+    Ok(())
+}
+
+fn create_private_dir(dir: &Path) -> Result<()> {
+    let mut builder = std::fs::DirBuilder::new();
+    builder.recursive(true);
+    #[cfg(unix)]
+    std::os::unix::fs::DirBuilderExt::mode(&mut builder, 0o700);
+    builder
+        .create(dir)
+        .with_context(|| format!("cannot create {}", dir.display()))
+}
+
+/// Writes `bytes` to `path` with mode 0600 (readable by the coordinator's user only),
+/// through a temporary file renamed into place.
+fn write_private(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let temporary = path.with_extension("pem.tmp");
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    let write = || -> std::io::Result<()> {
+        let mut file = options.open(&temporary)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        std::fs::rename(&temporary, path)
+    };
+    write().with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Accepts exactly one end-entity certificate, named by its SHA-256 fingerprint, and
+/// nothing else: no CA, no name, no validity period is consulted, since the pin says
+/// everything there is to trust. The handshake's signatures are still checked with the
+/// crypto provider, so only the holder of that certificate's private key gets through.
+#[derive(Debug)]
+struct PinnedCertificate {
+    fingerprint: [u8; 32],
+    algorithms: WebPkiSupportedAlgorithms,
+}
+
+/// A certificate that is not the pinned one, with both fingerprints.
+#[derive(Debug)]
+struct PinMismatch {
+    pinned: [u8; 32],
+    presented: [u8; 32],
+}
+
+impl std::fmt::Display for PinMismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "the coordinator presented the certificate with SHA-256 fingerprint {}, but \
+             --tls-fingerprint expects {}",
+            fingerprint_hex(&self.presented),
+            fingerprint_hex(&self.pinned)
+        )
+    }
+}
+
+impl std::error::Error for PinMismatch {}
+
+impl ServerCertVerifier for PinnedCertificate {
+    fn verify_server_cert(
+        &self,
+        end_entity: &CertificateDer<'_>,
+        _intermediates: &[CertificateDer<'_>],
+        _server_name: &ServerName<'_>,
+        _ocsp_response: &[u8],
+        _now: UnixTime,
+    ) -> Result<ServerCertVerified, rustls::Error> {
+        let presented = fingerprint(end_entity.as_ref());
+        if presented == self.fingerprint {
+            Ok(ServerCertVerified::assertion())
+        } else {
+            Err(rustls::Error::InvalidCertificate(
+                rustls::CertificateError::Other(rustls::OtherError(Arc::new(PinMismatch {
+                    pinned: self.fingerprint,
+                    presented,
+                }))),
+            ))
+        }
+    }
+
+    fn verify_tls12_signature(
+        &self,
+        message: &[u8],
+        cert: &CertificateDer<'_>,
+        dss: &DigitallySignedStruct,
+    ) -> Result<HandshakeSignatureValid, rustls::Error> {
+        rustls::crypto::verify_tls12_signature(message, cert, dss, &self.algorithms)
+    }
+
+    fn verify_tls13_signature(
+        &self,
+        message: &[u8],
+        cert: &CertificateDer<'_>,
+        dss: &DigitallySignedStruct,
+    ) -> Result<HandshakeSignatureValid, rustls::Error> {
+        rustls::crypto::verify_tls13_signature(message, cert, dss, &self.algorithms)
+    }
+
+    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
+        self.algorithms.supported_schemes()
+    }
+}
+
+/// The pin mismatch inside a failed TLS handshake, if that is why it failed.
+fn pin_mismatch(error: &std::io::Error) -> Option<&PinMismatch> {
+    let rustls::Error::InvalidCertificate(rustls::CertificateError::Other(other)) =
+        error.get_ref()?.downcast_ref::<rustls::Error>()?
+    else {
+        return None;
+    };
+    other.0.downcast_ref::<PinMismatch>()
 }
 
 /// A client's or worker's side of TLS: which certificates it trusts, and the name the
@@ -114,6 +332,26 @@ impl ClientTls {
         })
     }
 
+    /// Trusts exactly the certificate whose SHA-256 fingerprint is `fingerprint` (see
+    /// [`parse_fingerprint`]), whatever names it carries and whoever signed it.
+    pub fn pinned(fingerprint: [u8; 32]) -> Result<ClientTls> {
+        let provider = crypto();
+        let verifier = PinnedCertificate {
+            fingerprint,
+            algorithms: provider.signature_verification_algorithms,
+        };
+        let config = rustls::ClientConfig::builder_with_provider(provider)
+            .with_safe_default_protocol_versions()
+            .context("TLS setup")?
+            .dangerous()
+            .with_custom_certificate_verifier(Arc::new(verifier))
+            .with_no_client_auth();
+        Ok(ClientTls {
+            connector: tokio_rustls::TlsConnector::from(Arc::new(config)),
+            server_name: None,
+        })
+    }
+
     async fn connect(&self, address: &str, tcp: TcpStream) -> Result<Stream, DialError> {
         let name = match &self.server_name {
             Some(name) => name.clone(),
@@ -121,6 +359,11 @@ impl ClientTls {
         };
         match self.connector.connect(name, tcp).await {
             Ok(stream) => Ok(Box::new(stream)),
+            Err(e) if pin_mismatch(&e).is_some() => Err(DialError::Refused(anyhow!(
+                "TLS with the coordinator at {address}: {}; refusing it (not the farm's \
+                 coordinator, or its certificate was replaced)",
+                pin_mismatch(&e).expect("checked")
+            ))),
             // rustls reports certificate and protocol errors as invalid data: retrying
             // cannot help.
             Err(e) if e.kind() == std::io::ErrorKind::InvalidData => Err(DialError::Refused(
@@ -154,7 +397,8 @@ fn read_certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>> {
 }
 
 /// How to reach a coordinator: its address, whether to speak TLS to it, and the secret
-/// to prove if it asks for one.
+/// of this peer's role (a worker's or a client's token): the coordinator must prove it
+/// knows it before the peer proves it in turn.
 #[derive(Clone, Debug)]
 pub struct Endpoint {
     pub address: String,
@@ -198,8 +442,10 @@ pub type Handshaken = Framed<Stream, LengthDelimitedCodec>;
 /// coordinator counts as unreachable.
 pub const DIAL_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// Connects, sets up TLS if configured, says hello as `role` and answers the
-/// coordinator's challenge until it accepts or refuses, all within [`DIAL_TIMEOUT`].
+/// Connects, sets up TLS if configured, says hello as `role` with a fresh nonce, checks
+/// the coordinator's proof of the secret (a peer with a secret refuses a coordinator that
+/// does not prove it) and answers its challenge until it accepts or refuses, all within
+/// [`DIAL_TIMEOUT`].
 pub async fn dial(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialError> {
     tokio::time::timeout(DIAL_TIMEOUT, dial_now(endpoint, role))
         .await
@@ -230,10 +476,13 @@ async fn dial_now(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialErr
         None => Box::new(tcp),
     };
     let mut raw = Framed::new(stream, protocol::frame_codec(DEFAULT_MAX_FRAME));
-    raw.send(Bytes::from(Hello::new(role).to_frame()))
+    let mut nonce = [0u8; 32];
+    getrandom::fill(&mut nonce)
+        .map_err(|e| DialError::Unreachable(anyhow!("no randomness for a nonce: {e}")))?;
+    let mut handshake = PeerHandshake::new(role, endpoint.secret.clone(), nonce);
+    raw.send(Bytes::from(handshake.hello()))
         .await
         .map_err(talk)?;
-    let mut handshake = PeerHandshake::new(endpoint.secret.clone());
     loop {
         let reply = raw
             .next()
@@ -258,5 +507,91 @@ async fn dial_now(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialErr
                 )))
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fingerprints_read_in_hex_with_or_without_colons() {
+        let bytes: [u8; 32] = std::array::from_fn(|i| (i * 7) as u8);
+        let hex = fingerprint_hex(&bytes);
+        assert_eq!(hex.len(), 64);
+        assert_eq!(parse_fingerprint(&hex), Ok(bytes));
+        assert_eq!(parse_fingerprint(&hex.to_uppercase()), Ok(bytes));
+        let colons = hex
+            .as_bytes()
+            .chunks(2)
+            .map(|c| std::str::from_utf8(c).unwrap())
+            .collect::<Vec<_>>()
+            .join(":");
+        assert_eq!(parse_fingerprint(&format!(" {colons}\n")), Ok(bytes));
+        assert!(parse_fingerprint(&hex[..62]).is_err());
+        assert!(parse_fingerprint(&format!("{}zz", &hex[..62]))
+            .unwrap_err()
+            .contains("64 hex digits"));
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn the_automatic_certificate_is_private_and_kept_across_restarts() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let tls = dir.path().join("data").join(AUTO_TLS_DIR);
+        let first = ServerTls::auto(&tls).unwrap();
+        for name in ["cert.pem", "key.pem"] {
+            let mode = std::fs::metadata(tls.join(name))
+                .unwrap()
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o777, 0o600, "{name}");
+        }
+        let mode = std::fs::metadata(&tls).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o700);
+        let again = ServerTls::auto(&tls).unwrap();
+        assert_eq!(first.fingerprint(), again.fingerprint());
+        let pem = std::fs::read(tls.join("cert.pem")).unwrap();
+        let der = CertificateDer::from_pem_slice(&pem).unwrap();
+        assert_eq!(fingerprint(der.as_ref()), first.fingerprint());
+        // A certificate without its key is not silently replaced.
+        std::fs::remove_file(tls.join("key.pem")).unwrap();
+        assert!(ServerTls::auto(&tls).is_err());
+    }
+
+    /// A TLS handshake between `server` and a peer using `client`: what the peer got.
+    async fn handshake(server: &ServerTls, client: &ClientTls) -> Result<(), DialError> {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let server = server.clone();
+        let accepting = tokio::spawn(async move {
+            let (tcp, _) = listener.accept().await.unwrap();
+            let _ = server.accept(tcp).await;
+        });
+        let tcp = TcpStream::connect(&address).await.unwrap();
+        let result = client.connect(&address, tcp).await.map(|_| ());
+        accepting.abort();
+        result
+    }
+
+    #[tokio::test]
+    async fn a_pinned_peer_accepts_exactly_the_pinned_certificate() {
+        let dir = tempfile::tempdir().unwrap();
+        let server = ServerTls::auto(&dir.path().join("a")).unwrap();
+        let other = ServerTls::auto(&dir.path().join("b")).unwrap();
+        assert_ne!(server.fingerprint(), other.fingerprint());
+        let pinned = ClientTls::pinned(server.fingerprint()).unwrap();
+        assert!(handshake(&server, &pinned).await.is_ok());
+        let Err(DialError::Refused(error)) = handshake(&other, &pinned).await else {
+            panic!("another certificate must be refused for good");
+        };
+        let text = error.to_string();
+        assert!(!text.contains('\n'), "{text}");
+        assert!(
+            text.contains(&fingerprint_hex(&server.fingerprint()))
+                && text.contains(&fingerprint_hex(&other.fingerprint())),
+            "{text}"
+        );
     }
 }

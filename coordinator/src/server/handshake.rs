@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::Result;
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use protocol::{AuthProof, Hello, MessageCodec, Role, Welcome};
+use protocol::{AuthRole, CoordinatorChallenge, Hello, MessageCodec, Role, Welcome};
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
 use transport::{Stream, TLS_HANDSHAKE_RECORD};
@@ -22,34 +22,44 @@ pub(super) async fn refuse(stream: Stream, reason: String) {
     let _ = framed.send(Bytes::from(refusal)).await;
 }
 
-/// Challenge-response: the peer proves it knows the secret with an HMAC of a fresh
-/// nonce. A wrong or missing proof is refused.
+/// Mutual challenge-response with the secret of the peer's role: the coordinator proves
+/// it knows the secret first (over the peer's nonce and a fresh one of its own), then the
+/// peer answers with its proof. A wrong, unreadable or missing proof is refused.
 async fn authenticate(
     framed: &mut Framed<Stream, LengthDelimitedCodec>,
+    hello: &Hello,
     secret: &[u8],
     timeout: Duration,
 ) -> Result<()> {
     let mut nonce = [0u8; 32];
     getrandom::fill(&mut nonce).map_err(|e| anyhow::anyhow!("no randomness for a nonce: {e}"))?;
+    let challenge = CoordinatorChallenge::new(hello, secret, nonce);
     framed
-        .send(Bytes::from(protocol::wire::encode(&Welcome::Challenge {
-            nonce,
-        })))
+        .send(Bytes::from(protocol::wire::encode(&challenge.welcome())))
         .await?;
-    let proof = match tokio::time::timeout(timeout, framed.next()).await {
-        Ok(Some(Ok(frame))) => protocol::wire::decode::<AuthProof>(&frame).ok(),
-        _ => None,
+    let reason = match tokio::time::timeout(timeout, framed.next()).await {
+        Ok(Some(Ok(frame))) => match challenge.check(&frame) {
+            Ok(()) => return Ok(()),
+            Err(failure) => failure.to_string(),
+        },
+        // The peer hung up rather than prove: it did not accept this coordinator's proof
+        // (a token of another role or farm), or it has no token.
+        Ok(None | Some(Err(_))) => anyhow::bail!(
+            "the {} closed the connection instead of proving its token",
+            hello.role.auth_role()
+        ),
+        Err(_) => format!(
+            "authentication failed: no proof within {} ms",
+            timeout.as_millis()
+        ),
     };
-    if proof.is_some_and(|p| protocol::verify(secret, &nonce, &p)) {
-        return Ok(());
-    }
     let refusal = Welcome::Refused {
-        reason: "authentication failed: the token does not match this coordinator's".into(),
+        reason: reason.clone(),
     };
     let _ = framed
         .send(Bytes::from(protocol::wire::encode(&refusal)))
         .await;
-    anyhow::bail!("authentication failed")
+    anyhow::bail!(reason)
 }
 
 /// Completes the TLS handshake when the coordinator serves TLS (by `deadline`); a peer
@@ -68,7 +78,8 @@ pub(super) async fn secure(
         Ok(Ok(1)) => {
             refuse(
                 Box::new(stream),
-                "this coordinator speaks TLS only: connect with --tls-ca".into(),
+                "this coordinator speaks TLS only: connect with --tls-fingerprint (or --tls-ca)"
+                    .into(),
             )
             .await;
             anyhow::bail!("a plain connection to the TLS port");
@@ -153,8 +164,12 @@ pub(super) async fn handle_connection(
             return Err(e.into());
         }
     };
-    if let Some(secret) = &shared.secret {
-        authenticate(&mut framed, secret, shared.handshake_timeout).await?;
+    let secret = match hello.role.auth_role() {
+        AuthRole::Worker => &shared.worker_secret,
+        AuthRole::Client => &shared.client_secret,
+    };
+    if let Some(secret) = secret {
+        authenticate(&mut framed, &hello, secret, shared.handshake_timeout).await?;
     }
     let accepted = protocol::wire::encode(&Welcome::Accepted {
         version: protocol::PROTOCOL_VERSION,
