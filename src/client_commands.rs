@@ -383,14 +383,23 @@ pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
         println!("no workers");
     } else {
         for w in &workers {
+            let rtt = w.rtt_us.map_or(String::new(), |us| {
+                format!(", rtt {:.1} ms", us as f64 / 1000.0)
+            });
+            let state = w
+                .quarantined
+                .as_ref()
+                .map_or(String::new(), |why| format!(", QUARANTINED: {why}"));
             println!(
-                "worker {} {}: {} threads, {} tiles in flight, {} tiles done, {:.1} M rays/s",
+                "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{state}",
                 w.id,
                 w.name,
                 w.threads,
                 w.tiles_in_flight,
+                w.credit,
                 w.tiles_done,
-                w.rays_per_second / 1e6
+                w.rays_per_second / 1e6,
+                w.build,
             );
         }
     }
@@ -459,6 +468,10 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "rays": w.rays,
         "connected_ms": w.connected_ms,
         "rays_per_second": w.rays_per_second,
+        "build": w.build,
+        "quarantined": w.quarantined,
+        "rtt_us": w.rtt_us,
+        "credit": w.credit,
     })
 }
 

@@ -404,6 +404,17 @@ struct CoordinatorArgs {
     #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = scheduler::Policy::default().heartbeat_timeout,
           value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
     heartbeat_timeout_ms: u64,
+    /// Pixels of every tile result the coordinator renders again to check it, chosen at
+    /// random once the result has arrived (at most one in 128 of the tile's pixels; 0
+    /// turns spot checks off).
+    #[arg(long, env = "TESSERA_SPOT_PIXELS", value_name = "N", default_value_t = coordinator::VerifyConfig::default().spot_pixels,
+          value_parser = clap::value_parser!(u32).range(0..=1024))]
+    spot_pixels: u32,
+    /// Share of the tiles of jobs in sampled verification rendered again by another
+    /// machine and compared byte for byte, from 0 (none) to 1 (all).
+    #[arg(long, env = "TESSERA_AUDIT_SHARE", value_name = "SHARE", default_value_t = coordinator::VerifyConfig::default().audit_share,
+          value_parser = config::parse_share)]
+    audit_share: f64,
     /// Listen on a non-loopback address without both tokens: peers whose role has no
     /// token are accepted without proof.
     #[arg(long, env = "TESSERA_INSECURE")]
@@ -833,6 +844,10 @@ fn run(command: Command) -> Result<()> {
                     policy: scheduler::Policy {
                         heartbeat_timeout: a.heartbeat_timeout_ms,
                         ..Default::default()
+                    },
+                    verify: coordinator::VerifyConfig {
+                        spot_pixels: a.spot_pixels,
+                        audit_share: a.audit_share,
                     },
                     limits: coordinator::server::JobLimits {
                         max_scene_bytes: a.max_scene_bytes as usize,

@@ -21,7 +21,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use protocol::{JobId, JobState, Sampling, SceneHash, Settings};
+use protocol::{JobId, JobState, Sampling, SceneHash, Settings, Verification};
 use rusqlite::{params, Connection, OptionalExtension};
 use sha2::{Digest, Sha256};
 
@@ -44,6 +44,8 @@ pub struct StoredJob {
     pub times: Times,
     /// The SHA-256 of the stored image, once the job is done.
     pub image_sha256: Option<[u8; 32]>,
+    /// How its tile results are checked.
+    pub verification: Verification,
 }
 
 /// A job's wall-clock times, in milliseconds since the Unix epoch.
@@ -111,6 +113,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("tiles", "error_sq_sum", "REAL"),
     ("tiles", "sha256", "BLOB"),
     ("tiles", "done_ms", "INTEGER"),
+    ("jobs", "verification", "TEXT NOT NULL DEFAULT 'sampled'"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -244,8 +247,9 @@ impl Db {
         self.conn
             .execute(
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
-                                   priority, state, error, sampler, target_milli, submitted_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+                                   priority, state, error, sampler, target_milli, submitted_ms,
+                                   verification)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -261,6 +265,7 @@ impl Db {
                     job.settings.sampling.name(),
                     target_milli(job.settings.sampling),
                     job.times.submitted.map(|t| t as i64),
+                    job.verification.name(),
                 ],
             )
             .context("cannot store the job")?;
@@ -352,6 +357,20 @@ impl Db {
         Ok(())
     }
 
+    /// Deletes stored tiles whose results were revoked (their worker was caught
+    /// returning wrong pixels): they are rendered again.
+    pub fn delete_tiles(&mut self, job: JobId, tiles: &[u32]) -> Result<()> {
+        let tx = self.conn.transaction()?;
+        for &tile in tiles {
+            tx.execute(
+                "DELETE FROM tiles WHERE job = ?1 AND tile = ?2",
+                params![job as i64, tile],
+            )?;
+        }
+        tx.commit().context("cannot delete revoked tiles")?;
+        Ok(())
+    }
+
     /// Deletes one stored tile (found damaged at startup).
     pub fn delete_tile(&self, job: JobId, tile: i64) -> Result<()> {
         self.conn
@@ -399,7 +418,7 @@ impl Db {
             "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
                     error, sampler, target_milli, total_rays, total_samples,
                     total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256
+                    image_sha256, verification
              FROM jobs ORDER BY id",
         )?;
         let rows = query
@@ -468,7 +487,14 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
                 .map_err(|_| bad(format!("job {id}: an image checksum of {} bytes", h.len())))?,
         ),
     };
+    let verification: String = r.get(21).map_err(field)?;
+    let verification = match verification.as_str() {
+        "sampled" => Verification::Sampled,
+        "full" => Verification::Full,
+        other => return Err(bad(format!("job {id}: unknown verification {other:?}"))),
+    };
     Ok(StoredJob {
+        verification,
         id: JobId::try_from(id).map_err(|_| bad(format!("job id {id}")))?,
         scene: r.get(1).map_err(field)?,
         hash: hash
@@ -564,6 +590,7 @@ mod tests {
             },
             tile_size: 8,
             priority: 0,
+            verification: Verification::Full,
             state: JobState::Queued,
             error: None,
             totals: None,

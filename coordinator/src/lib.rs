@@ -13,4 +13,4 @@ pub mod server;
 mod store;
 mod tiling;
 
-pub use crate::server::{serve, Config};
+pub use crate::server::{serve, Config, VerifyConfig};

@@ -53,6 +53,10 @@ pub struct Metrics {
     rays_per_second: Gauge<f64, AtomicU64>,
     storage_available: Gauge,
     storage_outages: Counter,
+    results_rejected: Counter,
+    results_confirmed: Counter,
+    workers_quarantined: Counter,
+    workers_refused: Counter,
     /// What the scheduler's counters were at the last scrape.
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
@@ -135,8 +139,37 @@ impl Metrics {
             "Times the data directory stopped being writable",
             storage_outages.clone(),
         );
+        let results_rejected = Counter::default();
+        registry.register(
+            "results_rejected",
+            "Tile results found wrong (by a spot check, or against another machine's) and \
+             thrown away",
+            results_rejected.clone(),
+        );
+        let results_confirmed = Counter::default();
+        registry.register(
+            "results_confirmed",
+            "Tile results accepted because another machine returned the same bytes",
+            results_confirmed.clone(),
+        );
+        let workers_quarantined = Counter::default();
+        registry.register(
+            "workers_quarantined",
+            "Machines quarantined for returning wrong pixels",
+            workers_quarantined.clone(),
+        );
+        let workers_refused = Counter::default();
+        registry.register(
+            "workers_refused",
+            "Workers refused because their canary render differs from the coordinator's",
+            workers_refused.clone(),
+        );
         Metrics {
             registry,
+            results_rejected,
+            results_confirmed,
+            workers_quarantined,
+            workers_refused,
             storage_available,
             storage_outages,
             jobs,
@@ -161,6 +194,26 @@ impl Metrics {
         if let Some(latency) = latency {
             self.tile_latency.observe(latency.as_secs_f64());
         }
+    }
+
+    /// Counts a tile result found wrong.
+    pub fn result_rejected(&self) {
+        self.results_rejected.inc();
+    }
+
+    /// Counts a result confirmed by another machine's identical one.
+    pub fn result_confirmed(&self) {
+        self.results_confirmed.inc();
+    }
+
+    /// Counts a machine quarantined.
+    pub fn worker_quarantined(&self) {
+        self.workers_quarantined.inc();
+    }
+
+    /// Counts a worker refused at its canary.
+    pub fn worker_refused(&self) {
+        self.workers_refused.inc();
     }
 
     /// Counts an outage of storage (it just became unavailable).

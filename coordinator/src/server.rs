@@ -41,7 +41,10 @@ mod handshake;
 mod observer;
 mod persistence;
 mod startup;
+mod verification;
 mod worker_session;
+
+pub use verification::VerifyConfig;
 
 pub use observer::{FarmView, JobView, Observer, Picture, WorkerView};
 
@@ -111,6 +114,8 @@ pub struct Config {
     pub tls: Option<ServerTls>,
     /// Heartbeat timeout, leases, retries and speculation.
     pub policy: Policy,
+    /// Spot checks and audits of the workers' results.
+    pub verify: VerifyConfig,
     pub limits: JobLimits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
@@ -134,6 +139,7 @@ impl Config {
             client_secret: None,
             tls: None,
             policy: Policy::default(),
+            verify: VerifyConfig::default(),
             limits: JobLimits::default(),
             http: None,
             retention: None,
@@ -177,6 +183,8 @@ struct Shared {
     /// Wakes the timer to look at the state machines' deadlines again.
     rearm: tokio::sync::Notify,
     metrics: Metrics,
+    /// The canary's reference render, and the spot checks.
+    verifier: verification::Verifier,
 }
 
 impl Shared {
@@ -258,6 +266,11 @@ impl Server {
             ),
             None => None,
         };
+        let verify = config.verify;
+        let verifier = tokio::task::spawn_blocking(move || verification::Verifier::new(verify))
+            .await
+            .context("rendering the canary stopped")?
+            .map_err(|e| anyhow::anyhow!("this build cannot render its own canary: {e}"))?;
         let store = Arc::new(opened.store);
         let limits = config.lifecycle_limits();
         let db_path = opened.db_path.clone();
@@ -286,6 +299,7 @@ impl Server {
             changes: tokio::sync::watch::channel(0).0,
             rearm: tokio::sync::Notify::new(),
             metrics: Metrics::new(),
+            verifier,
         });
         {
             let mut core = shared.lock();

@@ -194,6 +194,7 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
         tile_size,
         tiles,
         priority: spec.priority,
+        verification: spec.verification,
         request,
     })
 }

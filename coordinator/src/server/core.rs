@@ -6,20 +6,23 @@
 //! per-worker channels, writes to the persistence queue, and encoding an image to the
 //! blocking pool.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::Instant;
 
 use protocol::{
-    ClientResponse, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker, WorkerId,
-    WorkerStatus,
+    ClientResponse, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker,
+    Verification, WorkerId, WorkerStatus,
 };
+use render::Tracer;
 use scheduler::lifecycle::{self, Lifecycle, Phase, Reply};
 use scheduler::{Action, Event, Millis, Scheduler};
 use tokio::sync::{mpsc, oneshot};
 use tracing::{error, info, warn};
+use verify::spot::WrongPixel;
 
 use super::persistence::Write;
+use super::verification::Verifier;
 use super::{unix_ms, Shared};
 use crate::db::{StoredJob, Times, Totals};
 use crate::store::JobMetadata;
@@ -34,6 +37,18 @@ pub struct Core {
     next_worker: WorkerId,
     /// Clients waiting for their submission to be stored.
     submits: HashMap<JobId, oneshot::Sender<ClientResponse>>,
+    /// Results held until another machine confirms them, by job and tile.
+    held: HashMap<(JobId, u32), Held>,
+    /// Machines caught returning wrong pixels, with why: they get no tile again.
+    pub quarantined: BTreeMap<String, String>,
+}
+
+/// A result waiting for another machine's identical one.
+pub struct Held {
+    worker: WorkerId,
+    machine: String,
+    rgb: Vec<u8>,
+    cost: Cost,
 }
 
 /// What the daemon keeps of a job beside its lifecycle.
@@ -64,6 +79,19 @@ pub struct JobRecord {
     pub tiles_per_worker: BTreeMap<String, u64>,
     /// The SHA-256 of the stored image, once stored.
     pub image_sha256: Option<[u8; 32]>,
+    /// How its results are checked.
+    pub verification: Verification,
+    /// Who rendered each accepted tile and what it added to the totals, while the job
+    /// is active: what a quarantine takes back.
+    pub accepted: HashMap<u32, Accepted>,
+}
+
+/// An accepted tile's machine and cost.
+pub struct Accepted {
+    machine: Arc<str>,
+    rays: u64,
+    samples: u64,
+    error_sq_sum: Option<f64>,
 }
 
 /// A connected worker.
@@ -80,13 +108,114 @@ pub struct WorkerRecord {
     pub rays: u64,
     /// When each tile it holds was handed to it, for the latency metric.
     pub assigned: HashMap<(JobId, u32), Instant>,
+    /// Why it gets no tile, once its machine is quarantined.
+    pub quarantined: Option<String>,
+    /// The last round trips measured, in microseconds.
+    rtts: VecDeque<u64>,
+    /// Its mean time per tile on one thread, in microseconds (moving average).
+    tile_us: Option<f64>,
+    /// The pace last given to the scheduler: (rtt, tile time) in ms.
+    pace: Option<(Millis, Millis)>,
+}
+
+/// Round trips kept per worker: the smallest of them is its round-trip time (the
+/// others waited behind results in the socket buffers).
+const RTTS_KEPT: usize = 8;
+
+impl WorkerRecord {
+    pub fn new(
+        name: String,
+        build: String,
+        threads: u32,
+        outbox: mpsc::UnboundedSender<ToWorker>,
+        dropped: Arc<tokio::sync::Notify>,
+    ) -> WorkerRecord {
+        WorkerRecord {
+            name,
+            build,
+            threads,
+            outbox,
+            dropped,
+            connected: Instant::now(),
+            tiles_done: 0,
+            rays: 0,
+            assigned: HashMap::new(),
+            quarantined: None,
+            rtts: VecDeque::new(),
+            tile_us: None,
+            pace: None,
+        }
+    }
+
+    fn rtt_us(&self) -> Option<u64> {
+        self.rtts.iter().copied().min()
+    }
+
+    /// The pace to tell the scheduler, if it changed enough to matter (a fifth).
+    fn new_pace(&mut self) -> Option<(Millis, Millis)> {
+        let rtt = self.rtt_us()?.div_ceil(1000);
+        let tile = (self.tile_us? / 1000.0).ceil().max(1.0) as Millis;
+        let changed = self.pace.is_none_or(|(r, t)| {
+            let off = |a: Millis, b: Millis| a.abs_diff(b) * 5 > b.max(1);
+            off(rtt, r) || off(tile, t)
+        });
+        changed.then(|| {
+            self.pace = Some((rtt, tile));
+            (rtt, tile)
+        })
+    }
 }
 
 /// What a worker reports a tile cost.
+#[derive(Clone, Copy)]
 pub struct Cost {
     pub rays: u64,
     pub samples: u64,
     pub error_sq_sum: f64,
+    /// Its rendering time on one thread.
+    pub render_us: u64,
+}
+
+/// What a result is checked against, gathered under the lock.
+pub struct CheckPlan {
+    hash: SceneHash,
+    settings: Settings,
+    scene: Arc<str>,
+    rect: TileRect,
+}
+
+impl CheckPlan {
+    /// Spot-checks the result (off the lock: it renders).
+    pub fn run(self, verifier: &Verifier, rgb: &[u8]) -> Verdict {
+        match verifier.tracer(self.hash, self.settings, &self.scene) {
+            Ok(tracer) => Verdict {
+                spot: verifier.spot_check(&tracer, self.rect, rgb),
+                tracer: Some(tracer),
+            },
+            // The scene was accepted at submission: it parses. Without a tracer the
+            // result cannot be checked; it is held to a second machine instead.
+            Err(e) => {
+                error!(error = %e, "cannot prepare a spot check");
+                Verdict::unchecked()
+            }
+        }
+    }
+}
+
+/// What the spot check found, and the tracer to settle a disagreement with.
+pub struct Verdict {
+    spot: Result<(), WrongPixel>,
+    tracer: Option<Arc<Tracer>>,
+}
+
+impl Verdict {
+    /// No check was possible (a result for a job no longer active).
+    pub fn unchecked() -> Verdict {
+        Verdict {
+            spot: Ok(()),
+            tracer: None,
+        }
+    }
 }
 
 /// A job admitted by the lifecycle, to be stored.
@@ -97,6 +226,7 @@ pub struct Prepared {
     pub tile_size: u32,
     pub tiles: Vec<TileRect>,
     pub priority: i32,
+    pub verification: Verification,
     pub request: lifecycle::Request,
 }
 
@@ -109,6 +239,8 @@ impl Core {
             workers: BTreeMap::new(),
             next_worker: 1,
             submits: HashMap::new(),
+            held: HashMap::new(),
+            quarantined: BTreeMap::new(),
         }
     }
 
@@ -184,10 +316,13 @@ impl Core {
                 ..Times::default()
             },
             image_sha256: None,
+            verification: prepared.verification,
         };
         self.jobs.insert(
             id,
             JobRecord {
+                verification: prepared.verification,
+                accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
                 hash: prepared.hash,
                 settings: prepared.settings,
@@ -216,6 +351,8 @@ impl Core {
         let tiles = tiling::cut(&stored.settings, stored.tile_size);
         let final_state = stored.state.is_final();
         let mut record = JobRecord {
+            verification: stored.verification,
+            accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
             hash: stored.hash,
             settings: stored.settings,
@@ -271,6 +408,15 @@ impl Core {
             let aa = u64::from(stored.settings.aa);
             let samples = t.samples.unwrap_or(pixels * aa * aa);
             record.add_cost(t.rays, samples, t.error_sq_sum, pixels);
+            record.accepted.insert(
+                t.tile,
+                Accepted {
+                    machine: Arc::from(t.worker.as_str()),
+                    rays: t.rays,
+                    samples,
+                    error_sq_sum: t.error_sq_sum,
+                },
+            );
             *record.tiles_per_worker.entry(t.worker).or_default() += 1;
             done.push(t.tile);
         }
@@ -297,10 +443,14 @@ impl Core {
     }
 
     /// A worker connected: its id.
-    pub fn join(&mut self, sh: &Arc<Shared>, record: WorkerRecord) -> WorkerId {
+    pub fn join(&mut self, sh: &Arc<Shared>, mut record: WorkerRecord) -> WorkerId {
         let id = self.next_worker;
         self.next_worker += 1;
         let (threads, name) = (record.threads, record.name.clone());
+        if let Some(reason) = self.quarantined.get(&name) {
+            warn!(worker = id, %name, "a quarantined machine joined: it gets no tile");
+            record.quarantined = Some(reason.clone());
+        }
         self.workers.insert(id, record);
         self.tiles_event(
             sh,
@@ -336,8 +486,44 @@ impl Core {
         }
     }
 
-    /// A worker's result: checked against the tile it answers, then offered to the
-    /// scheduler, which decides whether it is the first (kept) or a copy (compared).
+    /// What a result for the tile must be checked against; `None` when the job is not
+    /// active (the result will count for nothing). A result of the wrong size is a
+    /// broken worker: an error that closes its connection.
+    pub fn check_plan(
+        &self,
+        job: JobId,
+        tile: u32,
+        bytes: usize,
+    ) -> anyhow::Result<Option<CheckPlan>> {
+        let Some(record) = self.jobs.get(&job) else {
+            return Ok(None);
+        };
+        let Some(&rect) = record.tiles.get(tile as usize) else {
+            anyhow::ensure!(
+                record.image.is_none(),
+                "result for tile {tile} of job {job}, which has no such tile"
+            );
+            return Ok(None);
+        };
+        let expected = rect.width as usize * rect.height as usize * 3;
+        anyhow::ensure!(
+            bytes == expected,
+            "result for tile {tile} of job {job} has {bytes} bytes, expected {expected}"
+        );
+        Ok(record.scene.clone().map(|scene| CheckPlan {
+            hash: record.hash,
+            settings: record.settings,
+            scene,
+            rect,
+        }))
+    }
+
+    /// A worker's result, spot-checked: a wrong one quarantines its machine; a right
+    /// one confirms a held result of another machine (or proves it wrong), is held for
+    /// confirmation itself (every tile of a job in full verification, a random share of
+    /// the others), or counts at once. The scheduler decides whether it is the first
+    /// (kept) or a copy (compared).
+    #[allow(clippy::too_many_arguments)]
     pub fn tile_done(
         &mut self,
         sh: &Arc<Shared>,
@@ -346,35 +532,106 @@ impl Core {
         tile: u32,
         rgb: Vec<u8>,
         cost: Cost,
+        verdict: Verdict,
     ) -> anyhow::Result<()> {
-        if let Some(record) = self.jobs.get(&job) {
-            if let Some(rect) = record.tiles.get(tile as usize) {
-                let expected = rect.width as usize * rect.height as usize * 3;
-                anyhow::ensure!(
-                    rgb.len() == expected,
-                    "result for tile {tile} of job {job} has {} bytes, expected {expected}",
-                    rgb.len()
-                );
-            } else if record.image.is_some() {
-                anyhow::bail!("result for tile {tile} of job {job}, which has no such tile");
+        // Checked again: the job may have changed while the spot check ran.
+        if self.check_plan(job, tile, rgb.len())?.is_none() {
+            let actions = self
+                .tiles
+                .handle(sh.now(), Event::TileDone { worker, job, tile });
+            self.apply_tiles(sh, actions);
+            return Ok(());
+        }
+        let Some(machine) = self.workers.get(&worker).map(|w| w.name.clone()) else {
+            return Ok(());
+        };
+        if let Err(wrong) = verdict.spot {
+            let reason = format!("returned wrong pixels for tile {tile} of job {job}: {wrong}");
+            self.quarantine(sh, &machine, reason);
+            return Ok(());
+        }
+        if let Some(w) = self.workers.get_mut(&worker) {
+            let us = cost.render_us as f64;
+            w.tile_us = Some(w.tile_us.map_or(us, |m| 0.8 * m + 0.2 * us));
+            if let Some((rtt, tile)) = w.new_pace() {
+                self.tiles_event(sh, Event::WorkerPace { worker, rtt, tile });
             }
         }
-        let actions = self
-            .tiles
-            .handle(sh.now(), Event::TileDone { worker, job, tile });
+        let held_from = self
+            .held
+            .get(&(job, tile))
+            .filter(|h| h.machine != machine)
+            .map(|h| (h.machine.clone(), h.rgb == rgb));
+        let event = match held_from {
+            Some((_, true)) => Event::TileDone { worker, job, tile },
+            Some((other, false)) => {
+                // At least one of the two is wrong: the pixels where they differ say
+                // which (a few pixels rendered here, only when a liar is about).
+                let held = &self.held[&(job, tile)];
+                let rect = self.jobs[&job].tiles[tile as usize];
+                let verdict = match &verdict.tracer {
+                    Some(tracer) => verify::spot::arbitrate(tracer, rect, &held.rgb, &rgb),
+                    None => verify::spot::Arbitration {
+                        first: None,
+                        second: None,
+                    },
+                };
+                if let Some(wrong) = verdict.first {
+                    let reason = format!(
+                        "returned wrong pixels for tile {tile} of job {job}: {wrong} \
+                         (found comparing its result with {machine}'s)"
+                    );
+                    self.quarantine(sh, &other, reason);
+                }
+                if let Some(wrong) = verdict.second {
+                    let reason = format!(
+                        "returned wrong pixels for tile {tile} of job {job}: {wrong} \
+                         (found comparing its result with {other}'s)"
+                    );
+                    self.quarantine(sh, &machine, reason);
+                    return Ok(());
+                }
+                if verdict.first.is_none() {
+                    // Neither could be shown wrong (no tracer): keep neither.
+                    self.quarantine(
+                        sh,
+                        &machine,
+                        format!("its result for tile {tile} of job {job} differs from {other}'s"),
+                    );
+                    return Ok(());
+                }
+                self.fresh_result(sh, worker, job, tile)
+            }
+            None => self.fresh_result(sh, worker, job, tile),
+        };
+        let actions = self.tiles.handle(sh.now(), event);
         let latency = self
             .workers
             .get_mut(&worker)
             .and_then(|w| w.assigned.remove(&(job, tile)))
             .map(|at| at.elapsed());
-        // A result is either accepted (its pixels move on to the database) or a copy.
+        // A result is accepted (its pixels move on to the database), held, or a copy.
         let mut rgb = Some(rgb);
         for action in &actions {
             match *action {
                 Action::AcceptTile { job, tile } => {
                     sh.metrics.tile_accepted(cost.rays, latency);
+                    if self.held.remove(&(job, tile)).is_some() {
+                        sh.metrics.result_confirmed();
+                    }
                     if let Some(rgb) = rgb.take() {
-                        self.accept_tile(sh, worker, job, tile, rgb, &cost);
+                        self.accept_tile(sh, worker, &machine, job, tile, rgb, &cost);
+                    }
+                }
+                Action::HoldResult { worker, job, tile } => {
+                    if let Some(rgb) = rgb.take() {
+                        let held = Held {
+                            worker,
+                            machine: machine.clone(),
+                            rgb,
+                            cost,
+                        };
+                        self.held.insert((job, tile), held);
                     }
                 }
                 Action::DuplicateResult { job, tile } => {
@@ -387,6 +644,110 @@ impl Core {
         }
         self.apply_tiles(sh, actions);
         Ok(())
+    }
+
+    /// A right result with nothing held to compare it with: held for confirmation
+    /// when the job wants every tile confirmed, or when it is drawn for an audit and
+    /// another machine could confirm it; otherwise it counts at once.
+    fn fresh_result(&self, sh: &Shared, worker: WorkerId, job: JobId, tile: u32) -> Event {
+        let full = self
+            .jobs
+            .get(&job)
+            .is_some_and(|r| r.verification == Verification::Full);
+        let name = self.workers.get(&worker).map(|w| w.name.as_str());
+        let confirmable = || {
+            self.workers
+                .values()
+                .any(|w| Some(w.name.as_str()) != name && w.quarantined.is_none())
+        };
+        if full || (sh.verifier.audit() && confirmable()) {
+            Event::TileToConfirm {
+                worker,
+                job,
+                tile,
+                required: full,
+            }
+        } else {
+            Event::TileDone { worker, job, tile }
+        }
+    }
+
+    /// The machine returned wrong pixels: it gets no tile again, its held results are
+    /// dropped, and the tiles it rendered in active jobs are rendered again.
+    pub fn quarantine(&mut self, sh: &Arc<Shared>, machine: &str, reason: String) {
+        sh.metrics.result_rejected();
+        let first = !self.quarantined.contains_key(machine);
+        error!(machine, reason = %reason, "quarantined");
+        if first {
+            sh.metrics.worker_quarantined();
+            self.quarantined.insert(machine.to_string(), reason.clone());
+        }
+        for w in self.workers.values_mut().filter(|w| w.name == machine) {
+            w.quarantined.get_or_insert_with(|| reason.clone());
+        }
+        self.held.retain(|_, h| h.machine != machine);
+        let mut revoke = Vec::new();
+        for (&job, record) in &mut self.jobs {
+            let tiles: Vec<u32> = record
+                .accepted
+                .iter()
+                .filter(|(_, a)| &*a.machine == machine)
+                .map(|(&t, _)| t)
+                .collect();
+            if tiles.is_empty() {
+                continue;
+            }
+            if !self.tiles.is_active(job) {
+                // Too late to take back: the image is stored or being stored.
+                error!(
+                    job,
+                    machine,
+                    tiles = tiles.len(),
+                    "a finished job holds tiles of a quarantined machine: submit it again"
+                );
+                continue;
+            }
+            for &tile in &tiles {
+                if let Some(a) = record.accepted.remove(&tile) {
+                    record.remove_cost(&a, rect_pixels(record.tiles[tile as usize]));
+                }
+                revoke.push((job, tile));
+            }
+            record.tiles_recorded = record.tiles_recorded.saturating_sub(tiles.len() as u32);
+            if let Some(count) = record.tiles_per_worker.get_mut(machine) {
+                *count = count.saturating_sub(tiles.len() as u64);
+            }
+            warn!(
+                job,
+                machine,
+                tiles = tiles.len(),
+                "rendering again the tiles of a quarantined machine"
+            );
+            sh.persistence.write(Write::ForgetTiles { job, tiles });
+        }
+        self.tiles_event(
+            sh,
+            Event::Quarantine {
+                machine: machine.to_string(),
+                revoke,
+            },
+        );
+    }
+
+    /// A pong: the round trip to the worker, if the token was ours.
+    pub fn pong(&mut self, sh: &Arc<Shared>, worker: WorkerId, rtt_us: Option<u64>) {
+        let mut pace = None;
+        if let (Some(w), Some(rtt)) = (self.workers.get_mut(&worker), rtt_us) {
+            if w.rtts.len() == RTTS_KEPT {
+                w.rtts.pop_front();
+            }
+            w.rtts.push_back(rtt);
+            pace = w.new_pace();
+        }
+        self.tiles_event(sh, Event::Heartbeat { worker });
+        if let Some((rtt, tile)) = pace {
+            self.tiles_event(sh, Event::WorkerPace { worker, rtt, tile });
+        }
     }
 
     /// A worker could not render a tile.
@@ -438,20 +799,21 @@ impl Core {
         }
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn accept_tile(
         &mut self,
         sh: &Shared,
         worker: WorkerId,
+        machine: &str,
         job: JobId,
         tile: u32,
         rgb: Vec<u8>,
         cost: &Cost,
     ) {
-        let name = self.workers.get_mut(&worker).map(|w| {
+        if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
             w.rays += cost.rays;
-            w.name.clone()
-        });
+        }
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
@@ -465,7 +827,17 @@ impl Core {
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
             .then_some(cost.error_sq_sum);
         record.add_cost(cost.rays, cost.samples, error_sq_sum, rect_pixels(rect));
-        let name = name.unwrap_or_default();
+        let name = machine.to_string();
+        let accepted = Accepted {
+            machine: Arc::from(machine),
+            rays: cost.rays,
+            samples: cost.samples,
+            error_sq_sum,
+        };
+        if let Some(earlier) = record.accepted.insert(tile, accepted) {
+            // Accepted before and since revoked or re-rendered: counted once.
+            record.remove_cost(&earlier, rect_pixels(rect));
+        }
         *record.tiles_per_worker.entry(name.clone()).or_default() += 1;
         sh.persistence.write(Write::Tile(crate::db::TileWrite {
             job,
@@ -505,7 +877,24 @@ impl Core {
                 Action::ForgetScene { worker, scene } => {
                     self.send(worker, ToWorker::ForgetScene { hash: scene })
                 }
-                Action::AcceptTile { .. } | Action::DuplicateResult { .. } => {}
+                Action::AcceptTile { .. }
+                | Action::DuplicateResult { .. }
+                | Action::HoldResult { .. } => {}
+                Action::AcceptHeld { job, tile } => {
+                    if let Some(held) = self.held.remove(&(job, tile)) {
+                        info!(job, tile, machine = %held.machine, "no other machine may confirm the audited tile: accepted as checked");
+                        sh.metrics.tile_accepted(held.cost.rays, None);
+                        self.accept_tile(
+                            sh,
+                            held.worker,
+                            &held.machine,
+                            job,
+                            tile,
+                            held.rgb,
+                            &held.cost,
+                        );
+                    }
+                }
                 Action::DropWorker { worker } => {
                     if let Some(w) = self.workers.remove(&worker) {
                         warn!(worker, name = %w.name, "no heartbeat in time: dropping the worker");
@@ -513,9 +902,11 @@ impl Core {
                     }
                 }
                 Action::JobDone { job } => {
+                    self.held.retain(|(j, _), _| *j != job);
                     self.life_event(sh, lifecycle::Event::TilesComplete { job });
                 }
                 Action::JobFailed { job, message } => {
+                    self.held.retain(|(j, _), _| *j != job);
                     warn!(job, error = %message, "job failed");
                     self.life_event(sh, lifecycle::Event::TilesFailed { job, message });
                 }
@@ -587,7 +978,10 @@ impl Core {
                     }
                 }
                 A::StoreImage { job } => self.store_image(sh, job),
-                A::CancelTiles { job } => self.tiles_event(sh, Event::CancelJob { job }),
+                A::CancelTiles { job } => {
+                    self.held.retain(|(j, _), _| *j != job);
+                    self.tiles_event(sh, Event::CancelJob { job })
+                }
                 A::RecordEnd { job, state, error } => self.record_end(sh, job, state, error),
                 A::DeleteStored { job } => {
                     let shared = Arc::clone(sh);
@@ -694,6 +1088,7 @@ impl Core {
         record.image = None;
         record.scene = None;
         record.tiles = Vec::new();
+        record.accepted = HashMap::new();
         let ended = *record.times.ended.get_or_insert_with(unix_ms);
         let rays = record.totals.rays;
         match state {
@@ -733,7 +1128,7 @@ impl Core {
     pub fn worker_statuses(&self) -> Vec<WorkerStatus> {
         self.workers
             .iter()
-            .map(|(&id, w)| w.status(id, self.tiles.held_by(id)))
+            .map(|(&id, w)| w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id)))
             .collect()
     }
 }
@@ -754,6 +1149,17 @@ fn rect_pixels(r: TileRect) -> u64 {
 impl JobRecord {
     /// Counts a tile of `pixels` pixels that took `samples` samples, with its sum of
     /// squared error estimates if known.
+    /// Takes back what an accepted tile added to the totals.
+    fn remove_cost(&mut self, a: &Accepted, pixels: u64) {
+        let t = &mut self.totals;
+        t.rays = t.rays.saturating_sub(a.rays);
+        t.samples = t.samples.saturating_sub(a.samples);
+        if let Some(e) = a.error_sq_sum {
+            t.error_sq_sum -= e;
+            t.error_pixels = t.error_pixels.saturating_sub(pixels);
+        }
+    }
+
     fn add_cost(&mut self, rays: u64, samples: u64, error_sq_sum: Option<f64>, pixels: u64) {
         let t = &mut self.totals;
         t.rays = t.rays.saturating_add(rays);
@@ -852,7 +1258,7 @@ impl JobRecord {
 }
 
 impl WorkerRecord {
-    fn status(&self, id: WorkerId, in_flight: usize) -> WorkerStatus {
+    fn status(&self, id: WorkerId, in_flight: usize, credit: usize) -> WorkerStatus {
         let connected = self.connected.elapsed();
         WorkerStatus {
             id,
@@ -864,9 +1270,9 @@ impl WorkerRecord {
             connected_ms: connected.as_millis() as u64,
             rays_per_second: self.rays as f64 / connected.as_secs_f64().max(1e-9),
             build: self.build.clone(),
-            quarantined: None,
-            rtt_us: None,
-            credit: 2 * self.threads.max(1),
+            quarantined: self.quarantined.clone(),
+            rtt_us: self.rtt_us(),
+            credit: credit as u32,
         }
     }
 }

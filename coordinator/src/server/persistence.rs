@@ -58,6 +58,11 @@ pub enum Write {
         job: JobId,
         at_unix_ms: u64,
     },
+    /// Deletes tiles whose results were revoked: they are rendered again.
+    ForgetTiles {
+        job: JobId,
+        tiles: Vec<u32>,
+    },
     /// Stores the image files; `then` gets the image's checksum.
     Image {
         meta: Box<JobMetadata>,
@@ -298,6 +303,10 @@ impl Writer {
             Step::One(Write::Tile(t)) => self.carry_out(Step::Tiles(vec![t])),
             Step::One(Write::Started { job, at_unix_ms }) => {
                 self.until_done(|db| db.set_started(job, at_unix_ms));
+                false
+            }
+            Step::One(Write::ForgetTiles { job, tiles }) => {
+                self.until_done(|db| db.delete_tiles(job, &tiles));
                 false
             }
             Step::One(Write::Image {

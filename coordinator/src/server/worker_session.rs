@@ -1,9 +1,11 @@
-//! A worker's connection: a writer task sends what the scheduler hands the worker (and
-//! a heartbeat every second); the reading loop turns the worker's messages into
+//! A worker's connection: first the canary (a worker whose renderer does not give the
+//! coordinator's bytes is refused), then a writer task sends what the scheduler hands
+//! the worker (and a ping every second, which times the round trip); the reading loop
+//! spot-checks each result off the lock and turns the worker's messages into
 //! scheduler events. Neither ever waits on storage.
 
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
@@ -11,50 +13,53 @@ use protocol::{FromWorker, MessageCodec, ToWorker};
 use scheduler::Event;
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
-use tracing::info;
+use tracing::{error, info};
 use transport::Stream;
 
-use super::core::{Cost, WorkerRecord};
+use super::core::{Cost, Verdict, WorkerRecord};
 use super::Shared;
 
 type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
 
-/// How often workers are told the coordinator is alive (they give up on a silent
-/// coordinator after `worker::COORDINATOR_SILENCE`).
-const HEARTBEAT_TO_WORKERS: Duration = Duration::from_secs(1);
+/// How often workers are pinged: the ping tells them the coordinator is alive (they
+/// give up on a silent coordinator after `worker::COORDINATOR_SILENCE`) and times the
+/// round trip.
+const PING_EVERY: Duration = Duration::from_secs(1);
+
+/// How long a worker may take to render the canary (a few milliseconds of work).
+const CANARY_TIMEOUT: Duration = Duration::from_secs(60);
 
 pub(super) async fn serve(
     shared: Arc<Shared>,
-    conn: WorkerConn,
+    mut conn: WorkerConn,
     name: String,
     threads: u32,
     build: String,
 ) -> Result<()> {
+    if let Err(reason) = canary(&shared, &mut conn, &build).await {
+        error!(%name, %build, %reason, "worker refused");
+        shared.metrics.worker_refused();
+        let _ = conn.send(ToWorker::Refuse { reason }).await;
+        return Ok(());
+    }
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
     let dropped = Arc::new(tokio::sync::Notify::new());
-    let record = WorkerRecord {
-        name: name.clone(),
-        build,
-        threads,
-        outbox,
-        dropped: Arc::clone(&dropped),
-        connected: Instant::now(),
-        tiles_done: 0,
-        rays: 0,
-        assigned: std::collections::HashMap::new(),
-    };
+    let record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
     let worker = shared.lock().join(&shared, record);
     info!(worker, %name, threads, "worker joined");
+    let clock = shared.clock;
     let writer = tokio::spawn(async move {
-        let mut heartbeat = tokio::time::interval(HEARTBEAT_TO_WORKERS);
+        let mut ping = tokio::time::interval(PING_EVERY);
         loop {
             let message = tokio::select! {
                 message = inbox.recv() => match message {
                     Some(message) => message,
                     None => break,
                 },
-                _ = heartbeat.tick() => ToWorker::Heartbeat,
+                _ = ping.tick() => ToWorker::Ping {
+                    token: clock.elapsed().as_micros() as u64,
+                },
             };
             // Everything queued goes out in one write: one syscall for a burst of tiles.
             let mut batch = sink.feed(message).await;
@@ -75,7 +80,7 @@ pub(super) async fn serve(
             let Some(message) = message else {
                 return Ok(());
             };
-            on_message(&shared, worker, message?)?;
+            on_message(&shared, worker, message?).await?;
         }
     }
     .await;
@@ -89,14 +94,68 @@ pub(super) async fn serve(
     result
 }
 
-fn on_message(sh: &Arc<Shared>, worker: protocol::WorkerId, message: FromWorker) -> Result<()> {
+/// Has the worker render the canary and compares its bytes with the coordinator's.
+/// `Err` is the one-line reason the worker is refused.
+async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(), String> {
+    let reference = &shared.verifier.canary;
+    let ours = render::build_identity();
+    conn.send(ToWorker::Canary {
+        scene: verify::canary::SCENE.to_string(),
+        renders: reference.renders.clone(),
+    })
+    .await
+    .map_err(|e| format!("cannot send the canary: {e}"))?;
+    let answer = tokio::time::timeout(CANARY_TIMEOUT, async {
+        loop {
+            match conn.next().await {
+                Some(Ok(FromWorker::CanaryDone { images })) => return Ok(images),
+                Some(Ok(FromWorker::Heartbeat | FromWorker::Pong { .. })) => {}
+                Some(Ok(other)) => {
+                    return Err(format!(
+                        "the worker answered the canary with {}",
+                        message_name(&other)
+                    ))
+                }
+                Some(Err(e)) => return Err(format!("unreadable canary answer: {e}")),
+                None => return Err("the worker closed the connection during the canary".into()),
+            }
+        }
+    })
+    .await
+    .map_err(|_| format!("no canary render within {} s", CANARY_TIMEOUT.as_secs()))??;
+    let images =
+        answer.map_err(|e| format!("the worker (build {build}) cannot render the canary: {e}"))?;
+    verify::canary::compare(&reference.renders, &reference.images, &images).map_err(|e| {
+        format!(
+            "the worker's renderer (build {build}) renders the canary differently from \
+             this coordinator's (build {ours}): {e}"
+        )
+    })
+}
+
+fn message_name(message: &FromWorker) -> &'static str {
+    match message {
+        FromWorker::TileDone { .. } => "TileDone",
+        FromWorker::TileFailed { .. } => "TileFailed",
+        FromWorker::Draining => "Draining",
+        FromWorker::Heartbeat => "Heartbeat",
+        FromWorker::CanaryDone { .. } => "CanaryDone",
+        FromWorker::Pong { .. } => "Pong",
+    }
+}
+
+async fn on_message(
+    sh: &Arc<Shared>,
+    worker: protocol::WorkerId,
+    message: FromWorker,
+) -> Result<()> {
     match message {
         FromWorker::TileDone {
             job,
             tile,
             rgb,
             rays,
-            render_us: _,
+            render_us,
             samples,
             error_sq_sum,
         } => {
@@ -104,8 +163,24 @@ fn on_message(sh: &Arc<Shared>, worker: protocol::WorkerId, message: FromWorker)
                 rays,
                 samples,
                 error_sq_sum,
+                render_us,
             };
-            sh.lock().tile_done(sh, worker, job, tile, rgb, cost)?;
+            // What to check it against, under the lock; the check itself off it.
+            let plan = sh.lock().check_plan(job, tile, rgb.len())?;
+            let (rgb, verdict) = match plan {
+                None => (rgb, None),
+                Some(plan) => {
+                    let verifier = Arc::clone(sh);
+                    tokio::task::spawn_blocking(move || {
+                        let verdict = plan.run(&verifier.verifier, &rgb);
+                        (rgb, Some(verdict))
+                    })
+                    .await?
+                }
+            };
+            let verdict = verdict.unwrap_or_else(Verdict::unchecked);
+            sh.lock()
+                .tile_done(sh, worker, job, tile, rgb, cost, verdict)?;
         }
         FromWorker::TileFailed { job, tile, message } => {
             sh.lock().tile_failed(sh, worker, job, tile, message);
@@ -114,10 +189,17 @@ fn on_message(sh: &Arc<Shared>, worker: protocol::WorkerId, message: FromWorker)
             info!(worker, "worker draining");
             sh.lock().tiles_event(sh, Event::WorkerDraining { worker });
         }
-        FromWorker::CanaryDone { .. } | FromWorker::Pong { .. } => {
+        FromWorker::Heartbeat => {
             sh.lock().tiles_event(sh, Event::Heartbeat { worker });
         }
-        FromWorker::Heartbeat => {
+        FromWorker::Pong { token } => {
+            let now = sh.clock.elapsed().as_micros() as u64;
+            // A token from the future or from long ago is not ours: only a heartbeat.
+            let rtt = now.checked_sub(token).filter(|us| *us < 60_000_000);
+            sh.lock().pong(sh, worker, rtt);
+        }
+        FromWorker::CanaryDone { .. } => {
+            // Only ever asked for before the worker joined.
             sh.lock().tiles_event(sh, Event::Heartbeat { worker });
         }
     }
