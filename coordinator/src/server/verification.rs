@@ -25,7 +25,7 @@ pub struct VerifyConfig {
 impl Default for VerifyConfig {
     fn default() -> Self {
         VerifyConfig {
-            spot_pixels: 8,
+            spot_pixels: 16,
             audit_share: 0.01,
         }
     }
