@@ -636,7 +636,8 @@ impl Core {
                 }
                 Action::DuplicateResult { job, tile } => {
                     if let Some(rgb) = &rgb {
-                        self.check_duplicate(worker, job, tile, rgb);
+                        let tracer = verdict.tracer.as_deref();
+                        self.settle_duplicate(sh, &machine, job, tile, rgb, tracer);
                     }
                 }
                 _ => {}
@@ -775,27 +776,61 @@ impl Core {
         );
     }
 
-    /// A straggler's second copy of a tile must equal the accepted one: a difference
-    /// would break determinism, so it is logged as an error.
-    fn check_duplicate(&self, worker: WorkerId, job: JobId, tile: u32, rgb: &[u8]) {
+    /// A straggler's second copy of a tile must equal the accepted one. If it does
+    /// not, one of them is wrong: the pixels where they differ, rendered here, say
+    /// which, and that machine is quarantined (which takes the accepted tile back if
+    /// it was the wrong one and the job is still rendering).
+    fn settle_duplicate(
+        &mut self,
+        sh: &Arc<Shared>,
+        machine: &str,
+        job: JobId,
+        tile: u32,
+        rgb: &[u8],
+        tracer: Option<&Tracer>,
+    ) {
         let Some(record) = self.jobs.get(&job) else {
             return;
         };
-        let (Some(image), Some(rect)) = (&record.image, record.tiles.get(tile as usize)) else {
+        let (Some(image), Some(&rect)) = (&record.image, record.tiles.get(tile as usize)) else {
             return;
         };
         let row = rect.width as usize * 3;
-        let same = rgb.chunks_exact(row).enumerate().all(|(r, src)| {
-            let start = ((rect.y as usize + r) * image.width as usize + rect.x as usize) * 3;
-            image.rgb.get(start..start + row) == Some(src)
-        });
-        if same {
+        let accepted: Vec<u8> = (0..rect.height as usize)
+            .flat_map(|r| {
+                let start = ((rect.y as usize + r) * image.width as usize + rect.x as usize) * 3;
+                image.rgb[start..start + row].iter().copied()
+            })
+            .collect();
+        if accepted == rgb {
             info!(
-                worker,
+                machine,
                 job, tile, "duplicate result equals the accepted one"
             );
-        } else {
-            error!(worker, job, tile, "duplicate result differs from the accepted one: rendering is not deterministic on this worker");
+            return;
+        }
+        let first = record.accepted.get(&tile).map(|a| a.machine.to_string());
+        let Some(tracer) = tracer else {
+            error!(
+                machine,
+                job, tile, "duplicate result differs from the accepted one"
+            );
+            return;
+        };
+        let verdict = verify::spot::arbitrate(tracer, rect, &accepted, rgb);
+        if let (Some(wrong), Some(first)) = (verdict.first, first) {
+            let reason = format!(
+                "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
+                 its result with {machine}'s copy)"
+            );
+            self.quarantine(sh, &first, reason);
+        }
+        if let Some(wrong) = verdict.second {
+            let reason = format!(
+                "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
+                 its copy with the accepted result)"
+            );
+            self.quarantine(sh, machine, reason);
         }
     }
 
