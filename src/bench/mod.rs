@@ -1,9 +1,12 @@
 //! `tessera bench`: the measurements behind docs/performance.md, as one reproducible
 //! command. Each suite writes Markdown, CSV where it helps, and PNG charts.
 
+mod compression;
 mod error_table;
 mod farm;
+mod latency;
 mod measure;
+mod relay;
 mod scaling;
 mod scenes;
 
@@ -19,7 +22,11 @@ pub enum Suite {
     Error,
     /// Time against pixels and objects, farm speed-up, pull against static split.
     Scaling,
-    /// Both.
+    /// The farm through 0 to 200 ms of round-trip time (workers behind a delaying
+    /// relay), the bytes on the wire per job, and compressing tile results. About 12
+    /// minutes, so not part of `all`.
+    Latency,
+    /// Error and scaling.
     All,
 }
 
@@ -48,6 +55,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if matches!(opts.suite, Suite::Scaling | Suite::All) {
         run_scaling(opts).await?;
+    }
+    if opts.suite == Suite::Latency {
+        latency::run(opts, &opts.out).await?;
     }
     eprintln!("results in {}", opts.out.display());
     Ok(())
