@@ -526,15 +526,16 @@ struct PeerArgs {
     #[arg(long, env = "TESSERA_TLS_CA", value_name = "FILE")]
     tls_ca: Option<PathBuf>,
     /// Speak TLS, trusting exactly the coordinator certificate with this SHA-256
-    /// fingerprint (64 hex digits, as the coordinator prints at startup).
+    /// fingerprint (64 hex digits, as the coordinator prints at startup; an empty
+    /// value counts as none, for container environments).
     #[arg(
         long,
         env = "TESSERA_TLS_FINGERPRINT",
         value_name = "SHA256HEX",
         conflicts_with = "tls_ca",
-        value_parser = transport::parse_fingerprint
+        value_parser = parse_pin
     )]
-    tls_fingerprint: Option<[u8; 32]>,
+    tls_fingerprint: Option<Pin>,
     /// The name the coordinator's certificate must carry [default: the host of
     /// --coordinator].
     #[arg(
@@ -553,8 +554,8 @@ impl PeerArgs {
                 ca,
                 self.tls_server_name.as_deref(),
             )?),
-            (None, Some(pin)) => Some(ClientTls::pinned(pin)?),
-            (None, None) => None,
+            (None, Some(Pin(Some(pin)))) => Some(ClientTls::pinned(pin)?),
+            (None, _) => None,
         };
         Ok(Endpoint {
             address: self.coordinator.clone(),
@@ -562,6 +563,17 @@ impl PeerArgs {
             secret: self.secret.load()?,
         })
     }
+}
+
+/// A `--tls-fingerprint`: none when given empty.
+#[derive(Clone, Copy)]
+struct Pin(Option<[u8; 32]>);
+
+fn parse_pin(text: &str) -> Result<Pin, String> {
+    if text.trim().is_empty() {
+        return Ok(Pin(None));
+    }
+    transport::parse_fingerprint(text).map(|pin| Pin(Some(pin)))
 }
 
 /// The secret of a worker or a client: the worker token or the client token of its
