@@ -268,18 +268,28 @@ fn render_settings(s: &Settings) -> RenderSettings {
     }
 }
 
+/// What a submission chooses besides its scene.
+pub struct JobChoices {
+    pub overrides: Overrides,
+    pub priority: i32,
+    pub verification: Verification,
+}
+
 /// `tessera submit`.
 pub async fn run_submit(
     coordinator: &Endpoint,
     scene: &Path,
-    overrides: Overrides,
-    priority: i32,
-    verification: Verification,
+    job: JobChoices,
     wait_for_it: bool,
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
     let mut session = Session::connect(coordinator).await?;
+    let JobChoices {
+        overrides,
+        priority,
+        verification,
+    } = job;
     let job = submit(session.client(), scene, overrides, priority, verification).await?;
     if !wait_for_it {
         if json_out {

@@ -293,6 +293,14 @@ pub fn describe(
     out
 }
 
+/// A share between 0 and 1, as `--audit-share` takes it.
+pub fn parse_share(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(share) if (0.0..=1.0).contains(&share) => Ok(share),
+        _ => Err(format!("must be a number from 0 to 1, got {text:?}")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -329,13 +337,5 @@ mod tests {
         assert_eq!(error("36501d"), "too long: at most 36500d");
         assert_eq!(error("99999999999999999999s"), "too long: at most 36500d");
         assert_eq!(error("999999999999999999d"), "too long: at most 36500d");
-    }
-}
-
-/// A share between 0 and 1, as `--audit-share` takes it.
-pub fn parse_share(text: &str) -> Result<f64, String> {
-    match text.trim().parse::<f64>() {
-        Ok(share) if (0.0..=1.0).contains(&share) => Ok(share),
-        _ => Err(format!("must be a number from 0 to 1, got {text:?}")),
     }
 }

@@ -74,6 +74,12 @@ impl LocalFarm {
 
     /// Starts the coordinator, waits for its address, then starts the workers.
     pub fn start(workers: &[WorkerSpec]) -> Result<LocalFarm> {
+        Self::start_with(workers, &[])
+    }
+
+    /// [`LocalFarm::start`] with more arguments for the coordinator (benchmarks of its
+    /// settings).
+    pub fn start_with(workers: &[WorkerSpec], coordinator_args: &[&str]) -> Result<LocalFarm> {
         let exe = std::env::current_exe().context("cannot find the tessera executable")?;
         let dir = tempfile::Builder::new()
             .prefix("tessera-up-")
@@ -85,18 +91,15 @@ impl LocalFarm {
             dir,
         };
         let data = farm.dir.path().join("data");
-        let mut coordinator = farm.spawn(
-            &exe,
-            "coordinator",
-            &[
-                "coordinator".as_ref(),
-                "--listen".as_ref(),
-                "127.0.0.1:0".as_ref(),
-                "--data".as_ref(),
-                data.as_os_str(),
-            ],
-            true,
-        )?;
+        let mut args: Vec<&std::ffi::OsStr> = vec![
+            "coordinator".as_ref(),
+            "--listen".as_ref(),
+            "127.0.0.1:0".as_ref(),
+            "--data".as_ref(),
+            data.as_os_str(),
+        ];
+        args.extend(coordinator_args.iter().map(std::ffi::OsStr::new));
+        let mut coordinator = farm.spawn(&exe, "coordinator", &args, true)?;
         let stdout = coordinator.stdout.take().expect("stdout is piped");
         let stdin = coordinator.stdin.take();
         farm.children
@@ -137,6 +140,12 @@ impl LocalFarm {
                 .push((child, stdin));
         }
         Ok(farm)
+    }
+
+    /// The process ids: the coordinator's first, then the workers'.
+    pub fn pids(&self) -> Vec<u32> {
+        let children = self.children.lock().expect("children lock");
+        children.iter().map(|(child, _)| child.id()).collect()
     }
 
     /// The coordinator's address.

@@ -616,11 +616,14 @@ const ONE_TOKEN_RETIRED: &str = "a coordinator takes two tokens, one for workers
     --worker-token-file FILE and --client-token-file FILE (TESSERA_WORKER_TOKEN_FILE, \
     TESSERA_CLIENT_TOKEN_FILE), two different secrets, e.g. each from `openssl rand -hex 32`";
 
+/// The workers' secret and the clients' secret, each if set.
+type RoleSecrets = (Option<Vec<u8>>, Option<Vec<u8>>);
+
 impl CoordinatorSecretArgs {
     /// The worker secret and the client secret. One shared token (`--token-file`,
     /// `TESSERA_TOKEN_FILE`, `TESSERA_TOKEN`) is refused rather than silently applied to
     /// both roles or ignored, and so are two equal secrets.
-    fn load(&self) -> Result<(Option<Vec<u8>>, Option<Vec<u8>>)> {
+    fn load(&self) -> Result<RoleSecrets> {
         if self.token_file.is_some() {
             bail!("--token-file: {ONE_TOKEN_RETIRED}");
         }
@@ -889,9 +892,11 @@ fn run(command: Command) -> Result<()> {
                 client_commands::run_submit(
                     &a.common.target()?,
                     &a.scene,
-                    a.image.overrides(a.tile)?,
-                    a.priority,
-                    a.verify.into(),
+                    client_commands::JobChoices {
+                        overrides: a.image.overrides(a.tile)?,
+                        priority: a.priority,
+                        verification: a.verify.into(),
+                    },
                     a.wait,
                     a.output,
                     a.common.json,

@@ -267,7 +267,7 @@ fn job_spec(job: JobSize) -> Result<JobSpec> {
 
 /// Submits the job and follows it to its end: wall time seen by the client, and the
 /// final status.
-async fn run_job(address: &str, spec: JobSpec) -> Result<(f64, JobStatus)> {
+pub(super) async fn run_job(address: &str, spec: JobSpec) -> Result<(f64, JobStatus)> {
     let mut client = Client::connect(&Endpoint::plain(address.to_string())).await?;
     let started = Instant::now();
     let job = client.submit(spec).await?;
@@ -624,7 +624,7 @@ fn latency_csv(plan: &Plan, runs: &[Run]) -> String {
 }
 
 /// The processor's name and core count, from /proc/cpuinfo.
-fn cpu_model() -> String {
+pub(super) fn cpu_model() -> String {
     let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
     let name = info
         .lines()

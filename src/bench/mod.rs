@@ -9,6 +9,7 @@ mod measure;
 mod relay;
 mod scaling;
 mod scenes;
+mod verification;
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -26,6 +27,10 @@ pub enum Suite {
     /// relay), the bytes on the wire per job, and compressing tile results. About 12
     /// minutes, so not part of `all`.
     Latency,
+    /// What verifying the workers' results costs: checks off, sampled and full
+    /// verification on the 1920 × 1080 aa 2 seed job. About 2 minutes, so not part
+    /// of `all`.
+    Verification,
     /// Error and scaling.
     All,
 }
@@ -55,6 +60,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if matches!(opts.suite, Suite::Scaling | Suite::All) {
         run_scaling(opts).await?;
+    }
+    if opts.suite == Suite::Verification {
+        verification::run(opts, &opts.out).await?;
     }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;

@@ -34,11 +34,14 @@ impl Default for VerifyConfig {
 /// Tracers kept for spot checks: the jobs running at once, give or take.
 const TRACERS_KEPT: usize = 16;
 
+/// Recently used tracers by scene and settings, oldest first.
+type Tracers = VecDeque<((SceneHash, Settings), Arc<Tracer>)>;
+
 /// The canary's reference render and the tracers of recent jobs.
 pub struct Verifier {
     pub config: VerifyConfig,
     pub canary: Canary,
-    tracers: Mutex<VecDeque<((SceneHash, Settings), Arc<Tracer>)>>,
+    tracers: Mutex<Tracers>,
 }
 
 /// The canary as this coordinator renders it.
@@ -83,7 +86,7 @@ impl Verifier {
         Ok(tracer)
     }
 
-    fn cache(&self) -> std::sync::MutexGuard<'_, VecDeque<((SceneHash, Settings), Arc<Tracer>)>> {
+    fn cache(&self) -> std::sync::MutexGuard<'_, Tracers> {
         self.tracers.lock().unwrap_or_else(|e| e.into_inner())
     }
 
