@@ -355,8 +355,9 @@ struct Job {
     /// The tiles waiting, in the order they are handed out. Accepting a tile that is
     /// still queued (its lease ran out, then its holder delivered) leaves its entry
     /// here rather than searching the queue for it; entries of done tiles are skipped,
-    /// and dropped when met. A done tile never waits again, so each waiting tile has
-    /// exactly one entry.
+    /// and dropped when met. A done tile waits again only when it is revoked (a
+    /// quarantine); it is then put at the head, before any stale entry of its own, so
+    /// the first entry of each waiting tile is its place in the queue.
     waiting: VecDeque<u32>,
     /// The tiles waiting: the entries of `waiting` that are not stale.
     queued: u32,
@@ -580,15 +581,18 @@ impl Job {
     /// live worker that is not draining) may take any waiting tile: each is blocked
     /// from the job or the tile failed on it. `None` while one may, or nothing waits.
     ///
-    /// Cheap enough for every timeout: a tile that never failed may go to any machine
-    /// not blocked, so the walk stops at the first such tile; and a tile fails on fewer
-    /// than `max_attempts` machines before its job fails, so with that many machines
-    /// open nothing is stalled. The walk is over the waiting tiles that failed before.
+    /// Cheap enough for every timeout: a tile that never failed and holds no result may
+    /// go to any machine not blocked, so the walk stops at the first such tile; and a
+    /// tile fails on fewer than `max_attempts` machines before its job fails, and holds
+    /// the result of at most one, so with one more machine open nothing is stalled. The
+    /// walk is over the waiting tiles that failed before or hold a result.
     fn stalled_tile(&self, ready: &BTreeMap<Machine, u32>, max_attempts: u32) -> Option<u32> {
         if self.queued == 0 || ready.is_empty() {
             return None;
         }
-        let limit = (max_attempts as usize).max(1);
+        // A waiting tile is closed to the machines it failed on (fewer than
+        // `max_attempts`) and to the one whose result it holds, if any.
+        let limit = (max_attempts as usize).max(1) + 1;
         let open: Vec<&Machine> = ready
             .keys()
             .filter(|m| !self.blocked.contains(*m))
@@ -627,6 +631,30 @@ impl Job {
             .keys()
             .partition(|m| on.is_some_and(|on| on.contains(*m)));
         let head = format!("no connected worker may render tile {tile}");
+        let holder = self.held.get(&tile).map(|(m, _)| m);
+        if let Some(holder) = holder.filter(|m| blocked.contains(m)) {
+            // Not blocked: the tile holds its result, which it may not confirm.
+            let others: Vec<&Machine> = blocked.into_iter().filter(|m| *m != holder).collect();
+            let rest = match (failed.is_empty(), others.is_empty()) {
+                (true, true) => "no other machine is connected".to_string(),
+                (false, true) => format!("it failed on the others ({})", name_list(&failed)),
+                (true, false) => format!(
+                    "the others are blocked from the job after failing {block_after} of its \
+                     tiles ({})",
+                    name_list(&others)
+                ),
+                (false, false) => format!(
+                    "it failed on some of the others ({}) and the rest are blocked from the \
+                     job after failing {block_after} of its tiles ({})",
+                    name_list(&failed),
+                    name_list(&others)
+                ),
+            };
+            return format!(
+                "{head}: its result from {} awaits confirmation by another machine, and {rest}",
+                name_list(&[holder])
+            );
+        }
         match (failed.is_empty(), blocked.is_empty()) {
             (_, true) => format!(
                 "{head}: it failed on every one of them ({})",
@@ -837,10 +865,17 @@ impl Scheduler {
             }
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
+                let requeued = self.counters.tiles_requeued;
                 self.tile_done(worker, job, tile, &mut actions);
-                // Holders of a finished job's last copies are filled at the next event
-                // that fills everyone (a timeout at the latest).
-                self.fill(worker, &mut actions);
+                if self.counters.tiles_requeued != requeued {
+                    // A copy from the machine whose result the tile holds put it back
+                    // in the queue: any other machine may take it.
+                    self.fill_all(&mut actions);
+                } else {
+                    // Holders of a finished job's last copies are filled at the next
+                    // event that fills everyone (a timeout at the latest).
+                    self.fill(worker, &mut actions);
+                }
             }
             Event::TileToConfirm {
                 worker,
@@ -860,8 +895,12 @@ impl Scheduler {
                 let cap = self.policy.max_credit_per_thread.max(2) as usize;
                 if let Some(w) = self.workers.get_mut(&worker) {
                     let threads = w.threads as usize;
-                    let cover = rtt.div_ceil(tile.max(1)) as usize;
-                    w.credit = (threads * (2 + cover)).min(threads * cap);
+                    // Saturating: a round trip of any length (u64::MAX included) only
+                    // reaches the cap.
+                    let cover = usize::try_from(rtt.div_ceil(tile.max(1))).unwrap_or(usize::MAX);
+                    w.credit = threads
+                        .saturating_mul(cover.saturating_add(2))
+                        .min(threads.saturating_mul(cap));
                     if w.holding.len() < w.credit {
                         self.hungry.insert(worker);
                         self.fill(worker, &mut actions);
@@ -1331,6 +1370,22 @@ impl Scheduler {
             let before = job.rank(job_id);
             job.state[tile as usize] = TileState::Out;
             job.remaining += 1;
+            // Copies still to come are results again: their holders hold the tile
+            // under leases that ran out (the first result wins, theirs included).
+            let copies: Vec<WorkerId> = job
+                .late_copies
+                .range((tile, WorkerId::MIN)..=(tile, WorkerId::MAX))
+                .map(|&(_, w)| w)
+                .collect();
+            for worker in copies {
+                job.late_copies.remove(&(tile, worker));
+                job.in_flight.entry(tile).or_default().push(Lease {
+                    worker,
+                    started: self.now,
+                    deadline: self.now,
+                    expired: true,
+                });
+            }
             job.requeue(tile);
             self.counters.tiles_requeued += 1;
             self.rerank(job_id, before);
@@ -1343,10 +1398,12 @@ impl Scheduler {
     /// there is none), in job then tile order.
     fn give_up_confirmations(&mut self, actions: &mut Vec<Action>) {
         let mut finished = Vec::new();
+        let mut reranked = Vec::new();
         for (&id, job) in &mut self.jobs {
             if job.held.is_empty() {
                 continue;
             }
+            let before = job.rank(id);
             let accepted: Vec<u32> = job
                 .held
                 .iter()
@@ -1366,14 +1423,21 @@ impl Scheduler {
                 if job.state[tile as usize] == TileState::Waiting {
                     job.queued -= 1;
                 }
-                job.take_leases(tile);
+                // Holders under leases that ran out: their copies are still to come.
+                for other in job.take_leases(tile).into_iter().flatten() {
+                    job.late_copies.insert((tile, other.worker));
+                }
                 job.state[tile as usize] = TileState::Done;
                 job.remaining -= 1;
                 actions.push(Action::AcceptHeld { job: id, tile });
             }
+            reranked.push((id, before));
             if job.remaining == 0 {
                 finished.push(id);
             }
+        }
+        for (id, before) in reranked {
+            self.rerank(id, before);
         }
         for id in finished {
             self.end_job(id, actions);
@@ -2473,5 +2537,172 @@ mod tests {
             },
         );
         assert_eq!(s.held_by(1), 128, "a smaller credit takes nothing back");
+    }
+
+    /// An optional confirmation given up while another machine still holds the tile
+    /// under a lease that ran out: that holder's copy is still to come, and it is told
+    /// when the job ends. (The held result was accepted with the lease dropped and the
+    /// job left ranked by its old count of tiles in flight: the holder kept the tile
+    /// forever, and the next fill panicked on the job gone from the serving order.)
+    #[test]
+    fn a_confirmation_given_up_leaves_the_copies_out_to_come() {
+        let mut s = Scheduler::with_policy(Policy {
+            initial_lease: 1_000,
+            ..Policy::default()
+        });
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        to_confirm(&mut s, 10, 1, 0, false);
+        assert_eq!(
+            assigns(&join_at(&mut s, 20, 2, 1, Some("b"))),
+            vec![(2, 1, 0)]
+        );
+        // b's lease runs out, then b drains: no ready machine may confirm.
+        for worker in [1, 2] {
+            s.handle(1_100, Event::Heartbeat { worker });
+        }
+        assert!(s.handle(1_100, Event::Timeout).is_empty());
+        s.handle(1_200, Event::WorkerDraining { worker: 2 });
+        let given_up = s.handle(1_300, Event::Timeout);
+        assert!(given_up.contains(&Action::AcceptHeld { job: 1, tile: 0 }));
+        assert!(given_up.contains(&Action::CancelOnWorker { worker: 2, job: 1 }));
+        assert_eq!(given_up.last(), Some(&Action::JobDone { job: 1 }));
+        assert_eq!(s.held_by(2), 0);
+        submit(&mut s, 2, 0, SCENE_B, 3);
+        assert_eq!(assigns(&join_at(&mut s, 1_400, 3, 1, Some("c"))).len(), 2);
+    }
+
+    /// A required confirmation that only its own machine could give stalls the job
+    /// however few attempts a tile has: with `max_attempts` 1, one machine connected;
+    /// with 2, the tile failed on the other one. (The stall check took `max_attempts`
+    /// machines open as proof that some may take every tile, forgetting the holder.)
+    #[test]
+    fn a_required_confirmation_stalls_with_max_attempts_machines_connected() {
+        for max_attempts in [1, 2] {
+            let mut s = Scheduler::with_policy(Policy {
+                max_attempts,
+                speculate: false,
+                stall_timeout: 2_000,
+                ..Policy::default()
+            });
+            submit(&mut s, 1, 0, SCENE_A, 1);
+            let mut workers = vec![1];
+            if max_attempts == 2 {
+                join_at(&mut s, 0, 2, 1, Some("b"));
+                fail(&mut s, 0, 2, 1, 0);
+                workers.push(2);
+            }
+            assert_eq!(
+                assigns(&join_at(&mut s, 0, 1, 1, Some("a"))),
+                vec![(1, 1, 0)]
+            );
+            to_confirm(&mut s, 10, 1, 0, true);
+            let mut actions = Vec::new();
+            for t in (1..=5).map(|k| k * 1_000) {
+                for &worker in &workers {
+                    s.handle(t, Event::Heartbeat { worker });
+                }
+                actions.extend(s.handle(t, Event::Timeout));
+            }
+            let message = failure(&actions, 1).expect("the job stalls and fails");
+            let expected = if max_attempts == 1 {
+                "no connected worker may render tile 0: its result from a awaits \
+                 confirmation by another machine, and no other machine is connected"
+            } else {
+                "no connected worker may render tile 0: its result from a awaits \
+                 confirmation by another machine, and it failed on the others (b)"
+            };
+            assert_eq!(message, expected);
+        }
+    }
+
+    /// A round trip of any length raises the credit to its cap, never wraps it around.
+    #[test]
+    fn a_huge_round_trip_reaches_the_cap() {
+        for tile in [0, 1] {
+            let mut s = Scheduler::new();
+            submit(&mut s, 1, 0, SCENE_A, 1000);
+            join_at(&mut s, 0, 1, 2, Some("far"));
+            let rtt = Millis::MAX;
+            s.handle(
+                1,
+                Event::WorkerPace {
+                    worker: 1,
+                    rtt,
+                    tile,
+                },
+            );
+            let cap = Policy::default().max_credit_per_thread as usize;
+            assert_eq!(s.held_by(1), 2 * cap);
+        }
+    }
+
+    /// A copy from the machine whose result is held puts the tile back: another
+    /// machine's idle worker gets it at once, not at the next timeout.
+    #[test]
+    fn a_tile_put_back_by_its_holding_machine_s_copy_goes_to_an_idle_worker() {
+        let mut s = Scheduler::with_policy(Policy {
+            speculate: false,
+            initial_lease: 1_000,
+            ..Policy::default()
+        });
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        s.handle(1_000, Event::Heartbeat { worker: 1 });
+        s.handle(1_000, Event::Timeout);
+        assert_eq!(
+            assigns(&join_at(&mut s, 1_000, 2, 1, Some("a"))),
+            vec![(2, 1, 0)]
+        );
+        assert!(assigns(&join_at(&mut s, 1_000, 3, 1, Some("b"))).is_empty());
+        assert!(assigns(&to_confirm(&mut s, 1_100, 1, 0, true)).is_empty());
+        let copy = s.handle(
+            1_200,
+            Event::TileDone {
+                worker: 2,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert_eq!(assigns(&copy), vec![(3, 1, 0)]);
+    }
+
+    /// A revoked tile whose copy is still out on an honest machine: that copy is a
+    /// result again (accepted, not a duplicate), and its holder is not given the tile a
+    /// second time. (The copy stayed a duplicate of a tile no longer accepted, and the
+    /// tile went again to the worker holding it.)
+    #[test]
+    fn a_revoked_tile_s_copy_still_out_counts_as_its_result() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 2);
+        assert_eq!(assigns(&join_at(&mut s, 0, 1, 1, Some("liar"))).len(), 2);
+        assert_eq!(
+            assigns(&join_at(&mut s, 0, 2, 1, Some("honest"))),
+            vec![(2, 1, 0), (2, 1, 1)]
+        );
+        let done = |s: &mut Scheduler, now, worker, tile| {
+            s.handle(
+                now,
+                Event::TileDone {
+                    worker,
+                    job: 1,
+                    tile,
+                },
+            )
+        };
+        assert!(done(&mut s, 5, 1, 0).contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        s.handle(
+            6,
+            Event::Quarantine {
+                machine: "liar".into(),
+                revoke: vec![(1, 0)],
+            },
+        );
+        let one = done(&mut s, 7, 2, 1);
+        assert!(one.contains(&Action::AcceptTile { job: 1, tile: 1 }));
+        assert!(assigns(&one).is_empty(), "worker 2 holds tile 0: {one:?}");
+        let zero = done(&mut s, 8, 2, 0);
+        assert!(zero.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        assert!(zero.contains(&Action::JobDone { job: 1 }));
     }
 }

@@ -54,6 +54,21 @@
 //!   worker is connected, and no such worker's machine may take any waiting tile; it
 //!   fails (the message naming a waiting tile and the machines) exactly when stalled at
 //!   timeouts throughout `stall_timeout`; without a ready worker the stall ends.
+//! - **Confirmations**: a holder's `TileToConfirm` on a tile holding no result is held
+//!   (`HoldResult`), and the tile waits for any other machine; a holder's result on a
+//!   tile holding another machine's result confirms it (`AcceptTile`); one from the
+//!   machine whose result is held only frees its slot. A held tile never goes to its
+//!   holding machine, copies included. At a timeout, `AcceptHeld` exactly for the
+//!   optional confirmations without a live lease that no ready machine but their own
+//!   may give; a required one stalls its job like any tile no machine may take, and a
+//!   job with a result held is never done.
+//! - **Quarantine**: the machine's workers (and those joining later under its name)
+//!   drain and hold nothing, and never get a tile; its held results are dropped; the
+//!   revoked tiles of active jobs that were accepted wait again (copies still out on
+//!   other workers become results again, under leases that ran out).
+//! - **Credit**: twice the threads, then what `WorkerPace` sets: threads × (2 + ⌈rtt /
+//!   tile time⌉), at most threads × `max_credit_per_thread` (taken as at least 2); an
+//!   assignment only below it, and a lower credit takes nothing back.
 //! - **Endings**: `JobDone` once, when all tiles are accepted; every live worker still
 //!   holding tiles of an ended job (copies included) gets `CancelOnWorker`, and only
 //!   those; `is_active`, `has_started`, `held_by` and `tiles_in_flight` agree.
@@ -194,6 +209,9 @@ struct ModelJob {
     measured: u32,
     total_time: Millis,
     slowest: Millis,
+    /// Tiles whose result is held until another machine confirms it: the machine it
+    /// came from, and whether the confirmation is required.
+    held: BTreeMap<u32, (Machine, bool)>,
 }
 
 impl ModelJob {
@@ -213,9 +231,16 @@ impl ModelJob {
         self.failed_on.contains(&(tile, machine.clone()))
     }
 
+    /// Whether the tile holds a result from the machine, which may not confirm it.
+    fn held_from(&self, tile: u32, machine: &Machine) -> bool {
+        self.held.get(&tile).is_some_and(|(m, _)| m == machine)
+    }
+
     /// Whether a worker of the machine may take the waiting tile.
     fn open_to(&self, tile: u32, machine: &Machine) -> bool {
-        !self.blocked.contains(machine) && !self.failed_on(tile, machine)
+        !self.blocked.contains(machine)
+            && !self.failed_on(tile, machine)
+            && !self.held_from(tile, machine)
     }
 }
 
@@ -232,7 +257,11 @@ struct Held {
 struct ModelWorker {
     machine: Machine,
     threads: u32,
+    /// Twice the threads, then what `WorkerPace` sets.
     credit: usize,
+    /// What the worker held when its credit was last lowered: it may hold that many
+    /// until it returns them (a lower credit takes nothing back).
+    allowance: usize,
     draining: bool,
     /// Tiles held: under a live or expired lease, or a copy of a tile already accepted.
     holding: BTreeMap<(JobId, u32), Held>,
@@ -267,6 +296,33 @@ struct Stats {
     pauses: usize,
     /// Events handled while storage was unavailable.
     while_storage_down: usize,
+    /// Results held for confirmation (required ones too), held results confirmed by
+    /// another machine, copies from the holding machine that only freed their slot,
+    /// and optional confirmations given up at a timeout (and the jobs that ended so).
+    holds: usize,
+    holds_required: usize,
+    confirmed: usize,
+    unconfirming_copies: usize,
+    given_up: usize,
+    done_by_giving_up: usize,
+    /// Jobs failed by a stall while a required confirmation no ready machine may give
+    /// was pending.
+    stalled_on_confirmation: usize,
+    /// Quarantines, those of a machine with live workers, the done tiles they revoked
+    /// (and of those, tiles with copies still to come), held results they dropped, and
+    /// workers joining later under a quarantined name.
+    quarantines: usize,
+    quarantined_live: usize,
+    revoked: usize,
+    revoked_with_copies: usize,
+    holds_dropped: usize,
+    joined_quarantined: usize,
+    /// Credit changes: raised, capped at `max_credit_per_thread`, lowered below what
+    /// the worker holds.
+    paces: usize,
+    credit_raised: usize,
+    credit_capped: usize,
+    credit_lowered_below_holding: usize,
 }
 
 impl Stats {
@@ -286,6 +342,23 @@ impl Stats {
         self.rejoined_under_a_name += o.rejoined_under_a_name;
         self.pauses += o.pauses;
         self.while_storage_down += o.while_storage_down;
+        self.holds += o.holds;
+        self.holds_required += o.holds_required;
+        self.confirmed += o.confirmed;
+        self.unconfirming_copies += o.unconfirming_copies;
+        self.given_up += o.given_up;
+        self.done_by_giving_up += o.done_by_giving_up;
+        self.stalled_on_confirmation += o.stalled_on_confirmation;
+        self.quarantines += o.quarantines;
+        self.quarantined_live += o.quarantined_live;
+        self.revoked += o.revoked;
+        self.revoked_with_copies += o.revoked_with_copies;
+        self.holds_dropped += o.holds_dropped;
+        self.joined_quarantined += o.joined_quarantined;
+        self.paces += o.paces;
+        self.credit_raised += o.credit_raised;
+        self.credit_capped += o.credit_capped;
+        self.credit_lowered_below_holding += o.credit_lowered_below_holding;
     }
 }
 
@@ -310,6 +383,11 @@ struct Expect {
     accepted: bool,
     duplicate: Option<(JobId, u32)>,
     duplicated: bool,
+    /// A `HoldResult` to come, and whether it came.
+    hold: Option<(WorkerId, JobId, u32)>,
+    held: bool,
+    /// `AcceptHeld` still to come (confirmations given up at this timeout).
+    given_up: BTreeSet<(JobId, u32)>,
     /// Workers silent past the timeout at this timeout.
     drops: BTreeSet<WorkerId>,
     /// `JobDone` still to come.
@@ -351,6 +429,8 @@ struct Farm {
     cut_off: Vec<(String, u32)>,
     /// Tiles accepted per worker whose result was kept.
     rendered_by: BTreeMap<WorkerId, usize>,
+    /// Machines quarantined: they never get a tile again.
+    quarantined: BTreeSet<Machine>,
     /// A `TileDone` completed a job and freed other holders, which the scheduler fills
     /// only at the next event that fills every worker.
     unfilled: bool,
@@ -385,6 +465,7 @@ impl Farm {
             names: BTreeSet::new(),
             cut_off: Vec::new(),
             rendered_by: BTreeMap::new(),
+            quarantined: BTreeSet::new(),
             unfilled: false,
             stats: Stats::default(),
         }
@@ -496,14 +577,14 @@ impl Farm {
             .is_some_and(|w| w.holding.contains_key(&(job, tile)))
     }
 
-    /// A waiting tile the worker may take: not failed on its machine, not held by it
-    /// already.
+    /// A waiting tile the worker may take: not failed on its machine, holding no result
+    /// from it, not held by it already.
     fn takeable(&self, holders: &Holders, worker: WorkerId, job: JobId) -> bool {
         let j = &self.jobs[&job];
         let machine = &self.workers[&worker].machine;
-        self.waiting(holders, job)
-            .into_iter()
-            .any(|t| !j.failed_on(t, machine) && !self.holds(worker, job, t))
+        self.waiting(holders, job).into_iter().any(|t| {
+            !j.failed_on(t, machine) && !j.held_from(t, machine) && !self.holds(worker, job, t)
+        })
     }
 
     /// Active jobs the worker's machine is not blocked from, in policy order.
@@ -548,6 +629,7 @@ impl Farm {
                         hs.iter().all(|(w, _)| *w != worker)
                             && hs.iter().filter(|(_, h)| !h.expired).count() == 1
                             && (!self.strict || !j.failed_on(key.1, machine))
+                            && !j.held_from(key.1, machine)
                     })
                     .min_by_key(|(key, hs)| (hs.iter().map(|(_, h)| h.started).min(), key.1))
                     .map(|(&key, _)| key)
@@ -666,8 +748,149 @@ impl Farm {
             };
             let since = *j.stalled_since.get_or_insert(self.clock);
             if self.clock - since >= self.policy.stall_timeout {
+                if j.held.values().any(|&(_, required)| required) {
+                    self.stats.stalled_on_confirmation += 1;
+                }
                 let machines = ready.iter().map(Machine::label).collect();
                 self.end(id, Why::Stall, Failure::Stall { tiles, machines }, expect);
+            }
+        }
+    }
+
+    /// A result from a worker: `TileDone` (`to_confirm` None) or `TileToConfirm`. From a
+    /// holder of the tile only: a copy of a tile accepted is a duplicate; one from the
+    /// machine whose result the tile holds only frees the slot; one on a tile holding
+    /// another machine's result confirms it (accepted); a `TileToConfirm` otherwise is
+    /// held. Returns whether the tile went back to the queue.
+    fn result(
+        &mut self,
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        to_confirm: Option<bool>,
+        expect: &mut Expect,
+    ) -> bool {
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return false;
+        };
+        let Some(held) = w.holding.remove(&(job, tile)) else {
+            return false;
+        };
+        let machine = w.machine.clone();
+        let j = self
+            .jobs
+            .get_mut(&job)
+            .expect("held tiles are of known jobs");
+        if j.accepted.contains(&tile) {
+            expect.duplicate = Some((job, tile));
+            return false;
+        }
+        if j.held_from(tile, &machine) {
+            self.stats.unconfirming_copies += 1;
+            // Back in the queue if that was the last live lease.
+            let holders = self.holders();
+            return !held.expired && Self::live_holders(&holders, job, tile).is_empty();
+        }
+        match (to_confirm, j.held.remove(&tile)) {
+            (Some(required), None) => {
+                j.held.insert(tile, (machine, required));
+                expect.hold = Some((worker, job, tile));
+                self.stats.holds += 1;
+                self.stats.holds_required += usize::from(required);
+                return false;
+            }
+            (_, Some(_)) => self.stats.confirmed += 1,
+            (None, None) => {}
+        }
+        j.accepted.insert(tile);
+        let took = self.clock - held.started;
+        j.measured += 1;
+        j.total_time += took;
+        j.slowest = j.slowest.max(took);
+        expect.accept = Some((job, tile));
+        self.stats.accepted_late += usize::from(held.expired);
+        if j.accepted.len() == j.tiles as usize {
+            j.fate = Fate::Done;
+            expect.done.insert(job);
+            expect.ended.insert(job);
+        }
+        false
+    }
+
+    /// The machine gets nothing more: its workers drain and give back what they hold
+    /// (no loss counted), its held results are dropped, and the revoked tiles of active
+    /// jobs that were accepted are not any more; their copies still out are held again
+    /// under leases that ran out.
+    fn quarantine(&mut self, machine: Machine, revoke: &[(JobId, u32)]) {
+        self.quarantined.insert(machine.clone());
+        self.stats.quarantines += 1;
+        let mut live = false;
+        for w in self.workers.values_mut().filter(|w| w.machine == machine) {
+            live = true;
+            w.draining = true;
+            w.holding.clear();
+        }
+        self.stats.quarantined_live += usize::from(live);
+        self.end_stalls_without_workers();
+        for j in self.jobs.values_mut().filter(|j| j.fate == Fate::Active) {
+            let before = j.held.len();
+            j.held.retain(|_, (m, _)| *m != machine);
+            self.stats.holds_dropped += before - j.held.len();
+        }
+        let clock = self.clock;
+        for &(job, tile) in revoke {
+            let Some(j) = self.jobs.get_mut(&job) else {
+                continue;
+            };
+            if j.fate != Fate::Active || !j.accepted.remove(&tile) {
+                continue;
+            }
+            self.stats.revoked += 1;
+            let mut copies = false;
+            for w in self.workers.values_mut() {
+                if let Some(held) = w.holding.get_mut(&(job, tile)) {
+                    *held = Held {
+                        started: clock,
+                        deadline: clock,
+                        expired: true,
+                    };
+                    copies = true;
+                }
+            }
+            self.stats.revoked_with_copies += usize::from(copies);
+        }
+    }
+
+    /// At a timeout, after the drops and the leases: the optional confirmations of
+    /// tiles without a live lease that no ready machine but their own may give (each is
+    /// blocked from the job or failed the tile) are given up, their results accepted.
+    fn give_up_confirmations(&mut self, expect: &mut Expect) {
+        let ready = self.ready();
+        let holders = self.holders();
+        for (&id, j) in self.jobs.iter_mut().filter(|(_, j)| j.fate == Fate::Active) {
+            let given_up: Vec<u32> = j
+                .held
+                .iter()
+                .filter(|&(&t, (from, required))| {
+                    !required
+                        && Self::live_holders(&holders, id, t).is_empty()
+                        && !ready
+                            .iter()
+                            .any(|m| m != from && !j.blocked.contains(m) && !j.failed_on(t, m))
+                })
+                .map(|(&t, _)| t)
+                .collect();
+            for tile in given_up {
+                j.held.remove(&tile);
+                j.accepted.insert(tile);
+                expect.given_up.insert((id, tile));
+                self.stats.given_up += 1;
+            }
+            if j.accepted.len() == j.tiles as usize {
+                j.fate = Fate::Done;
+                expect.done.insert(id);
+                expect.ended.insert(id);
+                self.stats.done_by_giving_up += 1;
             }
         }
     }
@@ -735,6 +958,7 @@ impl Farm {
         if let Event::Heartbeat { worker }
         | Event::WorkerDraining { worker }
         | Event::TileDone { worker, .. }
+        | Event::TileToConfirm { worker, .. }
         | Event::TileFailed { worker, .. } = event
         {
             if let Some(w) = self.workers.get_mut(&worker) {
@@ -767,6 +991,7 @@ impl Farm {
                         }
                     }
                 }
+                self.give_up_confirmations(&mut expect);
                 self.check_stalls(&mut expect);
             }
             Event::WorkerJoined {
@@ -781,13 +1006,18 @@ impl Farm {
                         self.stats.rejoined_under_a_name += 1;
                     }
                 }
+                let machine = Machine::of(worker, machine.as_deref());
+                // A quarantined machine's worker is connected, never given a tile.
+                let quarantined = self.quarantined.contains(&machine);
+                self.stats.joined_quarantined += usize::from(quarantined);
                 self.workers.insert(
                     worker,
                     ModelWorker {
-                        machine: Machine::of(worker, machine.as_deref()),
+                        machine,
                         threads,
                         credit: 2 * threads.max(1) as usize,
-                        draining: false,
+                        allowance: 0,
+                        draining: quarantined,
                         holding: BTreeMap::new(),
                         scenes: BTreeSet::new(),
                         last_seen: self.clock,
@@ -838,34 +1068,44 @@ impl Farm {
                         measured: 0,
                         total_time: 0,
                         slowest: 0,
+                        held: BTreeMap::new(),
                     },
                 );
             }
             Event::TileDone { worker, job, tile } => {
-                let held = self
-                    .workers
-                    .get_mut(&worker)
-                    .and_then(|w| w.holding.remove(&(job, tile)));
-                if let Some(held) = held {
-                    let j = self
-                        .jobs
-                        .get_mut(&job)
-                        .expect("held tiles are of known jobs");
-                    if j.accepted.insert(tile) {
-                        let took = self.clock - held.started;
-                        j.measured += 1;
-                        j.total_time += took;
-                        j.slowest = j.slowest.max(took);
-                        expect.accept = Some((job, tile));
-                        self.stats.accepted_late += usize::from(held.expired);
-                        if j.accepted.len() == j.tiles as usize {
-                            j.fate = Fate::Done;
-                            expect.done.insert(job);
-                            expect.ended.insert(job);
-                        }
-                    } else {
-                        expect.duplicate = Some((job, tile));
+                if self.result(worker, job, tile, None, &mut expect) {
+                    // The scheduler fills everyone when a tile went back to the queue.
+                    self.unfilled = false;
+                }
+            }
+            Event::TileToConfirm {
+                worker,
+                job,
+                tile,
+                required,
+            } => {
+                self.result(worker, job, tile, Some(required), &mut expect);
+            }
+            Event::Quarantine {
+                ref machine,
+                ref revoke,
+            } => self.quarantine(Machine::Named(machine.clone()), revoke),
+            Event::WorkerPace { worker, rtt, tile } => {
+                let cap = self.policy.max_credit_per_thread.max(2) as usize;
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    // As the doc states it, in u128 where nothing overflows.
+                    let threads = u128::from(w.threads.max(1));
+                    let cover = u128::from(rtt).div_ceil(u128::from(tile.max(1)));
+                    let uncapped = threads * (2 + cover);
+                    let credit = uncapped.min(threads * cap as u128) as usize;
+                    self.stats.paces += 1;
+                    self.stats.credit_raised += usize::from(credit > w.credit);
+                    self.stats.credit_capped += usize::from(uncapped > threads * cap as u128);
+                    if credit < w.holding.len() {
+                        self.stats.credit_lowered_below_holding += 1;
                     }
+                    w.allowance = w.holding.len();
+                    w.credit = credit;
                 }
             }
             Event::TileFailed {
@@ -897,6 +1137,8 @@ impl Farm {
         if matches!(
             event,
             Event::Timeout
+                | Event::TileToConfirm { .. }
+                | Event::Quarantine { .. }
                 | Event::WorkerLeft { .. }
                 | Event::JobSubmitted { .. }
                 | Event::TileFailed { .. }
@@ -939,7 +1181,9 @@ impl Farm {
                     assert_eq!(expect.accept, Some((job, tile)), "{}", context());
                     assert!(!expect.accepted, "accepted twice {}", context());
                     expect.accepted = true;
-                    if let Event::TileDone { worker, .. } = event {
+                    if let Event::TileDone { worker, .. } | Event::TileToConfirm { worker, .. } =
+                        event
+                    {
                         *self.rendered_by.entry(worker).or_default() += 1;
                     }
                 }
@@ -948,6 +1192,19 @@ impl Farm {
                     assert!(!expect.duplicated, "two duplicates {}", context());
                     expect.duplicated = true;
                     self.stats.duplicate_results += 1;
+                }
+                Action::HoldResult { worker, job, tile } => {
+                    assert_eq!(expect.hold, Some((worker, job, tile)), "{}", context());
+                    assert!(!expect.held, "held twice {}", context());
+                    expect.held = true;
+                }
+                Action::AcceptHeld { job, tile } => {
+                    assert!(
+                        expect.given_up.remove(&(job, tile)),
+                        "a held result accepted without confirmation while a machine may \
+                         confirm it {}",
+                        context()
+                    );
                 }
                 Action::CancelOnWorker { worker, job } => {
                     assert!(
@@ -1000,6 +1257,11 @@ impl Farm {
                 }
                 Action::JobDone { job } => {
                     assert!(expect.done.remove(&job), "unexpected JobDone {}", context());
+                    assert!(
+                        self.jobs[&job].held.is_empty(),
+                        "a job done with a result held for confirmation {}",
+                        context()
+                    );
                     self.stats.jobs_done += 1;
                 }
                 Action::JobFailed { job, ref message } => {
@@ -1028,6 +1290,18 @@ impl Farm {
             expect.duplicate.is_some(),
             expect.duplicated,
             "a holder's copy of an accepted tile is a duplicate, nothing else {}",
+            context()
+        );
+        assert_eq!(
+            expect.hold.is_some(),
+            expect.held,
+            "a holder's result to confirm is held, nothing else {}",
+            context()
+        );
+        assert!(
+            expect.given_up.is_empty(),
+            "optional confirmations no ready machine may give, not given up: {:?} {}",
+            expect.given_up,
             context()
         );
         assert_eq!(dropped, expect.drops, "silent workers {}", context());
@@ -1063,6 +1337,16 @@ impl Farm {
             .get(&worker)
             .unwrap_or_else(|| panic!("Assign to a gone worker {}", context()));
         assert!(!w.draining, "draining worker assigned {}", context());
+        assert!(
+            !self.quarantined.contains(&w.machine),
+            "a quarantined machine got a tile {}",
+            context()
+        );
+        assert!(
+            !j.held_from(tile, &w.machine),
+            "a tile went to the machine whose result it holds {}",
+            context()
+        );
         assert!(
             w.scenes.contains(&j.scene),
             "tile before scene {}",
@@ -1163,7 +1447,26 @@ impl Farm {
                 context()
             );
             total += w.holding.len();
-            assert!(w.holding.len() <= w.credit, "over credit {}", context());
+            assert!(
+                w.holding.len() <= w.credit.max(w.allowance),
+                "over credit {}",
+                context()
+            );
+            let threads = w.threads.max(1) as usize;
+            let cap = self.policy.max_credit_per_thread.max(2) as usize;
+            assert!(
+                2 * threads <= w.credit && w.credit <= threads * cap,
+                "worker {id} credit {} out of [2, max_credit_per_thread] per thread {}",
+                w.credit,
+                context()
+            );
+            if self.quarantined.contains(&w.machine) {
+                assert!(
+                    w.draining && w.holding.is_empty(),
+                    "a quarantined worker holds tiles {}",
+                    context()
+                );
+            }
             for &(job, _) in w.holding.keys() {
                 assert!(
                     self.active(job),
@@ -1198,12 +1501,26 @@ impl Farm {
                 "job {id} {}",
                 context()
             );
+            if j.fate == Fate::Done {
+                assert!(
+                    j.held.is_empty(),
+                    "job {id} done with a held result {}",
+                    context()
+                );
+            }
             if active {
                 assert!(
                     j.accepted.len() < j.tiles as usize,
                     "job {id} complete without JobDone {}",
                     context()
                 );
+                for (tile, (machine, _)) in &j.held {
+                    assert!(
+                        !j.accepted.contains(tile) && !self.quarantined.contains(machine),
+                        "job {id} holds tile {tile} wrongly {}",
+                        context()
+                    );
+                }
                 assert_eq!(
                     self.scheduler.has_started(id),
                     self.waiting(&holders, id).len() < j.tiles as usize,
@@ -1307,7 +1624,11 @@ impl Farm {
     fn check_liveness(&self) {
         for (id, j) in &self.jobs {
             assert_ne!(j.fate, Fate::Active, "job {id} never finished");
-            if j.attempts.is_empty() && j.fate == Fate::Failed {
+            // Without reported failures, only a required confirmation that no ready
+            // machine may give stalls a job.
+            let stalled_on_confirmation =
+                j.why == Some(Why::Stall) && j.held.values().any(|&(_, required)| required);
+            if j.attempts.is_empty() && j.fate == Fate::Failed && !stalled_on_confirmation {
                 assert_eq!(j.why, Some(Why::Losses), "job {id}");
                 assert!(
                     j.losses.values().any(|&n| n >= self.policy.max_losses),
@@ -1416,6 +1737,8 @@ enum Stray {
     Stolen(Index),
     /// A tile a departed worker held, from that worker.
     Departed(Index),
+    /// A tile whose result is held, from any worker (of the holding machine or not).
+    Held(Index),
 }
 
 #[derive(Clone, Debug)]
@@ -1476,6 +1799,37 @@ enum Op {
     Rejoin(Index),
     /// Storage becomes unavailable (true) or available again.
     Storage(bool),
+    /// A worker returns a tile it holds as a result to be confirmed by another machine.
+    Confirm {
+        worker: Index,
+        tile: Index,
+        required: bool,
+    },
+    /// A worker returns a tile it holds whose result is held (from its own machine or
+    /// another): a confirmation, or a copy that only frees its slot.
+    ReturnHeld {
+        worker: Index,
+        confirm: Option<bool>,
+    },
+    /// A result to confirm that is not the holder's own (stale, stolen, of a held tile).
+    StrayConfirm {
+        worker: Index,
+        kind: Stray,
+        required: bool,
+    },
+    /// One of [`NAMES`] is quarantined (if `happens`: the rate is kept low, as a
+    /// quarantine is for good), with these tiles revoked.
+    Quarantine {
+        happens: bool,
+        name: usize,
+        revoke: Vec<Revoke>,
+    },
+    /// The daemon measured a worker's round trip and tile time.
+    Pace {
+        worker: Index,
+        rtt: Millis,
+        tile: Millis,
+    },
 }
 
 fn stray() -> impl Strategy<Value = Stray> {
@@ -1484,7 +1838,43 @@ fn stray() -> impl Strategy<Value = Stray> {
         any::<Index>().prop_map(Stray::Duplicate),
         any::<Index>().prop_map(Stray::Stolen),
         any::<Index>().prop_map(Stray::Departed),
+        any::<Index>().prop_map(Stray::Held),
     ]
+}
+
+/// An entry of a quarantine's revoke list.
+#[derive(Clone, Debug)]
+enum Revoke {
+    /// A tile accepted (of an active job or not).
+    Accepted(Index),
+    /// Any tile of a known job (mostly not done), or past its end.
+    Any { job: Index, tile: u32 },
+    /// A job that never existed.
+    Unknown(u32),
+}
+
+fn revoke() -> impl Strategy<Value = Revoke> {
+    prop_oneof![
+        4 => any::<Index>().prop_map(Revoke::Accepted),
+        2 => (any::<Index>(), 0u32..40).prop_map(|(job, tile)| Revoke::Any { job, tile }),
+        1 => (0u32..40).prop_map(Revoke::Unknown),
+    ]
+}
+
+/// Round trips and tile times of a `WorkerPace`: none, ordinary, and absurd.
+fn pace() -> impl Strategy<Value = (Millis, Millis)> {
+    let rtt = prop_oneof![
+        2 => Just(0 as Millis),
+        6 => 1..400 as Millis,
+        1 => 1_000..100_000 as Millis,
+        1 => Just(Millis::MAX),
+    ];
+    let tile = prop_oneof![
+        2 => Just(0 as Millis),
+        6 => 1..200 as Millis,
+        1 => Just(Millis::MAX),
+    ];
+    (rtt, tile)
 }
 
 /// Operations of the issue-3 histories: no clock.
@@ -1504,6 +1894,19 @@ fn op() -> impl Strategy<Value = Op> {
             .prop_map(|(worker, tile, worst)| Op::Fail { worker, tile, worst }),
         1 => (any::<Index>(), stray()).prop_map(|(worker, kind)| Op::StrayFail { worker, kind }),
         1 => any::<Index>().prop_map(Op::Cancel),
+        4 => (any::<Index>(), any::<Index>(), prop::bool::weighted(0.4))
+            .prop_map(|(worker, tile, required)| Op::Confirm { worker, tile, required }),
+        1 => (any::<Index>(), stray(), any::<bool>())
+            .prop_map(|(worker, kind, required)| Op::StrayConfirm { worker, kind, required }),
+        2 => (any::<Index>(), prop::option::weighted(0.3, any::<bool>()))
+            .prop_map(|(worker, confirm)| Op::ReturnHeld { worker, confirm }),
+        1 => (
+            prop::bool::weighted(0.25),
+            0..NAMES.len(),
+            prop::collection::vec(revoke(), 0..6),
+        )
+            .prop_map(|(happens, name, revoke)| Op::Quarantine { happens, name, revoke }),
+        1 => (any::<Index>(), pace()).prop_map(|(worker, (rtt, tile))| Op::Pace { worker, rtt, tile }),
     ]
 }
 
@@ -1640,7 +2043,34 @@ impl Farm {
                     .collect();
                 pick(&gone, i)?
             }
+            Stray::Held(i) => {
+                let held: Vec<(JobId, u32)> = self
+                    .jobs
+                    .iter()
+                    .flat_map(|(&j, mj)| mj.held.keys().map(move |&t| (j, t)))
+                    .collect();
+                let (job, tile) = pick(&held, i)?;
+                (pick(&talking, worker)?, job, tile)
+            }
         })
+    }
+
+    /// The revoke list of a quarantine.
+    fn revoke_list(&self, revoke: &[Revoke]) -> Vec<(JobId, u32)> {
+        let accepted: Vec<(JobId, u32)> = self
+            .jobs
+            .iter()
+            .flat_map(|(&j, mj)| mj.accepted.iter().map(move |&t| (j, t)))
+            .collect();
+        let ids: Vec<JobId> = (1..self.next_job.max(2)).collect();
+        revoke
+            .iter()
+            .filter_map(|r| match r {
+                Revoke::Accepted(i) => pick(&accepted, i),
+                Revoke::Any { job, tile } => Some((pick(&ids, job)?, *tile)),
+                &Revoke::Unknown(tile) => Some((self.next_job + 7, tile)),
+            })
+            .collect()
     }
 
     /// The event an operation stands for in the current state, if it has one.
@@ -1741,6 +2171,74 @@ impl Farm {
                     Event::StorageAvailable
                 }
             }
+            Op::Confirm {
+                worker,
+                tile,
+                required,
+            } => {
+                let worker = pick(&busy, worker)?;
+                let (job, tile) = pick(&self.held(worker), tile)?;
+                Event::TileToConfirm {
+                    worker,
+                    job,
+                    tile,
+                    required: *required,
+                }
+            }
+            Op::ReturnHeld { worker, confirm } => {
+                let copies: Vec<(WorkerId, JobId, u32)> = self
+                    .workers
+                    .iter()
+                    .filter(|(_, w)| !w.silent)
+                    .flat_map(|(&id, w)| w.holding.keys().map(move |&(j, t)| (id, j, t)))
+                    .filter(|(_, j, t)| self.jobs[j].held.contains_key(t))
+                    .collect();
+                let (worker, job, tile) = pick(&copies, worker)?;
+                match *confirm {
+                    None => Event::TileDone { worker, job, tile },
+                    Some(required) => Event::TileToConfirm {
+                        worker,
+                        job,
+                        tile,
+                        required,
+                    },
+                }
+            }
+            Op::StrayConfirm {
+                worker,
+                kind,
+                required,
+            } => {
+                let (worker, job, tile) = self.stray(worker, kind)?;
+                Event::TileToConfirm {
+                    worker,
+                    job,
+                    tile,
+                    required: *required,
+                }
+            }
+            Op::Quarantine {
+                happens,
+                name,
+                revoke,
+            } => {
+                if !happens {
+                    return None;
+                }
+                Event::Quarantine {
+                    machine: NAMES[*name].to_string(),
+                    revoke: self.revoke_list(revoke),
+                }
+            }
+            &Op::Pace {
+                ref worker,
+                rtt,
+                tile,
+            } => Event::WorkerPace {
+                worker: pick(&live, worker)?,
+                rtt,
+                tile,
+            },
             Op::Tick(_)
             | Op::StaleTick(_)
             | Op::Pulse
@@ -1838,7 +2336,10 @@ proptest! {
 
 /// The generators reach every case the properties are about: expired leases, late
 /// results, duplicates, drops, blocked machines, workers back under their name,
-/// coordinator pauses, storage outages, jobs failed for each reason (fixed seed).
+/// coordinator pauses, storage outages, jobs failed for each reason; results held,
+/// confirmed, given up and stalled on; quarantines (of machines with live workers,
+/// revoking done tiles, dropping held results, machines back under their name);
+/// credit raised, capped and lowered (fixed seed).
 #[test]
 fn the_histories_exercise_every_feature() {
     let mut runner = TestRunner::deterministic();
@@ -1865,6 +2366,11 @@ fn the_histories_exercise_every_feature() {
     assert!(plain.blocked > 0 && plain.jobs_failed > 0 && plain.jobs_done > 0);
     assert!(plain.failed_by_attempts > 0 && plain.failed_by_losses > 0);
     assert!(plain.rejoined_under_a_name > 0);
+    // Without a clock or speculation no two workers of a machine hold one tile, so no
+    // copy comes from the machine whose result is held.
+    assert!(plain.holds > 0 && plain.confirmed > 0);
+    assert!(plain.quarantines > 0 && plain.revoked > 0 && plain.paces > 0);
+    assert_eq!(plain.given_up, 0, "no timeout, nothing given up");
     assert_eq!(plain.duplicates_assigned + plain.dropped + plain.pauses, 0);
     let Stats {
         accepted_late,
@@ -1882,6 +2388,23 @@ fn the_histories_exercise_every_feature() {
         rejoined_under_a_name,
         pauses,
         while_storage_down,
+        holds,
+        holds_required,
+        confirmed,
+        unconfirming_copies,
+        given_up,
+        done_by_giving_up,
+        stalled_on_confirmation,
+        quarantines,
+        quarantined_live,
+        revoked,
+        revoked_with_copies,
+        holds_dropped,
+        joined_quarantined,
+        paces,
+        credit_raised,
+        credit_capped,
+        credit_lowered_below_holding,
     } = clocked;
     for (what, count) in [
         ("accepted_late", accepted_late),
@@ -1899,6 +2422,23 @@ fn the_histories_exercise_every_feature() {
         ("rejoined_under_a_name", rejoined_under_a_name),
         ("pauses", pauses),
         ("while_storage_down", while_storage_down),
+        ("holds", holds),
+        ("holds_required", holds_required),
+        ("confirmed", confirmed),
+        ("unconfirming_copies", unconfirming_copies),
+        ("given_up", given_up),
+        ("done_by_giving_up", done_by_giving_up),
+        ("stalled_on_confirmation", stalled_on_confirmation),
+        ("quarantines", quarantines),
+        ("quarantined_live", quarantined_live),
+        ("revoked", revoked),
+        ("revoked_with_copies", revoked_with_copies),
+        ("holds_dropped", holds_dropped),
+        ("joined_quarantined", joined_quarantined),
+        ("paces", paces),
+        ("credit_raised", credit_raised),
+        ("credit_capped", credit_capped),
+        ("credit_lowered_below_holding", credit_lowered_below_holding),
     ] {
         assert!(count > 0, "no {what} in the clocked histories");
     }
@@ -2801,6 +3341,7 @@ fn reference_policy(p: &Policy) -> reference::Policy {
         speculate: p.speculate,
         max_losses: p.max_losses,
         stall_timeout: p.stall_timeout,
+        max_credit_per_thread: p.max_credit_per_thread,
         pause_threshold: p.pause_threshold,
         wake_interval: p.wake_interval,
     }
@@ -2834,6 +3375,19 @@ fn reference_event(event: &Event) -> reference::Event {
             tiles,
         },
         Event::TileDone { worker, job, tile } => R::TileDone { worker, job, tile },
+        Event::TileToConfirm {
+            worker,
+            job,
+            tile,
+            required,
+        } => R::TileToConfirm {
+            worker,
+            job,
+            tile,
+            required,
+        },
+        Event::Quarantine { machine, revoke } => R::Quarantine { machine, revoke },
+        Event::WorkerPace { worker, rtt, tile } => R::WorkerPace { worker, rtt, tile },
         Event::TileFailed {
             worker,
             job,
@@ -2858,6 +3412,8 @@ fn from_reference(action: reference::Action) -> Action {
         R::Assign { worker, job, tile } => Action::Assign { worker, job, tile },
         R::AcceptTile { job, tile } => Action::AcceptTile { job, tile },
         R::DuplicateResult { job, tile } => Action::DuplicateResult { job, tile },
+        R::HoldResult { worker, job, tile } => Action::HoldResult { worker, job, tile },
+        R::AcceptHeld { job, tile } => Action::AcceptHeld { job, tile },
         R::CancelOnWorker { worker, job } => Action::CancelOnWorker { worker, job },
         R::ForgetScene { worker, scene } => Action::ForgetScene { worker, scene },
         R::DropWorker { worker } => Action::DropWorker { worker },
@@ -2891,12 +3447,18 @@ impl Twin {
             Event::WorkerJoined { worker, .. }
             | Event::Heartbeat { worker }
             | Event::WorkerLeft { worker }
-            | Event::WorkerDraining { worker } => {
+            | Event::WorkerDraining { worker }
+            | Event::WorkerPace { worker, .. } => {
                 self.workers.insert(worker);
             }
-            Event::TileDone { worker, job, .. } | Event::TileFailed { worker, job, .. } => {
+            Event::TileDone { worker, job, .. }
+            | Event::TileToConfirm { worker, job, .. }
+            | Event::TileFailed { worker, job, .. } => {
                 self.workers.insert(worker);
                 self.jobs.insert(job);
+            }
+            Event::Quarantine { ref revoke, .. } => {
+                self.jobs.extend(revoke.iter().map(|&(job, _)| job));
             }
             Event::JobSubmitted { job, .. } | Event::CancelJob { job } => {
                 self.jobs.insert(job);
@@ -3028,6 +3590,30 @@ enum RawOp {
     StaleTick(Millis),
     /// A long gap: the coordinator was stopped, and its timer fires first.
     Pause(Millis),
+    /// The result of an assignment not yet reported, to be confirmed.
+    Confirm {
+        pick: Index,
+        required: bool,
+    },
+    /// A result to confirm for any (worker, job, tile).
+    StrayConfirm {
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        required: bool,
+    },
+    /// A name is quarantined; revoked: some of the tiles accepted so far, and any.
+    Quarantine {
+        name: usize,
+        accepted: Vec<Index>,
+        any: Vec<(JobId, u32)>,
+    },
+    /// A worker's round trip and tile time (a live worker or any id).
+    Pace {
+        worker: Option<Index>,
+        rtt: Millis,
+        tile: Millis,
+    },
 }
 
 fn raw_op() -> impl Strategy<Value = RawOp> {
@@ -3073,6 +3659,19 @@ fn raw_op() -> impl Strategy<Value = RawOp> {
         6 => (0..3_000 as Millis).prop_map(RawOp::Tick),
         1 => (0..3_000 as Millis).prop_map(RawOp::StaleTick),
         1 => (0..12_000 as Millis).prop_map(RawOp::Pause),
+        5 => (any::<Index>(), any::<bool>())
+            .prop_map(|(pick, required)| RawOp::Confirm { pick, required }),
+        1 => (1 as WorkerId..12, 1 as JobId..10, 0u32..45, any::<bool>()).prop_map(
+            |(worker, job, tile, required)| RawOp::StrayConfirm { worker, job, tile, required }
+        ),
+        1 => (
+            0..NAMES.len(),
+            prop::collection::vec(any::<Index>(), 0..5),
+            prop::collection::vec((1 as JobId..12, 0u32..45), 0..3),
+        )
+            .prop_map(|(name, accepted, any)| RawOp::Quarantine { name, accepted, any }),
+        2 => (prop::option::weighted(0.9, any::<Index>()), pace())
+            .prop_map(|(worker, (rtt, tile))| RawOp::Pace { worker, rtt, tile }),
     ]
 }
 
@@ -3094,6 +3693,7 @@ fn any_policy() -> impl Strategy<Value = Policy> {
             0..15_000 as Millis,
             1..5_000 as Millis,
             0..3_000 as Millis,
+            prop_oneof![0..12u32, Just(64), Just(u32::MAX)],
         ),
     )
         .prop_map(
@@ -3107,7 +3707,7 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                     block_after,
                     speculate,
                 ),
-                (max_losses, stall_timeout, pause_threshold, wake_interval),
+                (max_losses, stall_timeout, pause_threshold, wake_interval, max_credit_per_thread),
             )| Policy {
                 heartbeat_timeout,
                 initial_lease,
@@ -3118,6 +3718,7 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                 speculate,
                 max_losses,
                 stall_timeout,
+                max_credit_per_thread,
                 pause_threshold,
                 wake_interval,
             },
@@ -3142,6 +3743,18 @@ struct RawStats {
     /// Workers back under a name, and gaps beyond the pause threshold.
     rejoins: usize,
     pauses: usize,
+    /// Results held, held results accepted on a confirmation, results from the holding
+    /// machine on a held tile, and held results given up.
+    holds: usize,
+    confirmed: usize,
+    from_holding_machine: usize,
+    given_up: usize,
+    /// Quarantines, and the done tiles of active jobs they revoked.
+    quarantines: usize,
+    revoked: usize,
+    /// `WorkerPace` events, and assignments they made at once.
+    paces: usize,
+    assigned_on_pace: usize,
 }
 
 /// The real scheduler and the reference fed the same raw history.
@@ -3162,6 +3775,10 @@ struct Pair {
     assigned: Vec<(WorkerId, JobId, u32)>,
     /// The latest assignee of each tile.
     assignee: BTreeMap<(JobId, u32), WorkerId>,
+    /// Tiles accepted (their jobs may have ended), and results held, with the name of
+    /// the worker they came from.
+    accepted: Vec<(JobId, u32)>,
+    held: BTreeMap<(JobId, u32), Option<String>>,
     stats: RawStats,
 }
 
@@ -3180,6 +3797,8 @@ impl Pair {
             next_job: 1,
             assigned: Vec::new(),
             assignee: BTreeMap::new(),
+            accepted: Vec::new(),
+            held: BTreeMap::new(),
             stats: RawStats::default(),
         }
     }
@@ -3189,6 +3808,17 @@ impl Pair {
     }
 
     fn step_at(&mut self, now: Millis, event: Event) {
+        if let Event::TileDone { worker, job, tile }
+        | Event::TileToConfirm {
+            worker, job, tile, ..
+        } = event
+        {
+            if let (Some(Some(from)), Some((name, _))) =
+                (self.held.get(&(job, tile)), self.names.get(&worker))
+            {
+                self.stats.from_holding_machine += usize::from(from == name);
+            }
+        }
         let actions = self.real.handle(now, event.clone());
         self.twin.check(&self.real, now, &event, &actions);
         match event {
@@ -3220,6 +3850,21 @@ impl Pair {
             {
                 self.stats.accepted_from_earlier += 1;
             }
+            Event::Quarantine { ref revoke, .. } => {
+                self.stats.quarantines += 1;
+                let done: BTreeSet<(JobId, u32)> = self.accepted.iter().copied().collect();
+                self.stats.revoked += revoke
+                    .iter()
+                    .collect::<BTreeSet<_>>()
+                    .into_iter()
+                    .filter(|&&(job, tile)| done.contains(&(job, tile)) && self.real.is_active(job))
+                    .count();
+                self.accepted.retain(|t| !revoke.contains(t));
+            }
+            Event::WorkerPace { .. } => {
+                self.stats.paces += 1;
+                self.stats.assigned_on_pace += assigns(&actions).len();
+            }
             _ => {}
         }
         self.observe(&actions);
@@ -3239,6 +3884,22 @@ impl Pair {
                     self.stats.drops += 1;
                 }
                 Action::DuplicateResult { .. } => self.stats.duplicates += 1,
+                Action::HoldResult { worker, job, tile } => {
+                    self.stats.holds += 1;
+                    let name = self.names.get(&worker).map(|(n, _)| n.clone());
+                    self.held.insert((job, tile), name);
+                }
+                Action::AcceptTile { job, tile } => {
+                    self.accepted.push((job, tile));
+                    if self.held.remove(&(job, tile)).is_some() {
+                        self.stats.confirmed += 1;
+                    }
+                }
+                Action::AcceptHeld { job, tile } => {
+                    self.accepted.push((job, tile));
+                    self.held.remove(&(job, tile));
+                    self.stats.given_up += 1;
+                }
                 Action::CancelOnWorker { .. } => self.stats.cancels += 1,
                 Action::JobDone { .. } => self.stats.jobs_done += 1,
                 Action::JobFailed { ref message, .. } => {
@@ -3443,6 +4104,59 @@ impl Pair {
                 self.step_at(self.now.saturating_sub(*back), Event::Timeout);
                 return;
             }
+            &RawOp::Confirm { ref pick, required } => {
+                if self.assigned.is_empty() {
+                    return;
+                }
+                let (worker, job, tile) =
+                    self.assigned.swap_remove(pick.index(self.assigned.len()));
+                Event::TileToConfirm {
+                    worker,
+                    job,
+                    tile,
+                    required,
+                }
+            }
+            &RawOp::StrayConfirm {
+                worker,
+                job,
+                tile,
+                required,
+            } => Event::TileToConfirm {
+                worker,
+                job,
+                tile,
+                required,
+            },
+            RawOp::Quarantine {
+                name,
+                accepted,
+                any,
+            } => {
+                let mut revoke: Vec<(JobId, u32)> = accepted
+                    .iter()
+                    .filter_map(|i| pick(&self.accepted, i))
+                    .collect();
+                revoke.extend(any);
+                Event::Quarantine {
+                    machine: NAMES[*name].to_string(),
+                    revoke,
+                }
+            }
+            &RawOp::Pace {
+                ref worker,
+                rtt,
+                tile,
+            } => {
+                let worker = match worker {
+                    Some(i) => match pick(&live, i) {
+                        Some(worker) => worker,
+                        None => return,
+                    },
+                    None => self.next_worker + 3,
+                };
+                Event::WorkerPace { worker, rtt, tile }
+            }
         };
         self.step(event);
     }
@@ -3536,6 +4250,14 @@ fn the_raw_histories_exercise_every_feature() {
         stats.failed_by_stall += s.failed_by_stall;
         stats.rejoins += s.rejoins;
         stats.pauses += s.pauses;
+        stats.holds += s.holds;
+        stats.confirmed += s.confirmed;
+        stats.from_holding_machine += s.from_holding_machine;
+        stats.given_up += s.given_up;
+        stats.quarantines += s.quarantines;
+        stats.revoked += s.revoked;
+        stats.paces += s.paces;
+        stats.assigned_on_pace += s.assigned_on_pace;
     }
     println!("{stats:?}");
     let RawStats {
@@ -3550,6 +4272,14 @@ fn the_raw_histories_exercise_every_feature() {
         failed_by_stall,
         rejoins,
         pauses,
+        holds,
+        confirmed,
+        from_holding_machine,
+        given_up,
+        quarantines,
+        revoked,
+        paces,
+        assigned_on_pace,
     } = stats;
     for (what, count) in [
         ("reassigned", reassigned),
@@ -3563,6 +4293,14 @@ fn the_raw_histories_exercise_every_feature() {
         ("failed_by_stall", failed_by_stall),
         ("rejoins", rejoins),
         ("pauses", pauses),
+        ("holds", holds),
+        ("confirmed", confirmed),
+        ("from_holding_machine", from_holding_machine),
+        ("given_up", given_up),
+        ("quarantines", quarantines),
+        ("revoked", revoked),
+        ("paces", paces),
+        ("assigned_on_pace", assigned_on_pace),
     ] {
         assert!(count > 0, "no {what} in the raw histories");
     }

@@ -41,6 +41,9 @@ pub struct Policy {
     pub max_losses: u32,
     /// How long a job may stay stalled (no connected worker may take any waiting tile).
     pub stall_timeout: Millis,
+    /// The most tiles a worker may hold per thread (at least 2), however long its round
+    /// trip.
+    pub max_credit_per_thread: u32,
     /// A longer gap between two calls is a pause, counted as one wake interval.
     pub pause_threshold: Millis,
     /// The longest gap between calls the daemon is told to leave.
@@ -59,6 +62,7 @@ impl Default for Policy {
             speculate: true,
             max_losses: 8,
             stall_timeout: 30_000,
+            max_credit_per_thread: 64,
             pause_threshold: 2_000,
             wake_interval: 1_000,
         }
@@ -100,10 +104,31 @@ pub enum Event {
         scene: SceneHash,
         tiles: u32,
     },
+    /// A result that counts: alone, or as the confirmation of a result held from
+    /// another machine.
     TileDone {
         worker: WorkerId,
         job: JobId,
         tile: u32,
+    },
+    /// A result to be held until another machine returns the same.
+    TileToConfirm {
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        required: bool,
+    },
+    /// The machine gets nothing more; its tiles and held results go back, and so do
+    /// the revoked done tiles.
+    Quarantine {
+        machine: String,
+        revoke: Vec<(JobId, u32)>,
+    },
+    /// The worker's round trip and time per tile: its credit follows.
+    WorkerPace {
+        worker: WorkerId,
+        rtt: Millis,
+        tile: Millis,
     },
     /// The worker could not render the tile.
     TileFailed {
@@ -141,6 +166,17 @@ pub enum Action {
     },
     /// A second result for a tile already accepted: it must equal the first.
     DuplicateResult {
+        job: JobId,
+        tile: u32,
+    },
+    /// Keep this result aside until another machine's equals it.
+    HoldResult {
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+    },
+    /// No ready machine may confirm the held result: accept it as it is.
+    AcceptHeld {
         job: JobId,
         tile: u32,
     },
@@ -196,6 +232,9 @@ struct Job {
     stalled_since: Option<Millis>,
     /// Holders of tiles already accepted, whose copies are still to come.
     late_copies: BTreeSet<(u32, WorkerId)>,
+    /// Tiles whose result is held: the machine it came from, and whether the
+    /// confirmation is required.
+    held: BTreeMap<u32, (Machine, bool)>,
     /// Measured tile times (assignment to result).
     measured: u32,
     total_time: Millis,
@@ -217,6 +256,7 @@ impl Job {
             losses: BTreeMap::new(),
             stalled_since: None,
             late_copies: BTreeSet::new(),
+            held: BTreeMap::new(),
             measured: 0,
             total_time: 0,
             slowest: 0,
@@ -246,11 +286,37 @@ impl Job {
             .is_some_and(|(_, on)| on.contains(machine))
     }
 
+    /// Whether the tile holds a result from the machine (which may then not render it).
+    fn held_from(&self, tile: u32, machine: &Machine) -> bool {
+        self.held.get(&tile).is_some_and(|(m, _)| m == machine)
+    }
+
+    /// Whether a worker of the machine may render the tile: it is not blocked from the
+    /// job, the tile did not fail on it, and holds no result of it.
+    fn open_to(&self, tile: u32, machine: &Machine) -> bool {
+        !self.blocked.contains(machine)
+            && !self.failed_on(tile, machine)
+            && !self.held_from(tile, machine)
+    }
+
+    /// Puts the tile at the head of the queue if no live lease is on it and it is not
+    /// there already. Returns whether it was put back.
+    fn requeue(&mut self, tile: u32) -> bool {
+        if self.live_leases(tile) == 0 && !self.waiting.contains(&tile) {
+            self.waiting.push_front(tile);
+            true
+        } else {
+            false
+        }
+    }
+
     /// The first waiting tile this worker may take: one that has not failed on its
-    /// machine and that it does not still hold under an expired lease.
+    /// machine, holds no result from it, and that it does not still hold under an
+    /// expired lease.
     fn take_waiting_for(&mut self, worker: WorkerId, machine: &Machine) -> Option<u32> {
         let pos = self.waiting.iter().position(|t| {
             !self.failed_on(*t, machine)
+                && !self.held_from(*t, machine)
                 && self
                     .in_flight
                     .get(t)
@@ -268,6 +334,7 @@ impl Job {
                 ls.iter().all(|l| l.worker != worker)
                     && ls.iter().filter(|l| !l.expired).count() == 1
                     && !self.failed_on(**t, machine)
+                    && !self.held_from(**t, machine)
             })
             .min_by_key(|(t, ls)| (ls.iter().map(|l| l.started).min(), **t))
             .map(|(t, _)| *t)
@@ -305,6 +372,7 @@ fn name_list(machines: &[&Machine]) -> String {
 
 struct Worker {
     machine: Machine,
+    threads: u32,
     credit: usize,
     holding: BTreeSet<(JobId, u32)>,
     scenes: BTreeSet<SceneHash>,
@@ -324,6 +392,8 @@ pub struct Scheduler {
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
     workers: BTreeMap<WorkerId, Worker>,
+    /// Machines that get no tile again.
+    quarantined: BTreeSet<Machine>,
 }
 
 impl Scheduler {
@@ -347,6 +417,7 @@ impl Scheduler {
             Event::Timeout => {
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.give_up_confirmations(&mut actions);
                 self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
             }
@@ -355,14 +426,19 @@ impl Scheduler {
                 threads,
                 machine,
             } => {
+                let machine = machine.map_or(Machine::Connection(worker), Machine::Named);
+                // A quarantined machine's worker is connected but, like a draining
+                // one, never given a tile.
+                let draining = self.quarantined.contains(&machine);
                 self.workers.insert(
                     worker,
                     Worker {
-                        machine: machine.map_or(Machine::Connection(worker), Machine::Named),
+                        machine,
+                        threads: threads.max(1),
                         credit: 2 * threads.max(1) as usize,
                         holding: BTreeSet::new(),
                         scenes: BTreeSet::new(),
-                        draining: false,
+                        draining,
                         last_seen: self.now,
                     },
                 );
@@ -400,10 +476,41 @@ impl Scheduler {
             }
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
-                self.tile_done(worker, job, tile, &mut actions);
-                // Holders of a finished job's last copies are filled at the next event
-                // that fills everyone.
-                self.fill(worker, &mut actions);
+                if self.tile_done(worker, job, tile, &mut actions) {
+                    // A copy from the machine whose result the tile holds put it back
+                    // in the queue: everyone may take it.
+                    self.fill_all(&mut actions);
+                } else {
+                    // Holders of a finished job's last copies are filled at the next
+                    // event that fills everyone.
+                    self.fill(worker, &mut actions);
+                }
+            }
+            Event::TileToConfirm {
+                worker,
+                job,
+                tile,
+                required,
+            } => {
+                self.seen(worker);
+                self.tile_to_confirm(worker, job, tile, required, &mut actions);
+                self.fill_all(&mut actions);
+            }
+            Event::Quarantine { machine, revoke } => {
+                self.quarantine(Machine::Named(machine), &revoke);
+                self.fill_all(&mut actions);
+            }
+            Event::WorkerPace { worker, rtt, tile } => {
+                let cap = u128::from(self.policy.max_credit_per_thread.max(2));
+                if let Some(w) = self.workers.get_mut(&worker) {
+                    // In u128, where nothing overflows: threads × (2 + ⌈rtt / tile⌉),
+                    // at most threads × cap.
+                    let threads = u128::from(w.threads);
+                    let cover = u128::from(rtt).div_ceil(u128::from(tile.max(1)));
+                    let credit = (threads * (2 + cover)).min(threads * cap);
+                    w.credit = usize::try_from(credit).expect("within the cap");
+                    self.fill(worker, &mut actions);
+                }
             }
             Event::TileFailed {
                 worker,
@@ -514,11 +621,7 @@ impl Scheduler {
         let now = self.now;
         let mut failed = Vec::new();
         for (&id, job) in &mut self.jobs {
-            let takeable = |t: u32| {
-                ready
-                    .iter()
-                    .any(|m| !job.blocked.contains(m) && !job.failed_on(t, m))
-            };
+            let takeable = |t: u32| ready.iter().any(|m| job.open_to(t, m));
             let stalled = !ready.is_empty()
                 && !job.waiting.is_empty()
                 && !job.waiting.iter().any(|&t| takeable(t));
@@ -533,7 +636,35 @@ impl Scheduler {
                     ready.iter().partition(|m| job.failed_on(tile, m));
                 let head = format!("no connected worker may render tile {tile}");
                 let k = self.policy.block_after;
-                let message = if blocked.is_empty() {
+                let holder = job.held.get(&tile).map(|(m, _)| m);
+                let message = if let Some(holder) = holder.filter(|m| blocked.contains(m)) {
+                    // The machine its result came from: neither failed nor blocked.
+                    let others: Vec<&Machine> =
+                        blocked.iter().copied().filter(|m| *m != holder).collect();
+                    let rest = if failed_here.is_empty() && others.is_empty() {
+                        "no other machine is connected".to_string()
+                    } else if others.is_empty() {
+                        format!("it failed on the others ({})", name_list(&failed_here))
+                    } else if failed_here.is_empty() {
+                        format!(
+                            "the others are blocked from the job after failing {k} of its tiles \
+                             ({})",
+                            name_list(&others)
+                        )
+                    } else {
+                        format!(
+                            "it failed on some of the others ({}) and the rest are blocked from \
+                             the job after failing {k} of its tiles ({})",
+                            name_list(&failed_here),
+                            name_list(&others)
+                        )
+                    };
+                    format!(
+                        "{head}: its result from {} awaits confirmation by another machine, and \
+                         {rest}",
+                        name_list(&[holder])
+                    )
+                } else if blocked.is_empty() {
                     format!(
                         "{head}: it failed on every one of them ({})",
                         name_list(&failed_here)
@@ -714,21 +845,43 @@ impl Scheduler {
         Some(lease)
     }
 
-    fn tile_done(&mut self, worker: WorkerId, job_id: JobId, tile: u32, actions: &mut Vec<Action>) {
+    /// The machine a worker counts as (its connection, once it has left).
+    fn machine_of(&self, worker: WorkerId) -> Machine {
+        self.workers
+            .get(&worker)
+            .map_or(Machine::Connection(worker), |w| w.machine.clone())
+    }
+
+    /// A result. Returns whether the tile went back to the queue (a copy from the
+    /// machine whose result it holds, which only frees the slot).
+    fn tile_done(
+        &mut self,
+        worker: WorkerId,
+        job_id: JobId,
+        tile: u32,
+        actions: &mut Vec<Action>,
+    ) -> bool {
+        let machine = self.machine_of(worker);
         let Some(job) = self.jobs.get_mut(&job_id) else {
-            return;
+            return false;
         };
         if job.late_copies.remove(&(tile, worker)) {
             if let Some(w) = self.workers.get_mut(&worker) {
                 w.holding.remove(&(job_id, tile));
             }
             actions.push(Action::DuplicateResult { job: job_id, tile });
-            return;
+            return false;
+        }
+        if job.held_from(tile, &machine) {
+            // A machine does not confirm its own result.
+            return self.release(worker, job_id, tile).is_some()
+                && self.jobs.get_mut(&job_id).expect("released").requeue(tile);
         }
         let Some(lease) = self.release(worker, job_id, tile) else {
-            return;
+            return false;
         };
         let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+        job.held.remove(&tile);
         let took = self.now.saturating_sub(lease.started);
         job.measured += 1;
         job.total_time += took;
@@ -757,6 +910,136 @@ impl Scheduler {
             }
             actions.push(Action::JobDone { job: job_id });
             self.forget_unused_scenes(actions);
+        }
+        false
+    }
+
+    /// A result to be confirmed by another machine. On a tile holding another machine's
+    /// result it is the confirmation; on one holding this machine's, or from a
+    /// straggler of an accepted tile, it counts as a `TileDone`. Otherwise, from a
+    /// holder: the result is held and the tile waits (unless someone else renders it).
+    fn tile_to_confirm(
+        &mut self,
+        worker: WorkerId,
+        job_id: JobId,
+        tile: u32,
+        required: bool,
+        actions: &mut Vec<Action>,
+    ) {
+        let machine = self.machine_of(worker);
+        let Some(job) = self.jobs.get(&job_id) else {
+            return;
+        };
+        if job.held.contains_key(&tile) || job.late_copies.contains(&(tile, worker)) {
+            self.tile_done(worker, job_id, tile, actions);
+            return;
+        }
+        if self.release(worker, job_id, tile).is_none() {
+            return;
+        }
+        let job = self.jobs.get_mut(&job_id).expect("release checked the job");
+        job.held.insert(tile, (machine, required));
+        actions.push(Action::HoldResult {
+            worker,
+            job: job_id,
+            tile,
+        });
+        job.requeue(tile);
+    }
+
+    /// The machine's workers get nothing more and give back what they hold (no loss),
+    /// its held results are dropped, and the revoked done tiles of active jobs wait
+    /// again; their late copies' holders hold them again, under leases that ran out.
+    fn quarantine(&mut self, machine: Machine, revoke: &[(JobId, u32)]) {
+        self.quarantined.insert(machine.clone());
+        let ids: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.machine == machine)
+            .map(|(&id, _)| id)
+            .collect();
+        for worker in ids {
+            let w = self.workers.get_mut(&worker).expect("listed above");
+            w.draining = true;
+            let holding = std::mem::take(&mut w.holding);
+            for (job, tile) in holding {
+                if self.release(worker, job, tile).is_some() {
+                    self.jobs.get_mut(&job).expect("released").requeue(tile);
+                } else if let Some(j) = self.jobs.get_mut(&job) {
+                    j.late_copies.remove(&(tile, worker));
+                }
+            }
+        }
+        self.end_stalls_without_workers();
+        for job in self.jobs.values_mut() {
+            job.held.retain(|_, (m, _)| *m != machine);
+        }
+        let now = self.now;
+        for &(job_id, tile) in revoke {
+            let Some(job) = self.jobs.get_mut(&job_id) else {
+                continue;
+            };
+            if job.done.get(tile as usize) != Some(&true) {
+                continue;
+            }
+            job.done[tile as usize] = false;
+            job.remaining += 1;
+            let copies: Vec<WorkerId> = job
+                .late_copies
+                .iter()
+                .filter(|(t, _)| *t == tile)
+                .map(|&(_, w)| w)
+                .collect();
+            for worker in copies {
+                job.late_copies.remove(&(tile, worker));
+                job.in_flight.entry(tile).or_default().push(Lease {
+                    worker,
+                    started: now,
+                    deadline: now,
+                    expired: true,
+                });
+            }
+            job.requeue(tile);
+        }
+    }
+
+    /// At a timeout: accepts, in job then tile order, the held results of optional
+    /// confirmations that no live lease is on and that no ready machine but their own
+    /// may give (each is blocked from the job or failed the tile). Holders under
+    /// expired leases become late copies; a job with nothing left is done.
+    fn give_up_confirmations(&mut self, actions: &mut Vec<Action>) {
+        let ready = self.ready();
+        let mut finished = Vec::new();
+        for (&id, job) in &mut self.jobs {
+            let given_up: Vec<u32> = job
+                .held
+                .iter()
+                .filter(|&(&t, (from, required))| {
+                    !required
+                        && job.live_leases(t) == 0
+                        && !ready
+                            .iter()
+                            .any(|m| m != from && !job.blocked.contains(m) && !job.failed_on(t, m))
+                })
+                .map(|(&t, _)| t)
+                .collect();
+            for tile in given_up {
+                job.held.remove(&tile);
+                job.waiting.retain(|t| *t != tile);
+                for other in job.in_flight.remove(&tile).into_iter().flatten() {
+                    job.late_copies.insert((tile, other.worker));
+                }
+                job.done[tile as usize] = true;
+                job.remaining -= 1;
+                actions.push(Action::AcceptHeld { job: id, tile });
+            }
+            if job.remaining == 0 {
+                finished.push(id);
+            }
+        }
+        for id in finished {
+            self.end_job(id, actions);
+            actions.push(Action::JobDone { job: id });
         }
     }
 
