@@ -912,17 +912,20 @@ fn up_leaves_no_process_behind() {
 }
 
 // ---------------------------------------------------------------------------------
-// A farm with a shared secret.
+// A farm with tokens.
 // ---------------------------------------------------------------------------------
 
 #[test]
-fn a_farm_with_a_token_admits_only_peers_that_prove_it() {
+fn a_farm_with_tokens_admits_only_peers_that_prove_them() {
     let dir = TempDir::new().expect("cannot create a temporary directory");
-    let token = dir.path().join("token");
+    let token = dir.path().join("client-token");
     std::fs::write(&token, "correct horse\n").unwrap();
+    let worker_token = dir.path().join("worker-token");
+    std::fs::write(&worker_token, "  tr0ub4dor &3\n").unwrap();
     let wrong = dir.path().join("wrong");
     std::fs::write(&wrong, "battery staple\n").unwrap();
     let token_arg = path_arg(&token);
+    let worker_token_arg = path_arg(&worker_token);
 
     // Without a token, only loopback addresses are served (nothing is bound here).
     let refused = common::tessera(
@@ -939,8 +942,10 @@ fn a_farm_with_a_token_admits_only_peers_that_prove_it() {
             "coordinator",
             "--listen",
             "127.0.0.1:0",
-            "--token-file",
+            "--client-token-file",
             &token_arg,
+            "--worker-token-file",
+            &worker_token_arg,
         ])
         .arg("--data")
         .arg(dir.path().join("data"))
@@ -997,7 +1002,7 @@ fn a_farm_with_a_token_admits_only_peers_that_prove_it() {
             "--name",
             "trusted",
         ])
-        .env("TESSERA_TOKEN", "correct horse")
+        .env("TESSERA_TOKEN", "tr0ub4dor &3")
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::null())

@@ -285,8 +285,8 @@ fn http_request(addr: &str) -> String {
     )
 }
 
-/// A worker that answers its first tile with the wrong number of pixels: its
-/// connection is closed; the job is not harmed.
+/// A worker that renders the canary honestly, then answers its first tile with the
+/// wrong number of pixels: its connection is closed; the job is not harmed.
 fn lying_worker(addr: &str) -> String {
     let what = "a worker sending a malformed tile";
     let mut stream = connect(addr);
@@ -304,6 +304,11 @@ fn lying_worker(addr: &str) -> String {
         let frame = read_frame(&mut stream, what);
         match protocol::wire::decode::<ToWorker>(&frame) {
             Ok(ToWorker::Render { job, tile, .. }) => break (job, tile),
+            Ok(ToWorker::Canary { scene, renders }) => {
+                let images = verify::canary::render(&scene, &renders);
+                let answer = FromWorker::CanaryDone { images };
+                send_frame(&mut stream, &protocol::wire::encode(&answer));
+            }
             Ok(_) => {}
             Err(e) => panic!("{what}: not a ToWorker message: {e}"),
         }

@@ -155,7 +155,7 @@ impl Default for Policy {
             speculate: true,
             max_losses: 8,
             stall_timeout: 30_000,
-            max_credit_per_thread: 64,
+            max_credit_per_thread: 256,
             pause_threshold: 2_000,
             wake_interval: 1_000,
         }
@@ -1031,6 +1031,11 @@ impl Scheduler {
     /// Tiles the worker holds.
     pub fn held_by(&self, worker: WorkerId) -> usize {
         self.workers.get(&worker).map_or(0, |w| w.holding.len())
+    }
+
+    /// Tiles the worker may hold at once.
+    pub fn credit_of(&self, worker: WorkerId) -> usize {
+        self.workers.get(&worker).map_or(0, |w| w.credit)
     }
 
     /// The scheduler's own clock (the daemon's less its pauses), for the simulation's
@@ -2527,7 +2532,7 @@ mod tests {
                 tile: 1,
             },
         );
-        assert_eq!(s.held_by(1), 2 * 64, "capped per thread");
+        assert_eq!(s.held_by(1), 2 * 256, "capped per thread");
         s.handle(
             3,
             Event::WorkerPace {
@@ -2536,7 +2541,7 @@ mod tests {
                 tile: 20,
             },
         );
-        assert_eq!(s.held_by(1), 128, "a smaller credit takes nothing back");
+        assert_eq!(s.held_by(1), 512, "a smaller credit takes nothing back");
     }
 
     /// An optional confirmation given up while another machine still holds the tile
