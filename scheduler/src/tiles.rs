@@ -73,7 +73,9 @@
 //! where time alone acts (silent workers are dropped, leases run out, stalled jobs
 //! fail). [`Scheduler::next_deadline`] tells when the next call is due: the earliest
 //! heartbeat expiry, lease deadline or stall timeout, and never later than the last
-//! call plus [`Policy::wake_interval`] while any worker is connected.
+//! `Timeout` (or the first call) plus [`Policy::wake_interval`] while any worker is
+//! connected: a farm whose workers talk more often than that still gets its timeouts,
+//! which is where stalls are noticed and unconfirmable results accepted.
 //!
 //! **Pauses are not failures.** Because a running daemon calls at least every
 //! `wake_interval`, a gap between two calls longer than [`Policy::pause_threshold`]
@@ -737,6 +739,9 @@ pub struct Scheduler {
     now: Millis,
     /// The daemon's clock at the last call, once there was one.
     wall: Option<Millis>,
+    /// The scheduler's clock at the last `Timeout` (or the first call): the next one is
+    /// due a wake interval later at the latest.
+    last_timeout: Millis,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
     /// The active jobs in the order a free slot serves them ([`Job::rank`]).
@@ -792,6 +797,7 @@ impl Scheduler {
         let mut actions = Vec::new();
         match event {
             Event::Timeout => {
+                self.last_timeout = self.now;
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
                 self.give_up_confirmations(&mut actions);
@@ -946,9 +952,10 @@ impl Scheduler {
     /// when nothing waits on time (no worker connected and no lease live).
     ///
     /// The earliest of: a worker's heartbeat timeout, a lease's deadline, a stalled
-    /// job's timeout, and the last call plus the wake interval while a worker is
-    /// connected or a lease live (the regular wake-up that tells a pause of the daemon
-    /// from a quiet farm). Never earlier than the last call.
+    /// job's timeout, and the last `Timeout` (or the first call) plus the wake interval
+    /// while a worker is connected or a lease live (the regular wake-up that tells a
+    /// pause of the daemon from a quiet farm, and that no stream of other events can
+    /// put off). Never earlier than the last call.
     pub fn next_deadline(&self) -> Option<Millis> {
         let wall = self.wall?;
         let mut at: Option<Millis> = None;
@@ -967,7 +974,7 @@ impl Scheduler {
             }
         }
         if waiting {
-            sooner(self.now + self.policy.wake());
+            sooner(self.last_timeout + self.policy.wake());
         }
         at.map(|t| wall + t.saturating_sub(self.now))
     }
@@ -1051,6 +1058,7 @@ impl Scheduler {
             None => {
                 self.now = self.now.max(wall);
                 self.wall = Some(wall);
+                self.last_timeout = self.now;
             }
             Some(last) => {
                 let wall = wall.max(last);
@@ -1925,11 +1933,20 @@ mod tests {
         submit(&mut s, 1, 0, SCENE_A, 1);
         assert_eq!(s.next_deadline(), None, "a job without workers just waits");
         join_at(&mut s, 100, 1, 1, None);
-        assert_eq!(s.next_deadline(), Some(1_100));
-        s.handle(1_100, Event::Timeout);
+        assert_eq!(
+            s.next_deadline(),
+            Some(1_000),
+            "a wake interval after the first call"
+        );
+        s.handle(1_000, Event::Timeout);
         assert_eq!(s.next_deadline(), Some(1_600), "the lease of tile 0");
         s.handle(1_600, Event::Timeout);
         assert_eq!(s.next_deadline(), Some(2_600));
+        // Messages more often than the wake interval do not put the timeout off.
+        for now in (1_800..=2_400).step_by(200) {
+            s.handle(now, Event::Heartbeat { worker: 1 });
+            assert_eq!(s.next_deadline(), Some(2_600), "after a heartbeat at {now}");
+        }
         s.handle(2_600, Event::Heartbeat { worker: 1 });
         s.handle(2_600, Event::WorkerLeft { worker: 1 });
         assert_eq!(s.next_deadline(), None);

@@ -413,6 +413,8 @@ struct Farm {
     /// The daemon's clock at the last event, and the scheduler's own clock.
     last: Option<Millis>,
     clock: Millis,
+    /// The scheduler's clock at the last `Timeout`, or at the first event.
+    last_timeout: Millis,
     storage_down: bool,
     workers: BTreeMap<WorkerId, ModelWorker>,
     /// Workers being dropped by the event at hand, until their `DropWorker` is replayed:
@@ -455,6 +457,7 @@ impl Farm {
             now: 0,
             last: None,
             clock: 0,
+            last_timeout: 0,
             storage_down: false,
             workers: BTreeMap::new(),
             dropping: BTreeMap::new(),
@@ -917,7 +920,7 @@ impl Farm {
             }
         }
         if !self.workers.is_empty() || live_lease {
-            times.push(self.clock + wake(&self.policy));
+            times.push(self.last_timeout + wake(&self.policy));
         }
         let at = times.into_iter().min()?;
         Some(last + at.saturating_sub(self.clock))
@@ -935,7 +938,10 @@ impl Farm {
         // The scheduler's clock: the gaps between events, but a gap beyond the pause
         // threshold counts as one wake interval.
         match self.last {
-            None => self.clock = self.clock.max(now),
+            None => {
+                self.clock = self.clock.max(now);
+                self.last_timeout = self.clock;
+            }
             Some(last) => {
                 let gap = now.max(last) - last;
                 if gap > self.policy.pause_threshold {
@@ -967,6 +973,7 @@ impl Farm {
         }
         match event {
             Event::Timeout => {
+                self.last_timeout = self.clock;
                 let (clock, timeout) = (self.clock, self.policy.heartbeat_timeout);
                 expect.drops = self
                     .workers

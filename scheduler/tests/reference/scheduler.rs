@@ -388,6 +388,8 @@ pub struct Scheduler {
     now: Millis,
     /// The daemon's clock at the last call.
     wall: Option<Millis>,
+    /// The scheduler's clock at the last `Timeout`, or at the first call.
+    last_timeout: Millis,
     storage_down: bool,
     /// Active jobs (queued or running), by id; ids grow with submission order.
     jobs: BTreeMap<JobId, Job>,
@@ -415,6 +417,7 @@ impl Scheduler {
         let mut actions = Vec::new();
         match event {
             Event::Timeout => {
+                self.last_timeout = self.now;
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
                 self.give_up_confirmations(&mut actions);
@@ -552,7 +555,8 @@ impl Scheduler {
     }
 
     /// The earliest of every heartbeat timeout, live lease deadline and stall timeout,
-    /// and the last call plus the wake interval while a worker or a live lease exists.
+    /// and the last `Timeout` (or the first call) plus the wake interval while a worker
+    /// or a live lease exists.
     pub fn next_deadline(&self) -> Option<Millis> {
         let wall = self.wall?;
         let mut times: Vec<Millis> = Vec::new();
@@ -570,7 +574,7 @@ impl Scheduler {
             }
         }
         if !self.workers.is_empty() || live_lease {
-            times.push(self.now + self.policy.wake());
+            times.push(self.last_timeout + self.policy.wake());
         }
         let at = times.into_iter().min()?;
         Some(wall + at.saturating_sub(self.now))
@@ -582,6 +586,7 @@ impl Scheduler {
             None => {
                 self.now = self.now.max(wall);
                 self.wall = Some(wall);
+                self.last_timeout = self.now;
             }
             Some(last) => {
                 let wall = wall.max(last);
