@@ -338,4 +338,17 @@ pub enum FromWorker {
     },
     /// The answer to [`ToWorker::Ping`].
     Pong { token: u64 },
+    /// A rendered tile like [`FromWorker::TileDone`], its RGB8 pixels compressed as
+    /// one zstd frame (about 12 to 15 times smaller for rendered images: what lets
+    /// dozens of workers share a 100 Mbit/s link). It must decompress to exactly the
+    /// tile's width × height × 3 bytes.
+    TileDoneZstd {
+        job: JobId,
+        tile: u32,
+        zstd: Vec<u8>,
+        rays: u64,
+        render_us: u64,
+        samples: u64,
+        error_sq_sum: f64,
+    },
 }

@@ -25,9 +25,9 @@ use std::fmt::Debug;
 use bytes::{BufMut, BytesMut};
 use proptest::prelude::*;
 use protocol::{
-    wire, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError, JobSpec,
-    JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings, TileRect, ToWorker,
-    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
+    wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError,
+    JobSpec, JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings, TileRect,
+    ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
     PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
@@ -203,6 +203,16 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
         any::<u64>().prop_map(|job| ToWorker::Cancel { job }),
         any::<[u8; 32]>().prop_map(|hash| ToWorker::ForgetScene { hash }),
         Just(ToWorker::Heartbeat),
+        (
+            text(),
+            prop::collection::vec(
+                (settings(), rect()).prop_map(|(settings, rect)| CanaryRender { settings, rect }),
+                0..5
+            )
+        )
+            .prop_map(|(scene, renders)| ToWorker::Canary { scene, renders }),
+        text().prop_map(|reason| ToWorker::Refuse { reason }),
+        any::<u64>().prop_map(|token| ToWorker::Ping { token }),
     ]
 }
 
@@ -232,6 +242,34 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
             .prop_map(|(job, tile, message)| { FromWorker::TileFailed { job, tile, message } }),
         Just(FromWorker::Draining),
         Just(FromWorker::Heartbeat),
+        prop_oneof![
+            prop::collection::vec(blob(), 0..4).prop_map(Ok),
+            text().prop_map(Err),
+        ]
+        .prop_map(|images| FromWorker::CanaryDone { images }),
+        any::<u64>().prop_map(|token| FromWorker::Pong { token }),
+        (
+            any::<u64>(),
+            any::<u32>(),
+            blob(),
+            any::<u64>(),
+            any::<u64>(),
+            any::<u64>(),
+            rate()
+        )
+            .prop_map(
+                |(job, tile, zstd, rays, render_us, samples, error_sq_sum)| {
+                    FromWorker::TileDoneZstd {
+                        job,
+                        tile,
+                        zstd,
+                        rays,
+                        render_us,
+                        samples,
+                        error_sq_sum,
+                    }
+                }
+            ),
     ]
 }
 

@@ -1,8 +1,9 @@
 //! A TCP relay on 127.0.0.1 between a worker and its coordinator that corrupts some
-//! tile results on the way: of the frames the worker sends, every `every`th
-//! `FromWorker::TileDone` (variant 0, so its body starts with four zero bytes), the
-//! first included, has one byte of its pixels flipped, near the end of the frame (the
-//! pixels are followed by four 8-byte fields). Everything else passes unchanged, the
+//! tile results on the way: of the frames the worker sends, every `every`th tile result
+//! (`FromWorker::TileDone`, variant 0, or `TileDoneZstd`, variant 6, whose bodies start
+//! with that index as four little-endian bytes), the first included, has one byte of
+//! its pixels (raw or compressed) flipped, near the end of the frame (the pixels are
+//! followed by four 8-byte fields). Everything else passes unchanged, the
 //! handshake included. Dropping it closes every connection through it.
 
 use std::io::{ErrorKind, Read, Write};
@@ -138,8 +139,10 @@ fn frames(mut from: TcpStream, mut to: TcpStream, every: u64, shared: &Shared) {
         if from.read_exact(&mut body).is_err() {
             break;
         }
-        // A TileDone: variant 0, job, tile, the pixels' length, pixels, 32 more bytes.
-        let tile_done = len > 4 + 8 + 4 + 8 + AFTER_PIXELS && body[..4] == [0, 0, 0, 0];
+        // A tile result: variant 0 or 6, job, tile, the pixels' length, pixels (raw or
+        // compressed), 32 more bytes.
+        let tile_done = len > 4 + 8 + 4 + 8 + AFTER_PIXELS
+            && (body[..4] == [0, 0, 0, 0] || body[..4] == [6, 0, 0, 0]);
         if tile_done {
             let nth = shared.tile_frames.fetch_add(1, Ordering::SeqCst);
             if nth.is_multiple_of(every) {

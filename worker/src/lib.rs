@@ -292,15 +292,7 @@ impl Session {
                         std::thread::sleep(started.elapsed().mul_f64(factor - 1.0));
                     }
                     let message = match rendered {
-                        Ok(image) => FromWorker::TileDone {
-                            job,
-                            tile,
-                            rgb: image.rgb,
-                            rays: image.rays,
-                            render_us: started.elapsed().as_micros() as u64,
-                            samples: image.samples,
-                            error_sq_sum: image.error_sq_sum,
-                        },
+                        Ok(image) => tile_result(job, tile, image, started.elapsed()),
                         Err(message) => {
                             warn!(job, tile, error = %message, "cannot render tile");
                             FromWorker::TileFailed { job, tile, message }
@@ -311,6 +303,36 @@ impl Session {
             }
         }
         Ok(())
+    }
+}
+
+/// The level tile results are compressed at: the fastest that still gets nearly all of
+/// zstd's gain on rendered tiles (docs/performance.md).
+const ZSTD_LEVEL: i32 = 1;
+
+/// A rendered tile's message: its pixels as one zstd frame.
+fn tile_result(job: JobId, tile: u32, image: render::TileImage, took: Duration) -> FromWorker {
+    let render_us = took.as_micros() as u64;
+    match zstd::bulk::compress(&image.rgb, ZSTD_LEVEL) {
+        Ok(zstd) => FromWorker::TileDoneZstd {
+            job,
+            tile,
+            zstd,
+            rays: image.rays,
+            render_us,
+            samples: image.samples,
+            error_sq_sum: image.error_sq_sum,
+        },
+        // Only when zstd cannot allocate its context: the pixels go as they are.
+        Err(_) => FromWorker::TileDone {
+            job,
+            tile,
+            rgb: image.rgb,
+            rays: image.rays,
+            render_us,
+            samples: image.samples,
+            error_sq_sum: image.error_sq_sum,
+        },
     }
 }
 

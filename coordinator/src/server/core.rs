@@ -19,7 +19,6 @@ use scheduler::lifecycle::{self, Lifecycle, Phase, Reply};
 use scheduler::{Action, Event, Millis, Scheduler};
 use tokio::sync::{mpsc, oneshot};
 use tracing::{error, info, warn};
-use verify::spot::WrongPixel;
 
 use super::persistence::Write;
 use super::verification::Verifier;
@@ -185,11 +184,28 @@ pub struct CheckPlan {
 }
 
 impl CheckPlan {
+    /// The pixels of a compressed result: exactly the tile's bytes, or why not. The
+    /// output is bounded by the tile's size, so a small frame cannot expand into a
+    /// large allocation.
+    pub fn decompress(&self, zstd: &[u8]) -> Result<Vec<u8>, String> {
+        let expected = self.rect.width as usize * self.rect.height as usize * 3;
+        match zstd::bulk::decompress(zstd, expected) {
+            Ok(rgb) if rgb.len() == expected => Ok(rgb),
+            Ok(rgb) => Err(format!(
+                "its compressed pixels hold {} bytes, not the tile's {expected}",
+                rgb.len()
+            )),
+            Err(e) => Err(format!("its compressed pixels do not decompress: {e}")),
+        }
+    }
+
     /// Spot-checks the result (off the lock: it renders).
     pub fn run(self, verifier: &Verifier, rgb: &[u8]) -> Verdict {
         match verifier.tracer(self.hash, self.settings, &self.scene) {
             Ok(tracer) => Verdict {
-                spot: verifier.spot_check(&tracer, self.rect, rgb),
+                spot: verifier
+                    .spot_check(&tracer, self.rect, rgb)
+                    .map_err(|wrong| wrong.to_string()),
                 tracer: Some(tracer),
             },
             // The scene was accepted at submission: it parses. Without a tracer the
@@ -202,13 +218,22 @@ impl CheckPlan {
     }
 }
 
-/// What the spot check found, and the tracer to settle a disagreement with.
+/// What the spot check found (why the result is wrong, if it is), and the tracer to
+/// settle a disagreement with.
 pub struct Verdict {
-    spot: Result<(), WrongPixel>,
+    spot: Result<(), String>,
     tracer: Option<Arc<Tracer>>,
 }
 
 impl Verdict {
+    /// A result found wrong before any pixel was looked at (it does not decompress).
+    pub fn wrong(reason: String) -> Verdict {
+        Verdict {
+            spot: Err(reason),
+            tracer: None,
+        }
+    }
+
     /// No check was possible (a result for a job no longer active).
     pub fn unchecked() -> Verdict {
         Verdict {
@@ -493,7 +518,7 @@ impl Core {
         &self,
         job: JobId,
         tile: u32,
-        bytes: usize,
+        bytes: Option<usize>,
     ) -> anyhow::Result<Option<CheckPlan>> {
         let Some(record) = self.jobs.get(&job) else {
             return Ok(None);
@@ -506,10 +531,12 @@ impl Core {
             return Ok(None);
         };
         let expected = rect.width as usize * rect.height as usize * 3;
-        anyhow::ensure!(
-            bytes == expected,
-            "result for tile {tile} of job {job} has {bytes} bytes, expected {expected}"
-        );
+        if let Some(bytes) = bytes {
+            anyhow::ensure!(
+                bytes == expected,
+                "result for tile {tile} of job {job} has {bytes} bytes, expected {expected}"
+            );
+        }
         Ok(record.scene.clone().map(|scene| CheckPlan {
             hash: record.hash,
             settings: record.settings,
@@ -534,8 +561,8 @@ impl Core {
         cost: Cost,
         verdict: Verdict,
     ) -> anyhow::Result<()> {
-        // Checked again: the job may have changed while the spot check ran.
-        if self.check_plan(job, tile, rgb.len())?.is_none() {
+        // Checked again: the job may have ended while the spot check ran.
+        if self.check_plan(job, tile, None)?.is_none() {
             let actions = self
                 .tiles
                 .handle(sh.now(), Event::TileDone { worker, job, tile });
@@ -550,6 +577,10 @@ impl Core {
             self.quarantine(sh, &machine, reason);
             return Ok(());
         }
+        debug_assert_eq!(
+            rgb.len(),
+            rect_pixels(self.jobs[&job].tiles[tile as usize]) as usize * 3
+        );
         if let Some(w) = self.workers.get_mut(&worker) {
             let us = cost.render_us as f64;
             w.tile_us = Some(w.tile_us.map_or(us, |m| 0.8 * m + 0.2 * us));

@@ -136,12 +136,57 @@ async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(
 fn message_name(message: &FromWorker) -> &'static str {
     match message {
         FromWorker::TileDone { .. } => "TileDone",
+        FromWorker::TileDoneZstd { .. } => "TileDoneZstd",
         FromWorker::TileFailed { .. } => "TileFailed",
         FromWorker::Draining => "Draining",
         FromWorker::Heartbeat => "Heartbeat",
         FromWorker::CanaryDone { .. } => "CanaryDone",
         FromWorker::Pong { .. } => "Pong",
     }
+}
+
+/// A tile result's pixels as they came.
+enum Pixels {
+    Raw(Vec<u8>),
+    Zstd(Vec<u8>),
+}
+
+/// A tile result: what to check it against is gathered under the lock; decompressing
+/// and checking it happen off it, on the blocking pool; the verdict goes to the core.
+async fn result(
+    sh: &Arc<Shared>,
+    worker: protocol::WorkerId,
+    job: protocol::JobId,
+    tile: u32,
+    pixels: Pixels,
+    cost: Cost,
+) -> Result<()> {
+    let raw_len = match &pixels {
+        Pixels::Raw(rgb) => Some(rgb.len()),
+        Pixels::Zstd(_) => None,
+    };
+    let plan = sh.lock().check_plan(job, tile, raw_len)?;
+    let (rgb, verdict) = match plan {
+        // Not an active job's tile: the pixels count for nothing, so are not decoded.
+        None => (Vec::new(), Verdict::unchecked()),
+        Some(plan) => {
+            let shared = Arc::clone(sh);
+            tokio::task::spawn_blocking(move || {
+                let rgb = match pixels {
+                    Pixels::Raw(rgb) => rgb,
+                    Pixels::Zstd(zstd) => match plan.decompress(&zstd) {
+                        Ok(rgb) => rgb,
+                        Err(reason) => return (Vec::new(), Verdict::wrong(reason)),
+                    },
+                };
+                let verdict = plan.run(&shared.verifier, &rgb);
+                (rgb, verdict)
+            })
+            .await?
+        }
+    };
+    sh.lock()
+        .tile_done(sh, worker, job, tile, rgb, cost, verdict)
 }
 
 async fn on_message(
@@ -165,22 +210,24 @@ async fn on_message(
                 error_sq_sum,
                 render_us,
             };
-            // What to check it against, under the lock; the check itself off it.
-            let plan = sh.lock().check_plan(job, tile, rgb.len())?;
-            let (rgb, verdict) = match plan {
-                None => (rgb, None),
-                Some(plan) => {
-                    let verifier = Arc::clone(sh);
-                    tokio::task::spawn_blocking(move || {
-                        let verdict = plan.run(&verifier.verifier, &rgb);
-                        (rgb, Some(verdict))
-                    })
-                    .await?
-                }
+            result(sh, worker, job, tile, Pixels::Raw(rgb), cost).await?;
+        }
+        FromWorker::TileDoneZstd {
+            job,
+            tile,
+            zstd,
+            rays,
+            render_us,
+            samples,
+            error_sq_sum,
+        } => {
+            let cost = Cost {
+                rays,
+                samples,
+                error_sq_sum,
+                render_us,
             };
-            let verdict = verdict.unwrap_or_else(Verdict::unchecked);
-            sh.lock()
-                .tile_done(sh, worker, job, tile, rgb, cost, verdict)?;
+            result(sh, worker, job, tile, Pixels::Zstd(zstd), cost).await?;
         }
         FromWorker::TileFailed { job, tile, message } => {
             sh.lock().tile_failed(sh, worker, job, tile, message);
