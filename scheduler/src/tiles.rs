@@ -1345,7 +1345,10 @@ impl Scheduler {
         for worker in workers {
             let w = self.workers.get_mut(&worker).expect("listed above");
             let was_ready = !std::mem::replace(&mut w.draining, true);
-            let holding: Vec<(JobId, u32)> = w.holding.iter().copied().collect();
+            // It holds nothing afterwards, whatever its entries are about: a tile of an
+            // active job, a late copy, or a stale entry no active job knows of (its
+            // job's id was submitted again, and that job has ended since).
+            let holding = std::mem::take(&mut w.holding);
             if was_ready {
                 self.unready(&machine);
             }
@@ -1358,7 +1361,6 @@ impl Scheduler {
                     }
                 } else if let Some(j) = self.jobs.get_mut(&job) {
                     j.late_copies.remove(&(tile, worker));
-                    self.drop_holding(worker, job, tile);
                 }
             }
         }
@@ -2726,5 +2728,33 @@ mod tests {
         let zero = done(&mut s, 8, 2, 0);
         assert!(zero.contains(&Action::AcceptTile { job: 1, tile: 0 }));
         assert!(zero.contains(&Action::JobDone { job: 1 }));
+    }
+
+    /// A quarantined machine's workers hold nothing afterwards, even tiles of a job
+    /// that is no longer active: here the job's id was submitted again while they held
+    /// its tiles, then cancelled. (Those tiles stayed held, as no active job had them.)
+    #[test]
+    fn a_quarantined_machine_holds_nothing_even_of_a_replaced_job() {
+        let mut s = without_speculation();
+        assert!(join_at(&mut s, 0, 1, 1, Some("m0")).is_empty());
+        assert!(join_at(&mut s, 0, 2, 1, None).is_empty());
+        assert_eq!(
+            assigns(&submit(&mut s, 1, 0, SCENE_A, 2)),
+            vec![(1, 1, 0), (1, 1, 1)]
+        );
+        // The same id again (a daemon bug): the new job replaces the old one, whose
+        // tiles worker 1 still holds.
+        assert_eq!(assigns(&submit(&mut s, 1, 0, SCENE_A, 1)), vec![(2, 1, 0)]);
+        s.handle(0, Event::CancelJob { job: 1 });
+        assert_eq!(s.held_by(1), 2);
+        s.handle(
+            0,
+            Event::Quarantine {
+                machine: "m0".into(),
+                revoke: vec![],
+            },
+        );
+        assert_eq!(s.held_by(1), 0);
+        assert_eq!(s.tiles_in_flight(), 0);
     }
 }
