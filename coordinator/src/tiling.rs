@@ -1,6 +1,6 @@
 //! How a frame is cut into tiles when the client does not say.
 
-use protocol::{Sampling, Settings, TileRect};
+use protocol::{Settings, TileRect};
 
 /// Smallest and largest tile sides a job may ask for. The upper bound keeps a tile's
 /// result (side² × 3 bytes) far below the frame limit.
@@ -30,14 +30,7 @@ pub fn tile_count(settings: &Settings, side: u32) -> u32 {
 /// The tiles of a frame, row by row from the top left: the renderer's own cut, so that
 /// tile `i` means the same rectangle everywhere.
 pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
-    let frame = render::RenderSettings {
-        width: settings.width,
-        height: settings.height,
-        aa: settings.aa,
-        max_depth: settings.max_depth,
-        sampling: render_sampling(settings.sampling),
-    };
-    render::tiles(&frame, side)
+    render::tiles(&verify::render_settings(settings), side)
         .into_iter()
         .map(|r| TileRect {
             x: r.x,
@@ -46,13 +39,4 @@ pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
             height: r.height,
         })
         .collect()
-}
-
-/// The renderer's sampling for the protocol's (the two crates do not know each other).
-pub fn render_sampling(s: Sampling) -> render::Sampling {
-    match s {
-        Sampling::Grid => render::Sampling::Grid,
-        Sampling::Jittered => render::Sampling::Jittered,
-        Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
-    }
 }

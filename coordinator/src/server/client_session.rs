@@ -156,7 +156,7 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
     s.height = o.height.unwrap_or(s.height);
     s.aa = o.aa.unwrap_or(s.aa);
     s.max_depth = o.max_depth.unwrap_or(s.max_depth);
-    s.sampling = o.sampling.map_or(s.sampling, tiling::render_sampling);
+    s.sampling = o.sampling.map_or(s.sampling, verify::render_sampling);
     render::validate_settings(&s, "").map_err(|e| format!("overrides: {e}"))?;
     let settings = Settings {
         width: s.width,
