@@ -103,13 +103,14 @@ pub const HANDSHAKE: &str = "handshake";
 /// A frame whose variant index is not one of those below.
 pub const OTHER: &str = "other";
 /// `FromWorker` kinds by variant index (docs/protocol.md §5).
-pub const UP_KINDS: [&str; 6] = [
+pub const UP_KINDS: [&str; 7] = [
     "tile results",
     "tile failures",
     "draining",
     "heartbeats",
     "canary results",
     "pongs",
+    "compressed tile results",
 ];
 /// `ToWorker` kinds by variant index.
 pub const DOWN_KINDS: [&str; 8] = [
@@ -179,9 +180,9 @@ impl FrameMeter {
             Direction::Down => &DOWN_KINDS,
         };
         let kind = kinds.get(index).copied().unwrap_or(OTHER);
-        // TileDone: variant u32, job u64, tile u32, rgb (u64 length, bytes), rays u64,
-        // render_us u64, ...
-        let render_us = if self.direction == Direction::Up && index == 0 {
+        // TileDone and TileDoneZstd: variant u32, job u64, tile u32, pixels (u64
+        // length, bytes), rays u64, render_us u64, ...
+        let render_us = if self.direction == Direction::Up && (index == 0 || index == 6) {
             let read_u64 = |at: usize| {
                 body.get(at..at + 8)
                     .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
