@@ -41,7 +41,11 @@ pub use crate::vec3::Vec3;
 /// `TESSERA_BUILD` at compile time, if any). Workers announce it; the canary render,
 /// not this name, decides whether two builds agree.
 pub fn build_identity() -> String {
-    let profile = if cfg!(debug_assertions) { "debug" } else { "release" };
+    let profile = if cfg!(debug_assertions) {
+        "debug"
+    } else {
+        "release"
+    };
     let stamp = option_env!("TESSERA_BUILD").map_or(String::new(), |s| format!(", {s}"));
     format!(
         "tessera {} ({}-{}, {profile}{stamp})",
