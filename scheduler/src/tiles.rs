@@ -11,8 +11,9 @@
 //!   next one as soon as it returns one, so faster workers render more tiles. The
 //!   credit is twice its threads, plus what covers the round trip once the daemon has
 //!   measured it ([`Event::WorkerPace`]): each thread finishes a tile every tile time,
-//!   so `threads × ⌈rtt / tile time⌉` more tiles keep its threads busy while results
-//!   and new assignments cross the network (the bandwidth-delay product, in tiles).
+//!   so `threads × ⌈1.5 × rtt / tile time⌉` more tiles keep its threads busy while
+//!   results and new assignments cross the network (the bandwidth-delay product, in
+//!   tiles, with half a round trip to spare for the round trip's jitter).
 //!   It is capped at [`Policy::max_credit_per_thread`] per thread, so that the tail of
 //!   a job never waits behind a deep queue; stragglers are still copied.
 //! - **Results confirmed by another machine.** A result the daemon wants confirmed
@@ -903,7 +904,9 @@ impl Scheduler {
                     let threads = w.threads as usize;
                     // Saturating: a round trip of any length (u64::MAX included) only
                     // reaches the cap.
-                    let cover = usize::try_from(rtt.div_ceil(tile.max(1))).unwrap_or(usize::MAX);
+                    let span = u128::from(rtt) + u128::from(rtt / 2);
+                    let cover = usize::try_from(span.div_ceil(u128::from(tile.max(1))))
+                        .unwrap_or(usize::MAX);
                     w.credit = threads
                         .saturating_mul(cover.saturating_add(2))
                         .min(threads.saturating_mul(cap));
@@ -2539,10 +2542,10 @@ mod tests {
         );
         assert_eq!(
             assigns(&more).len(),
-            2 * 10,
-            "two threads, ten tiles per round trip"
+            2 * 15,
+            "two threads, fifteen tiles per round trip and a half"
         );
-        assert_eq!(s.held_by(1), 24);
+        assert_eq!(s.held_by(1), 34);
         s.handle(
             2,
             Event::WorkerPace {

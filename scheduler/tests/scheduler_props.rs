@@ -1102,7 +1102,8 @@ impl Farm {
                 if let Some(w) = self.workers.get_mut(&worker) {
                     // As the doc states it, in u128 where nothing overflows.
                     let threads = u128::from(w.threads.max(1));
-                    let cover = u128::from(rtt).div_ceil(u128::from(tile.max(1)));
+                    let span = u128::from(rtt) + u128::from(rtt / 2);
+                    let cover = span.div_ceil(u128::from(tile.max(1)));
                     let uncapped = threads * (2 + cover);
                     let credit = uncapped.min(threads * cap as u128) as usize;
                     self.stats.paces += 1;

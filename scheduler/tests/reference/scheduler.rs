@@ -506,10 +506,11 @@ impl Scheduler {
             Event::WorkerPace { worker, rtt, tile } => {
                 let cap = u128::from(self.policy.max_credit_per_thread.max(2));
                 if let Some(w) = self.workers.get_mut(&worker) {
-                    // In u128, where nothing overflows: threads × (2 + ⌈rtt / tile⌉),
-                    // at most threads × cap.
+                    // In u128, where nothing overflows: threads × (2 + ⌈(rtt + ⌊rtt / 2⌋)
+                    // / tile⌉), at most threads × cap.
                     let threads = u128::from(w.threads);
-                    let cover = u128::from(rtt).div_ceil(u128::from(tile.max(1)));
+                    let span = u128::from(rtt) + u128::from(rtt / 2);
+                    let cover = span.div_ceil(u128::from(tile.max(1)));
                     let credit = (threads * (2 + cover)).min(threads * cap);
                     w.credit = usize::try_from(credit).expect("within the cap");
                     self.fill(worker, &mut actions);
