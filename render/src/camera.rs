@@ -41,6 +41,11 @@ impl Camera {
         self.position
     }
 
+    /// The orthonormal basis (forward f, right r, up u) of section 2.
+    pub(crate) fn basis(&self) -> (Vec3, Vec3, Vec3) {
+        (self.forward, self.right, self.up)
+    }
+
     /// The unit direction through the point (`px`, `py`) of the image plane, measured in
     /// pixels from the top-left corner (pixel column i with offset sx is `i + sx`).
     pub fn direction(&self, px: f64, py: f64) -> Vec3 {

@@ -312,6 +312,26 @@ impl Tracer {
         &self.settings
     }
 
+    /// The camera the tracer's camera rays start from.
+    pub(crate) fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// The spheres with their object indices, in scene order.
+    pub(crate) fn spheres(&self) -> &[(u32, SphereGeom)] {
+        &self.spheres
+    }
+
+    /// The planes (unit normals) with their object indices, in scene order.
+    pub(crate) fn planes(&self) -> &[(u32, PlaneGeom)] {
+        &self.planes
+    }
+
+    /// The material of object `object`.
+    pub(crate) fn material(&self, object: usize) -> Material {
+        self.surfaces[object].material
+    }
+
     /// Runs `f` with a fresh per-pixel state (and a traversal stack if there is a
     /// hierarchy), then adds the rays it traced to `rays`.
     #[inline(always)]
