@@ -12,11 +12,13 @@
 mod bvh;
 mod camera;
 mod error;
+mod footprint;
 mod geometry;
 mod image;
 pub mod limits;
 pub mod metrics;
 mod parse;
+pub mod progressive;
 pub mod sampling;
 mod scene;
 mod tile;

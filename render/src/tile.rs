@@ -14,7 +14,7 @@ use crate::tracer::Tracer;
 pub const DEFAULT_TILE_SIZE: u32 = 32;
 
 /// A rectangle of pixels: columns `x .. x + width`, rows `y .. y + height`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub struct Rect {
     pub x: u32,
     pub y: u32,
