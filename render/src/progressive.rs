@@ -106,6 +106,9 @@ pub struct Level {
     /// Σ over pairs of neighbouring pixels inside the block of the squared difference
     /// of their colours at this level (averaged over channels, levels²).
     pub contrast: f64,
+    /// Σ over the block's pixels of what rounding to 8 bits adds to the squared error
+    /// of a pixel whose colour is off by its estimated error ([`rounding_excess`]).
+    pub rounding: f64,
     /// Rays traced for the block up to and including this level.
     pub rays: u64,
     /// The block's pixels at this level, RGB8, rows top to bottom.
@@ -142,7 +145,7 @@ impl BlockState {
                 priority: 0.0,
             };
         }
-        let error_sq = level.spread * STRATIFIED;
+        let error_sq = level.spread * STRATIFIED + level.rounding;
         let r = PRIOR_RATIO;
         LevelEstimate {
             error_sq,
@@ -219,6 +222,7 @@ impl<'t> BlockRenderer<'t> {
         let scale = 1.0 / f64::from(total);
         let mut rays = 0;
         let mut spread = 0.0;
+        let mut rounding = 0.0;
         let mut rgb = Vec::with_capacity(block.sums.len() * 3);
         let rect = block.rect;
         let mut p = 0;
@@ -257,7 +261,9 @@ impl<'t> BlockRenderer<'t> {
                 };
                 let total_sum = halves[0] + halves[1];
                 if total >= GROUPS as u32 {
-                    spread += group_spread(&groups, total);
+                    let own = group_spread(&groups, total);
+                    spread += own;
+                    rounding += rounding_excess((own * STRATIFIED).sqrt());
                 }
                 let mean = total_sum * scale;
                 rgb.extend_from_slice(&[to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)]);
@@ -272,6 +278,7 @@ impl<'t> BlockRenderer<'t> {
         Level {
             count: total,
             contrast,
+            rounding,
             spread: if total >= GROUPS as u32 {
                 spread
             } else {
@@ -304,6 +311,23 @@ fn contrast(rgb: &[u8], width: usize) -> f64 {
         }
     }
     total as f64 / 3.0
+}
+
+/// What rounding to 8 bits adds, on average, to the squared difference between a
+/// pixel whose value is off by a random error of `sigma` levels and the converged
+/// pixel, both rounded: about 0.8 σ for small errors (the chance that one of them
+/// crosses a rounding boundary the other does not), 1/6 level² for large ones (two
+/// independent roundings), joined smoothly. Images are compared in 8 bits, so at
+/// errors below a level this is most of what a comparison measures.
+pub fn rounding_excess(sigma: f64) -> f64 {
+    const SMALL: f64 = 0.8;
+    const LARGE: f64 = 1.0 / 6.0;
+    let a = SMALL * sigma;
+    if a > 0.0 {
+        a * LARGE / (a * a + LARGE * LARGE).sqrt()
+    } else {
+        0.0
+    }
 }
 
 /// Sample groups per pixel and level.
@@ -431,7 +455,10 @@ fn check_state(blocks: &[BlockState], rects: &[Rect], base: u32) -> Result<bool,
             } else {
                 level.spread.is_nan()
             };
-            let stats_ok = spread_ok && level.contrast.is_finite() && level.contrast >= 0.0;
+            let stats_ok = spread_ok
+                && [level.contrast, level.rounding]
+                    .iter()
+                    .all(|v| v.is_finite() && *v >= 0.0);
             if !stats_ok || level.rays < rays {
                 return Err(format!(
                     "level {l} of block {r:?} has impossible statistics"
