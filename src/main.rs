@@ -9,6 +9,7 @@ mod local_farm;
 mod output;
 mod plot;
 mod render_command;
+mod render_state;
 mod simulate_command;
 mod up_command;
 
@@ -54,6 +55,18 @@ enum Command {
             tessera render scenes/seed.json -o big.png --width 1920 --height 1080 --aa 4"
     )]
     Render(RenderArgs),
+
+    /// Go on from a saved adaptive render to a lower error or a larger cap.
+    #[command(
+        long_about = "Go on from a render saved with `tessera render --state FILE` to a lower \
+            error target or a larger --aa, taking only the samples it lacks. The image is \
+            byte for byte the one a direct render with the final settings gives. The state \
+            file is updated in place, so refining can go on again.",
+        after_help = "Example:\n  \
+            tessera render scenes/seed.json --sampler adaptive --target-error 4 --state seed.state\n  \
+            tessera refine seed.state --target-error 1 -o seed.png"
+    )]
+    Refine(RefineArgs),
 
     /// Render a scene on a farm started on this machine for the occasion.
     #[command(
@@ -270,6 +283,60 @@ struct RenderArgs {
     /// Rendering threads [default: one per core].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// Adaptive sampling for about this long (e.g. 30s, 2m, 1.5): the best image
+    /// reachable, and the error it reached. Implies --sampler adaptive; with
+    /// --target-error it stops at whichever comes first.
+    #[arg(long, value_name = "TIME", value_parser = parse_duration)]
+    time_limit: Option<Duration>,
+    /// Save every sample taken (adaptive sampling) to FILE, so that `tessera refine
+    /// FILE` can go on to a lower error or a larger --aa without taking them again.
+    #[arg(long, value_name = "FILE")]
+    state: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct RefineArgs {
+    /// A render state saved by `tessera render --state FILE`.
+    state: PathBuf,
+    /// The new error target, in 8-bit levels [default: the saved one].
+    #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
+    target_error: Option<f64>,
+    /// A new cap: at most the largest power of two not above N x N samples per pixel
+    /// [default: the saved one].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
+    aa: Option<u32>,
+    /// Refine for about this long, at most.
+    #[arg(long, value_name = "TIME", value_parser = parse_duration)]
+    time_limit: Option<Duration>,
+    /// Where to write the PNG [default: the state's file name with .png].
+    #[arg(short, long, value_name = "OUT.png")]
+    output: Option<PathBuf>,
+    /// Rendering threads [default: one per core].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+}
+
+/// A duration as `30s`, `500ms`, `2m` or a bare number of seconds.
+fn parse_duration(text: &str) -> Result<Duration, String> {
+    let (number, unit) = match text.find(|c: char| c.is_ascii_alphabetic()) {
+        Some(i) => text.split_at(i),
+        None => (text, "s"),
+    };
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a duration such as 30s, 500ms or 2m, got {text:?}"))?;
+    let seconds = match unit {
+        "ms" => value / 1000.0,
+        "s" => value,
+        "m" => value * 60.0,
+        "h" => value * 3600.0,
+        _ => return Err(format!("unknown unit {unit:?} in {text:?} (use ms, s, m or h)")),
+    };
+    if !(seconds > 0.0 && seconds < 1e9) {
+        return Err(format!("must be a positive duration, got {text:?}"));
+    }
+    Ok(Duration::from_secs_f64(seconds))
 }
 
 #[derive(Args)]
@@ -762,6 +829,19 @@ fn run(command: Command) -> Result<()> {
         });
     }
     if let Command::Render(a) = command {
+        let sampling = match (a.time_limit, a.image.sampler, a.image.target_error) {
+            // A time limit alone: as far as the time allows.
+            (Some(_), None | Some(SamplerArg::Adaptive), None) => {
+                Some(Sampling::adaptive(f64::from(render::MIN_TARGET_MILLI) / 1000.0)?)
+            }
+            (Some(_), None, Some(_)) => ImageArgs {
+                sampler: Some(SamplerArg::Adaptive),
+                ..a.image
+            }
+            .sampling()?,
+            (Some(_), Some(_), _) => bail!("--time-limit applies only to --sampler adaptive"),
+            (None, ..) => a.image.sampling()?,
+        };
         return render_command::run(render_command::Options {
             scene: a.scene,
             output: a.output,
@@ -769,7 +849,19 @@ fn run(command: Command) -> Result<()> {
             height: a.image.height,
             aa: a.image.aa,
             max_depth: a.image.max_depth,
-            sampling: a.image.sampling()?,
+            sampling,
+            threads: a.threads,
+            time_limit: a.time_limit,
+            state: a.state,
+        });
+    }
+    if let Command::Refine(a) = command {
+        return render_command::refine(render_command::RefineOptions {
+            state: a.state,
+            output: a.output,
+            aa: a.aa,
+            target_error: a.target_error,
+            time_limit: a.time_limit,
             threads: a.threads,
         });
     }
@@ -781,7 +873,9 @@ fn run(command: Command) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async move {
         match command {
-            Command::Render(_) | Command::Simulate(_) => unreachable!("handled above"),
+            Command::Render(_) | Command::Refine(_) | Command::Simulate(_) => {
+                unreachable!("handled above")
+            }
             Command::Bench(a) => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
                 bench::run(&bench::Options {

@@ -7,8 +7,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::output::{default_output, write_atomically};
-use anyhow::{anyhow, Context, Result};
+use crate::render_state;
+use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use render::progressive::{
+    meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG,
+};
 use render::{
     parse_scene, render_frame, validate_settings, RenderSettings, Sampling, Tracer,
     DEFAULT_TILE_SIZE,
@@ -16,6 +20,10 @@ use render::{
 
 /// What the user asked for; `None` keeps the scene's own value.
 pub struct Options {
+    /// Stop adaptive sampling after about this long, at the best image reached.
+    pub time_limit: Option<Duration>,
+    /// Save every sample taken (adaptive sampling) to this file, for `tessera refine`.
+    pub state: Option<PathBuf>,
     pub scene: PathBuf,
     pub output: Option<PathBuf>,
     pub width: Option<u32>,
@@ -43,39 +51,234 @@ pub fn run(opts: Options) -> Result<()> {
     settings.max_depth = opts.max_depth.unwrap_or(settings.max_depth);
     settings.sampling = opts.sampling.unwrap_or(settings.sampling);
     validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
-
+    if opts.state.is_some() && settings.sampling.target_error().is_none() {
+        bail!("--state saves the samples of adaptive sampling: add --sampler adaptive");
+    }
     let output = opts
         .output
         .clone()
         .unwrap_or_else(|| default_output(scene_path));
-    let threads = opts.threads.map_or(0, |n| n as usize);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .context("cannot start the rendering threads")?;
+    let job = Job {
+        scene: &scene,
+        text: &text,
+        settings,
+        output,
+        threads: opts.threads,
+        time_limit: opts.time_limit,
+        state: opts.state.clone(),
+        resume: None,
+    };
+    job.run()
+}
 
-    let tracer = Tracer::new(&scene, settings);
-    let progress = DelayedProgress::new(settings.pixel_count());
-    let started = Instant::now();
-    let frame = pool.install(|| render_frame(&tracer, DEFAULT_TILE_SIZE, &|px| progress.add(px)));
-    let elapsed = started.elapsed();
-    progress.finish();
+/// What `tessera refine` asked for.
+pub struct RefineOptions {
+    pub state: PathBuf,
+    pub output: Option<PathBuf>,
+    pub aa: Option<u32>,
+    pub target_error: Option<f64>,
+    pub time_limit: Option<Duration>,
+    pub threads: Option<u32>,
+}
 
-    write_atomically(&output, &frame.image.to_png())?;
+/// `tessera refine FILE`: goes on from a saved adaptive render to a lower target or a
+/// larger cap, taking only the samples it lacks; the image is the one a direct render
+/// with the final settings gives, byte for byte. The state file is updated in place.
+pub fn refine(opts: RefineOptions) -> Result<()> {
+    let saved = render_state::load(&opts.state)?;
+    let scene = parse_scene(&saved.scene)
+        .map_err(|e| anyhow!("{}: the saved scene: {e}", opts.state.display()))?;
+    let target = match opts.target_error {
+        Some(levels) => Sampling::adaptive(levels).map_err(|e| anyhow!("--target-error: {e}"))?,
+        None => Sampling::Adaptive {
+            target_milli: saved.target_milli,
+        },
+    };
+    let settings = RenderSettings {
+        width: saved.width,
+        height: saved.height,
+        aa: opts.aa.unwrap_or(saved.aa),
+        max_depth: saved.max_depth,
+        sampling: target,
+    };
+    validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
+    let output = opts.output.clone().unwrap_or_else(|| {
+        let mut p = opts.state.clone();
+        p.set_extension("png");
+        p
+    });
+    let job = Job {
+        scene: &scene,
+        text: &saved.scene,
+        settings,
+        output,
+        threads: opts.threads,
+        time_limit: opts.time_limit,
+        state: Some(opts.state.clone()),
+        resume: Some((opts.state.clone(), saved.blocks)),
+    };
+    job.run()
+}
 
-    let secs = elapsed.as_secs_f64();
-    let error = frame.estimated_error();
-    eprintln!(
-        "{}: {}x{}, {}, {:.3} s, {:.1} M rays/s ({} threads)",
-        output.display(),
-        settings.width,
-        settings.height,
-        sampling_summary(&settings, frame.samples, error.is_finite().then_some(error)),
-        secs,
-        frame.rays as f64 / secs.max(1e-9) / 1e6,
-        pool.current_num_threads(),
-    );
-    Ok(())
+/// One local render, from the command line or a saved state.
+struct Job<'a> {
+    scene: &'a render::Scene,
+    text: &'a str,
+    settings: RenderSettings,
+    output: PathBuf,
+    threads: Option<u32>,
+    time_limit: Option<Duration>,
+    state: Option<PathBuf>,
+    /// The saved blocks to go on from, and the file they came from.
+    resume: Option<(PathBuf, Vec<BlockState>)>,
+}
+
+impl Job<'_> {
+    fn run(self) -> Result<()> {
+        let settings = self.settings;
+        let threads = self.threads.map_or(0, |n| n as usize);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .context("cannot start the rendering threads")?;
+        let tracer = Tracer::new(self.scene, settings);
+        let started = Instant::now();
+        // Until the image is made: saving the samples is not rendering.
+        let elapsed;
+        let (image, rays, samples, error, note) = match settings.sampling.target_error() {
+            Some(target) => {
+                let full = render::Rect {
+                    x: 0,
+                    y: 0,
+                    width: settings.width,
+                    height: settings.height,
+                };
+                let deadline = self.time_limit.map(|t| started + t);
+                let progress = RungProgress::new();
+                let (region, frame) = pool.install(|| -> Result<_> {
+                    let region = match self.resume {
+                        Some((path, blocks)) => Some(
+                            Region::new(&tracer, Region::footprints(&tracer), full, Some(blocks))
+                                .map_err(|e| anyhow!("{}: {e}", path.display()))?,
+                        ),
+                        None => None,
+                    };
+                    Ok(render_to_target(&tracer, region, target, &mut |k, totals| {
+                        progress.show(k, totals.estimated_error());
+                        deadline.is_none_or(|d| Instant::now() < d)
+                    }))
+                })?;
+                progress.finish();
+                elapsed = started.elapsed();
+                let e = frame.estimated_error();
+                let met = meets(&frame.totals, frame.rung, target);
+                let capped = frame.rung >= LAST_RUNG && (e > target || e.is_nan());
+                let note = if capped {
+                    format!("; every pixel at its cap of {} samples", sample_cap(settings.aa))
+                } else if !met && target_given(&settings) {
+                    "; stopped by the time limit before the target".to_owned()
+                } else if !met {
+                    format!("; as far as the time limit allowed (rung {})", frame.rung)
+                } else {
+                    String::new()
+                };
+                if let Some(path) = &self.state {
+                    let saved = render_state::Saved {
+                        scene: self.text.to_owned(),
+                        width: settings.width,
+                        height: settings.height,
+                        aa: settings.aa,
+                        max_depth: settings.max_depth,
+                        target_milli: match settings.sampling {
+                            Sampling::Adaptive { target_milli } => target_milli,
+                            _ => unreachable!("adaptive sampling has a target"),
+                        },
+                        rung: frame.rung,
+                        blocks: region.into_blocks(),
+                    };
+                    render_state::save(path, &saved)?;
+                }
+                (
+                    frame.image,
+                    frame.totals.rays,
+                    frame.totals.samples,
+                    e,
+                    note,
+                )
+            }
+            None => {
+                let progress = DelayedProgress::new(settings.pixel_count());
+                let frame =
+                    pool.install(|| render_frame(&tracer, DEFAULT_TILE_SIZE, &|px| progress.add(px)));
+                progress.finish();
+                elapsed = started.elapsed();
+                let e = frame.estimated_error();
+                (frame.image, frame.rays, frame.samples, e, String::new())
+            }
+        };
+        write_atomically(&self.output, &image.to_png())?;
+        let secs = elapsed.as_secs_f64();
+        eprintln!(
+            "{}: {}x{}, {}{note}, {:.3} s, {:.1} M rays/s ({} threads)",
+            self.output.display(),
+            settings.width,
+            settings.height,
+            sampling_summary(&settings, samples, error.is_finite().then_some(error)),
+            secs,
+            rays as f64 / secs.max(1e-9) / 1e6,
+            pool.current_num_threads(),
+        );
+        Ok(())
+    }
+}
+
+/// Whether adaptive sampling was given a target: `--time-limit` alone asks for the
+/// smallest target there is, and the time decides.
+fn target_given(settings: &RenderSettings) -> bool {
+    settings.sampling
+        != (Sampling::Adaptive {
+            target_milli: render::MIN_TARGET_MILLI,
+        })
+}
+
+/// A spinner on stderr for adaptive renders, shown only on a terminal after
+/// [`PROGRESS_DELAY`]: the rung reached and the estimated error falling.
+struct RungProgress {
+    bar: ProgressBar,
+    started: Instant,
+    interactive: bool,
+    shown: AtomicBool,
+}
+
+impl RungProgress {
+    fn new() -> Self {
+        let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
+        bar.set_style(
+            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {msg}")
+                .expect("the template is valid"),
+        );
+        RungProgress {
+            bar,
+            started: Instant::now(),
+            interactive: std::io::stderr().is_terminal(),
+            shown: AtomicBool::new(false),
+        }
+    }
+
+    fn show(&self, rung: u32, error: f64) {
+        self.bar
+            .set_message(format!("rung {rung}, estimated error {error:.3} levels"));
+        if self.interactive
+            && self.started.elapsed() >= PROGRESS_DELAY
+            && !self.shown.swap(true, Ordering::Relaxed)
+        {
+            self.bar.set_draw_target(ProgressDrawTarget::stderr());
+        }
+    }
+
+    fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
 }
 
 /// What a render spent and how wrong it may be, for the summary lines of `render`,
@@ -91,6 +294,9 @@ pub fn sampling_summary(settings: &RenderSettings, samples: u64, error: Option<f
         format!("{:.2}", samples as f64 / pixels as f64)
     };
     let pattern = match settings.sampling {
+        Sampling::Adaptive { .. } if !target_given(settings) => {
+            format!("adaptive up to {n}x{n}, no target")
+        }
         Sampling::Adaptive { .. } => format!(
             "adaptive up to {n}x{n}, target {} levels",
             settings.sampling.target_error().unwrap_or_default()
