@@ -331,7 +331,11 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
         "s" => value,
         "m" => value * 60.0,
         "h" => value * 3600.0,
-        _ => return Err(format!("unknown unit {unit:?} in {text:?} (use ms, s, m or h)")),
+        _ => {
+            return Err(format!(
+                "unknown unit {unit:?} in {text:?} (use ms, s, m or h)"
+            ))
+        }
     };
     if !(seconds > 0.0 && seconds < 1e9) {
         return Err(format!("must be a positive duration, got {text:?}"));
@@ -831,9 +835,9 @@ fn run(command: Command) -> Result<()> {
     if let Command::Render(a) = command {
         let sampling = match (a.time_limit, a.image.sampler, a.image.target_error) {
             // A time limit alone: as far as the time allows.
-            (Some(_), None | Some(SamplerArg::Adaptive), None) => {
-                Some(Sampling::adaptive(f64::from(render::MIN_TARGET_MILLI) / 1000.0)?)
-            }
+            (Some(_), None | Some(SamplerArg::Adaptive), None) => Some(Sampling::adaptive(
+                f64::from(render::MIN_TARGET_MILLI) / 1000.0,
+            )?),
             (Some(_), None, Some(_)) => ImageArgs {
                 sampler: Some(SamplerArg::Adaptive),
                 ..a.image

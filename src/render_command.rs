@@ -10,9 +10,7 @@ use crate::output::{default_output, write_atomically};
 use crate::render_state;
 use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use render::progressive::{
-    meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG,
-};
+use render::progressive::{meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG};
 use render::{
     parse_scene, render_frame, validate_settings, RenderSettings, Sampling, Tracer,
     DEFAULT_TILE_SIZE,
@@ -163,10 +161,15 @@ impl Job<'_> {
                         ),
                         None => None,
                     };
-                    Ok(render_to_target(&tracer, region, target, &mut |k, totals| {
-                        progress.show(k, totals.estimated_error());
-                        deadline.is_none_or(|d| Instant::now() < d)
-                    }))
+                    Ok(render_to_target(
+                        &tracer,
+                        region,
+                        target,
+                        &mut |k, totals| {
+                            progress.show(k, totals.estimated_error());
+                            deadline.is_none_or(|d| Instant::now() < d)
+                        },
+                    ))
                 })?;
                 progress.finish();
                 elapsed = started.elapsed();
@@ -174,7 +177,10 @@ impl Job<'_> {
                 let met = meets(&frame.totals, frame.rung, target);
                 let capped = frame.rung >= LAST_RUNG && (e > target || e.is_nan());
                 let note = if capped {
-                    format!("; every pixel at its cap of {} samples", sample_cap(settings.aa))
+                    format!(
+                        "; every pixel at its cap of {} samples",
+                        sample_cap(settings.aa)
+                    )
                 } else if !met && target_given(&settings) {
                     "; stopped by the time limit before the target".to_owned()
                 } else if !met {
@@ -208,8 +214,8 @@ impl Job<'_> {
             }
             None => {
                 let progress = DelayedProgress::new(settings.pixel_count());
-                let frame =
-                    pool.install(|| render_frame(&tracer, DEFAULT_TILE_SIZE, &|px| progress.add(px)));
+                let frame = pool
+                    .install(|| render_frame(&tracer, DEFAULT_TILE_SIZE, &|px| progress.add(px)));
                 progress.finish();
                 elapsed = started.elapsed();
                 let e = frame.estimated_error();

@@ -41,7 +41,8 @@ pub struct Saved {
 pub fn save(path: &Path, saved: &Saved) -> Result<()> {
     let encoded = bincode::serde::encode_to_vec(saved, bincode::config::standard())
         .context("cannot encode the render state")?;
-    let compressed = zstd::bulk::compress(&encoded, 3).context("cannot compress the render state")?;
+    let compressed =
+        zstd::bulk::compress(&encoded, 3).context("cannot compress the render state")?;
     let mut body = Vec::with_capacity(compressed.len() + 8);
     body.extend_from_slice(&VERSION.to_le_bytes());
     body.extend_from_slice(&(encoded.len() as u64).to_le_bytes());
@@ -55,8 +56,8 @@ pub fn save(path: &Path, saved: &Saved) -> Result<()> {
 
 /// Reads and checks a saved render.
 pub fn load(path: &Path) -> Result<Saved> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("cannot read render state {}", path.display()))?;
+    let bytes = std::fs::read(path)
+        .with_context(|| format!("cannot read render state {}", path.display()))?;
     decode(&bytes).with_context(|| format!("{}", path.display()))
 }
 
@@ -80,7 +81,8 @@ fn decode(bytes: &[u8]) -> Result<Saved> {
         .ok()
         .filter(|&s| s <= MAX_DECODED)
         .context("the render state claims an impossible size")?;
-    let encoded = zstd::bulk::decompress(&body[12..], size).context("the render state is damaged")?;
+    let encoded =
+        zstd::bulk::decompress(&body[12..], size).context("the render state is damaged")?;
     let (saved, used): (Saved, usize) =
         bincode::serde::decode_from_slice(&encoded, bincode::config::standard())
             .context("the render state is damaged")?;

@@ -50,15 +50,54 @@ fn a_refined_render_is_the_direct_render_byte_for_byte() {
         args.extend_from_slice(extra);
         ok(d, &args)
     };
-    render(&["--aa", "8", "--target-error", "4", "--state", "s.state", "-o", "coarse.png"]);
+    render(&[
+        "--aa",
+        "8",
+        "--target-error",
+        "4",
+        "--state",
+        "s.state",
+        "-o",
+        "coarse.png",
+    ]);
     // A lower target, then a larger cap, each from the state the previous step left.
-    ok(d, &["refine", "s.state", "--target-error", "1.5", "-o", "fine.png"]);
-    render(&["--aa", "8", "--target-error", "1.5", "-o", "direct-fine.png"]);
+    ok(
+        d,
+        &[
+            "refine",
+            "s.state",
+            "--target-error",
+            "1.5",
+            "-o",
+            "fine.png",
+        ],
+    );
+    render(&[
+        "--aa",
+        "8",
+        "--target-error",
+        "1.5",
+        "-o",
+        "direct-fine.png",
+    ]);
     assert_eq!(bytes(d, "fine.png"), bytes(d, "direct-fine.png"));
     assert_ne!(bytes(d, "fine.png"), bytes(d, "coarse.png"));
-    let line = ok(d, &["refine", "s.state", "--aa", "16", "--target-error", "0.8"]);
-    assert!(line.contains("adaptive up to 16x16, target 0.8 levels"), "{line}");
-    render(&["--aa", "16", "--target-error", "0.8", "-o", "direct-finer.png"]);
+    let line = ok(
+        d,
+        &["refine", "s.state", "--aa", "16", "--target-error", "0.8"],
+    );
+    assert!(
+        line.contains("adaptive up to 16x16, target 0.8 levels"),
+        "{line}"
+    );
+    render(&[
+        "--aa",
+        "16",
+        "--target-error",
+        "0.8",
+        "-o",
+        "direct-finer.png",
+    ]);
     assert_eq!(bytes(d, "s.png"), bytes(d, "direct-finer.png"));
 }
 
@@ -67,7 +106,14 @@ fn a_time_limit_gives_the_image_reached_and_says_so() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let scene = seed();
-    let mut args = vec!["render", scene.as_str(), "--aa", "16", "--time-limit", "300ms"];
+    let mut args = vec![
+        "render",
+        scene.as_str(),
+        "--aa",
+        "16",
+        "--time-limit",
+        "300ms",
+    ];
     args.extend_from_slice(&SIZE);
     args.extend_from_slice(&["-o", "limited.png"]);
     let line = ok(d, &args);
@@ -78,8 +124,14 @@ fn a_time_limit_gives_the_image_reached_and_says_so() {
     );
     assert!(bytes(d, "limited.png").starts_with(b"\x89PNG"));
     // A time limit is for adaptive sampling only; bad durations are one line.
-    let e = one_error(d, &["render", &scene, "--time-limit", "1s", "--sampler", "grid"]);
-    assert!(e.contains("--time-limit applies only to --sampler adaptive"), "{e}");
+    let e = one_error(
+        d,
+        &["render", &scene, "--time-limit", "1s", "--sampler", "grid"],
+    );
+    assert!(
+        e.contains("--time-limit applies only to --sampler adaptive"),
+        "{e}"
+    );
     let e = one_error(d, &["render", &scene, "--time-limit=-2s"]);
     assert!(e.contains("--time-limit"), "{e}");
     let e = one_error(d, &["render", &scene, "--time-limit", "3 parsecs"]);
@@ -125,7 +177,17 @@ fn damaged_or_foreign_states_are_refused_and_nothing_is_written() {
         assert!(!d.join("out.png").exists(), "{file}: an image was written");
     }
     // The good state still refines, and --state needs adaptive sampling.
-    ok(d, &["refine", "good.state", "--target-error", "2", "-o", "out.png"]);
+    ok(
+        d,
+        &[
+            "refine",
+            "good.state",
+            "--target-error",
+            "2",
+            "-o",
+            "out.png",
+        ],
+    );
     let e = one_error(d, &["render", &scene, "--state", "x.state"]);
     assert!(e.contains("--state"), "{e}");
     assert!(!d.join("x.state").exists());
