@@ -35,6 +35,7 @@ use transport::ServerTls;
 use crate::metrics::Metrics;
 use crate::store::Store;
 
+mod adaptive;
 mod client_session;
 mod core;
 mod handshake;

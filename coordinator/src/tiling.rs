@@ -15,10 +15,14 @@ pub const MAX_TILE: u32 = 512;
 /// Samples are counted by the budget, `aa` × `aa` per pixel, whatever the sampler: an
 /// adaptive job usually spends less, but where it spends the budget (on edges) a tile
 /// sized for fewer samples would be a straggler.
+///
+/// The side is always a multiple of 8, so that every tile is cut on the 8 × 8 blocks
+/// adaptive sampling works in (its tiles must be; the others do not mind).
 pub fn default_tile_size(settings: &Settings) -> u32 {
-    let mut side = (256 / settings.aa.max(1)).clamp(16, 256);
+    let blocks = |side: u32| (side / 8 * 8).clamp(16, 256);
+    let mut side = blocks(256 / settings.aa.max(1));
     while side > 16 && tile_count(settings, side) < 64 {
-        side /= 2;
+        side = blocks(side / 2);
     }
     side
 }
@@ -39,4 +43,31 @@ pub fn cut(settings: &Settings, side: u32) -> Vec<TileRect> {
             height: r.height,
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use protocol::Sampling;
+
+    #[test]
+    fn default_tiles_are_cut_on_blocks() {
+        for aa in 1..=64 {
+            for (width, height) in [(600, 400), (40, 30), (1920, 1080), (8192, 8192)] {
+                let s = Settings {
+                    width,
+                    height,
+                    aa,
+                    max_depth: 5,
+                    sampling: Sampling::Adaptive { target_milli: 1000 },
+                };
+                let side = default_tile_size(&s);
+                assert!(
+                    side.is_multiple_of(8) && (16..=256).contains(&side),
+                    "{aa}: {side}"
+                );
+                assert!(verify::adaptive::check_tile_side(side).is_ok());
+            }
+        }
+    }
 }

@@ -35,9 +35,12 @@ pub enum Sampling {
     Grid,
     /// `aa` × `aa` strata, one sample at a hashed offset inside each.
     Jittered,
-    /// A first pass of 4 samples, then 4 more at a time while the pixel's estimated
-    /// error is above the target, up to `aa` × `aa`. `target_milli` is the target in
-    /// thousandths of an 8-bit level (1000 = one level), 1 ..= 255,000.
+    /// Samples where the image needs them, to an image-wide error target: 8 × 8 blocks
+    /// of pixels double their samples (from 4, up to the largest power of two not above
+    /// `aa` × `aa`) down a fixed ladder of thresholds until the frame's estimated error
+    /// is at most the target. `target_milli` is the target in thousandths of an 8-bit
+    /// level (1000 = one level), 1 ..= 255,000. The farm renders such a job in passes
+    /// of [`ToWorker::Advance`], not with [`ToWorker::Render`].
     Adaptive { target_milli: u32 },
 }
 
@@ -300,6 +303,28 @@ pub enum ToWorker {
     /// Answer at once with [`FromWorker::Pong`] carrying the same `token`: the
     /// coordinator measures the round trip to size the worker's credit.
     Ping { token: u64 },
+    /// Advance the blocks of one tile of an adaptive job to `rung` of the threshold
+    /// ladder, starting from `previous` (the state the tile's last pass returned) or
+    /// from nothing, and answer with [`FromWorker::Advanced`]. The worker keeps nothing
+    /// between passes: the coordinator holds every tile's state, so any worker can take
+    /// any pass of any tile, and a tile sent again after its worker was lost starts
+    /// from the same state and gives the same bytes.
+    Advance {
+        job: JobId,
+        tile: u32,
+        scene: SceneHash,
+        settings: Settings,
+        /// Block-aligned: `x` and `y` multiples of 8, the right and bottom edges on a
+        /// multiple of 8 or on the frame's edge.
+        rect: TileRect,
+        /// The job's pass, echoed in the answer: an answer to an earlier pass counts
+        /// for nothing.
+        pass: u32,
+        rung: u32,
+        /// The tile's block states (see [`FromWorker::Advanced`]'s `state`), or `None`
+        /// to start from the first samples.
+        previous: Option<Vec<u8>>,
+    },
 }
 
 /// Worker to coordinator.
@@ -350,5 +375,25 @@ pub enum FromWorker {
         render_us: u64,
         samples: u64,
         error_sq_sum: f64,
+    },
+    /// An adaptive tile advanced to `rung` ([`ToWorker::Advance`]): its pixels at that
+    /// rung and the blocks' new state, which the coordinator keeps for the next pass.
+    Advanced {
+        job: JobId,
+        tile: u32,
+        /// As in the `Advance` it answers.
+        pass: u32,
+        rung: u32,
+        /// The tile's RGB8 pixels at `rung`, rows top to bottom, as one zstd frame; it
+        /// must decompress to exactly width × height × 3 bytes.
+        zstd: Vec<u8>,
+        /// The blocks' state: the renderer's `Vec<BlockState>` (levels and per-pixel
+        /// sums, blocks row by row) encoded like a message, then compressed as one
+        /// zstd frame. It must decompress within a bound set by the tile's size and
+        /// `aa` (`verify::adaptive::state_bound`).
+        state: Vec<u8>,
+        /// Rays traced in this pass (not before).
+        rays: u64,
+        render_us: u64,
     },
 }

@@ -103,7 +103,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 tiles_total: 6,
                 rays: 2304,
                 elapsed_ms: 20,
-                eta_ms: Some(4),
+                eta_ms: None,
                 error: None,
                 samples: 2304,
                 estimated_error: Some(0.0),
@@ -117,12 +117,33 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
             }),
         ),
         (
-            "Render",
-            frame(&ToWorker::Render {
+            "Advance",
+            frame(&ToWorker::Advance {
                 job: 7,
                 tile: 5,
                 scene: scene_hash(),
                 settings: SETTINGS,
+                rect: TileRect {
+                    x: 32,
+                    y: 16,
+                    width: 2,
+                    height: 1,
+                },
+                pass: 0,
+                rung: 0,
+                previous: None,
+            }),
+        ),
+        (
+            "Render",
+            frame(&ToWorker::Render {
+                job: 8,
+                tile: 5,
+                scene: scene_hash(),
+                settings: Settings {
+                    sampling: Sampling::Jittered,
+                    ..SETTINGS
+                },
                 rect: TileRect {
                     x: 32,
                     y: 16,
@@ -134,12 +155,12 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         (
             "TileDone",
             frame(&FromWorker::TileDone {
-                job: 7,
+                job: 8,
                 tile: 5,
                 rgb: vec![0xff, 0x80, 0x00, 0x10, 0x20, 0x30],
-                rays: 20,
+                rays: 48,
                 render_us: 15,
-                samples: 20,
+                samples: 32,
                 error_sq_sum: 2.25,
             }),
         ),

@@ -213,6 +213,24 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
             .prop_map(|(scene, renders)| ToWorker::Canary { scene, renders }),
         text().prop_map(|reason| ToWorker::Refuse { reason }),
         any::<u64>().prop_map(|token| ToWorker::Ping { token }),
+        (
+            (any::<u64>(), any::<u32>(), any::<[u8; 32]>()),
+            settings(),
+            rect(),
+            (any::<u32>(), any::<u32>(), prop::option::of(blob()))
+        )
+            .prop_map(
+                |((job, tile, scene), settings, rect, (pass, rung, previous))| ToWorker::Advance {
+                    job,
+                    tile,
+                    scene,
+                    settings,
+                    rect,
+                    pass,
+                    rung,
+                    previous
+                }
+            ),
     ]
 }
 
@@ -268,6 +286,24 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
                         samples,
                         error_sq_sum,
                     }
+                }
+            ),
+        (
+            (any::<u64>(), any::<u32>(), any::<u32>(), any::<u32>()),
+            blob(),
+            blob(),
+            (any::<u64>(), any::<u64>())
+        )
+            .prop_map(
+                |((job, tile, pass, rung), zstd, state, (rays, render_us))| FromWorker::Advanced {
+                    job,
+                    tile,
+                    pass,
+                    rung,
+                    zstd,
+                    state,
+                    rays,
+                    render_us
                 }
             ),
     ]

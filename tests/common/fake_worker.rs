@@ -1,8 +1,9 @@
 //! A worker written in the test, on the real protocol: it connects with
-//! `transport::dial` (no token, plain TCP on 127.0.0.1), renders the canary and its
-//! tiles honestly with the `render` crate, exactly as a real worker does, and then
-//! lies as it is told: every pixel wrong, one byte of some tiles, or one pixel of
-//! every output (the canary included), as a worker with a different renderer would.
+//! `transport::dial` (no token, plain TCP on 127.0.0.1), renders the canary, its tiles
+//! and its adaptive passes honestly with the `verify` and `render` crates, exactly as
+//! a real worker does, and then lies as it is told: every pixel wrong, one byte of
+//! some tiles (for an adaptive pass: one sum of each block of its state), or one pixel
+//! of every output (the canary included), as a worker with a different renderer would.
 //!
 //! It runs on a thread of its own with a small tokio runtime, answers pings and sends
 //! a heartbeat every second, and records what it was sent. Dropping it closes its
@@ -40,11 +41,11 @@ struct State {
     /// The connection ended (closed by the coordinator, or an error).
     closed: AtomicBool,
     canaries: AtomicU64,
-    /// `Render` messages received.
+    /// `Render` and `Advance` messages received.
     tiles_assigned: AtomicU64,
-    /// `TileDone` sent.
+    /// `TileDone` and `Advanced` sent.
     tiles_returned: AtomicU64,
-    /// `TileDone` sent with pixels changed from the honest render.
+    /// `TileDone` and `Advanced` sent.with pixels changed from the honest render.
     tiles_lied: AtomicU64,
     refusal: Mutex<Option<String>>,
     /// How the connection ended or failed, if it did.
@@ -248,6 +249,62 @@ async fn serve(
                 None
             }
             ToWorker::Heartbeat | ToWorker::Cancel { .. } => None,
+            ToWorker::Advance {
+                job,
+                tile,
+                scene,
+                settings,
+                rect,
+                pass,
+                rung,
+                previous,
+            } => {
+                let nth = state.tiles_assigned.fetch_add(1, Ordering::SeqCst);
+                let scene = scenes
+                    .get(&scene)
+                    .ok_or_else(|| format!("tile {tile} of job {job} before its scene"))?;
+                let started = Instant::now();
+                let tracer = verify::tracer(scene, &settings)?;
+                let previous = previous
+                    .map(|p| verify::adaptive::unpack_state(&p, rect, settings.aa))
+                    .transpose()?;
+                let footprints = verify::adaptive::footprints(&tracer);
+                let mut advanced =
+                    verify::adaptive::advance(&tracer, footprints, rect, previous, rung)?;
+                let lied = match lie {
+                    Lie::Honest => false,
+                    Lie::Red => {
+                        for pixel in advanced.rgb.chunks_exact_mut(3) {
+                            pixel.copy_from_slice(&[255, 0, 0]);
+                        }
+                        true
+                    }
+                    Lie::OneByteEvery(n) if !nth.is_multiple_of(n) => false,
+                    Lie::OneByteEvery(_) | Lie::Perturbed => {
+                        // Pixels that agree with the state, a state a hair off: what
+                        // only advancing a block again can tell.
+                        for block in &mut advanced.blocks {
+                            block.sums[0][0][0] += 1.0 / 1024.0;
+                        }
+                        true
+                    }
+                };
+                state.tiles_returned.fetch_add(1, Ordering::SeqCst);
+                if lied {
+                    state.tiles_lied.fetch_add(1, Ordering::SeqCst);
+                }
+                Some(FromWorker::Advanced {
+                    job,
+                    tile,
+                    pass,
+                    rung,
+                    zstd: zstd::bulk::compress(&advanced.rgb, 1)
+                        .map_err(|e| format!("cannot compress: {e}"))?,
+                    state: verify::adaptive::encode_state(&advanced.blocks),
+                    rays: advanced.rays,
+                    render_us: started.elapsed().as_micros() as u64,
+                })
+            }
             ToWorker::Render {
                 job,
                 tile,
@@ -319,46 +376,17 @@ fn perturb(rgb: &mut [u8], seed: usize) {
     rgb[at] ^= 0x01;
 }
 
-/// The renderer's settings for the wire's (what a real worker does).
-fn render_settings(s: &Settings) -> render::RenderSettings {
-    render::RenderSettings {
-        width: s.width,
-        height: s.height,
-        aa: s.aa,
-        max_depth: s.max_depth,
-        sampling: match s.sampling {
-            protocol::Sampling::Grid => render::Sampling::Grid,
-            protocol::Sampling::Jittered => render::Sampling::Jittered,
-            protocol::Sampling::Adaptive { target_milli } => {
-                render::Sampling::Adaptive { target_milli }
-            }
-        },
-    }
-}
-
-/// Renders one rectangle honestly.
+/// Renders one rectangle honestly, as a real worker does.
 fn render_tile(
     scene: &render::Scene,
     settings: &Settings,
     rect: TileRect,
 ) -> Result<render::TileImage, String> {
-    let settings = render_settings(settings);
-    render::validate_settings(&settings, "").map_err(|e| format!("invalid settings: {e}"))?;
-    let tracer = render::Tracer::new(scene, settings);
-    let rect = render::Rect {
-        x: rect.x,
-        y: rect.y,
-        width: rect.width,
-        height: rect.height,
-    };
-    render::render_tile(&tracer, rect).map_err(|e| e.to_string())
+    let tracer = verify::tracer(scene, settings)?;
+    render::render_tile(&tracer, verify::render_rect(rect)).map_err(|e| e.to_string())
 }
 
 /// Renders the canary as a real worker does: one RGB8 buffer per render.
 fn render_canary(scene: &str, renders: &[CanaryRender]) -> Result<Vec<Vec<u8>>, String> {
-    let scene = render::parse_scene(scene).map_err(|e| format!("the canary scene: {e}"))?;
-    renders
-        .iter()
-        .map(|r| render_tile(&scene, &r.settings, r.rect).map(|tile| tile.rgb))
-        .collect()
+    verify::canary::render(scene, renders)
 }

@@ -12,9 +12,9 @@ use protocol::{CanaryRender, Sampling, Settings, TileRect};
 /// The canary scene's text.
 pub const SCENE: &str = include_str!("canary.json");
 
-/// The canary's renders: the whole 40 × 30 frame with each sampler, and one tile off
-/// the frame's corner with adaptive sampling (whose border pixels are shared with the
-/// neighbouring tiles).
+/// The canary's renders: the whole 40 × 30 frame with each sampler, and one
+/// block-aligned tile inside it with adaptive sampling, walked down the ladder in passes
+/// whose block states cross the wire encoding as the farm's passes do.
 pub fn renders() -> Vec<CanaryRender> {
     let settings = |aa, sampling| Settings {
         width: 40,
@@ -46,10 +46,10 @@ pub fn renders() -> Vec<CanaryRender> {
         CanaryRender {
             settings: settings(4, adaptive),
             rect: TileRect {
-                x: 13,
-                y: 7,
-                width: 11,
-                height: 9,
+                x: 8,
+                y: 8,
+                width: 24,
+                height: 16,
             },
         },
     ]
@@ -62,11 +62,49 @@ pub fn render(scene: &str, renders: &[CanaryRender]) -> Result<Vec<Vec<u8>>, Str
         .iter()
         .map(|r| {
             let tracer = crate::tracer(&scene, &r.settings)?;
-            render::render_tile(&tracer, crate::render_rect(r.rect))
-                .map(|tile| tile.rgb)
-                .map_err(|e| e.to_string())
+            match r.settings.sampling.target_error() {
+                Some(target) => walk(&tracer, r.rect, target),
+                None => render::render_tile(&tracer, crate::render_rect(r.rect))
+                    .map(|tile| tile.rgb)
+                    .map_err(|e| e.to_string()),
+            }
         })
         .collect()
+}
+
+/// Rungs per pass of the canary's adaptive walk.
+const RUNGS_PER_PASS: u32 = 24;
+
+/// An adaptive render of `rect` as the farm makes it: rung after rung until the
+/// region's own estimate meets `target`, in passes of [`RUNGS_PER_PASS`] rungs between
+/// which the blocks' state is encoded, compressed and read back (the whole frame gives
+/// exactly what `render::progressive::render_to_target` gives).
+fn walk(tracer: &render::Tracer, rect: TileRect, target: f64) -> Result<Vec<u8>, String> {
+    use render::progressive::meets;
+    let footprints = crate::adaptive::footprints(tracer);
+    let aa = tracer.settings().aa;
+    let mut state = None;
+    let mut k = 0;
+    loop {
+        let pass_end = k + RUNGS_PER_PASS;
+        let mut region =
+            crate::adaptive::region_from(tracer, std::sync::Arc::clone(&footprints), rect, state)?;
+        loop {
+            region.advance_to(k);
+            let totals = region.totals(k).ok_or("a rung not reached")?;
+            if meets(&totals, k, target) {
+                return crate::adaptive::pixels(&region, &footprints, aa, rect, k)
+                    .ok_or_else(|| "a rung not reached".to_string());
+            }
+            if k + 1 == pass_end {
+                break;
+            }
+            k += 1;
+        }
+        k += 1;
+        let packed = crate::adaptive::encode_state(region.blocks());
+        state = Some(crate::adaptive::unpack_state(&packed, rect, aa)?);
+    }
 }
 
 /// Where a worker's canary differs from the coordinator's.
@@ -174,18 +212,19 @@ mod tests {
     }
 
     #[test]
-    fn the_tile_equals_the_same_pixels_of_the_frame() {
+    fn the_adaptive_frame_in_passes_is_the_local_walk() {
         let renders = renders();
         let ours = render(SCENE, &renders).unwrap();
-        let (frame, tile) = (&ours[2], &ours[3]);
-        let r = renders[3].rect;
-        for y in r.y..r.y + r.height {
-            for x in r.x..r.x + r.width {
-                assert_eq!(
-                    crate::spot::pixel_at(r, tile, x, y),
-                    crate::spot::pixel_at(renders[2].rect, frame, x, y)
-                );
-            }
-        }
+        let scene = render::parse_scene(SCENE).unwrap();
+        let tracer = crate::tracer(&scene, &renders[2].settings).unwrap();
+        let target = renders[2].settings.sampling.target_error().unwrap();
+        let (_, frame) =
+            render::progressive::render_to_target(&tracer, None, target, &mut |_, _| true);
+        assert!(
+            frame.rung > RUNGS_PER_PASS,
+            "several passes: rung {}",
+            frame.rung
+        );
+        assert_eq!(ours[2], frame.image.rgb);
     }
 }

@@ -6,6 +6,7 @@
 //! coordinator's by one small render of a fixed scene ([`canary`]): identical bytes
 //! mean the two renderers agree, whatever their version numbers say.
 
+pub mod adaptive;
 pub mod canary;
 pub mod spot;
 

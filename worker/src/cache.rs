@@ -5,6 +5,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use protocol::{SceneHash, Settings};
+use render::progressive::Footprints;
 use render::{Scene, Tracer};
 use sha2::{Digest, Sha256};
 
@@ -15,6 +16,9 @@ type Loaded = Result<Arc<Scene>, String>;
 pub struct SceneCache {
     scenes: HashMap<SceneHash, Loaded>,
     tracers: HashMap<(SceneHash, Settings), Arc<Tracer>>,
+    /// The adaptive footprints of each (scene, settings): computed once per job, not
+    /// once per tile.
+    footprints: HashMap<(SceneHash, Settings), Arc<Footprints>>,
 }
 
 impl SceneCache {
@@ -34,6 +38,17 @@ impl SceneCache {
     pub fn forget(&mut self, hash: &SceneHash) {
         self.scenes.remove(hash);
         self.tracers.retain(|(h, _), _| h != hash);
+        self.footprints.retain(|(h, _), _| h != hash);
+    }
+
+    /// The footprints of a frame, computed by the first tile that needs them (on the
+    /// rendering pool) and shared by the job's later tiles.
+    pub fn footprints(&self, hash: &SceneHash, settings: Settings) -> Option<Arc<Footprints>> {
+        self.footprints.get(&(*hash, settings)).cloned()
+    }
+
+    pub fn keep_footprints(&mut self, hash: SceneHash, settings: Settings, f: Arc<Footprints>) {
+        self.footprints.insert((hash, settings), f);
     }
 
     /// The tracer for a scene at given settings, prepared on first use.

@@ -8,7 +8,7 @@
 
 mod cache;
 
-use std::collections::HashSet;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -74,7 +74,9 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     conn,
                     pool: Arc::clone(&pool),
                     cache: SceneCache::default(),
-                    cancelled: Arc::new(Mutex::new(HashSet::new())),
+                    cancelled: Arc::new(Mutex::new(HashMap::new())),
+                    received: 0,
+                    footprints_back: None,
                     alive: Arc::new(AtomicBool::new(true)),
                     in_flight: 0,
                     throttle: config.throttle,
@@ -160,8 +162,14 @@ struct Session {
     conn: Conn,
     pool: Arc<rayon::ThreadPool>,
     cache: SceneCache,
-    /// Jobs whose queued tiles must not be rendered.
-    cancelled: Arc<Mutex<HashSet<JobId>>>,
+    /// Jobs whose tiles received before the `Cancel` (numbered by `received`) must not
+    /// be rendered: the message number of the job's last `Cancel`. Tiles of the same job
+    /// that come after it are rendered (an adaptive job's next pass).
+    cancelled: Arc<Mutex<HashMap<JobId, u64>>>,
+    /// Tiles received on this connection so far.
+    received: u64,
+    /// Footprints computed on the pool, on their way back to the cache.
+    footprints_back: Option<FootprintsBack>,
     /// Cleared when the session ends: tiles of a lost connection are not rendered.
     alive: Arc<AtomicBool>,
     in_flight: usize,
@@ -257,7 +265,51 @@ impl Session {
             ToWorker::Ping { token } => self.pongs.push(token),
             ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
-                self.cancelled.lock().expect("cancel set").insert(job);
+                let received = self.received;
+                self.cancelled
+                    .lock()
+                    .expect("cancel set")
+                    .insert(job, received);
+            }
+            ToWorker::Advance {
+                job,
+                tile,
+                scene,
+                settings,
+                rect,
+                pass,
+                rung,
+                previous,
+            } => {
+                self.take_footprints();
+                let (started, run) = self.start_tile(job, done);
+                let tracer = self.cache.tracer(&scene, settings);
+                let footprints = self.cache.footprints(&scene, settings);
+                let back = self.footprints_channel();
+                self.pool.spawn(move || {
+                    if !run() {
+                        return;
+                    }
+                    let advanced = tracer.and_then(|t| {
+                        let footprints = footprints.unwrap_or_else(|| {
+                            let f = verify::adaptive::footprints(&t);
+                            let _ = back.send((scene, settings, Arc::clone(&f)));
+                            f
+                        });
+                        let previous = previous
+                            .map(|p| verify::adaptive::unpack_state(&p, rect, settings.aa))
+                            .transpose()?;
+                        verify::adaptive::advance(&t, footprints, rect, previous, rung)
+                    });
+                    let message = match advanced {
+                        Ok(a) => advanced_result(job, tile, pass, rung, a, started.elapsed()),
+                        Err(message) => {
+                            warn!(job, tile, error = %message, "cannot advance tile");
+                            FromWorker::TileFailed { job, tile, message }
+                        }
+                    };
+                    started.finish(message);
+                });
             }
             ToWorker::Render {
                 job,
@@ -266,31 +318,21 @@ impl Session {
                 settings,
                 rect,
             } => {
-                self.in_flight += 1;
+                let (started, run) = self.start_tile(job, done);
                 let tracer = self.cache.tracer(&scene, settings);
-                let cancelled = Arc::clone(&self.cancelled);
-                let alive = Arc::clone(&self.alive);
-                let done = done.clone();
-                let throttle = self.throttle;
                 self.pool.spawn(move || {
-                    if !alive.load(Ordering::Relaxed)
-                        || cancelled.lock().expect("cancel set").contains(&job)
-                    {
-                        let _ = done.send(Rendered::Skipped);
+                    if !run() {
                         return;
                     }
-                    let started = Instant::now();
-                    let rect = render::Rect {
-                        x: rect.x,
-                        y: rect.y,
-                        width: rect.width,
-                        height: rect.height,
-                    };
-                    let rendered = tracer
-                        .and_then(|t| render::render_tile(&t, rect).map_err(|e| e.to_string()));
-                    if let Some(factor) = throttle.filter(|f| *f > 1.0) {
-                        std::thread::sleep(started.elapsed().mul_f64(factor - 1.0));
-                    }
+                    let rendered = tracer.and_then(|t| {
+                        if settings.sampling.target_error().is_some() {
+                            return Err("adaptive tiles are advanced in passes, not rendered \
+                                        alone (a coordinator of another version?)"
+                                .to_string());
+                        }
+                        render::render_tile(&t, verify::render_rect(rect))
+                            .map_err(|e| e.to_string())
+                    });
                     let message = match rendered {
                         Ok(image) => tile_result(job, tile, image, started.elapsed()),
                         Err(message) => {
@@ -298,11 +340,118 @@ impl Session {
                             FromWorker::TileFailed { job, tile, message }
                         }
                     };
-                    let _ = done.send(Rendered::Done(message));
+                    started.finish(message);
                 });
             }
         }
         Ok(())
+    }
+
+    /// Counts a tile in flight and returns its start (which sends the result, after the
+    /// throttle) and the test it must pass on the pool before rendering: the session is
+    /// alive and no `Cancel` of its job came after it.
+    fn start_tile(
+        &mut self,
+        job: JobId,
+        done: &mpsc::UnboundedSender<Rendered>,
+    ) -> (Started, impl FnOnce() -> bool + Send + 'static) {
+        self.in_flight += 1;
+        self.received += 1;
+        let number = self.received;
+        let cancelled = Arc::clone(&self.cancelled);
+        let alive = Arc::clone(&self.alive);
+        let done = done.clone();
+        let started = Started {
+            at: Instant::now(),
+            throttle: self.throttle,
+            done: done.clone(),
+        };
+        let run = move || {
+            let cancelled = cancelled
+                .lock()
+                .expect("cancel set")
+                .get(&job)
+                .is_some_and(|&at| at >= number);
+            if !alive.load(Ordering::Relaxed) || cancelled {
+                let _ = done.send(Rendered::Skipped);
+                return false;
+            }
+            true
+        };
+        (started, run)
+    }
+
+    /// Where the pool sends the footprints it computed, for the cache.
+    fn footprints_channel(&mut self) -> std::sync::mpsc::Sender<FootprintsKept> {
+        if let Some((tx, _)) = &self.footprints_back {
+            return tx.clone();
+        }
+        let (tx, rx) = std::sync::mpsc::channel();
+        self.footprints_back = Some((tx.clone(), rx));
+        tx
+    }
+
+    /// Keeps the footprints the pool computed since the last message.
+    fn take_footprints(&mut self) {
+        if let Some((_, rx)) = &self.footprints_back {
+            while let Ok((hash, settings, f)) = rx.try_recv() {
+                self.cache.keep_footprints(hash, settings, f);
+            }
+        }
+    }
+}
+
+/// Footprints computed on the pool: the scene and settings they are for.
+type FootprintsKept = (
+    protocol::SceneHash,
+    protocol::Settings,
+    Arc<render::progressive::Footprints>,
+);
+type FootprintsBack = (
+    std::sync::mpsc::Sender<FootprintsKept>,
+    std::sync::mpsc::Receiver<FootprintsKept>,
+);
+
+/// A tile being rendered: when it started, and where its result goes.
+struct Started {
+    at: Instant,
+    throttle: Option<f64>,
+    done: mpsc::UnboundedSender<Rendered>,
+}
+
+impl Started {
+    fn elapsed(&self) -> Duration {
+        if let Some(factor) = self.throttle.filter(|f| *f > 1.0) {
+            std::thread::sleep(self.at.elapsed().mul_f64(factor - 1.0));
+        }
+        self.at.elapsed()
+    }
+
+    fn finish(self, message: FromWorker) {
+        let _ = self.done.send(Rendered::Done(message));
+    }
+}
+
+/// An advanced adaptive tile's message: its pixels and its blocks' state, each one
+/// zstd frame.
+fn advanced_result(
+    job: JobId,
+    tile: u32,
+    pass: u32,
+    rung: u32,
+    advanced: verify::adaptive::Advanced,
+    took: Duration,
+) -> FromWorker {
+    FromWorker::Advanced {
+        job,
+        tile,
+        pass,
+        rung,
+        zstd: zstd::bulk::compress(&advanced.rgb, ZSTD_LEVEL)
+            .unwrap_or_else(|_| zstd::stream::encode_all(&advanced.rgb[..], 0).expect("zstd")),
+        state: verify::adaptive::encode_state(&advanced.blocks),
+        rays: advanced.rays,
+        render_us: took.as_micros() as u64,
     }
 }
 

@@ -174,6 +174,10 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
         Some(t) => t,
         None => tiling::default_tile_size(&settings),
     };
+    if settings.sampling.target_error().is_some() {
+        verify::adaptive::check_tile_side(tile_size)
+            .map_err(|e| format!("overrides: tile: {e}"))?;
+    }
     let hash: SceneHash = Sha256::digest(spec.scene.as_bytes()).into();
     let request = lifecycle::Request {
         client: Some(client),

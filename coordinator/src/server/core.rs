@@ -20,6 +20,7 @@ use scheduler::{Action, Event, Millis, Scheduler};
 use tokio::sync::{mpsc, oneshot};
 use tracing::{error, info, warn};
 
+use super::adaptive::{self, AdaptiveJob, AdaptivePlan, Answer, Evaluation, PassSnapshot};
 use super::persistence::Write;
 use super::verification::Verifier;
 use super::{unix_ms, Shared};
@@ -48,6 +49,15 @@ pub struct Held {
     machine: String,
     rgb: Vec<u8>,
     cost: Cost,
+    /// An adaptive answer's state.
+    answer: Option<Answer>,
+}
+
+impl Held {
+    /// Whether another result is the same: its pixels, and an adaptive answer's state.
+    fn same(&self, rgb: &[u8], answer: Option<&Answer>) -> bool {
+        self.rgb == rgb && self.answer.as_ref().map(|a| a.sha) == answer.map(|a| a.sha)
+    }
 }
 
 /// What the daemon keeps of a job beside its lifecycle.
@@ -83,6 +93,8 @@ pub struct JobRecord {
     /// Who rendered each accepted tile and what it added to the totals, while the job
     /// is active: what a quarantine takes back.
     pub accepted: HashMap<u32, Accepted>,
+    /// An adaptive job's passes and its tiles' states, while it is active.
+    pub adaptive: Option<AdaptiveJob>,
 }
 
 /// An accepted tile's machine and cost.
@@ -181,6 +193,8 @@ pub struct CheckPlan {
     settings: Settings,
     scene: Arc<str>,
     rect: TileRect,
+    /// For an adaptive job's answer: its pass, rung and previous state.
+    adaptive: Option<AdaptivePlan>,
 }
 
 impl CheckPlan {
@@ -199,14 +213,40 @@ impl CheckPlan {
         }
     }
 
-    /// Spot-checks the result (off the lock: it renders).
-    pub fn run(self, verifier: &Verifier, rgb: &[u8]) -> Verdict {
+    /// Spot-checks the result (off the lock: it renders). An adaptive answer's state
+    /// comes in `state`.
+    pub fn run(self, verifier: &Verifier, rgb: &[u8], state: Option<Vec<u8>>) -> Verdict {
         match verifier.tracer(self.hash, self.settings, &self.scene) {
-            Ok(tracer) => Verdict {
-                spot: verifier
-                    .spot_check(&tracer, self.rect, rgb)
-                    .map_err(|wrong| wrong.to_string()),
-                tracer: Some(tracer),
+            Ok(tracer) => match (&self.adaptive, state) {
+                (Some(plan), Some(state)) => {
+                    let checked = adaptive::check_answer(
+                        verifier,
+                        &tracer,
+                        &self.settings,
+                        self.rect,
+                        plan,
+                        rgb,
+                        state,
+                    );
+                    let (spot, answer) = match checked {
+                        Ok(answer) => (Ok(()), Some(answer)),
+                        Err(e) => (Err(e), None),
+                    };
+                    Verdict {
+                        spot,
+                        tracer: Some(tracer),
+                        answer,
+                        plan: self.adaptive,
+                    }
+                }
+                _ => Verdict {
+                    spot: verifier
+                        .spot_check(&tracer, self.rect, rgb)
+                        .map_err(|wrong| wrong.to_string()),
+                    tracer: Some(tracer),
+                    answer: None,
+                    plan: None,
+                },
             },
             // The scene was accepted at submission: it parses. Without a tracer the
             // result cannot be checked; it is held to a second machine instead.
@@ -223,6 +263,9 @@ impl CheckPlan {
 pub struct Verdict {
     spot: Result<(), String>,
     tracer: Option<Arc<Tracer>>,
+    /// An adaptive answer that passed its checks, and what it was checked against.
+    answer: Option<Answer>,
+    plan: Option<AdaptivePlan>,
 }
 
 impl Verdict {
@@ -231,7 +274,14 @@ impl Verdict {
         Verdict {
             spot: Err(reason),
             tracer: None,
+            answer: None,
+            plan: None,
         }
+    }
+
+    /// The samples of an adaptive answer's pixels (0 for other results).
+    pub fn samples(&self) -> u64 {
+        self.answer.as_ref().map_or(0, |a| a.samples)
     }
 
     /// No check was possible (a result for a job no longer active).
@@ -239,6 +289,8 @@ impl Verdict {
         Verdict {
             spot: Ok(()),
             tracer: None,
+            answer: None,
+            plan: None,
         }
     }
 }
@@ -346,6 +398,8 @@ impl Core {
         self.jobs.insert(
             id,
             JobRecord {
+                adaptive: is_adaptive(&prepared.settings)
+                    .then(|| AdaptiveJob::new(&prepared.settings, prepared.tiles.len())),
                 verification: prepared.verification,
                 accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
@@ -373,9 +427,20 @@ impl Core {
     pub fn restore(&mut self, sh: &Arc<Shared>, restored: super::startup::RestoredJob) {
         let stored = restored.job;
         let id = stored.id;
+        // An adaptive job of an earlier version may have tiles off the blocks: it starts
+        // its passes again anyway, on tiles it can use.
+        let mut stored = stored;
+        if is_adaptive(&stored.settings)
+            && verify::adaptive::check_tile_side(stored.tile_size).is_err()
+        {
+            stored.tile_size = tiling::default_tile_size(&stored.settings);
+        }
         let tiles = tiling::cut(&stored.settings, stored.tile_size);
         let final_state = stored.state.is_final();
+        let adaptive = (!final_state && is_adaptive(&stored.settings))
+            .then(|| AdaptiveJob::new(&stored.settings, tiles.len()));
         let mut record = JobRecord {
+            adaptive,
             verification: stored.verification,
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
@@ -424,7 +489,13 @@ impl Core {
         if let (Some(started), Some(last)) = (stored.times.started, last_done) {
             record.rendered_before_ms = last.saturating_sub(started);
         }
-        for t in restored.tiles {
+        // An adaptive job starts its passes again: its tiles' states are not stored.
+        let tiles = if record.adaptive.is_some() {
+            Vec::new()
+        } else {
+            restored.tiles
+        };
+        for t in tiles {
             let rect = record.tiles[t.tile as usize];
             image.put_rect(to_render_rect(rect), &t.rgb);
             record.tiles_recorded += 1;
@@ -520,6 +591,50 @@ impl Core {
         tile: u32,
         bytes: Option<usize>,
     ) -> anyhow::Result<Option<CheckPlan>> {
+        self.plan_for(job, tile, bytes, None)
+    }
+
+    /// What an adaptive answer for the tile must be checked against; `None` when it
+    /// counts for nothing (the job is not active, or the answer is for another pass).
+    /// An answer for a tile of a job that is not adaptive is a broken worker.
+    pub fn advanced_plan(
+        &self,
+        job: JobId,
+        tile: u32,
+        pass: u32,
+        rung: u32,
+    ) -> anyhow::Result<Option<CheckPlan>> {
+        let Some(record) = self.jobs.get(&job) else {
+            return Ok(None);
+        };
+        let Some(ad) = &record.adaptive else {
+            anyhow::ensure!(
+                record.image.is_none(),
+                "an adaptive answer for tile {tile} of job {job}, which is not adaptive"
+            );
+            return Ok(None);
+        };
+        if ad.passes.pass() != pass || ad.passes.rung() != rung || ad.evaluating {
+            return Ok(None);
+        }
+        let Some(t) = ad.tiles.get(tile as usize) else {
+            anyhow::bail!("result for tile {tile} of job {job}, which has no such tile");
+        };
+        let plan = AdaptivePlan {
+            pass,
+            rung,
+            previous: t.previous.clone(),
+        };
+        self.plan_for(job, tile, None, Some(plan))
+    }
+
+    fn plan_for(
+        &self,
+        job: JobId,
+        tile: u32,
+        bytes: Option<usize>,
+        adaptive: Option<AdaptivePlan>,
+    ) -> anyhow::Result<Option<CheckPlan>> {
         let Some(record) = self.jobs.get(&job) else {
             return Ok(None);
         };
@@ -537,11 +652,16 @@ impl Core {
                 "result for tile {tile} of job {job} has {bytes} bytes, expected {expected}"
             );
         }
+        anyhow::ensure!(
+            record.adaptive.is_none() || adaptive.is_some() || record.image.is_none(),
+            "a tile result for tile {tile} of job {job}, whose tiles are advanced in passes"
+        );
         Ok(record.scene.clone().map(|scene| CheckPlan {
             hash: record.hash,
             settings: record.settings,
             scene,
             rect,
+            adaptive,
         }))
     }
 
@@ -561,11 +681,20 @@ impl Core {
         cost: Cost,
         verdict: Verdict,
     ) -> anyhow::Result<()> {
-        // Checked again: the job may have ended while the spot check ran.
-        if self.check_plan(job, tile, None)?.is_none() {
-            let actions = self
-                .tiles
-                .handle(sh.now(), Event::TileDone { worker, job, tile });
+        // Checked again: the job may have ended (or its pass changed) while the spot
+        // check ran.
+        let current = match &verdict.plan {
+            Some(plan) => self.advanced_plan(job, tile, plan.pass, plan.rung)?,
+            None => self.check_plan(job, tile, None)?,
+        };
+        if current.is_none() {
+            // An adaptive answer to a pass that is over must not pass for an answer to
+            // the pass that replaced it, which may have sent the worker the same tile.
+            let event = match verdict.plan {
+                Some(_) => Event::Heartbeat { worker },
+                None => Event::TileDone { worker, job, tile },
+            };
+            let actions = self.tiles.handle(sh.now(), event);
             self.apply_tiles(sh, actions);
             return Ok(());
         }
@@ -588,26 +717,46 @@ impl Core {
                 self.tiles_event(sh, Event::WorkerPace { worker, rtt, tile });
             }
         }
+        let answer = verdict.answer.as_ref();
         let held_from = self
             .held
             .get(&(job, tile))
             .filter(|h| h.machine != machine)
-            .map(|h| (h.machine.clone(), h.rgb == rgb));
+            .map(|h| (h.machine.clone(), h.same(&rgb, answer)));
         let event = match held_from {
             Some((_, true)) => Event::TileDone { worker, job, tile },
             Some((other, false)) => {
                 // At least one of the two is wrong: the pixels where they differ say
                 // which (a few pixels rendered here, only when a liar is about).
                 let held = &self.held[&(job, tile)];
-                let rect = self.jobs[&job].tiles[tile as usize];
-                let verdict = match &verdict.tracer {
-                    Some(tracer) => verify::spot::arbitrate(tracer, rect, &held.rgb, &rgb),
-                    None => verify::spot::Arbitration {
+                let record = &self.jobs[&job];
+                let rect = record.tiles[tile as usize];
+                let verdict = match (&verdict.tracer, &verdict.plan, &held.answer, answer) {
+                    (Some(tracer), Some(plan), Some(a), Some(b)) => {
+                        let (first, second) = adaptive::arbitrate(
+                            &sh.verifier,
+                            tracer,
+                            &record.settings,
+                            rect,
+                            plan,
+                            &a.state,
+                            &b.state,
+                        );
+                        Arbitration { first, second }
+                    }
+                    (Some(tracer), None, _, _) => {
+                        let v = verify::spot::arbitrate(tracer, rect, &held.rgb, &rgb);
+                        Arbitration {
+                            first: v.first.map(|w| w.to_string()),
+                            second: v.second.map(|w| w.to_string()),
+                        }
+                    }
+                    _ => Arbitration {
                         first: None,
                         second: None,
                     },
                 };
-                if let Some(wrong) = verdict.first {
+                if let Some(wrong) = &verdict.first {
                     let reason = format!(
                         "returned wrong pixels for tile {tile} of job {job}: {wrong} \
                          (found comparing its result with {machine}'s)"
@@ -635,6 +784,15 @@ impl Core {
             }
             None => self.fresh_result(sh, worker, job, tile),
         };
+        // A quarantine above may have restarted the adaptive pass this answers.
+        if let Some(plan) = &verdict.plan {
+            if self
+                .advanced_plan(job, tile, plan.pass, plan.rung)?
+                .is_none()
+            {
+                return Ok(());
+            }
+        }
         let actions = self.tiles.handle(sh.now(), event);
         let latency = self
             .workers
@@ -651,7 +809,8 @@ impl Core {
                         sh.metrics.result_confirmed();
                     }
                     if let Some(rgb) = rgb.take() {
-                        self.accept_tile(sh, worker, &machine, job, tile, rgb, &cost);
+                        let answer = verdict.answer.clone();
+                        self.accept_tile(sh, worker, &machine, job, tile, rgb, &cost, answer);
                     }
                 }
                 Action::HoldResult { worker, job, tile } => {
@@ -661,14 +820,14 @@ impl Core {
                             machine: machine.clone(),
                             rgb,
                             cost,
+                            answer: verdict.answer.clone(),
                         };
                         self.held.insert((job, tile), held);
                     }
                 }
                 Action::DuplicateResult { job, tile } => {
                     if let Some(rgb) = &rgb {
-                        let tracer = verdict.tracer.as_deref();
-                        self.settle_duplicate(sh, &machine, job, tile, rgb, tracer);
+                        self.settle_duplicate(sh, &machine, job, tile, rgb, &verdict);
                     }
                 }
                 _ => {}
@@ -718,6 +877,21 @@ impl Core {
             w.quarantined.get_or_insert_with(|| reason.clone());
         }
         self.held.retain(|_, h| h.machine != machine);
+        let adaptive: Vec<JobId> = self
+            .jobs
+            .iter()
+            .filter(|(_, r)| r.adaptive.is_some())
+            .map(|(&j, _)| j)
+            .collect();
+        for job in adaptive {
+            if !self.take_back_adaptive(sh, job, machine) {
+                error!(
+                    job,
+                    machine,
+                    "a finished adaptive job holds tiles of a quarantined machine: submit it again"
+                );
+            }
+        }
         let mut revoke = Vec::new();
         for (&job, record) in &mut self.jobs {
             let tiles: Vec<u32> = record
@@ -764,6 +938,189 @@ impl Core {
                 revoke,
             },
         );
+    }
+
+    /// Every tile of an adaptive job's pass is in: its totals are added up off the
+    /// lock, and [`Core::pass_evaluated`] decides.
+    fn end_of_pass(&mut self, sh: &Arc<Shared>, job: JobId) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let (Some(ad), Some(scene)) = (record.adaptive.as_mut(), record.scene.clone()) else {
+            return;
+        };
+        ad.evaluating = true;
+        let snap = PassSnapshot {
+            pass: ad.passes.pass(),
+            rungs: ad.passes.to_check(),
+            settings: record.settings,
+            rects: record.tiles.clone(),
+            states: ad.tiles.iter().map(|t| t.state.clone()).collect(),
+        };
+        let hash = record.hash;
+        let shared = Arc::clone(sh);
+        sh.runtime.spawn_blocking(move || {
+            let verifier = &shared.verifier;
+            let evaluation = verifier
+                .tracer(hash, snap.settings, &scene)
+                .and_then(|tracer| adaptive::evaluate(verifier, &tracer, snap));
+            shared.lock().pass_evaluated(&shared, job, evaluation);
+        });
+    }
+
+    /// A pass's totals are in: the job's image is found (the first rung that meets the
+    /// target), or the next pass starts. A result for a pass that is no longer the
+    /// job's (restarted, cancelled) counts for nothing.
+    fn pass_evaluated(
+        &mut self,
+        sh: &Arc<Shared>,
+        job: JobId,
+        evaluation: Result<Evaluation, String>,
+    ) {
+        let running = self
+            .lifecycle
+            .job(job)
+            .is_some_and(|j| matches!(j.phase, Phase::Queued | Phase::Running));
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let Some(ad) = record.adaptive.as_mut() else {
+            return;
+        };
+        let evaluation = match evaluation {
+            Ok(e) if e.pass != ad.passes.pass() || !ad.evaluating => return,
+            Ok(e) => e,
+            Err(message) => {
+                ad.evaluating = false;
+                if !running {
+                    return;
+                }
+                let message = format!("cannot add up the pass's tiles: {message}");
+                error!(job, error = %message, "adaptive job failed");
+                self.life_event(sh, lifecycle::Event::TilesFailed { job, message });
+                return;
+            }
+        };
+        ad.evaluating = false;
+        if !running {
+            return;
+        }
+        let t = evaluation.totals;
+        let pixels = u64::from(record.settings.width) * u64::from(record.settings.height);
+        record.totals.samples = t.samples;
+        let estimate = t.estimated_error();
+        if estimate.is_finite() {
+            record.totals.error_sq_sum = estimate * estimate * pixels as f64;
+            record.totals.error_pixels = pixels;
+        }
+        match ad.passes.pass_done(&evaluation.checks) {
+            scheduler::passes::Decision::Finish { rung } => {
+                info!(
+                    job,
+                    passes = ad.passes.pass() + 1,
+                    rung,
+                    estimate,
+                    "adaptive job: the target is met"
+                );
+                record.image = evaluation.image;
+                record.tiles_recorded = record.tiles_total;
+                self.life_event(sh, lifecycle::Event::TilesComplete { job });
+            }
+            scheduler::passes::Decision::Next { rung } => {
+                info!(
+                    job,
+                    pass = ad.passes.pass(),
+                    rung,
+                    estimate,
+                    "adaptive job: next pass"
+                );
+                self.start_pass(sh, job);
+            }
+        }
+        sh.changed();
+    }
+
+    /// Starts the job's pass under way: every tile with work at its rung goes out from
+    /// the state it has; the others have reached the rung already.
+    fn start_pass(&mut self, sh: &Arc<Shared>, job: JobId) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let Some(ad) = record.adaptive.as_mut() else {
+            return;
+        };
+        let rung = ad.passes.rung();
+        let next_work: Vec<Option<u32>> = ad
+            .tiles
+            .iter()
+            .map(|t| {
+                if t.rung == Some(rung) {
+                    None
+                } else {
+                    t.next_work
+                }
+            })
+            .collect();
+        let send = scheduler::passes::tiles_with_work(&next_work, rung);
+        for (i, t) in ad.tiles.iter_mut().enumerate() {
+            if send.binary_search(&(i as u32)).is_ok() {
+                t.previous = t.state.clone();
+            } else {
+                t.rung = Some(rung);
+            }
+        }
+        let done: Vec<u32> = (0..record.tiles_total)
+            .filter(|t| send.binary_search(t).is_err())
+            .collect();
+        let (priority, hash, total) = (record.priority, record.hash, record.tiles_total);
+        let actions = self
+            .tiles
+            .resume_job(sh.now(), job, priority, hash, total, &done);
+        self.apply_tiles(sh, actions);
+    }
+
+    /// A machine of the quarantine built some of an adaptive job's tiles: they start
+    /// again from nothing, and the pass under way starts again under a new number (at
+    /// the same rung), so that no answer built on its states counts and every rung is
+    /// added up again. `false` when the job is past its passes.
+    fn take_back_adaptive(&mut self, sh: &Arc<Shared>, job: JobId, machine: &str) -> bool {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return false;
+        };
+        let Some(ad) = record.adaptive.as_mut() else {
+            return false;
+        };
+        let tainted: Vec<usize> = (0..ad.tiles.len())
+            .filter(|&t| ad.tiles[t].machines.iter().any(|m| &**m == machine))
+            .collect();
+        if tainted.is_empty() {
+            return true;
+        }
+        let passing = self
+            .lifecycle
+            .job(job)
+            .is_some_and(|j| matches!(j.phase, Phase::Queued | Phase::Running));
+        if !passing {
+            return false;
+        }
+        warn!(
+            job,
+            machine,
+            tiles = tainted.len(),
+            "rendering again the adaptive tiles a quarantined machine built"
+        );
+        for t in tainted {
+            ad.tiles[t] = adaptive::AdaptiveTile {
+                next_work: Some(0),
+                ..adaptive::AdaptiveTile::default()
+            };
+        }
+        ad.passes.restart_pass();
+        ad.evaluating = false;
+        self.held.retain(|(j, _), _| *j != job);
+        self.tiles_event(sh, Event::CancelJob { job });
+        self.start_pass(sh, job);
+        true
     }
 
     /// A pong: the round trip to the worker, if the token was ours.
@@ -818,11 +1175,51 @@ impl Core {
         job: JobId,
         tile: u32,
         rgb: &[u8],
-        tracer: Option<&Tracer>,
+        verdict: &Verdict,
     ) {
+        let tracer = verdict.tracer.as_deref();
         let Some(record) = self.jobs.get(&job) else {
             return;
         };
+        if let (Some(ad), Some(answer), Some(plan)) =
+            (&record.adaptive, &verdict.answer, &verdict.plan)
+        {
+            let t = &ad.tiles[tile as usize];
+            let (Some(state), Some(first)) = (&t.state, t.machines.last()) else {
+                return;
+            };
+            if t.rung != Some(plan.rung) || t.sha == answer.sha {
+                return;
+            }
+            let (Some(tracer), Some(&rect)) = (tracer, record.tiles.get(tile as usize)) else {
+                return;
+            };
+            let first = first.to_string();
+            let (wrong_first, wrong_second) = adaptive::arbitrate(
+                &sh.verifier,
+                tracer,
+                &record.settings,
+                rect,
+                plan,
+                state,
+                &answer.state,
+            );
+            if let Some(wrong) = wrong_first {
+                let reason = format!(
+                    "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
+                     comparing its result with {machine}'s copy)"
+                );
+                self.quarantine(sh, &first, reason);
+            }
+            if let Some(wrong) = wrong_second {
+                let reason = format!(
+                    "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
+                     comparing its copy with the accepted result)"
+                );
+                self.quarantine(sh, machine, reason);
+            }
+            return;
+        }
         let (Some(image), Some(&rect)) = (&record.image, record.tiles.get(tile as usize)) else {
             return;
         };
@@ -875,6 +1272,7 @@ impl Core {
         tile: u32,
         rgb: Vec<u8>,
         cost: &Cost,
+        answer: Option<Answer>,
     ) {
         if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
@@ -886,6 +1284,32 @@ impl Core {
         let Some(&rect) = record.tiles.get(tile as usize) else {
             return;
         };
+        if let Some(ad) = record.adaptive.as_mut() {
+            // The tile's new state is kept for the next pass; its pixels show the pass's
+            // progress. Nothing is written: a restarted coordinator starts the passes
+            // again.
+            let Some(answer) = answer.filter(|a| a.pass == ad.passes.pass()) else {
+                return;
+            };
+            let t = &mut ad.tiles[tile as usize];
+            t.state = Some(answer.state);
+            t.rung = Some(ad.passes.rung());
+            t.sha = answer.sha;
+            t.next_work = answer.next_work;
+            if !t.machines.iter().any(|m| &**m == machine) {
+                t.machines.push(Arc::from(machine));
+            }
+            ad.rays += cost.rays;
+            record.totals.rays = record.totals.rays.saturating_add(cost.rays);
+            if let Some(image) = record.image.as_mut() {
+                image.put_rect(to_render_rect(rect), &rgb);
+            }
+            *record
+                .tiles_per_worker
+                .entry(machine.to_string())
+                .or_default() += 1;
+            return;
+        }
         if let Some(image) = record.image.as_mut() {
             image.put_rect(to_render_rect(rect), &rgb);
         }
@@ -958,6 +1382,7 @@ impl Core {
                             tile,
                             held.rgb,
                             &held.cost,
+                            held.answer,
                         );
                     }
                 }
@@ -969,7 +1394,11 @@ impl Core {
                 }
                 Action::JobDone { job } => {
                     self.held.retain(|(j, _), _| *j != job);
-                    self.life_event(sh, lifecycle::Event::TilesComplete { job });
+                    if self.jobs.get(&job).is_some_and(|r| r.adaptive.is_some()) {
+                        self.end_of_pass(sh, job);
+                    } else {
+                        self.life_event(sh, lifecycle::Event::TilesComplete { job });
+                    }
                 }
                 Action::JobFailed { job, message } => {
                     self.held.retain(|(j, _), _| *j != job);
@@ -995,12 +1424,27 @@ impl Core {
         let Some(&rect) = record.tiles.get(tile as usize) else {
             return;
         };
-        let message = ToWorker::Render {
-            job,
-            tile,
-            scene: record.hash,
-            settings: record.settings,
-            rect,
+        let message = match &record.adaptive {
+            Some(ad) => ToWorker::Advance {
+                job,
+                tile,
+                scene: record.hash,
+                settings: record.settings,
+                rect,
+                pass: ad.passes.pass(),
+                rung: ad.passes.rung(),
+                previous: ad.tiles[tile as usize]
+                    .previous
+                    .as_ref()
+                    .map(|p| p.to_vec()),
+            },
+            None => ToWorker::Render {
+                job,
+                tile,
+                scene: record.hash,
+                settings: record.settings,
+                rect,
+            },
         };
         if record.running_since.is_none() {
             record.running_since = Some(unix_ms());
@@ -1155,6 +1599,7 @@ impl Core {
         record.scene = None;
         record.tiles = Vec::new();
         record.accepted = HashMap::new();
+        record.adaptive = None;
         let ended = *record.times.ended.get_or_insert_with(unix_ms);
         let rays = record.totals.rays;
         match state {
@@ -1197,6 +1642,17 @@ impl Core {
             .map(|(&id, w)| w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id)))
             .collect()
     }
+}
+
+/// Which of two differing results is wrong, and why, if it could be shown.
+struct Arbitration {
+    first: Option<String>,
+    second: Option<String>,
+}
+
+/// Whether a job's tiles are advanced in passes.
+fn is_adaptive(settings: &Settings) -> bool {
+    settings.sampling.target_error().is_some()
 }
 
 fn to_render_rect(r: TileRect) -> render::Rect {
@@ -1292,16 +1748,24 @@ impl JobRecord {
         let total = self.tiles_total;
         let done = if state == JobState::Done {
             total
+        } else if let Some(ad) = &self.adaptive {
+            if self.tiles_recorded == total {
+                total
+            } else {
+                ad.tiles_done()
+            }
         } else {
             self.tiles_recorded
         };
-        let eta_ms = (state == JobState::Running && done > 0 && done < total)
-            .then(|| {
-                let started = self.times.started?;
-                let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
-                Some((per_tile * f64::from(total - done)) as u64)
-            })
-            .flatten();
+        // An adaptive job does not know how many passes are left.
+        let eta_ms =
+            (state == JobState::Running && done > 0 && done < total && self.adaptive.is_none())
+                .then(|| {
+                    let started = self.times.started?;
+                    let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
+                    Some((per_tile * f64::from(total - done)) as u64)
+                })
+                .flatten();
         let error = match &job.phase {
             Phase::Ended { error, .. } if state.is_final() => error.clone(),
             _ => None,

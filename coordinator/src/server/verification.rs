@@ -8,6 +8,7 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use protocol::{CanaryRender, SceneHash, Settings, TileRect};
+use render::progressive::Footprints;
 use render::Tracer;
 use verify::spot::{self, WrongPixel};
 
@@ -15,7 +16,10 @@ use verify::spot::{self, WrongPixel};
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VerifyConfig {
     /// Pixels of each tile result rendered again by the coordinator (at most one in
-    /// 128 of the tile's pixels; 0 turns spot checks off).
+    /// 128 of the tile's pixels; 0 turns spot checks off). An adaptive answer's pixels
+    /// depend on its whole block, so a block is checked instead: one block of an answer
+    /// of B blocks, with probability min(1, B × `spot_pixels` / 1600), which costs
+    /// about `spot_pixels` / 16 % of the rendering (1 % by default).
     pub spot_pixels: u32,
     /// Share of the tiles of a job in sampled verification whose result is held until
     /// another machine returns the same bytes (0 turns audits off).
@@ -37,11 +41,16 @@ const TRACERS_KEPT: usize = 16;
 /// Recently used tracers by scene and settings, oldest first.
 type Tracers = VecDeque<((SceneHash, Settings), Arc<Tracer>)>;
 
+/// The adaptive footprints of recent tracers (by the tracer's address, which the cache
+/// of tracers keeps alive), oldest first.
+type FootprintsKept = VecDeque<(Arc<Tracer>, Arc<Footprints>)>;
+
 /// The canary's reference render and the tracers of recent jobs.
 pub struct Verifier {
     pub config: VerifyConfig,
     pub canary: Canary,
     tracers: Mutex<Tracers>,
+    footprints: Mutex<FootprintsKept>,
 }
 
 /// The canary as this coordinator renders it.
@@ -59,6 +68,7 @@ impl Verifier {
             config,
             canary: Canary { renders, images },
             tracers: Mutex::new(VecDeque::new()),
+            footprints: Mutex::new(VecDeque::new()),
         })
     }
 
@@ -84,6 +94,36 @@ impl Verifier {
             cache.push_back((key, Arc::clone(&tracer)));
         }
         Ok(tracer)
+    }
+
+    /// The adaptive footprints of a tracer's frame, computed on first use (off the
+    /// lock) and kept while its tracer is.
+    pub fn footprints(&self, tracer: &Tracer) -> Arc<Footprints> {
+        let kept = || self.footprints.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, f)) = kept().iter().find(|(t, _)| std::ptr::eq(&**t, tracer)) {
+            return Arc::clone(f);
+        }
+        let f = verify::adaptive::footprints(tracer);
+        let owner = self
+            .cache()
+            .iter()
+            .find(|(_, t)| std::ptr::eq(&**t, tracer))
+            .map(|(_, t)| Arc::clone(t));
+        if let Some(owner) = owner {
+            let mut kept = kept();
+            if kept.len() >= TRACERS_KEPT {
+                kept.pop_front();
+            }
+            kept.push_back((owner, Arc::clone(&f)));
+        }
+        f
+    }
+
+    /// Whether one block of an adaptive answer of `blocks` blocks is checked.
+    pub fn adaptive_check(&self, blocks: usize) -> bool {
+        let share = (blocks as f64 * f64::from(self.config.spot_pixels) / 1600.0).min(1.0);
+        let draw = (random_u64() >> 11) as f64 / (1u64 << 53) as f64;
+        share > 0.0 && draw < share
     }
 
     fn cache(&self) -> std::sync::MutexGuard<'_, Tracers> {
@@ -116,7 +156,7 @@ impl Verifier {
 
 /// 64 bits from the operating system: what is checked must not be predictable by the
 /// worker that rendered it.
-fn random_u64() -> u64 {
+pub(super) fn random_u64() -> u64 {
     let mut bytes = [0u8; 8];
     // Without randomness the choice falls back to the clock, still unknown to a worker.
     if getrandom::fill(&mut bytes).is_err() {

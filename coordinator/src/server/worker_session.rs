@@ -142,6 +142,7 @@ fn message_name(message: &FromWorker) -> &'static str {
         FromWorker::Heartbeat => "Heartbeat",
         FromWorker::CanaryDone { .. } => "CanaryDone",
         FromWorker::Pong { .. } => "Pong",
+        FromWorker::Advanced { .. } => "Advanced",
     }
 }
 
@@ -179,12 +180,46 @@ async fn result(
                         Err(reason) => return (Vec::new(), Verdict::wrong(reason)),
                     },
                 };
-                let verdict = plan.run(&shared.verifier, &rgb);
+                let verdict = plan.run(&shared.verifier, &rgb, None);
                 (rgb, verdict)
             })
             .await?
         }
     };
+    sh.lock()
+        .tile_done(sh, worker, job, tile, rgb, cost, verdict)
+}
+
+/// An adaptive tile's answer: checked against the state its pass started from, off the
+/// lock; an answer to another pass only shows the worker is alive.
+#[allow(clippy::too_many_arguments)]
+async fn advanced(
+    sh: &Arc<Shared>,
+    worker: protocol::WorkerId,
+    job: protocol::JobId,
+    tile: u32,
+    pass: u32,
+    rung: u32,
+    zstd: Vec<u8>,
+    state: Vec<u8>,
+    mut cost: Cost,
+) -> Result<()> {
+    let plan = sh.lock().advanced_plan(job, tile, pass, rung)?;
+    let Some(plan) = plan else {
+        sh.lock().tiles_event(sh, Event::Heartbeat { worker });
+        return Ok(());
+    };
+    let shared = Arc::clone(sh);
+    let (rgb, verdict) = tokio::task::spawn_blocking(move || {
+        let rgb = match plan.decompress(&zstd) {
+            Ok(rgb) => rgb,
+            Err(reason) => return (Vec::new(), Verdict::wrong(reason)),
+        };
+        let verdict = plan.run(&shared.verifier, &rgb, Some(state));
+        (rgb, verdict)
+    })
+    .await?;
+    cost.samples = verdict.samples();
     sh.lock()
         .tile_done(sh, worker, job, tile, rgb, cost, verdict)
 }
@@ -228,6 +263,24 @@ async fn on_message(
                 render_us,
             };
             result(sh, worker, job, tile, Pixels::Zstd(zstd), cost).await?;
+        }
+        FromWorker::Advanced {
+            job,
+            tile,
+            pass,
+            rung,
+            zstd,
+            state,
+            rays,
+            render_us,
+        } => {
+            let cost = Cost {
+                rays,
+                samples: 0,
+                error_sq_sum: 0.0,
+                render_us,
+            };
+            advanced(sh, worker, job, tile, pass, rung, zstd, state, cost).await?;
         }
         FromWorker::TileFailed { job, tile, message } => {
             sh.lock().tile_failed(sh, worker, job, tile, message);

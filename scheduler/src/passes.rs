@@ -1,0 +1,299 @@
+//! The passes of an adaptive job: which rung of the threshold ladder each pass takes
+//! the tiles to, and when the job's image is found.
+//!
+//! An adaptive job's image for a target E is, by definition, the frame at the first
+//! rung k* of the ladder whose estimated error meets E (the local walk goes rung after
+//! rung from 0 and stops there). The farm cannot afford a round of the whole farm per
+//! rung, so it renders in passes: pass p advances every tile to rung k_p, and when the
+//! pass is complete the coordinator adds up the tiles' totals at each rung from the one
+//! after the previous pass's rung up to k_p. If one of them meets the target, the first
+//! such is k* and the job is done (every tile painted at k*: a tile's state at k_p holds
+//! its levels at every rung below). Otherwise the next pass aims further.
+//!
+//! How far is a choice of cost, never of bytes: too short a jump costs a whole round of
+//! the farm, too long one renders samples the image will not use. The estimate falls
+//! about log-linearly in the rung (each halving of the error takes a roughly constant
+//! number of rungs, [`PRIOR_RUNGS_PER_HALVING`] on the benchmark scenes), so the next
+//! rung is predicted from the fall over the last two passes (the prior before there are
+//! two), then aimed a little past it, since an undershoot costs more than an overshoot.
+//!
+//! A pure state machine: the coordinator computes the totals (it needs the renderer),
+//! this decides. No clock, no I/O.
+
+use std::ops::RangeInclusive;
+
+/// Rungs per halving of the estimated error assumed before two passes have measured it.
+pub const PRIOR_RUNGS_PER_HALVING: f64 = 28.0;
+
+/// How far past the predicted rung the next pass aims, as a factor of the jump.
+pub const OVERSHOOT: f64 = 1.15;
+
+/// Rungs added to every jump: a prediction that lands just short still finishes.
+pub const MARGIN: u32 = 2;
+
+/// The fewest and most rungs per halving a measured fall may imply: a pass whose
+/// estimate barely moved (or jumped) is not believed beyond these.
+const PER_HALVING_RANGE: (f64, f64) = (4.0, 400.0);
+
+/// What the totals of the tiles say at one rung.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RungCheck {
+    pub rung: u32,
+    /// The frame's estimated RMS error at the rung, in levels (NaN when unknown).
+    pub estimate: f64,
+    /// Whether the frame at this rung meets the target (or cannot go further).
+    pub meets: bool,
+}
+
+/// What to do once a pass is complete.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decision {
+    /// The image is every tile at this rung: no more rendering.
+    Finish { rung: u32 },
+    /// Start the next pass, which takes the tiles to this rung.
+    Next { rung: u32 },
+}
+
+/// An adaptive job's passes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Passes {
+    target: f64,
+    last_rung: u32,
+    /// The pass under way: its number (never reused within the job, restarts included)
+    /// and its rung.
+    pass: u32,
+    rung: u32,
+    /// The rungs up to this one are known not to meet the target.
+    checked: Option<u32>,
+    /// (rung, estimate) at the end of each pass so far, the latest last.
+    history: Vec<(u32, f64)>,
+}
+
+impl Passes {
+    /// A job aiming for `target` levels on a ladder ending at `last_rung`: its first
+    /// pass takes every tile to rung 0 (the first samples), whose estimate tells how far
+    /// the second must go.
+    pub fn new(target: f64, last_rung: u32) -> Passes {
+        Passes {
+            target,
+            last_rung,
+            pass: 0,
+            rung: 0,
+            checked: None,
+            history: Vec::new(),
+        }
+    }
+
+    /// The pass under way.
+    pub fn pass(&self) -> u32 {
+        self.pass
+    }
+
+    /// The rung the pass under way takes the tiles to.
+    pub fn rung(&self) -> u32 {
+        self.rung
+    }
+
+    /// The estimate at the end of the last pass, if any.
+    pub fn estimate(&self) -> Option<f64> {
+        self.history.last().map(|&(_, e)| e)
+    }
+
+    /// The rungs whose totals must be looked at when the pass under way is complete:
+    /// those not yet known to miss the target.
+    pub fn to_check(&self) -> RangeInclusive<u32> {
+        self.checked.map_or(0, |c| c + 1)..=self.rung
+    }
+
+    /// The pass under way is complete: `checks` are the totals' verdicts at the rungs of
+    /// [`Passes::to_check`], in order. The first rung that meets the target ends the
+    /// job; otherwise the next pass starts.
+    ///
+    /// # Panics
+    ///
+    /// If `checks` are not the rungs of `to_check`.
+    pub fn pass_done(&mut self, checks: &[RungCheck]) -> Decision {
+        let rungs: Vec<u32> = checks.iter().map(|c| c.rung).collect();
+        assert_eq!(
+            rungs,
+            self.to_check().collect::<Vec<_>>(),
+            "the checks of the pass's rungs"
+        );
+        if let Some(found) = checks.iter().find(|c| c.meets) {
+            return Decision::Finish { rung: found.rung };
+        }
+        let estimate = checks.last().map_or(f64::NAN, |c| c.estimate);
+        self.history.push((self.rung, estimate));
+        self.checked = Some(self.rung);
+        self.pass += 1;
+        self.rung = next_rung(&self.history, self.target, self.last_rung);
+        Decision::Next { rung: self.rung }
+    }
+
+    /// Results the pass under way depends on were taken back (a machine was caught
+    /// returning wrong pixels): the pass starts again under a new number, at the same
+    /// rung, and every rung is looked at again at its end, since the totals that ruled
+    /// the earlier rungs out included the taken-back results. Returns the new number.
+    pub fn restart_pass(&mut self) -> u32 {
+        self.checked = None;
+        self.pass += 1;
+        self.pass
+    }
+}
+
+/// The rung the next pass should reach, from the (rung, estimate) at the end of each
+/// pass so far (none of which met `target`), on a ladder ending at `last_rung`.
+pub fn next_rung(history: &[(u32, f64)], target: f64, last_rung: u32) -> u32 {
+    let Some(&(rung, estimate)) = history.last() else {
+        return 0;
+    };
+    if rung >= last_rung {
+        return last_rung;
+    }
+    // No estimate (one sample per pixel): only the last rung can end the job.
+    if !(estimate.is_finite() && estimate > 0.0 && target > 0.0) {
+        return last_rung;
+    }
+    let halvings = (estimate / target).log2().max(0.0);
+    let measured = history.len().checked_sub(2).and_then(|i| {
+        let (k0, e0) = history[i];
+        let fall = (e0 / estimate).log2();
+        (fall.is_finite() && fall > 0.0 && rung > k0).then(|| f64::from(rung - k0) / fall)
+    });
+    let per_halving = measured
+        .unwrap_or(PRIOR_RUNGS_PER_HALVING)
+        .clamp(PER_HALVING_RANGE.0, PER_HALVING_RANGE.1);
+    let jump = (halvings * per_halving * OVERSHOOT).ceil();
+    let jump = if jump.is_finite() {
+        jump.min(f64::from(last_rung)) as u32
+    } else {
+        last_rung
+    };
+    rung.saturating_add(jump.saturating_add(MARGIN))
+        .min(last_rung)
+}
+
+/// The tiles a pass to `rung` sends: those with work at it. `next_work[t]` is the first
+/// rung at which some block of tile t doubles (`Some(0)` for a tile without a state
+/// yet, `None` for one whose blocks are all at their cap).
+pub fn tiles_with_work(next_work: &[Option<u32>], rung: u32) -> Vec<u32> {
+    next_work
+        .iter()
+        .enumerate()
+        .filter(|(_, w)| w.is_some_and(|w| w <= rung))
+        .map(|(t, _)| t as u32)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame whose estimate halves every `per_halving` rungs from `start` at rung 0.
+    fn checks(
+        range: RangeInclusive<u32>,
+        start: f64,
+        per_halving: f64,
+        target: f64,
+    ) -> Vec<RungCheck> {
+        range
+            .map(|rung| {
+                let estimate = start * (-(f64::from(rung)) / per_halving).exp2();
+                RungCheck {
+                    rung,
+                    estimate,
+                    meets: rung >= 705 || estimate <= target,
+                }
+            })
+            .collect()
+    }
+
+    /// Runs a job's passes on the model frame: (passes, final rung, rungs rendered past
+    /// the final one).
+    fn run(start: f64, per_halving: f64, target: f64) -> (u32, u32, u32) {
+        let mut p = Passes::new(target, 705);
+        let mut passes = 1;
+        loop {
+            let c = checks(p.to_check(), start, per_halving, target);
+            let reached = p.rung();
+            match p.pass_done(&c) {
+                Decision::Finish { rung } => return (passes, rung, reached - rung),
+                Decision::Next { rung } => {
+                    assert!(rung > reached, "every pass goes further");
+                    passes += 1;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_first_rung_that_meets_the_target_ends_the_job() {
+        for (start, per_halving, target) in
+            [(40.0, 28.0, 1.0), (10.0, 20.0, 2.0), (60.0, 35.0, 0.5)]
+        {
+            let (passes, rung, past) = run(start, per_halving, target);
+            // The walk's own answer: the first rung whose estimate meets the target.
+            let walk = checks(0..=705, start, per_halving, target)
+                .into_iter()
+                .find(|c| c.meets)
+                .unwrap()
+                .rung;
+            assert_eq!(rung, walk, "{start} {per_halving} {target}");
+            assert!(passes <= 4, "{passes} passes");
+            // The overshoot stays a share of the walk (most of it the prior's miss on a
+            // frame whose error falls faster than it assumes).
+            assert!(
+                f64::from(past) <= 0.7 * f64::from(walk) + 4.0,
+                "{past} past {walk}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_target_met_at_once_takes_one_pass_and_no_estimate_goes_to_the_last_rung() {
+        assert_eq!(run(0.5, 28.0, 1.0), (1, 0, 0));
+        let mut p = Passes::new(1.0, 705);
+        let unknown = [RungCheck {
+            rung: 0,
+            estimate: f64::NAN,
+            meets: false,
+        }];
+        assert_eq!(p.pass_done(&unknown), Decision::Next { rung: 705 });
+        assert_eq!(p.to_check(), 1..=705);
+    }
+
+    #[test]
+    fn the_prediction_follows_the_measured_fall() {
+        // Prior: 28 rungs per halving, 4 halvings to go.
+        assert_eq!(
+            next_rung(&[(0, 16.0)], 1.0, 705),
+            (4.0 * 28.0 * OVERSHOOT).ceil() as u32 + MARGIN
+        );
+        // Measured: 10 rungs per halving between the passes, 2 halvings to go.
+        let next = next_rung(&[(0, 16.0), (20, 4.0)], 1.0, 705);
+        assert_eq!(next, 20 + (20.0 * OVERSHOOT).ceil() as u32 + MARGIN);
+        // An estimate that rose is not believed: the prior again.
+        let next = next_rung(&[(0, 4.0), (20, 8.0)], 1.0, 705);
+        assert_eq!(next, 20 + (3.0 * 28.0 * OVERSHOOT).ceil() as u32 + MARGIN);
+        assert_eq!(next_rung(&[(700, 8.0)], 1.0, 705), 705);
+    }
+
+    #[test]
+    fn a_restarted_pass_checks_every_rung_again() {
+        let mut p = Passes::new(1.0, 705);
+        let first = checks(0..=0, 16.0, 28.0, 1.0);
+        let Decision::Next { rung } = p.pass_done(&first) else {
+            panic!("16 levels do not meet 1");
+        };
+        assert_eq!((p.pass(), p.to_check()), (1, 1..=rung));
+        assert_eq!(p.restart_pass(), 2);
+        assert_eq!((p.rung(), p.to_check()), (rung, 0..=rung));
+    }
+
+    #[test]
+    fn tiles_without_work_at_the_rung_stay_home() {
+        let work = [Some(0), None, Some(30), Some(31)];
+        assert_eq!(tiles_with_work(&work, 30), [0, 2]);
+        assert_eq!(tiles_with_work(&work, 705), [0, 2, 3]);
+    }
+}
