@@ -9,6 +9,9 @@
 //! - **Reports.** `render`, `up` and `submit --wait` print the samples spent and the
 //!   estimated error next to the time; `status --json` carries the sampler, the target,
 //!   the samples and the estimate.
+//! - **Adaptive passes.** An adaptive farm job gives the same bytes with one worker and
+//!   with three, with tiles of 16 and of 40 pixels, and with a worker killed in the
+//!   middle of a pass; a tile side off the 8-pixel blocks is one `error: ` line.
 //! - **Durability.** A job's sampler survives a coordinator restart.
 //! - **Limits.** An adaptive budget counts against the coordinator's `--max-aa`.
 //! - **Errors.** A bad combination of `--sampler` and `--target-error` is one `error: `
@@ -20,8 +23,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use common::{
-    assert_same_png, client, fetch, ok, scene_path, serial, start_coordinator, start_worker,
-    submit, tessera, try_status, wait_done, Run,
+    assert_same_png, client, fetch, ok, poll, scene_path, serial, start_coordinator, start_worker,
+    start_worker_with, submit, tessera, try_status, wait_done, Run,
 };
 use serde_json::Value;
 use tempfile::TempDir;
@@ -358,4 +361,86 @@ fn bad_sampler_flags_are_one_line_errors_before_anything_runs() {
     }
     let left: Vec<_> = std::fs::read_dir(dir).unwrap().collect();
     assert!(left.is_empty(), "nothing written: {left:?}");
+}
+
+#[test]
+fn adaptive_jobs_give_the_same_bytes_with_any_workers_tiles_and_losses() {
+    let _serial = serial();
+    let tmp = TempDir::new().unwrap();
+    let dir = tmp.path();
+    let (_coordinator, addr) = start_coordinator(
+        dir,
+        &dir.join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let seed = scene_path("seed.json");
+    let flags = args(&[SIZE, ADAPTIVE]);
+    let (reference, local) = render(dir, &seed, "ref.png", &flags);
+    let job = |tile: &str| {
+        let mut job_args = vec![seed.as_str(), "--tile", tile];
+        job_args.extend(&flags);
+        submit(dir, &addr, &job_args)
+    };
+
+    // One worker, 16-pixel tiles.
+    let mut a = start_worker(dir, &addr, "a");
+    let one = job("16");
+    let status = wait_done(dir, &addr, one, JOB_TIMEOUT);
+    assert_same_png(
+        &fetch(dir, &addr, one, "one.png"),
+        &reference,
+        "1 worker, tile 16",
+    );
+    assert_eq!(
+        as_u64(&status, "samples"),
+        summary_samples(&local),
+        "{status}"
+    );
+
+    // Three workers, 40-pixel tiles.
+    let b = start_worker(dir, &addr, "b");
+    let _c = start_worker(dir, &addr, "c");
+    let three = job("40");
+    wait_done(dir, &addr, three, JOB_TIMEOUT);
+    assert_same_png(
+        &fetch(dir, &addr, three, "three.png"),
+        &reference,
+        "3 workers, tile 40",
+    );
+
+    // A worker killed in the middle of a pass: a larger job on slowed workers, and the
+    // kill once the first pass is in (the estimate shows) and the job still runs.
+    drop(b);
+    let _slow = start_worker_with(dir, &addr, "slow", &["--throttle", "3"]);
+    let big: Vec<&str> = args(&[
+        &["--width", "320", "--height", "240"],
+        &["--aa", "8", "--sampler", "adaptive", "--target-error", "1"],
+    ]);
+    let (big_reference, _) = render(dir, &seed, "big.png", &big);
+    let mut job_args = vec![seed.as_str(), "--tile", "32"];
+    job_args.extend(&big);
+    let lossy = submit(dir, &addr, &job_args);
+    poll("a pass of the job to be in", JOB_TIMEOUT, || {
+        let s = try_status(dir, &addr, lossy)?;
+        (s["state"] == "running" && s["estimated_error"].is_number()).then_some(())
+    });
+    a.kill9();
+    let status = wait_done(dir, &addr, lossy, JOB_TIMEOUT);
+    assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
+    assert_same_png(
+        &fetch(dir, &addr, lossy, "lossy.png"),
+        &big_reference,
+        "a worker killed in a pass",
+    );
+
+    // A tile side off the blocks is refused in one line.
+    let mut bad = vec!["submit", seed.as_str(), "--tile", "20"];
+    bad.extend(&flags);
+    let line = one_error_line(&client(dir, &addr, &bad), "adaptive tile 20");
+    assert!(
+        line.contains("tile: adaptive sampling needs tiles cut on its 8-pixel blocks: a multiple of 8 up to 256, got 20"),
+        "{line}"
+    );
 }

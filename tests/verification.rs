@@ -10,6 +10,10 @@
 //!   (`--audit-share 1`).
 //! - A relay flipping a byte of every third tile result between an honest worker and
 //!   the coordinator, under full verification: the relayed machine is quarantined.
+//! - On an adaptive job, a worker returning red pixels with honest block states, and
+//!   one returning honest pixels with every block's state a hair off: both caught,
+//!   the first by its pixels disagreeing with its state, the second by advancing a
+//!   block of its answer again (`--spot-pixels 1024` checks a block of every answer).
 //! - A worker whose renderer differs (one pixel of every output, the canary included):
 //!   refused at the canary with both builds named, it never gets a tile.
 //!
@@ -46,6 +50,22 @@ const TILE: u32 = 32;
 const JOB_TIMEOUT: Duration = Duration::from_secs(60);
 const LISTED_TIMEOUT: Duration = Duration::from_secs(20);
 
+/// An adaptive job: small, 20 tiles on 8-pixel blocks.
+const ADAPTIVE_JOB: &[&str] = &[
+    "--width",
+    "160",
+    "--height",
+    "120",
+    "--aa",
+    "4",
+    "--tile",
+    "32",
+    "--sampler",
+    "adaptive",
+    "--target-error",
+    "1",
+];
+
 /// A coordinator with its HTTP listener, in a directory of its own.
 struct Farm {
     /// Dropped before the directory, so that a failing test still shows its log.
@@ -53,11 +73,18 @@ struct Farm {
     addr: String,
     http: String,
     reference: PathBuf,
+    /// The settings of the farm's jobs.
+    job: &'static [&'static str],
     dir: TempDir,
 }
 
 impl Farm {
     fn start(extra: &[&str]) -> Farm {
+        Farm::start_for(extra, JOB)
+    }
+
+    /// A farm whose jobs have the settings `job`.
+    fn start_for(extra: &[&str], job: &'static [&'static str]) -> Farm {
         let dir = tempfile::tempdir().expect("temporary directory");
         let http = format!("127.0.0.1:{}", free_port());
         let mut args = vec!["--http", http.as_str()];
@@ -73,9 +100,10 @@ impl Farm {
             dir.path(),
             &scene_path("seed.json"),
             "reference.png",
-            &render_args(JOB),
+            &render_args(job),
         );
         Farm {
+            job,
             dir,
             coordinator,
             addr,
@@ -96,7 +124,7 @@ impl Farm {
     fn submit(&self, extra: &[&str]) -> u64 {
         let scene = scene_path("seed.json");
         let mut args = vec![scene.as_str()];
-        args.extend(JOB);
+        args.extend(self.job);
         args.extend(extra);
         submit(self.path(), &self.addr, &args)
     }
@@ -327,6 +355,26 @@ fn one_changed_byte_is_caught_by_full_verification_and_by_audits_of_every_tile()
             flipper.error()
         );
         farm.assert_quarantined("flipper", &["w1", "w2"]);
+    }
+}
+
+#[test]
+fn liars_on_an_adaptive_job_are_caught_by_its_checks() {
+    let _serial = serial();
+    for lie in [Lie::Red, Lie::OneByteEvery(1)] {
+        let farm = Farm::start_for(&["--spot-pixels", "1024"], ADAPTIVE_JOB);
+        let liar = FakeWorker::start(&farm.addr, "liar", &render::build_identity(), lie);
+        farm.wait_listed(&["liar"]);
+        let _w1 = farm.worker("w1");
+        farm.wait_listed(&["liar", "w1"]);
+        let id = farm.submit(&[]);
+        farm.finish(id);
+        assert!(
+            liar.tiles_lied() >= 1,
+            "{lie:?}: the liar changed no answer, so nothing was tested (error: {:?})",
+            liar.error()
+        );
+        farm.assert_quarantined("liar", &["w1"]);
     }
 }
 
