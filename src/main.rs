@@ -199,6 +199,10 @@ struct BenchArgs {
     /// figures mean nothing.
     #[arg(long)]
     quick: bool,
+    /// The error suite also renders each scene with a grid of twice the reference's aa
+    /// and reports how far the reference is from converged (slow at aa 64).
+    #[arg(long)]
+    reference_check: bool,
 }
 
 #[derive(Args)]
@@ -892,6 +896,7 @@ fn run(command: Command) -> Result<()> {
                     min_time: Duration::from_millis(a.min_time_ms),
                     max_runs: a.max_runs,
                     quick: a.quick,
+                    reference_check: a.reference_check,
                 })
                 .await
             }

@@ -14,6 +14,8 @@ static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
 
 /// A named set of points, drawn as markers, optionally joined by a line.
 pub struct Series {
+    /// The legend's entry. An empty label gives no entry, and the series is drawn in
+    /// the colour of the series before it (the second line of a pair of bounds).
     pub label: String,
     pub points: Vec<(f64, f64)>,
     pub joined: bool,
@@ -148,8 +150,14 @@ where
         .light_line_style(RGBColor(235, 235, 235))
         .draw()
         .map_err(draw_error)?;
-    for (index, series) in panel.series.iter().enumerate() {
-        let color = PALETTE[index % PALETTE.len()];
+    let mut next_color = 0;
+    let mut color = PALETTE[0];
+    for series in &panel.series {
+        let labelled = !series.label.is_empty();
+        if labelled || next_color == 0 {
+            color = PALETTE[next_color % PALETTE.len()];
+            next_color += 1;
+        }
         let mapped: Vec<(f64, f64)> = series
             .points
             .iter()
@@ -158,22 +166,23 @@ where
             .collect();
         if series.joined {
             let width = if series.markers { 1 } else { 2 };
-            chart
+            let drawn = chart
                 .draw_series(LineSeries::new(
                     mapped.iter().copied(),
                     color.stroke_width(width),
                 ))
-                .map_err(draw_error)?
-                .label(series.label.as_str())
-                .legend(move |(x, y)| {
+                .map_err(draw_error)?;
+            if labelled {
+                drawn.label(series.label.as_str()).legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
                 });
+            }
         }
         if series.markers {
             let drawn = chart
                 .draw_series(mapped.iter().map(|&p| Circle::new(p, 4, color.filled())))
                 .map_err(draw_error)?;
-            if !series.joined {
+            if !series.joined && labelled {
                 drawn
                     .label(series.label.as_str())
                     .legend(move |(x, y)| Circle::new((x + 8, y), 4, color.filled()));

@@ -41,6 +41,7 @@ fn bench_writes_its_tables_csv_and_plots() {
                 "0",
                 "--threads",
                 "2",
+                "--reference-check",
             ],
             TIMEOUT,
         ),
@@ -49,30 +50,90 @@ fn bench_writes_its_tables_csv_and_plots() {
     assert!(run.stderr.contains("results in out"), "{}", run.stderr);
     let out = dir.path().join("out");
 
-    // The error table: one CSV line per scene and setting, every number finite where
-    // it must be, and the Markdown naming each scene and the Pareto front.
+    // The error table: one CSV line per scene and setting with every column, every
+    // number finite where it must be, and the Markdown's sections: the headline, the
+    // ladder against its targets, the time to each target, each sampler against the
+    // grid, the reference check, and each scene with the Pareto front.
     let csv = std::fs::read_to_string(out.join("bench.csv")).unwrap();
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    for column in [
-        "scene", "family", "aa", "time_ms", "rays", "rmse", "psnr_db",
+    let column = |name: &str| {
+        header
+            .iter()
+            .position(|c| *c == name)
+            .unwrap_or_else(|| panic!("no {name} column in {header:?}"))
+    };
+    for name in [
+        "scene",
+        "family",
+        "role",
+        "aa",
+        "target_error",
+        "time_ms",
+        "rays",
+        "samples_per_pixel",
+        "rmse",
+        "psnr_db",
+        "estimated_error",
+        "estimate_over_measured",
+        "measured_over_target",
+        "capped_share",
+        "rmse_against_check",
+        "reference_check_rmse",
     ] {
-        assert!(header.contains(&column), "no {column} column in {header:?}");
+        column(name);
     }
+    let number = |row: &[&str], name: &str| -> f64 {
+        row[column(name)]
+            .parse()
+            .unwrap_or_else(|e| panic!("{name} in {row:?}: {e}"))
+    };
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     for scene in SCENES {
         let of_scene: Vec<_> = rows.iter().filter(|r| r[0] == scene).collect();
-        // Quick: grid 1, 2, 4; jittered 2; adaptive at one target.
-        assert_eq!(of_scene.len(), 5, "rows of {scene}: {of_scene:?}");
-        for row in of_scene {
+        // Quick: grid 1, 2, 4; jittered 2; adaptive at two targets, and at grid 4²'s
+        // RMSE with its cap and with the ladder's.
+        assert_eq!(of_scene.len(), 8, "rows of {scene}: {of_scene:?}");
+        for row in &of_scene {
             assert_eq!(row.len(), header.len(), "{row:?}");
-            let rmse: f64 = row[header.iter().position(|c| *c == "rmse").unwrap()]
-                .parse()
-                .unwrap();
+            let rmse = number(row, "rmse");
             assert!(rmse.is_finite() && rmse >= 0.0, "{row:?}");
+            assert!(number(row, "reference_check_rmse") >= 0.0, "{row:?}");
+            assert!(number(row, "rmse_against_check") >= 0.0, "{row:?}");
         }
+        let adaptive: Vec<_> = of_scene.iter().filter(|r| r[1] == "adaptive").collect();
+        assert_eq!(adaptive.len(), 4, "{adaptive:?}");
+        for row in &adaptive {
+            for name in ["target_error", "measured_over_target", "capped_share"] {
+                assert!(number(row, name).is_finite(), "{name} in {row:?}");
+            }
+        }
+        // The headline's target is the grid 4²'s measured RMSE (in thousandths).
+        let grid4 = of_scene
+            .iter()
+            .find(|r| r[1] == "grid" && r[column("aa")] == "4")
+            .expect("a grid 4² row");
+        let headline = adaptive
+            .iter()
+            .find(|r| r[column("role")] == "headline")
+            .expect("a headline row");
+        assert!(
+            (number(headline, "target_error") - number(grid4, "rmse")).abs() < 1e-3,
+            "{headline:?} against {grid4:?}"
+        );
     }
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    for section in [
+        "## Adaptive at grid 4×4's RMSE",
+        "## Adaptive against its target",
+        "| measured / target |",
+        "| estimate / measured |",
+        "## Time to reach each target",
+        "## Each sampler against grid 4×4",
+        "RMSE(reference, check)",
+    ] {
+        assert!(md.contains(section), "no {section:?} in:\n{md}");
+    }
     for scene in SCENES {
         assert!(md.contains(&format!("### {scene}")), "{md}");
     }

@@ -49,6 +49,9 @@ pub struct Options {
     pub max_runs: u32,
     /// Small images and few settings: a check that everything works, not a measurement.
     pub quick: bool,
+    /// The error suite also renders a grid of twice `reference_aa` per scene and
+    /// measures how far the reference is from it (slow: 4× the reference's samples).
+    pub reference_check: bool,
 }
 
 /// Runs the chosen suites.
