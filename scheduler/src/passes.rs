@@ -106,13 +106,18 @@ impl Passes {
     }
 
     /// The pass under way is complete: `checks` are the totals' verdicts at the rungs of
-    /// [`Passes::to_check`], in order. The first rung that meets the target ends the
-    /// job; otherwise the next pass starts.
+    /// [`Passes::to_check`], in order, and `first_work` the first rung after the pass's
+    /// at which any block doubles (`None` when every block is at its cap). The first
+    /// rung that meets the target ends the job; otherwise the next pass starts.
+    ///
+    /// Up to `first_work` − 1 the frame cannot change, so its estimate there is the
+    /// pass's: those rungs need no pass of their own (they do not meet the target
+    /// either, being short of the last rung), and the fall is measured from there.
     ///
     /// # Panics
     ///
     /// If `checks` are not the rungs of `to_check`.
-    pub fn pass_done(&mut self, checks: &[RungCheck]) -> Decision {
+    pub fn pass_done(&mut self, checks: &[RungCheck], first_work: Option<u32>) -> Decision {
         let rungs: Vec<u32> = checks.iter().map(|c| c.rung).collect();
         assert_eq!(
             rungs,
@@ -123,10 +128,17 @@ impl Passes {
             return Decision::Finish { rung: found.rung };
         }
         let estimate = checks.last().map_or(f64::NAN, |c| c.estimate);
-        self.history.push((self.rung, estimate));
-        self.checked = Some(self.rung);
+        let unchanged = first_work
+            .map_or(self.last_rung, |w| w.saturating_sub(1))
+            .clamp(self.rung, self.last_rung.saturating_sub(1).max(self.rung));
+        self.history.push((unchanged, estimate));
+        self.checked = Some(unchanged);
         self.pass += 1;
-        self.rung = next_rung(&self.history, self.target, self.last_rung);
+        self.rung = if first_work.is_none() {
+            self.last_rung
+        } else {
+            next_rung(&self.history, self.target, self.last_rung)
+        };
         Decision::Next { rung: self.rung }
     }
 
@@ -216,7 +228,7 @@ mod tests {
         loop {
             let c = checks(p.to_check(), start, per_halving, target);
             let reached = p.rung();
-            match p.pass_done(&c) {
+            match p.pass_done(&c, Some(reached + 1)) {
                 Decision::Finish { rung } => return (passes, rung, reached - rung),
                 Decision::Next { rung } => {
                     assert!(rung > reached, "every pass goes further");
@@ -258,7 +270,7 @@ mod tests {
             estimate: f64::NAN,
             meets: false,
         }];
-        assert_eq!(p.pass_done(&unknown), Decision::Next { rung: 705 });
+        assert_eq!(p.pass_done(&unknown, Some(1)), Decision::Next { rung: 705 });
         assert_eq!(p.to_check(), 1..=705);
     }
 
@@ -282,12 +294,30 @@ mod tests {
     fn a_restarted_pass_checks_every_rung_again() {
         let mut p = Passes::new(1.0, 705);
         let first = checks(0..=0, 16.0, 28.0, 1.0);
-        let Decision::Next { rung } = p.pass_done(&first) else {
+        let Decision::Next { rung } = p.pass_done(&first, Some(1)) else {
             panic!("16 levels do not meet 1");
         };
         assert_eq!((p.pass(), p.to_check()), (1, 1..=rung));
         assert_eq!(p.restart_pass(), 2);
         assert_eq!((p.rung(), p.to_check()), (rung, 0..=rung));
+    }
+
+    #[test]
+    fn rungs_where_nothing_changes_are_skipped() {
+        // Nothing doubles before rung 130: the estimate of rung 0 holds up to 129, and
+        // the next pass aims from there.
+        let mut p = Passes::new(1.0, 705);
+        let first = checks(0..=0, 16.0, 28.0, 1.0);
+        assert_eq!(
+            p.pass_done(&first, Some(130)),
+            Decision::Next {
+                rung: 129 + (4.0 * 28.0 * OVERSHOOT).ceil() as u32 + MARGIN
+            }
+        );
+        assert_eq!(*p.to_check().start(), 130);
+        // Every block at its cap: only the last rung is left.
+        let mut p = Passes::new(1.0, 705);
+        assert_eq!(p.pass_done(&first, None), Decision::Next { rung: 705 });
     }
 
     #[test]

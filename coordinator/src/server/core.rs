@@ -1013,7 +1013,8 @@ impl Core {
             record.totals.error_sq_sum = estimate * estimate * pixels as f64;
             record.totals.error_pixels = pixels;
         }
-        match ad.passes.pass_done(&evaluation.checks) {
+        let first_work = ad.tiles.iter().filter_map(|t| t.next_work).min();
+        match ad.passes.pass_done(&evaluation.checks, first_work) {
             scheduler::passes::Decision::Finish { rung } => {
                 info!(
                     job,
