@@ -35,11 +35,11 @@ const COMMAND_LINE_ONLY: [&str; 1] = ["reset-database"];
 /// The longest duration an option takes: 100 years.
 const MAX_DURATION_SECS: u64 = 36_500 * 86_400;
 
-/// A duration option's value: a whole number and a unit, `s`, `m`, `h` or `d` (`90s`,
-/// `30m`, `12h`, `7d`), more than zero and at most 36500 days. The error says what is
-/// wrong with the value (clap adds the option's name).
+/// A duration option's value: a whole number and a unit, `ms`, `s`, `m`, `h` or `d`
+/// (`500ms`, `90s`, `30m`, `12h`, `7d`), more than zero and at most 36500 days. The
+/// error says what is wrong with the value (clap adds the option's name).
 pub fn parse_duration(text: &str) -> Result<Duration, String> {
-    const FORMS: &str = "a whole number and a unit, s, m, h or d (90s, 30m, 12h, 7d)";
+    const FORMS: &str = "a whole number and a unit, ms, s, m, h or d (500ms, 90s, 30m, 12h, 7d)";
     let text = text.trim();
     let split = text
         .find(|c: char| !c.is_ascii_digit())
@@ -48,24 +48,25 @@ pub fn parse_duration(text: &str) -> Result<Duration, String> {
     if number.is_empty() {
         return Err(format!("not a duration: give {FORMS}"));
     }
-    let seconds_per_unit: u64 = match unit {
-        "s" => 1,
-        "m" => 60,
-        "h" => 3600,
-        "d" => 86_400,
+    let millis_per_unit: u64 = match unit {
+        "ms" => 1,
+        "s" => 1000,
+        "m" => 60_000,
+        "h" => 3_600_000,
+        "d" => 86_400_000,
         "" => return Err(format!("no unit: give {FORMS}")),
         other => return Err(format!("unknown unit `{other}`: give {FORMS}")),
     };
-    let seconds = number
+    let millis = number
         .parse::<u64>()
         .ok()
-        .and_then(|n| n.checked_mul(seconds_per_unit))
-        .filter(|&s| s <= MAX_DURATION_SECS)
+        .and_then(|n| n.checked_mul(millis_per_unit))
+        .filter(|&ms| ms <= MAX_DURATION_SECS * 1000)
         .ok_or_else(|| "too long: at most 36500d".to_string())?;
-    if seconds == 0 {
+    if millis == 0 {
         return Err("must be longer than zero".into());
     }
-    Ok(Duration::from_secs(seconds))
+    Ok(Duration::from_millis(millis))
 }
 
 /// The command line with the config file's settings put in, and the names of the

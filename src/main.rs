@@ -287,10 +287,10 @@ struct RenderArgs {
     /// Rendering threads [default: one per core].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
-    /// Adaptive sampling for about this long (e.g. 30s, 2m, 1.5): the best image
+    /// Adaptive sampling for about this long (500ms, 30s, 2m): the best image
     /// reachable, and the error it reached. Implies --sampler adaptive; with
     /// --target-error it stops at whichever comes first.
-    #[arg(long, value_name = "TIME", value_parser = parse_duration)]
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
     time_limit: Option<Duration>,
     /// Save every sample taken (adaptive sampling) to FILE, so that `tessera refine
     /// FILE` can go on to a lower error or a larger --aa without taking them again.
@@ -310,7 +310,7 @@ struct RefineArgs {
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
     aa: Option<u32>,
     /// Refine for about this long, at most.
-    #[arg(long, value_name = "TIME", value_parser = parse_duration)]
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
     time_limit: Option<Duration>,
     /// Where to write the PNG [default: the state's file name with .png].
     #[arg(short, long, value_name = "OUT.png")]
@@ -320,32 +320,6 @@ struct RefineArgs {
     threads: Option<u32>,
 }
 
-/// A duration as `30s`, `500ms`, `2m` or a bare number of seconds.
-fn parse_duration(text: &str) -> Result<Duration, String> {
-    let (number, unit) = match text.find(|c: char| c.is_ascii_alphabetic()) {
-        Some(i) => text.split_at(i),
-        None => (text, "s"),
-    };
-    let value: f64 = number
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a duration such as 30s, 500ms or 2m, got {text:?}"))?;
-    let seconds = match unit {
-        "ms" => value / 1000.0,
-        "s" => value,
-        "m" => value * 60.0,
-        "h" => value * 3600.0,
-        _ => {
-            return Err(format!(
-                "unknown unit {unit:?} in {text:?} (use ms, s, m or h)"
-            ))
-        }
-    };
-    if !(seconds > 0.0 && seconds < 1e9) {
-        return Err(format!("must be a positive duration, got {text:?}"));
-    }
-    Ok(Duration::from_secs_f64(seconds))
-}
 
 #[derive(Args)]
 struct UpArgs {

@@ -134,7 +134,7 @@ fn a_time_limit_gives_the_image_reached_and_says_so() {
     );
     let e = one_error(d, &["render", &scene, "--time-limit=-2s"]);
     assert!(e.contains("--time-limit"), "{e}");
-    let e = one_error(d, &["render", &scene, "--time-limit", "3 parsecs"]);
+    let e = one_error(d, &["render", &scene, "--time-limit", "3parsecs"]);
     assert!(e.contains("--time-limit"), "{e}");
 }
 
