@@ -320,7 +320,6 @@ struct RefineArgs {
     threads: Option<u32>,
 }
 
-
 #[derive(Args)]
 struct UpArgs {
     /// The scene file (JSON).
