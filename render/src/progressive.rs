@@ -25,7 +25,7 @@
 //! V (1 − r) for about as many rays as the block has taken so far: its priority is that
 //! gain per ray. For a threshold λ, every block doubles while its priority is above λ
 //! (and it is under the cap, or under the minimum its sub-pixel geometry demands, see
-//! [`crate::footprint`]). The thresholds form a fixed ladder (eight steps per factor of
+//! [`Footprints`]). The thresholds form a fixed ladder (eight steps per factor of
 //! two), walked from the top: the image for a target E is the first rung at which the
 //! estimated RMS error of the frame is at most E. Each rung is a pure function of the
 //! blocks, and a block's state is a pure function of the scene, the settings and its
