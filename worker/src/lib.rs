@@ -282,14 +282,14 @@ impl Session {
                 previous,
             } => {
                 self.take_footprints();
-                let (started, run) = self.start_tile(job, done);
+                let start = self.start_tile(job, done);
                 let tracer = self.cache.tracer(&scene, settings);
                 let footprints = self.cache.footprints(&scene, settings);
                 let back = self.footprints_channel();
                 self.pool.spawn(move || {
-                    if !run() {
+                    let Some(started) = start() else {
                         return;
-                    }
+                    };
                     let advanced = tracer.and_then(|t| {
                         let footprints = footprints.unwrap_or_else(|| {
                             let f = verify::adaptive::footprints(&t);
@@ -318,12 +318,12 @@ impl Session {
                 settings,
                 rect,
             } => {
-                let (started, run) = self.start_tile(job, done);
+                let start = self.start_tile(job, done);
                 let tracer = self.cache.tracer(&scene, settings);
                 self.pool.spawn(move || {
-                    if !run() {
+                    let Some(started) = start() else {
                         return;
-                    }
+                    };
                     let rendered = tracer.and_then(|t| {
                         if settings.sampling.target_error().is_some() {
                             return Err("adaptive tiles are advanced in passes, not rendered \
@@ -347,26 +347,23 @@ impl Session {
         Ok(())
     }
 
-    /// Counts a tile in flight and returns its start (which sends the result, after the
-    /// throttle) and the test it must pass on the pool before rendering: the session is
-    /// alive and no `Cancel` of its job came after it.
+    /// Counts a tile in flight and returns what starts it on the pool: `None` (and
+    /// nothing to send) when the session is gone or a `Cancel` of its job came after
+    /// it, else its start, timed from then (the throttle and `render_us` count the
+    /// rendering, not the wait in the queue), which sends the result.
     fn start_tile(
         &mut self,
         job: JobId,
         done: &mpsc::UnboundedSender<Rendered>,
-    ) -> (Started, impl FnOnce() -> bool + Send + 'static) {
+    ) -> impl FnOnce() -> Option<Started> + Send + 'static {
         self.in_flight += 1;
         self.received += 1;
         let number = self.received;
         let cancelled = Arc::clone(&self.cancelled);
         let alive = Arc::clone(&self.alive);
         let done = done.clone();
-        let started = Started {
-            at: Instant::now(),
-            throttle: self.throttle,
-            done: done.clone(),
-        };
-        let run = move || {
+        let throttle = self.throttle;
+        move || {
             let cancelled = cancelled
                 .lock()
                 .expect("cancel set")
@@ -374,11 +371,14 @@ impl Session {
                 .is_some_and(|&at| at >= number);
             if !alive.load(Ordering::Relaxed) || cancelled {
                 let _ = done.send(Rendered::Skipped);
-                return false;
+                return None;
             }
-            true
-        };
-        (started, run)
+            Some(Started {
+                at: Instant::now(),
+                throttle,
+                done,
+            })
+        }
     }
 
     /// Where the pool sends the footprints it computed, for the cache.
