@@ -7,17 +7,13 @@
 //!   and the reference. Its bytes, and its rays, are those of [`Tracer::pixel`]: it runs
 //!   the tracer's own pixel loop, which hands over each sample's colour as it sums it,
 //!   and divides the same way.
-//! - [`Sampling::Jittered`]: n × n strata, one sample in each at an offset drawn from a
-//!   hash of (pixel column, pixel row, sample index).
-//! - [`Sampling::Adaptive`]: a first pass of 4 samples, then batches of 4 more while the
-//!   pixel's estimated error is above the target and the budget is not spent. A pixel
-//!   whose first pass differs from a neighbour's by more than 4 × the target takes at
-//!   least 16 samples first: its own 4 may all have missed an edge that the contrast
-//!   with its neighbour reveals. Neighbours' first passes are pure functions of their
-//!   coordinates, so a tile computes them for a one-pixel border around itself and
-//!   decides exactly as any other tiling would. The points
-//!   are a progressive low-discrepancy sequence (the first two Sobol dimensions) with a
-//!   per-pixel digital shift, so that every prefix is well stratified.
+//! - [`Sampling::Jittered`]: the first n × n points of the pixel's Owen-scrambled
+//!   Sobol sequence ([`owen_sobol`]): one point in each of the n × n cells when n is a
+//!   power of two, and a well-spread set for any n.
+//! - [`Sampling::Adaptive`]: samples to an error target over the whole frame, in
+//!   power-of-two levels of 8 × 8 blocks ([`crate::progressive`]). Its points are the
+//!   same scrambled Sobol sequence, every power-of-two prefix of which is well spread,
+//!   so a block can stop after any level and go on later.
 //!
 //! Nothing here uses a global generator or shared state: each pixel's samples, and
 //! hence its bytes, depend only on the scene, the settings and its coordinates, so a
@@ -25,13 +21,16 @@
 //! Only integer operations and +, −, ×, ÷, √ are used, which every machine computes
 //! alike.
 //!
-//! **The error estimate.** For a pixel of k ≥ 2 samples whose clipped colours have the
+//! **The error estimate** of the grid and jittered samplers. For a pixel of k ≥ 2 samples whose clipped colours have the
 //! unbiased variance s² in a channel, the standard error of their mean is
 //! 255 · √(s² / k) levels; the pixel's estimate is the largest over its 3 channels.
 //! With one sample (aa = 1) there is no spread to measure: the estimate is unknown, and
 //! such pixels add nothing to a tile's [`error_sq_sum`](crate::TileImage::error_sq_sum).
-//! The estimate measures noise only: a feature smaller than the spacing of the samples
-//! that none of them hit leaves no trace in it.
+//! The estimate measures noise as if the samples were independent: for these
+//! stratified patterns it is an upper bound (1.1 to 4.4 times the measured error in
+//! `tessera bench`), and a feature smaller than the spacing of the samples that none of
+//! them hit leaves no trace in it. Adaptive sampling's calibrated estimate is in
+//! [`crate::progressive`].
 
 use std::fmt;
 
@@ -51,8 +50,10 @@ pub enum Sampling {
     /// n × n strata, one sample in each at a deterministic pseudo-random offset: the
     /// grid's cost, without its regular aliasing on edges.
     Jittered,
-    /// Samples only where they disagree: 4 first (n² if fewer), then 4 more at a time
-    /// while the pixel's estimated error is above the target, up to n × n.
+    /// Samples to an error target for the whole image: blocks of pixels double their
+    /// samples where that removes the most error per ray, until the frame's estimated
+    /// RMS error is at most the target, at most the largest power of two ≤ n × n per
+    /// pixel ([`crate::progressive`]).
     ///
     /// `target_milli` is the target error in thousandths of an 8-bit level (1000 is one
     /// level), an integer so that settings stay `Eq` and `Hash` and cross the network
@@ -74,7 +75,7 @@ pub const MAX_TARGET_MILLI: u32 = 255_000;
 pub struct InvalidTarget(pub f64);
 
 impl Sampling {
-    /// Adaptive sampling aiming for `levels` of estimated error per pixel (8-bit
+    /// Adaptive sampling aiming for an image RMS error of `levels` (8-bit
     /// levels, rounded to the nearest thousandth). Refuses a target that is not finite,
     /// not above 0, or outside 0.001 ..= 255 once rounded.
     pub fn adaptive(levels: f64) -> Result<Sampling, InvalidTarget> {
@@ -184,44 +185,6 @@ impl<'t> PixelSampler<'t> {
         moments.result(self.tracer.grid_mean(moments.sum))
     }
 
-    /// Adaptive sampling's first pass of pixel (`i`, `j`): its first 4 samples (n² if
-    /// fewer).
-    pub fn first_pass(&mut self, i: u32, j: u32, rays: &mut u64) -> Moments {
-        let settings = *self.tracer.settings();
-        let pattern = Points::new(settings.sampling, settings.aa, i, j);
-        let mut moments = Moments::default();
-        let k = (settings.aa * settings.aa).min(FIRST_PASS);
-        self.trace(&pattern, i, j, 0..k, &mut moments, rays);
-        moments
-    }
-
-    /// Finishes an adaptive pixel from its first pass: more samples, 4 at a time, while
-    /// its estimated error is above the target and the budget is not spent. A pixel
-    /// whose first pass differs from a neighbour's (`contrasted`) may hold an edge that
-    /// its own 4 samples all missed, so it takes at least [`CONTRAST_PASS`] samples
-    /// before its own spread decides.
-    pub fn finish_adaptive(
-        &mut self,
-        i: u32,
-        j: u32,
-        mut moments: Moments,
-        contrasted: bool,
-        rays: &mut u64,
-    ) -> PixelResult {
-        let settings = *self.tracer.settings();
-        let target = settings.sampling.target_error().expect("adaptive sampling");
-        let budget = settings.aa * settings.aa;
-        let pattern = Points::new(settings.sampling, settings.aa, i, j);
-        let at_least = if contrasted { CONTRAST_PASS } else { 0 };
-        let mut k = moments.count;
-        while k < budget && (k < at_least || moments.error() > target) {
-            let end = (k + BATCH).min(budget);
-            self.trace(&pattern, i, j, k..end, &mut moments, rays);
-            k = end;
-        }
-        moments.result(Divisor::count(moments.count).divide3(moments.sum))
-    }
-
     /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
     fn trace(
         &mut self,
@@ -278,24 +241,6 @@ impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
         (self.add)(moments.result(self.tracer.grid_mean(sum)));
     }
 }
-
-/// Samples of adaptive sampling's first pass: one in each quadrant of the pixel.
-const FIRST_PASS: u32 = 4;
-/// The fewest samples of an adaptive pixel whose first pass differs from a
-/// neighbour's: one in each cell of a 4 × 4 grid.
-pub(crate) const CONTRAST_PASS: u32 = 16;
-
-/// Whether two first passes differ enough that the pixels between them may hold an
-/// edge the 4 samples missed: a channel's means more than 4 × `target` levels apart.
-/// Four samples leave at most about a quarter of the pixel unseen, so an unseen edge of
-/// that contrast could put the pixel off by more than the target.
-pub(crate) fn contrasted(a: &Moments, b: &Moments, target: f64) -> bool {
-    let (ma, mb) = (a.mean(), b.mean());
-    let limit = 4.0 * target / 255.0;
-    (ma.x - mb.x).abs() > limit || (ma.y - mb.y).abs() > limit || (ma.z - mb.z).abs() > limit
-}
-/// Samples added at a time while a pixel's error is above the target.
-const BATCH: u32 = 4;
 
 /// The offsets in [0, 1)² inside pixel (`i`, `j`) of its first `count` samples (at most
 /// the budget `aa` × `aa`), in the order they are taken. Adaptive sampling uses a prefix
@@ -445,11 +390,6 @@ pub(crate) struct Moments {
 }
 
 impl Moments {
-    /// The mean of the samples so far (the first pass's, for comparing neighbours).
-    fn mean(&self) -> Vec3 {
-        self.sum / f64::from(self.count.max(1))
-    }
-
     #[inline(always)]
     fn result(&self, mean: Vec3) -> PixelResult {
         PixelResult {

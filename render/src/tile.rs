@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::image::Image;
-use crate::sampling::{contrasted, Moments, PixelResult, PixelSampler, Sampling};
+use crate::sampling::{PixelResult, PixelSampler, Sampling};
 use crate::scene::RenderSettings;
 use crate::tracer::Tracer;
 
@@ -22,13 +22,20 @@ pub struct Rect {
     pub height: u32,
 }
 
-/// A tile that does not lie inside the frame.
+/// A tile that cannot be rendered on its own.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
-#[error("tile {rect:?} does not lie inside the {frame_width}x{frame_height} frame")]
-pub struct TileError {
-    pub rect: Rect,
-    pub frame_width: u32,
-    pub frame_height: u32,
+pub enum TileError {
+    /// The tile does not lie inside the frame.
+    #[error("tile {rect:?} does not lie inside the {frame_width}x{frame_height} frame")]
+    Outside {
+        rect: Rect,
+        frame_width: u32,
+        frame_height: u32,
+    },
+    /// Adaptive sampling decides over the whole frame which rung each block stops at:
+    /// its tiles are advanced as regions of blocks ([`crate::progressive::Region`]).
+    #[error("tile {0:?}: adaptive sampling renders regions of blocks, not single tiles")]
+    Adaptive(Rect),
 }
 
 impl Rect {
@@ -44,7 +51,7 @@ impl Rect {
         if fits(self.x, self.width, settings.width) && fits(self.y, self.height, settings.height) {
             Ok(())
         } else {
-            Err(TileError {
+            Err(TileError::Outside {
                 rect: *self,
                 frame_width: settings.width,
                 frame_height: settings.height,
@@ -99,11 +106,7 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
                 }
             }
         }
-        Sampling::Adaptive { .. } => {
-            let target = tracer.settings().sampling.target_error();
-            let target = target.expect("adaptive sampling has a target");
-            render_adaptive(&mut sampler, rect, target, &mut rays, &mut add);
-        }
+        Sampling::Adaptive { .. } => return Err(TileError::Adaptive(rect)),
     }
     Ok(TileImage {
         rect,
@@ -112,52 +115,6 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
         samples,
         error_sq_sum,
     })
-}
-
-/// Adaptive sampling of a tile: the first pass of every pixel of the tile and of the
-/// one-pixel border around it (inside the image), then each pixel finished knowing
-/// whether its first pass differs from a neighbour's. The border's first passes are
-/// traced again by the neighbouring tile; `rays` counts each pixel's rays once (its own
-/// tile's), so that it does not depend on the tiling either.
-fn render_adaptive(
-    sampler: &mut PixelSampler,
-    rect: Rect,
-    target: f64,
-    rays: &mut u64,
-    add: &mut impl FnMut(PixelResult),
-) {
-    let settings = *sampler.settings();
-    let x0 = rect.x.saturating_sub(1);
-    let y0 = rect.y.saturating_sub(1);
-    let x1 = (rect.x + rect.width + 1).min(settings.width);
-    let y1 = (rect.y + rect.height + 1).min(settings.height);
-    let w = (x1 - x0) as usize;
-    let inside = |i: u32, j: u32| {
-        (rect.x..rect.x + rect.width).contains(&i) && (rect.y..rect.y + rect.height).contains(&j)
-    };
-    let mut first: Vec<Moments> = Vec::with_capacity(w * (y1 - y0) as usize);
-    let mut border_rays = 0;
-    for j in y0..y1 {
-        for i in x0..x1 {
-            let counter = if inside(i, j) {
-                &mut *rays
-            } else {
-                &mut border_rays
-            };
-            first.push(sampler.first_pass(i, j, counter));
-        }
-    }
-    let at = |i: u32, j: u32| &first[(j - y0) as usize * w + (i - x0) as usize];
-    for j in rect.y..rect.y + rect.height {
-        for i in rect.x..rect.x + rect.width {
-            let own = at(i, j);
-            let edge = (j.saturating_sub(1)..(j + 2).min(y1)).any(|nj| {
-                (i.saturating_sub(1)..(i + 2).min(x1))
-                    .any(|ni| (ni, nj) != (i, j) && contrasted(own, at(ni, nj), target))
-            });
-            add(sampler.finish_adaptive(i, j, own.clone(), edge, rays));
-        }
-    }
 }
 
 /// Cuts a frame into tiles of at most `size` × `size`, row by row from the top left.
@@ -216,8 +173,22 @@ pub fn estimated_error(samples: u64, error_sq_sum: f64, pixels: u64) -> f64 {
 /// Renders the whole frame as tiles on the current rayon pool, calling `on_tile` with
 /// the pixel count of each finished tile (for progress display). The image is the same
 /// whatever the tile size and the number of threads.
+///
+/// With adaptive sampling the frame is walked down the threshold ladder to its target
+/// ([`crate::progressive::render_to_target`]); `tile_size` does not matter then, and
+/// `on_tile` hears of the whole frame at the end.
 pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sync)) -> Frame {
     let settings = *tracer.settings();
+    if let Some(target) = settings.sampling.target_error() {
+        let (_, frame) = crate::progressive::render_to_target(tracer, None, target, &mut |_, _| true);
+        on_tile(settings.pixel_count());
+        return Frame {
+            image: frame.image,
+            rays: frame.totals.rays,
+            samples: frame.totals.samples,
+            error_sq_sum: frame.totals.error_sq as f64 / 16_777_216.0,
+        };
+    }
     let done: Vec<TileImage> = tiles(&settings, tile_size)
         .into_par_iter()
         .map(|rect| {

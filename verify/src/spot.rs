@@ -76,8 +76,10 @@ pub fn render_pixel(tracer: &Tracer, x: u32, y: u32) -> [u8; 3] {
     };
     match render::render_tile(tracer, rect) {
         Ok(tile) => [tile.rgb[0], tile.rgb[1], tile.rgb[2]],
-        // Callers pass pixels of the job's own tiles, which lie inside the frame.
-        Err(e) => unreachable!("a tile's pixel lies inside its frame: {e}"),
+        // Callers pass pixels of the job's own grid or jittered tiles, which lie inside
+        // the frame (adaptive answers are checked by advancing a block again, in
+        // `crate::adaptive`).
+        Err(e) => unreachable!("a grid or jittered tile's pixel renders alone: {e}"),
     }
 }
 
@@ -173,7 +175,7 @@ mod tests {
             height: 30,
             aa: 2,
             max_depth: 4,
-            sampling: Sampling::Adaptive { target_milli: 800 },
+            sampling: Sampling::Jittered,
         };
         let rect = TileRect {
             x: 8,
