@@ -180,7 +180,8 @@ pub fn estimated_error(samples: u64, error_sq_sum: f64, pixels: u64) -> f64 {
 pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sync)) -> Frame {
     let settings = *tracer.settings();
     if let Some(target) = settings.sampling.target_error() {
-        let (_, frame) = crate::progressive::render_to_target(tracer, None, target, &mut |_, _| true);
+        let (_, frame) =
+            crate::progressive::render_to_target(tracer, None, target, &mut |_, _| true);
         on_tile(settings.pixel_count());
         return Frame {
             image: frame.image,
