@@ -31,6 +31,7 @@ pub async fn submit(
     overrides: Overrides,
     priority: i32,
     verification: Verification,
+    time_limit_ms: Option<u64>,
 ) -> Result<JobId> {
     let scene = read_scene(scene_path)?;
     client
@@ -39,6 +40,7 @@ pub async fn submit(
             overrides,
             priority,
             verification,
+            time_limit_ms,
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
@@ -237,8 +239,18 @@ fn naming_job(job: JobId, error: anyhow::Error) -> anyhow::Error {
 /// time.
 pub fn summary(output: &Path, status: &JobStatus) -> String {
     let secs = status.elapsed_ms as f64 / 1000.0;
+    // As `tessera render` says it: whether the time limit, not the target, ended it.
+    let target_given = status.settings.sampling
+        != (Sampling::Adaptive {
+            target_milli: render::MIN_TARGET_MILLI,
+        });
+    let note = match (status.stopped_on_time_limit, target_given) {
+        (false, _) => "",
+        (true, true) => "; stopped by the time limit before the target",
+        (true, false) => "; as far as the time limit allowed",
+    };
     format!(
-        "{}: {}x{}, {}, {} tiles, {:.3} s, {:.1} M rays/s",
+        "{}: {}x{}, {}{note}, {} tiles, {:.3} s, {:.1} M rays/s",
         output.display(),
         status.settings.width,
         status.settings.height,
@@ -273,6 +285,8 @@ pub struct JobChoices {
     pub overrides: Overrides,
     pub priority: i32,
     pub verification: Verification,
+    /// Milliseconds of rendering an adaptive job may take, if limited.
+    pub time_limit_ms: Option<u64>,
 }
 
 /// `tessera submit`.
@@ -289,8 +303,17 @@ pub async fn run_submit(
         overrides,
         priority,
         verification,
+        time_limit_ms,
     } = job;
-    let job = submit(session.client(), scene, overrides, priority, verification).await?;
+    let job = submit(
+        session.client(),
+        scene,
+        overrides,
+        priority,
+        verification,
+        time_limit_ms,
+    )
+    .await?;
     if !wait_for_it {
         if json_out {
             println!("{}", json!({ "id": job, "state": "queued" }));
@@ -311,6 +334,64 @@ pub async fn run_submit(
     if json_out {
         let mut v = status_json(&status);
         v["output"] = json!(output.display().to_string());
+        println!("{v}");
+    } else {
+        eprintln!("{}", summary(&output, &status));
+    }
+    Ok(())
+}
+
+/// What a refinement of a farm job asks for.
+pub struct Refinement {
+    pub target_milli: u32,
+    pub aa: Option<u32>,
+    pub time_limit_ms: Option<u64>,
+}
+
+/// `tessera refine JOB`: a new job going on from a finished adaptive job's samples;
+/// prints its id, or with `wait`, follows it and writes its image.
+pub async fn run_refine(
+    coordinator: &Endpoint,
+    old: JobId,
+    refinement: Refinement,
+    wait_for_it: bool,
+    output: Option<PathBuf>,
+    json_out: bool,
+) -> Result<()> {
+    let mut session = Session::connect(coordinator).await?;
+    let job = session
+        .client()
+        .refine(
+            old,
+            refinement.target_milli,
+            refinement.aa,
+            refinement.time_limit_ms,
+        )
+        .await?;
+    if !wait_for_it {
+        if json_out {
+            println!(
+                "{}",
+                json!({ "id": job, "state": "queued", "refines": old })
+            );
+        } else {
+            println!("{job}");
+        }
+        return Ok(());
+    }
+    eprintln!("refining job {old} as job {job}");
+    let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
+    let status = async {
+        let status = wait(&mut session, job).await?;
+        fetch_through(&mut session, job, &output).await?;
+        Ok(status)
+    }
+    .await
+    .map_err(|e| naming_job(job, e))?;
+    if json_out {
+        let mut v = status_json(&status);
+        v["output"] = json!(output.display().to_string());
+        v["refines"] = json!(old);
         println!("{v}");
     } else {
         eprintln!("{}", summary(&output, &status));
@@ -465,6 +546,8 @@ fn status_json(s: &JobStatus) -> Value {
             s.samples as f64 / (u64::from(s.settings.width) * u64::from(s.settings.height)) as f64
         }),
         "estimated_error": s.estimated_error,
+        "time_limit_ms": s.time_limit_ms,
+        "stopped_on_time_limit": s.stopped_on_time_limit,
     })
 }
 

@@ -300,7 +300,8 @@ struct RenderArgs {
 
 #[derive(Args)]
 struct RefineArgs {
-    /// A render state saved by `tessera render --state FILE`.
+    /// A render state saved by `tessera render --state FILE`, or the id of a finished
+    /// adaptive job on a coordinator (a new job goes on from its stored samples).
     state: PathBuf,
     /// The new error target, in 8-bit levels [default: the saved one].
     #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
@@ -318,6 +319,11 @@ struct RefineArgs {
     /// Rendering threads [default: one per core].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// For a job id: wait for the new job, showing progress, and write its image.
+    #[arg(long)]
+    wait: bool,
+    #[command(flatten)]
+    common: ClientArgs,
 }
 
 #[derive(Args)]
@@ -335,6 +341,10 @@ struct UpArgs {
     output: Option<PathBuf>,
     #[command(flatten)]
     image: ImageArgs,
+    /// Adaptive sampling for about this long (500ms, 30s, 2m): the job stops at the
+    /// end of the pass that reaches it. Implies --sampler adaptive.
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
+    time_limit: Option<Duration>,
     /// Tile side in pixels [default: chosen from the image size and aa].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
     tile: Option<u32>,
@@ -514,6 +524,11 @@ struct SubmitArgs {
     scene: PathBuf,
     #[command(flatten)]
     image: ImageArgs,
+    /// Adaptive sampling for about this long (500ms, 30s, 2m) of the farm's rendering:
+    /// the job stops at the end of the pass that reaches it, with the error it reached.
+    /// Implies --sampler adaptive; with --target-error, whichever comes first.
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
+    time_limit: Option<Duration>,
     /// Tile side in pixels [default: chosen from the image size and aa].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
     tile: Option<u32>,
@@ -738,6 +753,43 @@ impl ImageArgs {
         }
     }
 
+    /// The sampling with a time limit: a limit alone asks for adaptive sampling to the
+    /// smallest target there is (the time decides), as `tessera render` does.
+    fn sampling_within(self, time_limit: Option<Duration>) -> Result<Option<Sampling>> {
+        Ok(match (time_limit, self.sampler, self.target_error) {
+            (Some(_), None | Some(SamplerArg::Adaptive), None) => Some(Sampling::adaptive(
+                f64::from(render::MIN_TARGET_MILLI) / 1000.0,
+            )?),
+            (Some(_), None, Some(_)) => ImageArgs {
+                sampler: Some(SamplerArg::Adaptive),
+                ..self
+            }
+            .sampling()?,
+            (Some(_), Some(_), _) => bail!("--time-limit applies only to --sampler adaptive"),
+            (None, ..) => self.sampling()?,
+        })
+    }
+
+    /// The overrides of a farm job with an optional time limit, and the limit in ms.
+    fn farm_job(
+        self,
+        tile_size: Option<u32>,
+        time_limit: Option<Duration>,
+    ) -> Result<(Overrides, Option<u64>)> {
+        let sampling = self.sampling_within(time_limit)?;
+        let overrides = Overrides {
+            sampling: sampling.map(protocol_sampling),
+            ..ImageArgs {
+                sampler: None,
+                target_error: None,
+                ..self
+            }
+            .overrides(tile_size)?
+        };
+        let ms = time_limit.map(|t| (t.as_millis() as u64).max(1));
+        Ok((overrides, ms))
+    }
+
     fn overrides(self, tile_size: Option<u32>) -> Result<Overrides> {
         Ok(Overrides {
             width: self.width,
@@ -754,6 +806,27 @@ impl ImageArgs {
             }),
         })
     }
+}
+
+fn protocol_sampling(s: Sampling) -> protocol::Sampling {
+    match s {
+        Sampling::Grid => protocol::Sampling::Grid,
+        Sampling::Jittered => protocol::Sampling::Jittered,
+        Sampling::Adaptive { target_milli } => protocol::Sampling::Adaptive { target_milli },
+    }
+}
+
+/// What `tessera refine X` refines: the job X on a coordinator if X is all digits and
+/// names no file, else a saved render state (whose reading reports a missing file).
+fn refines_a_job(state: &std::path::Path) -> Result<Option<protocol::JobId>> {
+    let text = state.to_string_lossy();
+    if state.exists() || text.is_empty() || !text.bytes().all(|b| b.is_ascii_digit()) {
+        return Ok(None);
+    }
+    let job = text
+        .parse()
+        .map_err(|_| anyhow!("refine: job id {text} is too large"))?;
+    Ok(Some(job))
 }
 
 fn main() -> ExitCode {
@@ -836,16 +909,19 @@ fn run(command: Command) -> Result<()> {
             state: a.state,
         });
     }
-    if let Command::Refine(a) = command {
-        return render_command::refine(render_command::RefineOptions {
-            state: a.state,
-            output: a.output,
-            aa: a.aa,
-            target_error: a.target_error,
-            time_limit: a.time_limit,
-            threads: a.threads,
-        });
-    }
+    let command = match command {
+        Command::Refine(a) if refines_a_job(&a.state)?.is_none() => {
+            return render_command::refine(render_command::RefineOptions {
+                state: a.state,
+                output: a.output,
+                aa: a.aa,
+                target_error: a.target_error,
+                time_limit: a.time_limit,
+                threads: a.threads,
+            });
+        }
+        other => other,
+    };
     match &command {
         Command::Coordinator(a) => init_logging(a.daemon.log_format),
         Command::Worker(a) => init_logging(a.daemon.log_format),
@@ -854,8 +930,31 @@ fn run(command: Command) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(async move {
         match command {
-            Command::Render(_) | Command::Refine(_) | Command::Simulate(_) => {
+            Command::Render(_) | Command::Simulate(_) => {
                 unreachable!("handled above")
+            }
+            Command::Refine(a) => {
+                let job = refines_a_job(&a.state)?.expect("a state file was refined above");
+                let target = a
+                    .target_error
+                    .ok_or_else(|| anyhow!("refine: a job needs --target-error LEVELS"))?;
+                let target_milli = match Sampling::adaptive(target)? {
+                    Sampling::Adaptive { target_milli } => target_milli,
+                    _ => unreachable!("an adaptive target"),
+                };
+                client_commands::run_refine(
+                    &a.common.target()?,
+                    job,
+                    client_commands::Refinement {
+                        target_milli,
+                        aa: a.aa,
+                        time_limit_ms: a.time_limit.map(|t| (t.as_millis() as u64).max(1)),
+                    },
+                    a.wait,
+                    a.output,
+                    a.common.json,
+                )
+                .await
             }
             Command::Bench(a) => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -883,7 +982,7 @@ fn run(command: Command) -> Result<()> {
                         .threads_per_worker
                         .map_or((cores / workers).max(1), |n| n as usize),
                     output: a.output,
-                    overrides: a.image.overrides(a.tile)?,
+                    job: a.image.farm_job(a.tile, a.time_limit)?,
                 })
                 .await
             }
@@ -968,10 +1067,14 @@ fn run(command: Command) -> Result<()> {
                 client_commands::run_submit(
                     &a.common.target()?,
                     &a.scene,
-                    client_commands::JobChoices {
-                        overrides: a.image.overrides(a.tile)?,
-                        priority: a.priority,
-                        verification: a.verify.into(),
+                    {
+                        let (overrides, time_limit_ms) = a.image.farm_job(a.tile, a.time_limit)?;
+                        client_commands::JobChoices {
+                            overrides,
+                            priority: a.priority,
+                            verification: a.verify.into(),
+                            time_limit_ms,
+                        }
                     },
                     a.wait,
                     a.output,

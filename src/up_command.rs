@@ -20,7 +20,8 @@ pub struct Options {
     pub workers: usize,
     pub threads_per_worker: usize,
     pub output: Option<PathBuf>,
-    pub overrides: Overrides,
+    /// The image settings and the time limit (ms), if any.
+    pub job: (Overrides, Option<u64>),
 }
 
 pub async fn run(opts: Options) -> Result<()> {
@@ -50,9 +51,10 @@ async fn render_on(address: &str, opts: &Options) -> Result<()> {
     let job = submit(
         session.client(),
         &opts.scene,
-        opts.overrides,
+        opts.job.0,
         0,
         protocol::Verification::default(),
+        opts.job.1,
     )
     .await?;
     let status = wait(&mut session, job).await?;

@@ -104,6 +104,26 @@ impl Client {
         }
     }
 
+    /// A new job refining a finished adaptive one: its id.
+    pub async fn refine(
+        &mut self,
+        job: JobId,
+        target_milli: u32,
+        aa: Option<u32>,
+        time_limit_ms: Option<u64>,
+    ) -> Result<JobId> {
+        let request = ClientRequest::Refine {
+            job,
+            target_milli,
+            aa,
+            time_limit_ms,
+        };
+        match self.request(request).await? {
+            ClientResponse::Submitted { job } => Ok(job),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     pub async fn status(&mut self, job: JobId) -> Result<JobStatus> {
         match self.request(ClientRequest::Status { job }).await? {
             ClientResponse::Job(status) => Ok(status),

@@ -46,6 +46,8 @@ pub struct StoredJob {
     pub image_sha256: Option<[u8; 32]>,
     /// How its tile results are checked.
     pub verification: Verification,
+    /// Milliseconds of rendering after which an adaptive job stops, if limited.
+    pub time_limit_ms: Option<u64>,
 }
 
 /// A job's wall-clock times, in milliseconds since the Unix epoch.
@@ -114,6 +116,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("tiles", "sha256", "BLOB"),
     ("tiles", "done_ms", "INTEGER"),
     ("jobs", "verification", "TEXT NOT NULL DEFAULT 'sampled'"),
+    ("jobs", "time_limit_ms", "INTEGER"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -248,8 +251,8 @@ impl Db {
             .execute(
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
-                                   verification)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+                                   verification, time_limit_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -266,6 +269,7 @@ impl Db {
                     target_milli(job.settings.sampling),
                     job.times.submitted.map(|t| t as i64),
                     job.verification.name(),
+                    job.time_limit_ms.map(|t| t.min(i64::MAX as u64) as i64),
                 ],
             )
             .context("cannot store the job")?;
@@ -418,7 +422,7 @@ impl Db {
             "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
                     error, sampler, target_milli, total_rays, total_samples,
                     total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256, verification
+                    image_sha256, verification, time_limit_ms
              FROM jobs ORDER BY id",
         )?;
         let rows = query
@@ -493,8 +497,10 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
         "full" => Verification::Full,
         other => return Err(bad(format!("job {id}: unknown verification {other:?}"))),
     };
+    let time_limit_ms = time(22)?;
     Ok(StoredJob {
         verification,
+        time_limit_ms,
         id: JobId::try_from(id).map_err(|_| bad(format!("job id {id}")))?,
         scene: r.get(1).map_err(field)?,
         hash: hash
@@ -591,6 +597,7 @@ mod tests {
             tile_size: 8,
             priority: 0,
             verification: Verification::Full,
+            time_limit_ms: Some(1_500),
             state: JobState::Queued,
             error: None,
             totals: None,

@@ -6,6 +6,7 @@
 
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use protocol::JobId;
@@ -167,14 +168,50 @@ impl Store {
         Ok((total, bytes))
     }
 
-    /// Stores a finished job: scene, image, then metadata (the metadata's presence
-    /// means the job is complete). The image is read back and compared with `png`'s
-    /// checksum before this returns.
-    pub fn save(&self, meta: &JobMetadata, scene: &str, png: &[u8]) -> Result<[u8; 32]> {
+    /// A finished job's scene, as stored beside its image.
+    pub fn read_scene(&self, job: JobId) -> Result<String> {
+        let path = self.job_dir(job).join("scene.json");
+        std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))
+    }
+
+    fn states_path(&self, job: JobId) -> PathBuf {
+        self.job_dir(job).join(STATES_FILE)
+    }
+
+    /// The final block states of a finished adaptive job, checked against the checksum
+    /// they were written with. Whether they are states of the job's tiles is for the
+    /// caller to check (it needs the renderer).
+    pub fn read_states(&self, job: JobId) -> Result<TileStates> {
+        let path = self.states_path(job);
+        let bytes = match std::fs::read(&path) {
+            Ok(bytes) => bytes,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => anyhow::bail!(
+                "{} is missing: the job's tile states were not kept",
+                path.display()
+            ),
+            Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+        };
+        TileStates::decode(&bytes)
+            .map_err(|e| anyhow::anyhow!("{} is damaged: {e}", path.display()))
+    }
+
+    /// Stores a finished job: scene, image, an adaptive job's final tile states, then
+    /// metadata (the metadata's presence means the job is complete). The image is read
+    /// back and compared with `png`'s checksum before this returns.
+    pub fn save(
+        &self,
+        meta: &JobMetadata,
+        scene: &str,
+        png: &[u8],
+        states: Option<&TileStates>,
+    ) -> Result<[u8; 32]> {
         let dir = self.job_dir(meta.id);
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
         write_atomically(&dir.join("scene.json"), scene.as_bytes())?;
+        if let Some(states) = states {
+            write_atomically(&self.states_path(meta.id), &states.encode())?;
+        }
         write_atomically(&self.image_path(meta.id), png)?;
         let sha: [u8; 32] = Sha256::digest(png).into();
         self.verify_image(meta.id, &sha)?;
@@ -206,6 +243,86 @@ impl Store {
     }
 }
 
+/// The file beside a finished adaptive job's image holding its tiles' final states.
+pub const STATES_FILE: &str = "states.bin";
+
+/// The magic that opens a states file, with its format's version.
+const STATES_MAGIC: &[u8; 8] = b"TSTATES1";
+
+/// A finished adaptive job's tiles' final block states (each compressed as a worker
+/// sends it) and the rung of the ladder they reached: what a refinement starts from.
+///
+/// On disk: the magic, the rung, aa and tile side (u32 little-endian), the number of
+/// tiles (u32), then each state as a u64 length and its bytes, and last the SHA-256 of
+/// everything before it, so that a flipped bit anywhere is found before use.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TileStates {
+    pub rung: u32,
+    pub aa: u32,
+    pub tile_size: u32,
+    pub states: Vec<Arc<Vec<u8>>>,
+}
+
+impl TileStates {
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        out.extend_from_slice(STATES_MAGIC);
+        for n in [self.rung, self.aa, self.tile_size, self.states.len() as u32] {
+            out.extend_from_slice(&n.to_le_bytes());
+        }
+        for s in &self.states {
+            out.extend_from_slice(&(s.len() as u64).to_le_bytes());
+            out.extend_from_slice(s);
+        }
+        let sha: [u8; 32] = Sha256::digest(&out).into();
+        out.extend_from_slice(&sha);
+        out
+    }
+
+    pub fn decode(bytes: &[u8]) -> std::result::Result<TileStates, String> {
+        let body_len = bytes
+            .len()
+            .checked_sub(32)
+            .ok_or("shorter than its checksum")?;
+        let (body, sha) = bytes.split_at(body_len);
+        if Sha256::digest(body).as_slice() != sha {
+            return Err("its SHA-256 does not match its contents".into());
+        }
+        let rest = body
+            .strip_prefix(STATES_MAGIC.as_slice())
+            .ok_or("not a states file")?;
+        let mut at = 0usize;
+        let mut take = |n: usize| -> std::result::Result<&[u8], String> {
+            let end = at
+                .checked_add(n)
+                .filter(|&e| e <= rest.len())
+                .ok_or("truncated")?;
+            let slice = &rest[at..end];
+            at = end;
+            Ok(slice)
+        };
+        let mut u32_at = || -> std::result::Result<u32, String> {
+            Ok(u32::from_le_bytes(take(4)?.try_into().expect("4 bytes")))
+        };
+        let (rung, aa, tile_size, count) = (u32_at()?, u32_at()?, u32_at()?, u32_at()?);
+        let mut states = Vec::new();
+        for _ in 0..count {
+            let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
+            let len = usize::try_from(len).map_err(|_| "truncated")?;
+            states.push(Arc::new(take(len)?.to_vec()));
+        }
+        if at != rest.len() {
+            return Err("bytes after its last state".into());
+        }
+        Ok(TileStates {
+            rung,
+            aa,
+            tile_size,
+            states,
+        })
+    }
+}
+
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path.parent().expect("stored files live in a folder");
     let mut tmp = tempfile::NamedTempFile::new_in(dir)
@@ -221,4 +338,27 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
         .and_then(|d| d.sync_all())
         .with_context(|| format!("cannot sync {}", dir.display()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_states_file_reads_back_and_any_flipped_byte_is_found() {
+        let states = TileStates {
+            rung: 93,
+            aa: 8,
+            tile_size: 32,
+            states: vec![Arc::new(vec![1, 2, 3]), Arc::new(Vec::new())],
+        };
+        let bytes = states.encode();
+        assert_eq!(TileStates::decode(&bytes), Ok(states));
+        for i in 0..bytes.len() {
+            let mut bad = bytes.clone();
+            bad[i] ^= 0x10;
+            assert!(TileStates::decode(&bad).is_err(), "byte {i}");
+        }
+        assert!(TileStates::decode(&bytes[..bytes.len() - 1]).is_err());
+    }
 }

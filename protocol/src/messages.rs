@@ -95,6 +95,9 @@ pub struct JobSpec {
     pub priority: i32,
     /// How the workers' results are checked before they count.
     pub verification: Verification,
+    /// Milliseconds of rendering after which an adaptive job stops at the deepest rung
+    /// it has rendered, whatever its target (see docs/protocol.md); `None`: no limit.
+    pub time_limit_ms: Option<u64>,
 }
 
 /// How a job's tile results are checked before they count (docs/reliability.md has the
@@ -150,6 +153,17 @@ pub enum ClientRequest {
     /// coordinator's disk. A job still queued or running must be cancelled first.
     Delete {
         job: JobId,
+    },
+    /// A new adaptive job from a finished one: the same scene, size, tiling and depth,
+    /// with target `target_milli` (thousandths of a level), cap `aa` (the old job's if
+    /// `None`) and time limit, whose tiles start from the old job's final block states
+    /// instead of from nothing. Answered with `Submitted` and the new job's id; the old
+    /// job stays as it was.
+    Refine {
+        job: JobId,
+        target_milli: u32,
+        aa: Option<u32>,
+        time_limit_ms: Option<u64>,
     },
 }
 
@@ -237,6 +251,11 @@ pub struct JobStatus {
     /// tile with an estimate is in, and always with one sample per pixel (`aa` 1),
     /// where the spread of the samples cannot be measured.
     pub estimated_error: Option<f64>,
+    /// The job's time limit in milliseconds of rendering, if it has one.
+    pub time_limit_ms: Option<u64>,
+    /// The job ended on its time limit before its image met the target: its image is
+    /// the deepest rung rendered, with `estimated_error`.
+    pub stopped_on_time_limit: bool,
 }
 
 /// A connected worker, as reported to clients.

@@ -70,7 +70,7 @@ fn describe(e: &bincode::error::DecodeError) -> String {
 }
 
 /// Serde's "invalid value: integer `9`, expected variant index 0 <= i < 8" as
-/// "unknown variant 9 (variants go from 0 to 7)".
+/// "unknown variant 9 (variants go from 0 to 8)".
 fn unknown_variant(text: &str) -> Option<String> {
     let rest = text.strip_prefix("invalid value: integer `")?;
     let (found, rest) = rest.split_once('`')?;

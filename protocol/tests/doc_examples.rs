@@ -89,6 +89,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 },
                 priority: -1,
                 verification: Verification::Sampled,
+                time_limit_ms: None,
             })),
         ),
         ("Status", frame(&ClientRequest::Status { job: 7 })),
@@ -107,6 +108,8 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 error: None,
                 samples: 2304,
                 estimated_error: Some(0.0),
+                time_limit_ms: None,
+                stopped_on_time_limit: false,
             })),
         ),
         (

@@ -136,10 +136,10 @@ prop_compose! {
 
 prop_compose! {
     fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
-                  full in any::<bool>())
+                  full in any::<bool>(), time_limit_ms in any::<Option<u64>>())
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
-        JobSpec { scene, overrides, priority, verification }
+        JobSpec { scene, overrides, priority, verification, time_limit_ms }
     }
 }
 
@@ -160,10 +160,11 @@ prop_compose! {
         rays in any::<u64>(), elapsed_ms in any::<u64>(), eta_ms in any::<Option<u64>>(),
         error in prop::option::of(text()), samples in any::<u64>(),
         estimated_error in prop::option::of(rate()),
+        time_limit_ms in any::<Option<u64>>(), stopped_on_time_limit in any::<bool>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
-            eta_ms, error, samples, estimated_error,
+            eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
         }
     }
 }
@@ -317,6 +318,20 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
         any::<u64>().prop_map(|job| ClientRequest::Cancel { job }),
         (any::<u64>(), any::<u64>()).prop_map(|(job, offset)| ClientRequest::Fetch { job, offset }),
         Just(ClientRequest::Workers),
+        (
+            any::<u64>(),
+            any::<u32>(),
+            any::<Option<u32>>(),
+            any::<Option<u64>>()
+        )
+            .prop_map(
+                |(job, target_milli, aa, time_limit_ms)| ClientRequest::Refine {
+                    job,
+                    target_milli,
+                    aa,
+                    time_limit_ms,
+                }
+            ),
         (any::<u64>(), any::<u32>())
             .prop_map(|(job, after_tiles)| ClientRequest::Watch { job, after_tiles }),
     ]
@@ -914,7 +929,7 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
         decode_error::<ClientRequest>(&9u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 9 (variants go from 0 to 7)"
+        "unreadable ClientRequest: unknown variant 9 (variants go from 0 to 8)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(
@@ -932,6 +947,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             overrides,
             priority: 0,
             verification: Verification::Sampled,
+            time_limit_ms: None,
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -944,7 +960,8 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         sampling: Some(Sampling::Grid),
         ..Default::default()
     });
-    let at = nested.len() - 12; // the Sampling variant, before the priority and verification
+    // The Sampling variant, before the priority, verification and time limit.
+    let at = nested.len() - 13;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

@@ -17,6 +17,15 @@
 //! rung is predicted from the fall over the last two passes (the prior before there are
 //! two), then aimed a little past it, since an undershoot costs more than an overshoot.
 //!
+//! **A time budget.** A job may also have a time limit. Time is an input here like the
+//! totals: the coordinator passes how long the job has been rendering at the end of each
+//! pass. A pass that ends at or past the limit ends the job at its own rung, the deepest
+//! one rendered (the frame there is the best the budget bought, and its estimate is
+//! reported). Before that, the next pass is aimed to fit the time left: its cost is
+//! predicted from the samples (the frame's samples grow about exponentially in the rung,
+//! and a pass's time with its new samples), so that the job overruns its limit by a
+//! share of a pass at most rather than by a pass aimed at a target it cannot afford.
+//!
 //! A pure state machine: the coordinator computes the totals (it needs the renderer),
 //! this decides. No clock, no I/O.
 
@@ -45,11 +54,21 @@ pub struct RungCheck {
     pub meets: bool,
 }
 
+/// Rungs per doubling of the frame's samples assumed before two passes have measured
+/// it: an error falling as samples^(-1/2) halves for every two doublings.
+pub const PRIOR_RUNGS_PER_DOUBLING: f64 = PRIOR_RUNGS_PER_HALVING / 2.0;
+
+/// The fewest and most rungs per doubling of the samples a measurement may imply.
+const PER_DOUBLING_RANGE: (f64, f64) = (2.0, 200.0);
+
 /// What to do once a pass is complete.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Decision {
     /// The image is every tile at this rung: no more rendering.
     Finish { rung: u32 },
+    /// The time limit is reached before any rung met the target: the image is every
+    /// tile at this rung, the deepest rendered.
+    OutOfTime { rung: u32 },
     /// Start the next pass, which takes the tiles to this rung.
     Next { rung: u32 },
 }
@@ -67,6 +86,10 @@ pub struct Passes {
     checked: Option<u32>,
     /// (rung, estimate) at the end of each pass so far, the latest last.
     history: Vec<(u32, f64)>,
+    /// The job's time limit in milliseconds of rendering, if any.
+    time_limit_ms: Option<u64>,
+    /// (rung, milliseconds of rendering, frame's samples) at the end of each pass.
+    clock: Vec<(u32, u64, u64)>,
 }
 
 impl Passes {
@@ -81,7 +104,26 @@ impl Passes {
             rung: 0,
             checked: None,
             history: Vec::new(),
+            time_limit_ms: None,
+            clock: Vec::new(),
         }
+    }
+
+    /// A job whose tiles start from states that have already reached `rung` (a job
+    /// refined from a finished one): its first pass takes every tile to that rung (a
+    /// larger cap may add samples there), and every rung up to it is looked at, since
+    /// the stored levels make the frame change at each of them.
+    pub fn from_rung(target: f64, last_rung: u32, rung: u32) -> Passes {
+        Passes {
+            rung: rung.min(last_rung),
+            ..Passes::new(target, last_rung)
+        }
+    }
+
+    /// The same passes, stopping once the job has rendered for `limit_ms`.
+    pub fn with_time_limit(mut self, limit_ms: Option<u64>) -> Passes {
+        self.time_limit_ms = limit_ms;
+        self
     }
 
     /// The pass under way.
@@ -118,6 +160,21 @@ impl Passes {
     ///
     /// If `checks` are not the rungs of `to_check`.
     pub fn pass_done(&mut self, checks: &[RungCheck], first_work: Option<u32>) -> Decision {
+        self.pass_done_at(checks, first_work, 0, 0)
+    }
+
+    /// [`Passes::pass_done`] for a job that may have a time limit: `elapsed_ms` is how
+    /// long the job has been rendering, `samples` the frame's samples at the pass's
+    /// rung. At or past the limit the job ends at the pass's rung
+    /// ([`Decision::OutOfTime`]) unless a rung met the target; before it, the next
+    /// pass is aimed no further than the time left is predicted to reach.
+    pub fn pass_done_at(
+        &mut self,
+        checks: &[RungCheck],
+        first_work: Option<u32>,
+        elapsed_ms: u64,
+        samples: u64,
+    ) -> Decision {
         let rungs: Vec<u32> = checks.iter().map(|c| c.rung).collect();
         assert_eq!(
             rungs,
@@ -127,6 +184,10 @@ impl Passes {
         if let Some(found) = checks.iter().find(|c| c.meets) {
             return Decision::Finish { rung: found.rung };
         }
+        if self.time_limit_ms.is_some_and(|limit| elapsed_ms >= limit) {
+            return Decision::OutOfTime { rung: self.rung };
+        }
+        self.clock.push((self.rung, elapsed_ms, samples));
         let estimate = checks.last().map_or(f64::NAN, |c| c.estimate);
         let unchanged = first_work
             .map_or(self.last_rung, |w| w.saturating_sub(1))
@@ -139,6 +200,14 @@ impl Passes {
         } else {
             next_rung(&self.history, self.target, self.last_rung)
         };
+        if let Some(limit) = self.time_limit_ms {
+            let fits = fitting_rung(
+                &self.clock,
+                limit.saturating_sub(elapsed_ms),
+                self.last_rung,
+            );
+            self.rung = self.rung.min(fits).max(unchanged + 1).min(self.last_rung);
+        }
         Decision::Next { rung: self.rung }
     }
 
@@ -185,6 +254,34 @@ pub fn next_rung(history: &[(u32, f64)], target: f64, last_rung: u32) -> u32 {
         .min(last_rung)
 }
 
+/// The deepest rung a pass can be predicted to reach in `remaining_ms`, from the
+/// (rung, milliseconds of rendering, samples) at the end of each pass so far: the time
+/// per sample of the last pass (of the first, from the start), and the rungs per
+/// doubling of the samples measured over the last two passes (the prior before).
+pub fn fitting_rung(clock: &[(u32, u64, u64)], remaining_ms: u64, last_rung: u32) -> u32 {
+    let Some(&(rung, elapsed, samples)) = clock.last() else {
+        return 0;
+    };
+    let (r0, e0, s0) = clock.len().checked_sub(2).map_or((0, 0, 0), |i| clock[i]);
+    if samples <= s0 || elapsed <= e0 || samples == 0 {
+        return rung.saturating_add(1).min(last_rung);
+    }
+    let ms_per_sample = (elapsed - e0) as f64 / (samples - s0) as f64;
+    let per_doubling = (s0 > 0 && rung > r0)
+        .then(|| f64::from(rung - r0) / (samples as f64 / s0 as f64).log2())
+        .filter(|d| d.is_finite() && *d > 0.0)
+        .unwrap_or(PRIOR_RUNGS_PER_DOUBLING)
+        .clamp(PER_DOUBLING_RANGE.0, PER_DOUBLING_RANGE.1);
+    let affordable = samples as f64 + remaining_ms as f64 / ms_per_sample;
+    let jump = (per_doubling * (affordable / samples as f64).log2()).floor();
+    let jump = if jump.is_finite() && jump >= 1.0 {
+        jump.min(f64::from(last_rung)) as u32
+    } else {
+        1
+    };
+    rung.saturating_add(jump).min(last_rung)
+}
+
 /// The tiles a pass to `rung` sends: those with work at it. `next_work[t]` is the first
 /// rung at which some block of tile t doubles (`Some(0)` for a tile without a state
 /// yet, `None` for one whose blocks are all at their cap).
@@ -229,7 +326,9 @@ mod tests {
             let c = checks(p.to_check(), start, per_halving, target);
             let reached = p.rung();
             match p.pass_done(&c, Some(reached + 1)) {
-                Decision::Finish { rung } => return (passes, rung, reached - rung),
+                Decision::Finish { rung } | Decision::OutOfTime { rung } => {
+                    return (passes, rung, reached - rung)
+                }
                 Decision::Next { rung } => {
                     assert!(rung > reached, "every pass goes further");
                     passes += 1;
@@ -318,6 +417,62 @@ mod tests {
         // Every block at its cap: only the last rung is left.
         let mut p = Passes::new(1.0, 705);
         assert_eq!(p.pass_done(&first, None), Decision::Next { rung: 705 });
+    }
+
+    #[test]
+    fn a_pass_ending_past_the_time_limit_ends_the_job_at_its_rung() {
+        let mut p = Passes::new(0.001, 705).with_time_limit(Some(1000));
+        let first = checks(0..=0, 16.0, 28.0, 0.001);
+        // 100 ms for the first samples: the next pass is aimed to fit the 900 left.
+        let Decision::Next { rung } = p.pass_done_at(&first, Some(1), 100, 1000) else {
+            panic!("time is left");
+        };
+        // Ten times the time affords about 3.3 doublings of the samples, at the prior's
+        // 14 rungs each.
+        assert_eq!(rung, (14.0 * 10f64.log2()).floor() as u32);
+        let second = checks(p.to_check(), 16.0, 28.0, 0.001);
+        assert_eq!(
+            p.pass_done_at(&second, Some(rung + 1), 1000, 10_000),
+            Decision::OutOfTime { rung }
+        );
+        // A rung that meets the target still wins, whatever the time.
+        let mut p = Passes::new(20.0, 705).with_time_limit(Some(10));
+        let first = checks(0..=0, 16.0, 28.0, 20.0);
+        assert_eq!(
+            p.pass_done_at(&first, Some(1), 50, 10),
+            Decision::Finish { rung: 0 }
+        );
+        // Without a limit the time does not matter.
+        let mut p = Passes::new(1.0, 705);
+        let first = checks(0..=0, 16.0, 28.0, 1.0);
+        assert!(matches!(
+            p.pass_done_at(&first, Some(1), u64::MAX, 10),
+            Decision::Next { .. }
+        ));
+    }
+
+    #[test]
+    fn the_next_pass_fits_the_time_left() {
+        // The last pass took 1 s for 3000 new samples over 14 rungs (one doubling).
+        let clock = [(14, 1000, 3000), (28, 2000, 6000)];
+        // 2 s more buys 6000 samples more: one doubling, 14 rungs.
+        assert_eq!(fitting_rung(&clock, 2000, 705), 42);
+        // No time left: one rung still, so that every pass goes further.
+        assert_eq!(fitting_rung(&clock, 0, 705), 29);
+        assert_eq!(fitting_rung(&clock, u64::MAX / 4, 705), 705);
+        // A passes' ladder with a time limit never aims past what fits.
+        let mut p = Passes::new(0.001, 705).with_time_limit(Some(2000));
+        let first = checks(0..=0, 16.0, 28.0, 0.001);
+        assert_eq!(
+            p.pass_done_at(&first, Some(1), 1000, 1000),
+            Decision::Next { rung: 14 }
+        );
+    }
+
+    #[test]
+    fn a_refined_job_checks_every_rung_up_to_its_states() {
+        let p = Passes::from_rung(1.0, 705, 90);
+        assert_eq!((p.pass(), p.rung(), p.to_check()), (0, 90, 0..=90));
     }
 
     #[test]

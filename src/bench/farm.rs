@@ -47,6 +47,7 @@ async fn run_job(
             overrides,
             priority: 0,
             verification: protocol::Verification::default(),
+            time_limit_ms: None,
         })
         .await?;
     let mut seen = 0;

@@ -26,6 +26,8 @@ pub struct AdaptiveJob {
     /// Rays traced for the job over all passes (the local walk would trace the rays of
     /// the final rung only; the farm's overshoot and checks cost more).
     pub rays: u64,
+    /// The rung of the job's image, once found.
+    pub final_rung: Option<u32>,
 }
 
 /// One tile's state between passes.
@@ -49,19 +51,49 @@ pub struct AdaptiveTile {
 }
 
 impl AdaptiveJob {
-    pub fn new(settings: &Settings, tiles: usize) -> AdaptiveJob {
+    /// A job of `tiles` tiles, limited to `time_limit_ms` of rendering if given. A
+    /// refinement's tiles start from `start` (checked by the caller: one valid state per
+    /// tile): its first pass sends every tile from its state to the states' rung, where
+    /// a larger cap may add samples, and looks at every rung up to it.
+    pub fn new(
+        settings: &Settings,
+        tiles: usize,
+        time_limit_ms: Option<u64>,
+        start: Option<crate::store::TileStates>,
+    ) -> AdaptiveJob {
         let target = settings.sampling.target_error().unwrap_or(f64::INFINITY);
+        let last = render::progressive::LAST_RUNG;
+        let (passes, tiles) = match start {
+            Some(start) if start.states.len() == tiles => (
+                Passes::from_rung(target, last, start.rung),
+                start
+                    .states
+                    .into_iter()
+                    .map(|state| AdaptiveTile {
+                        next_work: Some(0),
+                        state: Some(Arc::clone(&state)),
+                        previous: Some(state),
+                        ..AdaptiveTile::default()
+                    })
+                    .collect(),
+            ),
+            _ => (
+                Passes::new(target, last),
+                vec![
+                    AdaptiveTile {
+                        next_work: Some(0),
+                        ..AdaptiveTile::default()
+                    };
+                    tiles
+                ],
+            ),
+        };
         AdaptiveJob {
-            passes: Passes::new(target, render::progressive::LAST_RUNG),
-            tiles: vec![
-                AdaptiveTile {
-                    next_work: Some(0),
-                    ..AdaptiveTile::default()
-                };
-                tiles
-            ],
+            passes: passes.with_time_limit(time_limit_ms),
+            tiles,
             evaluating: false,
             rays: 0,
+            final_rung: None,
         }
     }
 
@@ -176,6 +208,9 @@ pub struct PassSnapshot {
     pub settings: Settings,
     pub rects: Vec<TileRect>,
     pub states: Vec<Option<Arc<Vec<u8>>>>,
+    /// Paint the pass's rung when none meets the target (a job with a time limit may
+    /// end there).
+    pub paint_last: bool,
 }
 
 /// The end of a pass, computed off the lock.
@@ -185,7 +220,8 @@ pub struct Evaluation {
     /// The frame's totals at the first rung that meets the target, else at the pass's
     /// rung.
     pub totals: RungTotals,
-    /// The image at the first rung that meets the target, if one does.
+    /// The image at the first rung that meets the target, if one does (else at the
+    /// pass's rung when asked for).
     pub image: Option<render::Image>,
 }
 
@@ -232,7 +268,8 @@ pub fn evaluate(
         })
         .collect();
     let found = checks.iter().position(|c| c.meets);
-    let image = match found {
+    let painted = found.or((snap.paint_last && !rungs.is_empty()).then(|| rungs.len() - 1));
+    let image = match painted {
         Some(i) => {
             let k = rungs[i];
             let s = snap.settings;

@@ -102,6 +102,17 @@ async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> Clie
         }
         ClientRequest::Fetch { job, offset } => fetch(sh, job, offset).await,
         ClientRequest::Workers => ClientResponse::Workers(sh.lock().worker_statuses()),
+        ClientRequest::Refine {
+            job,
+            target_milli,
+            aa,
+            time_limit_ms,
+        } => match refine(sh, job, target_milli, aa, time_limit_ms, peer).await {
+            Ok(response) => response,
+            Err(message) => ClientResponse::Error {
+                message: format!("cannot refine job {job}: {message}"),
+            },
+        },
     }
 }
 
@@ -123,6 +134,11 @@ async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse
             }
         }
     };
+    admit(sh, prepared).await
+}
+
+/// Has the lifecycle admit a prepared job, and answers once its row is written.
+async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     let (reply, answer) = tokio::sync::oneshot::channel();
     let stored = match sh.lock().admit(sh, prepared, reply) {
         Ok(stored) => stored,
@@ -145,6 +161,121 @@ async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse
     })
 }
 
+/// A new job from a finished adaptive one, its tiles starting from the old job's
+/// final states: the old job's scene (read back and checked against its hash), size,
+/// tiling, depth, priority and verification, with the new target, cap and time limit.
+/// The states are read from disk and checked (their checksum, then each as a state of
+/// its tile for the new job, as a worker's answer would be) before the job is
+/// admitted: a missing or damaged state refuses the refinement, never gives a wrong
+/// image.
+async fn refine(
+    sh: &Arc<Shared>,
+    job: JobId,
+    target_milli: u32,
+    aa: Option<u32>,
+    time_limit_ms: Option<u64>,
+    peer: IpAddr,
+) -> Result<ClientResponse, String> {
+    if sh.closing.load(Ordering::SeqCst) {
+        return Err("the coordinator is shutting down: refine again when it is back".into());
+    }
+    let (old, tile_size, priority, verification, hash) = {
+        let core = sh.lock();
+        let Some(status) = core.status(job) else {
+            return Ok(unknown_job(job));
+        };
+        if status.state != JobState::Done {
+            return Err(format!(
+                "it is {}: only a job that is done can be refined",
+                status.state.as_str()
+            ));
+        }
+        if status.settings.sampling.target_error().is_none() {
+            return Err(format!(
+                "it was rendered with {} sampling: only adaptive jobs keep their tile states",
+                status.settings.sampling.name()
+            ));
+        }
+        let record = core.jobs.get(&job).ok_or("its record is gone")?;
+        (
+            status.settings,
+            record.tile_size,
+            record.priority,
+            record.verification,
+            record.hash,
+        )
+    };
+    let aa = aa.unwrap_or(old.aa);
+    if aa < old.aa {
+        return Err(format!(
+            "aa {aa} is below the job's {}: a refinement can only add samples",
+            old.aa
+        ));
+    }
+    let shared = Arc::clone(sh);
+    let limits = sh.limits;
+    let prepared = tokio::task::spawn_blocking(move || -> Result<Prepared, String> {
+        let store = &shared.store;
+        let scene = store.read_scene(job).map_err(|e| format!("{e:#}"))?;
+        if Sha256::digest(scene.as_bytes()).as_slice() != hash {
+            return Err(format!(
+                "the stored scene of job {job} does not match the job's scene hash"
+            ));
+        }
+        let states = store.read_states(job).map_err(|e| format!("{e:#}"))?;
+        let spec = JobSpec {
+            scene,
+            overrides: protocol::Overrides {
+                width: Some(old.width),
+                height: Some(old.height),
+                aa: Some(aa),
+                max_depth: Some(old.max_depth),
+                tile_size: Some(tile_size),
+                sampling: Some(protocol::Sampling::Adaptive { target_milli }),
+            },
+            priority,
+            verification,
+            time_limit_ms,
+        };
+        let mut prepared = prepare(spec, &limits, peer)?;
+        if states.tile_size != tile_size
+            || states.aa != old.aa
+            || states.states.len() != prepared.tiles.len()
+        {
+            return Err(format!(
+                "its stored tile states are for another tiling ({} tiles of {} px at aa {}, \
+                 not {} of {tile_size} px at aa {})",
+                states.states.len(),
+                states.tile_size,
+                states.aa,
+                prepared.tiles.len(),
+                old.aa
+            ));
+        }
+        let verifier = &shared.verifier;
+        let tracer = verifier.tracer(prepared.hash, prepared.settings, &prepared.scene)?;
+        let footprints = verifier.footprints(&tracer);
+        for (t, (state, &rect)) in states.states.iter().zip(&prepared.tiles).enumerate() {
+            verify::adaptive::unpack_state(state, rect, prepared.settings.aa)
+                .and_then(|blocks| {
+                    verify::adaptive::region(
+                        &tracer,
+                        std::sync::Arc::clone(&footprints),
+                        rect,
+                        blocks,
+                    )
+                    .map(drop)
+                })
+                .map_err(|e| format!("the stored state of tile {t} is not valid: {e}"))?;
+        }
+        prepared.start = Some(states);
+        Ok(prepared)
+    })
+    .await
+    .map_err(|_| "the stored states could not be checked: try again".to_string())??;
+    Ok(admit(sh, prepared).await)
+}
+
 /// Parses and checks a job: the settings it will render with, its tiles and what the
 /// lifecycle needs to admit it.
 fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<Prepared, String> {
@@ -165,6 +296,17 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
         max_depth: s.max_depth,
         sampling: o.sampling.unwrap_or_default(),
     };
+    if let Some(limit) = spec.time_limit_ms {
+        if settings.sampling.target_error().is_none() {
+            return Err(format!(
+                "time_limit: only adaptive jobs stop on a time limit, not {} sampling",
+                settings.sampling.name()
+            ));
+        }
+        if limit == 0 {
+            return Err("time_limit: must be more than 0 ms".into());
+        }
+    }
     let tile_size = match o.tile_size {
         Some(t) if !(MIN_TILE..=MAX_TILE).contains(&t) => {
             return Err(format!(
@@ -200,6 +342,8 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
         priority: spec.priority,
         verification: spec.verification,
         request,
+        time_limit_ms: spec.time_limit_ms,
+        start: None,
     })
 }
 

@@ -95,6 +95,10 @@ pub struct JobRecord {
     pub accepted: HashMap<u32, Accepted>,
     /// An adaptive job's passes and its tiles' states, while it is active.
     pub adaptive: Option<AdaptiveJob>,
+    /// Milliseconds of rendering after which an adaptive job stops, if limited.
+    pub time_limit_ms: Option<u64>,
+    /// The job ended on its time limit before its image met the target.
+    pub stopped_on_time_limit: bool,
 }
 
 /// An accepted tile's machine and cost.
@@ -305,6 +309,9 @@ pub struct Prepared {
     pub priority: i32,
     pub verification: Verification,
     pub request: lifecycle::Request,
+    pub time_limit_ms: Option<u64>,
+    /// For a refinement: the finished job's tile states the tiles start from.
+    pub start: Option<crate::store::TileStates>,
 }
 
 impl Core {
@@ -394,12 +401,21 @@ impl Core {
             },
             image_sha256: None,
             verification: prepared.verification,
+            time_limit_ms: prepared.time_limit_ms,
         };
         self.jobs.insert(
             id,
             JobRecord {
-                adaptive: is_adaptive(&prepared.settings)
-                    .then(|| AdaptiveJob::new(&prepared.settings, prepared.tiles.len())),
+                adaptive: is_adaptive(&prepared.settings).then(|| {
+                    AdaptiveJob::new(
+                        &prepared.settings,
+                        prepared.tiles.len(),
+                        prepared.time_limit_ms,
+                        prepared.start,
+                    )
+                }),
+                time_limit_ms: prepared.time_limit_ms,
+                stopped_on_time_limit: false,
                 verification: prepared.verification,
                 accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
@@ -438,9 +454,11 @@ impl Core {
         let tiles = tiling::cut(&stored.settings, stored.tile_size);
         let final_state = stored.state.is_final();
         let adaptive = (!final_state && is_adaptive(&stored.settings))
-            .then(|| AdaptiveJob::new(&stored.settings, tiles.len()));
+            .then(|| AdaptiveJob::new(&stored.settings, tiles.len(), stored.time_limit_ms, None));
         let mut record = JobRecord {
             adaptive,
+            time_limit_ms: stored.time_limit_ms,
+            stopped_on_time_limit: false,
             verification: stored.verification,
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
@@ -956,6 +974,7 @@ impl Core {
             settings: record.settings,
             rects: record.tiles.clone(),
             states: ad.tiles.iter().map(|t| t.state.clone()).collect(),
+            paint_last: record.time_limit_ms.is_some(),
         };
         let hash = record.hash;
         let shared = Arc::clone(sh);
@@ -1014,8 +1033,31 @@ impl Core {
             record.totals.error_pixels = pixels;
         }
         let first_work = ad.tiles.iter().filter_map(|t| t.next_work).min();
-        match ad.passes.pass_done(&evaluation.checks, first_work) {
+        // Rendering time, less the coordinator's own downtime: what a limit budgets.
+        let now = unix_ms();
+        let elapsed =
+            record.rendered_before_ms + now.saturating_sub(record.running_since.unwrap_or(now));
+        match ad
+            .passes
+            .pass_done_at(&evaluation.checks, first_work, elapsed, t.samples)
+        {
+            scheduler::passes::Decision::OutOfTime { rung } => {
+                info!(
+                    job,
+                    passes = ad.passes.pass() + 1,
+                    rung,
+                    estimate,
+                    elapsed_ms = elapsed,
+                    "adaptive job: the time limit is reached"
+                );
+                ad.final_rung = Some(rung);
+                record.stopped_on_time_limit = true;
+                record.image = evaluation.image;
+                record.tiles_recorded = record.tiles_total;
+                self.life_event(sh, lifecycle::Event::TilesComplete { job });
+            }
             scheduler::passes::Decision::Finish { rung } => {
+                ad.final_rung = Some(rung);
                 info!(
                     job,
                     passes = ad.passes.pass() + 1,
@@ -1564,6 +1606,18 @@ impl Core {
         record.times.ended = Some(ended);
         let meta = record.metadata(job, ended);
         let scene = record.scene.clone().unwrap_or_else(|| Arc::from(""));
+        // An adaptive job keeps its tiles' final states beside its image: a refinement
+        // goes on from them. They are at the last pass's rung (at or past the image's).
+        let states = record.adaptive.as_ref().and_then(|ad| {
+            let states: Option<Vec<Arc<Vec<u8>>>> =
+                ad.tiles.iter().map(|t| t.state.clone()).collect();
+            Some(Box::new(crate::store::TileStates {
+                rung: ad.passes.rung(),
+                aa: record.settings.aa,
+                tile_size: record.tile_size,
+                states: states?,
+            }))
+        });
         let shared = Arc::clone(sh);
         sh.runtime.spawn_blocking(move || {
             let png = image.to_png();
@@ -1573,6 +1627,7 @@ impl Core {
                 meta: Box::new(meta),
                 scene,
                 png,
+                states,
                 then: Box::new(move |result| {
                     let sh = then_shared;
                     let mut core = sh.lock();
@@ -1784,6 +1839,8 @@ impl JobRecord {
             error,
             samples: self.totals.samples,
             estimated_error: self.estimated_error(),
+            time_limit_ms: self.time_limit_ms,
+            stopped_on_time_limit: self.stopped_on_time_limit,
         }
     }
 }

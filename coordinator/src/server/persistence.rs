@@ -68,6 +68,8 @@ pub enum Write {
         meta: Box<JobMetadata>,
         scene: Arc<str>,
         png: Vec<u8>,
+        /// An adaptive job's final tile states, kept for refinements.
+        states: Option<Box<crate::store::TileStates>>,
         then: Then<[u8; 32]>,
     },
     End {
@@ -313,10 +315,11 @@ impl Writer {
                 meta,
                 scene,
                 png,
+                states,
                 then,
             }) => {
                 let store = Arc::clone(&self.store);
-                let sha = self.until_done(|_| store.save(&meta, &scene, &png));
+                let sha = self.until_done(|_| store.save(&meta, &scene, &png, states.as_deref()));
                 then(Ok(sha));
                 false
             }
