@@ -343,7 +343,8 @@ pub async fn run_submit(
 
 /// What a refinement of a farm job asks for.
 pub struct Refinement {
-    pub target_milli: u32,
+    /// The new target; `None`: the old job's.
+    pub target_milli: Option<u32>,
     pub aa: Option<u32>,
     pub time_limit_ms: Option<u64>,
 }
@@ -359,14 +360,20 @@ pub async fn run_refine(
     json_out: bool,
 ) -> Result<()> {
     let mut session = Session::connect(coordinator).await?;
+    let target_milli = match refinement.target_milli {
+        Some(t) => t,
+        None => match session.client().status(old).await?.settings.sampling {
+            Sampling::Adaptive { target_milli } => target_milli,
+            other => anyhow::bail!(
+                "cannot refine job {old}: it was rendered with {} sampling: only adaptive \
+                 jobs keep their tile states",
+                other.name()
+            ),
+        },
+    };
     let job = session
         .client()
-        .refine(
-            old,
-            refinement.target_milli,
-            refinement.aa,
-            refinement.time_limit_ms,
-        )
+        .refine(old, target_milli, refinement.aa, refinement.time_limit_ms)
         .await?;
     if !wait_for_it {
         if json_out {

@@ -61,10 +61,13 @@ enum Command {
         long_about = "Go on from a render saved with `tessera render --state FILE` to a lower \
             error target or a larger --aa, taking only the samples it lacks. The image is \
             byte for byte the one a direct render with the final settings gives. The state \
-            file is updated in place, so refining can go on again.",
-        after_help = "Example:\n  \
+            file is updated in place, so refining can go on again. Given the id of a \
+            finished adaptive job instead, a coordinator starts a new job from the tile \
+            states it kept for that job, with the same bytes a direct job would give.",
+        after_help = "Examples:\n  \
             tessera render scenes/seed.json --sampler adaptive --target-error 4 --state seed.state\n  \
-            tessera refine seed.state --target-error 1 -o seed.png"
+            tessera refine seed.state --target-error 1 -o seed.png\n  \
+            tessera refine 12 --target-error 0.5 --aa 16 --wait -o seed.png"
     )]
     Refine(RefineArgs),
 
@@ -935,12 +938,9 @@ fn run(command: Command) -> Result<()> {
             }
             Command::Refine(a) => {
                 let job = refines_a_job(&a.state)?.expect("a state file was refined above");
-                let target = a
-                    .target_error
-                    .ok_or_else(|| anyhow!("refine: a job needs --target-error LEVELS"))?;
-                let target_milli = match Sampling::adaptive(target)? {
-                    Sampling::Adaptive { target_milli } => target_milli,
-                    _ => unreachable!("an adaptive target"),
+                let target_milli = match a.target_error.map(Sampling::adaptive).transpose()? {
+                    Some(Sampling::Adaptive { target_milli }) => Some(target_milli),
+                    _ => None,
                 };
                 client_commands::run_refine(
                     &a.common.target()?,
