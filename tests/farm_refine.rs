@@ -10,8 +10,8 @@
 //! - **Nothing stored is trusted.** Refining a job whose stored tile states were damaged
 //!   on disk (one byte flipped) is one `error: ` line naming the file, and writes no
 //!   image; so is refining a grid job or a job that has not finished.
-//! - **A time budget.** A farm job with `--time-limit` ends, and its summary says the
-//!   time limit stopped it.
+//! - **A time budget.** A farm job with `--time-limit` (`submit --wait`, `up`) ends, and
+//!   its summary says the time limit stopped it; on a grid job it is one `error: ` line.
 
 mod common;
 
@@ -272,6 +272,24 @@ fn a_farm_job_with_a_time_limit_says_the_limit_stopped_it() {
         summary.contains("stopped by the time limit before the target"),
         "{summary}"
     );
+    // `tessera up` takes the limit too.
+    let up_out = dir.join("up.png");
+    let mut up = vec![
+        "up",
+        seed.as_str(),
+        "--workers",
+        "1",
+        "-o",
+        up_out.to_str().unwrap(),
+    ];
+    up.extend(args(&[LARGER, &["--aa", "16", "--time-limit", "60ms"]]));
+    let run = ok(tessera(dir, &up, JOB_TIMEOUT), "up --time-limit");
+    assert!(
+        run.stderr.contains("as far as the time limit allowed"),
+        "{}",
+        run.stderr
+    );
+    assert!(up_out.exists());
     // A time limit on a grid job is one error line.
     let run = submit_wait(
         dir,
