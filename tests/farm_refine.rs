@@ -221,14 +221,14 @@ fn a_farm_job_with_a_time_limit_says_the_limit_stopped_it() {
     let _serial = serial();
     let tmp = TempDir::new().unwrap();
     let dir = tmp.path();
-    let (_coordinator, addr) = start_coordinator(
+    let (mut coordinator, addr) = start_coordinator(
         dir,
         &dir.join("data"),
         "127.0.0.1:0",
         &[],
         "coordinator.log",
     );
-    let _worker = start_worker(dir, &addr, "a");
+    let mut worker = start_worker(dir, &addr, "a");
     let seed = scene_path("seed.json");
     // A budget far too small for the smallest target at aa 16 (the whole ladder takes
     // about a second here): the time decides.
@@ -250,6 +250,10 @@ fn a_farm_job_with_a_time_limit_says_the_limit_stopped_it() {
         "the limit ends the job"
     );
     assert!(dir.join("limited.png").exists());
+    let status = common::try_status(dir, &addr, 1).expect("the job's status");
+    assert_eq!(status["stopped_on_time_limit"], true, "{status}");
+    assert_eq!(status["time_limit_ms"], 60, "{status}");
+    assert!(status["estimated_error"].as_f64().is_some(), "{status}");
     // With a target too, the summary says the limit came first.
     let flags = args(&[
         LARGER,
@@ -290,6 +294,14 @@ fn a_farm_job_with_a_time_limit_says_the_limit_stopped_it() {
         run.stderr
     );
     assert!(up_out.exists());
+    // What stopped the job is kept across a restart of the coordinator.
+    worker.kill9();
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir, &dir.join("data"), "127.0.0.1:0", &[], "restarted.log");
+    let status = common::try_status(dir, &addr, 1).expect("the job is back");
+    assert_eq!(status["stopped_on_time_limit"], true, "{status}");
+    assert_eq!(status["time_limit_ms"], 60, "{status}");
     // A time limit on a grid job is one error line.
     let run = submit_wait(
         dir,

@@ -48,6 +48,8 @@ pub struct StoredJob {
     pub verification: Verification,
     /// Milliseconds of rendering after which an adaptive job stops, if limited.
     pub time_limit_ms: Option<u64>,
+    /// The job ended on its time limit before meeting its target.
+    pub stopped_on_time_limit: bool,
 }
 
 /// A job's wall-clock times, in milliseconds since the Unix epoch.
@@ -117,6 +119,11 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("tiles", "done_ms", "INTEGER"),
     ("jobs", "verification", "TEXT NOT NULL DEFAULT 'sampled'"),
     ("jobs", "time_limit_ms", "INTEGER"),
+    (
+        "jobs",
+        "stopped_on_time_limit",
+        "INTEGER NOT NULL DEFAULT 0",
+    ),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -317,6 +324,18 @@ impl Db {
     /// Records a job's end: its final state, totals, times and image checksum. Its
     /// tiles are no longer needed (the image is stored and verified, or the job will
     /// not have one): they are deleted, and the space they took given back.
+    /// Records that the job ended on its time limit (shown by its status after a
+    /// restart).
+    pub fn set_stopped_on_time_limit(&self, job: JobId) -> Result<()> {
+        self.conn
+            .execute(
+                "UPDATE jobs SET stopped_on_time_limit = 1 WHERE id = ?1",
+                params![job as i64],
+            )
+            .context("cannot record the job's end")?;
+        Ok(())
+    }
+
     pub fn set_ended(
         &mut self,
         job: JobId,
@@ -422,7 +441,7 @@ impl Db {
             "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
                     error, sampler, target_milli, total_rays, total_samples,
                     total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256, verification, time_limit_ms
+                    image_sha256, verification, time_limit_ms, stopped_on_time_limit
              FROM jobs ORDER BY id",
         )?;
         let rows = query
@@ -498,9 +517,11 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
         other => return Err(bad(format!("job {id}: unknown verification {other:?}"))),
     };
     let time_limit_ms = time(22)?;
+    let stopped_on_time_limit = r.get::<_, i64>(23).map_err(field)? != 0;
     Ok(StoredJob {
         verification,
         time_limit_ms,
+        stopped_on_time_limit,
         id: JobId::try_from(id).map_err(|_| bad(format!("job id {id}")))?,
         scene: r.get(1).map_err(field)?,
         hash: hash
@@ -598,6 +619,7 @@ mod tests {
             priority: 0,
             verification: Verification::Full,
             time_limit_ms: Some(1_500),
+            stopped_on_time_limit: false,
             state: JobState::Queued,
             error: None,
             totals: None,

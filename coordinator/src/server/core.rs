@@ -402,6 +402,7 @@ impl Core {
             image_sha256: None,
             verification: prepared.verification,
             time_limit_ms: prepared.time_limit_ms,
+            stopped_on_time_limit: false,
         };
         self.jobs.insert(
             id,
@@ -458,7 +459,7 @@ impl Core {
         let mut record = JobRecord {
             adaptive,
             time_limit_ms: stored.time_limit_ms,
-            stopped_on_time_limit: false,
+            stopped_on_time_limit: stored.stopped_on_time_limit,
             verification: stored.verification,
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
@@ -1676,6 +1677,7 @@ impl Core {
             totals: record.totals,
             times: record.times,
             image_sha256: record.image_sha256,
+            stopped_on_time_limit: record.stopped_on_time_limit,
             then: Box::new(move |_| {
                 shared
                     .lock()

@@ -79,6 +79,8 @@ pub enum Write {
         totals: Totals,
         times: Times,
         image_sha256: Option<[u8; 32]>,
+        /// The job ended on its time limit before meeting its target.
+        stopped_on_time_limit: bool,
         then: Then<()>,
     },
     Delete {
@@ -330,10 +332,15 @@ impl Writer {
                 totals,
                 times,
                 image_sha256,
+                stopped_on_time_limit,
                 then,
             }) => {
                 self.until_done(|db| {
-                    db.set_ended(job, state, error.as_deref(), totals, times, image_sha256)
+                    db.set_ended(job, state, error.as_deref(), totals, times, image_sha256)?;
+                    if stopped_on_time_limit {
+                        db.set_stopped_on_time_limit(job)?;
+                    }
+                    Ok(())
                 });
                 then(Ok(()));
                 false
