@@ -26,8 +26,6 @@ pub struct AdaptiveJob {
     /// Rays traced for the job over all passes (the local walk would trace the rays of
     /// the final rung only; the farm's overshoot and checks cost more).
     pub rays: u64,
-    /// The rung of the job's image, once found.
-    pub final_rung: Option<u32>,
 }
 
 /// One tile's state between passes.
@@ -93,7 +91,6 @@ impl AdaptiveJob {
             tiles,
             evaluating: false,
             rays: 0,
-            final_rung: None,
         }
     }
 

@@ -1051,14 +1051,12 @@ impl Core {
                     elapsed_ms = elapsed,
                     "adaptive job: the time limit is reached"
                 );
-                ad.final_rung = Some(rung);
                 record.stopped_on_time_limit = true;
                 record.image = evaluation.image;
                 record.tiles_recorded = record.tiles_total;
                 self.life_event(sh, lifecycle::Event::TilesComplete { job });
             }
             scheduler::passes::Decision::Finish { rung } => {
-                ad.final_rung = Some(rung);
                 info!(
                     job,
                     passes = ad.passes.pass() + 1,
