@@ -212,6 +212,17 @@ pub async fn fetch_to(client: &mut Client, job: JobId, output: &Path) -> Result<
 /// Fetches a finished job's image through a session, reconnecting if need be, and
 /// writes it; a file that cannot be written is reported with how to fetch the image
 /// again.
+/// Waits for `job` to end and downloads its image to `output`; an error names the job.
+async fn wait_and_fetch(session: &mut Session, job: JobId, output: &Path) -> Result<JobStatus> {
+    async {
+        let status = wait(session, job).await?;
+        fetch_through(session, job, output).await?;
+        Ok(status)
+    }
+    .await
+    .map_err(|e| naming_job(job, e))
+}
+
 pub async fn fetch_through(session: &mut Session, job: JobId, output: &Path) -> Result<usize> {
     let png = session.fetch(job).await?;
     write_atomically(output, &png).map_err(|e| {
@@ -324,13 +335,7 @@ pub async fn run_submit(
     }
     eprintln!("submitted job {job}");
     let output = output.unwrap_or_else(|| default_output(scene));
-    let status = async {
-        let status = wait(&mut session, job).await?;
-        fetch_through(&mut session, job, &output).await?;
-        Ok(status)
-    }
-    .await
-    .map_err(|e| naming_job(job, e))?;
+    let status = wait_and_fetch(&mut session, job, &output).await?;
     if json_out {
         let mut v = status_json(&status);
         v["output"] = json!(output.display().to_string());
@@ -388,13 +393,7 @@ pub async fn run_refine(
     }
     eprintln!("refining job {old} as job {job}");
     let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
-    let status = async {
-        let status = wait(&mut session, job).await?;
-        fetch_through(&mut session, job, &output).await?;
-        Ok(status)
-    }
-    .await
-    .map_err(|e| naming_job(job, e))?;
+    let status = wait_and_fetch(&mut session, job, &output).await?;
     if json_out {
         let mut v = status_json(&status);
         v["output"] = json!(output.display().to_string());
