@@ -362,11 +362,14 @@ fn sum(colors: &[Vec3]) -> Vec3 {
     colors.iter().fold(Vec3::ZERO, |s, &c| s + c)
 }
 
+/// Units of [`RungTotals::error_sq`] per level².
+const FIXED_POINT_UNITS: f64 = 16_777_216.0;
+
 /// A block's squared error as a whole number of 2⁻²⁴ levels², so that sums over blocks
 /// are exact and do not depend on the order in which tiles arrive.
 fn fixed_point(error_sq: f64) -> u128 {
     if error_sq.is_finite() && error_sq > 0.0 {
-        (error_sq * 16_777_216.0).round() as u128
+        (error_sq * FIXED_POINT_UNITS).round() as u128
     } else {
         0
     }
@@ -393,12 +396,17 @@ impl RungTotals {
         self.unknown |= other.unknown;
     }
 
+    /// The blocks' summed estimated squared error, in levels².
+    pub fn error_sq_levels(&self) -> f64 {
+        self.error_sq as f64 / FIXED_POINT_UNITS
+    }
+
     /// The RMS estimated error in levels; NaN when unknown.
     pub fn estimated_error(&self) -> f64 {
         if self.unknown || self.pixels == 0 {
             return f64::NAN;
         }
-        (self.error_sq as f64 / 16_777_216.0 / self.pixels as f64).sqrt()
+        (self.error_sq_levels() / self.pixels as f64).sqrt()
     }
 }
 

@@ -187,7 +187,7 @@ pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sy
             image: frame.image,
             rays: frame.totals.rays,
             samples: frame.totals.samples,
-            error_sq_sum: frame.totals.error_sq as f64 / 16_777_216.0,
+            error_sq_sum: frame.totals.error_sq_levels(),
         };
     }
     let done: Vec<TileImage> = tiles(&settings, tile_size)
