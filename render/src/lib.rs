@@ -22,6 +22,7 @@ pub mod progressive;
 pub mod sampling;
 mod scene;
 mod tile;
+pub mod simd;
 mod tracer;
 mod vec3;
 
