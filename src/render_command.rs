@@ -40,7 +40,11 @@ pub fn run(opts: Options) -> Result<()> {
     let scene_path = &opts.scene;
     let text = std::fs::read_to_string(scene_path)
         .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
-    let scene = parse_scene(&text).map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
+    // The pool renders, and reads a large scene's objects first.
+    let pool = thread_pool(opts.threads)?;
+    let scene = pool
+        .install(|| parse_scene(&text))
+        .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
 
     let mut settings = scene.settings;
     settings.width = opts.width.unwrap_or(settings.width);
@@ -61,7 +65,7 @@ pub fn run(opts: Options) -> Result<()> {
         text: &text,
         settings,
         output,
-        threads: opts.threads,
+        pool,
         time_limit: opts.time_limit,
         state: opts.state.clone(),
         resume: None,
@@ -84,7 +88,9 @@ pub struct RefineOptions {
 /// with the final settings gives, byte for byte. The state file is updated in place.
 pub fn refine(opts: RefineOptions) -> Result<()> {
     let saved = render_state::load(&opts.state)?;
-    let scene = parse_scene(&saved.scene)
+    let pool = thread_pool(opts.threads)?;
+    let scene = pool
+        .install(|| parse_scene(&saved.scene))
         .map_err(|e| anyhow!("{}: the saved scene: {e}", opts.state.display()))?;
     let target = match opts.target_error {
         Some(levels) => Sampling::adaptive(levels).map_err(|e| anyhow!("--target-error: {e}"))?,
@@ -110,12 +116,20 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
         text: &saved.scene,
         settings,
         output,
-        threads: opts.threads,
+        pool,
         time_limit: opts.time_limit,
         state: Some(opts.state.clone()),
         resume: Some((opts.state.clone(), saved.blocks)),
     };
     job.run()
+}
+
+/// The local thread pool: `threads` threads, or one per core.
+fn thread_pool(threads: Option<u32>) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.map_or(0, |n| n as usize))
+        .build()
+        .context("cannot start the rendering threads")
 }
 
 /// One local render, from the command line or a saved state.
@@ -124,7 +138,8 @@ struct Job<'a> {
     text: &'a str,
     settings: RenderSettings,
     output: PathBuf,
-    threads: Option<u32>,
+    /// Renders: `--threads` threads, one per core by default.
+    pool: rayon::ThreadPool,
     time_limit: Option<Duration>,
     state: Option<PathBuf>,
     /// The saved blocks to go on from, and the file they came from.
@@ -134,11 +149,7 @@ struct Job<'a> {
 impl Job<'_> {
     fn run(self) -> Result<()> {
         let settings = self.settings;
-        let threads = self.threads.map_or(0, |n| n as usize);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .context("cannot start the rendering threads")?;
+        let pool = &self.pool;
         let tracer = Tracer::new(self.scene, settings);
         let started = Instant::now();
         // Until the image is made: saving the samples is not rendering.
