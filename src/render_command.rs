@@ -45,6 +45,9 @@ pub fn run(opts: Options) -> Result<()> {
     let scene = pool
         .install(|| parse_scene(&text))
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
+    // Only a render that saves its samples needs the text again; otherwise it goes now,
+    // before the tracer is built (a large scene's text is larger than the scene).
+    let text = opts.state.is_some().then_some(text);
 
     let mut settings = scene.settings;
     settings.width = opts.width.unwrap_or(settings.width);
@@ -62,7 +65,7 @@ pub fn run(opts: Options) -> Result<()> {
         .unwrap_or_else(|| default_output(scene_path));
     let job = Job {
         scene: &scene,
-        text: &text,
+        text: text.as_deref(),
         settings,
         output,
         pool,
@@ -113,7 +116,7 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
     });
     let job = Job {
         scene: &scene,
-        text: &saved.scene,
+        text: Some(&saved.scene),
         settings,
         output,
         pool,
@@ -135,7 +138,8 @@ fn thread_pool(threads: Option<u32>) -> Result<rayon::ThreadPool> {
 /// One local render, from the command line or a saved state.
 struct Job<'a> {
     scene: &'a render::Scene,
-    text: &'a str,
+    /// The scene's text, kept when the samples are saved (with it).
+    text: Option<&'a str>,
     settings: RenderSettings,
     output: PathBuf,
     /// Renders: `--threads` threads, one per core by default.
@@ -201,7 +205,10 @@ impl Job<'_> {
                 };
                 if let Some(path) = &self.state {
                     let saved = render_state::Saved {
-                        scene: self.text.to_owned(),
+                        scene: self
+                            .text
+                            .expect("a render that saves its samples keeps the scene text")
+                            .to_owned(),
                         width: settings.width,
                         height: settings.height,
                         aa: settings.aa,

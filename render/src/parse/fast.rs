@@ -10,10 +10,12 @@
 //!
 //! That holds because
 //! - the scanner accepts only a subset of JSON: white space, objects, arrays, strings
-//!   without escapes or control characters, and numbers; each number token is parsed by
-//!   serde_json (`from_str::<f64>`), which refuses a malformed one and gives the same
-//!   bits as the reference's `Value::as_f64`; numbers in strings go through the same
-//!   `str::parse::<f64>` as the reference;
+//!   without escapes or control characters, and numbers;
+//! - a JSON number gets the bits the reference's `Value::as_f64` gives: a plain one
+//!   (`-12`, `0.625`, at most 19 digits) by serde_json's own arithmetic (the digits as a
+//!   u64, converted, divided by a power of ten), any other by serde_json itself, which
+//!   also refuses a malformed one; numbers in strings go through the same
+//!   `str::parse::<f64>` as the reference's;
 //! - the lights, camera, image and ambient values are cut out as text and parsed into a
 //!   `Value` by serde_json, then checked by the reference's own functions;
 //! - the objects are checked as `parse_object` checks them.
@@ -29,7 +31,8 @@ use serde_json::Value;
 use crate::scene::{CameraSpec, Object, RenderSettings, Scene, Shape};
 use crate::vec3::Vec3;
 
-/// An objects array shorter than this (in bytes of text) is read on one thread.
+/// When less text than this (in bytes) follows the start of the objects array, the
+/// objects are read on one thread.
 const PARALLEL_MIN_BYTES: usize = 1 << 20;
 
 /// The scene, when the text is a valid scene in plain JSON; `None` otherwise.
