@@ -35,6 +35,9 @@ use crate::vec3::Vec3;
 /// objects are read on one thread.
 const PARALLEL_MIN_BYTES: usize = 1 << 20;
 
+/// Pieces of the objects array per thread, when read in parallel.
+const PIECES_PER_THREAD: usize = 4;
+
 /// The scene, when the text is a valid scene in plain JSON; `None` otherwise.
 pub(super) fn parse(text: &str) -> Option<Scene> {
     let mut c = Cursor { text, pos: 0 };
@@ -379,16 +382,18 @@ impl<'a> Cursor<'a> {
         }
     }
 
-    /// Cuts the rest of the text into one piece per thread at guessed element starts,
+    /// Cuts the rest of the text into a few pieces per thread at guessed element starts,
     /// reads the pieces in parallel, then keeps the pieces whose start was confirmed by
-    /// the piece before, in order.
+    /// the piece before, in order. Several pieces per thread even out the threads'
+    /// work, and keep small the memory of the pieces not yet copied into the whole.
     fn objects_in_parallel(&mut self, threads: usize) -> Option<Vec<Object>> {
         let text = self.text;
         let first = self.pos;
         let len = text.len() - first;
+        let pieces = threads * PIECES_PER_THREAD;
         let mut starts = vec![first];
-        for k in 1..threads {
-            match guess_element_start(text, first + len / threads * k) {
+        for k in 1..pieces {
+            match guess_element_start(text, first + len / pieces * k) {
                 Some(s) if s > *starts.last().unwrap() => starts.push(s),
                 _ => {}
             }
