@@ -40,7 +40,14 @@ pub fn run(opts: Options) -> Result<()> {
     let scene_path = &opts.scene;
     let text = std::fs::read_to_string(scene_path)
         .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
-    let scene = parse_scene(&text).map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
+    // The pool renders, and reads a large scene's objects first.
+    let pool = thread_pool(opts.threads)?;
+    let scene = pool
+        .install(|| parse_scene(&text))
+        .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
+    // Only a render that saves its samples needs the text again; otherwise it goes now,
+    // before the tracer is built (a large scene's text is larger than the scene).
+    let text = opts.state.is_some().then_some(text);
 
     let mut settings = scene.settings;
     settings.width = opts.width.unwrap_or(settings.width);
@@ -58,10 +65,10 @@ pub fn run(opts: Options) -> Result<()> {
         .unwrap_or_else(|| default_output(scene_path));
     let job = Job {
         scene: &scene,
-        text: &text,
+        text: text.as_deref(),
         settings,
         output,
-        threads: opts.threads,
+        pool,
         time_limit: opts.time_limit,
         state: opts.state.clone(),
         resume: None,
@@ -84,7 +91,9 @@ pub struct RefineOptions {
 /// with the final settings gives, byte for byte. The state file is updated in place.
 pub fn refine(opts: RefineOptions) -> Result<()> {
     let saved = render_state::load(&opts.state)?;
-    let scene = parse_scene(&saved.scene)
+    let pool = thread_pool(opts.threads)?;
+    let scene = pool
+        .install(|| parse_scene(&saved.scene))
         .map_err(|e| anyhow!("{}: the saved scene: {e}", opts.state.display()))?;
     let target = match opts.target_error {
         Some(levels) => Sampling::adaptive(levels).map_err(|e| anyhow!("--target-error: {e}"))?,
@@ -107,10 +116,10 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
     });
     let job = Job {
         scene: &scene,
-        text: &saved.scene,
+        text: Some(&saved.scene),
         settings,
         output,
-        threads: opts.threads,
+        pool,
         time_limit: opts.time_limit,
         state: Some(opts.state.clone()),
         resume: Some((opts.state.clone(), saved.blocks)),
@@ -118,13 +127,23 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
     job.run()
 }
 
+/// The local thread pool: `threads` threads, or one per core.
+fn thread_pool(threads: Option<u32>) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.map_or(0, |n| n as usize))
+        .build()
+        .context("cannot start the rendering threads")
+}
+
 /// One local render, from the command line or a saved state.
 struct Job<'a> {
     scene: &'a render::Scene,
-    text: &'a str,
+    /// The scene's text, kept when the samples are saved (with it).
+    text: Option<&'a str>,
     settings: RenderSettings,
     output: PathBuf,
-    threads: Option<u32>,
+    /// Renders: `--threads` threads, one per core by default.
+    pool: rayon::ThreadPool,
     time_limit: Option<Duration>,
     state: Option<PathBuf>,
     /// The saved blocks to go on from, and the file they came from.
@@ -134,11 +153,7 @@ struct Job<'a> {
 impl Job<'_> {
     fn run(self) -> Result<()> {
         let settings = self.settings;
-        let threads = self.threads.map_or(0, |n| n as usize);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .context("cannot start the rendering threads")?;
+        let pool = &self.pool;
         let tracer = Tracer::new(self.scene, settings);
         let started = Instant::now();
         // Until the image is made: saving the samples is not rendering.
@@ -190,7 +205,10 @@ impl Job<'_> {
                 };
                 if let Some(path) = &self.state {
                     let saved = render_state::Saved {
-                        scene: self.text.to_owned(),
+                        scene: self
+                            .text
+                            .expect("a render that saves its samples keeps the scene text")
+                            .to_owned(),
                         width: settings.width,
                         height: settings.height,
                         aa: settings.aa,
