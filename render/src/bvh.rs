@@ -24,41 +24,47 @@
 //! |centre| + r) of the sphere's box (ε = 2⁻⁵³, o the ray origin): the cancellation-free
 //! quadratic of [`crate::geometry`] moves a root only by rounding its inputs, and a
 //! grazing root, where the square root magnifies that error, moves along the ray to a
-//! point that still lies on the (perturbed) sphere. Boxes are therefore widened by
-//! δ = 2⁻³⁶·(|o|₁ + S) + 2⁻¹⁰⁰, with S the largest |centre|₁ + r of the scene: thousands
-//! of times that bound, so that the exact point p = o + t·d of a hit the brute-force
-//! loop reports lies within δ/2 of its sphere's box, with room to spare for the
-//! rounding of c ± r and of o ± δ in double precision (2⁻⁵³ of those values).
+//! point that still lies on the (perturbed) sphere. Call that bound β; 2⁻³⁷·(|o|₁ + S)
+//! is thousands of times β, with S the largest |centre|₁ + r of the scene.
 //!
-//! The box test runs in single precision (u = 2⁻²⁴), and is made conservative so:
+//! The box test runs in single precision (u = 2⁻²⁴) with boxes widened by
+//! δ = 2⁻²²·(|o|₁ + S) + 2⁻¹²⁰, and is conservative for these reasons:
 //!
-//! 1. Box sides are rounded outward (low sides down, high sides up) to `f32`, so the
-//!    stored box contains the double one; a node's box contains its children's.
+//! 1. Box sides are rounded outward (low sides down, high sides up) from the double
+//!    values c ± r to `f32`, so the stored box contains the double one; a node's box
+//!    contains its children's.
 //! 2. The widening is applied to the ray, not the boxes: per axis the origin is
-//!    shifted by +δ or −δ in double precision and rounded to `f32` *outward* (o + δ up,
-//!    o − δ down), once for the near slab side and once for the far one, so each exact
-//!    slab distance of the rounded inputs, (side − o′)/dₐ, is at most (near side) or at
-//!    least (far side) that of the δ-widened double box. The inverse direction is
-//!    1/dₐ in double, rounded to nearest `f32` (±∞ if it overflows).
-//! 3. For the sphere's hit point p at t_p, every exact near-side distance of the
-//!    rounded inputs is ≤ t_p − δ/(2|dₐ|) and every far-side one ≥ t_p + δ/(2|dₐ|).
-//!    The computed distance fl(fl(side − o′)·inv) carries three `f32` roundings and one
+//!    shifted in double precision by δ towards the far side of the slab for the near
+//!    side's distance (o + δ for a positive direction) and by δ the other way for the
+//!    far side's, then rounded to nearest `f32`. Those roundings (≤ 2⁻²⁴·(|oₐ| + δ)
+//!    plus 2⁻¹⁵⁰ for a subnormal) and the double ones (≤ 2⁻⁵³ of the values, also for
+//!    c ± r) take away at most δ/4 + 2⁻²³·δ, so each exact slab distance of the
+//!    rounded inputs, (side − o′)·(1/dₐ), is that of a box widened by at least
+//!    0.74·δ ≥ β + δ/2.
+//!    The inverse direction is 1/dₐ in double, rounded to nearest `f32` (±∞ if it
+//!    overflows).
+//! 3. Let p = o + t_p·d be the exact point of a hit the brute-force loop reports: it
+//!    lies within β of its sphere's box, so every exact near-side distance of the
+//!    rounded inputs is ≤ t_p − δ/(2|dₐ|), every far-side one ≥ t_p + δ/(2|dₐ|). The
+//!    computed distance fl(fl(side − o′)·inv) carries three `f32` roundings and one
 //!    double one: a relative error γ ≤ 3u + 2⁻⁵³ + O(u²), plus at most 2⁻¹⁵⁰ absolute
 //!    where the product underflows (a difference that underflows is exact). Since
-//!    δ/(2|dₐ|) ≥ 2⁻¹⁰¹/1.5 dwarfs 2⁻¹⁵⁰, a computed near distance is ≤ t_p(1 + γ) when
+//!    δ/(2|dₐ|) ≥ 2⁻¹²¹/1.5 dwarfs 2⁻¹⁵⁰, a computed near distance is ≤ t_p(1 + γ) when
 //!    positive, and ≤ 0 when its exact value is negative (rounding keeps signs); a far
 //!    one is ≥ t_p(1 − γ) ≥ 0.
 //! 4. The entry t₀ = max(0, near distances) is thus ≤ t_p(1 + γ), and the exit
 //!    t₁ = min(T, far distances) ≥ t_p(1 − γ), with T the distance limit (the best hit
 //!    or the light, ≥ t_p) rounded *up* to `f32`. A box is entered when
 //!    t₀ ≤ fl(t₁·K) with K = 1 + 2⁻²⁰ ≥ (1 + γ)/((1 − γ)(1 − u)): so always for such a
-//!    sphere's boxes. A subtree is skipped on the stack only when its entry exceeds
-//!    fl(T·K), which t₀ ≤ t_p(1 + γ) never does.
+//!    sphere's boxes. A subtree or leaf waiting on the stack is dropped only when its
+//!    entry exceeds fl(T·K), which t₀ ≤ t_p(1 + γ) never does.
 //! 5. Overflow: with |o|₁, S ≤ 10³⁰ every hit distance is below 10³¹, far inside the
 //!    `f32` range, so a distance that rounds to ±∞ (a tiny direction component, whose
 //!    inverse overflows) is beyond every hit with the right sign, and rejects only
 //!    boxes that no hit lies in. A NaN distance (0·∞: the origin exactly on a side and
-//!    a zero or tiny direction component) is ignored, which can only widen the box.
+//!    a tiny direction component) is ignored, which can only widen the box. An empty
+//!    child slot (box +∞ to −∞) gives +∞ entries and −∞ exits, never NaN, and is never
+//!    entered.
 //!
 //! Rays too far out for this argument (|o|₁ > 10³⁰, non-unit directions) and scenes
 //! with S > 10³⁰ or more than 2²⁸ spheres are not traced through the hierarchy at all:
@@ -84,10 +90,10 @@ const STACK_SIZE: usize = 64;
 
 /// Largest scene scale S and ray origin |o|₁ for which the margin argument holds.
 const MAX_SCALE: f64 = 1e30;
-/// The margin δ per unit of |o|₁ + S.
-const MARGIN: f64 = 1.0 / (1u64 << 36) as f64;
+/// The margin δ per unit of |o|₁ + S: it also covers rounding the origin to `f32`.
+const MARGIN: f64 = 1.0 / (1u64 << 22) as f64;
 /// The margin's floor, far above the rounding of values near the underflow range.
-const MARGIN_FLOOR: f64 = 1.0 / (1u128 << 100) as f64;
+const MARGIN_FLOOR: f64 = 1.0 / (1u128 << 120) as f64;
 /// The slack factor K of the entry test t₀ ≤ t₁·K.
 const SLACK: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
 /// Most spheres: a leaf's first sphere is kept in 28 bits.
@@ -166,26 +172,29 @@ impl Stack {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Fallback;
 
-/// `x` rounded up to `f32` (to +∞ beyond its range).
+/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written without
+/// branches: the rounding direction of a ray's coordinates is random, and a
+/// mispredicted branch per coordinate costs more than the select.
 #[inline(always)]
 fn up32(x: f64) -> f32 {
     let f = x as f32;
-    if f64::from(f) < x {
-        f.next_up()
+    let bits = f.to_bits();
+    // One step towards +∞: away from zero for a positive value, towards it for a
+    // negative one, and from either zero to the least positive subnormal.
+    let stepped = if bits & 0x7fff_ffff == 0 {
+        1
+    } else if bits >> 31 == 0 {
+        bits + 1
     } else {
-        f
-    }
+        bits - 1
+    };
+    f32::from_bits(if f64::from(f) < x { stepped } else { bits })
 }
 
-/// `x` rounded down to `f32` (to −∞ beyond its range).
+/// `x` rounded down to `f32` (to −∞ beyond its range; `x` not NaN).
 #[inline(always)]
 fn down32(x: f64) -> f32 {
-    let f = x as f32;
-    if f64::from(f) > x {
-        f.next_down()
-    } else {
-        f
-    }
+    -up32(-x)
 }
 
 /// A ray prepared for box tests in single precision (see the module documentation):
@@ -213,8 +222,8 @@ impl BoxRay {
         }
         let delta = (reach + scale) * MARGIN + MARGIN_FLOOR;
         let negative = d.map(f64::is_sign_negative);
-        let plus = o.map(|o| up32(o + delta));
-        let minus = o.map(|o| down32(o - delta));
+        let plus = o.map(|o| (o + delta) as f32);
+        let minus = o.map(|o| (o - delta) as f32);
         Some(BoxRay {
             origin_near: std::array::from_fn(|a| if negative[a] { minus[a] } else { plus[a] }),
             origin_far: std::array::from_fn(|a| if negative[a] { plus[a] } else { minus[a] }),
@@ -232,9 +241,11 @@ impl BoxRay {
     }
 
     /// Which of the node's child boxes the ray enters within [0, `t_max`] (a bit per
-    /// child), and where it enters each. A NaN slab distance is ignored.
+    /// child), which children are leaves (a bit per child; empty slots too, but their
+    /// boxes are never entered), and where the ray enters each. A NaN slab distance
+    /// is ignored.
     #[inline(always)]
-    fn enter<const AVX2: bool>(&self, node: &Node, t_max: f32) -> (u32, [f32; WIDTH]) {
+    fn enter<const AVX2: bool>(&self, node: &Node, t_max: f32) -> (u32, u32, [f32; WIDTH]) {
         #[cfg(target_arch = "x86_64")]
         if AVX2 {
             // SAFETY: AVX2 = true only in functions compiled for AVX2, which are called
@@ -254,12 +265,14 @@ impl BoxRay {
             }
         }
         let mut mask = 0;
+        let mut leaves = 0;
         for k in 0..WIDTH {
             if t0[k] <= t1[k] * SLACK {
                 mask |= 1 << k;
             }
+            leaves |= (node.children[k] >> 31) << k;
         }
-        (mask, t0)
+        (mask, leaves, t0)
     }
 
     /// [`BoxRay::enter`] in AVX instructions: `max_ps(a, b)` is `a > b ? a : b` and
@@ -267,7 +280,7 @@ impl BoxRay {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     #[inline]
-    unsafe fn enter_avx2(&self, node: &Node, t_max: f32) -> (u32, [f32; WIDTH]) {
+    unsafe fn enter_avx2(&self, node: &Node, t_max: f32) -> (u32, u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
         let mut t0 = _mm256_setzero_ps();
         let mut t1 = _mm256_set1_ps(t_max);
@@ -295,7 +308,13 @@ impl BoxRay {
         let mut entry = [0.0f32; WIDTH];
         // SAFETY: `entry` holds eight f32s.
         unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), t0) };
-        (_mm256_movemask_ps(hit) as u32, entry)
+        // SAFETY: the children are eight u32s, 32-byte aligned within the node.
+        let children = unsafe { _mm256_load_si256(node.children.as_ptr().cast()) };
+        (
+            _mm256_movemask_ps(hit) as u32,
+            _mm256_movemask_ps(_mm256_castsi256_ps(children)) as u32,
+            entry,
+        )
     }
 }
 
@@ -403,49 +422,51 @@ impl Bvh {
         let mut current = 0u32;
         loop {
             let node = &self.nodes[current as usize];
-            let (mut hit, entry) = ray.enter::<AVX2>(node, t_max);
-            // Leaves are tested at once; inner children are sorted far to near.
+            let (mut hit, _, entry) = ray.enter::<AVX2>(node, t_max);
+            // The children entered, sorted far to near; then, from the nearest, leaves
+            // are tested until an inner child comes, which is visited next while the
+            // others wait on the stack. A leaf or node entered beyond the best hit is
+            // dropped.
             let mut order: [(f32, u32); WIDTH] = [(0.0, 0); WIDTH];
             let mut n = 0;
             while hit != 0 {
                 let k = hit.trailing_zeros() as usize;
                 hit &= hit - 1;
-                let child = node.children[k];
-                if child & LEAF_BIT != 0 {
-                    if child != EMPTY && self.leaf_nearest(child, origin, dir, from, best) {
-                        (t_max, t_skip) = BoxRay::limit(best.0);
-                    }
-                    continue;
-                }
                 let t = entry[k];
                 let mut j = n;
                 while j > 0 && order[j - 1].0 < t {
                     order[j] = order[j - 1];
                     j -= 1;
                 }
-                order[j] = (t, child);
+                order[j] = (t, node.children[k]);
                 n += 1;
             }
-            // Children entered beyond a hit found in this node's leaves are dropped.
-            let mut near = n;
-            while near > 0 && order[near - 1].0 > t_skip {
-                near -= 1;
+            let mut next = None;
+            while n > 0 && order[n - 1].0 <= t_skip {
+                n -= 1;
+                let child = order[n].1;
+                if child & LEAF_BIT == 0 {
+                    next = Some(child);
+                    break;
+                }
+                if self.leaf_nearest(child, origin, dir, from, best) {
+                    (t_max, t_skip) = BoxRay::limit(best.0);
+                }
             }
-            let mut keep = 0;
-            while keep < near && order[keep].0 > t_skip {
-                keep += 1;
-            }
-            let order = &order[keep..near];
-            if let Some((&(_, nearest), rest)) = order.split_last() {
-                if top + rest.len() > STACK_SIZE {
+            if let Some(child) = next {
+                let mut keep = 0;
+                while keep < n && order[keep].0 > t_skip {
+                    keep += 1;
+                }
+                if top + n - keep > STACK_SIZE {
                     return Err(Fallback);
                 }
-                for &(t, child) in rest {
+                for &(t, child) in &order[keep..n] {
                     stack.node[top] = child;
                     stack.entry[top] = t;
                     top += 1;
                 }
-                current = nearest;
+                current = child;
                 continue;
             }
             loop {
@@ -453,9 +474,16 @@ impl Bvh {
                     return Ok(());
                 }
                 top -= 1;
-                if stack.entry[top] <= t_skip {
-                    current = stack.node[top];
+                if stack.entry[top] > t_skip {
+                    continue;
+                }
+                let child = stack.node[top];
+                if child & LEAF_BIT == 0 {
+                    current = child;
                     break;
+                }
+                if self.leaf_nearest(child, origin, dir, from, best) {
+                    (t_max, t_skip) = BoxRay::limit(best.0);
                 }
             }
         }
@@ -537,29 +565,26 @@ impl Bvh {
         while top > 0 {
             top -= 1;
             let node = &self.nodes[stack.node[top] as usize];
-            let (mut hit, _) = ray.enter::<AVX2>(node, t_max);
-            while hit != 0 {
-                let k = hit.trailing_zeros() as usize;
-                hit &= hit - 1;
-                let child = node.children[k];
-                if child & LEAF_BIT != 0 {
-                    if child == EMPTY {
-                        continue;
+            let (hit, leaf, _) = ray.enter::<AVX2>(node, t_max);
+            let mut leaves = hit & leaf;
+            while leaves != 0 {
+                let k = leaves.trailing_zeros() as usize;
+                leaves &= leaves - 1;
+                for &(index, ref sphere) in self.leaf(node.children[k]) {
+                    if index != from && sphere.hit(origin, dir, false).is_some_and(|t| t < limit) {
+                        return Ok(Some(index));
                     }
-                    for &(index, ref sphere) in self.leaf(child) {
-                        if index != from
-                            && sphere.hit(origin, dir, false).is_some_and(|t| t < limit)
-                        {
-                            return Ok(Some(index));
-                        }
-                    }
-                } else {
-                    if top == STACK_SIZE {
-                        return Err(Fallback);
-                    }
-                    stack.node[top] = child;
-                    top += 1;
                 }
+            }
+            let mut inner = hit & !leaf;
+            if top + inner.count_ones() as usize > STACK_SIZE {
+                return Err(Fallback);
+            }
+            while inner != 0 {
+                let k = inner.trailing_zeros() as usize;
+                inner &= inner - 1;
+                stack.node[top] = node.children[k];
+                top += 1;
             }
         }
         Ok(None)
@@ -1038,7 +1063,8 @@ mod tests {
         }
         for nearest in &variants {
             let mut best = (f64::INFINITY, u32::MAX);
-            nearest(&mut best, &mut stack).expect("within range");
+            nearest(&mut best, &mut stack)
+                .unwrap_or_else(|_| panic!("{origin:?} {dir:?} {}", bvh.scale));
             assert!(
                 best.0.to_bits() == brute.0.to_bits() && best.1 == brute.1,
                 "{origin:?} {dir:?}: {best:?} vs {brute:?}"
