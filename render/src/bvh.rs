@@ -793,9 +793,9 @@ fn build_node(
 
 /// Per axis, the bin of doubled centres `c` for bins from `lo` with `scale` per unit.
 #[inline(always)]
-fn bins_of(c: [f32; 4], lo: [f32; 4], scale: [f32; 4]) -> [usize; 3] {
+fn bins_of(c: [f32; 4], lo: [f32; 4], scale: [f32; 4], last: i32) -> [usize; 3] {
     let b: [i32; 4] = std::array::from_fn(|a| ((c[a] - lo[a]) * scale[a]) as i32);
-    std::array::from_fn(|a| (b[a].clamp(0, BINS as i32 - 1)) as usize)
+    std::array::from_fn(|a| (b[a].clamp(0, last)) as usize)
 }
 
 /// Splits the prims of `whole` (`prims`, more than one) in two by the binned surface
@@ -812,10 +812,14 @@ fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
         depth: whole.depth + 1,
     };
     if whole.depth < SAH_MAX_DEPTH {
-        // `scale` maps a centre to its bin (all to bin 0 on an axis without spread).
+        // Fewer bins for few prims, where sweeping the bins would cost more than
+        // binning. `scale` maps a centre to its bin (to bin 0 on an axis without
+        // spread).
+        let bins = (prims.len() / 2).clamp(4, BINS);
+        let last = bins as i32 - 1;
         let scale: [f32; 4] = std::array::from_fn(|a| {
             if a < 3 && extent[a] > 0.0 {
-                BINS as f32 * 0.999_99 / extent[a]
+                bins as f32 * 0.999_99 / extent[a]
             } else {
                 0.0
             }
@@ -823,7 +827,7 @@ fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
         let mut boxes = [[Box4::EMPTY; BINS]; 3];
         let mut counts = [[0u32; BINS]; 3];
         for p in prims.iter() {
-            let b = bins_of(p.centre2(), cb.lo, scale);
+            let b = bins_of(p.centre2(), cb.lo, scale, last);
             for a in 0..3 {
                 counts[a][b[a]] += 1;
                 boxes[a][b[a]] = boxes[a][b[a]].union(p);
@@ -837,13 +841,13 @@ fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
             }
             let mut left = [(Box4::EMPTY, 0u32); BINS];
             let (mut acc, mut m) = (Box4::EMPTY, 0);
-            for b in 0..BINS - 1 {
+            for b in 0..bins - 1 {
                 acc = acc.union(&boxes[a][b]);
                 m += counts[a][b];
                 left[b] = (acc, m);
             }
             let (mut acc, mut m) = (Box4::EMPTY, 0);
-            for b in (1..BINS).rev() {
+            for b in (1..bins).rev() {
                 acc = acc.union(&boxes[a][b]);
                 m += counts[a][b];
                 let (lb, ln) = left[b - 1];
@@ -858,7 +862,9 @@ fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
         }
         if let Some((_, a, b, lb, rb)) = best {
             // Hoare partition, gathering each side's centre bounds on the way.
-            let goes_left = |p: &Prim| bins_of(p.centre2(), cb.lo, scale)[a] < b;
+            let (lo, per) = (cb.lo[a], scale[a]);
+            let goes_left =
+                |p: &Prim| ((((p.lo[a] + p.hi[a]) - lo) * per) as i32).clamp(0, last) < b as i32;
             let (mut lc, mut rc) = (Box4::EMPTY, Box4::EMPTY);
             let (mut i, mut j) = (0, prims.len());
             loop {
