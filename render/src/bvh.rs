@@ -70,6 +70,8 @@
 //! with S > 10³⁰ or more than 2²⁸ spheres are not traced through the hierarchy at all:
 //! callers fall back to the brute-force loop, which gives the same answers.
 
+use std::mem::MaybeUninit;
+
 use crate::geometry::SphereGeom;
 use crate::vec3::Vec3;
 
@@ -86,7 +88,7 @@ const SAH_MAX_DEPTH: u32 = 40;
 const PARALLEL_MIN: usize = 4096;
 /// Entries of the traversal stack. A deeper tree than it can hold makes the traversal
 /// report an overflow, and its caller then uses the brute-force loop.
-const STACK_SIZE: usize = 64;
+const STACK_SIZE: usize = 128;
 
 /// Largest scene scale S and ray origin |o|₁ for which the margin argument holds.
 const MAX_SCALE: f64 = 1e30;
@@ -151,19 +153,41 @@ pub(crate) struct Bvh {
 }
 
 /// The traversal stack, allocated once by the caller (per pixel) and reused for every
-/// ray: node references and the entry distance at which each was pushed.
+/// ray: child references and the entry distance at which each was pushed. It is not
+/// initialised (a traversal reads only the entries it wrote), so making one costs
+/// nothing.
 #[derive(Clone, Debug)]
 pub(crate) struct Stack {
-    node: [u32; STACK_SIZE],
-    entry: [f32; STACK_SIZE],
+    node: [MaybeUninit<u32>; STACK_SIZE],
+    entry: [MaybeUninit<f32>; STACK_SIZE],
 }
 
 impl Stack {
     pub fn new() -> Self {
         Stack {
-            node: [0; STACK_SIZE],
-            entry: [0.0; STACK_SIZE],
+            node: [MaybeUninit::uninit(); STACK_SIZE],
+            entry: [MaybeUninit::uninit(); STACK_SIZE],
         }
+    }
+
+    #[inline(always)]
+    fn set(&mut self, top: usize, child: u32, entry: f32) {
+        self.node[top] = MaybeUninit::new(child);
+        self.entry[top] = MaybeUninit::new(entry);
+    }
+
+    /// The child reference at `top`, which the traversal has written.
+    #[inline(always)]
+    fn node(&self, top: usize) -> u32 {
+        // SAFETY: traversals read only below their stack top, all written by `set`.
+        unsafe { self.node[top].assume_init() }
+    }
+
+    /// The entry distance at `top`, which the traversal has written.
+    #[inline(always)]
+    fn entry(&self, top: usize) -> f32 {
+        // SAFETY: as in `node`.
+        unsafe { self.entry[top].assume_init() }
     }
 }
 
@@ -462,8 +486,7 @@ impl Bvh {
                     return Err(Fallback);
                 }
                 for &(t, child) in &order[keep..n] {
-                    stack.node[top] = child;
-                    stack.entry[top] = t;
+                    stack.set(top, child, t);
                     top += 1;
                 }
                 current = child;
@@ -474,10 +497,10 @@ impl Bvh {
                     return Ok(());
                 }
                 top -= 1;
-                if stack.entry[top] > t_skip {
+                if stack.entry(top) > t_skip {
                     continue;
                 }
-                let child = stack.node[top];
+                let child = stack.node(top);
                 if child & LEAF_BIT == 0 {
                     current = child;
                     break;
@@ -561,10 +584,10 @@ impl Bvh {
         let ray = BoxRay::new(origin, dir, self.scale).ok_or(Fallback)?;
         let (t_max, _) = BoxRay::limit(limit);
         let mut top = 1;
-        stack.node[0] = 0;
+        stack.set(0, 0, 0.0);
         while top > 0 {
             top -= 1;
-            let node = &self.nodes[stack.node[top] as usize];
+            let node = &self.nodes[stack.node(top) as usize];
             let (hit, leaf, _) = ray.enter::<AVX2>(node, t_max);
             let mut leaves = hit & leaf;
             while leaves != 0 {
@@ -583,7 +606,7 @@ impl Bvh {
             while inner != 0 {
                 let k = inner.trailing_zeros() as usize;
                 inner &= inner - 1;
-                stack.node[top] = node.children[k];
+                stack.set(top, node.children[k], 0.0);
                 top += 1;
             }
         }
