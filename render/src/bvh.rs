@@ -1,19 +1,20 @@
-//! A bounding volume hierarchy over a scene's spheres: 4-wide nodes whose child boxes
-//! are stored as structure-of-arrays, so one node test is a handful of SIMD operations,
-//! and leaves of up to four spheres.
+//! A bounding volume hierarchy over a scene's spheres: 8-wide nodes whose child boxes
+//! are stored in single precision as structure-of-arrays, so one node test is a handful
+//! of 8-lane SIMD operations, and leaves of up to four spheres.
 //!
-//! It is built once per scene (binned surface area heuristic, then binary nodes pulled
-//! up into 4-wide ones) and answers the same questions as the brute-force loop over all
-//! spheres, with exactly the same answers:
+//! It is built once per scene (binned surface area heuristic over the sphere centres,
+//! splitting the child with the largest box until a node has eight children; subtrees
+//! are built in parallel on the current rayon pool) and answers the same questions as
+//! the brute-force loop over all spheres, with exactly the same answers:
 //!
-//! - every sphere it reaches is tested by the same code as in the brute-force loop, so
-//!   a hit has the same bits;
-//! - a subtree is skipped only if the ray's entry into its box is strictly beyond the
-//!   best hit so far (a hit at an equal distance could still win on its lower object
-//!   index), or, for shadow rays, at or beyond the light;
-//! - boxes are tested with a margin, below, that covers the rounding of both the box
-//!   test and the sphere test, so a sphere that the brute-force loop would report as hit
-//!   is never in a box the ray is judged to miss;
+//! - every sphere it reaches is tested by the same double-precision code as in the
+//!   brute-force loop, so a hit has the same bits;
+//! - a subtree is skipped only if the ray's entry into its box is beyond the best hit
+//!   so far by more than the rounding bound below (a hit at an equal distance could
+//!   still win on its lower object index), or, for shadow rays, beyond the light;
+//! - boxes are tested with a margin, below, that covers the rounding of the sphere test
+//!   and of the single-precision box test, so a sphere that the brute-force loop would
+//!   report as hit is never in a box the ray is judged to miss;
 //! - the sphere a ray leaves is not tested here: its caller tests it (its far-wall root
 //!   need not lie near the sphere when the origin is not exactly on it).
 //!
@@ -23,85 +24,170 @@
 //! |centre| + r) of the sphere's box (ε = 2⁻⁵³, o the ray origin): the cancellation-free
 //! quadratic of [`crate::geometry`] moves a root only by rounding its inputs, and a
 //! grazing root, where the square root magnifies that error, moves along the ray to a
-//! point that still lies on the (perturbed) sphere. The box test itself rounds within
-//! the same order. Boxes are therefore widened by δ = 2⁻³⁶·(|o|₁ + S), with S the
-//! largest |centre|₁ + r of the scene, thousands of times that bound, plus a floor for
-//! values near the underflow range. Rays too far out for this argument (|o|₁ > 10¹⁰⁰,
-//! non-unit directions) and scenes with S > 10¹⁰⁰ are not traced through the hierarchy
-//! at all: callers fall back to the brute-force loop, which gives the same answers.
+//! point that still lies on the (perturbed) sphere. Call that bound β; 2⁻³⁷·(|o|₁ + S)
+//! is thousands of times β, with S the largest |centre|₁ + r of the scene.
+//!
+//! The box test runs in single precision (u = 2⁻²⁴) with boxes widened by
+//! δ = 2⁻²²·(|o|₁ + S) + 2⁻¹²⁰, and is conservative for these reasons:
+//!
+//! 1. Box sides are rounded outward (low sides down, high sides up) from the double
+//!    values c ± r to `f32`, so the stored box contains the double one; a node's box
+//!    contains its children's.
+//! 2. The widening is applied to the ray, not the boxes: per axis the origin is
+//!    shifted in double precision by δ towards the far side of the slab for the near
+//!    side's distance (o + δ for a positive direction) and by δ the other way for the
+//!    far side's, then rounded to nearest `f32`. Those roundings (≤ 2⁻²⁴·(|oₐ| + δ)
+//!    plus 2⁻¹⁵⁰ for a subnormal) and the double ones (≤ 2⁻⁵³ of the values, also for
+//!    c ± r) take away at most δ/4 + 2⁻²³·δ, so each exact slab distance of the
+//!    rounded inputs, (side − o′)·(1/dₐ), is that of a box widened by at least
+//!    0.74·δ ≥ β + δ/2.
+//!    The inverse direction is 1/dₐ in double, rounded to nearest `f32` (±∞ if it
+//!    overflows).
+//! 3. Let p = o + t_p·d be the exact point of a hit the brute-force loop reports: it
+//!    lies within β of its sphere's box, so every exact near-side distance of the
+//!    rounded inputs is ≤ t_p − δ/(2|dₐ|), every far-side one ≥ t_p + δ/(2|dₐ|). The
+//!    computed distance fl(fl(side − o′)·inv) carries three `f32` roundings and one
+//!    double one: a relative error γ ≤ 3u + 2⁻⁵³ + O(u²), plus at most 2⁻¹⁵⁰ absolute
+//!    where the product underflows (a difference that underflows is exact). Since
+//!    δ/(2|dₐ|) ≥ 2⁻¹²¹/1.5 dwarfs 2⁻¹⁵⁰, a computed near distance is ≤ t_p(1 + γ) when
+//!    positive, and ≤ 0 when its exact value is negative (rounding keeps signs); a far
+//!    one is ≥ t_p(1 − γ) ≥ 0.
+//! 4. The entry t₀ = max(0, near distances) is thus ≤ t_p(1 + γ), and the exit
+//!    t₁ = min(T, far distances) ≥ t_p(1 − γ), with T the distance limit (the best hit
+//!    or the light, ≥ t_p) rounded *up* to `f32`. A box is entered when
+//!    t₀ ≤ fl(t₁·K) with K = 1 + 2⁻²⁰ ≥ (1 + γ)/((1 − γ)(1 − u)): so always for such a
+//!    sphere's boxes. A subtree or leaf waiting on the stack is dropped only when its
+//!    entry exceeds fl(T·K), which t₀ ≤ t_p(1 + γ) never does.
+//! 5. Overflow: with |o|₁, S ≤ 10³⁰ every hit distance is below 10³¹, far inside the
+//!    `f32` range, so a distance that rounds to ±∞ (a tiny direction component, whose
+//!    inverse overflows) is beyond every hit with the right sign, and rejects only
+//!    boxes that no hit lies in. A NaN distance (0·∞: the origin exactly on a side and
+//!    a tiny direction component) is ignored, which can only widen the box. An empty
+//!    child slot (box +∞ to −∞) gives +∞ entries and −∞ exits, never NaN, and is never
+//!    entered.
+//!
+//! Rays too far out for this argument (|o|₁ > 10³⁰, non-unit directions) and scenes
+//! with S > 10³⁰ or more than 2²⁸ spheres are not traced through the hierarchy at all:
+//! callers fall back to the brute-force loop, which gives the same answers.
 
-use std::cmp::Ordering;
+use std::mem::MaybeUninit;
 
 use crate::geometry::SphereGeom;
-use crate::vec3::{Vec3, F4, LANES, M4};
+use crate::vec3::Vec3;
 
-/// Most spheres in a leaf.
+/// Children per node.
+const WIDTH: usize = 8;
+/// Most spheres in a leaf (at most 8: the count is kept in three bits).
 const LEAF_SIZE: usize = 4;
 /// Split-plane candidates per axis in the surface area heuristic.
 const BINS: usize = 16;
 /// Below this binary depth the heuristic chooses splits; deeper, splits are at the
 /// median, which halves the sphere count and so bounds the depth for any input.
-const SAH_MAX_DEPTH: usize = 40;
+const SAH_MAX_DEPTH: u32 = 40;
+/// Subtrees with at least this many spheres are built in parallel with their siblings.
+const PARALLEL_MIN: usize = 4096;
 /// Entries of the traversal stack. A deeper tree than it can hold makes the traversal
 /// report an overflow, and its caller then uses the brute-force loop.
-const STACK_SIZE: usize = 64;
+const STACK_SIZE: usize = 128;
 
 /// Largest scene scale S and ray origin |o|₁ for which the margin argument holds.
-const MAX_SCALE: f64 = 1e100;
-/// The margin δ per unit of |o|₁ + S.
-const MARGIN: f64 = 1.0 / (1u64 << 36) as f64;
+const MAX_SCALE: f64 = 1e30;
+/// The margin δ per unit of |o|₁ + S: it also covers rounding the origin to `f32`.
+const MARGIN: f64 = 1.0 / (1u64 << 22) as f64;
 /// The margin's floor, far above the rounding of values near the underflow range.
-const MARGIN_FLOOR: f64 = 1e-150;
+const MARGIN_FLOOR: f64 = 1.0 / (1u128 << 120) as f64;
+/// The slack factor K of the entry test t₀ ≤ t₁·K.
+const SLACK: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
+/// Most spheres: a leaf's first sphere is kept in 28 bits.
+const MAX_SPHERES: usize = 1 << 28;
 
-/// Marks a child reference as a leaf (index into the leaves) rather than a node.
+/// Marks a child reference as a leaf: bits 28–30 hold its sphere count − 1, bits 0–27
+/// the position of its first sphere in [`Bvh::spheres`].
 const LEAF_BIT: u32 = 1 << 31;
+const FIRST_MASK: u32 = (1 << 28) - 1;
 /// An unused child slot; its box is empty, so it is never entered.
 const EMPTY: u32 = u32::MAX;
 
-/// Four child boxes, per axis their low and high sides across the four children, and
-/// the children.
+/// Eight child boxes in single precision, per axis their low side (`bounds[2·axis]`)
+/// and high side (`bounds[2·axis + 1]`) across the eight children, and the children.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(32))]
 struct Node {
-    lo: [F4; 3],
-    hi: [F4; 3],
-    children: [u32; LANES],
+    bounds: [[f32; WIDTH]; 6],
+    children: [u32; WIDTH],
 }
 
-/// A leaf: `count` spheres from `first` in [`Bvh::spheres`].
-#[derive(Clone, Copy, Debug)]
-struct Leaf {
-    first: u32,
-    count: u32,
+impl Node {
+    const EMPTY: Node = Node {
+        bounds: [
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+        ],
+        children: [EMPTY; WIDTH],
+    };
+
+    fn set(&mut self, k: usize, b: &Box4, child: u32) {
+        for axis in 0..3 {
+            self.bounds[2 * axis][k] = b.lo[axis];
+            self.bounds[2 * axis + 1][k] = b.hi[axis];
+        }
+        self.children[k] = child;
+    }
 }
 
-/// The hierarchy: nodes (the root first), leaves, and the spheres in leaf order.
+/// The hierarchy: nodes (the root first) and the spheres in leaf order.
 #[derive(Clone, Debug)]
 pub(crate) struct Bvh {
     nodes: Vec<Node>,
-    leaves: Vec<Leaf>,
     /// (object index, geometry), each leaf's spheres contiguous.
     spheres: Vec<(u32, SphereGeom)>,
     /// S: the largest |centre|₁ + r over the spheres.
     scale: f64,
-    /// Whether the processor has AVX2: the node tests then run on all four children in
-    /// one instruction each (with the same IEEE results).
+    /// Whether the processor has AVX2: the node tests then run on all eight children
+    /// in one instruction each (with the same IEEE results).
     avx2: bool,
 }
 
 /// The traversal stack, allocated once by the caller (per pixel) and reused for every
-/// ray: node references and the entry distance at which each was pushed.
+/// ray: child references and the entry distance at which each was pushed. It is not
+/// initialised (a traversal reads only the entries it wrote), so making one costs
+/// nothing.
 #[derive(Clone, Debug)]
 pub(crate) struct Stack {
-    node: [u32; STACK_SIZE],
-    entry: [f64; STACK_SIZE],
+    node: [MaybeUninit<u32>; STACK_SIZE],
+    entry: [MaybeUninit<f32>; STACK_SIZE],
 }
 
 impl Stack {
     pub fn new() -> Self {
         Stack {
-            node: [0; STACK_SIZE],
-            entry: [0.0; STACK_SIZE],
+            node: [MaybeUninit::uninit(); STACK_SIZE],
+            entry: [MaybeUninit::uninit(); STACK_SIZE],
         }
+    }
+
+    #[inline(always)]
+    fn set(&mut self, top: usize, child: u32, entry: f32) {
+        self.node[top] = MaybeUninit::new(child);
+        self.entry[top] = MaybeUninit::new(entry);
+    }
+
+    /// The child reference at `top`, which the traversal has written.
+    #[inline(always)]
+    fn node(&self, top: usize) -> u32 {
+        // SAFETY: traversals read only below their stack top, all written by `set`.
+        unsafe { self.node[top].assume_init() }
+    }
+
+    /// The entry distance at `top`, which the traversal has written.
+    #[inline(always)]
+    fn entry(&self, top: usize) -> f32 {
+        // SAFETY: as in `node`.
+        unsafe { self.entry[top].assume_init() }
     }
 }
 
@@ -110,14 +196,42 @@ impl Stack {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Fallback;
 
-/// A ray prepared for box tests: reciprocal direction, which side of each slab it meets
-/// first, and its origin moved by the margin so that every box looks δ larger.
+/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written without
+/// branches: the rounding direction of a ray's coordinates is random, and a
+/// mispredicted branch per coordinate costs more than the select.
+#[inline(always)]
+fn up32(x: f64) -> f32 {
+    let f = x as f32;
+    let bits = f.to_bits();
+    // One step towards +∞: away from zero for a positive value, towards it for a
+    // negative one, and from either zero to the least positive subnormal.
+    let stepped = if bits & 0x7fff_ffff == 0 {
+        1
+    } else if bits >> 31 == 0 {
+        bits + 1
+    } else {
+        bits - 1
+    };
+    f32::from_bits(if f64::from(f) < x { stepped } else { bits })
+}
+
+/// `x` rounded down to `f32` (to −∞ beyond its range; `x` not NaN).
+#[inline(always)]
+fn down32(x: f64) -> f32 {
+    -up32(-x)
+}
+
+/// A ray prepared for box tests in single precision (see the module documentation):
+/// the origin shifted by ±δ and rounded outward, once for the slab side met first and
+/// once for the other, and the reciprocal direction.
 struct BoxRay {
-    inv: [f64; 3],
-    /// Whether the ray meets the `hi` side of a slab first (negative direction).
-    negative: [bool; 3],
-    origin_near: [f64; 3],
-    origin_far: [f64; 3],
+    origin_near: [f32; 3],
+    origin_far: [f32; 3],
+    inv: [f32; 3],
+    /// Per axis, the row of [`Node::bounds`] met first (the high side for a negative
+    /// direction) and the other.
+    near: [usize; 3],
+    far: [usize; 3],
 }
 
 impl BoxRay {
@@ -132,34 +246,99 @@ impl BoxRay {
         }
         let delta = (reach + scale) * MARGIN + MARGIN_FLOOR;
         let negative = d.map(f64::is_sign_negative);
-        let step = |a: usize| if negative[a] { -delta } else { delta };
+        let plus = o.map(|o| (o + delta) as f32);
+        let minus = o.map(|o| (o - delta) as f32);
         Some(BoxRay {
-            inv: d.map(|d| 1.0 / d),
-            negative,
-            origin_near: std::array::from_fn(|a| o[a] + step(a)),
-            origin_far: std::array::from_fn(|a| o[a] - step(a)),
+            origin_near: std::array::from_fn(|a| if negative[a] { minus[a] } else { plus[a] }),
+            origin_far: std::array::from_fn(|a| if negative[a] { plus[a] } else { minus[a] }),
+            inv: d.map(|d| (1.0 / d) as f32),
+            near: std::array::from_fn(|a| 2 * a + usize::from(negative[a])),
+            far: std::array::from_fn(|a| 2 * a + 1 - usize::from(negative[a])),
         })
     }
 
-    /// Which of the node's (widened) child boxes the ray meets within [0, `t_max`], and
-    /// where it enters each. A NaN slab distance (a zero direction component exactly on
-    /// a box side) is ignored, which can only widen the box.
+    /// The distance limit T (rounded up) and fl(T·K) for the best distance `t`.
     #[inline(always)]
-    fn enter(&self, node: &Node, t_max: f64) -> (M4, F4) {
-        let mut t0 = F4::splat(0.0);
-        let mut t1 = F4::splat(t_max);
-        for axis in 0..3 {
-            let (near_side, far_side) = if self.negative[axis] {
-                (node.hi[axis], node.lo[axis])
-            } else {
-                (node.lo[axis], node.hi[axis])
-            };
-            let near = (near_side - self.origin_near[axis]) * self.inv[axis];
-            let far = (far_side - self.origin_far[axis]) * self.inv[axis];
-            t0 = near.zip(t0, |a, b| if a > b { a } else { b });
-            t1 = far.zip(t1, |a, b| if a < b { a } else { b });
+    fn limit(t: f64) -> (f32, f32) {
+        let t = up32(t);
+        (t, t * SLACK)
+    }
+
+    /// Which of the node's child boxes the ray enters within [0, `t_max`] (a bit per
+    /// child), which children are leaves (a bit per child; empty slots too, but their
+    /// boxes are never entered), and where the ray enters each. A NaN slab distance
+    /// is ignored.
+    #[inline(always)]
+    fn enter<const AVX2: bool>(&self, node: &Node, t_max: f32) -> (u32, u32, [f32; WIDTH]) {
+        #[cfg(target_arch = "x86_64")]
+        if AVX2 {
+            // SAFETY: AVX2 = true only in functions compiled for AVX2, which are called
+            // only where the processor has it.
+            return unsafe { self.enter_avx2(node, t_max) };
         }
-        (t0.test(t1, |a, b| a <= b), t0)
+        let mut t0 = [0.0f32; WIDTH];
+        let mut t1 = [t_max; WIDTH];
+        for axis in 0..3 {
+            let near_side = &node.bounds[self.near[axis]];
+            let far_side = &node.bounds[self.far[axis]];
+            for k in 0..WIDTH {
+                let near = (near_side[k] - self.origin_near[axis]) * self.inv[axis];
+                let far = (far_side[k] - self.origin_far[axis]) * self.inv[axis];
+                t0[k] = if near > t0[k] { near } else { t0[k] };
+                t1[k] = if far < t1[k] { far } else { t1[k] };
+            }
+        }
+        let mut mask = 0;
+        let mut leaves = 0;
+        for k in 0..WIDTH {
+            if t0[k] <= t1[k] * SLACK {
+                mask |= 1 << k;
+            }
+            leaves |= (node.children[k] >> 31) << k;
+        }
+        (mask, leaves, t0)
+    }
+
+    /// [`BoxRay::enter`] in AVX instructions: `max_ps(a, b)` is `a > b ? a : b` and
+    /// `min_ps(a, b)` is `a < b ? a : b`, exactly the portable expressions.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn enter_avx2(&self, node: &Node, t_max: f32) -> (u32, u32, [f32; WIDTH]) {
+        use std::arch::x86_64::*;
+        let mut t0 = _mm256_setzero_ps();
+        let mut t1 = _mm256_set1_ps(t_max);
+        for axis in 0..3 {
+            // SAFETY: each row is eight f32s, 32-byte aligned within the node.
+            let (near_side, far_side) = unsafe {
+                (
+                    _mm256_load_ps(node.bounds[self.near[axis]].as_ptr()),
+                    _mm256_load_ps(node.bounds[self.far[axis]].as_ptr()),
+                )
+            };
+            let inv = _mm256_set1_ps(self.inv[axis]);
+            let near = _mm256_mul_ps(
+                _mm256_sub_ps(near_side, _mm256_set1_ps(self.origin_near[axis])),
+                inv,
+            );
+            let far = _mm256_mul_ps(
+                _mm256_sub_ps(far_side, _mm256_set1_ps(self.origin_far[axis])),
+                inv,
+            );
+            t0 = _mm256_max_ps(near, t0);
+            t1 = _mm256_min_ps(far, t1);
+        }
+        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, _mm256_set1_ps(SLACK)));
+        let mut entry = [0.0f32; WIDTH];
+        // SAFETY: `entry` holds eight f32s.
+        unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), t0) };
+        // SAFETY: the children are eight u32s, 32-byte aligned within the node.
+        let children = unsafe { _mm256_load_si256(node.children.as_ptr().cast()) };
+        (
+            _mm256_movemask_ps(hit) as u32,
+            _mm256_movemask_ps(_mm256_castsi256_ps(children)) as u32,
+            entry,
+        )
     }
 }
 
@@ -176,98 +355,47 @@ pub(crate) fn consider(best: &mut (f64, u32), t: f64, index: u32) {
 
 impl Bvh {
     /// Builds the hierarchy over `spheres` (object index, geometry), or `None` if the
-    /// scene is too large in scale for the margin argument (then only brute force).
+    /// scene is too large in scale or count for the margin argument (then only brute
+    /// force). Subtrees are built in parallel on the current rayon pool.
     pub fn build(spheres: &[(u32, SphereGeom)]) -> Option<Bvh> {
         let scale = spheres
             .iter()
             .map(|(_, s)| s.center.x.abs() + s.center.y.abs() + s.center.z.abs() + s.radius)
             .fold(0.0, f64::max);
-        if spheres.is_empty() || scale.is_nan() || scale > MAX_SCALE {
+        if spheres.is_empty() || spheres.len() > MAX_SPHERES || scale.is_nan() || scale > MAX_SCALE
+        {
             return None;
         }
         let mut prims: Vec<Prim> = spheres
             .iter()
-            .map(|&(index, s)| {
-                let c = [s.center.x, s.center.y, s.center.z];
-                Prim {
-                    bounds: Aabb {
-                        lo: c.map(|c| c - s.radius),
-                        hi: c.map(|c| c + s.radius),
-                    },
-                    centroid: c,
-                    sphere: (index, s),
-                }
-            })
+            .enumerate()
+            .map(|(i, (_, s))| Box4::prim(i as u32, s))
             .collect();
-        let mut binary = Vec::new();
-        let root = build_range(&mut prims, 0, 0, &mut binary);
-        let mut bvh = Bvh {
-            nodes: Vec::new(),
-            leaves: Vec::new(),
-            spheres: prims.iter().map(|p| p.sphere).collect(),
+        let (bounds, centres) = prims.iter().fold((Box4::EMPTY, Box4::EMPTY), |(b, c), p| {
+            (b.union(&p.bounds()), c.grow(p.centre2()))
+        });
+        let whole = Part {
+            start: 0,
+            len: prims.len(),
+            bounds,
+            centres,
+            depth: 0,
+        };
+        let parallel = rayon::current_num_threads() > 1;
+        let mut nodes = Vec::with_capacity(spheres.len() / 4 + 1);
+        build_node(&mut prims, 0, whole, parallel, &mut nodes);
+        Some(Bvh {
+            nodes,
+            spheres: prims.iter().map(|p| spheres[p.index() as usize]).collect(),
             scale,
             avx2: has_avx2(),
-        };
-        bvh.collapse(&binary, root);
-        Some(bvh)
+        })
     }
 
-    /// Number of 4-wide nodes (for tests and the documentation).
+    /// Number of nodes (for tests and the documentation).
     #[cfg(test)]
     fn node_count(&self) -> usize {
         self.nodes.len()
-    }
-
-    /// Makes a 4-wide node from binary node `root` by pulling up the grandchildren
-    /// with the largest boxes, and returns its index.
-    fn collapse(&mut self, binary: &[BinaryNode], root: usize) -> u32 {
-        let mut slots: Vec<usize> = match binary[root].kind {
-            Kind::Leaf { .. } => vec![root],
-            Kind::Inner { left, right } => vec![left, right],
-        };
-        while slots.len() < LANES {
-            let widest = slots
-                .iter()
-                .enumerate()
-                .filter(|(_, &n)| matches!(binary[n].kind, Kind::Inner { .. }))
-                .max_by(|a, b| {
-                    binary[*a.1]
-                        .bounds
-                        .area()
-                        .total_cmp(&binary[*b.1].bounds.area())
-                });
-            let Some((slot, &n)) = widest else { break };
-            let Kind::Inner { left, right } = binary[n].kind else {
-                unreachable!("filtered to inner nodes")
-            };
-            slots[slot] = left;
-            slots.push(right);
-        }
-        let index = self.nodes.len();
-        self.nodes.push(Node {
-            lo: [F4::splat(f64::INFINITY); 3],
-            hi: [F4::splat(f64::NEG_INFINITY); 3],
-            children: [EMPTY; LANES],
-        });
-        for (k, &n) in slots.iter().enumerate() {
-            let b = binary[n].bounds;
-            for axis in 0..3 {
-                self.nodes[index].lo[axis].0[k] = b.lo[axis];
-                self.nodes[index].hi[axis].0[k] = b.hi[axis];
-            }
-            let child = match binary[n].kind {
-                Kind::Leaf { first, count } => {
-                    self.leaves.push(Leaf {
-                        first: u32::try_from(first).expect("sphere count fits in u32"),
-                        count: count as u32,
-                    });
-                    LEAF_BIT | u32::try_from(self.leaves.len() - 1).expect("leaf count fits")
-                }
-                Kind::Inner { .. } => self.collapse(binary, n),
-            };
-            self.nodes[index].children[k] = child;
-        }
-        index as u32
     }
 
     /// Updates `best` with the nearest hit among the spheres, leaving out object `from`
@@ -287,7 +415,7 @@ impl Bvh {
             // SAFETY: `avx2` is set only where the processor supports AVX2.
             return unsafe { self.nearest_avx2(origin, dir, from, best, stack) };
         }
-        self.nearest_in(origin, dir, from, best, stack)
+        self.nearest_in::<false>(origin, dir, from, best, stack)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -300,11 +428,11 @@ impl Bvh {
         best: &mut (f64, u32),
         stack: &mut Stack,
     ) -> Result<(), Fallback> {
-        self.nearest_in(origin, dir, from, best, stack)
+        self.nearest_in::<true>(origin, dir, from, best, stack)
     }
 
     #[inline(always)]
-    fn nearest_in(
+    fn nearest_in<const AVX2: bool>(
         &self,
         origin: Vec3,
         dir: Vec3,
@@ -313,56 +441,96 @@ impl Bvh {
         stack: &mut Stack,
     ) -> Result<(), Fallback> {
         let ray = BoxRay::new(origin, dir, self.scale).ok_or(Fallback)?;
-        let mut top = 1;
-        stack.node[0] = 0;
-        stack.entry[0] = 0.0;
-        while top > 0 {
-            top -= 1;
-            if stack.entry[top] > best.0 {
-                continue;
-            }
-            let node = &self.nodes[stack.node[top] as usize];
-            let (hit, entry) = ray.enter(node, best.0);
-            // Push the children far to near, so the nearest is visited first.
-            let mut order: [(f64, u32); LANES] = [(0.0, 0); LANES];
+        let (mut t_max, mut t_skip) = BoxRay::limit(best.0);
+        let mut top = 0;
+        let mut current = 0u32;
+        loop {
+            let node = &self.nodes[current as usize];
+            let (mut hit, _, entry) = ray.enter::<AVX2>(node, t_max);
+            // The children entered, sorted far to near; then, from the nearest, leaves
+            // are tested until an inner child comes, which is visited next while the
+            // others wait on the stack. A leaf or node entered beyond the best hit is
+            // dropped.
+            let mut order: [(f32, u32); WIDTH] = [(0.0, 0); WIDTH];
             let mut n = 0;
-            for k in 0..LANES {
-                if hit.get(k) {
-                    let child = node.children[k];
-                    if child & LEAF_BIT != 0 && child != EMPTY {
-                        self.leaf_nearest(child, origin, dir, from, best);
-                        continue;
-                    }
-                    let mut j = n;
-                    while j > 0 && order[j - 1].0 < entry.0[k] {
-                        order[j] = order[j - 1];
-                        j -= 1;
-                    }
-                    order[j] = (entry.0[k], child);
-                    n += 1;
+            while hit != 0 {
+                let k = hit.trailing_zeros() as usize;
+                hit &= hit - 1;
+                let t = entry[k];
+                let mut j = n;
+                while j > 0 && order[j - 1].0 < t {
+                    order[j] = order[j - 1];
+                    j -= 1;
+                }
+                order[j] = (t, node.children[k]);
+                n += 1;
+            }
+            let mut next = None;
+            while n > 0 && order[n - 1].0 <= t_skip {
+                n -= 1;
+                let child = order[n].1;
+                if child & LEAF_BIT == 0 {
+                    next = Some(child);
+                    break;
+                }
+                if self.leaf_nearest(child, origin, dir, from, best) {
+                    (t_max, t_skip) = BoxRay::limit(best.0);
                 }
             }
-            if top + n > STACK_SIZE {
-                return Err(Fallback);
+            if let Some(child) = next {
+                let mut keep = 0;
+                while keep < n && order[keep].0 > t_skip {
+                    keep += 1;
+                }
+                if top + n - keep > STACK_SIZE {
+                    return Err(Fallback);
+                }
+                for &(t, child) in &order[keep..n] {
+                    stack.set(top, child, t);
+                    top += 1;
+                }
+                current = child;
+                continue;
             }
-            for &(t, child) in &order[..n] {
-                stack.node[top] = child;
-                stack.entry[top] = t;
-                top += 1;
+            loop {
+                if top == 0 {
+                    return Ok(());
+                }
+                top -= 1;
+                if stack.entry(top) > t_skip {
+                    continue;
+                }
+                let child = stack.node(top);
+                if child & LEAF_BIT == 0 {
+                    current = child;
+                    break;
+                }
+                if self.leaf_nearest(child, origin, dir, from, best) {
+                    (t_max, t_skip) = BoxRay::limit(best.0);
+                }
             }
         }
-        Ok(())
     }
 
     /// The spheres of the leaf `child` refers to.
     #[inline(always)]
     fn leaf(&self, child: u32) -> &[(u32, SphereGeom)] {
-        let leaf = self.leaves[(child & !LEAF_BIT) as usize];
-        &self.spheres[leaf.first as usize..(leaf.first + leaf.count) as usize]
+        let first = (child & FIRST_MASK) as usize;
+        let count = ((child >> 28) & 7) as usize + 1;
+        &self.spheres[first..first + count]
     }
 
+    /// Tests the leaf's spheres; whether `best` changed.
     #[inline(always)]
-    fn leaf_nearest(&self, child: u32, origin: Vec3, dir: Vec3, from: u32, best: &mut (f64, u32)) {
+    fn leaf_nearest(
+        &self,
+        child: u32,
+        origin: Vec3,
+        dir: Vec3,
+        from: u32,
+        best: &mut (f64, u32),
+    ) -> bool {
+        let before = *best;
         for &(index, ref sphere) in self.leaf(child) {
             if index != from {
                 if let Some(t) = sphere.hit(origin, dir, false) {
@@ -370,6 +538,7 @@ impl Bvh {
                 }
             }
         }
+        *best != before
     }
 
     /// The object index of some sphere other than `from` hit at a distance in
@@ -387,7 +556,7 @@ impl Bvh {
             // SAFETY: `avx2` is set only where the processor supports AVX2.
             return unsafe { self.occluder_avx2(origin, dir, from, limit, stack) };
         }
-        self.occluder_in(origin, dir, from, limit, stack)
+        self.occluder_in::<false>(origin, dir, from, limit, stack)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -400,11 +569,11 @@ impl Bvh {
         limit: f64,
         stack: &mut Stack,
     ) -> Result<Option<u32>, Fallback> {
-        self.occluder_in(origin, dir, from, limit, stack)
+        self.occluder_in::<true>(origin, dir, from, limit, stack)
     }
 
     #[inline(always)]
-    fn occluder_in(
+    fn occluder_in<const AVX2: bool>(
         &self,
         origin: Vec3,
         dir: Vec3,
@@ -413,206 +582,348 @@ impl Bvh {
         stack: &mut Stack,
     ) -> Result<Option<u32>, Fallback> {
         let ray = BoxRay::new(origin, dir, self.scale).ok_or(Fallback)?;
+        let (t_max, _) = BoxRay::limit(limit);
         let mut top = 1;
-        stack.node[0] = 0;
+        stack.set(0, 0, 0.0);
         while top > 0 {
             top -= 1;
-            let node = &self.nodes[stack.node[top] as usize];
-            let (hit, _) = ray.enter(node, limit);
-            for k in 0..LANES {
-                if !hit.get(k) {
-                    continue;
-                }
-                let child = node.children[k];
-                if child & LEAF_BIT != 0 && child != EMPTY {
-                    for &(index, ref sphere) in self.leaf(child) {
-                        if index != from
-                            && sphere.hit(origin, dir, false).is_some_and(|t| t < limit)
-                        {
-                            return Ok(Some(index));
-                        }
+            let node = &self.nodes[stack.node(top) as usize];
+            let (hit, leaf, _) = ray.enter::<AVX2>(node, t_max);
+            let mut leaves = hit & leaf;
+            while leaves != 0 {
+                let k = leaves.trailing_zeros() as usize;
+                leaves &= leaves - 1;
+                for &(index, ref sphere) in self.leaf(node.children[k]) {
+                    if index != from && sphere.hit(origin, dir, false).is_some_and(|t| t < limit) {
+                        return Ok(Some(index));
                     }
-                } else {
-                    if top == STACK_SIZE {
-                        return Err(Fallback);
-                    }
-                    stack.node[top] = child;
-                    top += 1;
                 }
+            }
+            let mut inner = hit & !leaf;
+            if top + inner.count_ones() as usize > STACK_SIZE {
+                return Err(Fallback);
+            }
+            while inner != 0 {
+                let k = inner.trailing_zeros() as usize;
+                inner &= inner - 1;
+                stack.set(top, node.children[k], 0.0);
+                top += 1;
             }
         }
         Ok(None)
     }
 }
 
-/// An axis-aligned box.
+/// An axis-aligned box in single precision, in four lanes so that a union is two SIMD
+/// operations: lane 3 is unused (a [`Prim`] keeps its sphere's position there).
 #[derive(Clone, Copy, Debug)]
-struct Aabb {
-    lo: [f64; 3],
-    hi: [f64; 3],
+#[repr(C, align(16))]
+struct Box4 {
+    lo: [f32; 4],
+    hi: [f32; 4],
 }
 
-impl Aabb {
-    const EMPTY: Aabb = Aabb {
-        lo: [f64::INFINITY; 3],
-        hi: [f64::NEG_INFINITY; 3],
+#[inline(always)]
+fn min4(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
+    std::array::from_fn(|i| if a[i] < b[i] { a[i] } else { b[i] })
+}
+
+#[inline(always)]
+fn max4(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
+    std::array::from_fn(|i| if a[i] > b[i] { a[i] } else { b[i] })
+}
+
+impl Box4 {
+    const EMPTY: Box4 = Box4 {
+        lo: [f32::INFINITY; 4],
+        hi: [f32::NEG_INFINITY; 4],
     };
 
-    fn union(self, o: Aabb) -> Aabb {
-        Aabb {
-            lo: std::array::from_fn(|a| self.lo[a].min(o.lo[a])),
-            hi: std::array::from_fn(|a| self.hi[a].max(o.hi[a])),
+    #[inline(always)]
+    fn union(&self, o: &Box4) -> Box4 {
+        Box4 {
+            lo: min4(self.lo, o.lo),
+            hi: max4(self.hi, o.hi),
         }
     }
 
-    fn grow(self, p: [f64; 3]) -> Aabb {
-        self.union(Aabb { lo: p, hi: p })
+    #[inline(always)]
+    fn grow(&self, p: [f32; 4]) -> Box4 {
+        Box4 {
+            lo: min4(self.lo, p),
+            hi: max4(self.hi, p),
+        }
     }
 
     /// Half the surface area (the heuristic only compares areas); 0 for an empty box.
-    fn area(&self) -> f64 {
-        let e: [f64; 3] = std::array::from_fn(|a| (self.hi[a] - self.lo[a]).max(0.0));
+    #[inline(always)]
+    fn area(&self) -> f32 {
+        let e: [f32; 3] = std::array::from_fn(|a| (self.hi[a] - self.lo[a]).max(0.0));
         e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
     }
 }
 
-/// A sphere during the build: its box, its centre and what it is.
-#[derive(Clone, Copy, Debug)]
-struct Prim {
-    bounds: Aabb,
-    centroid: [f64; 3],
-    sphere: (u32, SphereGeom),
+/// A sphere during the build: its box, rounded outward to `f32`, with the sphere's
+/// position in the input in lane 3 of `lo` (as bits).
+type Prim = Box4;
+
+impl Box4 {
+    fn prim(index: u32, s: &SphereGeom) -> Prim {
+        let c = [s.center.x, s.center.y, s.center.z];
+        Box4 {
+            lo: [
+                down32(c[0] - s.radius),
+                down32(c[1] - s.radius),
+                down32(c[2] - s.radius),
+                f32::from_bits(index),
+            ],
+            hi: [
+                up32(c[0] + s.radius),
+                up32(c[1] + s.radius),
+                up32(c[2] + s.radius),
+                0.0,
+            ],
+        }
+    }
+
+    /// The prim's sphere's position in the input.
+    fn index(&self) -> u32 {
+        self.lo[3].to_bits()
+    }
+
+    /// The prim's box without the index.
+    #[inline(always)]
+    fn bounds(&self) -> Box4 {
+        Box4 {
+            lo: [self.lo[0], self.lo[1], self.lo[2], 0.0],
+            hi: self.hi,
+        }
+    }
+
+    /// Twice the prim's centre (only compared), lane 3 zero.
+    #[inline(always)]
+    fn centre2(&self) -> [f32; 4] {
+        [
+            self.lo[0] + self.hi[0],
+            self.lo[1] + self.hi[1],
+            self.lo[2] + self.hi[2],
+            0.0,
+        ]
+    }
 }
 
+/// A range of prims that becomes one child of a node: its box, the box of its doubled
+/// centres, and its binary depth.
 #[derive(Clone, Copy, Debug)]
-enum Kind {
-    Leaf { first: usize, count: usize },
-    Inner { left: usize, right: usize },
+struct Part {
+    start: usize,
+    len: usize,
+    bounds: Box4,
+    centres: Box4,
+    depth: u32,
 }
 
-#[derive(Clone, Copy, Debug)]
-struct BinaryNode {
-    bounds: Aabb,
-    kind: Kind,
-}
-
-/// Builds the binary hierarchy over `prims`, reordering them so that each leaf's are
-/// contiguous, and returns the root's index in `out`. `offset` is the position of
-/// `prims` in the whole array, `depth` that of the node to build.
-fn build_range(
+/// Builds the node over the prims of `whole` and its subtree into `out`, reordering
+/// the prims so that each leaf's are contiguous; `offset` is the position of `prims`
+/// in the whole array. Returns the node's index.
+fn build_node(
     prims: &mut [Prim],
     offset: usize,
-    depth: usize,
-    out: &mut Vec<BinaryNode>,
-) -> usize {
-    let bounds = prims.iter().fold(Aabb::EMPTY, |b, p| b.union(p.bounds));
-    let n = prims.len();
-    let leaf = |out: &mut Vec<BinaryNode>| {
-        out.push(BinaryNode {
-            bounds,
-            kind: Kind::Leaf {
-                first: offset,
-                count: n,
-            },
-        });
-        out.len() - 1
-    };
-    // One leaf is tested as fast as one node: small sets are always leaves.
-    if n <= LEAF_SIZE {
-        return leaf(out);
+    whole: Part,
+    parallel: bool,
+    out: &mut Vec<Node>,
+) -> u32 {
+    // Split the child with the largest box until there are eight.
+    let mut parts = [whole; WIDTH];
+    let mut count = 1;
+    while count < WIDTH {
+        let widest = (0..count)
+            .filter(|&i| parts[i].len > LEAF_SIZE)
+            .max_by(|&a, &b| parts[a].bounds.area().total_cmp(&parts[b].bounds.area()));
+        let Some(i) = widest else { break };
+        let p = parts[i];
+        let (left, right) = split(&mut prims[p.start..p.start + p.len], &p);
+        parts.copy_within(i + 1..count, i + 2);
+        parts[i] = left;
+        parts[i + 1] = right;
+        count += 1;
     }
-    let split = match best_split(prims) {
-        Some((axis, plane)) if depth < SAH_MAX_DEPTH => partition(prims, axis, plane),
-        _ => median_split(prims),
-    };
     let index = out.len();
-    out.push(BinaryNode {
-        bounds,
-        kind: Kind::Leaf {
-            first: offset,
-            count: n,
-        },
-    });
-    let (left, right) = prims.split_at_mut(split);
-    let l = build_range(left, offset, depth + 1, out);
-    let r = build_range(right, offset + split, depth + 1, out);
-    out[index].kind = Kind::Inner { left: l, right: r };
-    index
+    out.push(Node::EMPTY);
+    let parts = &parts[..count];
+    for (k, p) in parts.iter().enumerate() {
+        if p.len <= LEAF_SIZE {
+            let first = u32::try_from(offset + p.start).expect("at most 2²⁸ spheres");
+            out[index].set(k, &p.bounds, LEAF_BIT | ((p.len as u32 - 1) << 28) | first);
+        }
+    }
+    if parallel && prims.len() >= PARALLEL_MIN {
+        // The inner children's subtrees, each into its own array, then appended.
+        use rayon::prelude::*;
+        let mut jobs = Vec::new();
+        let mut rest = prims;
+        for (k, p) in parts.iter().enumerate() {
+            let (mine, tail) = std::mem::take(&mut rest).split_at_mut(p.len);
+            rest = tail;
+            if p.len > LEAF_SIZE {
+                jobs.push((k, mine, *p));
+            }
+        }
+        let built: Vec<(usize, Vec<Node>)> = jobs
+            .into_par_iter()
+            .map(|(k, mine, p)| {
+                let mut sub = Vec::with_capacity(p.len / 4);
+                let whole = Part { start: 0, ..p };
+                build_node(
+                    mine,
+                    offset + p.start,
+                    whole,
+                    p.len >= PARALLEL_MIN,
+                    &mut sub,
+                );
+                (k, sub)
+            })
+            .collect();
+        for (k, sub) in built {
+            let base = u32::try_from(out.len()).expect("node count fits in u32");
+            out.extend(sub.into_iter().map(|mut node| {
+                for c in &mut node.children {
+                    if *c & LEAF_BIT == 0 {
+                        *c += base;
+                    }
+                }
+                node
+            }));
+            out[index].set(k, &parts[k].bounds, base);
+        }
+    } else {
+        for (k, p) in parts.iter().enumerate() {
+            if p.len > LEAF_SIZE {
+                let whole = Part { start: 0, ..*p };
+                let child = build_node(
+                    &mut prims[p.start..p.start + p.len],
+                    offset + p.start,
+                    whole,
+                    false,
+                    out,
+                );
+                out[index].set(k, &p.bounds, child);
+            }
+        }
+    }
+    u32::try_from(index).expect("node count fits in u32")
 }
 
-/// The cheapest binned split (axis, bin boundary) by the surface area heuristic, or
-/// `None` if the centres do not spread along any axis.
-fn best_split(prims: &[Prim]) -> Option<(usize, f64)> {
-    let centers = prims.iter().fold(Aabb::EMPTY, |b, p| b.grow(p.centroid));
-    let mut best: Option<(f64, usize, f64)> = None;
-    for axis in 0..3 {
-        let (lo, hi) = (centers.lo[axis], centers.hi[axis]);
-        if hi.partial_cmp(&lo) != Some(Ordering::Greater) {
-            continue;
+/// Per axis, the bin of doubled centres `c` for bins from `lo` with `scale` per unit.
+#[inline(always)]
+fn bins_of(c: [f32; 4], lo: [f32; 4], scale: [f32; 4], last: i32) -> [usize; 3] {
+    let b: [i32; 4] = std::array::from_fn(|a| ((c[a] - lo[a]) * scale[a]) as i32);
+    std::array::from_fn(|a| (b[a].clamp(0, last)) as usize)
+}
+
+/// Splits the prims of `whole` (`prims`, more than one) in two by the binned surface
+/// area heuristic over their centres, or at the median below [`SAH_MAX_DEPTH`];
+/// returns the two parts.
+fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
+    let cb = whole.centres;
+    let extent: [f32; 4] = std::array::from_fn(|a| cb.hi[a] - cb.lo[a]);
+    let part = |start, len, bounds, centres| Part {
+        start: whole.start + start,
+        len,
+        bounds,
+        centres,
+        depth: whole.depth + 1,
+    };
+    if whole.depth < SAH_MAX_DEPTH {
+        // Fewer bins for few prims, where sweeping the bins would cost more than
+        // binning. `scale` maps a centre to its bin (to bin 0 on an axis without
+        // spread).
+        let bins = (prims.len() / 2).clamp(4, BINS);
+        let last = bins as i32 - 1;
+        let scale: [f32; 4] = std::array::from_fn(|a| {
+            if a < 3 && extent[a] > 0.0 {
+                bins as f32 * 0.999_99 / extent[a]
+            } else {
+                0.0
+            }
+        });
+        let mut boxes = [[Box4::EMPTY; BINS]; 3];
+        let mut counts = [[0u32; BINS]; 3];
+        for p in prims.iter() {
+            let b = bins_of(p.centre2(), cb.lo, scale, last);
+            for a in 0..3 {
+                counts[a][b[a]] += 1;
+                boxes[a][b[a]] = boxes[a][b[a]].union(p);
+            }
         }
-        let width = (hi - lo) / BINS as f64;
-        let bin_of = |c: f64| (((c - lo) / width) as usize).min(BINS - 1);
-        let mut count = [0usize; BINS];
-        let mut boxes = [Aabb::EMPTY; BINS];
-        for p in prims {
-            let b = bin_of(p.centroid[axis]);
-            count[b] += 1;
-            boxes[b] = boxes[b].union(p.bounds);
-        }
-        // Areas and counts left of each boundary, then right of it.
-        let mut left = [(0.0, 0usize); BINS];
-        let (mut acc, mut m) = (Aabb::EMPTY, 0);
-        for b in 0..BINS - 1 {
-            acc = acc.union(boxes[b]);
-            m += count[b];
-            left[b] = (acc.area(), m);
-        }
-        let (mut acc, mut m) = (Aabb::EMPTY, 0);
-        for b in (1..BINS).rev() {
-            acc = acc.union(boxes[b]);
-            m += count[b];
-            let (la, ln) = left[b - 1];
-            if ln == 0 || m == 0 {
+        // (cost, axis, first bin of the right part, left box, right box)
+        let mut best: Option<(f32, usize, usize, Box4, Box4)> = None;
+        for a in 0..3 {
+            if extent[a] <= 0.0 {
                 continue;
             }
-            // Expected sphere tests below the split, times the parent's area.
-            let cost = la * ln as f64 + acc.area() * m as f64;
-            if best.is_none_or(|(c, _, _)| cost < c) {
-                best = Some((cost, axis, lo + width * b as f64));
+            let mut left = [(Box4::EMPTY, 0u32); BINS];
+            let (mut acc, mut m) = (Box4::EMPTY, 0);
+            for b in 0..bins - 1 {
+                acc = acc.union(&boxes[a][b]);
+                m += counts[a][b];
+                left[b] = (acc, m);
+            }
+            let (mut acc, mut m) = (Box4::EMPTY, 0);
+            for b in (1..bins).rev() {
+                acc = acc.union(&boxes[a][b]);
+                m += counts[a][b];
+                let (lb, ln) = left[b - 1];
+                if ln == 0 || m == 0 {
+                    continue;
+                }
+                let cost = lb.area() * ln as f32 + acc.area() * m as f32;
+                if best.as_ref().is_none_or(|x| cost < x.0) {
+                    best = Some((cost, a, b, lb, acc));
+                }
             }
         }
-    }
-    best.map(|(_, axis, plane)| (axis, plane))
-}
-
-/// Moves the prims with centre below `plane` on `axis` first; returns how many.
-/// Falls back to the median if the plane separates nothing (rounding of bin bounds).
-fn partition(prims: &mut [Prim], axis: usize, plane: f64) -> usize {
-    let mut i = 0;
-    for j in 0..prims.len() {
-        if prims[j].centroid[axis] < plane {
-            prims.swap(i, j);
-            i += 1;
+        if let Some((_, a, b, lb, rb)) = best {
+            // Hoare partition, gathering each side's centre bounds on the way.
+            let (lo, per) = (cb.lo[a], scale[a]);
+            let goes_left =
+                |p: &Prim| ((((p.lo[a] + p.hi[a]) - lo) * per) as i32).clamp(0, last) < b as i32;
+            let (mut lc, mut rc) = (Box4::EMPTY, Box4::EMPTY);
+            let (mut i, mut j) = (0, prims.len());
+            loop {
+                while i < j && goes_left(&prims[i]) {
+                    lc = lc.grow(prims[i].centre2());
+                    i += 1;
+                }
+                while i < j && !goes_left(&prims[j - 1]) {
+                    rc = rc.grow(prims[j - 1].centre2());
+                    j -= 1;
+                }
+                if i >= j {
+                    break;
+                }
+                prims.swap(i, j - 1);
+            }
+            let n = prims.len();
+            return (part(0, i, lb.bounds(), lc), part(i, n - i, rb.bounds(), rc));
         }
     }
-    if i == 0 || i == prims.len() {
-        median_split(prims)
-    } else {
-        i
-    }
-}
-
-/// Splits at the median centre along the widest axis of the centres.
-fn median_split(prims: &mut [Prim]) -> usize {
-    let centers = prims.iter().fold(Aabb::EMPTY, |b, p| b.grow(p.centroid));
+    // The median centre along the widest axis (any halving if the centres coincide).
     let axis = (0..3)
-        .max_by(|&a, &b| {
-            (centers.hi[a] - centers.lo[a]).total_cmp(&(centers.hi[b] - centers.lo[b]))
-        })
+        .max_by(|&a, &b| extent[a].total_cmp(&extent[b]))
         .unwrap_or(0);
     let mid = prims.len() / 2;
-    prims.select_nth_unstable_by(mid, |a, b| a.centroid[axis].total_cmp(&b.centroid[axis]));
-    mid
+    if extent[axis] > 0.0 {
+        prims.select_nth_unstable_by(mid, |a, b| a.centre2()[axis].total_cmp(&b.centre2()[axis]));
+    }
+    let side = |ps: &[Prim]| {
+        ps.iter().fold((Box4::EMPTY, Box4::EMPTY), |(b, c), p| {
+            (b.union(&p.bounds()), c.grow(p.centre2()))
+        })
+    };
+    let (lb, lc) = side(&prims[..mid]);
+    let (rb, rc) = side(&prims[mid..]);
+    (part(0, mid, lb, lc), part(mid, prims.len() - mid, rb, rc))
 }
 
 /// Whether the processor running this has AVX2.
@@ -640,21 +951,53 @@ mod tests {
             .collect()
     }
 
+    /// The leaves' child references, by walking the tree from the root.
+    fn leaves(bvh: &Bvh) -> Vec<u32> {
+        let mut out = Vec::new();
+        let mut todo = vec![0u32];
+        while let Some(n) = todo.pop() {
+            for &c in &bvh.nodes[n as usize].children {
+                if c == EMPTY {
+                    continue;
+                }
+                if c & LEAF_BIT != 0 {
+                    out.push(c);
+                } else {
+                    todo.push(c);
+                }
+            }
+        }
+        out
+    }
+
     #[test]
     fn every_sphere_is_in_exactly_one_leaf() {
-        for n in [1, 2, 3, 4, 5, 9, 17, 100, 1000] {
+        for n in [1, 2, 3, 4, 5, 9, 17, 100, 1000, 20_000] {
             let bvh = Bvh::build(&grid(n)).unwrap();
-            let mut seen: Vec<u32> = (0..bvh.leaves.len() as u32)
-                .flat_map(|l| bvh.leaf(LEAF_BIT | l).iter().map(|&(i, _)| i))
-                .collect();
-            assert!(bvh
-                .leaves
+            let leaves = leaves(&bvh);
+            assert!(leaves.iter().all(|&l| bvh.leaf(l).len() <= LEAF_SIZE));
+            let mut seen: Vec<u32> = leaves
                 .iter()
-                .all(|l| (1..=LEAF_SIZE as u32).contains(&l.count)));
+                .flat_map(|&l| bvh.leaf(l).iter().map(|&(i, _)| i))
+                .collect();
             seen.sort_unstable();
             assert_eq!(seen, (0..n as u32).collect::<Vec<_>>(), "{n} spheres");
             assert!(bvh.node_count() >= 1);
         }
+    }
+
+    #[test]
+    fn a_parallel_build_equals_the_sequential_one() {
+        let spheres = grid(50_000);
+        let one = Bvh::build(&spheres).unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let two = pool.install(|| Bvh::build(&spheres).unwrap());
+        let order = |b: &Bvh| b.spheres.iter().map(|s| s.0).collect::<Vec<_>>();
+        assert_eq!(order(&one), order(&two));
+        assert_eq!(one.node_count(), two.node_count());
     }
 
     #[test]
@@ -680,6 +1023,202 @@ mod tests {
     #[test]
     fn scenes_beyond_the_margin_argument_get_no_hierarchy() {
         assert!(Bvh::build(&[(0, SphereGeom::new(Vec3::new(1e200, 0.0, 0.0), 1.0))]).is_none());
+        assert!(Bvh::build(&[(0, SphereGeom::new(Vec3::new(2e30, 0.0, 0.0), 1.0))]).is_none());
         assert!(Bvh::build(&[]).is_none());
+    }
+
+    #[test]
+    fn rounding_to_f32_is_outward() {
+        for x in [
+            0.1,
+            -0.1,
+            1e-40,
+            -1e-40,
+            1e30,
+            -1e30,
+            0.0,
+            16_777_217.0,
+            1e5 + 1e-3,
+        ] {
+            assert!(f64::from(down32(x)) <= x && f64::from(up32(x)) >= x, "{x}");
+            assert!(f64::from(down32(x).next_up()) > x || f64::from(down32(x)) == x);
+        }
+        assert_eq!(up32(f64::INFINITY), f32::INFINITY);
+    }
+
+    /// A small deterministic generator (SplitMix64).
+    struct Mix(u64);
+
+    impl Mix {
+        fn next(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+
+        /// Uniform in [-1, 1).
+        fn unit(&mut self) -> f64 {
+            (self.next() >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        }
+
+        fn vec(&mut self) -> Vec3 {
+            Vec3::new(self.unit(), self.unit(), self.unit())
+        }
+    }
+
+    /// The nearest hit and some occluder within `limit` by the brute-force loop, and by
+    /// the hierarchy (portable and, where there is AVX2, vector box tests): equal.
+    fn check(bvh: &Bvh, spheres: &[(u32, SphereGeom)], origin: Vec3, dir: Vec3, limit: f64) {
+        let mut brute = (f64::INFINITY, u32::MAX);
+        for &(i, ref s) in spheres {
+            if let Some(t) = s.hit(origin, dir, false) {
+                consider(&mut brute, t, i);
+            }
+        }
+        let blocked = spheres
+            .iter()
+            .any(|(_, s)| s.hit(origin, dir, false).is_some_and(|t| t < limit));
+        let mut stack = Stack::new();
+        for portable in [true, false] {
+            if !portable && !bvh.avx2 {
+                continue;
+            }
+            let mut best = (f64::INFINITY, u32::MAX);
+            let answer = if portable {
+                bvh.nearest_in::<false>(origin, dir, u32::MAX, &mut best, &mut stack)
+            } else {
+                bvh.nearest(origin, dir, u32::MAX, &mut best, &mut stack)
+            };
+            answer.unwrap_or_else(|_| panic!("{origin:?} {dir:?}: out of range"));
+            assert!(
+                best.0.to_bits() == brute.0.to_bits() && best.1 == brute.1,
+                "{origin:?} {dir:?}: {best:?} vs {brute:?}"
+            );
+        }
+        let occluder = bvh
+            .occluder(origin, dir, u32::MAX, limit, &mut stack)
+            .expect("within range");
+        assert_eq!(occluder.is_some(), blocked, "{origin:?} {dir:?} {limit}");
+        let portable = bvh
+            .occluder_in::<false>(origin, dir, u32::MAX, limit, &mut stack)
+            .expect("within range");
+        assert_eq!(portable.is_some(), blocked, "{origin:?} {dir:?} {limit}");
+    }
+
+    /// Rays aimed at a sphere's silhouette (a relative 10⁻⁹ inside or outside), at its
+    /// box's corners and along the axes through them, from `origin`s near `scale`.
+    fn grazing(rng: &mut Mix, spheres: &[(u32, SphereGeom)], far: f64, rays: usize) {
+        let bvh = Bvh::build(spheres).unwrap();
+        for case in 0..rays {
+            let (_, s) = spheres[(rng.next() % spheres.len() as u64) as usize];
+            let origin = s.center + rng.vec() * far;
+            let aim = match case % 3 {
+                0 => s.center + rng.vec().normalize() * (s.radius * (1.0 + rng.unit() * 1e-9)),
+                1 => {
+                    let corner = |r: &mut Mix| if r.unit() < 0.0 { -s.radius } else { s.radius };
+                    s.center + Vec3::new(corner(rng), corner(rng), corner(rng))
+                }
+                _ => s.center + rng.vec() * (2.0 * s.radius),
+            };
+            let mut dir = (aim - origin).normalize();
+            if case % 7 == 0 {
+                // Along an axis, exactly, through the sphere's silhouette.
+                let axis = (rng.next() % 3) as usize;
+                let mut o = [s.center.x, s.center.y, s.center.z];
+                let mut d = [0.0; 3];
+                d[axis] = if rng.unit() < 0.0 { -1.0 } else { 1.0 };
+                o[axis] -= d[axis] * far;
+                let side = (axis + 1) % 3;
+                o[side] += s.radius * (1.0 + rng.unit() * 1e-12);
+                let origin = Vec3::new(o[0], o[1], o[2]);
+                dir = Vec3::new(d[0], d[1], d[2]);
+                check(&bvh, spheres, origin, dir, f64::INFINITY);
+                continue;
+            }
+            let limit = [f64::INFINITY, far, far * 0.5][case % 3];
+            check(&bvh, spheres, origin, dir, limit);
+        }
+    }
+
+    fn soup(rng: &mut Mix, n: usize, at: f64, spread: f64, radius: f64) -> Vec<(u32, SphereGeom)> {
+        (0..n)
+            .map(|i| {
+                let c = Vec3::new(at, -at, at * 0.5) + rng.vec() * spread;
+                (
+                    i as u32,
+                    SphereGeom::new(c, radius * (1.0 + rng.unit().abs())),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn grazing_rays_at_unit_scale() {
+        let mut rng = Mix(1);
+        let spheres = soup(&mut rng, 2000, 0.0, 10.0, 0.1);
+        grazing(&mut rng, &spheres, 20.0, 20_000);
+    }
+
+    #[test]
+    fn tiny_spheres_far_from_the_origin() {
+        // Spheres at 10⁵ with radius 10⁻³: f32 spacing there is ~0.008, larger than the
+        // spheres, so rounding the origin and the boxes to f32 matters.
+        let mut rng = Mix(2);
+        let spheres = soup(&mut rng, 3000, 1e5, 0.5, 1e-3);
+        grazing(&mut rng, &spheres, 1.0, 20_000);
+        grazing(&mut rng, &spheres, 1e-2, 20_000);
+    }
+
+    #[test]
+    fn huge_and_tiny_coordinates() {
+        for (at, spread, radius, far) in [
+            (1e28f64, 1e26, 1e24, 1e27),
+            (1e-20, 1e-22, 1e-25, 1e-21),
+            (0.0, 1e-30, 1e-33, 1e-30),
+            (3.0, 1e-6, 1e-9, 1e-7),
+        ] {
+            let mut rng = Mix(at.to_bits());
+            let spheres = soup(&mut rng, 500, at, spread, radius);
+            grazing(&mut rng, &spheres, far, 5000);
+        }
+    }
+
+    #[test]
+    fn origins_on_box_sides_and_zero_direction_components() {
+        // Spheres on a lattice of f32-exact coordinates, rays from their box planes.
+        let spheres: Vec<(u32, SphereGeom)> = (0..512)
+            .map(|i| {
+                let c = Vec3::new((i % 8) as f64, ((i / 8) % 8) as f64, (i / 64) as f64);
+                (i as u32, SphereGeom::new(c, 0.5))
+            })
+            .collect();
+        let bvh = Bvh::build(&spheres).unwrap();
+        let mut rng = Mix(3);
+        for _ in 0..20_000 {
+            let pick = |r: &mut Mix| ((r.next() % 17) as f64 - 4.0) * 0.5;
+            let origin = Vec3::new(pick(&mut rng), pick(&mut rng), pick(&mut rng));
+            let mut d = [rng.unit(), rng.unit(), rng.unit()];
+            for c in &mut d {
+                match rng.next() % 4 {
+                    0 => *c = 0.0,
+                    1 => *c = -0.0,
+                    2 => {
+                        *c *= if rng.next().is_multiple_of(2) {
+                            1e-30
+                        } else {
+                            1e-300
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            let dir = Vec3::new(d[0], d[1], d[2]);
+            if dir.dot(dir) < 1e-6 {
+                continue;
+            }
+            check(&bvh, &spheres, origin, dir.normalize(), f64::INFINITY);
+        }
     }
 }
