@@ -96,6 +96,13 @@ impl Runs {
     }
 }
 
+/// The median over runs of `a`'s time divided by `b`'s in the same round: runs made one
+/// after the other see about the same load, so on a shared machine this is steadier
+/// than the ratio of the two medians.
+fn paired_ratio(a: &Runs, b: &Runs) -> Option<f64> {
+    median(a.0.iter().zip(&b.0).map(|(x, y)| x.wall / y.wall).collect())
+}
+
 /// The median, `None` for no values.
 fn median(mut values: Vec<f64>) -> Option<f64> {
     if values.is_empty() {
@@ -142,6 +149,7 @@ impl Floor {
 
 /// Runs the suite: `renderer.md`, `renderer.csv`, `renderer-scaling.{md,csv,png}`.
 pub fn run(opts: &Options, out: &Path) -> Result<()> {
+    let load = load_average();
     let tessera = std::env::current_exe().context("cannot find the tessera executable")?;
     let dir = tempfile::tempdir().context("cannot make a temporary directory")?;
     let cases = write_cases(opts, dir.path())?;
@@ -153,7 +161,7 @@ pub fn run(opts: &Options, out: &Path) -> Result<()> {
     for case in cases {
         results.push(run_case(opts, &tessera, case, dir.path())?);
     }
-    let md = comparison_markdown(opts, &results, floor);
+    let md = comparison_markdown(opts, &results, floor, &load);
     std::fs::write(out.join("renderer.md"), md)?;
     std::fs::write(out.join("renderer.csv"), comparison_csv(&results))?;
     eprintln!("renderer: comparison written; now the scaling sweeps");
@@ -621,6 +629,37 @@ fn cpu_model() -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
+/// Today's date (UTC) as YYYY-MM-DD.
+fn utc_date() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    civil_date(secs / 86_400)
+}
+
+/// The proleptic Gregorian date `days` days after 1970-01-01.
+fn civil_date(days: u64) -> String {
+    // Days since 0000-03-01, in 400-year eras of 146,097 days.
+    let z = days + 719_468;
+    let era = z / 146_097;
+    let doe = z % 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + u64::from(month <= 2);
+    format!("{year:04}-{month:02}-{day:02}")
+}
+
+/// The 1-minute load average, from /proc/loadavg.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().map(str::to_owned))
+        .unwrap_or_else(|| "unknown".into())
+}
+
 /// The command line this run was started with, as one line for a shell.
 fn invocation() -> String {
     std::env::args()
@@ -638,7 +677,12 @@ fn invocation() -> String {
         .join(" ")
 }
 
-fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Floor>) -> String {
+fn comparison_markdown(
+    opts: &Options,
+    results: &[CaseResult],
+    floor: Option<Floor>,
+    load: &str,
+) -> String {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let ext = &opts.external;
     let given = |p: &Option<PathBuf>| {
@@ -657,8 +701,9 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
          g++ -std=c++17 -O3 -mavx2 limit_bench.cpp -o limit_bench\n\
          g++ -O3 -march=x86-64-v2 render/benches/seed_structured.cpp -o seed_structured\n\
          ```\n\n\
-         - CPU: {} ({cores} logical CPUs)\n\
-         - {}\n\
+         - CPU: {} ({cores} logical CPUs); load average {} when the run started \
+         (the machine may be shared: medians and alternation are there for that)\n\
+         - {}, {}\n\
          - anchor: {}; floor: {}; seed structure in C++: {}\n\
          - every time is a whole process, start to exit (parse, build, render, PNG \
          written), wall clock, median of {} runs (minimum in brackets); the programs \
@@ -666,7 +711,9 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
          structure), so a disturbance hits them alike\n",
         invocation(),
         cpu_model(),
+        load,
         render::build_identity(),
+        utc_date(),
         given(&ext.anchor),
         given(&ext.limit_bench),
         given(&ext.seed_cpp),
@@ -679,17 +726,11 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
          |---|---:|---:|---:|---:|---:|---|"
     );
     for r in results {
-        let t1 = r.tessera_1.wall();
-        let t2 = r.tessera_2.wall();
-        let anchor = r.anchor.as_ref().and_then(Runs::wall);
-        let ratio = match (t1, anchor) {
-            (Some(t), Some(a)) => format!("{:.2}", t / a),
-            _ => NOT_GIVEN.into(),
-        };
-        let speedup = match (t1, t2) {
-            (Some(a), Some(b)) => format!("{:.2}", a / b),
-            _ => "–".into(),
-        };
+        let ratio = r.anchor.as_ref().map_or(NOT_GIVEN.to_owned(), |a| {
+            paired_ratio(&r.tessera_1, a).map_or("–".into(), |x| format!("{x:.2}"))
+        });
+        let speedup =
+            paired_ratio(&r.tessera_1, &r.tessera_2).map_or("–".into(), |x| format!("{x:.2}"));
         let mut images = r
             .anchor_image
             .clone()
@@ -708,7 +749,10 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
     }
     let _ = writeln!(
         md,
-        "\nTessera / anchor below 1: Tessera is faster. The images are compared pixel for \
+        "\nTessera / anchor (below 1: Tessera is faster) and the speed-up are medians of \
+         the ratios of runs made one after the other (Tessera 1 thread to the anchor's \
+         next run, to Tessera's 2-thread run), steadier than ratios of medians when the \
+         machine is shared. The images are compared pixel for \
          pixel after decoding both PNGs (Tessera's 1-thread image against the anchor's; \
          Tessera's 2-thread image is also checked against its 1-thread one and only \
          mentioned if it differs).\n\n\
@@ -745,27 +789,38 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
     let seed = results.iter().find(|r| r.case.seed_frame);
     let seed_name = seed.map_or("the seed frame".to_owned(), |r| r.case.name.clone());
     let _ = writeln!(md, "## Against the floor ({seed_name})\n");
+    let best_tracing = seed.and_then(|r| {
+        r.tessera_1
+            .0
+            .iter()
+            .filter_map(|x| x.tracing)
+            .reduce(f64::min)
+    });
     match (
         floor,
         seed.and_then(|r| r.tessera_1.median_of(|x| x.tracing)),
+        best_tracing,
     ) {
-        (Some(f), Some(tracing)) => {
+        (Some(f), Some(tracing), Some(best)) => {
             let _ = writeln!(
                 md,
-                "| intersection floor | shading floor | floor | Tessera tracing, 1 thread | × the floor |\n\
+                "| intersection floor | shading floor | floor | Tessera tracing, 1 thread: median (best) | × the floor: median (best) |\n\
                  |---:|---:|---:|---:|---:|\n\
-                 | {:.2} ms | {:.2} ms | {:.2} ms | {} | {:.2} |\n\n\
+                 | {:.2} ms | {:.2} ms | {:.2} ms | {} ({}) | {:.2} ({:.2}) |\n\n\
                  The floor program's best times: intersection is the faster of its \
                  \"double AVX2 camera rays\" and \"double AVX2 camera, skip\" lines (the \
                  seed frame's camera rays against its three objects in AVX2 doubles, rays \
                  held in L1), shading its \"double AVX2 shading\" line (the two-light \
-                 shading kernel on the frame's hits). Tessera's figure is the median \
-                 tracing time of the seed frame's 1-thread runs above.\n",
+                 shading kernel on the frame's hits). Tessera's figures are the median \
+                 and the best tracing time of the seed frame's 1-thread runs above (the \
+                 best compares like with like: the floor is a best of 11).\n",
                 f.intersection_ms,
                 f.shading_ms,
                 f.total_ms(),
                 ms(tracing),
-                tracing * 1e3 / f.total_ms()
+                ms(best),
+                tracing * 1e3 / f.total_ms(),
+                best * 1e3 / f.total_ms()
             );
         }
         _ => {
@@ -776,10 +831,9 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
     let _ = writeln!(md, "## Against the seed's structure in C++ ({seed_name})\n");
     match seed.and_then(|r| Some((r, r.seed_cpp.as_ref()?))) {
         Some((r, runs)) => {
-            let (ours, theirs) = (r.tessera_1.wall(), runs.wall());
-            let multiple = match (ours, theirs) {
-                (Some(o), Some(t)) => format!("{:.3} (Tessera {:.1}× faster)", o / t, t / o),
-                _ => "–".into(),
+            let multiple = match paired_ratio(&r.tessera_1, runs) {
+                Some(x) => format!("{x:.3} (Tessera {:.1}× faster)", 1.0 / x),
+                None => "–".into(),
             };
             let _ = writeln!(
                 md,
@@ -789,7 +843,8 @@ fn comparison_markdown(opts: &Options, results: &[CaseResult], floor: Option<Flo
                  `render/benches/seed_structured.cpp` keeps the seed program's design \
                  (objects behind virtual calls, a new vector of intersections for every \
                  ray, the textbook quadratic, a fixed epsilon, double, one thread) with the \
-                 shading of docs/scene-format.md. Where its pixels differ from Tessera's, \
+                 shading of docs/scene-format.md. The ratio is the median of the ratios of \
+                 runs in the same round, as above. Where its pixels differ from Tessera's, \
                  it is at silhouettes and shadow edges, where its fixed epsilon and \
                  quadratic round differently from Tessera's exact methods.\n",
                 median_min(runs),
@@ -1103,6 +1158,13 @@ double AVX2 shading         : 1156608 hits, 2 lights: best of 11 13.63 ms = 11.7
         let status = "Name:\ttessera\nVmPeak:\t  123 kB\nVmHWM:\t   45678 kB\nVmRSS:\t 100 kB\n";
         assert_eq!(vm_hwm_kib(status), Some(45678));
         assert_eq!(vm_hwm_kib("Name:\tzombie\n"), None);
+    }
+
+    #[test]
+    fn dates_from_days_since_1970() {
+        assert_eq!(civil_date(0), "1970-01-01");
+        assert_eq!(civil_date(11_016), "2000-02-29");
+        assert_eq!(civil_date(19_723), "2024-01-01");
     }
 
     #[test]
