@@ -152,10 +152,16 @@ enum Command {
             results to a directory: speed against error for every sampling setting on four \
             scenes (bench.md, bench.csv, bench.png), and time against pixels and objects, \
             the farm's speed-up and the pull scheduler against a static split \
-            (scaling.md, scaling.png). Build with --release.",
+            (scaling.md, scaling.png). The renderer suite times whole `tessera render` \
+            processes against external programs given by path (--anchor, --limit-bench, \
+            --seed-cpp; a column without its program says \"not given\") and sweeps \
+            pixels, objects, lights and mirror depth (renderer.md, renderer.csv, \
+            renderer-scaling.md/.csv/.png). Build with --release.",
         after_help = "Examples:\n  \
             cargo run --release -- bench --out bench-results\n  \
-            cargo run --release -- bench --suite error --quick --out /tmp/check"
+            cargo run --release -- bench --suite error --quick --out /tmp/check\n  \
+            tessera bench --suite renderer --anchor ./ew --limit-bench ./limit_bench \\\n      \
+            --seed-cpp ./seed_structured --out docs/perf"
     )]
     Bench(BenchArgs),
 
@@ -206,6 +212,21 @@ struct BenchArgs {
     /// and reports how far the reference is from converged (slow at aa 64).
     #[arg(long)]
     reference_check: bool,
+    /// Renderer suite: the Embree-based anchor tracer to run side by side with
+    /// `tessera render` (same scenes, same image expected).
+    #[arg(long, value_name = "PATH")]
+    anchor: Option<PathBuf>,
+    /// Renderer suite: the SIMD floor program; the seed frame's tracing time is
+    /// reported as a multiple of its floor.
+    #[arg(long, value_name = "PATH")]
+    limit_bench: Option<PathBuf>,
+    /// Renderer suite: the seed's structure in C++ (built from
+    /// render/benches/seed_structured.cpp), timed on the seed frame.
+    #[arg(long, value_name = "PATH")]
+    seed_cpp: Option<PathBuf>,
+    /// Renderer suite: runs of each program on each case [default: 7, 2 with --quick].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100))]
+    reps: Option<u32>,
 }
 
 #[derive(Args)]
@@ -969,6 +990,12 @@ fn run(command: Command) -> Result<()> {
                     max_runs: a.max_runs,
                     quick: a.quick,
                     reference_check: a.reference_check,
+                    external: bench::External {
+                        anchor: a.anchor,
+                        limit_bench: a.limit_bench,
+                        seed_cpp: a.seed_cpp,
+                    },
+                    reps: a.reps.unwrap_or(if a.quick { 2 } else { 7 }),
                 })
                 .await
             }

@@ -744,7 +744,7 @@ fn markdown(rows: &[Row], references: &[Reference], plan: &Plan, opts: &Options)
         let what = scenes::error_suite()
             .into_iter()
             .find(|b| b.name == scene)
-            .map_or("", |b| b.what);
+            .map_or(String::new(), |b| b.what);
         let _ = writeln!(md, "### {scene}\n\n{what}\n");
         let _ = writeln!(
             md,

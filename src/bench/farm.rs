@@ -197,7 +197,7 @@ pub fn concentrated() -> BenchScene {
     });
     BenchScene {
         name: "concentrated",
-        what: "20 mirror spheres in the top half, a plain floor below",
+        what: "20 mirror spheres in the top half, a plain floor below".into(),
         json: scene.to_string(),
     }
 }

@@ -7,6 +7,7 @@ mod farm;
 mod latency;
 mod measure;
 mod relay;
+mod renderer;
 mod scaling;
 mod scenes;
 mod verification;
@@ -31,6 +32,11 @@ pub enum Suite {
     /// verification on the 1920 × 1080 aa 2 seed job. About 2 minutes, so not part
     /// of `all`.
     Verification,
+    /// The whole `tessera render` process against external programs given by path
+    /// (an Embree-based anchor, the SIMD floor, the seed's structure in C++) on six
+    /// cases, and time against pixels, objects, lights and mirror depth with log-log
+    /// slopes. About 10 minutes with the defaults, so not part of `all`.
+    Renderer,
     /// Error and scaling.
     All,
 }
@@ -52,7 +58,13 @@ pub struct Options {
     /// The error suite also renders a grid of twice `reference_aa` per scene and
     /// measures how far the reference is from it (slow: 4× the reference's samples).
     pub reference_check: bool,
+    /// The renderer suite's external programs, each optional.
+    pub external: renderer::External,
+    /// Runs of each program on each case in the renderer suite.
+    pub reps: u32,
 }
+
+pub use renderer::External;
 
 /// Runs the chosen suites.
 pub async fn run(opts: &Options) -> Result<()> {
@@ -67,6 +79,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     if opts.suite == Suite::Verification {
         verification::run(opts, &opts.out).await?;
     }
+    if opts.suite == Suite::Renderer {
+        renderer::run(opts, &opts.out)?;
+    }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;
     }
@@ -78,7 +93,12 @@ pub async fn run(opts: &Options) -> Result<()> {
 async fn run_scaling(opts: &Options) -> Result<()> {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let pixels = scaling::time_against_pixels(opts)?;
-    let objects = scaling::time_against_objects(opts)?;
+    let counts: &[usize] = if opts.quick {
+        &[10, 100, 1000]
+    } else {
+        &[10, 30, 100, 300, 1000, 3000, 10_000]
+    };
+    let objects = scaling::time_against_objects(opts, counts)?;
     let max_workers = if opts.quick { 2 } else { (2 * cores).max(4) };
     let speedup = farm::speedup(opts, max_workers).await?;
     let split = farm::split(opts, 3.0).await?;

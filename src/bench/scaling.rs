@@ -2,9 +2,10 @@
 //! farm's speed-up with 1 to N workers, and the pull scheduler against a static split.
 
 use std::fmt::Write as _;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use render::{RenderSettings, Scene};
+use render::{RenderSettings, Scene, Tracer};
 
 use super::measure;
 use super::scenes::{self, BenchScene};
@@ -16,6 +17,8 @@ pub struct Point {
     pub x: f64,
     pub seconds: f64,
     pub rays: u64,
+    /// Loading the scene and building the tracer, where measured (the object sweep).
+    pub setup_seconds: Option<f64>,
 }
 
 fn parse(bench: &BenchScene) -> Result<Scene> {
@@ -56,23 +59,51 @@ pub fn time_against_pixels(opts: &Options) -> Result<Vec<Point>> {
             x: f64::from(width) * f64::from(height),
             seconds: timed.seconds,
             rays: timed.frame.rays,
+            setup_seconds: None,
         });
     }
     Ok(out)
 }
 
-/// The many-spheres scene with 10 to 10,000 spheres at 600 × 400, aa 1, on one thread.
-pub fn time_against_objects(opts: &Options) -> Result<Vec<Point>> {
+/// The fastest of `f`'s runs, run at least once and until `min_total` has passed (at
+/// most `max_runs` times), in seconds.
+fn best_seconds(
+    min_total: Duration,
+    max_runs: u32,
+    mut f: impl FnMut() -> Result<()>,
+) -> Result<f64> {
+    let started = Instant::now();
+    let mut best = f64::INFINITY;
+    let mut runs = 0;
+    while runs == 0 || (started.elapsed() < min_total && runs < max_runs) {
+        let t = Instant::now();
+        f()?;
+        best = best.min(t.elapsed().as_secs_f64());
+        runs += 1;
+    }
+    Ok(best)
+}
+
+/// The many-spheres scene with `counts` spheres at 600 × 400 (150 × 100 when quick),
+/// aa 1, on one thread; loading the scene and building the tracer are timed apart.
+pub fn time_against_objects(opts: &Options, counts: &[usize]) -> Result<Vec<Point>> {
     let pool = measure::pool(1)?;
-    let counts: &[usize] = if opts.quick {
-        &[10, 100, 1000]
-    } else {
-        &[10, 30, 100, 300, 1000, 3000, 10_000]
-    };
     let (width, height) = if opts.quick { (150, 100) } else { (600, 400) };
     let mut out = Vec::new();
     for &count in counts {
-        let scene = parse(&scenes::spheres(count))?;
+        let bench = scenes::spheres(count);
+        let mut scene = parse(&bench)?;
+        let settings = RenderSettings {
+            width,
+            height,
+            aa: 1,
+            ..scene.settings
+        };
+        let setup = best_seconds(opts.min_time, opts.max_runs.min(3), || {
+            scene = parse(&bench)?;
+            std::hint::black_box(Tracer::new(&scene, settings));
+            Ok(())
+        })?;
         let timed = measure::time_frame(
             &scene,
             RenderSettings {
@@ -85,14 +116,108 @@ pub fn time_against_objects(opts: &Options) -> Result<Vec<Point>> {
             opts.min_time,
             opts.max_runs,
         );
-        eprintln!("objects: {count} spheres: {:.1} ms", timed.seconds * 1e3);
+        eprintln!(
+            "objects: {count} spheres: load and build {:.1} ms, render {:.1} ms",
+            setup * 1e3,
+            timed.seconds * 1e3
+        );
         out.push(Point {
             x: count as f64,
             seconds: timed.seconds,
             rays: timed.frame.rays,
+            setup_seconds: Some(setup),
         });
     }
     Ok(out)
+}
+
+/// The seed scene's objects under 1 to 64 lights, 600 × 400 (150 × 100 when quick), aa
+/// 1, one thread.
+pub fn time_against_lights(opts: &Options) -> Result<Vec<Point>> {
+    let counts: &[usize] = if opts.quick {
+        &[1, 4, 16]
+    } else {
+        &[1, 2, 4, 8, 16, 32, 64]
+    };
+    let (width, height) = if opts.quick { (150, 100) } else { (600, 400) };
+    let mut out = Vec::new();
+    for &count in counts {
+        let point = time_scene(opts, &scenes::lights(count), width, height, None)?;
+        eprintln!("lights: {count}: {:.1} ms", point.seconds * 1e3);
+        out.push(Point {
+            x: count as f64,
+            ..point
+        });
+    }
+    Ok(out)
+}
+
+/// The hall of mirrors with a reflection depth limit of 0 to 64, 480 × 480 (120 × 120
+/// when quick), aa 1, one thread.
+pub fn time_against_depth(opts: &Options) -> Result<Vec<Point>> {
+    let depths: &[u32] = if opts.quick {
+        &[0, 1, 4, 16]
+    } else {
+        &[0, 1, 2, 4, 8, 16, 32, 64]
+    };
+    let size = if opts.quick { 120 } else { 480 };
+    let mut out = Vec::new();
+    for &depth in depths {
+        let point = time_scene(opts, &scenes::hall_of_mirrors(), size, size, Some(depth))?;
+        eprintln!("depth: {depth}: {:.1} ms", point.seconds * 1e3);
+        out.push(Point {
+            x: f64::from(depth),
+            ..point
+        });
+    }
+    Ok(out)
+}
+
+/// One frame of `bench` at `width` × `height`, aa 1, one thread, optionally with
+/// another depth limit.
+fn time_scene(
+    opts: &Options,
+    bench: &BenchScene,
+    width: u32,
+    height: u32,
+    max_depth: Option<u32>,
+) -> Result<Point> {
+    let pool = measure::pool(1)?;
+    let scene = parse(bench)?;
+    let settings = RenderSettings {
+        width,
+        height,
+        aa: 1,
+        max_depth: max_depth.unwrap_or(scene.settings.max_depth),
+        ..scene.settings
+    };
+    let timed = measure::time_frame(&scene, settings, &pool, opts.min_time, opts.max_runs);
+    Ok(Point {
+        x: 0.0,
+        seconds: timed.seconds,
+        rays: timed.frame.rays,
+        setup_seconds: None,
+    })
+}
+
+/// The least-squares slope of log y against log x over the points where both are
+/// positive: the exponent k of y ∝ xᵏ. `None` with fewer than two such points or a
+/// single x.
+pub fn loglog_slope(points: &[(f64, f64)]) -> Option<f64> {
+    let logs: Vec<(f64, f64)> = points
+        .iter()
+        .filter(|(x, y)| *x > 0.0 && *y > 0.0)
+        .map(|(x, y)| (x.ln(), y.ln()))
+        .collect();
+    if logs.len() < 2 {
+        return None;
+    }
+    let n = logs.len() as f64;
+    let mean_x = logs.iter().map(|p| p.0).sum::<f64>() / n;
+    let mean_y = logs.iter().map(|p| p.1).sum::<f64>() / n;
+    let sxx: f64 = logs.iter().map(|p| (p.0 - mean_x).powi(2)).sum();
+    let sxy: f64 = logs.iter().map(|p| (p.0 - mean_x) * (p.1 - mean_y)).sum();
+    (sxx > 0.0).then(|| sxy / sxx)
 }
 
 /// Markdown for the two curves.
@@ -186,4 +311,28 @@ pub fn curves_panels(pixels: &[Point], objects: &[Point]) -> Vec<Panel> {
             ],
         },
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::loglog_slope;
+
+    #[test]
+    fn slope_of_a_power_law_is_its_exponent() {
+        let points: Vec<(f64, f64)> = [1.0, 10.0, 100.0, 1000.0]
+            .iter()
+            .map(|&x| (x, 3.0 * f64::powf(x, 0.75)))
+            .collect();
+        let slope = loglog_slope(&points).expect("four points");
+        assert!((slope - 0.75).abs() < 1e-12, "{slope}");
+    }
+
+    #[test]
+    fn slope_ignores_points_off_the_log_scale_and_needs_two() {
+        let points = [(0.0, 5.0), (2.0, 4.0), (4.0, 8.0), (8.0, -1.0)];
+        let slope = loglog_slope(&points).expect("two usable points");
+        assert!((slope - 1.0).abs() < 1e-12, "{slope}");
+        assert_eq!(loglog_slope(&[(1.0, 1.0)]), None);
+        assert_eq!(loglog_slope(&[(3.0, 1.0), (3.0, 2.0)]), None);
+    }
 }

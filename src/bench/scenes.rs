@@ -6,7 +6,7 @@ use serde_json::{json, Value};
 /// A benchmark scene: a name for tables and files, and its JSON text.
 pub struct BenchScene {
     pub name: &'static str,
-    pub what: &'static str,
+    pub what: String,
     pub json: String,
 }
 
@@ -14,7 +14,7 @@ pub struct BenchScene {
 pub fn seed() -> BenchScene {
     BenchScene {
         name: "seed",
-        what: "the seed scene: two spheres over a checkerboard, large smooth areas",
+        what: "the seed scene: two spheres over a checkerboard, large smooth areas".into(),
         json: include_str!("../../scenes/seed.json").to_owned(),
     }
 }
@@ -60,7 +60,10 @@ pub fn spheres(count: usize) -> BenchScene {
     });
     BenchScene {
         name: "spheres",
-        what: "1,000 small spheres over a plane, a fifth of them mirrors",
+        what: format!(
+            "{} small spheres over a plane, a fifth of them mirrors",
+            thousands(count as u64)
+        ),
         json: scene.to_string(),
     }
 }
@@ -79,7 +82,8 @@ pub fn checker_horizon() -> BenchScene {
     });
     BenchScene {
         name: "checker-horizon",
-        what: "a checkerboard out to the horizon: detail finer than a pixel everywhere far away",
+        what: "a checkerboard out to the horizon: detail finer than a pixel everywhere far away"
+            .into(),
         json: scene.to_string(),
     }
 }
@@ -111,7 +115,7 @@ pub fn thin_features() -> BenchScene {
     });
     BenchScene {
         name: "thin-features",
-        what: "960 spheres a fraction of a pixel wide, strung in wires in front of a wall",
+        what: "960 spheres a fraction of a pixel wide, strung in wires in front of a wall".into(),
         json: scene.to_string(),
     }
 }
@@ -119,4 +123,52 @@ pub fn thin_features() -> BenchScene {
 /// The scenes of `tessera bench`'s speed-against-error table.
 pub fn error_suite() -> Vec<BenchScene> {
     vec![seed(), spheres(1000), checker_horizon(), thin_features()]
+}
+
+/// The seed scene's objects lit by `count` equal white lights on a circle above them,
+/// together as bright as the seed's two: what each light adds to a frame's cost.
+pub fn lights(count: usize) -> BenchScene {
+    let lights: Vec<Value> = (0..count)
+        .map(|i| {
+            let angle = std::f64::consts::TAU * i as f64 / count as f64;
+            let c = 2.0 / count as f64;
+            json!({
+                "position": [10.0 * angle.cos(), 10.0, 10.0 * angle.sin()],
+                "color": [c, c, c]
+            })
+        })
+        .collect();
+    let seed: Value = serde_json::from_str(&seed().json).expect("scenes/seed.json is valid JSON");
+    let scene = json!({
+        "image": { "width": 600, "height": 400, "aa": 1 },
+        "lights": lights,
+        "objects": seed["objects"].clone()
+    });
+    BenchScene {
+        name: "lights",
+        what: format!("the seed scene's objects under {count} lights"),
+        json: scene.to_string(),
+    }
+}
+
+/// `scenes/hall-of-mirrors.json`: two facing mirrors, reflections up to the depth limit.
+pub fn hall_of_mirrors() -> BenchScene {
+    BenchScene {
+        name: "hall-of-mirrors",
+        what: "two facing mirrors (reflectance 0.9) around two spheres: deep reflections".into(),
+        json: include_str!("../../scenes/hall-of-mirrors.json").to_owned(),
+    }
+}
+
+/// 1000000 as "1,000,000".
+pub fn thousands(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, d) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(d);
+    }
+    out
 }
