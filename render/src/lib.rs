@@ -21,8 +21,8 @@ mod parse;
 pub mod progressive;
 pub mod sampling;
 mod scene;
-mod tile;
 pub mod simd;
+mod tile;
 mod tracer;
 mod vec3;
 
