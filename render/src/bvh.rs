@@ -1046,27 +1046,7 @@ mod tests {
         assert_eq!(up32(f64::INFINITY), f32::INFINITY);
     }
 
-    /// A small deterministic generator (SplitMix64).
-    struct Mix(u64);
-
-    impl Mix {
-        fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-
-        /// Uniform in [-1, 1).
-        fn unit(&mut self) -> f64 {
-            (self.next() >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        }
-
-        fn vec(&mut self) -> Vec3 {
-            Vec3::new(self.unit(), self.unit(), self.unit())
-        }
-    }
+    use crate::geometry::tests::Mix;
 
     /// The nearest hit and some occluder within `limit` by the brute-force loop, and by
     /// the hierarchy (portable and, where there is AVX2, vector box tests): equal.

@@ -162,15 +162,15 @@ pub(crate) fn plane_ahead(num: f64, denom: f64) -> bool {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::vec3::LANES;
 
     /// A small deterministic generator (SplitMix64) for the tests.
-    struct Mix(u64);
+    pub(crate) struct Mix(pub(crate) u64);
 
     impl Mix {
-        fn next(&mut self) -> u64 {
+        pub(crate) fn next(&mut self) -> u64 {
             self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
             let mut z = self.0;
             z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -179,11 +179,11 @@ mod tests {
         }
 
         /// Uniform in [-1, 1).
-        fn unit(&mut self) -> f64 {
+        pub(crate) fn unit(&mut self) -> f64 {
             (self.next() >> 11) as f64 / (1u64 << 52) as f64 - 1.0
         }
 
-        fn vec(&mut self) -> Vec3 {
+        pub(crate) fn vec(&mut self) -> Vec3 {
             Vec3::new(self.unit(), self.unit(), self.unit())
         }
     }

@@ -7,7 +7,7 @@ use super::prepare::Geometry;
 use super::ray::{Packet, Path, FROM_CAMERA};
 use super::shading::{checker_white_lanes, clip_lanes, pow10};
 use super::{Ctx, Tracer, SHADOW_REACH};
-use crate::geometry::{plane_hits, sphere_hits};
+use crate::geometry::{plane_hits, sphere_hits, SphereGeom};
 use crate::scene::Material;
 use crate::simd::isa_dispatch;
 use crate::vec3::{Vec3, F4, LANES, M4, V4};
@@ -78,13 +78,7 @@ impl Tracer {
             }
         } else {
             for &(i, ref s) in &self.spheres {
-                let f = origin - V4::splat(s.center);
-                let hits = if i == from {
-                    leaving_hits(f, dir)
-                } else {
-                    let radius2 = F4::splat(s.radius2);
-                    sphere_hits(f, f.dot(f) - radius2, radius2, dir, M4::NONE)
-                };
+                let hits = sphere_lane_hits(s, origin, dir, i == from);
                 consider_lanes(&mut t, &mut index, hits, i);
             }
             for &(i, ref plane) in &self.planes {
@@ -214,13 +208,7 @@ impl Tracer {
             if !lit.and_not(blocked).any() {
                 break;
             }
-            let f = p - V4::splat(s.center);
-            let t = if index == from {
-                leaving_hits(f, l)
-            } else {
-                let radius2 = F4::splat(s.radius2);
-                sphere_hits(f, f.dot(f) - radius2, radius2, l, M4::NONE)
-            };
+            let t = sphere_lane_hits(s, p, l, index == from);
             blocked = blocked.or(t.lt(limit));
         }
         blocked
@@ -239,7 +227,20 @@ fn consider_lanes(best_t: &mut F4, best: &mut F4, t: F4, index: u32) {
     *best = better.select(index, *best);
 }
 
-/// Lane by lane, [`crate::geometry::SphereGeom::hit`] for rays leaving the sphere (`f`
+/// Lane by lane, [`SphereGeom::hit`] of the rays `origin + t·dir` with sphere `s`, which
+/// they leave when `leaving`.
+#[inline(always)]
+fn sphere_lane_hits(s: &SphereGeom, origin: V4, dir: V4, leaving: bool) -> F4 {
+    let f = origin - V4::splat(s.center);
+    if leaving {
+        leaving_hits(f, dir)
+    } else {
+        let radius2 = F4::splat(s.radius2);
+        sphere_hits(f, f.dot(f) - radius2, radius2, dir, M4::NONE)
+    }
+}
+
+/// Lane by lane, [`SphereGeom::hit`] for rays leaving the sphere (`f`
 /// = origin − centre): the far wall at t = −2 f·d when ahead, NaN otherwise.
 #[inline(always)]
 fn leaving_hits(f: V4, dir: V4) -> F4 {
