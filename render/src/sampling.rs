@@ -37,7 +37,7 @@ use std::fmt;
 use thiserror::Error;
 
 use crate::tracer::{to_byte, GridSink, Tracer};
-use crate::vec3::{Divisor, Vec3, F4};
+use crate::vec3::{Divisor, Vec3, F4, M4, V4};
 
 /// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
 /// of them: at most n × n samples per pixel.
@@ -124,8 +124,10 @@ impl fmt::Display for Sampling {
 pub(crate) struct PixelResult {
     pub rgb: [u8; 3],
     pub samples: u32,
-    /// The estimated error in levels; 0 when unknown (one sample).
-    pub error: f64,
+    /// The square of the estimated error, in levels²; 0 when unknown (one sample).
+    /// Only squares are ever summed (a tile's and a frame's estimate is their root mean
+    /// square), so no pixel pays for a square root.
+    pub error_sq: f64,
 }
 
 /// Renders the pixels of one tile, one after the other, reusing its buffers.
@@ -134,6 +136,8 @@ pub(crate) struct PixelSampler<'t> {
     /// The image points of the samples being traced, and their colours.
     points: Vec<(f64, f64)>,
     colors: Vec<Vec3>,
+    /// The grid sampler's traced pixels of a row, waiting for their results.
+    traced: Vec<Moments>,
 }
 
 impl<'t> PixelSampler<'t> {
@@ -142,6 +146,7 @@ impl<'t> PixelSampler<'t> {
             tracer,
             points: Vec::new(),
             colors: Vec::new(),
+            traced: Vec::new(),
         }
     }
 
@@ -153,6 +158,11 @@ impl<'t> PixelSampler<'t> {
     /// handing each one's result to `add` and adding the rays traced to `rays`. The
     /// tracer's own pixel loop hands over each colour as it sums it: no points to
     /// generate and no colours to store, and the bytes are [`Tracer::pixel`]'s.
+    ///
+    /// Each pixel's mean, bytes and error estimate are worked out once the whole row
+    /// is traced: that arithmetic is a long chain of dependent operations (a division
+    /// at its end), which between two packets would stall the processor, and in a loop
+    /// of its own overlaps from one pixel to the next.
     pub fn render_grid_row(
         &mut self,
         j: u32,
@@ -161,13 +171,17 @@ impl<'t> PixelSampler<'t> {
         add: &mut impl FnMut(PixelResult),
     ) {
         debug_assert_eq!(self.settings().sampling, Sampling::Grid);
+        self.traced.clear();
+        self.traced.reserve(columns.len());
         let mut sink = GridPixels {
-            tracer: self.tracer,
             moments: Moments::default(),
             spread: self.settings().aa > 1,
-            add,
+            traced: &mut self.traced,
         };
         self.tracer.grid_span(j, columns, rays, &mut sink);
+        for pixel in &self.traced {
+            add(pixel.result(self.tracer.grid_mean(pixel.sum)));
+        }
     }
 
     /// Renders pixel (`i`, `j`) with the jittered sampler: all n × n samples, adding the
@@ -214,31 +228,32 @@ impl<'t> PixelSampler<'t> {
 
 /// The grid sampler's statistics of the pixels of a span, as the tracer hands over
 /// their colours.
-struct GridPixels<'t, 'a, F> {
-    tracer: &'t Tracer,
+struct GridPixels<'a> {
     /// The pixel being traced.
     moments: Moments,
     /// Whether pixels have several samples: with one (aa = 1) there is no error
     /// estimate, and only the samples are counted.
     spread: bool,
-    add: &'a mut F,
+    /// The span's pixels traced so far.
+    traced: &'a mut Vec<Moments>,
 }
 
-impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
+impl GridSink for GridPixels<'_> {
     #[inline(always)]
-    fn sample(&mut self, color: Vec3) {
+    fn samples(&mut self, colors: &V4, count: usize) {
         if self.spread {
-            self.moments.add_spread(color);
+            self.moments.add_spread(colors, count);
         } else {
-            self.moments.count += 1;
+            self.moments.count += count as u32;
         }
     }
 
     #[inline(always)]
     fn pixel(&mut self, sum: Vec3) {
-        let mut moments = std::mem::take(&mut self.moments);
-        moments.sum = sum;
-        (self.add)(moments.result(self.tracer.grid_mean(sum)));
+        self.moments.sum = sum;
+        self.traced.push(self.moments);
+        // The next pixel's first samples start the sums afresh (`add_spread`).
+        self.moments.count = 0;
     }
 }
 
@@ -378,15 +393,29 @@ fn sobol_second(k: u32) -> u32 {
 /// Running sums of a pixel's sample colours: the plain sum for the mean (in sample
 /// order, like the tracer's grid), and sums of differences from the first sample for the
 /// variance, which stay exact for a constant colour and lose no precision to
-/// cancellation. The three channels are held in the lanes of an [`F4`] (the fourth is
-/// always 0), so that each sample costs a few SIMD operations.
-#[derive(Clone, Default)]
+/// cancellation. The differences are summed lane by lane as samples arrive, four at a
+/// time in the tracer's structure-of-arrays form, and the lanes only at the end of the
+/// pixel: each group of samples costs a dozen SIMD operations and no shuffles.
+#[derive(Clone, Copy)]
 pub(crate) struct Moments {
     count: u32,
     sum: Vec3,
-    first: F4,
-    diff: F4,
-    diff_sq: F4,
+    /// The first sample's colour in every lane.
+    first: V4,
+    diff: V4,
+    diff_sq: V4,
+}
+
+impl Default for Moments {
+    fn default() -> Self {
+        Moments {
+            count: 0,
+            sum: Vec3::ZERO,
+            first: V4::splat(Vec3::ZERO),
+            diff: V4::splat(Vec3::ZERO),
+            diff_sq: V4::splat(Vec3::ZERO),
+        }
+    }
 }
 
 impl Moments {
@@ -395,44 +424,66 @@ impl Moments {
         PixelResult {
             rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
             samples: self.count,
-            error: self.error(),
+            error_sq: self.error_sq(),
         }
     }
 
     fn add(&mut self, c: Vec3) {
         self.sum += c;
-        self.add_spread(c);
+        self.add_spread(&V4::splat(c), 1);
     }
 
-    /// Counts a sample and adds it to the sums of differences, not to `sum` (which the
-    /// caller keeps).
+    /// Counts the `count` samples in lanes `0..count` of `colors` and adds them to the
+    /// sums of differences, not to `sum` (which the caller keeps).
     #[inline(always)]
-    fn add_spread(&mut self, c: Vec3) {
-        let c = F4([c.x, c.y, c.z, 0.0]);
-        if self.count == 0 {
-            self.first = c;
+    fn add_spread(&mut self, colors: &V4, count: usize) {
+        // The first group of a pixel starts the sums afresh, so that a finished pixel's
+        // sums need no clearing, only its count.
+        let fresh = self.count == 0;
+        if fresh {
+            self.first = V4::splat(colors.lane(0));
         }
-        self.count += 1;
-        let d = c - self.first;
-        self.diff = self.diff + d;
-        self.diff_sq = self.diff_sq + d * d;
+        self.count += count as u32;
+        let d = M4::first(count).select3(*colors - self.first, V4::splat(Vec3::ZERO));
+        let d_sq = d.hadamard(d);
+        if fresh {
+            (self.diff, self.diff_sq) = (d, d_sq);
+        } else {
+            self.diff = self.diff + d;
+            self.diff_sq = self.diff_sq + d_sq;
+        }
     }
 
-    /// The standard error of the mean in 8-bit levels, the largest of the 3 channels:
-    /// 255 · √(s²/k) with s² the unbiased variance. 0 for fewer than 2 samples (no
-    /// estimate).
+    /// The square of the standard error of the mean in 8-bit levels, for the largest
+    /// of the 3 channels: 255² · s²/k with s² the unbiased variance. 0 for fewer than 2
+    /// samples (no estimate).
+    ///
+    /// Every pixel pays this, so it is one scalar division: the channel with the
+    /// largest sum of squared deviations is the one with the largest variance, since
+    /// all three share the divisor k(k − 1).
     #[inline(always)]
-    fn error(&self) -> f64 {
+    fn error_sq(&self) -> f64 {
         if self.count < 2 {
             return 0.0;
         }
-        // Divisions by k are multiplications when k is a power of two (same bits).
-        let k = Divisor::count(self.count);
-        let ss = self.diff_sq - k.divide4(self.diff * self.diff);
-        let variance = (ss / (f64::from(self.count) - 1.0)).map(|v| v.max(0.0));
-        let per_mean = k.divide4(variance);
-        let worst = per_mean.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
-        255.0 * worst.sqrt()
+        let lanes = |v: F4| (v.0[0] + v.0[1]) + (v.0[2] + v.0[3]);
+        let diff = F4([
+            lanes(self.diff.x),
+            lanes(self.diff.y),
+            lanes(self.diff.z),
+            0.0,
+        ]);
+        let diff_sq = F4([
+            lanes(self.diff_sq.x),
+            lanes(self.diff_sq.y),
+            lanes(self.diff_sq.z),
+            0.0,
+        ]);
+        // Division by k is a multiplication when k is a power of two (same bits).
+        let ss = diff_sq - Divisor::count(self.count).divide4(diff * diff);
+        let worst = ss.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
+        let k = f64::from(self.count);
+        255.0 * 255.0 * worst / (k * (k - 1.0))
     }
 }
 
@@ -502,14 +553,14 @@ mod tests {
         for _ in 0..9 {
             m.add(Vec3::new(0.3, 0.7, 0.1));
         }
-        assert_eq!(m.error(), 0.0);
+        assert_eq!(m.error_sq(), 0.0);
         // Samples 0 and 1 in one channel: s² = 1/2, k = 2: 255 · √(1/4) = 127.5.
         let mut m = Moments::default();
         m.add(Vec3::new(0.0, 0.5, 0.5));
         m.add(Vec3::new(1.0, 0.5, 0.5));
-        assert_eq!(m.error(), 127.5);
+        assert_eq!(m.error_sq(), 127.5 * 127.5);
         let mut one = Moments::default();
         one.add(Vec3::new(1.0, 0.0, 0.0));
-        assert_eq!(one.error(), 0.0);
+        assert_eq!(one.error_sq(), 0.0);
     }
 }

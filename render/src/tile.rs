@@ -90,7 +90,7 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
     let mut add = |pixel: PixelResult| {
         rgb.extend_from_slice(&pixel.rgb);
         samples += u64::from(pixel.samples);
-        error_sq_sum += pixel.error * pixel.error;
+        error_sq_sum += pixel.error_sq;
     };
     let columns = rect.x..rect.x + rect.width;
     match tracer.settings().sampling {

@@ -10,8 +10,10 @@ use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
 /// What a grid render does with the colours it traces ([`Tracer::grid_span`]).
 pub(crate) trait GridSink {
-    /// One sample's clipped colour; a pixel's samples come in sample order.
-    fn sample(&mut self, color: Vec3);
+    /// The clipped colours of a pixel's next `count` samples, in lanes `0..count` of
+    /// `colors` (the lanes beyond hold anything); a pixel's samples come in sample
+    /// order, four at a time, as they were traced.
+    fn samples(&mut self, colors: &V4, count: usize);
     /// The end of a pixel, with the sum of its samples' colours in sample order.
     fn pixel(&mut self, sum: Vec3);
 }
@@ -82,10 +84,9 @@ impl Tracer {
                 dir
             };
             let colors = self.trace_directions(dir, count, ctx);
+            sink.samples(&colors, count);
             for k in 0..count {
-                let color = colors.lane(k);
-                sum += color;
-                sink.sample(color);
+                sum += colors.lane(k);
             }
             if next_g == 0 {
                 sink.pixel(sum);
@@ -123,7 +124,7 @@ impl Tracer {
             let colors = self.trace_directions(dir, count, ctx);
             for k in 0..count {
                 let color = colors.lane(k);
-                sink.sample(color);
+                sink.samples(&V4::splat(color), 1);
                 let mut sum = Vec3::ZERO;
                 sum += color;
                 sink.pixel(sum);

@@ -22,7 +22,7 @@ use crate::camera::Camera;
 use crate::geometry::{PlaneGeom, SphereGeom};
 use crate::scene::{Material, RenderSettings, Scene};
 use crate::simd::Isa;
-use crate::vec3::{Divisor, Vec3, F4, LANES, M4};
+use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 
 pub(crate) use self::camera_rays::GridSink;
 pub(crate) use self::shading::to_byte;
@@ -255,7 +255,7 @@ impl Tracer {
         /// Keeps the pixel's sum, ignores its samples.
         struct Sum(Vec3);
         impl GridSink for Sum {
-            fn sample(&mut self, _: Vec3) {}
+            fn samples(&mut self, _: &V4, _: usize) {}
             fn pixel(&mut self, sum: Vec3) {
                 self.0 = sum;
             }
@@ -284,7 +284,7 @@ impl Tracer {
         }
         impl GridSink for Bytes<'_> {
             #[inline(always)]
-            fn sample(&mut self, _: Vec3) {}
+            fn samples(&mut self, _: &V4, _: usize) {}
             #[inline(always)]
             fn pixel(&mut self, sum: Vec3) {
                 let mean = self.tracer.grid_mean(sum);
