@@ -154,7 +154,8 @@ impl Job<'_> {
     fn run(self) -> Result<()> {
         let settings = self.settings;
         let pool = &self.pool;
-        let tracer = Tracer::new(self.scene, settings);
+        // In the pool: a large scene's hierarchy is built in parallel, on `--threads` threads.
+        let tracer = pool.install(|| Tracer::new(self.scene, settings));
         let started = Instant::now();
         // Until the image is made: saving the samples is not rendering.
         let elapsed;
