@@ -137,7 +137,7 @@ pub(crate) struct PixelSampler<'t> {
     points: Vec<(f64, f64)>,
     colors: Vec<Vec3>,
     /// The grid sampler's traced pixels of a row, waiting for their results.
-    traced: Vec<Moments>,
+    traced: Vec<PixelSums>,
 }
 
 impl<'t> PixelSampler<'t> {
@@ -172,15 +172,20 @@ impl<'t> PixelSampler<'t> {
     ) {
         debug_assert_eq!(self.settings().sampling, Sampling::Grid);
         self.traced.clear();
-        self.traced.reserve(columns.len());
+        let spread = self.settings().aa > 1;
+        if spread {
+            self.traced.reserve(columns.len());
+        }
         let mut sink = GridPixels {
+            tracer: self.tracer,
             moments: Moments::default(),
-            spread: self.settings().aa > 1,
+            spread,
             traced: &mut self.traced,
+            add: &mut *add,
         };
         self.tracer.grid_span(j, columns, rays, &mut sink);
         for pixel in &self.traced {
-            add(pixel.result(self.tracer.grid_mean(pixel.sum)));
+            add(pixel.result(self.tracer));
         }
     }
 
@@ -195,8 +200,7 @@ impl<'t> PixelSampler<'t> {
         // All at once, in sample order: traced four at a time like the tracer's own
         // pixels, and summed in the same order.
         self.trace(&pattern, i, j, 0..n * n, &mut moments, rays);
-        // The grid's division by n².
-        moments.result(self.tracer.grid_mean(moments.sum))
+        moments.sums().result(self.tracer)
     }
 
     /// Traces samples `range` of pixel (`i`, `j`) and adds their colours, in order.
@@ -228,17 +232,20 @@ impl<'t> PixelSampler<'t> {
 
 /// The grid sampler's statistics of the pixels of a span, as the tracer hands over
 /// their colours.
-struct GridPixels<'a> {
+struct GridPixels<'t, 'a, F> {
+    tracer: &'t Tracer,
     /// The pixel being traced.
     moments: Moments,
     /// Whether pixels have several samples: with one (aa = 1) there is no error
-    /// estimate, and only the samples are counted.
+    /// estimate, only the samples are counted, and each pixel's result, a short
+    /// computation, goes to `add` at once.
     spread: bool,
-    /// The span's pixels traced so far.
-    traced: &'a mut Vec<Moments>,
+    /// The span's pixels traced so far, when they have an estimate to work out.
+    traced: &'a mut Vec<PixelSums>,
+    add: &'a mut F,
 }
 
-impl GridSink for GridPixels<'_> {
+impl<F: FnMut(PixelResult)> GridSink for GridPixels<'_, '_, F> {
     #[inline(always)]
     fn samples(&mut self, colors: &V4, count: usize) {
         if self.spread {
@@ -251,7 +258,11 @@ impl GridSink for GridPixels<'_> {
     #[inline(always)]
     fn pixel(&mut self, sum: Vec3) {
         self.moments.sum = sum;
-        self.traced.push(self.moments);
+        if self.spread {
+            self.traced.push(self.moments.sums());
+        } else {
+            (self.add)(PixelSums::of_one(&self.moments).result(self.tracer));
+        }
         // The next pixel's first samples start the sums afresh (`add_spread`).
         self.moments.count = 0;
     }
@@ -419,15 +430,6 @@ impl Default for Moments {
 }
 
 impl Moments {
-    #[inline(always)]
-    fn result(&self, mean: Vec3) -> PixelResult {
-        PixelResult {
-            rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
-            samples: self.count,
-            error_sq: self.error_sq(),
-        }
-    }
-
     fn add(&mut self, c: Vec3) {
         self.sum += c;
         self.add_spread(&V4::splat(c), 1);
@@ -454,6 +456,55 @@ impl Moments {
         }
     }
 
+    /// The pixel's sums with the lanes added up.
+    #[inline(always)]
+    fn sums(&self) -> PixelSums {
+        let lanes = |v: F4| (v.0[0] + v.0[1]) + (v.0[2] + v.0[3]);
+        let channels = |v: &V4| F4([lanes(v.x), lanes(v.y), lanes(v.z), 0.0]);
+        PixelSums {
+            count: self.count,
+            sum: self.sum,
+            diff: channels(&self.diff),
+            diff_sq: channels(&self.diff_sq),
+        }
+    }
+}
+
+/// A traced pixel's sums, small enough to keep a row of them until the row is done:
+/// the sample count, the colours' sum, and per channel (lanes 0 to 2) the sums of the
+/// differences from the first sample and of their squares.
+#[derive(Clone, Copy)]
+pub(crate) struct PixelSums {
+    count: u32,
+    sum: Vec3,
+    diff: F4,
+    diff_sq: F4,
+}
+
+impl PixelSums {
+    /// A pixel whose samples were only counted: no estimate, as with one sample.
+    #[inline(always)]
+    fn of_one(moments: &Moments) -> PixelSums {
+        PixelSums {
+            count: moments.count,
+            sum: moments.sum,
+            diff: F4::splat(0.0),
+            diff_sq: F4::splat(0.0),
+        }
+    }
+
+    /// The pixel's bytes (the grid's mean: the sum divided by n²), samples and squared
+    /// estimate.
+    #[inline(always)]
+    fn result(&self, tracer: &Tracer) -> PixelResult {
+        let mean = tracer.grid_mean(self.sum);
+        PixelResult {
+            rgb: [to_byte(mean.x), to_byte(mean.y), to_byte(mean.z)],
+            samples: self.count,
+            error_sq: self.error_sq(),
+        }
+    }
+
     /// The square of the standard error of the mean in 8-bit levels, for the largest
     /// of the 3 channels: 255² · s²/k with s² the unbiased variance. 0 for fewer than 2
     /// samples (no estimate).
@@ -466,21 +517,8 @@ impl Moments {
         if self.count < 2 {
             return 0.0;
         }
-        let lanes = |v: F4| (v.0[0] + v.0[1]) + (v.0[2] + v.0[3]);
-        let diff = F4([
-            lanes(self.diff.x),
-            lanes(self.diff.y),
-            lanes(self.diff.z),
-            0.0,
-        ]);
-        let diff_sq = F4([
-            lanes(self.diff_sq.x),
-            lanes(self.diff_sq.y),
-            lanes(self.diff_sq.z),
-            0.0,
-        ]);
         // Division by k is a multiplication when k is a power of two (same bits).
-        let ss = diff_sq - Divisor::count(self.count).divide4(diff * diff);
+        let ss = self.diff_sq - Divisor::count(self.count).divide4(self.diff * self.diff);
         let worst = ss.0[..3].iter().fold(0.0, |w: f64, &v| w.max(v));
         let k = f64::from(self.count);
         255.0 * 255.0 * worst / (k * (k - 1.0))
@@ -553,14 +591,14 @@ mod tests {
         for _ in 0..9 {
             m.add(Vec3::new(0.3, 0.7, 0.1));
         }
-        assert_eq!(m.error_sq(), 0.0);
+        assert_eq!(m.sums().error_sq(), 0.0);
         // Samples 0 and 1 in one channel: s² = 1/2, k = 2: 255 · √(1/4) = 127.5.
         let mut m = Moments::default();
         m.add(Vec3::new(0.0, 0.5, 0.5));
         m.add(Vec3::new(1.0, 0.5, 0.5));
-        assert_eq!(m.error_sq(), 127.5 * 127.5);
+        assert_eq!(m.sums().error_sq(), 127.5 * 127.5);
         let mut one = Moments::default();
         one.add(Vec3::new(1.0, 0.0, 0.0));
-        assert_eq!(one.error_sq(), 0.0);
+        assert_eq!(one.sums().error_sq(), 0.0);
     }
 }
