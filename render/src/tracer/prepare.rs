@@ -141,8 +141,9 @@ impl Tracer {
         } else {
             BVH_MIN_SPHERES_PACKETS
         };
+        let isa = Isa::detect();
         let bvh = if force_bvh.unwrap_or(spheres.len() >= threshold) {
-            Bvh::build(&spheres)
+            Bvh::build(&spheres, isa)
         } else {
             None
         };
@@ -184,7 +185,7 @@ impl Tracer {
                     index,
                 })
                 .collect(),
-            isa: Isa::detect(),
+            isa,
             surfaces,
             spheres,
             planes,
