@@ -178,6 +178,13 @@ impl Stack {
         self.entry[top] = MaybeUninit::new(entry);
     }
 
+    /// Writes a child reference alone, for the shadow-ray traversal, which keeps no
+    /// entry distances.
+    #[inline(always)]
+    fn set_node(&mut self, top: usize, child: u32) {
+        self.node[top] = MaybeUninit::new(child);
+    }
+
     /// The child reference at `top`, which the traversal has written.
     #[inline(always)]
     fn node(&self, top: usize) -> u32 {
@@ -198,23 +205,25 @@ impl Stack {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Fallback;
 
-/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written without
-/// branches: the rounding direction of a ray's coordinates is random, and a
-/// mispredicted branch per coordinate costs more than the select.
+/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written in integer
+/// arithmetic without branches: whether the nearest `f32` lies below `x` is a coin toss
+/// for a ray's distance limit, and a mispredicted branch on it cost every shadow ray
+/// about as much as a node test (the compiler turned the selects of an earlier version
+/// into branches).
 #[inline(always)]
 fn up32(x: f64) -> f32 {
     let f = x as f32;
     let bits = f.to_bits();
-    // One step towards +∞: away from zero for a positive value, towards it for a
-    // negative one, and from either zero to the least positive subnormal.
-    let stepped = if bits & 0x7fff_ffff == 0 {
-        1
-    } else if bits >> 31 == 0 {
-        bits + 1
-    } else {
-        bits - 1
-    };
-    f32::from_bits(if f64::from(f) < x { stepped } else { bits })
+    // One step towards +∞ when the nearest value lies below x: away from zero for a
+    // positive value (from +0 to the least positive subnormal), towards it for a
+    // negative one. (−0 never lies below x: an x above it is positive and rounds to
+    // +0 or above.)
+    let below = u32::from(f64::from(f) < x);
+    let negative = bits >> 31;
+    f32::from_bits(
+        bits.wrapping_add(below)
+            .wrapping_sub((below & negative) << 1),
+    )
 }
 
 /// `x` rounded down to `f32` (to −∞ beyond its range; `x` not NaN).
@@ -571,7 +580,7 @@ impl Bvh {
         let ray = BoxRay::new(origin, dir, self.scale).ok_or(Fallback)?;
         let (t_max, _) = BoxRay::limit(limit);
         let mut top = 1;
-        stack.set(0, 0, 0.0);
+        stack.set_node(0, 0);
         while top > 0 {
             top -= 1;
             let node = &self.nodes[stack.node(top) as usize];
@@ -587,13 +596,15 @@ impl Bvh {
                 }
             }
             let mut inner = hit & !leaf;
-            if top + inner.count_ones() as usize > STACK_SIZE {
+            // A whole node's worth of room, not the count of `inner`: the test is then
+            // one comparison (and the stack still 120 deep before a fallback).
+            if top + WIDTH > STACK_SIZE {
                 return Err(Fallback);
             }
             while inner != 0 {
                 let k = inner.trailing_zeros() as usize;
                 inner &= inner - 1;
-                stack.set(top, node.children[k], 0.0);
+                stack.set_node(top, node.children[k]);
                 top += 1;
             }
         }
@@ -1027,6 +1038,44 @@ mod tests {
             assert!(f64::from(down32(x).next_up()) > x || f64::from(down32(x)) == x);
         }
         assert_eq!(up32(f64::INFINITY), f32::INFINITY);
+    }
+
+    /// The branch-free rounding equals the least `f32` not below `x`.
+    #[test]
+    fn rounding_up_is_the_least_f32_not_below() {
+        let reference = |x: f64| {
+            let f = x as f32;
+            if f64::from(f) < x {
+                f.next_up()
+            } else {
+                f
+            }
+        };
+        let mut rng = Mix(4);
+        let mut cases = vec![
+            0.0,
+            -0.0,
+            1e-46,
+            -1e-46,
+            f64::from(f32::MAX) * (1.0 + 1e-9),
+            -f64::from(f32::MAX) * (1.0 + 1e-9),
+            1e39,
+            -1e39,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        for _ in 0..200_000 {
+            let exponent = (rng.next() % 320) as i32 - 160;
+            cases.push(rng.unit() * 2f64.powi(exponent));
+            let f = f32::from_bits(rng.next() as u32);
+            if !f.is_nan() {
+                cases.extend([f64::from(f), f64::from(f) * (1.0 + 1e-12)]);
+            }
+        }
+        for x in cases {
+            assert_eq!(up32(x).to_bits(), reference(x).to_bits(), "{x:e}");
+            assert_eq!(down32(x).to_bits(), (-reference(-x)).to_bits(), "{x:e}");
+        }
     }
 
     use crate::geometry::tests::Mix;
