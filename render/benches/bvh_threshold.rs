@@ -1,7 +1,7 @@
 //! Where the bounding volume hierarchy starts to pay: frames of n spheres rendered by
 //! testing every sphere and through a (forced) hierarchy, for n from 1 to 64, with one
-//! sample per pixel (rays traced one by one) and with four (traced as packets of four),
-//! in two layouts:
+//! sample per pixel and with four (camera rays traced as packets of four either way;
+//! the hierarchy is traversed ray by ray), in two layouts:
 //!
 //! - `cluster`: spheres of radius 0.4 to 1 packed around the origin and filling the
 //!   view, over a plane, like the example scenes;
@@ -9,10 +9,10 @@
 //!
 //! It prints one line per n with both times and their ratio; the tracer's thresholds
 //! (`BVH_MIN_SPHERES` for aa 1, `BVH_MIN_SPHERES_PACKETS` for aa ≥ 2, in
-//! `src/tracer.rs`) are the smallest n from which the hierarchy is at least as fast in
-//! both layouts. Frames are 600 × 400, rendered on the
-//! bench's thread and timed by that thread's CPU time (best of several alternating
-//! runs), which a busy machine disturbs far less than wall-clock time.
+//! `src/tracer/prepare.rs`) are the smallest n from which the hierarchy is at least as
+//! fast in both layouts. Frames are 600 × 400, rendered on the bench's thread and timed
+//! by that thread's CPU time (best of several alternating runs), which a busy machine
+//! disturbs far less than wall-clock time.
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};

@@ -73,6 +73,7 @@
 use std::mem::MaybeUninit;
 
 use crate::geometry::SphereGeom;
+use crate::simd::{isa_dispatch, Isa};
 use crate::vec3::Vec3;
 
 /// Children per node.
@@ -147,9 +148,10 @@ pub(crate) struct Bvh {
     spheres: Vec<(u32, SphereGeom)>,
     /// S: the largest |centre|₁ + r over the spheres.
     scale: f64,
-    /// Whether the processor has AVX2: the node tests then run on all eight children
-    /// in one instruction each (with the same IEEE results).
-    avx2: bool,
+    /// The instruction set the traversals run with, the tracer's: with AVX2 a node
+    /// test is one 256-bit instruction per step for all eight children (with the same
+    /// IEEE results as the portable code).
+    isa: Isa,
 }
 
 /// The traversal stack, allocated once by the caller (per pixel) and reused for every
@@ -176,6 +178,13 @@ impl Stack {
         self.entry[top] = MaybeUninit::new(entry);
     }
 
+    /// Writes a child reference alone, for the shadow-ray traversal, which keeps no
+    /// entry distances.
+    #[inline(always)]
+    fn set_node(&mut self, top: usize, child: u32) {
+        self.node[top] = MaybeUninit::new(child);
+    }
+
     /// The child reference at `top`, which the traversal has written.
     #[inline(always)]
     fn node(&self, top: usize) -> u32 {
@@ -196,23 +205,25 @@ impl Stack {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Fallback;
 
-/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written without
-/// branches: the rounding direction of a ray's coordinates is random, and a
-/// mispredicted branch per coordinate costs more than the select.
+/// `x` rounded up to `f32` (to +∞ beyond its range; `x` not NaN). Written in integer
+/// arithmetic without branches: whether the nearest `f32` lies below `x` is a coin toss
+/// for a ray's distance limit, and a mispredicted branch on it cost every shadow ray
+/// about as much as a node test (the compiler turned the selects of an earlier version
+/// into branches).
 #[inline(always)]
 fn up32(x: f64) -> f32 {
     let f = x as f32;
     let bits = f.to_bits();
-    // One step towards +∞: away from zero for a positive value, towards it for a
-    // negative one, and from either zero to the least positive subnormal.
-    let stepped = if bits & 0x7fff_ffff == 0 {
-        1
-    } else if bits >> 31 == 0 {
-        bits + 1
-    } else {
-        bits - 1
-    };
-    f32::from_bits(if f64::from(f) < x { stepped } else { bits })
+    // One step towards +∞ when the nearest value lies below x: away from zero for a
+    // positive value (from +0 to the least positive subnormal), towards it for a
+    // negative one. (−0 never lies below x: an x above it is positive and rounds to
+    // +0 or above.)
+    let below = u32::from(f64::from(f) < x);
+    let negative = bits >> 31;
+    f32::from_bits(
+        bits.wrapping_add(below)
+            .wrapping_sub((below & negative) << 1),
+    )
 }
 
 /// `x` rounded down to `f32` (to −∞ beyond its range; `x` not NaN).
@@ -267,13 +278,17 @@ impl BoxRay {
     /// Which of the node's child boxes the ray enters within [0, `t_max`] (a bit per
     /// child), which children are leaves (a bit per child; empty slots too, but their
     /// boxes are never entered), and where the ray enters each. A NaN slab distance
-    /// is ignored.
+    /// is ignored. With `isa` AVX2 the test runs in 256-bit instructions
+    /// ([`BoxRay::enter_avx2`]): the compiler does not vectorise the portable loops
+    /// well (it splits them into 128-bit pieces and shuffles to build the masks). The
+    /// traversals pass the hierarchy's own `isa` (a branch taken the same way for
+    /// every node), so `TESSERA_SIMD=portable` reaches this test too.
     #[inline(always)]
-    fn enter<const AVX2: bool>(&self, node: &Node, t_max: f32) -> (u32, u32, [f32; WIDTH]) {
+    fn enter(&self, node: &Node, t_max: f32, isa: Isa) -> (u32, u32, [f32; WIDTH]) {
         #[cfg(target_arch = "x86_64")]
-        if AVX2 {
-            // SAFETY: AVX2 = true only in functions compiled for AVX2, which are called
-            // only where the processor has it.
+        if isa == Isa::Avx2 {
+            // SAFETY: an `Isa::Avx2` is only ever made where the processor supports
+            // AVX2 (`Isa::best`).
             return unsafe { self.enter_avx2(node, t_max) };
         }
         let mut t0 = [0.0f32; WIDTH];
@@ -356,8 +371,9 @@ pub(crate) fn consider(best: &mut (f64, u32), t: f64, index: u32) {
 impl Bvh {
     /// Builds the hierarchy over `spheres` (object index, geometry), or `None` if the
     /// scene is too large in scale or count for the margin argument (then only brute
-    /// force). Subtrees are built in parallel on the current rayon pool.
-    pub fn build(spheres: &[(u32, SphereGeom)]) -> Option<Bvh> {
+    /// force). Subtrees are built in parallel on the current rayon pool. The
+    /// traversals run with `isa`, which must be available on this processor.
+    pub fn build(spheres: &[(u32, SphereGeom)], isa: Isa) -> Option<Bvh> {
         let scale = spheres
             .iter()
             .map(|(_, s)| s.center.x.abs() + s.center.y.abs() + s.center.z.abs() + s.radius)
@@ -388,8 +404,20 @@ impl Bvh {
             nodes,
             spheres: prims.iter().map(|p| spheres[p.index() as usize]).collect(),
             scale,
-            avx2: has_avx2(),
+            isa,
         })
+    }
+
+    /// Makes the traversals run with `isa` (the tracer's, when it changes), which must
+    /// be available on this processor.
+    pub fn set_isa(&mut self, isa: Isa) {
+        self.isa = isa;
+    }
+
+    /// The instruction set the traversals run with.
+    #[cfg(test)]
+    pub fn isa(&self) -> Isa {
+        self.isa
     }
 
     /// Number of nodes (for tests and the documentation).
@@ -398,41 +426,25 @@ impl Bvh {
         self.nodes.len()
     }
 
-    /// Updates `best` with the nearest hit among the spheres, leaving out object `from`
-    /// (which the caller tests itself). `Err` if the ray is outside the hierarchy's
-    /// range or the stack overflowed: then `best` holds valid but possibly partial
-    /// results, and the caller completes them by brute force.
-    pub fn nearest(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        from: u32,
-        best: &mut (f64, u32),
-        stack: &mut Stack,
-    ) -> Result<(), Fallback> {
-        #[cfg(target_arch = "x86_64")]
-        if self.avx2 {
-            // SAFETY: `avx2` is set only where the processor supports AVX2.
-            return unsafe { self.nearest_avx2(origin, dir, from, best, stack) };
+    isa_dispatch! {
+        /// Updates `best` with the nearest hit among the spheres, leaving out object
+        /// `from` (which the caller tests itself). `Err` if the ray is outside the
+        /// hierarchy's range or the stack overflowed: then `best` holds valid but
+        /// possibly partial results, and the caller completes them by brute force.
+        pub fn nearest / nearest_avx2(
+            &self,
+            origin: Vec3,
+            dir: Vec3,
+            from: u32,
+            best: &mut (f64, u32),
+            stack: &mut Stack,
+        ) -> Result<(), Fallback> {
+            self.nearest_in(origin, dir, from, best, stack)
         }
-        self.nearest_in::<false>(origin, dir, from, best, stack)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn nearest_avx2(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        from: u32,
-        best: &mut (f64, u32),
-        stack: &mut Stack,
-    ) -> Result<(), Fallback> {
-        self.nearest_in::<true>(origin, dir, from, best, stack)
     }
 
     #[inline(always)]
-    fn nearest_in<const AVX2: bool>(
+    fn nearest_in(
         &self,
         origin: Vec3,
         dir: Vec3,
@@ -446,7 +458,7 @@ impl Bvh {
         let mut current = 0u32;
         loop {
             let node = &self.nodes[current as usize];
-            let (mut hit, _, entry) = ray.enter::<AVX2>(node, t_max);
+            let (mut hit, _, entry) = ray.enter(node, t_max, self.isa);
             // The children entered, sorted far to near; then, from the nearest, leaves
             // are tested until an inner child comes, which is visited next while the
             // others wait on the stack. A leaf or node entered beyond the best hit is
@@ -541,39 +553,23 @@ impl Bvh {
         *best != before
     }
 
-    /// The object index of some sphere other than `from` hit at a distance in
-    /// (0, `limit`), if any: shadow rays stop at the first occluder found.
-    pub fn occluder(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        from: u32,
-        limit: f64,
-        stack: &mut Stack,
-    ) -> Result<Option<u32>, Fallback> {
-        #[cfg(target_arch = "x86_64")]
-        if self.avx2 {
-            // SAFETY: `avx2` is set only where the processor supports AVX2.
-            return unsafe { self.occluder_avx2(origin, dir, from, limit, stack) };
+    isa_dispatch! {
+        /// The object index of some sphere other than `from` hit at a distance in
+        /// (0, `limit`), if any: shadow rays stop at the first occluder found.
+        pub fn occluder / occluder_avx2(
+            &self,
+            origin: Vec3,
+            dir: Vec3,
+            from: u32,
+            limit: f64,
+            stack: &mut Stack,
+        ) -> Result<Option<u32>, Fallback> {
+            self.occluder_in(origin, dir, from, limit, stack)
         }
-        self.occluder_in::<false>(origin, dir, from, limit, stack)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn occluder_avx2(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        from: u32,
-        limit: f64,
-        stack: &mut Stack,
-    ) -> Result<Option<u32>, Fallback> {
-        self.occluder_in::<true>(origin, dir, from, limit, stack)
     }
 
     #[inline(always)]
-    fn occluder_in<const AVX2: bool>(
+    fn occluder_in(
         &self,
         origin: Vec3,
         dir: Vec3,
@@ -584,11 +580,11 @@ impl Bvh {
         let ray = BoxRay::new(origin, dir, self.scale).ok_or(Fallback)?;
         let (t_max, _) = BoxRay::limit(limit);
         let mut top = 1;
-        stack.set(0, 0, 0.0);
+        stack.set_node(0, 0);
         while top > 0 {
             top -= 1;
             let node = &self.nodes[stack.node(top) as usize];
-            let (hit, leaf, _) = ray.enter::<AVX2>(node, t_max);
+            let (hit, leaf, _) = ray.enter(node, t_max, self.isa);
             let mut leaves = hit & leaf;
             while leaves != 0 {
                 let k = leaves.trailing_zeros() as usize;
@@ -600,13 +596,15 @@ impl Bvh {
                 }
             }
             let mut inner = hit & !leaf;
-            if top + inner.count_ones() as usize > STACK_SIZE {
+            // A whole node's worth of room, not the count of `inner`: the test is then
+            // one comparison (and the stack still 120 deep before a fallback).
+            if top + WIDTH > STACK_SIZE {
                 return Err(Fallback);
             }
             while inner != 0 {
                 let k = inner.trailing_zeros() as usize;
                 inner &= inner - 1;
-                stack.set(top, node.children[k], 0.0);
+                stack.set_node(top, node.children[k]);
                 top += 1;
             }
         }
@@ -926,18 +924,6 @@ fn split(prims: &mut [Prim], whole: &Part) -> (Part, Part) {
     (part(0, mid, lb, lc), part(mid, prims.len() - mid, rb, rc))
 }
 
-/// Whether the processor running this has AVX2.
-pub(crate) fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -973,7 +959,7 @@ mod tests {
     #[test]
     fn every_sphere_is_in_exactly_one_leaf() {
         for n in [1, 2, 3, 4, 5, 9, 17, 100, 1000, 20_000] {
-            let bvh = Bvh::build(&grid(n)).unwrap();
+            let bvh = Bvh::build(&grid(n), Isa::best()).unwrap();
             let leaves = leaves(&bvh);
             assert!(leaves.iter().all(|&l| bvh.leaf(l).len() <= LEAF_SIZE));
             let mut seen: Vec<u32> = leaves
@@ -989,12 +975,12 @@ mod tests {
     #[test]
     fn a_parallel_build_equals_the_sequential_one() {
         let spheres = grid(50_000);
-        let one = Bvh::build(&spheres).unwrap();
+        let one = Bvh::build(&spheres, Isa::best()).unwrap();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(2)
             .build()
             .unwrap();
-        let two = pool.install(|| Bvh::build(&spheres).unwrap());
+        let two = pool.install(|| Bvh::build(&spheres, Isa::best()).unwrap());
         let order = |b: &Bvh| b.spheres.iter().map(|s| s.0).collect::<Vec<_>>();
         assert_eq!(order(&one), order(&two));
         assert_eq!(one.node_count(), two.node_count());
@@ -1005,7 +991,7 @@ mod tests {
         let same: Vec<(u32, SphereGeom)> = (0..10_000)
             .map(|i| (i, SphereGeom::new(Vec3::ZERO, 1.0)))
             .collect();
-        let bvh = Bvh::build(&same).unwrap();
+        let bvh = Bvh::build(&same, Isa::best()).unwrap();
         let mut stack = Stack::new();
         let mut best = (f64::INFINITY, u32::MAX);
         let dir = Vec3::new(0.0, 0.0, 1.0);
@@ -1022,9 +1008,17 @@ mod tests {
 
     #[test]
     fn scenes_beyond_the_margin_argument_get_no_hierarchy() {
-        assert!(Bvh::build(&[(0, SphereGeom::new(Vec3::new(1e200, 0.0, 0.0), 1.0))]).is_none());
-        assert!(Bvh::build(&[(0, SphereGeom::new(Vec3::new(2e30, 0.0, 0.0), 1.0))]).is_none());
-        assert!(Bvh::build(&[]).is_none());
+        assert!(Bvh::build(
+            &[(0, SphereGeom::new(Vec3::new(1e200, 0.0, 0.0), 1.0))],
+            Isa::best()
+        )
+        .is_none());
+        assert!(Bvh::build(
+            &[(0, SphereGeom::new(Vec3::new(2e30, 0.0, 0.0), 1.0))],
+            Isa::best()
+        )
+        .is_none());
+        assert!(Bvh::build(&[], Isa::best()).is_none());
     }
 
     #[test]
@@ -1046,6 +1040,44 @@ mod tests {
         assert_eq!(up32(f64::INFINITY), f32::INFINITY);
     }
 
+    /// The branch-free rounding equals the least `f32` not below `x`.
+    #[test]
+    fn rounding_up_is_the_least_f32_not_below() {
+        let reference = |x: f64| {
+            let f = x as f32;
+            if f64::from(f) < x {
+                f.next_up()
+            } else {
+                f
+            }
+        };
+        let mut rng = Mix(4);
+        let mut cases = vec![
+            0.0,
+            -0.0,
+            1e-46,
+            -1e-46,
+            f64::from(f32::MAX) * (1.0 + 1e-9),
+            -f64::from(f32::MAX) * (1.0 + 1e-9),
+            1e39,
+            -1e39,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        for _ in 0..200_000 {
+            let exponent = (rng.next() % 320) as i32 - 160;
+            cases.push(rng.unit() * 2f64.powi(exponent));
+            let f = f32::from_bits(rng.next() as u32);
+            if !f.is_nan() {
+                cases.extend([f64::from(f), f64::from(f) * (1.0 + 1e-12)]);
+            }
+        }
+        for x in cases {
+            assert_eq!(up32(x).to_bits(), reference(x).to_bits(), "{x:e}");
+            assert_eq!(down32(x).to_bits(), (-reference(-x)).to_bits(), "{x:e}");
+        }
+    }
+
     use crate::geometry::tests::Mix;
 
     /// The nearest hit and some occluder within `limit` by the brute-force loop, and by
@@ -1061,36 +1093,31 @@ mod tests {
             .iter()
             .any(|(_, s)| s.hit(origin, dir, false).is_some_and(|t| t < limit));
         let mut stack = Stack::new();
-        for portable in [true, false] {
-            if !portable && !bvh.avx2 {
-                continue;
-            }
+        let mut bvh = bvh.clone();
+        for isa in [Isa::Portable, Isa::best()] {
+            bvh.isa = isa;
             let mut best = (f64::INFINITY, u32::MAX);
-            let answer = if portable {
-                bvh.nearest_in::<false>(origin, dir, u32::MAX, &mut best, &mut stack)
-            } else {
-                bvh.nearest(origin, dir, u32::MAX, &mut best, &mut stack)
-            };
-            answer.unwrap_or_else(|_| panic!("{origin:?} {dir:?}: out of range"));
+            bvh.nearest(origin, dir, u32::MAX, &mut best, &mut stack)
+                .unwrap_or_else(|_| panic!("{origin:?} {dir:?}: out of range"));
             assert!(
                 best.0.to_bits() == brute.0.to_bits() && best.1 == brute.1,
-                "{origin:?} {dir:?}: {best:?} vs {brute:?}"
+                "{isa:?} {origin:?} {dir:?}: {best:?} vs {brute:?}"
+            );
+            let occluder = bvh
+                .occluder(origin, dir, u32::MAX, limit, &mut stack)
+                .expect("within range");
+            assert_eq!(
+                occluder.is_some(),
+                blocked,
+                "{isa:?} {origin:?} {dir:?} {limit}"
             );
         }
-        let occluder = bvh
-            .occluder(origin, dir, u32::MAX, limit, &mut stack)
-            .expect("within range");
-        assert_eq!(occluder.is_some(), blocked, "{origin:?} {dir:?} {limit}");
-        let portable = bvh
-            .occluder_in::<false>(origin, dir, u32::MAX, limit, &mut stack)
-            .expect("within range");
-        assert_eq!(portable.is_some(), blocked, "{origin:?} {dir:?} {limit}");
     }
 
     /// Rays aimed at a sphere's silhouette (a relative 10⁻⁹ inside or outside), at its
     /// box's corners and along the axes through them, from `origin`s near `scale`.
     fn grazing(rng: &mut Mix, spheres: &[(u32, SphereGeom)], far: f64, rays: usize) {
-        let bvh = Bvh::build(spheres).unwrap();
+        let bvh = Bvh::build(spheres, Isa::best()).unwrap();
         for case in 0..rays {
             let (_, s) = spheres[(rng.next() % spheres.len() as u64) as usize];
             let origin = s.center + rng.vec() * far;
@@ -1174,7 +1201,7 @@ mod tests {
                 (i as u32, SphereGeom::new(c, 0.5))
             })
             .collect();
-        let bvh = Bvh::build(&spheres).unwrap();
+        let bvh = Bvh::build(&spheres, Isa::best()).unwrap();
         let mut rng = Mix(3);
         for _ in 0..20_000 {
             let pick = |r: &mut Mix| ((r.next() % 17) as f64 - 4.0) * 0.5;

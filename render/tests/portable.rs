@@ -1,6 +1,7 @@
 //! The portable lane code, which AVX2 machines never run on their own, gives the same
 //! bytes and the same ray counts as the AVX2 build on every example scene, with every
-//! sampler and with and without the hierarchy.
+//! sampler and with and without the hierarchy (whose node tests follow the tracer's
+//! instruction set too).
 
 use render::simd::Isa;
 use render::{parse_scene, render_frame, Sampling, Tracer};

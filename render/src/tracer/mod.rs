@@ -120,9 +120,9 @@ impl Tracer {
         self.bvh.is_some()
     }
 
-    /// The tracer with its lane code run for `isa`, which must be [`Isa::Portable`] or
-    /// [`Isa::best`]: the images are the same either way, only the speed differs. For
-    /// tests that both give the same bytes.
+    /// The tracer with its lane code, the hierarchy's node tests included, run for
+    /// `isa`, which must be [`Isa::Portable`] or [`Isa::best`]: the images are the same
+    /// either way, only the speed differs. For tests that both give the same bytes.
     ///
     /// # Panics
     ///
@@ -134,6 +134,9 @@ impl Tracer {
             "{isa:?} is not available on this processor"
         );
         self.isa = isa;
+        if let Some(bvh) = &mut self.bvh {
+            bvh.set_isa(isa);
+        }
         self
     }
 
@@ -408,6 +411,26 @@ pub(crate) mod tests {
                     assert_eq!(a, b, "case {case}: rays");
                 }
             }
+        }
+    }
+
+    /// The hierarchy's node tests run with the tracer's instruction set, also when it is
+    /// changed after the hierarchy is built, so that the portable tests reach them.
+    #[test]
+    fn the_hierarchy_follows_the_tracers_instruction_set() {
+        let mut rng = Mix(11);
+        let scene = loop {
+            let scene = random_scene(&mut rng);
+            if Tracer::with_bvh(&scene, scene.settings, true).uses_bvh() {
+                break scene;
+            }
+        };
+        let tracer = Tracer::with_bvh(&scene, scene.settings, true);
+        let isa = |t: &Tracer| t.bvh.as_ref().map(Bvh::isa);
+        assert_eq!(isa(&tracer), Some(tracer.isa()));
+        for choice in [Isa::Portable, Isa::best(), Isa::Portable] {
+            let tracer = tracer.clone().with_isa(choice);
+            assert_eq!(isa(&tracer), Some(choice));
         }
     }
 

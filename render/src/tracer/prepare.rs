@@ -54,15 +54,21 @@ pub(super) struct EyePlane {
     pub index: u32,
 }
 
-/// Spheres from which the hierarchy is built when camera rays are traced one by one
-/// (aa = 1): below this, testing every sphere is as fast. Measured with
-/// `cargo bench -p render --bench bvh_threshold` (see docs/performance.md).
-const BVH_MIN_SPHERES: usize = 12;
+/// Spheres from which the hierarchy is built at one sample per pixel (aa = 1). Camera
+/// rays are traced four at a time at every aa, and testing every sphere then runs in
+/// SIMD lanes across the four rays, from per-object camera constants, while the
+/// hierarchy is traversed ray by ray: it pays only from a few dozen spheres.
+/// `cargo bench -p render --bench bvh_threshold` (thread CPU time, best of 7, shared
+/// 2-core Xeon) gave hierarchy / every sphere = 2.06 (cluster) and 1.75 (spread) at 12
+/// spheres, 1.20 and 0.87 at 32, 0.90 and 0.64 at 48, 0.77 and 0.50 at 64: 48 is the
+/// first count measured at which the hierarchy is as fast in both layouts.
+const BVH_MIN_SPHERES: usize = 48;
 
-/// The same when camera rays are traced four at a time (aa ≥ 2): testing every sphere
-/// then runs in SIMD lanes across the four rays while the hierarchy is traversed ray by
-/// ray, so it pays only from more spheres. Measured likewise.
-const BVH_MIN_SPHERES_PACKETS: usize = 40;
+/// The same for several samples per pixel (aa ≥ 2), measured likewise at aa 2:
+/// hierarchy / every sphere = 2.28 (cluster) and 1.89 (spread) at 12 spheres, 1.33 and
+/// 0.95 at 32, 0.98 and 0.70 at 48, 0.84 at 64 (cluster). Kept apart from
+/// [`BVH_MIN_SPHERES`] because the two differ once the hierarchy traces packets too.
+const BVH_MIN_SPHERES_PACKETS: usize = 48;
 
 /// The most entries of the tables of image-plane coordinates ((width + height) × groups
 /// of four samples): 2 MiB.
@@ -141,8 +147,9 @@ impl Tracer {
         } else {
             BVH_MIN_SPHERES_PACKETS
         };
+        let isa = Isa::detect();
         let bvh = if force_bvh.unwrap_or(spheres.len() >= threshold) {
-            Bvh::build(&spheres)
+            Bvh::build(&spheres, isa)
         } else {
             None
         };
@@ -184,7 +191,7 @@ impl Tracer {
                     index,
                 })
                 .collect(),
-            isa: Isa::detect(),
+            isa,
             surfaces,
             spheres,
             planes,
