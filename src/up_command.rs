@@ -11,9 +11,9 @@ use anyhow::{anyhow, Context, Result};
 use protocol::Overrides;
 use transport::Endpoint;
 
-use crate::client_commands::{fetch_through, submit, summary, wait, Session};
+use crate::client_commands::{submit, summary, wait, Session};
 use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::output::default_output;
+use crate::output::{default_output, ImageOutput};
 
 pub struct Options {
     pub scene: PathBuf,
@@ -25,8 +25,15 @@ pub struct Options {
 }
 
 pub async fn run(opts: Options) -> Result<()> {
-    // Fail on an unreadable scene before starting anything.
+    // Fail on an unreadable scene or an image that cannot be written before starting
+    // anything.
     crate::client_commands::read_scene(&opts.scene)?;
+    let output = ImageOutput::create(
+        &opts
+            .output
+            .clone()
+            .unwrap_or_else(|| default_output(&opts.scene)),
+    )?;
     let specs = vec![
         WorkerSpec {
             threads: opts.threads_per_worker,
@@ -38,7 +45,7 @@ pub async fn run(opts: Options) -> Result<()> {
         .await
         .context("starting the local farm")??;
     let result = tokio::select! {
-        r = render_on(farm.address(), &opts) => r,
+        r = render_on(farm.address(), &opts, output) => r,
         e = farm.first_exit() => Err(e),
         _ = tokio::signal::ctrl_c() => Err(anyhow!("interrupted")),
     };
@@ -46,7 +53,7 @@ pub async fn run(opts: Options) -> Result<()> {
     result
 }
 
-async fn render_on(address: &str, opts: &Options) -> Result<()> {
+async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result<()> {
     let mut session = Session::connect(&Endpoint::plain(address)).await?;
     let job = submit(
         session.client(),
@@ -58,11 +65,10 @@ async fn render_on(address: &str, opts: &Options) -> Result<()> {
     )
     .await?;
     let status = wait(&mut session, job).await?;
-    let output = opts
-        .output
-        .clone()
-        .unwrap_or_else(|| default_output(&opts.scene));
-    fetch_through(&mut session, job, &output).await?;
-    eprintln!("{} ({} workers)", summary(&output, &status), opts.workers);
+    let path = output.path().to_path_buf();
+    // The farm and its copy of the image go with this command: no `tessera fetch`.
+    let png = session.fetch(job).await?;
+    output.write(&png)?;
+    eprintln!("{} ({} workers)", summary(&path, &status), opts.workers);
     Ok(())
 }
