@@ -459,10 +459,29 @@ pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     Ok(())
 }
 
+/// `tessera cancel`: a job already cancelled is no error (what was asked is so); one
+/// that ended otherwise is, saying how it ended.
 pub async fn run_cancel(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
-    Client::connect(coordinator).await?.cancel(job).await?;
+    let mut client = Client::connect(coordinator).await?;
+    let already = match client.cancel(job).await {
+        Ok(()) => false,
+        Err(refused) => match client.status(job).await {
+            Ok(s) if s.state == JobState::Cancelled => true,
+            Ok(s) if s.state.is_final() => anyhow::bail!(
+                "job {job} is already {}: there is nothing to cancel (`tessera delete {job}` \
+                 removes it)",
+                s.state.as_str()
+            ),
+            _ => return Err(refused),
+        },
+    };
     if json_out {
-        println!("{}", json!({ "id": job, "state": "cancelled" }));
+        println!(
+            "{}",
+            json!({ "id": job, "state": "cancelled", "already_cancelled": already })
+        );
+    } else if already {
+        println!("job {job} was already cancelled");
     } else {
         println!("job {job} cancelled");
     }

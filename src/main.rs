@@ -887,7 +887,10 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::FAILURE
+            match e.downcast_ref::<up_command::Interrupted>() {
+                Some(signal) => ExitCode::from(signal.exit_code),
+                None => ExitCode::FAILURE,
+            }
         }
     }
 }

@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{Context, Result};
 use protocol::Overrides;
 use transport::Endpoint;
 
@@ -25,6 +25,8 @@ pub struct Options {
 }
 
 pub async fn run(opts: Options) -> Result<()> {
+    // Caught from now on, so that the farm and its temporary directory always go.
+    let mut stop = StopSignals::new()?;
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
     crate::client_commands::read_scene(&opts.scene)?;
@@ -41,16 +43,96 @@ pub async fn run(opts: Options) -> Result<()> {
         };
         opts.workers
     ];
-    let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&specs))
-        .await
-        .context("starting the local farm")??;
+    let starting = tokio::task::spawn_blocking(move || LocalFarm::start(&specs));
+    let farm = tokio::select! {
+        farm = starting => farm.context("starting the local farm")??,
+        signal = stop.next() => return Err(signal.into()),
+    };
     let result = tokio::select! {
         r = render_on(farm.address(), &opts, output) => r,
         e = farm.first_exit() => Err(e),
-        _ = tokio::signal::ctrl_c() => Err(anyhow!("interrupted")),
+        signal = stop.next() => Err(signal.into()),
     };
     drop(farm);
     result
+}
+
+/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
+/// shell reports a command killed by it, once the farm is stopped and its temporary
+/// directory removed.
+#[derive(Debug)]
+pub struct Interrupted {
+    pub name: &'static str,
+    /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
+    pub exit_code: u8,
+}
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "interrupted by {}: the local farm is stopped, no image written",
+            self.name
+        )
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
+struct StopSignals {
+    #[cfg(unix)]
+    signals: [(tokio::signal::unix::Signal, Interrupted); 3],
+}
+
+impl StopSignals {
+    fn new() -> Result<StopSignals> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
+                Ok((
+                    signal(kind).with_context(|| format!("cannot catch {name}"))?,
+                    Interrupted { name, exit_code },
+                ))
+            };
+            Ok(StopSignals {
+                signals: [
+                    catch(SignalKind::interrupt(), "SIGINT", 130)?,
+                    catch(SignalKind::terminate(), "SIGTERM", 143)?,
+                    catch(SignalKind::hangup(), "SIGHUP", 129)?,
+                ],
+            })
+        }
+        #[cfg(not(unix))]
+        Ok(StopSignals {})
+    }
+
+    /// The next signal caught.
+    async fn next(&mut self) -> Interrupted {
+        #[cfg(unix)]
+        {
+            let [(int, _), (term, _), (hup, _)] = &mut self.signals;
+            let i = tokio::select! {
+                _ = int.recv() => 0,
+                _ = term.recv() => 1,
+                _ = hup.recv() => 2,
+            };
+            let (_, what) = &self.signals[i];
+            Interrupted {
+                name: what.name,
+                exit_code: what.exit_code,
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = tokio::signal::ctrl_c().await;
+            Interrupted {
+                name: "Ctrl-C",
+                exit_code: 130,
+            }
+        }
+    }
 }
 
 async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result<()> {

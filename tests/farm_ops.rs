@@ -1,12 +1,17 @@
 //! Operating a farm, against real `tessera` processes on 127.0.0.1: one coordinator per
 //! data directory; an image file that cannot be written is refused before the farm
-//! spends anything on it.
+//! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
+//! shell expects; cancelling twice is no error.
 
 mod common;
 
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{client, ok, scene_path, serial, start_coordinator, tessera, try_start_coordinator};
+use common::{
+    client, ok, poll, scene_path, serial, start_coordinator, start_worker, submit, tessera,
+    try_start_coordinator, wait_done, Daemon, BIN,
+};
 
 #[test]
 fn a_data_directory_in_use_is_refused_with_the_holders_address() {
@@ -107,4 +112,111 @@ fn up_refuses_an_image_it_cannot_write_before_starting_a_farm() {
         "{:?}",
         started.elapsed()
     );
+}
+
+#[test]
+fn up_stopped_by_a_signal_removes_its_farm_and_exits_with_128_plus_the_signal() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    for (signal, code) in [("TERM", 143), ("INT", 130)] {
+        // Its own temporary directory, to see what `up` leaves there.
+        let tmp = dir.path().join(format!("tmp-{signal}"));
+        std::fs::create_dir(&tmp).unwrap();
+        let child = Command::new(BIN)
+            .args([
+                "up",
+                &scene_path("seed.json"),
+                "--aa",
+                "16",
+                "-o",
+                "out.png",
+            ])
+            .args(["--width", "1200", "--height", "800"])
+            .current_dir(dir.path())
+            .env("TMPDIR", &tmp)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("up.log")).unwrap())
+            .spawn()
+            .unwrap();
+        let mut up = Daemon {
+            name: "up".into(),
+            child,
+            log: Some(dir.path().join("up.log")),
+        };
+        // The farm is up once its coordinator has a database.
+        let farm = poll("the local farm", Duration::from_secs(30), || {
+            std::fs::read_dir(&tmp)
+                .ok()?
+                .filter_map(Result::ok)
+                .map(|e| e.path())
+                .find(|p| p.join("data/tessera.db").exists())
+        });
+        std::thread::sleep(Duration::from_millis(500));
+        up.signal(signal);
+        let status = up
+            .wait_exit(Duration::from_secs(20))
+            .unwrap_or_else(|| panic!("up still running 20 s after SIG{signal}"));
+        assert_eq!(status.code(), Some(code), "SIG{signal}: {}", up.log_text());
+        let log = up.log_text();
+        assert!(
+            log.trim_end().ends_with(&format!(
+                "error: interrupted by SIG{signal}: the local farm is stopped, no image written"
+            )),
+            "{log}"
+        );
+        assert!(!farm.exists(), "SIG{signal} left {} behind", farm.display());
+        let left: Vec<_> = std::fs::read_dir(&tmp).unwrap().collect();
+        assert!(left.is_empty(), "SIG{signal} left {left:?}");
+        assert!(!dir.path().join("out.png").exists());
+    }
+}
+
+#[test]
+fn cancelling_a_cancelled_job_succeeds_and_a_done_one_says_why_not() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let small = ["--width", "64", "--height", "48", "--aa", "1"];
+    let mut args = vec![scene_path("seed.json")];
+    args.extend(small.iter().map(|s| s.to_string()));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // No worker yet: the job stays queued.
+    let job = submit(dir.path(), &addr, &args).to_string();
+    let first = ok(client(dir.path(), &addr, &["cancel", &job]), "cancel");
+    assert_eq!(first.stdout.trim(), format!("job {job} cancelled"));
+    let again = ok(client(dir.path(), &addr, &["cancel", &job]), "cancel again");
+    assert_eq!(
+        again.stdout.trim(),
+        format!("job {job} was already cancelled")
+    );
+    let json = ok(
+        client(dir.path(), &addr, &["cancel", &job, "--json"]),
+        "cancel --json",
+    );
+    let json: serde_json::Value = serde_json::from_str(json.stdout.trim()).unwrap();
+    assert_eq!(json["state"], "cancelled");
+    assert_eq!(json["already_cancelled"], true);
+
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let done = submit(dir.path(), &addr, &args);
+    wait_done(dir.path(), &addr, done, Duration::from_secs(60));
+    let run = client(dir.path(), &addr, &["cancel", &done.to_string()]);
+    assert_eq!(run.status.code(), Some(1), "{}", run.stderr);
+    assert_eq!(
+        run.stderr.trim(),
+        format!(
+            "error: job {done} is already done: there is nothing to cancel (`tessera delete \
+             {done}` removes it)"
+        )
+    );
+    let missing = client(dir.path(), &addr, &["cancel", "999"]);
+    assert!(!missing.status.success());
+    assert!(missing.stderr.contains("no job 999"), "{}", missing.stderr);
 }
