@@ -1,7 +1,8 @@
 //! Operating a farm, against real `tessera` processes on 127.0.0.1: one coordinator per
 //! data directory; an image file that cannot be written is refused before the farm
 //! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
-//! shell expects; cancelling twice is no error.
+//! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
+//! line saying what to give.
 
 mod common;
 
@@ -219,4 +220,71 @@ fn cancelling_a_cancelled_job_succeeds_and_a_done_one_says_why_not() {
     let missing = client(dir.path(), &addr, &["cancel", "999"]);
     assert!(!missing.status.success());
     assert!(missing.stderr.contains("no job 999"), "{}", missing.stderr);
+}
+
+#[test]
+fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let one_line = |run: &common::Run| -> String {
+        assert!(!run.status.success(), "accepted: {}", run.stdout);
+        let lines: Vec<&str> = run.stderr.lines().collect();
+        assert_eq!(lines.len(), 1, "{}", run.stderr);
+        assert!(run.stdout.is_empty(), "stdout: {}", run.stdout);
+        lines[0].to_owned()
+    };
+    let t = Duration::from_secs(20);
+    let line = one_line(&tessera(dir.path(), &["status", "abc"], t));
+    assert_eq!(
+        line,
+        "error: invalid value 'abc' for '<JOB>': a job id is a whole number, as `tessera \
+         submit` and `tessera list` print it"
+    );
+    let line = one_line(&tessera(
+        dir.path(),
+        &["list", "--coordinator", "127.0.0.1"],
+        t,
+    ));
+    assert_eq!(
+        line,
+        "error: invalid value '127.0.0.1' for '--coordinator <ADDR>': no port: give \
+         HOST:PORT, for example 127.0.0.1:7878 (7878 is the coordinator's default port)"
+    );
+
+    // The coordinator's HTTP port given for its protocol port.
+    let http = format!("127.0.0.1:{}", common::free_port());
+    let (_coordinator, _addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let line = one_line(&tessera(dir.path(), &["list", "--coordinator", &http], t));
+    assert_eq!(
+        line,
+        format!(
+            "error: {http} answered in HTTP: this looks like the coordinator's HTTP port \
+             (--http); give the port it listens on for workers and clients (--listen, 7878 \
+             by default)"
+        )
+    );
+
+    // With --json, the error is the one JSON value on stdout, and stderr is empty.
+    for args in [
+        vec!["status", "abc", "--json"],
+        vec!["list", "--json", "--coordinator", &http],
+    ] {
+        let run = tessera(dir.path(), &args, t);
+        assert!(!run.status.success(), "{args:?}");
+        assert!(run.stderr.is_empty(), "{args:?}: stderr {}", run.stderr);
+        let value: serde_json::Value = serde_json::from_str(run.stdout.trim())
+            .unwrap_or_else(|e| panic!("{args:?}: not JSON ({e}): {}", run.stdout));
+        let message = value["error"].as_str().unwrap_or_default();
+        assert!(
+            message.contains("a job id is a whole number") || message.contains("answered in HTTP"),
+            "{args:?}: {value}"
+        );
+        assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
+    }
 }
