@@ -43,7 +43,11 @@ pub async fn run(opts: Options) -> Result<()> {
         };
         opts.workers
     ];
-    let starting = tokio::task::spawn_blocking(move || LocalFarm::start(&specs));
+    let starting = tokio::task::spawn_blocking(move || {
+        let limits = up_limits();
+        let args: Vec<&str> = limits.iter().map(String::as_str).collect();
+        LocalFarm::start_with(&specs, &args)
+    });
     let farm = tokio::select! {
         farm = starting => farm.context("starting the local farm")??,
         signal = stop.next() => return Err(signal.into()),
@@ -55,6 +59,20 @@ pub async fn run(opts: Options) -> Result<()> {
     };
     drop(farm);
     result
+}
+
+/// The limits of the coordinator `up` starts: whatever `tessera render` renders (its
+/// size and antialiasing), not the defaults that guard a shared farm.
+fn up_limits() -> Vec<String> {
+    use render::limits::{MAX_AA, MAX_SIDE};
+    vec![
+        "--max-aa".into(),
+        MAX_AA.to_string(),
+        "--max-pixels".into(),
+        (u64::from(MAX_SIDE) * u64::from(MAX_SIDE)).to_string(),
+        "--max-objects".into(),
+        u64::MAX.to_string(),
+    ]
 }
 
 /// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
@@ -145,7 +163,14 @@ async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result
         protocol::Verification::default(),
         opts.job.1,
     )
-    .await?;
+    .await
+    // The one limit left (the scene's size) is not of a coordinator the user started.
+    .map_err(|e| {
+        anyhow::anyhow!(
+            "{}",
+            format!("{e:#}").replace("this coordinator's limit", "the limit of `tessera up`")
+        )
+    })?;
     let status = wait(&mut session, job).await?;
     let path = output.path().to_path_buf();
     // The farm and its copy of the image go with this command: no `tessera fetch`.

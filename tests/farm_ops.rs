@@ -2,7 +2,7 @@
 //! data directory; an image file that cannot be written is refused before the farm
 //! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
 //! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
-//! line saying what to give.
+//! line saying what to give; `up` takes what `render` takes.
 
 mod common;
 
@@ -287,4 +287,34 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
         );
         assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
     }
+}
+
+#[test]
+fn up_takes_the_antialiasing_render_takes() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "up",
+        &scene_path("seed.json"),
+        "--aa",
+        "20",
+        "--width",
+        "40",
+        "--height",
+        "30",
+        "-o",
+        "out.png",
+    ];
+    let run = ok(
+        tessera(dir.path(), &args, Duration::from_secs(120)),
+        "up --aa 20",
+    );
+    assert!(run.stderr.contains("out.png: 40x30"), "{}", run.stderr);
+    let reference = common::render_reference(
+        dir.path(),
+        &scene_path("seed.json"),
+        "reference.png",
+        &["--aa", "20", "--width", "40", "--height", "30"],
+    );
+    common::assert_same_png(&dir.path().join("out.png"), &reference, "up --aa 20");
 }
