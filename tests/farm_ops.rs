@@ -2,7 +2,8 @@
 //! data directory; an image file that cannot be written is refused before the farm
 //! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
 //! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
-//! line saying what to give; `up` takes what `render` takes.
+//! line saying what to give; `up` takes what `render` takes; a job that did not finish
+//! shows no error estimate, and the page and `status --json` agree.
 
 mod common;
 
@@ -317,4 +318,68 @@ fn up_takes_the_antialiasing_render_takes() {
         &["--aa", "20", "--width", "40", "--height", "30"],
     );
     common::assert_same_png(&dir.path().join("out.png"), &reference, "up --aa 20");
+}
+
+#[test]
+fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", common::free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let page_job = |job: u64| -> serde_json::Value {
+        let (code, body) = common::http_get(&http, "/api/status").expect("the status page");
+        assert_eq!(code, 200);
+        let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        farm["jobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == job)
+            .cloned()
+            .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"))
+    };
+    let seed = scene_path("seed.json");
+    // Long enough to be cancelled with some of its tiles in.
+    let job = submit(dir.path(), &addr, &[&seed, "--aa", "8", "--tile", "16"]);
+    poll("a tile of the job", Duration::from_secs(60), || {
+        let status = common::try_status(dir.path(), &addr, job)?;
+        (common::tiles_done(&status) > 0).then_some(())
+    });
+    ok(
+        client(dir.path(), &addr, &["cancel", &job.to_string()]),
+        "cancel",
+    );
+    let status = common::try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["state"], "cancelled");
+    assert!(common::tiles_done(&status) > 0, "{status}");
+    assert!(status["estimated_error"].is_null(), "{status}");
+    assert!(status["samples_per_pixel"].is_null(), "{status}");
+    let page = page_job(job);
+    assert!(page["estimated_error"].is_null(), "{page}");
+    assert!(page["samples_per_pixel"].is_null(), "{page}");
+    let line = ok(
+        client(dir.path(), &addr, &["status", &job.to_string()]),
+        "status",
+    );
+    assert!(!line.stdout.contains("estimated error"), "{}", line.stdout);
+
+    // A finished job: the same figures both ways.
+    let done = submit(
+        dir.path(),
+        &addr,
+        &[&seed, "--width", "64", "--height", "48", "--aa", "2"],
+    );
+    let status = wait_done(dir.path(), &addr, done, Duration::from_secs(60));
+    let page = page_job(done);
+    for key in ["samples_per_pixel", "estimated_error"] {
+        assert!(status[key].is_number(), "{key}: {status}");
+        assert_eq!(status[key], page[key], "{key}");
+    }
 }
