@@ -3,7 +3,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 
 /// `scenes/seed.json` renders to `./seed.png`.
 pub fn default_output(scene: &Path) -> PathBuf {
@@ -59,7 +59,6 @@ struct Pending {
 
 impl Pending {
     fn create(path: &Path) -> Result<Pending> {
-        let cannot = || format!("cannot write {}", path.display());
         if path.is_dir() {
             bail!("cannot write {}: it is a directory", path.display());
         }
@@ -73,7 +72,13 @@ impl Pending {
         // the user's umask allows.
         #[cfg(unix)]
         builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-        let tmp = builder.tempfile_in(dir).with_context(cannot)?;
+        // Said of the image's own name: the temporary one, which the error of `tempfile`
+        // ends with (` at path "…"`), means nothing to the user.
+        let tmp = builder.tempfile_in(dir).map_err(|e| {
+            let text = e.to_string();
+            let reason = text.split(" at path \"").next().unwrap_or_default();
+            anyhow!("cannot write {}: {reason}", path.display())
+        })?;
         Ok(Pending {
             path: path.to_path_buf(),
             tmp,
@@ -109,7 +114,8 @@ mod tests {
         let missing = dir.path().join("nonexistent/x.png");
         let e = ImageOutput::create(&missing).err().unwrap();
         assert!(
-            format!("{e:#}").starts_with(&format!("cannot write {}", missing.display())),
+            format!("{e:#}").starts_with(&format!("cannot write {}", missing.display()))
+                && !format!("{e:#}").contains(".png.tmp"),
             "{e:#}"
         );
         let e = ImageOutput::create(dir.path()).err().unwrap();
