@@ -14,7 +14,7 @@ use render::RenderSettings;
 use serde_json::{json, Value};
 use transport::{DialError, Endpoint};
 
-use crate::output::{default_output, write_atomically};
+use crate::output::{default_output, ImageOutput};
 use crate::render_command::sampling_summary;
 
 /// Reads a scene file for submission.
@@ -147,7 +147,8 @@ impl Session {
             .await
     }
 
-    async fn fetch(&mut self, job: JobId) -> Result<Vec<u8>> {
+    /// A finished job's image, reconnecting if need be.
+    pub async fn fetch(&mut self, job: JobId) -> Result<Vec<u8>> {
         self.retrying(async |client: &mut Client| client.fetch(job).await)
             .await
     }
@@ -203,17 +204,18 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
 }
 
 /// Fetches a finished job's image and writes it.
-pub async fn fetch_to(client: &mut Client, job: JobId, output: &Path) -> Result<usize> {
+pub async fn fetch_to(client: &mut Client, job: JobId, output: ImageOutput) -> Result<usize> {
     let png = client.fetch(job).await?;
-    write_atomically(output, &png)?;
+    output.write(&png)?;
     Ok(png.len())
 }
 
-/// Fetches a finished job's image through a session, reconnecting if need be, and
-/// writes it; a file that cannot be written is reported with how to fetch the image
-/// again.
 /// Waits for `job` to end and downloads its image to `output`; an error names the job.
-async fn wait_and_fetch(session: &mut Session, job: JobId, output: &Path) -> Result<JobStatus> {
+async fn wait_and_fetch(
+    session: &mut Session,
+    job: JobId,
+    output: ImageOutput,
+) -> Result<JobStatus> {
     async {
         let status = wait(session, job).await?;
         fetch_through(session, job, output).await?;
@@ -223,10 +225,21 @@ async fn wait_and_fetch(session: &mut Session, job: JobId, output: &Path) -> Res
     .map_err(|e| naming_job(job, e))
 }
 
-pub async fn fetch_through(session: &mut Session, job: JobId, output: &Path) -> Result<usize> {
+/// Fetches a finished job's image through a session, reconnecting if need be, and
+/// writes it; a file that cannot be written (it was checked before the job, but a disk
+/// fills and directories go) is reported with how to fetch the image again.
+pub async fn fetch_through(
+    session: &mut Session,
+    job: JobId,
+    output: ImageOutput,
+) -> Result<usize> {
     let png = session.fetch(job).await?;
-    write_atomically(output, &png).map_err(|e| {
-        anyhow!("job {job} is done, but {e:#}: `tessera fetch {job} -o PATH` recovers it")
+    let path = output.path().to_path_buf();
+    output.write(&png).map_err(|e| {
+        anyhow!(
+            "job {job} is done, but {e:#}: `tessera fetch {job} -o {}` recovers it",
+            path.display()
+        )
     })?;
     Ok(png.len())
 }
@@ -309,6 +322,13 @@ pub async fn run_submit(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
+    // The image's file is checked before the farm spends anything on it.
+    let output = match wait_for_it {
+        true => Some(ImageOutput::create(
+            &output.unwrap_or_else(|| default_output(scene)),
+        )?),
+        false => None,
+    };
     let mut session = Session::connect(coordinator).await?;
     let JobChoices {
         overrides,
@@ -325,23 +345,23 @@ pub async fn run_submit(
         time_limit_ms,
     )
     .await?;
-    if !wait_for_it {
+    let Some(output) = output else {
         if json_out {
             println!("{}", json!({ "id": job, "state": "queued" }));
         } else {
             println!("{job}");
         }
         return Ok(());
-    }
+    };
     eprintln!("submitted job {job}");
-    let output = output.unwrap_or_else(|| default_output(scene));
-    let status = wait_and_fetch(&mut session, job, &output).await?;
+    let output_path = output.path().to_path_buf();
+    let status = wait_and_fetch(&mut session, job, output).await?;
     if json_out {
         let mut v = status_json(&status);
-        v["output"] = json!(output.display().to_string());
+        v["output"] = json!(output_path.display().to_string());
         println!("{v}");
     } else {
-        eprintln!("{}", summary(&output, &status));
+        eprintln!("{}", summary(&output_path, &status));
     }
     Ok(())
 }
@@ -364,6 +384,11 @@ pub async fn run_refine(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
+    // A file named is checked before the farm spends anything on it.
+    let checked = match (wait_for_it, &output) {
+        (true, Some(path)) => Some(ImageOutput::create(path)?),
+        _ => None,
+    };
     let mut session = Session::connect(coordinator).await?;
     let target_milli = match refinement.target_milli {
         Some(t) => t,
@@ -392,15 +417,20 @@ pub async fn run_refine(
         return Ok(());
     }
     eprintln!("refining job {old} as job {job}");
-    let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
-    let status = wait_and_fetch(&mut session, job, &output).await?;
+    let output = match checked {
+        Some(output) => output,
+        None => ImageOutput::create(&PathBuf::from(format!("job-{job}.png")))
+            .map_err(|e| naming_job(job, e))?,
+    };
+    let output_path = output.path().to_path_buf();
+    let status = wait_and_fetch(&mut session, job, output).await?;
     if json_out {
         let mut v = status_json(&status);
-        v["output"] = json!(output.display().to_string());
+        v["output"] = json!(output_path.display().to_string());
         v["refines"] = json!(old);
         println!("{v}");
     } else {
-        eprintln!("{}", summary(&output, &status));
+        eprintln!("{}", summary(&output_path, &status));
     }
     Ok(())
 }
@@ -429,10 +459,29 @@ pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     Ok(())
 }
 
+/// `tessera cancel`: a job already cancelled is no error (what was asked is so); one
+/// that ended otherwise is, saying how it ended.
 pub async fn run_cancel(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
-    Client::connect(coordinator).await?.cancel(job).await?;
+    let mut client = Client::connect(coordinator).await?;
+    let already = match client.cancel(job).await {
+        Ok(()) => false,
+        Err(refused) => match client.status(job).await {
+            Ok(s) if s.state == JobState::Cancelled => true,
+            Ok(s) if s.state.is_final() => anyhow::bail!(
+                "job {job} is already {}: there is nothing to cancel (`tessera delete {job}` \
+                 removes it)",
+                s.state.as_str()
+            ),
+            _ => return Err(refused),
+        },
+    };
     if json_out {
-        println!("{}", json!({ "id": job, "state": "cancelled" }));
+        println!(
+            "{}",
+            json!({ "id": job, "state": "cancelled", "already_cancelled": already })
+        );
+    } else if already {
+        println!("job {job} was already cancelled");
     } else {
         println!("job {job} cancelled");
     }
@@ -455,16 +504,18 @@ pub async fn run_fetch(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
-    let output = output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png")));
+    let output =
+        ImageOutput::create(&output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png"))))?;
+    let path = output.path().to_path_buf();
     let mut client = Client::connect(coordinator).await?;
-    let bytes = fetch_to(&mut client, job, &output).await?;
+    let bytes = fetch_to(&mut client, job, output).await?;
     if json_out {
         println!(
             "{}",
-            json!({ "id": job, "output": output.display().to_string(), "bytes": bytes })
+            json!({ "id": job, "output": path.display().to_string(), "bytes": bytes })
         );
     } else {
-        println!("{}", output.display());
+        println!("{}", path.display());
     }
     Ok(())
 }

@@ -97,6 +97,8 @@ enum Command {
 
     /// Show a job's state and progress.
     Status {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
         job: JobId,
         #[command(flatten)]
         common: ClientArgs,
@@ -110,6 +112,8 @@ enum Command {
 
     /// Cancel a job: its tiles stop being rendered.
     Cancel {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
         job: JobId,
         #[command(flatten)]
         common: ClientArgs,
@@ -125,6 +129,7 @@ enum Command {
     )]
     Delete {
         /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
         job: JobId,
         #[command(flatten)]
         common: ClientArgs,
@@ -132,6 +137,8 @@ enum Command {
 
     /// Download a finished job's image.
     Fetch {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
         job: JobId,
         /// Where to write the PNG [default: job-JOB.png].
         #[arg(short, long, value_name = "OUT.png")]
@@ -603,8 +610,10 @@ struct ClientArgs {
 /// How clients and workers reach a coordinator.
 #[derive(Args)]
 struct PeerArgs {
-    /// The coordinator's address.
-    #[arg(long, env = "TESSERA_COORDINATOR", value_name = "ADDR", default_value = DEFAULT_COORDINATOR)]
+    /// The coordinator's address, HOST:PORT (the port it listens on for workers and
+    /// clients, not its HTTP port).
+    #[arg(long, env = "TESSERA_COORDINATOR", value_name = "ADDR", default_value = DEFAULT_COORDINATOR,
+          value_parser = parse_coordinator_address)]
     coordinator: String,
     #[command(flatten)]
     secret: SecretArgs,
@@ -649,6 +658,55 @@ impl PeerArgs {
             tls,
             secret: self.secret.load()?,
         })
+    }
+}
+
+/// A job id as the commands that take one read it.
+fn parse_job_id(text: &str) -> Result<JobId, String> {
+    text.trim().parse().map_err(|_| {
+        "a job id is a whole number, as `tessera submit` and `tessera list` print it".to_owned()
+    })
+}
+
+/// `--coordinator`: a host and a port, which a bare host or address lacks.
+fn parse_coordinator_address(text: &str) -> Result<String, String> {
+    let text = text.trim();
+    let port = DEFAULT_COORDINATOR
+        .rsplit_once(':')
+        .map_or("7878", |(_, port)| port);
+    let (host, given) = if let Some(rest) = text.strip_prefix('[') {
+        match rest.split_once(']') {
+            Some((host, tail)) => (format!("[{host}]"), tail.strip_prefix(':')),
+            None => return Err("an IPv6 address needs its closing `]`".to_owned()),
+        }
+    } else {
+        match text.matches(':').count() {
+            0 => (text.to_owned(), None),
+            1 => {
+                let (host, port) = text.split_once(':').expect("one colon");
+                (host.to_owned(), Some(port))
+            }
+            _ => {
+                return Err(format!(
+                    "an IPv6 address goes in brackets with its port: [{text}]:{port}"
+                ))
+            }
+        }
+    };
+    if host.is_empty() {
+        return Err(format!(
+            "no host: give HOST:PORT, for example 127.0.0.1:{port}"
+        ));
+    }
+    match given {
+        None => Err(format!(
+            "no port: give HOST:PORT, for example {host}:{port} ({port} is the coordinator's \
+             default port)"
+        )),
+        Some(p) if p.parse::<u16>().is_ok_and(|p| p > 0) => Ok(text.to_owned()),
+        Some(p) => Err(format!(
+            "{p:?} is not a port number: give HOST:PORT, for example {host}:{port}"
+        )),
     }
 }
 
@@ -855,19 +913,24 @@ fn refines_a_job(state: &std::path::Path) -> Result<Option<protocol::JobId>> {
 
 fn main() -> ExitCode {
     let cli = Cli::command();
-    let expanded = match config::expand(std::env::args_os().collect(), &cli) {
+    let args: Vec<std::ffi::OsString> = std::env::args_os().collect();
+    let json = wants_json(&args);
+    let expanded = match config::expand(args, &cli) {
         Ok(expanded) => expanded,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            report_error(json, &format!("{e:#}"));
             return ExitCode::FAILURE;
         }
     };
     let matches = match cli.clone().try_get_matches_from(expanded.args) {
         Ok(matches) => matches,
         // A bad value is one line that names the option and says what is wrong.
-        Err(e) if e.kind() == clap::error::ErrorKind::ValueValidation => {
+        Err(e)
+            if e.kind() == clap::error::ErrorKind::ValueValidation || (json && e.use_stderr()) =>
+        {
             let text = e.render().to_string();
-            eprintln!("{}", text.lines().next().unwrap_or_default());
+            let line = text.lines().next().unwrap_or_default();
+            report_error(json, line.strip_prefix("error: ").unwrap_or(line));
             return ExitCode::from(2);
         }
         Err(e) => e.exit(),
@@ -886,9 +949,30 @@ fn main() -> ExitCode {
     match run(parsed.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::FAILURE
+            report_error(json, &format!("{e:#}"));
+            match e.downcast_ref::<up_command::Interrupted>() {
+                Some(signal) => ExitCode::from(signal.exit_code),
+                None => ExitCode::FAILURE,
+            }
         }
+    }
+}
+
+/// Whether the command line asks for JSON (`--json`, before any `--`).
+fn wants_json(args: &[std::ffi::OsString]) -> bool {
+    args.iter()
+        .skip(1)
+        .take_while(|a| *a != "--")
+        .any(|a| a == "--json")
+}
+
+/// A command's error: one line `error: MESSAGE` on stderr, or with `--json`, the object
+/// `{"error": "MESSAGE"}` on stdout, where the command's result would have been.
+fn report_error(json: bool, message: &str) {
+    if json {
+        println!("{}", serde_json::json!({ "error": message }));
+    } else {
+        eprintln!("error: {message}");
     }
 }
 

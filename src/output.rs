@@ -3,7 +3,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 
 /// `scenes/seed.json` renders to `./seed.png`.
 pub fn default_output(scene: &Path) -> PathBuf {
@@ -15,24 +15,124 @@ pub fn default_output(scene: &Path) -> PathBuf {
 
 /// Writes to a temporary file beside `path` and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    builder.prefix(".tessera-").suffix(".png.tmp");
-    // A temporary file is private (0600); the image is an ordinary file, readable as
-    // the user's umask allows.
-    #[cfg(unix)]
-    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-    let mut tmp = builder
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    tmp.write_all(bytes)
-        .and_then(|()| tmp.as_file().sync_all())
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    tmp.persist(path)
-        .map_err(|e| e.error)
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+    Pending::create(path)?.write(bytes)
+}
+
+/// An image still to be written: checked before any rendering, so that a render is
+/// never thrown away for a file name that cannot be written.
+///
+/// Tessera writes PNG only: a name with another extension (`out.jpg`) is refused, not
+/// silently given PNG bytes.
+pub struct ImageOutput(Pending);
+
+impl ImageOutput {
+    /// Checks that `path` names a PNG file that can be written, by creating the
+    /// temporary file beside it that will become the image.
+    pub fn create(path: &Path) -> Result<ImageOutput> {
+        let png = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+        if !png {
+            bail!(
+                "{}: tessera writes PNG images only: give a file name ending in .png",
+                path.display()
+            );
+        }
+        Ok(ImageOutput(Pending::create(path)?))
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0.path
+    }
+
+    /// Writes the image and renames it into place.
+    pub fn write(self, png: &[u8]) -> Result<()> {
+        self.0.write(png)
+    }
+}
+
+/// A temporary file beside the file it will become; removed if dropped unwritten.
+struct Pending {
+    path: PathBuf,
+    tmp: tempfile::NamedTempFile,
+}
+
+impl Pending {
+    fn create(path: &Path) -> Result<Pending> {
+        if path.is_dir() {
+            bail!("cannot write {}: it is a directory", path.display());
+        }
+        let dir = match path.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".tessera-").suffix(".png.tmp");
+        // A temporary file is private (0600); the image is an ordinary file, readable as
+        // the user's umask allows.
+        #[cfg(unix)]
+        builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+        // Said of the image's own name: the temporary one, which the error of `tempfile`
+        // ends with (` at path "…"`), means nothing to the user.
+        let tmp = builder.tempfile_in(dir).map_err(|e| {
+            let text = e.to_string();
+            let reason = text.split(" at path \"").next().unwrap_or_default();
+            anyhow!("cannot write {}: {reason}", path.display())
+        })?;
+        Ok(Pending {
+            path: path.to_path_buf(),
+            tmp,
+        })
+    }
+
+    fn write(mut self, bytes: &[u8]) -> Result<()> {
+        let cannot = || format!("cannot write {}", self.path.display());
+        self.tmp
+            .write_all(bytes)
+            .and_then(|()| self.tmp.as_file().sync_all())
+            .with_context(cannot)?;
+        let path = self.path.clone();
+        self.tmp
+            .persist(&path)
+            .map_err(|e| e.error)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_image_output_is_checked_before_anything_is_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let jpg = ImageOutput::create(&dir.path().join("out.jpg"))
+            .err()
+            .unwrap();
+        assert!(format!("{jpg:#}").contains("PNG images only"), "{jpg:#}");
+        let missing = dir.path().join("nonexistent/x.png");
+        let e = ImageOutput::create(&missing).err().unwrap();
+        assert!(
+            format!("{e:#}").starts_with(&format!("cannot write {}", missing.display()))
+                && !format!("{e:#}").contains(".png.tmp"),
+            "{e:#}"
+        );
+        let e = ImageOutput::create(dir.path()).err().unwrap();
+        assert!(format!("{e:#}").contains("PNG images only"), "{e:#}");
+        let sub = dir.path().join("d.png");
+        std::fs::create_dir(&sub).unwrap();
+        let e = ImageOutput::create(&sub).err().unwrap();
+        assert!(format!("{e:#}").contains("is a directory"), "{e:#}");
+
+        let out = dir.path().join("OUT.PNG");
+        let pending = ImageOutput::create(&out).unwrap();
+        assert!(!out.exists());
+        pending.write(b"png").unwrap();
+        assert_eq!(std::fs::read(&out).unwrap(), b"png");
+        // Dropped unwritten: nothing left behind.
+        drop(ImageOutput::create(&dir.path().join("never.png")).unwrap());
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(left.len(), 2, "{left:?}");
+    }
 }

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::output::{default_output, write_atomically};
+use crate::output::{default_output, ImageOutput};
 use crate::render_state;
 use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -59,10 +59,12 @@ pub fn run(opts: Options) -> Result<()> {
     if opts.state.is_some() && settings.sampling.target_error().is_none() {
         bail!("--state saves the samples of adaptive sampling: add --sampler adaptive");
     }
-    let output = opts
-        .output
-        .clone()
-        .unwrap_or_else(|| default_output(scene_path));
+    let output = ImageOutput::create(
+        &opts
+            .output
+            .clone()
+            .unwrap_or_else(|| default_output(scene_path)),
+    )?;
     let job = Job {
         scene: &scene,
         text: text.as_deref(),
@@ -109,11 +111,11 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
         sampling: target,
     };
     validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
-    let output = opts.output.clone().unwrap_or_else(|| {
+    let output = ImageOutput::create(&opts.output.clone().unwrap_or_else(|| {
         let mut p = opts.state.clone();
         p.set_extension("png");
         p
-    });
+    }))?;
     let job = Job {
         scene: &scene,
         text: Some(&saved.scene),
@@ -141,7 +143,8 @@ struct Job<'a> {
     /// The scene's text, kept when the samples are saved (with it).
     text: Option<&'a str>,
     settings: RenderSettings,
-    output: PathBuf,
+    /// Checked writable before the render starts.
+    output: ImageOutput,
     /// Renders: `--threads` threads, one per core by default.
     pool: rayon::ThreadPool,
     time_limit: Option<Duration>,
@@ -241,11 +244,12 @@ impl Job<'_> {
                 (frame.image, frame.rays, frame.samples, e, String::new())
             }
         };
-        write_atomically(&self.output, &image.to_png())?;
+        let output = self.output.path().to_path_buf();
+        self.output.write(&image.to_png())?;
         let secs = elapsed.as_secs_f64();
         eprintln!(
             "{}: {}x{}, {}{note}, {:.3} s, {:.1} M rays/s ({} threads)",
-            self.output.display(),
+            output.display(),
             settings.width,
             settings.height,
             sampling_summary(&settings, samples, error.is_finite().then_some(error)),

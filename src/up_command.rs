@@ -7,13 +7,13 @@
 
 use std::path::PathBuf;
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{Context, Result};
 use protocol::Overrides;
 use transport::Endpoint;
 
-use crate::client_commands::{fetch_through, submit, summary, wait, Session};
+use crate::client_commands::{submit, summary, wait, Session};
 use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::output::default_output;
+use crate::output::{default_output, ImageOutput};
 
 pub struct Options {
     pub scene: PathBuf,
@@ -25,8 +25,17 @@ pub struct Options {
 }
 
 pub async fn run(opts: Options) -> Result<()> {
-    // Fail on an unreadable scene before starting anything.
+    // Caught from now on, so that the farm and its temporary directory always go.
+    let mut stop = StopSignals::new()?;
+    // Fail on an unreadable scene or an image that cannot be written before starting
+    // anything.
     crate::client_commands::read_scene(&opts.scene)?;
+    let output = ImageOutput::create(
+        &opts
+            .output
+            .clone()
+            .unwrap_or_else(|| default_output(&opts.scene)),
+    )?;
     let specs = vec![
         WorkerSpec {
             threads: opts.threads_per_worker,
@@ -34,19 +43,117 @@ pub async fn run(opts: Options) -> Result<()> {
         };
         opts.workers
     ];
-    let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&specs))
-        .await
-        .context("starting the local farm")??;
+    let starting = tokio::task::spawn_blocking(move || {
+        let limits = up_limits();
+        let args: Vec<&str> = limits.iter().map(String::as_str).collect();
+        LocalFarm::start_with(&specs, &args)
+    });
+    let farm = tokio::select! {
+        farm = starting => farm.context("starting the local farm")??,
+        signal = stop.next() => return Err(signal.into()),
+    };
     let result = tokio::select! {
-        r = render_on(farm.address(), &opts) => r,
+        r = render_on(farm.address(), &opts, output) => r,
         e = farm.first_exit() => Err(e),
-        _ = tokio::signal::ctrl_c() => Err(anyhow!("interrupted")),
+        signal = stop.next() => Err(signal.into()),
     };
     drop(farm);
     result
 }
 
-async fn render_on(address: &str, opts: &Options) -> Result<()> {
+/// The limits of the coordinator `up` starts: whatever `tessera render` renders (its
+/// size and antialiasing), not the defaults that guard a shared farm.
+fn up_limits() -> Vec<String> {
+    use render::limits::{MAX_AA, MAX_SIDE};
+    vec![
+        "--max-aa".into(),
+        MAX_AA.to_string(),
+        "--max-pixels".into(),
+        (u64::from(MAX_SIDE) * u64::from(MAX_SIDE)).to_string(),
+        "--max-objects".into(),
+        u64::MAX.to_string(),
+    ]
+}
+
+/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
+/// shell reports a command killed by it, once the farm is stopped and its temporary
+/// directory removed.
+#[derive(Debug)]
+pub struct Interrupted {
+    pub name: &'static str,
+    /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
+    pub exit_code: u8,
+}
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "interrupted by {}: the local farm is stopped, no image written",
+            self.name
+        )
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
+struct StopSignals {
+    #[cfg(unix)]
+    signals: [(tokio::signal::unix::Signal, Interrupted); 3],
+}
+
+impl StopSignals {
+    fn new() -> Result<StopSignals> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
+                Ok((
+                    signal(kind).with_context(|| format!("cannot catch {name}"))?,
+                    Interrupted { name, exit_code },
+                ))
+            };
+            Ok(StopSignals {
+                signals: [
+                    catch(SignalKind::interrupt(), "SIGINT", 130)?,
+                    catch(SignalKind::terminate(), "SIGTERM", 143)?,
+                    catch(SignalKind::hangup(), "SIGHUP", 129)?,
+                ],
+            })
+        }
+        #[cfg(not(unix))]
+        Ok(StopSignals {})
+    }
+
+    /// The next signal caught.
+    async fn next(&mut self) -> Interrupted {
+        #[cfg(unix)]
+        {
+            let [(int, _), (term, _), (hup, _)] = &mut self.signals;
+            let i = tokio::select! {
+                _ = int.recv() => 0,
+                _ = term.recv() => 1,
+                _ = hup.recv() => 2,
+            };
+            let (_, what) = &self.signals[i];
+            Interrupted {
+                name: what.name,
+                exit_code: what.exit_code,
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = tokio::signal::ctrl_c().await;
+            Interrupted {
+                name: "Ctrl-C",
+                exit_code: 130,
+            }
+        }
+    }
+}
+
+async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result<()> {
     let mut session = Session::connect(&Endpoint::plain(address)).await?;
     let job = submit(
         session.client(),
@@ -56,13 +163,19 @@ async fn render_on(address: &str, opts: &Options) -> Result<()> {
         protocol::Verification::default(),
         opts.job.1,
     )
-    .await?;
+    .await
+    // The one limit left (the scene's size) is not of a coordinator the user started.
+    .map_err(|e| {
+        anyhow::anyhow!(
+            "{}",
+            format!("{e:#}").replace("this coordinator's limit", "the limit of `tessera up`")
+        )
+    })?;
     let status = wait(&mut session, job).await?;
-    let output = opts
-        .output
-        .clone()
-        .unwrap_or_else(|| default_output(&opts.scene));
-    fetch_through(&mut session, job, &output).await?;
-    eprintln!("{} ({} workers)", summary(&output, &status), opts.workers);
+    let path = output.path().to_path_buf();
+    // The farm and its copy of the image go with this command: no `tessera fetch`.
+    let png = session.fetch(job).await?;
+    output.write(&png)?;
+    eprintln!("{} ({} workers)", summary(&path, &status), opts.workers);
     Ok(())
 }

@@ -544,3 +544,32 @@ fn output_in_a_missing_directory_is_an_error() {
         "the error should name the output: {line:?}"
     );
 }
+
+#[test]
+fn an_output_that_cannot_be_written_is_refused_before_rendering() {
+    let dir = dir_with_scene(VALID_SCENE);
+    std::fs::create_dir(dir.path().join("d.png")).unwrap();
+    // A render of minutes: refused within seconds, before any of it, or the run is
+    // killed and the test fails.
+    let big = ["--width", "4000", "--height", "4000", "--aa", "16"];
+    for (out, says) in [
+        ("no-such-dir/out.png", "cannot write no-such-dir/out.png"),
+        ("out.jpg", "out.jpg: tessera writes PNG images only"),
+        ("out", "out: tessera writes PNG images only"),
+        ("d.png", "cannot write d.png: it is a directory"),
+    ] {
+        let mut args = vec!["render", SCENE, "-o", out];
+        args.extend(big);
+        let run = common::tessera(dir.path(), &args, Duration::from_secs(10));
+        let mut left = entries(dir.path());
+        left.retain(|name| name != "d.png");
+        assert_eq!(left, [SCENE], "-o {out} left files behind");
+        assert!(!run.status.success(), "-o {out} accepted");
+        let lines: Vec<&str> = run.stderr.lines().collect();
+        assert!(
+            lines.len() == 1 && lines[0].starts_with(&format!("error: {says}")),
+            "-o {out}: {:?}",
+            run.stderr
+        );
+    }
+}

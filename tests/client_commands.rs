@@ -202,25 +202,27 @@ fn an_image_that_cannot_be_written_names_the_job_and_how_to_fetch_it() {
         &[],
         "coordinator.log",
     );
+    // The file can be written when the job is submitted (it is checked then); its
+    // directory goes while the job waits for a worker.
+    std::fs::create_dir(dir.path().join("out")).unwrap();
+    let mut waiting = Waiting::start(dir.path(), &addr, "out/image.png");
+    let job = submitted_id(&waiting.line("first line", Duration::from_secs(30), |_| true));
+    std::fs::remove_dir_all(dir.path().join("out")).unwrap();
     let _worker = start_worker(dir.path(), &addr, "w1");
-    let seed = small_seed();
-    let mut args: Vec<&str> = vec!["submit"];
-    args.extend(seed.iter().map(String::as_str));
-    args.extend(["--wait", "-o", "no-such-dir/out.png"]);
-    let run = client(dir.path(), &addr, &args);
-    assert!(!run.status.success(), "wrote into a missing directory");
-    let lines: Vec<&str> = run.stderr.lines().collect();
-    let job = submitted_id(lines.first().copied().unwrap_or_default());
-    let error = lines.last().copied().unwrap_or_default();
+    let (status, lines) = waiting.finish(Duration::from_secs(120));
+    assert!(!status.success(), "wrote into a missing directory");
+    let error = lines.last().map(String::as_str).unwrap_or_default();
     assert!(
-        error.starts_with(&format!("error: job {job} is done, but cannot write "))
-            && error.contains("no-such-dir/out.png")
-            && error.ends_with(&format!("`tessera fetch {job} -o PATH` recovers it")),
+        error.starts_with(&format!(
+            "error: job {job} is done, but cannot write out/image.png"
+        )) && error.ends_with(&format!(
+            "`tessera fetch {job} -o out/image.png` recovers it"
+        )),
         "{error}"
     );
     // As it says.
     let out = fetch(dir.path(), &addr, job, "recovered.png");
-    let reference = render_reference(dir.path(), &seed[0], "reference.png", &SMALL);
+    let reference = render_reference(dir.path(), &small_seed()[0], "reference.png", &SMALL);
     assert_same_png(&out, &reference, "fetched after the failed write");
 }
 

@@ -38,6 +38,7 @@ use crate::store::Store;
 mod adaptive;
 mod client_session;
 mod core;
+mod data_lock;
 mod handshake;
 mod observer;
 mod persistence;
@@ -186,6 +187,8 @@ struct Shared {
     metrics: Metrics,
     /// The canary's reference render, and the spot checks.
     verifier: verification::Verifier,
+    /// This coordinator's hold on its data directory, for as long as it lives.
+    _data_lock: data_lock::DataLock,
 }
 
 impl Shared {
@@ -250,15 +253,23 @@ pub struct Server {
 impl Server {
     /// Opens and checks the data directory, restores its jobs, and binds the
     /// listening sockets.
+    /// A data directory that another coordinator holds is refused first, before
+    /// anything in it is read.
     pub async fn bind(config: Config) -> Result<Server> {
         let data = config.data.clone();
         let reset = config.reset_database;
-        let opened = tokio::task::spawn_blocking(move || startup::open(&data, reset))
-            .await
-            .context("the startup check stopped")??;
+        let (mut data_lock, opened) = tokio::task::spawn_blocking(move || {
+            std::fs::create_dir_all(&data)
+                .with_context(|| format!("cannot create the data directory {}", data.display()))?;
+            let lock = data_lock::DataLock::acquire(&data)?;
+            anyhow::Ok((lock, startup::open(&data, reset)?))
+        })
+        .await
+        .context("the startup check stopped")??;
         let listener = TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
+        data_lock.record_address(listener.local_addr()?);
         let http = match config.http {
             Some(addr) => Some(
                 TcpListener::bind(addr)
@@ -301,6 +312,7 @@ impl Server {
             rearm: tokio::sync::Notify::new(),
             metrics: Metrics::new(),
             verifier,
+            _data_lock: data_lock,
         });
         {
             let mut core = shared.lock();

@@ -484,9 +484,17 @@ async fn dial_now(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialErr
         .await
         .map_err(talk)?;
     loop {
-        let reply = raw
-            .next()
-            .await
+        let reply = raw.next().await;
+        // An HTTP server answers the hello with a status line, whose first bytes read as
+        // an absurd frame length: the coordinator's HTTP port, most likely.
+        if raw.read_buffer().starts_with(b"HTTP") {
+            return Err(DialError::Refused(anyhow!(
+                "{address} answered in HTTP: this looks like the coordinator's HTTP port \
+                 (--http); give the port it listens on for workers and clients (--listen, \
+                 7878 by default)"
+            )));
+        }
+        let reply = reply
             .ok_or_else(|| {
                 unreachable(anyhow!(
                     "the coordinator at {address} closed the connection{}",

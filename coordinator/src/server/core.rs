@@ -8,7 +8,7 @@
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use protocol::{
     ClientResponse, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker,
@@ -127,11 +127,17 @@ pub struct WorkerRecord {
     pub quarantined: Option<String>,
     /// The last round trips measured, in microseconds.
     rtts: VecDeque<u64>,
+    /// The rays of its results of the last [`RATE_WINDOW`], with when each arrived: its
+    /// current rate, not a lifetime average that idle time dilutes.
+    recent: VecDeque<(Instant, u64)>,
     /// Its mean time per tile on one thread, in microseconds (moving average).
     tile_us: Option<f64>,
     /// The pace last given to the scheduler: (rtt, tile time) in ms.
     pace: Option<(Millis, Millis)>,
 }
+
+/// A worker's rays per second are those of its results of this last while.
+const RATE_WINDOW: Duration = Duration::from_secs(60);
 
 /// Round trips kept per worker: the smallest of them is its round-trip time (the
 /// others waited behind results in the socket buffers).
@@ -157,6 +163,7 @@ impl WorkerRecord {
             assigned: HashMap::new(),
             quarantined: None,
             rtts: VecDeque::new(),
+            recent: VecDeque::new(),
             tile_us: None,
             pace: None,
         }
@@ -1319,6 +1326,7 @@ impl Core {
         if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
             w.rays += cost.rays;
+            w.count_rays(Instant::now(), cost.rays);
         }
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
@@ -1838,7 +1846,10 @@ impl JobRecord {
             eta_ms,
             error,
             samples: self.totals.samples,
-            estimated_error: self.estimated_error(),
+            // A job cancelled or failed has no image whose error could be estimated.
+            estimated_error: self
+                .estimated_error()
+                .filter(|_| !matches!(state, JobState::Cancelled | JobState::Failed)),
             time_limit_ms: self.time_limit_ms,
             stopped_on_time_limit: self.stopped_on_time_limit,
         }
@@ -1846,6 +1857,32 @@ impl JobRecord {
 }
 
 impl WorkerRecord {
+    /// Counts the rays of a result that arrived at `now`, forgetting those older than
+    /// [`RATE_WINDOW`].
+    fn count_rays(&mut self, now: Instant, rays: u64) {
+        self.recent.push_back((now, rays));
+        while self
+            .recent
+            .front()
+            .is_some_and(|&(at, _)| now.duration_since(at) > RATE_WINDOW)
+        {
+            self.recent.pop_front();
+        }
+    }
+
+    /// Rays per second over the last [`RATE_WINDOW`] (or since it connected, if that is
+    /// shorter): 0 for a worker that has been idle that long.
+    fn current_rate(&self, now: Instant) -> f64 {
+        let window = RATE_WINDOW.min(now.duration_since(self.connected));
+        let rays: u64 = self
+            .recent
+            .iter()
+            .filter(|&&(at, _)| now.duration_since(at) <= window)
+            .map(|&(_, rays)| rays)
+            .sum();
+        rays as f64 / window.as_secs_f64().max(1e-3)
+    }
+
     fn status(&self, id: WorkerId, in_flight: usize, credit: usize) -> WorkerStatus {
         let connected = self.connected.elapsed();
         WorkerStatus {
@@ -1856,7 +1893,7 @@ impl WorkerRecord {
             tiles_done: self.tiles_done,
             rays: self.rays,
             connected_ms: connected.as_millis() as u64,
-            rays_per_second: self.rays as f64 / connected.as_secs_f64().max(1e-9),
+            rays_per_second: self.current_rate(Instant::now()),
             build: self.build.clone(),
             quarantined: self.quarantined.clone(),
             rtt_us: self.rtt_us(),
@@ -1867,4 +1904,37 @@ impl WorkerRecord {
 
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_workers_rate_is_that_of_the_last_minute_not_its_lifetime() {
+        let mut w = WorkerRecord::new(
+            "w".into(),
+            "build".into(),
+            1,
+            mpsc::unbounded_channel().0,
+            Arc::new(tokio::sync::Notify::new()),
+        );
+        let start = w.connected;
+        let at = |s: u64| start + Duration::from_secs(s);
+        // 10 s of work at a million rays a second, then idle.
+        for s in 1..=10 {
+            w.count_rays(at(s), 1_000_000);
+        }
+        let busy = w.current_rate(at(10));
+        assert!((busy - 1e6).abs() < 1.0, "{busy}");
+        // Within the minute the work is averaged over the minute...
+        let later = w.current_rate(at(60));
+        assert!((later - 10e6 / 60.0).abs() < 1.0, "{later}");
+        // ...and a worker idle for longer than that renders nothing now, whatever it did
+        // before (the lifetime average would still say 10e6 / 300).
+        assert_eq!(w.current_rate(at(300)), 0.0);
+        w.count_rays(at(301), 6_000_000);
+        assert!((w.current_rate(at(301)) - 1e5).abs() < 1.0);
+        assert_eq!(w.recent.len(), 1, "older results are forgotten");
+    }
 }

@@ -47,7 +47,9 @@ pub struct JobView {
     pub rays: u64,
     pub elapsed_ms: u64,
     pub eta_ms: Option<u64>,
-    pub samples_per_pixel: f64,
+    /// The mean over the whole image, known once the job is done (as `tessera status
+    /// --json` gives it).
+    pub samples_per_pixel: Option<f64>,
     pub estimated_error: Option<f64>,
     pub error: Option<String>,
 }
@@ -114,7 +116,8 @@ impl Observer {
                     rays: s.rays,
                     elapsed_ms: s.elapsed_ms,
                     eta_ms: s.eta_ms,
-                    samples_per_pixel: s.samples as f64 / pixels.max(1) as f64,
+                    samples_per_pixel: (s.state == JobState::Done)
+                        .then(|| s.samples as f64 / pixels.max(1) as f64),
                     estimated_error: s.estimated_error,
                     error: s.error,
                 }

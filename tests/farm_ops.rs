@@ -1,0 +1,385 @@
+//! Operating a farm, against real `tessera` processes on 127.0.0.1: one coordinator per
+//! data directory; an image file that cannot be written is refused before the farm
+//! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
+//! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
+//! line saying what to give; `up` takes what `render` takes; a job that did not finish
+//! shows no error estimate, and the page and `status --json` agree.
+
+mod common;
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{
+    client, ok, poll, scene_path, serial, start_coordinator, start_worker, submit, tessera,
+    try_start_coordinator, wait_done, Daemon, BIN,
+};
+
+#[test]
+fn a_data_directory_in_use_is_refused_with_the_holders_address() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut first, addr) = start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let refused = try_start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log")
+        .map(|(_, addr)| addr)
+        .expect_err("a second coordinator started on the same data directory");
+    let log = std::fs::read_to_string(dir.path().join("second.log")).unwrap();
+    let errors: Vec<&str> = log.lines().filter(|l| l.starts_with("error: ")).collect();
+    assert_eq!(errors.len(), 1, "{refused}");
+    assert!(
+        errors[0].contains(&format!(
+            "the data directory {} is in use by another coordinator (pid {}, listening on \
+             {addr})",
+            data.display(),
+            first.pid()
+        )),
+        "{}",
+        errors[0]
+    );
+    // The first one goes on serving.
+    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    assert_eq!(listed.stdout.trim(), "no jobs");
+    assert!(first.is_running());
+
+    // Killed, it leaves its lock file behind, which does not stop a restart.
+    first.kill9();
+    assert!(data.join("coordinator.lock").exists());
+    let (_again, again) = start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "third.log");
+    ok(
+        client(dir.path(), &again, &["list"]),
+        "list after a restart",
+    );
+}
+
+#[test]
+fn submit_wait_refuses_an_image_it_cannot_write_before_submitting() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let seed = scene_path("seed.json");
+    for (out, says) in [
+        ("no-such-dir/out.png", "cannot write no-such-dir/out.png"),
+        ("out.jpg", "out.jpg: tessera writes PNG images only"),
+    ] {
+        // No worker: a job that was submitted would never end, and the run would be
+        // killed.
+        let run = client(dir.path(), &addr, &["submit", &seed, "--wait", "-o", out]);
+        assert!(!run.status.success(), "-o {out} accepted");
+        let lines: Vec<&str> = run.stderr.lines().collect();
+        assert!(
+            lines.len() == 1 && lines[0].starts_with(&format!("error: {says}")),
+            "-o {out}: {:?}",
+            run.stderr
+        );
+    }
+    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    assert_eq!(listed.stdout.trim(), "no jobs", "a job was submitted");
+}
+
+#[test]
+fn up_refuses_an_image_it_cannot_write_before_starting_a_farm() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let started = Instant::now();
+    let run = tessera(
+        dir.path(),
+        &[
+            "up",
+            &scene_path("seed.json"),
+            "-o",
+            "no-such-dir/out.png",
+            "--width",
+            "4000",
+            "--height",
+            "4000",
+        ],
+        Duration::from_secs(20),
+    );
+    assert!(!run.status.success());
+    let lines: Vec<&str> = run.stderr.lines().collect();
+    assert!(
+        lines.len() == 1 && lines[0].starts_with("error: cannot write no-such-dir/out.png"),
+        "{:?}",
+        run.stderr
+    );
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
+}
+
+#[test]
+fn up_stopped_by_a_signal_removes_its_farm_and_exits_with_128_plus_the_signal() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    for (signal, code) in [("TERM", 143), ("INT", 130)] {
+        // Its own temporary directory, to see what `up` leaves there.
+        let tmp = dir.path().join(format!("tmp-{signal}"));
+        std::fs::create_dir(&tmp).unwrap();
+        let child = Command::new(BIN)
+            .args([
+                "up",
+                &scene_path("seed.json"),
+                "--aa",
+                "16",
+                "-o",
+                "out.png",
+            ])
+            .args(["--width", "1200", "--height", "800"])
+            .current_dir(dir.path())
+            .env("TMPDIR", &tmp)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("up.log")).unwrap())
+            .spawn()
+            .unwrap();
+        let mut up = Daemon {
+            name: "up".into(),
+            child,
+            log: Some(dir.path().join("up.log")),
+        };
+        // The farm is up once its coordinator has a database.
+        let farm = poll("the local farm", Duration::from_secs(30), || {
+            std::fs::read_dir(&tmp)
+                .ok()?
+                .filter_map(Result::ok)
+                .map(|e| e.path())
+                .find(|p| p.join("data/tessera.db").exists())
+        });
+        std::thread::sleep(Duration::from_millis(500));
+        up.signal(signal);
+        let status = up
+            .wait_exit(Duration::from_secs(20))
+            .unwrap_or_else(|| panic!("up still running 20 s after SIG{signal}"));
+        assert_eq!(status.code(), Some(code), "SIG{signal}: {}", up.log_text());
+        let log = up.log_text();
+        assert!(
+            log.trim_end().ends_with(&format!(
+                "error: interrupted by SIG{signal}: the local farm is stopped, no image written"
+            )),
+            "{log}"
+        );
+        assert!(!farm.exists(), "SIG{signal} left {} behind", farm.display());
+        let left: Vec<_> = std::fs::read_dir(&tmp).unwrap().collect();
+        assert!(left.is_empty(), "SIG{signal} left {left:?}");
+        assert!(!dir.path().join("out.png").exists());
+    }
+}
+
+#[test]
+fn cancelling_a_cancelled_job_succeeds_and_a_done_one_says_why_not() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let small = ["--width", "64", "--height", "48", "--aa", "1"];
+    let mut args = vec![scene_path("seed.json")];
+    args.extend(small.iter().map(|s| s.to_string()));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // No worker yet: the job stays queued.
+    let job = submit(dir.path(), &addr, &args).to_string();
+    let first = ok(client(dir.path(), &addr, &["cancel", &job]), "cancel");
+    assert_eq!(first.stdout.trim(), format!("job {job} cancelled"));
+    let again = ok(client(dir.path(), &addr, &["cancel", &job]), "cancel again");
+    assert_eq!(
+        again.stdout.trim(),
+        format!("job {job} was already cancelled")
+    );
+    let json = ok(
+        client(dir.path(), &addr, &["cancel", &job, "--json"]),
+        "cancel --json",
+    );
+    let json: serde_json::Value = serde_json::from_str(json.stdout.trim()).unwrap();
+    assert_eq!(json["state"], "cancelled");
+    assert_eq!(json["already_cancelled"], true);
+
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let done = submit(dir.path(), &addr, &args);
+    wait_done(dir.path(), &addr, done, Duration::from_secs(60));
+    let run = client(dir.path(), &addr, &["cancel", &done.to_string()]);
+    assert_eq!(run.status.code(), Some(1), "{}", run.stderr);
+    assert_eq!(
+        run.stderr.trim(),
+        format!(
+            "error: job {done} is already done: there is nothing to cancel (`tessera delete \
+             {done}` removes it)"
+        )
+    );
+    let missing = client(dir.path(), &addr, &["cancel", "999"]);
+    assert!(!missing.status.success());
+    assert!(missing.stderr.contains("no job 999"), "{}", missing.stderr);
+}
+
+#[test]
+fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let one_line = |run: &common::Run| -> String {
+        assert!(!run.status.success(), "accepted: {}", run.stdout);
+        let lines: Vec<&str> = run.stderr.lines().collect();
+        assert_eq!(lines.len(), 1, "{}", run.stderr);
+        assert!(run.stdout.is_empty(), "stdout: {}", run.stdout);
+        lines[0].to_owned()
+    };
+    let t = Duration::from_secs(20);
+    let line = one_line(&tessera(dir.path(), &["status", "abc"], t));
+    assert_eq!(
+        line,
+        "error: invalid value 'abc' for '<JOB>': a job id is a whole number, as `tessera \
+         submit` and `tessera list` print it"
+    );
+    let line = one_line(&tessera(
+        dir.path(),
+        &["list", "--coordinator", "127.0.0.1"],
+        t,
+    ));
+    assert_eq!(
+        line,
+        "error: invalid value '127.0.0.1' for '--coordinator <ADDR>': no port: give \
+         HOST:PORT, for example 127.0.0.1:7878 (7878 is the coordinator's default port)"
+    );
+
+    // The coordinator's HTTP port given for its protocol port.
+    let http = format!("127.0.0.1:{}", common::free_port());
+    let (_coordinator, _addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let line = one_line(&tessera(dir.path(), &["list", "--coordinator", &http], t));
+    assert_eq!(
+        line,
+        format!(
+            "error: {http} answered in HTTP: this looks like the coordinator's HTTP port \
+             (--http); give the port it listens on for workers and clients (--listen, 7878 \
+             by default)"
+        )
+    );
+
+    // With --json, the error is the one JSON value on stdout, and stderr is empty.
+    for args in [
+        vec!["status", "abc", "--json"],
+        vec!["list", "--json", "--coordinator", &http],
+    ] {
+        let run = tessera(dir.path(), &args, t);
+        assert!(!run.status.success(), "{args:?}");
+        assert!(run.stderr.is_empty(), "{args:?}: stderr {}", run.stderr);
+        let value: serde_json::Value = serde_json::from_str(run.stdout.trim())
+            .unwrap_or_else(|e| panic!("{args:?}: not JSON ({e}): {}", run.stdout));
+        let message = value["error"].as_str().unwrap_or_default();
+        assert!(
+            message.contains("a job id is a whole number") || message.contains("answered in HTTP"),
+            "{args:?}: {value}"
+        );
+        assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
+    }
+}
+
+#[test]
+fn up_takes_the_antialiasing_render_takes() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "up",
+        &scene_path("seed.json"),
+        "--aa",
+        "20",
+        "--width",
+        "40",
+        "--height",
+        "30",
+        "-o",
+        "out.png",
+    ];
+    let run = ok(
+        tessera(dir.path(), &args, Duration::from_secs(120)),
+        "up --aa 20",
+    );
+    assert!(run.stderr.contains("out.png: 40x30"), "{}", run.stderr);
+    let reference = common::render_reference(
+        dir.path(),
+        &scene_path("seed.json"),
+        "reference.png",
+        &["--aa", "20", "--width", "40", "--height", "30"],
+    );
+    common::assert_same_png(&dir.path().join("out.png"), &reference, "up --aa 20");
+}
+
+#[test]
+fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", common::free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let page_job = |job: u64| -> serde_json::Value {
+        let (code, body) = common::http_get(&http, "/api/status").expect("the status page");
+        assert_eq!(code, 200);
+        let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        farm["jobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == job)
+            .cloned()
+            .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"))
+    };
+    let seed = scene_path("seed.json");
+    // Long enough to be cancelled with some of its tiles in.
+    let job = submit(dir.path(), &addr, &[&seed, "--aa", "8", "--tile", "16"]);
+    poll("a tile of the job", Duration::from_secs(60), || {
+        let status = common::try_status(dir.path(), &addr, job)?;
+        (common::tiles_done(&status) > 0).then_some(())
+    });
+    ok(
+        client(dir.path(), &addr, &["cancel", &job.to_string()]),
+        "cancel",
+    );
+    let status = common::try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["state"], "cancelled");
+    assert!(common::tiles_done(&status) > 0, "{status}");
+    assert!(status["estimated_error"].is_null(), "{status}");
+    assert!(status["samples_per_pixel"].is_null(), "{status}");
+    let page = page_job(job);
+    assert!(page["estimated_error"].is_null(), "{page}");
+    assert!(page["samples_per_pixel"].is_null(), "{page}");
+    let line = ok(
+        client(dir.path(), &addr, &["status", &job.to_string()]),
+        "status",
+    );
+    assert!(!line.stdout.contains("estimated error"), "{}", line.stdout);
+
+    // A finished job: the same figures both ways.
+    let done = submit(
+        dir.path(),
+        &addr,
+        &[&seed, "--width", "64", "--height", "48", "--aa", "2"],
+    );
+    let status = wait_done(dir.path(), &addr, done, Duration::from_secs(60));
+    let page = page_job(done);
+    for key in ["samples_per_pixel", "estimated_error"] {
+        assert!(status[key].is_number(), "{key}: {status}");
+        assert_eq!(status[key], page[key], "{key}");
+    }
+}
