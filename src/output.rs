@@ -15,7 +15,7 @@ pub fn default_output(scene: &Path) -> PathBuf {
 
 /// Writes to a temporary file beside `path` and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    Pending::create(path)?.write(bytes)
+    Pending { path: path.into() }.write(bytes)
 }
 
 /// An image still to be written: checked before any rendering, so that a render is
@@ -26,8 +26,8 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
 pub struct ImageOutput(Pending);
 
 impl ImageOutput {
-    /// Checks that `path` names a PNG file that can be written, by creating the
-    /// temporary file beside it that will become the image.
+    /// Checks that `path` names a PNG file that can be written, by creating (and
+    /// removing) a temporary file beside it, as the image will be written.
     pub fn create(path: &Path) -> Result<ImageOutput> {
         let png = path
             .extension()
@@ -38,7 +38,7 @@ impl ImageOutput {
                 path.display()
             );
         }
-        Ok(ImageOutput(Pending::create(path)?))
+        Ok(ImageOutput(Pending::check(path)?))
     }
 
     pub fn path(&self) -> &Path {
@@ -51,53 +51,57 @@ impl ImageOutput {
     }
 }
 
-/// A temporary file beside the file it will become; removed if dropped unwritten.
+/// A file still to be written, through a temporary file beside it renamed into place.
+///
+/// The temporary file exists only while the bytes are written: one kept open through a
+/// long render would stay behind when the render is interrupted (Ctrl-C ends the
+/// process without running destructors).
 struct Pending {
     path: PathBuf,
-    tmp: tempfile::NamedTempFile,
 }
 
 impl Pending {
-    fn create(path: &Path) -> Result<Pending> {
-        if path.is_dir() {
-            bail!("cannot write {}: it is a directory", path.display());
-        }
-        let dir = match path.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p,
-            _ => Path::new("."),
-        };
-        let mut builder = tempfile::Builder::new();
-        builder.prefix(".tessera-").suffix(".png.tmp");
-        // A temporary file is private (0600); the image is an ordinary file, readable as
-        // the user's umask allows.
-        #[cfg(unix)]
-        builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-        // Said of the image's own name: the temporary one, which the error of `tempfile`
-        // ends with (` at path "…"`), means nothing to the user.
-        let tmp = builder.tempfile_in(dir).map_err(|e| {
-            let text = e.to_string();
-            let reason = text.split(" at path \"").next().unwrap_or_default();
-            anyhow!("cannot write {}: {reason}", path.display())
-        })?;
-        Ok(Pending {
-            path: path.to_path_buf(),
-            tmp,
-        })
+    /// Checks that `path` can be written, the way [`Pending::write`] will write it.
+    fn check(path: &Path) -> Result<Pending> {
+        drop(temporary_beside(path)?);
+        Ok(Pending { path: path.into() })
     }
 
-    fn write(mut self, bytes: &[u8]) -> Result<()> {
+    fn write(self, bytes: &[u8]) -> Result<()> {
         let cannot = || format!("cannot write {}", self.path.display());
-        self.tmp
-            .write_all(bytes)
-            .and_then(|()| self.tmp.as_file().sync_all())
+        let mut tmp = temporary_beside(&self.path)?;
+        tmp.write_all(bytes)
+            .and_then(|()| tmp.as_file().sync_all())
             .with_context(cannot)?;
-        let path = self.path.clone();
-        self.tmp
-            .persist(&path)
+        tmp.persist(&self.path)
             .map_err(|e| e.error)
-            .with_context(|| format!("cannot write {}", path.display()))?;
+            .with_context(cannot)?;
         Ok(())
     }
+}
+
+/// A new temporary file in the directory of `path`, removed if dropped.
+fn temporary_beside(path: &Path) -> Result<tempfile::NamedTempFile> {
+    if path.is_dir() {
+        bail!("cannot write {}: it is a directory", path.display());
+    }
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".tessera-").suffix(".png.tmp");
+    // A temporary file is private (0600); the image is an ordinary file, readable as
+    // the user's umask allows.
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    // Said of the image's own name: the temporary one, which the error of `tempfile`
+    // ends with (` at path "…"`), means nothing to the user.
+    builder.tempfile_in(dir).map_err(|e| {
+        let text = e.to_string();
+        let reason = text.split(" at path \"").next().unwrap_or_default();
+        anyhow!("cannot write {}: {reason}", path.display())
+    })
 }
 
 #[cfg(test)]

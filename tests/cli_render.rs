@@ -573,3 +573,30 @@ fn an_output_that_cannot_be_written_is_refused_before_rendering() {
         );
     }
 }
+
+#[test]
+fn an_interrupted_render_leaves_nothing_behind() {
+    let dir = dir_with_scene(VALID_SCENE);
+    // A render of minutes, interrupted once it is under way: the output was checked
+    // at the start, and nothing of that check, nor any partial image, may remain.
+    let child = std::process::Command::new(common::BIN)
+        .current_dir(dir.path())
+        .args(["render", SCENE, "-o", "out.png", "--width", "4000"])
+        .args(["--height", "4000", "--aa", "16", "--threads", "1"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("cannot start tessera");
+    let mut render = common::Daemon {
+        name: "render".into(),
+        child,
+        log: None,
+    };
+    std::thread::sleep(Duration::from_millis(700));
+    render.signal("INT");
+    let status = render
+        .wait_exit(Duration::from_secs(10))
+        .expect("render did not stop on SIGINT");
+    assert!(!status.success());
+    assert_eq!(entries(dir.path()), [SCENE]);
+}
