@@ -119,6 +119,32 @@ enum Command {
         common: ClientArgs,
     },
 
+    /// Pause a queued or running job: no new tiles of it go out until it is resumed.
+    #[command(
+        long_about = "Pause a queued or running job: no new tiles of it are handed out \
+            (tiles already out may finish, and count) until `tessera resume`. The pause \
+            survives a restart of the coordinator. Pausing a paused job changes nothing; \
+            pausing a job that has ended is an error.",
+        after_help = "Example:\n  tessera pause 7"
+    )]
+    Pause {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Resume a paused job: its tiles are handed out again.
+    #[command(after_help = "Example:\n  tessera resume 7")]
+    Resume {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
     /// Delete an ended job (done, failed or cancelled) and its image from the coordinator.
     #[command(
         long_about = "Delete an ended job (done, failed or cancelled) from the coordinator: \
@@ -1201,6 +1227,12 @@ fn run(command: Command) -> Result<()> {
             }
             Command::Cancel { job, common } => {
                 client_commands::run_cancel(&common.target()?, job, common.json).await
+            }
+            Command::Pause { job, common } => {
+                client_commands::run_pause(&common.target()?, job, true, common.json).await
+            }
+            Command::Resume { job, common } => {
+                client_commands::run_pause(&common.target()?, job, false, common.json).await
             }
             Command::Delete { job, common } => {
                 client_commands::run_delete(&common.target()?, job, common.json).await
