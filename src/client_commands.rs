@@ -1,4 +1,4 @@
-//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `delete`, `fetch` and `workers`.
+//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `delete`, `fetch` and `workers`.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -512,6 +512,28 @@ pub async fn run_pause(
         );
     } else {
         println!("job {job} resumed: it is {}", shown_state(&status));
+    }
+    Ok(())
+}
+
+/// `tessera priority JOB N`.
+pub async fn run_priority(
+    coordinator: &Endpoint,
+    job: JobId,
+    priority: i32,
+    json_out: bool,
+) -> Result<()> {
+    let status = Client::connect(coordinator)
+        .await?
+        .set_priority(job, priority)
+        .await?;
+    if json_out {
+        println!("{}", status_json(&status));
+    } else {
+        println!(
+            "job {job} now has priority {}: its next tiles go out by it",
+            status.priority
+        );
     }
     Ok(())
 }

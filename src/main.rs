@@ -145,6 +145,25 @@ enum Command {
         common: ClientArgs,
     },
 
+    /// Change a queued or running job's priority: higher runs first.
+    #[command(
+        long_about = "Change a queued or running job's priority (as `tessera submit \
+            --priority` sets it): higher runs first, and the next tiles handed out follow \
+            the new order. Tiles already out finish where they are. Kept across a restart \
+            of the coordinator.",
+        after_help = "Example:\n  tessera priority 7 10\n  tessera priority 7 -5"
+    )]
+    Priority {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        /// The new priority: higher runs first.
+        #[arg(allow_negative_numbers = true)]
+        priority: i32,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
     /// Delete an ended job (done, failed or cancelled) and its image from the coordinator.
     #[command(
         long_about = "Delete an ended job (done, failed or cancelled) from the coordinator: \
@@ -1234,6 +1253,11 @@ fn run(command: Command) -> Result<()> {
             Command::Resume { job, common } => {
                 client_commands::run_pause(&common.target()?, job, false, common.json).await
             }
+            Command::Priority {
+                job,
+                priority,
+                common,
+            } => client_commands::run_priority(&common.target()?, job, priority, common.json).await,
             Command::Delete { job, common } => {
                 client_commands::run_delete(&common.target()?, job, common.json).await
             }

@@ -466,3 +466,57 @@ fn a_paused_job_gets_no_tiles_stays_paused_across_a_restart_and_resumes() {
         "{json}"
     );
 }
+
+#[test]
+fn a_new_priority_is_stored_and_shown_and_an_ended_job_refuses_it() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let seed = scene_path("seed.json");
+    let args = [
+        seed.as_str(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--aa",
+        "1",
+    ];
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let set = ok(
+        client(dir.path(), &addr, &["priority", &id, "-5"]),
+        "priority",
+    );
+    assert_eq!(
+        set.stdout.trim(),
+        format!("job {job} now has priority -5: its next tiles go out by it")
+    );
+    let json = ok(
+        client(dir.path(), &addr, &["priority", &id, "7", "--json"]),
+        "priority --json",
+    );
+    let json: serde_json::Value = serde_json::from_str(json.stdout.trim()).unwrap();
+    assert_eq!(json["priority"], 7, "{json}");
+
+    // Stored: a restarted coordinator keeps it.
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
+    let status = common::try_status(dir.path(), &addr, job).expect("status");
+    assert_eq!(status["priority"], 7, "{status}");
+
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    let refused = client(dir.path(), &addr, &["priority", &id, "1"]);
+    assert_eq!(refused.status.code(), Some(1), "{}", refused.stderr);
+    assert_eq!(
+        refused.stderr.trim(),
+        format!(
+            "error: job {job} cannot be given a new priority: it is done, only a queued or \
+             running job can be"
+        )
+    );
+}

@@ -174,6 +174,17 @@ impl Client {
         }
     }
 
+    /// Gives a queued or running job a new priority: its status once stored.
+    pub async fn set_priority(&mut self, job: JobId, priority: i32) -> Result<JobStatus> {
+        match self
+            .request(ClientRequest::SetPriority { job, priority })
+            .await?
+        {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     /// Removes an ended job from the coordinator (see [`ClientRequest::Delete`]).
     pub async fn delete(&mut self, job: JobId) -> Result<()> {
         match self.request(ClientRequest::Delete { job }).await? {

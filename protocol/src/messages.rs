@@ -176,6 +176,12 @@ pub enum ClientRequest {
     Resume {
         job: JobId,
     },
+    /// Give a queued or running job a new priority (higher runs first): the next tiles
+    /// handed out follow it. Answered with the job's `Job` status once stored.
+    SetPriority {
+        job: JobId,
+        priority: i32,
+    },
 }
 
 /// The coordinator's answer to a [`ClientRequest`].

@@ -338,6 +338,8 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
             .prop_map(|(job, after_tiles)| ClientRequest::Watch { job, after_tiles }),
         any::<u64>().prop_map(|job| ClientRequest::Pause { job }),
         any::<u64>().prop_map(|job| ClientRequest::Resume { job }),
+        (any::<u64>(), any::<i32>())
+            .prop_map(|(job, priority)| ClientRequest::SetPriority { job, priority }),
     ]
 }
 
@@ -932,8 +934,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&11u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 11 (variants go from 0 to 10)"
+        decode_error::<ClientRequest>(&12u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 12 (variants go from 0 to 11)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(

@@ -108,6 +108,10 @@ async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> Clie
             let controls = sh.lock().set_paused(sh, job, false);
             store_controls(sh, job, controls).await
         }
+        ClientRequest::SetPriority { job, priority } => {
+            let controls = sh.lock().set_priority(sh, job, priority);
+            store_controls(sh, job, controls).await
+        }
         ClientRequest::Fetch { job, offset } => fetch(sh, job, offset).await,
         ClientRequest::Workers => ClientResponse::Workers(sh.lock().worker_statuses()),
         ClientRequest::Refine {

@@ -1746,6 +1746,33 @@ impl Core {
         Ok(controls)
     }
 
+    /// An operator gives a job a new priority: the next tiles handed out follow it.
+    /// Returns what to store before the change is acknowledged, or why not.
+    pub fn set_priority(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        priority: i32,
+    ) -> Result<Controls, String> {
+        self.check_controllable(id, "given a new priority")?;
+        let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
+        let changed = record.priority != priority;
+        record.priority = priority;
+        let controls = Controls {
+            job: id,
+            paused: record.paused,
+            priority,
+        };
+        if changed {
+            info!(
+                job = id,
+                priority, "job given a new priority by an operator"
+            );
+            self.tiles_event(sh, Event::SetPriority { job: id, priority });
+        }
+        Ok(controls)
+    }
+
     /// Whether an operator may still change the job: it must be queued or running,
     /// with tiles still to hand out.
     fn check_controllable(&self, id: JobId, verb: &str) -> Result<(), String> {
