@@ -1,4 +1,4 @@
-//! `tessera submit`, `status`, `list`, `cancel`, `delete`, `fetch` and `workers`.
+//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `delete`, `fetch` and `workers`.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -488,6 +488,56 @@ pub async fn run_cancel(coordinator: &Endpoint, job: JobId, json_out: bool) -> R
     Ok(())
 }
 
+/// `tessera pause` and `tessera resume`: a job already paused (or not paused) is no
+/// error; one that has ended is.
+pub async fn run_pause(
+    coordinator: &Endpoint,
+    job: JobId,
+    pause: bool,
+    json_out: bool,
+) -> Result<()> {
+    let mut client = Client::connect(coordinator).await?;
+    let status = if pause {
+        client.pause(job).await?
+    } else {
+        client.resume(job).await?
+    };
+    if json_out {
+        println!("{}", status_json(&status));
+    } else if pause {
+        println!(
+            "job {job} paused: no new tiles go out ({} of {} done; tiles already out may \
+             finish); `tessera resume {job}` goes on",
+            status.tiles_done, status.tiles_total
+        );
+    } else {
+        println!("job {job} resumed: it is {}", shown_state(&status));
+    }
+    Ok(())
+}
+
+/// `tessera priority JOB N`.
+pub async fn run_priority(
+    coordinator: &Endpoint,
+    job: JobId,
+    priority: i32,
+    json_out: bool,
+) -> Result<()> {
+    let status = Client::connect(coordinator)
+        .await?
+        .set_priority(job, priority)
+        .await?;
+    if json_out {
+        println!("{}", status_json(&status));
+    } else {
+        println!(
+            "job {job} now has priority {}: its next tiles go out by it",
+            status.priority
+        );
+    }
+    Ok(())
+}
+
 pub async fn run_delete(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
     Client::connect(coordinator).await?.delete(job).await?;
     if json_out {
@@ -554,11 +604,20 @@ pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     Ok(())
 }
 
+/// The state shown for a job: its lifecycle state, or "paused".
+fn shown_state(s: &JobStatus) -> &'static str {
+    if s.paused && !s.state.is_final() {
+        "paused"
+    } else {
+        s.state.as_str()
+    }
+}
+
 fn status_line(s: &JobStatus) -> String {
     let mut line = format!(
         "job {}: {}, {}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
         s.id,
-        s.state.as_str(),
+        shown_state(s),
         s.tiles_done,
         s.tiles_total,
         s.settings.width,
@@ -583,7 +642,8 @@ fn status_line(s: &JobStatus) -> String {
 fn status_json(s: &JobStatus) -> Value {
     json!({
         "id": s.id,
-        "state": s.state.as_str(),
+        "state": shown_state(s),
+        "paused": s.paused,
         "width": s.settings.width,
         "height": s.settings.height,
         "aa": s.settings.aa,

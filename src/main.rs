@@ -119,6 +119,51 @@ enum Command {
         common: ClientArgs,
     },
 
+    /// Pause a queued or running job: no new tiles of it go out until it is resumed.
+    #[command(
+        long_about = "Pause a queued or running job: no new tiles of it are handed out \
+            (tiles already out may finish, and count) until `tessera resume`. The pause \
+            survives a restart of the coordinator. Pausing a paused job changes nothing; \
+            pausing a job that has ended is an error.",
+        after_help = "Example:\n  tessera pause 7"
+    )]
+    Pause {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Resume a paused job: its tiles are handed out again.
+    #[command(after_help = "Example:\n  tessera resume 7")]
+    Resume {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Change a queued or running job's priority: higher runs first.
+    #[command(
+        long_about = "Change a queued or running job's priority (as `tessera submit \
+            --priority` sets it): higher runs first, and the next tiles handed out follow \
+            the new order. Tiles already out finish where they are. Kept across a restart \
+            of the coordinator.",
+        after_help = "Example:\n  tessera priority 7 10\n  tessera priority 7 -5"
+    )]
+    Priority {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        /// The new priority: higher runs first.
+        #[arg(allow_negative_numbers = true)]
+        priority: i32,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
     /// Delete an ended job (done, failed or cancelled) and its image from the coordinator.
     #[command(
         long_about = "Delete an ended job (done, failed or cancelled) from the coordinator: \
@@ -1202,6 +1247,17 @@ fn run(command: Command) -> Result<()> {
             Command::Cancel { job, common } => {
                 client_commands::run_cancel(&common.target()?, job, common.json).await
             }
+            Command::Pause { job, common } => {
+                client_commands::run_pause(&common.target()?, job, true, common.json).await
+            }
+            Command::Resume { job, common } => {
+                client_commands::run_pause(&common.target()?, job, false, common.json).await
+            }
+            Command::Priority {
+                job,
+                priority,
+                common,
+            } => client_commands::run_priority(&common.target()?, job, priority, common.json).await,
             Command::Delete { job, common } => {
                 client_commands::run_delete(&common.target()?, job, common.json).await
             }

@@ -383,3 +383,140 @@ fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
         assert_eq!(status[key], page[key], "{key}");
     }
 }
+
+#[test]
+fn a_paused_job_gets_no_tiles_stays_paused_across_a_restart_and_resumes() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let seed = scene_path("seed.json");
+    let args = [
+        seed.as_str(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--aa",
+        "1",
+    ];
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let paused = ok(client(dir.path(), &addr, &["pause", &id]), "pause");
+    assert!(
+        paused.stdout.starts_with(&format!("job {job} paused")),
+        "{}",
+        paused.stdout
+    );
+    // Pausing a paused job changes nothing and is no error.
+    let again = ok(
+        client(dir.path(), &addr, &["pause", &id, "--json"]),
+        "pause again",
+    );
+    let again: serde_json::Value = serde_json::from_str(again.stdout.trim()).unwrap();
+    assert_eq!(again["state"], "paused", "{again}");
+    assert_eq!(again["paused"], true, "{again}");
+
+    // The pause is stored: a restarted coordinator keeps it.
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
+    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    assert!(
+        listed.stdout.contains(&format!("job {job}: paused, 0/")),
+        "{}",
+        listed.stdout
+    );
+
+    // A worker gets none of its tiles.
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    poll("the worker to connect", Duration::from_secs(30), || {
+        let run = ok(client(dir.path(), &addr, &["workers", "--json"]), "workers");
+        let workers: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+        (workers.as_array().map_or(0, Vec::len) == 1).then_some(())
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    let status = common::try_status(dir.path(), &addr, job).expect("status");
+    assert_eq!(status["state"], "paused", "{status}");
+    assert_eq!(status["tiles_done"], 0, "{status}");
+
+    let resumed = ok(client(dir.path(), &addr, &["resume", &id]), "resume");
+    assert!(
+        resumed.stdout.starts_with(&format!("job {job} resumed")),
+        "{}",
+        resumed.stdout
+    );
+    let done = wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    assert_eq!(done["paused"], false, "{done}");
+
+    let refused = client(dir.path(), &addr, &["pause", &id]);
+    assert_eq!(refused.status.code(), Some(1), "{}", refused.stderr);
+    assert_eq!(
+        refused.stderr.trim(),
+        format!(
+            "error: job {job} cannot be paused: it is done, only a queued or running job can be"
+        )
+    );
+    let json = client(dir.path(), &addr, &["pause", &id, "--json"]);
+    assert!(!json.status.success());
+    let json: serde_json::Value = serde_json::from_str(json.stdout.trim()).unwrap();
+    assert!(
+        json["error"].as_str().unwrap().contains("cannot be paused"),
+        "{json}"
+    );
+}
+
+#[test]
+fn a_new_priority_is_stored_and_shown_and_an_ended_job_refuses_it() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let seed = scene_path("seed.json");
+    let args = [
+        seed.as_str(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--aa",
+        "1",
+    ];
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let set = ok(
+        client(dir.path(), &addr, &["priority", &id, "-5"]),
+        "priority",
+    );
+    assert_eq!(
+        set.stdout.trim(),
+        format!("job {job} now has priority -5: its next tiles go out by it")
+    );
+    let json = ok(
+        client(dir.path(), &addr, &["priority", &id, "7", "--json"]),
+        "priority --json",
+    );
+    let json: serde_json::Value = serde_json::from_str(json.stdout.trim()).unwrap();
+    assert_eq!(json["priority"], 7, "{json}");
+
+    // Stored: a restarted coordinator keeps it.
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
+    let status = common::try_status(dir.path(), &addr, job).expect("status");
+    assert_eq!(status["priority"], 7, "{status}");
+
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    let refused = client(dir.path(), &addr, &["priority", &id, "1"]);
+    assert_eq!(refused.status.code(), Some(1), "{}", refused.stderr);
+    assert_eq!(
+        refused.stderr.trim(),
+        format!(
+            "error: job {job} cannot be given a new priority: it is done, only a queued or \
+             running job can be"
+        )
+    );
+}

@@ -157,6 +157,34 @@ impl Client {
         }
     }
 
+    /// Pauses a queued or running job (see [`ClientRequest::Pause`]): its status once
+    /// the pause is stored.
+    pub async fn pause(&mut self, job: JobId) -> Result<JobStatus> {
+        match self.request(ClientRequest::Pause { job }).await? {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// Makes a paused job schedulable again: its status once stored.
+    pub async fn resume(&mut self, job: JobId) -> Result<JobStatus> {
+        match self.request(ClientRequest::Resume { job }).await? {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// Gives a queued or running job a new priority: its status once stored.
+    pub async fn set_priority(&mut self, job: JobId, priority: i32) -> Result<JobStatus> {
+        match self
+            .request(ClientRequest::SetPriority { job, priority })
+            .await?
+        {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     /// Removes an ended job from the coordinator (see [`ClientRequest::Delete`]).
     pub async fn delete(&mut self, job: JobId) -> Result<()> {
         match self.request(ClientRequest::Delete { job }).await? {

@@ -50,6 +50,8 @@ pub struct StoredJob {
     pub time_limit_ms: Option<u64>,
     /// The job ended on its time limit before meeting its target.
     pub stopped_on_time_limit: bool,
+    /// An operator paused it: no tile of it is handed out.
+    pub paused: bool,
 }
 
 /// A job's wall-clock times, in milliseconds since the Unix epoch.
@@ -124,6 +126,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
         "stopped_on_time_limit",
         "INTEGER NOT NULL DEFAULT 0",
     ),
+    ("jobs", "paused", "INTEGER NOT NULL DEFAULT 0"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -336,6 +339,18 @@ impl Db {
         Ok(())
     }
 
+    /// Records what an operator set of a running job: whether it is paused, and its
+    /// priority.
+    pub fn set_controls(&self, job: JobId, paused: bool, priority: i32) -> Result<()> {
+        self.conn
+            .execute(
+                "UPDATE jobs SET paused = ?2, priority = ?3 WHERE id = ?1",
+                params![job as i64, i64::from(paused), priority],
+            )
+            .context("cannot record the job's pause and priority")?;
+        Ok(())
+    }
+
     pub fn set_ended(
         &mut self,
         job: JobId,
@@ -441,7 +456,7 @@ impl Db {
             "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
                     error, sampler, target_milli, total_rays, total_samples,
                     total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256, verification, time_limit_ms, stopped_on_time_limit
+                    image_sha256, verification, time_limit_ms, stopped_on_time_limit, paused
              FROM jobs ORDER BY id",
         )?;
         let rows = query
@@ -518,7 +533,9 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
     };
     let time_limit_ms = time(22)?;
     let stopped_on_time_limit = r.get::<_, i64>(23).map_err(field)? != 0;
+    let paused = r.get::<_, i64>(24).map_err(field)? != 0;
     Ok(StoredJob {
+        paused,
         verification,
         time_limit_ms,
         stopped_on_time_limit,
@@ -620,6 +637,7 @@ mod tests {
             verification: Verification::Full,
             time_limit_ms: Some(1_500),
             stopped_on_time_limit: false,
+            paused: false,
             state: JobState::Queued,
             error: None,
             totals: None,

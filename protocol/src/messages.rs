@@ -165,6 +165,23 @@ pub enum ClientRequest {
         aa: Option<u32>,
         time_limit_ms: Option<u64>,
     },
+    /// Hand out no new tile of a queued or running job (tiles already out may finish
+    /// and count) until `Resume`. Answered with the job's `Job` status once the pause
+    /// is stored; pausing a paused job changes nothing and is answered the same.
+    Pause {
+        job: JobId,
+    },
+    /// Make a paused job schedulable again. Answered with the job's `Job` status once
+    /// stored; resuming a job that is not paused changes nothing.
+    Resume {
+        job: JobId,
+    },
+    /// Give a queued or running job a new priority (higher runs first): the next tiles
+    /// handed out follow it. Answered with the job's `Job` status once stored.
+    SetPriority {
+        job: JobId,
+        priority: i32,
+    },
 }
 
 /// The coordinator's answer to a [`ClientRequest`].
@@ -256,6 +273,9 @@ pub struct JobStatus {
     /// The job ended on its time limit before its image met the target: its image is
     /// the deepest rung rendered, with `estimated_error`.
     pub stopped_on_time_limit: bool,
+    /// An operator paused the job: no new tile of it is handed out. `state` stays
+    /// `Queued` or `Running` (tiles out when it was paused may still finish).
+    pub paused: bool,
 }
 
 /// A connected worker, as reported to clients.

@@ -110,6 +110,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 estimated_error: Some(0.0),
                 time_limit_ms: None,
                 stopped_on_time_limit: false,
+                paused: false,
             })),
         ),
         (

@@ -161,10 +161,12 @@ prop_compose! {
         error in prop::option::of(text()), samples in any::<u64>(),
         estimated_error in prop::option::of(rate()),
         time_limit_ms in any::<Option<u64>>(), stopped_on_time_limit in any::<bool>(),
+        paused in any::<bool>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
+            paused,
         }
     }
 }
@@ -334,6 +336,10 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
             ),
         (any::<u64>(), any::<u32>())
             .prop_map(|(job, after_tiles)| ClientRequest::Watch { job, after_tiles }),
+        any::<u64>().prop_map(|job| ClientRequest::Pause { job }),
+        any::<u64>().prop_map(|job| ClientRequest::Resume { job }),
+        (any::<u64>(), any::<i32>())
+            .prop_map(|(job, priority)| ClientRequest::SetPriority { job, priority }),
     ]
 }
 
@@ -928,8 +934,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&9u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 9 (variants go from 0 to 8)"
+        decode_error::<ClientRequest>(&12u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 12 (variants go from 0 to 11)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(

@@ -249,6 +249,22 @@ pub enum Event {
     CancelJob {
         job: JobId,
     },
+    /// An operator paused the job: none of its tiles is handed out (copies included)
+    /// until `ResumeJob`. Tiles already out may finish and count. A paused job never
+    /// stalls: waiting is what it was asked to do. The pause holds for a job not yet
+    /// submitted or resumed (the daemon restores a paused job this way).
+    PauseJob {
+        job: JobId,
+    },
+    /// The paused job's tiles are handed out again.
+    ResumeJob {
+        job: JobId,
+    },
+    /// The job's priority changed: the next free slots follow the new order.
+    SetPriority {
+        job: JobId,
+        priority: i32,
+    },
     /// Storage cannot record results: hand out no new tile (results of tiles already
     /// out are still accepted) until `StorageAvailable`.
     StorageUnavailable,
@@ -761,6 +777,10 @@ pub struct Scheduler {
     hungry: BTreeSet<WorkerId>,
     /// Storage cannot record results: no tile goes out.
     storage_down: bool,
+    /// Jobs paused by an operator: none of their tiles goes out. Kept by id, not in
+    /// the job, so that a pause holds from before the job is submitted and across
+    /// the passes of an adaptive job (each a [`Scheduler::resume_job`]).
+    paused: BTreeSet<JobId>,
     /// Machines caught returning wrong pixels: they get no tile again.
     quarantined: BTreeSet<Machine>,
     counters: Counters,
@@ -937,8 +957,27 @@ impl Scheduler {
                 self.fill_all(&mut actions);
             }
             Event::CancelJob { job } => {
+                self.paused.remove(&job);
                 if self.jobs.contains_key(&job) {
                     self.end_job(job, &mut actions);
+                }
+                self.fill_all(&mut actions);
+            }
+            Event::PauseJob { job } => {
+                self.paused.insert(job);
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    j.stalled_since = None;
+                }
+            }
+            Event::ResumeJob { job } => {
+                self.paused.remove(&job);
+                self.fill_all(&mut actions);
+            }
+            Event::SetPriority { job, priority } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    let before = j.rank(job);
+                    j.priority = priority;
+                    self.rerank(job, before);
                 }
                 self.fill_all(&mut actions);
             }
@@ -1186,6 +1225,10 @@ impl Scheduler {
         let now = self.now;
         let mut failed = Vec::new();
         for (&id, job) in &mut self.jobs {
+            if self.paused.contains(&id) {
+                job.stalled_since = None;
+                continue;
+            }
             match job.stalled_tile(&self.ready, self.policy.max_attempts) {
                 None => job.stalled_since = None,
                 Some(tile) => {
@@ -1628,7 +1671,7 @@ impl Scheduler {
         let machine = &self.workers.get(&worker)?.machine;
         for &(_, _, id) in &self.order {
             let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
-            if job.blocked.contains(machine) {
+            if self.paused.contains(&id) || job.blocked.contains(machine) {
                 continue;
             }
             if let Some(tile) = job.take_waiting_for(worker, machine) {
@@ -1641,7 +1684,7 @@ impl Scheduler {
         let holding = &self.workers.get(&worker)?.holding;
         self.order.iter().find_map(|&(_, _, id)| {
             let job = &self.jobs[&id];
-            if job.blocked.contains(machine) || job.queued > 0 {
+            if self.paused.contains(&id) || job.blocked.contains(machine) || job.queued > 0 {
                 return None;
             }
             job.straggler_for(worker, machine)
@@ -2261,6 +2304,53 @@ mod tests {
         );
         assert_eq!(assigns(&next), vec![(1, 3, 0)]);
         assert!(next.contains(&Action::SendScene { worker: 1, job: 3 }));
+    }
+
+    #[test]
+    fn a_paused_job_gets_no_tile_keeps_those_out_and_resumes() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 10);
+        let joined = join(&mut s, 1, 1);
+        let out = assigns(&joined);
+        assert!(!out.is_empty());
+        assert!(s.handle(0, Event::PauseJob { job: 1 }).is_empty());
+        // A tile already out counts, and frees a slot that stays empty.
+        let (_, _, tile) = out[0];
+        let done = s.handle(
+            0,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile,
+            },
+        );
+        assert!(assigns(&done).is_empty(), "a paused job hands out nothing");
+        // A paused job with no worker able to take its tiles does not fail.
+        let later = s.handle(10 * 60 * 1000, Event::Timeout);
+        assert_eq!(failure(&later, 1), None);
+        let resumed = s.handle(10 * 60 * 1000, Event::ResumeJob { job: 1 });
+        assert!(
+            !assigns(&resumed).is_empty(),
+            "resuming hands tiles out again"
+        );
+    }
+
+    #[test]
+    fn a_new_priority_orders_the_next_tiles() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 10);
+        submit(&mut s, 2, 0, SCENE_A, 10);
+        s.handle(
+            0,
+            Event::SetPriority {
+                job: 2,
+                priority: 3,
+            },
+        );
+        let joined = join(&mut s, 1, 1);
+        let out = assigns(&joined);
+        assert!(!out.is_empty());
+        assert!(out.iter().all(|&(_, job, _)| job == 2), "{out:?}");
     }
 
     #[test]

@@ -972,6 +972,9 @@ impl Farm {
             }
         }
         match event {
+            Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+                unreachable!("no operator control is generated here: the unit tests cover them")
+            }
             Event::Timeout => {
                 self.last_timeout = self.clock;
                 let (clock, timeout) = (self.clock, self.policy.heartbeat_timeout);
@@ -3358,6 +3361,9 @@ fn reference_policy(p: &Policy) -> reference::Policy {
 fn reference_event(event: &Event) -> reference::Event {
     use reference::Event as R;
     match event.clone() {
+        Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+            unreachable!("no operator control is generated here: the unit tests cover them")
+        }
         Event::Timeout => R::Timeout,
         Event::WorkerJoined {
             worker,
@@ -3451,6 +3457,9 @@ impl Twin {
     /// checks that it answers the same and that both then agree on every query.
     fn check(&mut self, real: &Scheduler, now: Millis, event: &Event, actions: &[Action]) {
         match *event {
+            Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+                unreachable!("no operator control is generated here: the unit tests cover them")
+            }
             Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}
             Event::WorkerJoined { worker, .. }
             | Event::Heartbeat { worker }

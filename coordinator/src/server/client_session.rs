@@ -20,7 +20,7 @@ use sha2::{Digest, Sha256};
 use tokio_util::codec::Framed;
 use transport::Stream;
 
-use super::core::Prepared;
+use super::core::{Controls, Prepared};
 use super::persistence::Write;
 use super::Shared;
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
@@ -99,6 +99,18 @@ async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> Clie
                 Some(Ok(Reply::Cancelled)) | None => unknown_job(job),
                 Some(Err(message)) => ClientResponse::Error { message },
             }
+        }
+        ClientRequest::Pause { job } => {
+            let controls = sh.lock().set_paused(sh, job, true);
+            store_controls(sh, job, controls).await
+        }
+        ClientRequest::Resume { job } => {
+            let controls = sh.lock().set_paused(sh, job, false);
+            store_controls(sh, job, controls).await
+        }
+        ClientRequest::SetPriority { job, priority } => {
+            let controls = sh.lock().set_priority(sh, job, priority);
+            store_controls(sh, job, controls).await
         }
         ClientRequest::Fetch { job, offset } => fetch(sh, job, offset).await,
         ClientRequest::Workers => ClientResponse::Workers(sh.lock().worker_statuses()),
@@ -374,6 +386,48 @@ async fn watch(sh: &Shared, job: JobId, after_tiles: u32) -> ClientResponse {
             _ = changes.changed() => {}
             () = tokio::time::sleep_until(until) => {}
         }
+    }
+}
+
+/// Stores an operator's change to a job and answers with the job's status once it
+/// is written (it survives a restart from then on).
+async fn store_controls(
+    sh: &Arc<Shared>,
+    job: JobId,
+    controls: Result<Controls, String>,
+) -> ClientResponse {
+    let controls = match controls {
+        Ok(controls) => controls,
+        Err(message) => return ClientResponse::Error { message },
+    };
+    sh.changed();
+    let (done, stored) = tokio::sync::oneshot::channel();
+    sh.persistence.write(Write::Controls {
+        job: controls.job,
+        paused: controls.paused,
+        priority: controls.priority,
+        then: Box::new(move |result| {
+            let _ = done.send(result);
+        }),
+    });
+    match tokio::time::timeout(Duration::from_secs(10), stored).await {
+        Ok(Ok(Ok(()))) => match sh.lock().status(job) {
+            Some(status) => ClientResponse::Job(status),
+            None => unknown_job(job),
+        },
+        Ok(Ok(Err(message))) => ClientResponse::Error {
+            message: format!("the change to job {job} could not be stored: {message}"),
+        },
+        Ok(Err(_)) => ClientResponse::Error {
+            message: format!(
+                "the coordinator stopped before storing the change to job {job}: try again"
+            ),
+        },
+        Err(_) => ClientResponse::Error {
+            message: format!(
+                "the change to job {job} is made, but the disk is slow: it is not yet stored"
+            ),
+        },
     }
 }
 

@@ -99,6 +99,17 @@ pub struct JobRecord {
     pub time_limit_ms: Option<u64>,
     /// The job ended on its time limit before its image met the target.
     pub stopped_on_time_limit: bool,
+    /// An operator paused it: none of its tiles is handed out.
+    pub paused: bool,
+}
+
+/// What an operator set of an active job, to be stored before the change is
+/// acknowledged.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Controls {
+    pub job: JobId,
+    pub paused: bool,
+    pub priority: i32,
 }
 
 /// An accepted tile's machine and cost.
@@ -410,6 +421,7 @@ impl Core {
             verification: prepared.verification,
             time_limit_ms: prepared.time_limit_ms,
             stopped_on_time_limit: false,
+            paused: false,
         };
         self.jobs.insert(
             id,
@@ -424,6 +436,7 @@ impl Core {
                 }),
                 time_limit_ms: prepared.time_limit_ms,
                 stopped_on_time_limit: false,
+                paused: false,
                 verification: prepared.verification,
                 accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
@@ -467,6 +480,7 @@ impl Core {
             adaptive,
             time_limit_ms: stored.time_limit_ms,
             stopped_on_time_limit: stored.stopped_on_time_limit,
+            paused: stored.paused && !final_state,
             verification: stored.verification,
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
@@ -545,6 +559,13 @@ impl Core {
         record.image = Some(image);
         let total = record.tiles_total;
         let (priority, hash) = (record.priority, record.hash);
+        if record.paused {
+            info!(
+                job = id,
+                "job paused by an operator: none of its tiles goes out"
+            );
+            self.tiles_event(sh, Event::PauseJob { job: id });
+        }
         info!(job = id, done = done.len(), total, "resuming job");
         self.jobs.insert(id, record);
         self.life_event(
@@ -1693,6 +1714,81 @@ impl Core {
         });
     }
 
+    /// An operator pauses (`true`) or resumes a job: its tiles stop going out at once
+    /// (those out may finish), or go out again. Returns what to store before the
+    /// change is acknowledged, or why the job cannot be paused or resumed. Pausing a
+    /// paused job, or resuming one that is not, changes nothing and succeeds.
+    pub fn set_paused(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        paused: bool,
+    ) -> Result<Controls, String> {
+        let verb = if paused { "paused" } else { "resumed" };
+        self.check_controllable(id, verb)?;
+        let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
+        let changed = record.paused != paused;
+        record.paused = paused;
+        let controls = Controls {
+            job: id,
+            paused,
+            priority: record.priority,
+        };
+        if changed {
+            info!(job = id, "job {verb} by an operator");
+            let event = if paused {
+                Event::PauseJob { job: id }
+            } else {
+                Event::ResumeJob { job: id }
+            };
+            self.tiles_event(sh, event);
+        }
+        Ok(controls)
+    }
+
+    /// An operator gives a job a new priority: the next tiles handed out follow it.
+    /// Returns what to store before the change is acknowledged, or why not.
+    pub fn set_priority(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        priority: i32,
+    ) -> Result<Controls, String> {
+        self.check_controllable(id, "given a new priority")?;
+        let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
+        let changed = record.priority != priority;
+        record.priority = priority;
+        let controls = Controls {
+            job: id,
+            paused: record.paused,
+            priority,
+        };
+        if changed {
+            info!(
+                job = id,
+                priority, "job given a new priority by an operator"
+            );
+            self.tiles_event(sh, Event::SetPriority { job: id, priority });
+        }
+        Ok(controls)
+    }
+
+    /// Whether an operator may still change the job: it must be queued or running,
+    /// with tiles still to hand out.
+    fn check_controllable(&self, id: JobId, verb: &str) -> Result<(), String> {
+        let job = self.lifecycle.job(id).ok_or_else(|| unknown(id))?;
+        match &job.phase {
+            Phase::Storing | Phase::Queued | Phase::Running => Ok(()),
+            Phase::Finishing { .. } => Err(format!(
+                "job {id} cannot be {verb}: all its tiles are in and its image is being stored"
+            )),
+            Phase::Ended { state, .. } => Err(format!(
+                "job {id} cannot be {verb}: it is {}, only a queued or running job can be",
+                state.as_str()
+            )),
+        }
+    }
+
     /// A client's view of a job.
     pub fn status(&self, id: JobId) -> Option<JobStatus> {
         let job = self.lifecycle.job(id)?;
@@ -1706,6 +1802,11 @@ impl Core {
             .map(|(&id, w)| w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id)))
             .collect()
     }
+}
+
+/// The error for a job this coordinator does not know.
+fn unknown(id: JobId) -> String {
+    format!("no job {id} on this coordinator")
 }
 
 /// Which of two differing results is wrong, and why, if it could be shown.
@@ -1821,15 +1922,19 @@ impl JobRecord {
         } else {
             self.tiles_recorded
         };
-        // An adaptive job does not know how many passes are left.
-        let eta_ms =
-            (state == JobState::Running && done > 0 && done < total && self.adaptive.is_none())
-                .then(|| {
-                    let started = self.times.started?;
-                    let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
-                    Some((per_tile * f64::from(total - done)) as u64)
-                })
-                .flatten();
+        // An adaptive job does not know how many passes are left, a paused one when
+        // it will go on.
+        let eta_ms = (state == JobState::Running
+            && done > 0
+            && done < total
+            && self.adaptive.is_none()
+            && !self.paused)
+            .then(|| {
+                let started = self.times.started?;
+                let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
+                Some((per_tile * f64::from(total - done)) as u64)
+            })
+            .flatten();
         let error = match &job.phase {
             Phase::Ended { error, .. } if state.is_final() => error.clone(),
             _ => None,
@@ -1852,6 +1957,7 @@ impl JobRecord {
                 .filter(|_| !matches!(state, JobState::Cancelled | JobState::Failed)),
             time_limit_ms: self.time_limit_ms,
             stopped_on_time_limit: self.stopped_on_time_limit,
+            paused: self.paused && !state.is_final(),
         }
     }
 }

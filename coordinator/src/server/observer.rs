@@ -36,6 +36,7 @@ pub struct FarmView {
 #[derive(Serialize)]
 pub struct JobView {
     pub id: JobId,
+    /// The lifecycle state, or "paused" for a job an operator paused.
     pub state: &'static str,
     pub width: u32,
     pub height: u32,
@@ -105,7 +106,7 @@ impl Observer {
                 let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
                 JobView {
                     id: s.id,
-                    state: s.state.as_str(),
+                    state: if s.paused { "paused" } else { s.state.as_str() },
                     width: s.settings.width,
                     height: s.settings.height,
                     aa: s.settings.aa,

@@ -87,6 +87,13 @@ pub enum Write {
         job: JobId,
         then: Then<()>,
     },
+    /// Records an operator's pause and priority of an active job.
+    Controls {
+        job: JobId,
+        paused: bool,
+        priority: i32,
+        then: Then<()>,
+    },
 }
 
 /// The handle the daemon queues writes on.
@@ -342,6 +349,16 @@ impl Writer {
                     }
                     Ok(())
                 });
+                then(Ok(()));
+                false
+            }
+            Step::One(Write::Controls {
+                job,
+                paused,
+                priority,
+                then,
+            }) => {
+                self.until_done(|db| db.set_controls(job, paused, priority));
                 then(Ok(()));
                 false
             }

@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 14] = [
+const EVENT_KINDS: [&str; 17] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -752,6 +752,9 @@ const EVENT_KINDS: [&str; 14] = [
     "TileToConfirm",
     "Quarantine",
     "WorkerPace",
+    "PauseJob",
+    "ResumeJob",
+    "SetPriority",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -770,6 +773,9 @@ fn kind_of(event: &Event) -> usize {
         Event::TileToConfirm { .. } => 11,
         Event::Quarantine { .. } => 12,
         Event::WorkerPace { .. } => 13,
+        Event::PauseJob { .. } => 14,
+        Event::ResumeJob { .. } => 15,
+        Event::SetPriority { .. } => 16,
     }
 }
 
