@@ -66,15 +66,22 @@
 //!    child slot (box +∞ to −∞) gives +∞ entries and −∞ exits, never NaN, and is never
 //!    entered.
 //!
+//! The packet traversals (four rays sharing the stack and the node loads) keep every
+//! step of this argument per lane: each lane's box tests use its own shifted origins,
+//! inverse direction and limit, and a lane drops a subtree or leaf only when its own
+//! entry (or the least entry over the lanes that entered it, which is no larger)
+//! exceeds its own fl(T·K). Visiting a node, or testing a sphere, for a lane that
+//! did not need it costs time but changes no answer.
+//!
 //! Rays too far out for this argument (|o|₁ > 10³⁰, non-unit directions) and scenes
 //! with S > 10³⁰ or more than 2²⁸ spheres are not traced through the hierarchy at all:
 //! callers fall back to the brute-force loop, which gives the same answers.
 
 use std::mem::MaybeUninit;
 
-use crate::geometry::SphereGeom;
+use crate::geometry::{sphere_hits, SphereGeom};
 use crate::simd::{isa_dispatch, Isa};
-use crate::vec3::Vec3;
+use crate::vec3::{Vec3, F4, M4, V4};
 
 /// Children per node.
 const WIDTH: usize = 8;
@@ -162,6 +169,8 @@ pub(crate) struct Bvh {
 pub(crate) struct Stack {
     node: [MaybeUninit<u32>; STACK_SIZE],
     entry: [MaybeUninit<f32>; STACK_SIZE],
+    /// For the packet traversal, the lanes an entry is still wanted by.
+    lanes: [MaybeUninit<u32>; STACK_SIZE],
 }
 
 impl Stack {
@@ -169,7 +178,23 @@ impl Stack {
         Stack {
             node: [MaybeUninit::uninit(); STACK_SIZE],
             entry: [MaybeUninit::uninit(); STACK_SIZE],
+            lanes: [MaybeUninit::uninit(); STACK_SIZE],
         }
+    }
+
+    /// Writes an entry of the packet traversal: a child, its entry distance (the
+    /// least over its lanes) and the lanes that want it.
+    #[inline(always)]
+    fn set_lanes(&mut self, top: usize, child: u32, entry: f32, lanes: u32) {
+        self.set(top, child, entry);
+        self.lanes[top] = MaybeUninit::new(lanes);
+    }
+
+    /// The lanes at `top`, which the packet traversal has written.
+    #[inline(always)]
+    fn lanes(&self, top: usize) -> u32 {
+        // SAFETY: as in `node`; the packet traversal writes all three with `set_lanes`.
+        unsafe { self.lanes[top].assume_init() }
     }
 
     #[inline(always)]
@@ -610,6 +635,364 @@ impl Bvh {
         }
         Ok(None)
     }
+}
+
+impl Bvh {
+    isa_dispatch! {
+        /// [`Bvh::nearest`] for up to four rays at once (lane k: `origin[k]`, `dir[k]`,
+        /// `best[k]`; the lanes of the bit mask `lanes`), all leaving object `from`:
+        /// the rays traverse the tree together, sharing the stack and the node loads.
+        /// Returns the lanes the hierarchy could not answer (outside its range; all
+        /// live lanes if the stack overflowed), whose `best` holds valid but possibly
+        /// partial results that the caller completes by brute force.
+        pub fn nearests / nearests_avx2(
+            &self,
+            origin: &[Vec3; 4],
+            dir: &[Vec3; 4],
+            from: u32,
+            best: &mut [(f64, u32); 4],
+            lanes: u32,
+            stack: &mut Stack,
+        ) -> u32 {
+            self.nearests_in(origin, dir, from, best, lanes, stack)
+        }
+    }
+
+    /// The packet traversal of [`Bvh::nearests`]. Each node is visited with the lanes
+    /// that entered its box no later than their own skip distance fl(T·K); a child's
+    /// box is tested against each of them, and the child is kept for the lanes that
+    /// enter it, with the least of their entry distances. A lane tests a leaf's
+    /// spheres, or descends into a child node, unless its own entry distance, or that
+    /// least one (which is no larger), exceeds its skip distance: a lane drops only
+    /// what [`Bvh::nearest`] would drop for it. Since the best hit does not depend on
+    /// the order in which spheres are considered ([`consider`]), every lane ends with
+    /// the brute-force loop's answer.
+    #[inline(always)]
+    fn nearests_in(
+        &self,
+        origin: &[Vec3; 4],
+        dir: &[Vec3; 4],
+        from: u32,
+        best: &mut [(f64, u32); 4],
+        lanes: u32,
+        stack: &mut Stack,
+    ) -> u32 {
+        let mut rays: [MaybeUninit<BoxRay>; 4] = [const { MaybeUninit::uninit() }; 4];
+        let mut t_max = [0.0f32; 4];
+        let mut t_skip = [0.0f32; 4];
+        let mut live = 0u32;
+        let mut fallback = 0u32;
+        for k in 0..4 {
+            if lanes & (1 << k) == 0 {
+                continue;
+            }
+            match BoxRay::new(origin[k], dir[k], self.scale) {
+                Some(ray) => {
+                    rays[k] = MaybeUninit::new(ray);
+                    (t_max[k], t_skip[k]) = BoxRay::limit(best[k].0);
+                    live |= 1 << k;
+                }
+                None => fallback |= 1 << k,
+            }
+        }
+        if live == 0 {
+            return fallback;
+        }
+        let (o4, d4) = (lanes4(origin), lanes4(dir));
+        let mut top = 0;
+        let mut current = 0u32;
+        let mut active = live;
+        loop {
+            let node = &self.nodes[current as usize];
+            let mut entry = [[0.0f32; WIDTH]; 4];
+            let mut entered = [0u32; 4];
+            let mut any = 0u32;
+            let mut ks = active;
+            while ks != 0 {
+                let k = ks.trailing_zeros() as usize;
+                ks &= ks - 1;
+                // SAFETY: the lanes of `live` (which hold `active`) were written above.
+                let ray = unsafe { rays[k].assume_init_ref() };
+                let (hit, _, e) = ray.enter(node, t_max[k], self.isa);
+                entered[k] = hit;
+                entry[k] = e;
+                any |= hit;
+            }
+            // The children entered by some lane, sorted far to near by their least
+            // entry distance over the lanes entering them.
+            let mut order: [(f32, u32); WIDTH] = [(0.0, 0); WIDTH];
+            let mut n = 0;
+            while any != 0 {
+                let c = any.trailing_zeros() as usize;
+                any &= any - 1;
+                let mut t = f32::INFINITY;
+                let mut ks = active;
+                while ks != 0 {
+                    let k = ks.trailing_zeros() as usize;
+                    ks &= ks - 1;
+                    if entered[k] & (1 << c) != 0 && entry[k][c] < t {
+                        t = entry[k][c];
+                    }
+                }
+                let mut j = n;
+                while j > 0 && order[j - 1].0 < t {
+                    order[j] = order[j - 1];
+                    j -= 1;
+                }
+                order[j] = (t, c as u32);
+                n += 1;
+            }
+            // The lanes that still want child `c`: those entering it no later than
+            // their skip distance.
+            let want = |c: usize, t_skip: &[f32; 4]| {
+                let mut want = 0u32;
+                let mut ks = active;
+                while ks != 0 {
+                    let k = ks.trailing_zeros() as usize;
+                    ks &= ks - 1;
+                    if entered[k] & (1 << c) != 0 && entry[k][c] <= t_skip[k] {
+                        want |= 1 << k;
+                    }
+                }
+                want
+            };
+            let mut next = None;
+            while n > 0 {
+                n -= 1;
+                let c = order[n].1 as usize;
+                let lanes = want(c, &t_skip);
+                if lanes == 0 {
+                    continue;
+                }
+                let child = node.children[c];
+                if child & LEAF_BIT == 0 {
+                    next = Some((child, lanes));
+                    break;
+                }
+                self.leaf_lanes(child, &o4, &d4, from, best, lanes, &mut t_max, &mut t_skip);
+            }
+            if let Some((child, lanes)) = next {
+                if top + n > STACK_SIZE {
+                    return fallback | live;
+                }
+                for &(t, c) in &order[..n] {
+                    let lanes = want(c as usize, &t_skip);
+                    if lanes != 0 {
+                        stack.set_lanes(top, node.children[c as usize], t, lanes);
+                        top += 1;
+                    }
+                }
+                current = child;
+                active = lanes;
+                continue;
+            }
+            loop {
+                if top == 0 {
+                    return fallback;
+                }
+                top -= 1;
+                let t = stack.entry(top);
+                let mut lanes = 0u32;
+                let mut ks = stack.lanes(top);
+                while ks != 0 {
+                    let k = ks.trailing_zeros() as usize;
+                    ks &= ks - 1;
+                    if t <= t_skip[k] {
+                        lanes |= 1 << k;
+                    }
+                }
+                if lanes == 0 {
+                    continue;
+                }
+                let child = stack.node(top);
+                if child & LEAF_BIT == 0 {
+                    current = child;
+                    active = lanes;
+                    break;
+                }
+                self.leaf_lanes(child, &o4, &d4, from, best, lanes, &mut t_max, &mut t_skip);
+            }
+        }
+    }
+
+    /// Tests the leaf's spheres for the rays of `lanes` (`origin` and `dir` in SIMD
+    /// lanes: each sphere is tested against all four rays at once, with the same bits
+    /// as [`SphereGeom::hit`]), updating their best hits and distance limits.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn leaf_lanes(
+        &self,
+        child: u32,
+        origin: &V4,
+        dir: &V4,
+        from: u32,
+        best: &mut [(f64, u32); 4],
+        lanes: u32,
+        t_max: &mut [f32; 4],
+        t_skip: &mut [f32; 4],
+    ) {
+        let before = *best;
+        for &(index, ref sphere) in self.leaf(child) {
+            if index == from {
+                continue;
+            }
+            let t = sphere_lanes(sphere, origin, dir);
+            let mut ks = lanes;
+            while ks != 0 {
+                let k = ks.trailing_zeros() as usize;
+                ks &= ks - 1;
+                consider(&mut best[k], t.0[k], index);
+            }
+        }
+        let mut ks = lanes;
+        while ks != 0 {
+            let k = ks.trailing_zeros() as usize;
+            ks &= ks - 1;
+            if best[k] != before[k] {
+                (t_max[k], t_skip[k]) = BoxRay::limit(best[k].0);
+            }
+        }
+    }
+
+    isa_dispatch! {
+        /// [`Bvh::occluder`] for up to four shadow rays at once (lane k: `origin[k]`,
+        /// `dir[k]`, `limit[k]`; the lanes of the bit mask `lanes`), all leaving
+        /// object `from`: the rays traverse the tree together, sharing the stack and
+        /// the node loads. Returns the lanes blocked by some sphere and the lanes the
+        /// hierarchy cannot answer (outside its range; all of `lanes` that are not
+        /// blocked if the stack overflowed), which the caller answers by brute force.
+        pub fn occluders / occluders_avx2(
+            &self,
+            origin: &[Vec3; 4],
+            dir: &[Vec3; 4],
+            from: u32,
+            limit: &[f64; 4],
+            lanes: u32,
+            stack: &mut Stack,
+        ) -> (u32, u32) {
+            self.occluders_in(origin, dir, from, limit, lanes, stack)
+        }
+    }
+
+    /// The packet traversal of [`Bvh::occluders`]. A lane tests a leaf's spheres only
+    /// when it enters the leaf's box itself, and a child node is visited when any
+    /// live lane enters its box; a lane that did not enter a node's box is tested
+    /// against its children's boxes anyway, which only costs time: every box holding
+    /// a sphere the lane hits within its limit is entered by that lane (the margin
+    /// argument above, per lane with its own origin, direction and limit). So a
+    /// lane is reported blocked exactly when [`Bvh::occluder`] finds an occluder for
+    /// it, and an occluder is whatever the brute-force loop would find.
+    #[inline(always)]
+    fn occluders_in(
+        &self,
+        origin: &[Vec3; 4],
+        dir: &[Vec3; 4],
+        from: u32,
+        limit: &[f64; 4],
+        lanes: u32,
+        stack: &mut Stack,
+    ) -> (u32, u32) {
+        let mut rays: [MaybeUninit<BoxRay>; 4] = [const { MaybeUninit::uninit() }; 4];
+        let mut t_max = [0.0f32; 4];
+        let mut live = 0u32;
+        let mut fallback = 0u32;
+        for k in 0..4 {
+            if lanes & (1 << k) == 0 {
+                continue;
+            }
+            match BoxRay::new(origin[k], dir[k], self.scale) {
+                Some(ray) => {
+                    rays[k] = MaybeUninit::new(ray);
+                    t_max[k] = BoxRay::limit(limit[k]).0;
+                    live |= 1 << k;
+                }
+                None => fallback |= 1 << k,
+            }
+        }
+        let (o4, d4) = (lanes4(origin), lanes4(dir));
+        let mut blocked = 0u32;
+        let mut top = 1;
+        stack.set_node(0, 0);
+        while top > 0 && live != 0 {
+            top -= 1;
+            let node = &self.nodes[stack.node(top) as usize];
+            let mut entered = [0u32; 4];
+            let mut any = 0u32;
+            let mut leaf = 0u32;
+            let mut ks = live;
+            while ks != 0 {
+                let k = ks.trailing_zeros() as usize;
+                ks &= ks - 1;
+                // SAFETY: the lanes of `live` were all written above.
+                let ray = unsafe { rays[k].assume_init_ref() };
+                let (hit, leaves, _) = ray.enter(node, t_max[k], self.isa);
+                entered[k] = hit;
+                any |= hit;
+                leaf = leaves;
+            }
+            let mut leaves = any & leaf;
+            while leaves != 0 {
+                let c = leaves.trailing_zeros();
+                leaves &= leaves - 1;
+                let mut want = 0u32;
+                let mut ks = live;
+                while ks != 0 {
+                    let k = ks.trailing_zeros() as usize;
+                    ks &= ks - 1;
+                    want |= ((entered[k] >> c) & 1) << k;
+                }
+                for &(index, ref sphere) in self.leaf(node.children[c as usize]) {
+                    if want == 0 {
+                        break;
+                    }
+                    if index == from {
+                        continue;
+                    }
+                    let t = sphere_lanes(sphere, &o4, &d4);
+                    let mut ks = want;
+                    while ks != 0 {
+                        let k = ks.trailing_zeros() as usize;
+                        ks &= ks - 1;
+                        if t.0[k] < limit[k] {
+                            want &= !(1 << k);
+                            blocked |= 1 << k;
+                            live &= !(1 << k);
+                        }
+                    }
+                }
+            }
+            let mut inner = any & !leaf;
+            if top + WIDTH > STACK_SIZE {
+                return (blocked, fallback | live);
+            }
+            while inner != 0 {
+                let k = inner.trailing_zeros() as usize;
+                inner &= inner - 1;
+                stack.set_node(top, node.children[k]);
+                top += 1;
+            }
+        }
+        (blocked, fallback)
+    }
+}
+
+/// Four vectors in SIMD lanes.
+#[inline(always)]
+fn lanes4(v: &[Vec3; 4]) -> V4 {
+    V4 {
+        x: F4(v.map(|v| v.x)),
+        y: F4(v.map(|v| v.y)),
+        z: F4(v.map(|v| v.z)),
+    }
+}
+
+/// [`SphereGeom::hit`] of four rays (not leaving the sphere) in SIMD lanes, the same
+/// operations in the same order; NaN for a miss.
+#[inline(always)]
+fn sphere_lanes(sphere: &SphereGeom, origin: &V4, dir: &V4) -> F4 {
+    let f = *origin - V4::splat(sphere.center);
+    let r2 = F4::splat(sphere.radius2);
+    sphere_hits(f, f.dot(f) - r2, r2, *dir, M4::NONE)
 }
 
 /// An axis-aligned box in single precision, in four lanes so that a union is two SIMD
@@ -1111,6 +1494,55 @@ mod tests {
                 blocked,
                 "{isa:?} {origin:?} {dir:?} {limit}"
             );
+            // The packet traversal, lane by lane the same answers: the ray, the ray
+            // reversed, an inactive lane holding a ray out of range, and the ray with
+            // half its limit (ties with the single-ray answers; lanes parting ways).
+            let origins = [origin, origin, Vec3::new(1e31, 0.0, 0.0), origin];
+            let dirs = [dir, -dir, Vec3::ZERO, dir];
+            let limits = [limit, limit, f64::NAN, limit * 0.5];
+            for lanes in [0b1011, 0b0001, 0b1000] {
+                // Nearest hits: lane 3 starts from a best hit found elsewhere, at the
+                // brute-force distance with a higher or lower index (a tie either way).
+                let seed = [
+                    (f64::INFINITY, u32::MAX),
+                    (f64::INFINITY, u32::MAX),
+                    (1.0, 7),
+                    (brute.0, if brute.1 % 2 == 0 { 0 } else { u32::MAX - 1 }),
+                ];
+                let mut best4 = seed;
+                let rest = bvh.nearests(&origins, &dirs, u32::MAX, &mut best4, lanes, &mut stack);
+                assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
+                for k in 0..4 {
+                    let mut expected = seed[k];
+                    if lanes & (1 << k) != 0 {
+                        for &(i, ref s) in spheres {
+                            if let Some(t) = s.hit(origins[k], dirs[k], false) {
+                                consider(&mut expected, t, i);
+                            }
+                        }
+                    }
+                    assert!(
+                        best4[k].0.to_bits() == expected.0.to_bits() && best4[k].1 == expected.1,
+                        "{isa:?} lane {k} of {lanes:b}: {origin:?} {dir:?}: {:?} vs {expected:?}",
+                        best4[k]
+                    );
+                }
+                let (hit, rest) =
+                    bvh.occluders(&origins, &dirs, u32::MAX, &limits, lanes, &mut stack);
+                assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
+                for k in 0..4 {
+                    let expected = lanes & (1 << k) != 0
+                        && spheres.iter().any(|(_, s)| {
+                            s.hit(origins[k], dirs[k], false)
+                                .is_some_and(|t| t < limits[k])
+                        });
+                    assert_eq!(
+                        hit & (1 << k) != 0,
+                        expected,
+                        "{isa:?} lane {k} of {lanes:b}: {origin:?} {dir:?} {limit}"
+                    );
+                }
+            }
         }
     }
 

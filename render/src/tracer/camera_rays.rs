@@ -60,7 +60,7 @@ impl Tracer {
         if columns.is_empty() {
             return;
         }
-        if self.groups.len() == 1 && self.groups[0].count == 1 && self.bvh.is_none() {
+        if self.groups.len() == 1 && self.groups[0].count == 1 {
             return self.single_sample_span(j, columns, ctx, sink);
         }
         // The directions of the next group are computed before the current group is

@@ -4,9 +4,10 @@
 //! are shaded together; at a silhouette, where they part, each lane is shaded alone.
 
 use super::prepare::Geometry;
-use super::ray::{Packet, Path, FROM_CAMERA};
+use super::ray::{Packet, Path, Ray, FROM_CAMERA};
 use super::shading::{checker_white_lanes, clip_lanes, pow10};
 use super::{Ctx, Tracer, SHADOW_REACH};
+use crate::bvh::consider;
 use crate::geometry::{plane_hits, sphere_hits, SphereGeom};
 use crate::scene::Material;
 use crate::simd::isa_dispatch;
@@ -56,12 +57,38 @@ impl Tracer {
         let mut t = F4::splat(f64::INFINITY);
         let mut index = F4::splat(f64::from(FROM_CAMERA));
         let (origin, dir, from) = (packet.origin, packet.dir, packet.from);
-        if self.bvh.is_some() {
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            // Lane by lane what `Tracer::nearest` tests besides the hierarchy, then the
+            // hierarchy for all four rays together, and the brute-force loop for any
+            // lane it cannot answer.
+            let rays: [Ray; LANES] = std::array::from_fn(|k| packet.lane(k));
+            let mut best = [(f64::INFINITY, FROM_CAMERA); LANES];
+            let mut lanes = 0u32;
             for k in 0..LANES {
                 if packet.active.get(k) {
-                    if let Some((tk, ik)) = self.nearest(&packet.lane(k), ctx) {
-                        t.0[k] = tk;
-                        index.0[k] = f64::from(ik);
+                    lanes |= 1 << k;
+                    for &(i, ref plane) in &self.planes {
+                        if i == from {
+                            continue;
+                        }
+                        if let Some(tk) = plane.hit(rays[k].origin, rays[k].dir) {
+                            consider(&mut best[k], tk, i);
+                        }
+                    }
+                    self.nearest_leaving(&rays[k], &mut best[k]);
+                }
+            }
+            if lanes != 0 {
+                let origins = rays.map(|r| r.origin);
+                let dirs = rays.map(|r| r.dir);
+                let rest = bvh.nearests(&origins, &dirs, from, &mut best, lanes, stack);
+                for k in 0..LANES {
+                    if rest & (1 << k) != 0 {
+                        self.nearest_brute(&rays[k], &mut best[k]);
+                    }
+                    if lanes & (1 << k) != 0 && best[k].1 != FROM_CAMERA {
+                        t.0[k] = best[k].0;
+                        index.0[k] = f64::from(best[k].1);
                     }
                 }
             }
@@ -181,10 +208,32 @@ impl Tracer {
     fn occluded_lanes(&self, shadow: &Packet, distance: F4, ctx: &mut Ctx) -> M4 {
         let (p, l, from, lit) = (shadow.origin, shadow.dir, shadow.from, shadow.active);
         let mut blocked = M4::NONE;
-        if self.bvh.is_some() {
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            // Lane by lane the tests before the hierarchy in `Tracer::occluded`, then
+            // the hierarchy for the lanes still open, all four rays together, and the
+            // brute-force loop for any lane it cannot answer.
+            let rays: [Ray; LANES] = std::array::from_fn(|k| shadow.lane(k));
+            let limit: [f64; LANES] = std::array::from_fn(|k| distance.0[k] * SHADOW_REACH);
+            let mut open = 0u32;
             for k in 0..LANES {
-                if lit.get(k) && self.occluded(&shadow.lane(k), distance.0[k], ctx) {
-                    blocked.0[k] = u64::MAX;
+                if lit.get(k) {
+                    if self.occluded_before_bvh(&rays[k], limit[k]) {
+                        blocked.0[k] = u64::MAX;
+                    } else {
+                        open |= 1 << k;
+                    }
+                }
+            }
+            if open != 0 {
+                let origins = rays.map(|r| r.origin);
+                let dirs = rays.map(|r| r.dir);
+                let (hit, rest) = bvh.occluders(&origins, &dirs, from, &limit, open, stack);
+                for k in 0..LANES {
+                    if hit & (1 << k) != 0
+                        || (rest & (1 << k) != 0 && self.occluded_brute(&rays[k], limit[k]))
+                    {
+                        blocked.0[k] = u64::MAX;
+                    }
                 }
             }
             return blocked;

@@ -35,15 +35,29 @@ impl Tracer {
     fn nearest_sphere(&self, ray: &Ray, best: &mut (f64, u32), ctx: &mut Ctx) {
         let Ray { origin, dir, from } = *ray;
         if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
-            if let Some(s) = self.sphere(from) {
-                if let Some(t) = s.hit(origin, dir, true) {
-                    consider(best, t, from);
-                }
-            }
+            self.nearest_leaving(ray, best);
             if bvh.nearest(origin, dir, from, best, stack).is_ok() {
                 return;
             }
         }
+        self.nearest_brute(ray, best);
+    }
+
+    /// Updates `best` with the far wall of the sphere the ray leaves, if it leaves
+    /// one: the hierarchy leaves that sphere to its caller.
+    #[inline(always)]
+    pub(super) fn nearest_leaving(&self, ray: &Ray, best: &mut (f64, u32)) {
+        if let Some(s) = self.sphere(ray.from) {
+            if let Some(t) = s.hit(ray.origin, ray.dir, true) {
+                consider(best, t, ray.from);
+            }
+        }
+    }
+
+    /// Updates `best` with the hits of every sphere.
+    #[inline(always)]
+    pub(super) fn nearest_brute(&self, ray: &Ray, best: &mut (f64, u32)) {
+        let Ray { origin, dir, from } = *ray;
         for &(index, ref sphere) in &self.spheres {
             if let Some(t) = sphere.hit(origin, dir, index == from) {
                 consider(best, t, index);
@@ -87,8 +101,34 @@ impl Tracer {
     /// at the first occluder found.
     #[inline(always)]
     pub(super) fn occluded(&self, ray: &Ray, max_t: f64, ctx: &mut Ctx) -> bool {
-        let Ray { origin, dir, from } = *ray;
         let limit = max_t * SHADOW_REACH;
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            if self.occluded_before_bvh(ray, limit) {
+                return true;
+            }
+            let Ray { origin, dir, from } = *ray;
+            if let Ok(occluder) = bvh.occluder(origin, dir, from, limit, stack) {
+                return occluder.is_some();
+            }
+            return self.occluded_brute(ray, limit);
+        }
+        self.occluded_planes(ray, limit) || self.occluded_brute(ray, limit)
+    }
+
+    /// Whether a plane, or the sphere the ray leaves, is hit at a distance in (0,
+    /// `limit`): the tests made before the hierarchy's, which leaves that sphere out.
+    #[inline(always)]
+    pub(super) fn occluded_before_bvh(&self, ray: &Ray, limit: f64) -> bool {
+        self.occluded_planes(ray, limit)
+            || self
+                .sphere(ray.from)
+                .is_some_and(|s| s.hit(ray.origin, ray.dir, true).is_some_and(|t| t < limit))
+    }
+
+    /// Whether a plane is hit at a distance in (0, `limit`).
+    #[inline(always)]
+    fn occluded_planes(&self, ray: &Ray, limit: f64) -> bool {
+        let Ray { origin, dir, from } = *ray;
         for &(index, ref plane) in &self.planes {
             if index == from {
                 continue;
@@ -102,16 +142,13 @@ impl Tracer {
                 }
             }
         }
-        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
-            if let Some(s) = self.sphere(from) {
-                if s.hit(origin, dir, true).is_some_and(|t| t < limit) {
-                    return true;
-                }
-            }
-            if let Ok(occluder) = bvh.occluder(origin, dir, from, limit, stack) {
-                return occluder.is_some();
-            }
-        }
+        false
+    }
+
+    /// Whether a sphere is hit at a distance in (0, `limit`), by testing every one.
+    #[inline(always)]
+    pub(super) fn occluded_brute(&self, ray: &Ray, limit: f64) -> bool {
+        let Ray { origin, dir, from } = *ray;
         for &(index, ref sphere) in &self.spheres {
             if let Some(t) = sphere.hit(origin, dir, index == from) {
                 if t < limit {
