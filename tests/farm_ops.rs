@@ -449,6 +449,11 @@ fn a_paused_job_gets_no_tiles_stays_paused_across_a_restart_and_resumes() {
     );
     let done = wait_done(dir.path(), &addr, job, Duration::from_secs(60));
     assert_eq!(done["paused"], false, "{done}");
+    // Paused, restarted and resumed, the image is still `tessera render`'s, byte for
+    // byte.
+    let image = common::fetch(dir.path(), &addr, job, "paused.png");
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &args[1..]);
+    common::assert_same_png(&image, &reference, "the paused and resumed job");
 
     let refused = client(dir.path(), &addr, &["pause", &id]);
     assert_eq!(refused.status.code(), Some(1), "{}", refused.stderr);
