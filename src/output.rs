@@ -15,7 +15,7 @@ pub fn default_output(scene: &Path) -> PathBuf {
 
 /// Writes to a temporary file beside `path` and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    Pending { path: path.into() }.write(bytes)
+    FileOutput { path: path.into() }.write(bytes)
 }
 
 /// An image still to be written: checked before any rendering, so that a render is
@@ -23,7 +23,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
 ///
 /// Tessera writes PNG only: a name with another extension (`out.jpg`) is refused, not
 /// silently given PNG bytes.
-pub struct ImageOutput(Pending);
+pub struct ImageOutput(FileOutput);
 
 impl ImageOutput {
     /// Checks that `path` names a PNG file that can be written, by creating (and
@@ -38,7 +38,7 @@ impl ImageOutput {
                 path.display()
             );
         }
-        Ok(ImageOutput(Pending::check(path)?))
+        Ok(ImageOutput(FileOutput::create(path)?))
     }
 
     pub fn path(&self) -> &Path {
@@ -51,23 +51,26 @@ impl ImageOutput {
     }
 }
 
-/// A file still to be written, through a temporary file beside it renamed into place.
+/// A file still to be written (an image, a render's saved samples), through a temporary
+/// file beside it renamed into place: checked before the work that makes its bytes.
 ///
 /// The temporary file exists only while the bytes are written: one kept open through a
 /// long render would stay behind when the render is interrupted (Ctrl-C ends the
 /// process without running destructors).
-struct Pending {
+pub struct FileOutput {
     path: PathBuf,
 }
 
-impl Pending {
-    /// Checks that `path` can be written, the way [`Pending::write`] will write it.
-    fn check(path: &Path) -> Result<Pending> {
+impl FileOutput {
+    /// Checks that `path` can be written, the way [`FileOutput::write`] will write it.
+    pub fn create(path: &Path) -> Result<FileOutput> {
         drop(temporary_beside(path)?);
-        Ok(Pending { path: path.into() })
+        Ok(FileOutput { path: path.into() })
     }
 
-    fn write(self, bytes: &[u8]) -> Result<()> {
+    /// Writes `bytes` to a temporary file beside the path, synced, then renamed into
+    /// place: a reader sees the old file or the whole new one, never part of it.
+    pub fn write(self, bytes: &[u8]) -> Result<()> {
         let cannot = || format!("cannot write {}", self.path.display());
         let mut tmp = temporary_beside(&self.path)?;
         tmp.write_all(bytes)
@@ -90,7 +93,7 @@ fn temporary_beside(path: &Path) -> Result<tempfile::NamedTempFile> {
         _ => Path::new("."),
     };
     let mut builder = tempfile::Builder::new();
-    builder.prefix(".tessera-").suffix(".png.tmp");
+    builder.prefix(".tessera-").suffix(".tmp");
     // A temporary file is private (0600); the image is an ordinary file, readable as
     // the user's umask allows.
     #[cfg(unix)]
@@ -119,7 +122,7 @@ mod tests {
         let e = ImageOutput::create(&missing).err().unwrap();
         assert!(
             format!("{e:#}").starts_with(&format!("cannot write {}", missing.display()))
-                && !format!("{e:#}").contains(".png.tmp"),
+                && !format!("{e:#}").contains(".tmp"),
             "{e:#}"
         );
         let e = ImageOutput::create(dir.path()).err().unwrap();

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::output::{default_output, ImageOutput};
+use crate::output::{default_output, FileOutput, ImageOutput};
 use crate::render_state;
 use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -72,7 +72,7 @@ pub fn run(opts: Options) -> Result<()> {
         output,
         pool,
         time_limit: opts.time_limit,
-        state: opts.state.clone(),
+        state: opts.state.as_deref().map(FileOutput::create).transpose()?,
         resume: None,
     };
     job.run()
@@ -123,7 +123,7 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
         output,
         pool,
         time_limit: opts.time_limit,
-        state: Some(opts.state.clone()),
+        state: Some(FileOutput::create(&opts.state)?),
         resume: Some((opts.state.clone(), saved.blocks)),
     };
     job.run()
@@ -148,7 +148,8 @@ struct Job<'a> {
     /// Renders: `--threads` threads, one per core by default.
     pool: rayon::ThreadPool,
     time_limit: Option<Duration>,
-    state: Option<PathBuf>,
+    /// Where the samples are saved: checked writable before the render starts, too.
+    state: Option<FileOutput>,
     /// The saved blocks to go on from, and the file they came from.
     resume: Option<(PathBuf, Vec<BlockState>)>,
 }
@@ -207,7 +208,7 @@ impl Job<'_> {
                 } else {
                     String::new()
                 };
-                if let Some(path) = &self.state {
+                if let Some(out) = self.state {
                     let saved = render_state::Saved {
                         scene: self
                             .text
@@ -224,7 +225,7 @@ impl Job<'_> {
                         rung: frame.rung,
                         blocks: region.into_blocks(),
                     };
-                    render_state::save(path, &saved)?;
+                    render_state::save(out, &saved)?;
                 }
                 (
                     frame.image,

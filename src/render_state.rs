@@ -16,6 +16,8 @@ use render::progressive::BlockState;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::output::FileOutput;
+
 const MAGIC: &[u8] = b"tessera render state\n";
 const VERSION: u32 = 1;
 /// The largest decompressed state accepted: far above any frame the limits allow at
@@ -37,8 +39,8 @@ pub struct Saved {
     pub blocks: Vec<BlockState>,
 }
 
-/// Writes `saved` to `path` atomically.
-pub fn save(path: &Path, saved: &Saved) -> Result<()> {
+/// Writes `saved` to `out` atomically.
+pub fn save(out: FileOutput, saved: &Saved) -> Result<()> {
     let encoded = bincode::serde::encode_to_vec(saved, bincode::config::standard())
         .context("cannot encode the render state")?;
     let compressed =
@@ -51,7 +53,7 @@ pub fn save(path: &Path, saved: &Saved) -> Result<()> {
     bytes.extend_from_slice(MAGIC);
     bytes.extend_from_slice(&Sha256::digest(&body));
     bytes.extend_from_slice(&body);
-    crate::output::write_atomically(path, &bytes)
+    out.write(&bytes)
 }
 
 /// Reads and checks a saved render.

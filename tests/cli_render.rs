@@ -575,6 +575,43 @@ fn an_output_that_cannot_be_written_is_refused_before_rendering() {
 }
 
 #[test]
+fn a_state_file_that_cannot_be_written_is_refused_before_rendering() {
+    let dir = dir_with_scene(VALID_SCENE);
+    std::fs::create_dir(dir.path().join("d.state")).unwrap();
+    // An adaptive render of minutes: refused before any of it, or the run is killed.
+    let big = [
+        "--width",
+        "4000",
+        "--height",
+        "4000",
+        "--aa",
+        "16",
+        "--sampler",
+        "adaptive",
+        "--target-error",
+        "0.1",
+    ];
+    for (state, says) in [
+        ("no-such-dir/x.state", "cannot write no-such-dir/x.state"),
+        ("d.state", "cannot write d.state: it is a directory"),
+    ] {
+        let mut args = vec!["render", SCENE, "-o", "out.png", "--state", state];
+        args.extend(big);
+        let run = common::tessera(dir.path(), &args, Duration::from_secs(10));
+        let mut left = entries(dir.path());
+        left.retain(|name| name != "d.state");
+        assert_eq!(left, [SCENE], "--state {state} left files behind");
+        assert!(!run.status.success(), "--state {state} accepted");
+        let lines: Vec<&str> = run.stderr.lines().collect();
+        assert!(
+            lines.len() == 1 && lines[0].starts_with(&format!("error: {says}")),
+            "--state {state}: {:?}",
+            run.stderr
+        );
+    }
+}
+
+#[test]
 fn an_interrupted_render_leaves_nothing_behind() {
     let dir = dir_with_scene(VALID_SCENE);
     // A render of minutes, interrupted once it is under way: the output was checked
