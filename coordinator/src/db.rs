@@ -238,6 +238,9 @@ impl Db {
                  rays INTEGER NOT NULL,
                  worker TEXT NOT NULL,
                  PRIMARY KEY (job, tile)
+             );
+             CREATE TABLE IF NOT EXISTS disabled_machines (
+                 name TEXT PRIMARY KEY
              );",
         )
         .context("cannot create the job tables")?;
@@ -349,6 +352,33 @@ impl Db {
             )
             .context("cannot record the job's pause and priority")?;
         Ok(())
+    }
+
+    /// Records that an operator disabled (or enabled again) a machine, by name: it
+    /// stays disabled across restarts until enabled.
+    pub fn set_disabled(&self, machine: &str, disabled: bool) -> Result<()> {
+        let sql = if disabled {
+            "INSERT OR IGNORE INTO disabled_machines (name) VALUES (?1)"
+        } else {
+            "DELETE FROM disabled_machines WHERE name = ?1"
+        };
+        self.conn
+            .execute(sql, params![machine])
+            .context("cannot record the disabled machine")?;
+        Ok(())
+    }
+
+    /// The machines an operator disabled, by name.
+    pub fn load_disabled(&self) -> Result<Vec<String>> {
+        let mut statement = self
+            .conn
+            .prepare("SELECT name FROM disabled_machines ORDER BY name")
+            .context("cannot read the disabled machines")?;
+        let names = statement
+            .query_map([], |r| r.get::<_, String>(0))?
+            .collect::<Result<Vec<_>, _>>()
+            .context("cannot read the disabled machines")?;
+        Ok(names)
     }
 
     pub fn set_ended(

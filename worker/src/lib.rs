@@ -81,6 +81,7 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     in_flight: 0,
                     throttle: config.throttle,
                     pongs: Vec::new(),
+                    drain_asked: false,
                 };
                 config.ready.store(true, Ordering::Relaxed);
                 let outcome = session.run(&mut shutdown, &config.ready).await;
@@ -176,6 +177,8 @@ struct Session {
     throttle: Option<f64>,
     /// Pings read and not yet answered.
     pongs: Vec<u64>,
+    /// The coordinator asked it to drain ([`ToWorker::Drain`]).
+    drain_asked: bool,
 }
 
 impl Drop for Session {
@@ -211,6 +214,14 @@ impl Session {
                     // Pongs go out at once, ahead of any result: they time the link.
                     for token in self.pongs.drain(..) {
                         self.conn.send(FromWorker::Pong { token }).await?;
+                    }
+                    if self.drain_asked {
+                        // An operator's drain is a SIGTERM sent from afar: the same
+                        // drain, and the same clean exit without reconnecting.
+                        info!(in_flight = self.in_flight, "drained by an operator: finishing the tiles held");
+                        draining = true;
+                        ready.store(false, Ordering::Relaxed);
+                        self.conn.send(FromWorker::Draining).await?;
                     }
                 }
                 () = tokio::time::sleep_until(last_heard + COORDINATOR_SILENCE), if !draining => {
@@ -263,6 +274,7 @@ impl Session {
                 });
             }
             ToWorker::Ping { token } => self.pongs.push(token),
+            ToWorker::Drain => self.drain_asked = true,
             ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
                 let received = self.received;
