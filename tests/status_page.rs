@@ -171,6 +171,35 @@ fn the_status_page_shows_a_job_progressing_and_its_finished_image() {
     assert_eq!(done.rgb_sum, Some(expected), "the page shows other pixels");
 }
 
+/// `GET PATH` over HTTP/1.1 (the DevTools listener takes nothing older and keeps the
+/// connection open: the body is read by its length): the status code and the body.
+fn http11_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
+    let mut stream = std::net::TcpStream::connect(addr).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        stream.read_exact(&mut byte).ok()?;
+        head.push(byte[0]);
+    }
+    let head = String::from_utf8_lossy(&head).to_ascii_lowercase();
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    let length: usize = head
+        .lines()
+        .find_map(|l| l.strip_prefix("content-length:"))?
+        .trim()
+        .parse()
+        .ok()?;
+    let mut body = vec![0u8; length];
+    stream.read_exact(&mut body).ok()?;
+    Some((status, body))
+}
+
 /// A headless Chromium driven over the DevTools protocol: a WebSocket to its page,
 /// spoken by hand (a few dozen lines, text frames only) so that the tests need no
 /// client library. Killed when dropped.
@@ -212,8 +241,7 @@ impl DevTools {
         };
         let devtools = format!("127.0.0.1:{port}");
         let target = poll("the browser's page", Duration::from_secs(30), || {
-            let (code, body) =
-                common::http_get_within(&devtools, "/json/list", Duration::from_secs(5))?;
+            let (code, body) = http11_get(&devtools, "/json/list")?;
             let targets: serde_json::Value = serde_json::from_slice(&body).ok()?;
             (code == 200).then_some(())?;
             targets.as_array()?.iter().find_map(|t| {

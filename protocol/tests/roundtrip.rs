@@ -940,8 +940,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&12u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 12 (variants go from 0 to 11)"
+        decode_error::<ClientRequest>(&15u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 15 (variants go from 0 to 14)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(
