@@ -669,3 +669,77 @@ fn the_page_controls_follow_the_client_secret() {
     assert_eq!(code, 200, "{body}");
     assert_eq!(status(dir.path())["state"], "cancelled");
 }
+
+#[test]
+fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    std::fs::write(dir.path().join("client.token"), "tab-secret\n").unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--client-token-file", "client.token"],
+        "coordinator.log",
+    );
+    let with_token = |args: &[&str]| {
+        let mut all: Vec<&str> = args.to_vec();
+        all.extend(["--coordinator", &addr, "--token-file", "client.token"]);
+        common::tessera(dir.path(), &all, Duration::from_secs(60))
+    };
+    let seed = scene_path("seed.json");
+    let run = with_token(&["submit", &seed, "--width", "32", "--height", "32"]);
+    let job: u64 = common::ok(run, "submit").stdout.trim().parse().unwrap();
+    let state = || {
+        let run = with_token(&["status", &job.to_string(), "--json"]);
+        let v: serde_json::Value =
+            serde_json::from_str(common::ok(run, "status").stdout.trim()).unwrap();
+        v["state"].as_str().unwrap_or_default().to_owned()
+    };
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/?job={job}"),
+        &dir.path().join("chromium.log"),
+    );
+    let pause = format!("button[data-action=\"pause\"][data-job=\"{job}\"]");
+    poll("the pause button", Duration::from_secs(30), || {
+        page.click(&pause).then_some(())
+    });
+    // Refused for want of the token: the page asks for it, and nothing changed.
+    poll("the token form", Duration::from_secs(20), || {
+        (page.eval("document.getElementById('token-form').hidden") == false).then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('control-note').dataset.status"),
+        "401"
+    );
+    assert_eq!(state(), "queued");
+    // Given, the waiting control goes through, and the token stays for the tab.
+    page.eval("document.getElementById('token').value = 'tab-secret'");
+    assert!(page.click("#token-form button[type=\"submit\"]"));
+    poll("the job to be paused", Duration::from_secs(20), || {
+        (state() == "paused").then_some(())
+    });
+    assert_eq!(
+        page.eval("sessionStorage.getItem('tessera-token')"),
+        "tab-secret"
+    );
+    poll("the resume button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"resume\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    poll("the job to be resumed", Duration::from_secs(20), || {
+        (state() == "queued").then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('token-form').hidden"),
+        true,
+        "the page asked again"
+    );
+}
