@@ -754,6 +754,23 @@ mod tests {
     }
 
     #[test]
+    fn disabled_machines_are_kept_by_name_until_enabled() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tessera.db");
+        let db = Db::open(&path, true).unwrap();
+        assert!(db.load_disabled().unwrap().is_empty());
+        db.set_disabled("render-07", true).unwrap();
+        db.set_disabled("render-07", true).unwrap();
+        db.set_disabled("render-01", true).unwrap();
+        drop(db);
+        let db = Db::open(&path, false).unwrap();
+        assert_eq!(db.load_disabled().unwrap(), ["render-01", "render-07"]);
+        db.set_disabled("render-07", false).unwrap();
+        db.set_disabled("never-disabled", false).unwrap();
+        assert_eq!(db.load_disabled().unwrap(), ["render-01"]);
+    }
+
+    #[test]
     fn damaged_rows_are_reported_one_by_one_not_fatal() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tessera.db");
