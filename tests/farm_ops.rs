@@ -3,7 +3,9 @@
 //! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
 //! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
 //! line saying what to give; `up` takes what `render` takes; a job that did not finish
-//! shows no error estimate, and the page and `status --json` agree.
+//! shows no error estimate, and the page and `status --json` agree; a disabled machine
+//! gets no tiles, across a coordinator restart, until enabled; a drained worker finishes
+//! and exits 0; and the clients warn when no worker can take tiles.
 
 mod common;
 

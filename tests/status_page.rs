@@ -1,6 +1,10 @@
 //! The coordinator's status page in a real headless browser (Chromium): it loads, shows
 //! a running job progressing with a live preview, and shows the finished image, the
-//! same pixels as `tessera render`'s.
+//! same pixels as `tessera render`'s. Its controls, clicked with the mouse through the
+//! DevTools protocol, pause, resume and delete jobs and disable and enable workers, as
+//! `tessera status` and `tessera workers` then show; it warns when no worker can take
+//! tiles, and asks for the farm's client token once. The controls' rules of access
+//! (token, content type, origin) are checked over plain HTTP.
 //!
 //! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
 //! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing

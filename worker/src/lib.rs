@@ -2,9 +2,10 @@
 //! of threads, and streams the pixels back.
 //!
 //! The connection loop owns the socket; rendering happens on a rayon pool, and finished
-//! tiles come back through a channel, so the loop never blocks on a render. On shutdown
-//! the worker tells the coordinator it is draining, finishes the tiles it holds, sends
-//! them, and exits.
+//! tiles come back through a channel, so the loop never blocks on a render. On shutdown,
+//! or when an operator drains it through the coordinator (`ToWorker::Drain`), the worker
+//! tells the coordinator it is draining, finishes the tiles it holds, sends them, and
+//! exits without reconnecting.
 
 mod cache;
 
@@ -51,8 +52,8 @@ pub struct Config {
 
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
-/// Works for the coordinator until `shutdown` completes (a clean exit after
-/// draining). A lost or unreachable coordinator is retried with exponential backoff
+/// Works for the coordinator until `shutdown` completes or the coordinator drains it
+/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is retried with exponential backoff
 /// and jitter; a coordinator that refuses the worker (another protocol version) is an
 /// error.
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
@@ -188,8 +189,8 @@ impl Drop for Session {
 }
 
 impl Session {
-    /// Serves one connection. Returns Ok after a clean drain on shutdown, an error when
-    /// the connection is lost.
+    /// Serves one connection. Returns Ok after a clean drain (on shutdown, or asked by
+    /// the coordinator), an error when the connection is lost.
     async fn run<F: std::future::Future<Output = ()>>(
         mut self,
         shutdown: &mut std::pin::Pin<&mut F>,
