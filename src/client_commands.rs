@@ -56,8 +56,9 @@ const LONGEST_RETRY: Duration = Duration::from_secs(2);
 /// A coordinator answers a watch within a second even without progress, so a
 /// connection silent for this long is lost (a cut network, a stopped coordinator).
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(15);
-/// A wait without progress for this long, while the coordinator says no worker can
-/// take tiles, prints its warning (once): a short gap between workers says nothing.
+/// A wait whose job made no progress while the coordinator said, for this long, that no
+/// worker can take tiles prints that warning (once): a short gap between workers, or
+/// workers reconnecting to a restarted coordinator, says nothing.
 const NO_WORKER_GRACE: Duration = Duration::from_secs(3);
 
 /// A connection to a coordinator that is opened again, with backoff, whenever it is
@@ -174,7 +175,9 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
         .expect("the template is valid"),
     );
     let mut seen = 0;
-    let mut progressed_at = Instant::now();
+    // Since when the coordinator has said, answer after answer without progress, that
+    // no worker can take tiles.
+    let mut stuck_since: Option<Instant> = None;
     let mut warned = false;
     let status = loop {
         let status = match session.watch(job, seen).await {
@@ -185,16 +188,18 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
                 return Err(e);
             }
         };
-        if status.tiles_done != seen {
-            progressed_at = Instant::now();
-        }
-        seen = status.tiles_done;
-        if let Some(warning) = status.warning.as_ref().filter(|_| !warned) {
-            if progressed_at.elapsed() >= NO_WORKER_GRACE {
-                bar.suspend(|| eprintln!("warning: job {job}: {warning}"));
-                warned = true;
+        if status.tiles_done != seen || status.warning.is_none() {
+            stuck_since = None;
+        } else {
+            let since = *stuck_since.get_or_insert_with(Instant::now);
+            if let Some(warning) = status.warning.as_ref().filter(|_| !warned) {
+                if since.elapsed() >= NO_WORKER_GRACE {
+                    bar.suspend(|| eprintln!("warning: job {job}: {warning}"));
+                    warned = true;
+                }
             }
         }
+        seen = status.tiles_done;
         bar.set_length(u64::from(status.tiles_total));
         bar.set_position(u64::from(status.tiles_done));
         let rate = status.rays as f64 / (status.elapsed_ms.max(1) as f64 / 1000.0) / 1e6;
