@@ -415,7 +415,7 @@ fn job_json(dir: &Path, addr: &str, job: u64) -> serde_json::Value {
 }
 
 #[test]
-fn the_page_pauses_and_resumes_a_job_disables_a_worker_and_warns_without_workers() {
+fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_warns() {
     let Some(browser) = browser_or_skip() else {
         return;
     };
@@ -474,7 +474,7 @@ fn the_page_pauses_and_resumes_a_job_disables_a_worker_and_warns_without_workers
     );
 
     // A worker joins; it gets nothing of the paused job; the banner goes.
-    let _worker = start_worker_with(dir.path(), &addr, "clicky", &["--throttle", "50"]);
+    let mut worker = start_worker_with(dir.path(), &addr, "clicky", &["--throttle", "50"]);
     poll("the banner to go", Duration::from_secs(30), || {
         (page.eval("document.getElementById('warning').hidden") == true).then_some(())
     });
@@ -524,6 +524,18 @@ fn the_page_pauses_and_resumes_a_job_disables_a_worker_and_warns_without_workers
     poll("the job to be deleted", Duration::from_secs(20), || {
         let run = common::client(dir.path(), &addr, &["status", &job.to_string()]);
         (!run.status.success() && run.stderr.contains(&format!("no job {job}"))).then_some(())
+    });
+    // Drained from the page: the worker exits 0 and the page says no worker is left.
+    poll("the drain button", Duration::from_secs(30), || {
+        page.click("tr[data-worker=\"clicky\"] button[data-action=\"drain\"]")
+            .then_some(())
+    });
+    let exit = worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the drained worker did not exit");
+    assert!(exit.success(), "the drained worker exited with {exit}");
+    poll("the worker row to go", Duration::from_secs(20), || {
+        (page.eval("document.querySelectorAll('tr[data-worker]').length") == 0).then_some(())
     });
 }
 
