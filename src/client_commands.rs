@@ -1,4 +1,5 @@
-//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `delete`, `fetch` and `workers`.
+//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `delete`,
+//! `fetch` and `workers` (with `workers drain|disable|enable`).
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -55,6 +56,10 @@ const LONGEST_RETRY: Duration = Duration::from_secs(2);
 /// A coordinator answers a watch within a second even without progress, so a
 /// connection silent for this long is lost (a cut network, a stopped coordinator).
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(15);
+/// A wait whose job made no progress while the coordinator said, for this long, that no
+/// worker can take tiles prints that warning (once): a short gap between workers, or
+/// workers reconnecting to a restarted coordinator, says nothing.
+const NO_WORKER_GRACE: Duration = Duration::from_secs(3);
 
 /// A connection to a coordinator that is opened again, with backoff, whenever it is
 /// lost: what `submit --wait` and `up` follow a job through. Only requests that are
@@ -170,6 +175,10 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
         .expect("the template is valid"),
     );
     let mut seen = 0;
+    // Since when the coordinator has said, answer after answer without progress, that
+    // no worker can take tiles.
+    let mut stuck_since: Option<Instant> = None;
+    let mut warned = false;
     let status = loop {
         let status = match session.watch(job, seen).await {
             Ok(status) => status,
@@ -179,6 +188,17 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
                 return Err(e);
             }
         };
+        if status.tiles_done != seen || status.warning.is_none() {
+            stuck_since = None;
+        } else {
+            let since = *stuck_since.get_or_insert_with(Instant::now);
+            if let Some(warning) = status.warning.as_ref().filter(|_| !warned) {
+                if since.elapsed() >= NO_WORKER_GRACE {
+                    bar.suspend(|| eprintln!("warning: job {job}: {warning}"));
+                    warned = true;
+                }
+            }
+        }
         seen = status.tiles_done;
         bar.set_length(u64::from(status.tiles_total));
         bar.set_position(u64::from(status.tiles_done));
@@ -440,11 +460,16 @@ pub async fn run_status(coordinator: &Endpoint, job: JobId, json_out: bool) -> R
     if json_out {
         println!("{}", status_json(&status));
     } else {
+        if let Some(warning) = &status.warning {
+            eprintln!("warning: {warning}");
+        }
         println!("{}", status_line(&status));
     }
     Ok(())
 }
 
+/// `tessera list`: with `--json`, an array of jobs; the farm's warning (no worker can
+/// take tiles) is in each active job's `warning` field, and on stderr once otherwise.
 pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     let jobs = Client::connect(coordinator).await?.list().await?;
     if json_out {
@@ -452,6 +477,9 @@ pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     } else if jobs.is_empty() {
         println!("no jobs");
     } else {
+        if let Some(warning) = jobs.iter().find_map(|s| s.warning.as_ref()) {
+            eprintln!("warning: {warning}");
+        }
         for status in &jobs {
             println!("{}", status_line(status));
         }
@@ -570,6 +598,59 @@ pub async fn run_fetch(
     Ok(())
 }
 
+/// What `tessera workers drain|disable|enable` asks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WorkerControl {
+    Drain,
+    Disable,
+    Enable,
+}
+
+/// `tessera workers drain|disable|enable WORKER`: answers once the change is made
+/// (stored, for a disable or enable).
+pub async fn run_worker_control(
+    coordinator: &Endpoint,
+    control: WorkerControl,
+    worker: &str,
+    json_out: bool,
+) -> Result<()> {
+    let request = match control {
+        WorkerControl::Drain => protocol::ClientRequest::DrainWorker {
+            worker: worker.to_string(),
+        },
+        WorkerControl::Disable => protocol::ClientRequest::DisableWorker {
+            worker: worker.to_string(),
+        },
+        WorkerControl::Enable => protocol::ClientRequest::EnableWorker {
+            worker: worker.to_string(),
+        },
+    };
+    let workers = Client::connect(coordinator)
+        .await?
+        .control_worker(request)
+        .await?;
+    if json_out {
+        println!(
+            "{}",
+            Value::Array(workers.iter().map(worker_json).collect())
+        );
+    } else {
+        println!(
+            "{}",
+            match control {
+                WorkerControl::Drain =>
+                    format!("worker {worker} draining: it finishes the tiles it holds, then exits"),
+                WorkerControl::Disable => format!(
+                    "worker {worker} disabled: its machine gets no new tiles until \
+                     `tessera workers enable {worker}`"
+                ),
+                WorkerControl::Enable => format!("worker {worker} enabled: it takes tiles again"),
+            }
+        );
+    }
+    Ok(())
+}
+
 pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
     let workers = Client::connect(coordinator).await?.workers().await?;
     if json_out {
@@ -584,10 +665,16 @@ pub async fn run_workers(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             let rtt = w.rtt_us.map_or(String::new(), |us| {
                 format!(", rtt {:.1} ms", us as f64 / 1000.0)
             });
-            let state = w
+            let mut state = w
                 .quarantined
                 .as_ref()
                 .map_or(String::new(), |why| format!(", QUARANTINED: {why}"));
+            if w.disabled {
+                state.push_str(", DISABLED");
+            }
+            if w.draining {
+                state.push_str(", DRAINING");
+            }
             println!(
                 "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{state}",
                 w.id,
@@ -665,6 +752,7 @@ fn status_json(s: &JobStatus) -> Value {
         "estimated_error": s.estimated_error,
         "time_limit_ms": s.time_limit_ms,
         "stopped_on_time_limit": s.stopped_on_time_limit,
+        "warning": s.warning,
     })
 }
 
@@ -682,6 +770,8 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "quarantined": w.quarantined,
         "rtt_us": w.rtt_us,
         "credit": w.credit,
+        "draining": w.draining,
+        "disabled": w.disabled,
     })
 }
 

@@ -192,8 +192,19 @@ enum Command {
         common: ClientArgs,
     },
 
-    /// List the workers connected to the coordinator, with their throughput.
+    /// List the workers connected to the coordinator, with their throughput; or drain,
+    /// disable or enable one.
+    #[command(
+        args_conflicts_with_subcommands = true,
+        after_help = "Examples:\n  \
+            tessera workers                      lists them (id, name, state)\n  \
+            tessera workers drain render-07      finishes its tiles, then it exits\n  \
+            tessera workers disable render-07    no new tiles, even after a restart\n  \
+            tessera workers enable render-07"
+    )]
     Workers {
+        #[command(subcommand)]
+        action: Option<WorkerAction>,
         #[command(flatten)]
         common: ClientArgs,
     },
@@ -640,6 +651,36 @@ impl From<VerifyArg> for protocol::Verification {
             VerifyArg::Full => protocol::Verification::Full,
         }
     }
+}
+
+/// `tessera workers drain|disable|enable WORKER`.
+#[derive(Subcommand)]
+enum WorkerAction {
+    /// The worker finishes the tiles it holds, then exits (status 0) without
+    /// reconnecting, as on SIGTERM on its machine.
+    Drain {
+        /// A worker's id or name, as `tessera workers` shows them (a name drains every
+        /// worker connected under it).
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+    /// The worker's machine gets no new tiles (those it holds finish); it stays
+    /// connected. Kept by machine name and stored: it holds across reconnects and
+    /// coordinator restarts until `tessera workers enable`.
+    Disable {
+        /// A worker's id or name, as `tessera workers` shows them.
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+    /// The disabled machine takes tiles again.
+    Enable {
+        /// A connected worker's id or name, or the name of a disabled machine.
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
 }
 
 /// What every client command takes.
@@ -1266,8 +1307,32 @@ fn run(command: Command) -> Result<()> {
                 output,
                 common,
             } => client_commands::run_fetch(&common.target()?, job, output, common.json).await,
-            Command::Workers { common } => {
-                client_commands::run_workers(&common.target()?, common.json).await
+            Command::Workers {
+                action: None,
+                common,
+            } => client_commands::run_workers(&common.target()?, common.json).await,
+            Command::Workers {
+                action: Some(action),
+                ..
+            } => {
+                let (control, worker, common) = match action {
+                    WorkerAction::Drain { worker, common } => {
+                        (client_commands::WorkerControl::Drain, worker, common)
+                    }
+                    WorkerAction::Disable { worker, common } => {
+                        (client_commands::WorkerControl::Disable, worker, common)
+                    }
+                    WorkerAction::Enable { worker, common } => {
+                        (client_commands::WorkerControl::Enable, worker, common)
+                    }
+                };
+                client_commands::run_worker_control(
+                    &common.target()?,
+                    control,
+                    &worker,
+                    common.json,
+                )
+                .await
             }
         }
     })

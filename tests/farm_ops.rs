@@ -3,7 +3,9 @@
 //! spends anything on it; `tessera up` stopped by a signal cleans up and exits as a
 //! shell expects; cancelling twice is no error; mistaken job ids and addresses are one
 //! line saying what to give; `up` takes what `render` takes; a job that did not finish
-//! shows no error estimate, and the page and `status --json` agree.
+//! shows no error estimate, and the page and `status --json` agree; a disabled machine
+//! gets no tiles, across a coordinator restart, until enabled; a drained worker finishes
+//! and exits 0; and the clients warn when no worker can take tiles.
 
 mod common;
 
@@ -524,4 +526,179 @@ fn a_new_priority_is_stored_and_shown_and_an_ended_job_refuses_it() {
              running job can be"
         )
     );
+}
+
+/// The workers as `tessera workers --json` lists them.
+fn workers_json(dir: &std::path::Path, addr: &str) -> Vec<serde_json::Value> {
+    let run = ok(client(dir, addr, &["workers", "--json"]), "workers --json");
+    serde_json::from_str(run.stdout.trim()).expect("workers --json is a JSON array")
+}
+
+fn worker_named<'a>(workers: &'a [serde_json::Value], name: &str) -> Option<&'a serde_json::Value> {
+    workers.iter().find(|w| w["name"] == name)
+}
+
+fn status_json(dir: &std::path::Path, addr: &str, job: u64) -> serde_json::Value {
+    let run = ok(
+        client(dir, addr, &["status", &job.to_string(), "--json"]),
+        "status --json",
+    );
+    serde_json::from_str(run.stdout.trim()).expect("status --json is JSON")
+}
+
+#[test]
+fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained_worker_exits() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let listen = format!("127.0.0.1:{}", common::free_port());
+    let (coordinator, addr) = start_coordinator(dir.path(), &data, &listen, &[], "coordinator.log");
+
+    // Mistaken names are one line saying what to give.
+    for action in ["drain", "disable", "enable"] {
+        let run = client(dir.path(), &addr, &["workers", action, "nobody"]);
+        assert!(!run.status.success(), "workers {action} nobody succeeded");
+        assert_eq!(
+            run.stderr.trim(),
+            "error: no worker \"nobody\" is connected: give an id or a name from tessera workers",
+            "workers {action}"
+        );
+    }
+
+    let mut worker = common::start_worker_with(dir.path(), &addr, "box", &["--throttle", "20"]);
+    poll("the worker to join", Duration::from_secs(30), || {
+        worker_named(&workers_json(dir.path(), &addr), "box").map(drop)
+    });
+    let run = ok(
+        client(dir.path(), &addr, &["workers", "disable", "box"]),
+        "workers disable",
+    );
+    assert!(
+        run.stdout.starts_with("worker box disabled"),
+        "{}",
+        run.stdout
+    );
+    let listed = workers_json(dir.path(), &addr);
+    let boxed = worker_named(&listed, "box").unwrap();
+    assert_eq!(boxed["disabled"], true);
+    assert_eq!(boxed["draining"], false);
+    let shown = ok(client(dir.path(), &addr, &["workers"]), "workers");
+    assert!(shown.stdout.contains(", DISABLED"), "{}", shown.stdout);
+
+    // A job waits, and every listing says why.
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "64", "--height", "48", "--aa", "1", "--tile", "16",
+        ],
+    );
+    std::thread::sleep(Duration::from_millis(1500));
+    let status = status_json(dir.path(), &addr, job);
+    assert_eq!(
+        status["tiles_done"], 0,
+        "a disabled machine rendered: {status}"
+    );
+    let warning = status["warning"]
+        .as_str()
+        .expect("status --json has a warning");
+    assert!(
+        warning.starts_with("no worker can take tiles: all 1 connected are disabled"),
+        "{warning}"
+    );
+    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    assert_eq!(
+        listed.stderr.trim(),
+        format!("warning: {warning}"),
+        "list says it once"
+    );
+    let shown = ok(
+        client(dir.path(), &addr, &["status", &job.to_string()]),
+        "status",
+    );
+    assert_eq!(shown.stderr.trim(), format!("warning: {warning}"));
+
+    // The disable is stored: a restarted coordinator keeps the machine disabled.
+    drop(coordinator);
+    let (coordinator, again) =
+        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-2.log");
+    assert_eq!(again, addr);
+    let listed = poll("the worker to come back", Duration::from_secs(60), || {
+        let listed = workers_json(dir.path(), &addr);
+        worker_named(&listed, "box").is_some().then_some(listed)
+    });
+    assert_eq!(worker_named(&listed, "box").unwrap()["disabled"], true);
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(status_json(dir.path(), &addr, job)["tiles_done"], 0);
+
+    // Enabled by name, it renders the job, and the warning is gone.
+    ok(
+        client(dir.path(), &addr, &["workers", "enable", "box"]),
+        "workers enable",
+    );
+    let status = wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    assert!(status["warning"].is_null(), "{status}");
+
+    // Drained by id: it finishes and exits 0, and does not come back.
+    let id = worker_named(&workers_json(dir.path(), &addr), "box").unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    let run = ok(
+        client(dir.path(), &addr, &["workers", "drain", &id.to_string()]),
+        "workers drain",
+    );
+    assert!(run.stdout.contains("draining"), "{}", run.stdout);
+    let exit = worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the drained worker did not exit");
+    assert!(exit.success(), "the drained worker exited with {exit}");
+    poll("the worker to be gone", Duration::from_secs(10), || {
+        workers_json(dir.path(), &addr).is_empty().then_some(())
+    });
+
+    // With no worker left, a waiting submission says so once, after a few seconds.
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[&seed, "--width", "32", "--height", "32"],
+    );
+    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    assert_eq!(
+        listed.stderr.trim(),
+        "warning: no worker is connected: queued and running jobs wait until one connects"
+    );
+    let mut waiting = common::spawn_tessera(
+        dir.path(),
+        &[
+            "submit",
+            &seed,
+            "--wait",
+            "-o",
+            "w.png",
+            "--coordinator",
+            &addr,
+        ],
+        "wait.log",
+    );
+    let said = poll("submit --wait to warn", Duration::from_secs(20), || {
+        let log = waiting.log_text();
+        log.contains("warning: ").then_some(log)
+    });
+    // Once, after a few seconds, and it keeps waiting.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(waiting.is_running(), "the wait ended without a worker");
+    let log = waiting.log_text();
+    let warnings: Vec<&str> = log.lines().filter(|l| l.starts_with("warning: ")).collect();
+    assert_eq!(
+        warnings,
+        vec![format!(
+            "warning: job {}: no worker is connected: queued and running jobs wait until one \
+             connects",
+            job + 1
+        )],
+        "{said}"
+    );
+    waiting.kill9();
+    drop(coordinator);
 }

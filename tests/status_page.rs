@@ -1,6 +1,10 @@
 //! The coordinator's status page in a real headless browser (Chromium): it loads, shows
 //! a running job progressing with a live preview, and shows the finished image, the
-//! same pixels as `tessera render`'s.
+//! same pixels as `tessera render`'s. Its controls, clicked with the mouse through the
+//! DevTools protocol, pause, resume and delete jobs and disable and enable workers, as
+//! `tessera status` and `tessera workers` then show; it warns when no worker can take
+//! tiles, and asks for the farm's client token once. The controls' rules of access
+//! (token, content type, origin) are checked over plain HTTP.
 //!
 //! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
 //! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
@@ -8,6 +12,7 @@
 
 mod common;
 
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
@@ -168,4 +173,589 @@ fn the_status_page_shows_a_job_progressing_and_its_finished_image() {
         .map(|&b| u64::from(b))
         .sum();
     assert_eq!(done.rgb_sum, Some(expected), "the page shows other pixels");
+}
+
+/// `GET PATH` over HTTP/1.1 (the DevTools listener takes nothing older and keeps the
+/// connection open: the body is read by its length): the status code and the body.
+fn http11_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
+    let mut stream = std::net::TcpStream::connect(addr).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        stream.read_exact(&mut byte).ok()?;
+        head.push(byte[0]);
+    }
+    let head = String::from_utf8_lossy(&head).to_ascii_lowercase();
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    let length: usize = head
+        .lines()
+        .find_map(|l| l.strip_prefix("content-length:"))?
+        .trim()
+        .parse()
+        .ok()?;
+    let mut body = vec![0u8; length];
+    stream.read_exact(&mut body).ok()?;
+    Some((status, body))
+}
+
+/// A headless Chromium driven over the DevTools protocol: a WebSocket to its page,
+/// spoken by hand (a few dozen lines, text frames only) so that the tests need no
+/// client library. Killed when dropped.
+struct DevTools {
+    browser: common::Daemon,
+    socket: std::net::TcpStream,
+    next_id: u64,
+}
+
+impl DevTools {
+    /// Starts the browser on `url` and connects to its page.
+    fn open(browser: &Path, profile: &Path, url: &str, log: &Path) -> DevTools {
+        let port = free_port();
+        let child = Command::new(browser)
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--remote-debugging-address=127.0.0.1",
+                "--window-size=1400,1000",
+            ])
+            .arg(format!("--remote-debugging-port={port}"))
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .arg(url)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .expect("cannot start the browser");
+        let browser = common::Daemon {
+            name: "chromium".into(),
+            child,
+            log: Some(log.to_path_buf()),
+        };
+        let devtools = format!("127.0.0.1:{port}");
+        let target = poll("the browser's page", Duration::from_secs(30), || {
+            let (code, body) = http11_get(&devtools, "/json/list")?;
+            let targets: serde_json::Value = serde_json::from_slice(&body).ok()?;
+            (code == 200).then_some(())?;
+            targets.as_array()?.iter().find_map(|t| {
+                (t["type"] == "page")
+                    .then(|| t["webSocketDebuggerUrl"].as_str().map(str::to_owned))
+                    .flatten()
+            })
+        });
+        let path = target
+            .strip_prefix(&format!("ws://{devtools}"))
+            .unwrap_or_else(|| panic!("a page target elsewhere: {target}"))
+            .to_owned();
+        let mut socket = std::net::TcpStream::connect(&devtools).unwrap();
+        socket
+            .set_read_timeout(Some(Duration::from_secs(20)))
+            .unwrap();
+        write!(
+            socket,
+            "GET {path} HTTP/1.1\r\nHost: {devtools}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+             Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        .unwrap();
+        let mut head = Vec::new();
+        let mut byte = [0u8; 1];
+        while !head.ends_with(b"\r\n\r\n") {
+            socket
+                .read_exact(&mut byte)
+                .expect("no WebSocket handshake");
+            head.push(byte[0]);
+        }
+        let head = String::from_utf8_lossy(&head);
+        assert!(
+            head.starts_with("HTTP/1.1 101"),
+            "WebSocket refused: {head}"
+        );
+        DevTools {
+            browser,
+            socket,
+            next_id: 1,
+        }
+    }
+
+    fn send_frame(&mut self, text: &str) {
+        let payload = text.as_bytes();
+        let mut frame = vec![0x81u8];
+        let mask = [0x5a, 0x17, 0xc3, 0x2e];
+        match payload.len() {
+            n if n < 126 => frame.push(0x80 | n as u8),
+            n if n < 65536 => {
+                frame.push(0x80 | 126);
+                frame.extend((n as u16).to_be_bytes());
+            }
+            n => {
+                frame.push(0x80 | 127);
+                frame.extend((n as u64).to_be_bytes());
+            }
+        }
+        frame.extend(mask);
+        frame.extend(payload.iter().enumerate().map(|(i, b)| b ^ mask[i % 4]));
+        self.socket.write_all(&frame).unwrap();
+    }
+
+    /// The next whole text message.
+    fn read_message(&mut self) -> String {
+        let mut message = Vec::new();
+        loop {
+            let mut head = [0u8; 2];
+            self.socket
+                .read_exact(&mut head)
+                .expect("the browser went silent");
+            let len = match head[1] & 0x7f {
+                126 => {
+                    let mut n = [0u8; 2];
+                    self.socket.read_exact(&mut n).unwrap();
+                    u64::from(u16::from_be_bytes(n))
+                }
+                127 => {
+                    let mut n = [0u8; 8];
+                    self.socket.read_exact(&mut n).unwrap();
+                    u64::from_be_bytes(n)
+                }
+                n => u64::from(n),
+            };
+            let mut payload = vec![0u8; len as usize];
+            self.socket.read_exact(&mut payload).unwrap();
+            match head[0] & 0x0f {
+                0x0 | 0x1 => message.extend(payload),
+                0x8 => panic!("the browser closed the DevTools connection"),
+                _ => continue,
+            }
+            if head[0] & 0x80 != 0 {
+                return String::from_utf8(message).expect("DevTools speaks UTF-8");
+            }
+        }
+    }
+
+    /// Calls a DevTools method and returns its result.
+    fn call(&mut self, method: &str, params: serde_json::Value) -> serde_json::Value {
+        let id = self.next_id;
+        self.next_id += 1;
+        let request = serde_json::json!({ "id": id, "method": method, "params": params });
+        self.send_frame(&request.to_string());
+        loop {
+            let answer: serde_json::Value = serde_json::from_str(&self.read_message()).unwrap();
+            if answer["id"] == id {
+                assert!(answer["error"].is_null(), "{method}: {answer}");
+                return answer["result"].clone();
+            }
+        }
+    }
+
+    /// Evaluates `expression` in the page: its value.
+    fn eval(&mut self, expression: &str) -> serde_json::Value {
+        let result = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": expression, "returnByValue": true }),
+        );
+        result["result"]["value"].clone()
+    }
+
+    /// Clicks the element `selector` as a user does: a mouse press and release at its
+    /// centre. False if it is not on the page.
+    fn click(&mut self, selector: &str) -> bool {
+        let expression = format!(
+            "(() => {{ const e = document.querySelector({selector:?}); if (!e) return null; \
+             e.scrollIntoView(); const r = e.getBoundingClientRect(); \
+             return [r.x + r.width / 2, r.y + r.height / 2]; }})()"
+        );
+        let at = self.eval(&expression);
+        let (Some(x), Some(y)) = (at[0].as_f64(), at[1].as_f64()) else {
+            return false;
+        };
+        for kind in ["mousePressed", "mouseReleased"] {
+            self.call(
+                "Input.dispatchMouseEvent",
+                serde_json::json!({ "type": kind, "x": x, "y": y, "button": "left", "clickCount": 1 }),
+            );
+        }
+        true
+    }
+}
+
+impl Drop for DevTools {
+    fn drop(&mut self) {
+        self.browser.kill9();
+    }
+}
+
+fn browser_or_skip() -> Option<PathBuf> {
+    let browser = chromium();
+    if browser.is_none() {
+        assert!(
+            std::env::var("TESSERA_REQUIRE_BROWSER").as_deref() != Ok("1"),
+            "TESSERA_REQUIRE_BROWSER=1 but no Chromium found (install chromium or set TESSERA_CHROMIUM)"
+        );
+        eprintln!("skipped: no Chromium on this machine (set TESSERA_CHROMIUM)");
+    }
+    browser
+}
+
+fn job_json(dir: &Path, addr: &str, job: u64) -> serde_json::Value {
+    let run = common::ok(
+        common::client(dir, addr, &["status", &job.to_string(), "--json"]),
+        "status --json",
+    );
+    serde_json::from_str(run.stdout.trim()).unwrap()
+}
+
+#[test]
+fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_warns() {
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    // No worker yet: the job waits, and the page says why.
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "160", "--height", "120", "--aa", "2", "--tile", "16",
+        ],
+    );
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/?job={job}"),
+        &dir.path().join("chromium.log"),
+    );
+    let banner = poll("the no-worker banner", Duration::from_secs(30), || {
+        let text = page.eval(
+            "(() => { const w = document.getElementById('warning'); return w && !w.hidden ? w.textContent : null; })()",
+        );
+        text.as_str().map(str::to_owned)
+    });
+    assert!(banner.contains("no worker is connected"), "{banner}");
+
+    // Paused by a click, as `tessera status` shows.
+    poll("the pause button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"pause\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    poll("the job to be paused", Duration::from_secs(20), || {
+        (job_json(dir.path(), &addr, job)["state"] == "paused").then_some(())
+    });
+    // The page shows it without a reload.
+    poll(
+        "the page to show the pause",
+        Duration::from_secs(20),
+        || {
+            (page.eval(&format!(
+                "document.querySelector('tr[data-job=\"{job}\"]').dataset.state"
+            )) == "paused")
+                .then_some(())
+        },
+    );
+
+    // A worker joins; it gets nothing of the paused job; the banner goes.
+    let mut worker = start_worker_with(dir.path(), &addr, "clicky", &["--throttle", "50"]);
+    poll("the banner to go", Duration::from_secs(30), || {
+        (page.eval("document.getElementById('warning').hidden") == true).then_some(())
+    });
+    std::thread::sleep(Duration::from_millis(1000));
+    assert_eq!(job_json(dir.path(), &addr, job)["tiles_done"], 0);
+
+    // Disabled from the page: the worker row says so, and `tessera workers` too.
+    poll("the disable button", Duration::from_secs(30), || {
+        page.click("tr[data-worker=\"clicky\"] button[data-action=\"disable\"]")
+            .then_some(())
+    });
+    poll("the worker to be disabled", Duration::from_secs(20), || {
+        let run = common::client(dir.path(), &addr, &["workers", "--json"]);
+        let workers: serde_json::Value = serde_json::from_str(run.stdout.trim()).ok()?;
+        (workers[0]["disabled"] == true).then_some(())
+    });
+    poll(
+        "the banner for a disabled farm",
+        Duration::from_secs(20),
+        || {
+            let text = page.eval("document.getElementById('warning').textContent");
+            text.as_str()
+                .filter(|t| t.contains("disabled, draining or quarantined"))
+                .map(drop)
+        },
+    );
+
+    // Enabled and resumed from the page: the job renders to the end.
+    poll("the enable button", Duration::from_secs(30), || {
+        page.click("tr[data-worker=\"clicky\"] button[data-action=\"enable\"]")
+            .then_some(())
+    });
+    poll("the resume button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"resume\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    common::wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    // An ended job offers delete; a click removes it.
+    poll("the delete button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"delete\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    poll("the job to be deleted", Duration::from_secs(20), || {
+        let run = common::client(dir.path(), &addr, &["status", &job.to_string()]);
+        (!run.status.success() && run.stderr.contains(&format!("no job {job}"))).then_some(())
+    });
+    // Drained from the page: the worker exits 0 and the page says no worker is left.
+    poll("the drain button", Duration::from_secs(30), || {
+        page.click("tr[data-worker=\"clicky\"] button[data-action=\"drain\"]")
+            .then_some(())
+    });
+    let exit = worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the drained worker did not exit");
+    assert!(exit.success(), "the drained worker exited with {exit}");
+    poll("the worker row to go", Duration::from_secs(20), || {
+        (page.eval("document.querySelectorAll('tr[data-worker]').length") == 0).then_some(())
+    });
+}
+
+/// `POST PATH` with `headers` and a JSON body: the status code and the body.
+fn http_post(addr: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
+    let mut stream = std::net::TcpStream::connect(addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let mut request = format!(
+        "POST {path} HTTP/1.0\r\nHost: {addr}\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (name, value) in headers {
+        request.push_str(&format!("{name}: {value}\r\n"));
+    }
+    request.push_str("\r\n");
+    request.push_str(body);
+    stream.write_all(request.as_bytes()).unwrap();
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).unwrap();
+    let text = String::from_utf8_lossy(&response).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").expect("an HTTP answer");
+    let code = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (code, body.to_owned())
+}
+
+#[test]
+fn the_page_controls_follow_the_client_secret() {
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    std::fs::write(dir.path().join("client.token"), "page-secret\n").unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--client-token-file", "client.token"],
+        "coordinator.log",
+    );
+    let run = common::tessera(
+        dir.path(),
+        &[
+            "submit",
+            &scene_path("seed.json"),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--coordinator",
+            &addr,
+            "--token-file",
+            "client.token",
+        ],
+        Duration::from_secs(60),
+    );
+    let job: u64 = common::ok(run, "submit").stdout.trim().parse().unwrap();
+    let pause = format!("/api/jobs/{job}/pause");
+    let json = ("Content-Type", "application/json");
+    let one_line_error = |body: &str| {
+        let v: serde_json::Value = serde_json::from_str(body).expect("a JSON error");
+        let e = v["error"].as_str().expect("an error field").to_owned();
+        assert!(!e.contains('\n'), "{e}");
+        e
+    };
+
+    let (code, body) = http_post(&http, &pause, &[json], "{}");
+    assert_eq!(code, 401, "{body}");
+    assert!(one_line_error(&body).contains("Authorization: Bearer"));
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[json, ("Authorization", "Bearer nope")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    assert_eq!(one_line_error(&body), "wrong client token");
+    // A cross-site form, even with the token, is refused.
+    let good = ("Authorization", "Bearer page-secret");
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[("Content-Type", "application/x-www-form-urlencoded"), good],
+        "a=1",
+    );
+    assert_eq!(code, 415, "{body}");
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[json, good, ("Origin", "http://elsewhere.example")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    // Nothing changed so far.
+    let status = |dir: &Path| {
+        let run = common::tessera(
+            dir,
+            &[
+                "status",
+                &job.to_string(),
+                "--json",
+                "--coordinator",
+                &addr,
+                "--token-file",
+                "client.token",
+            ],
+            Duration::from_secs(60),
+        );
+        let v: serde_json::Value =
+            serde_json::from_str(common::ok(run, "status").stdout.trim()).unwrap();
+        v
+    };
+    assert_eq!(status(dir.path())["state"], "queued");
+
+    let origin = format!("http://{http}");
+    let (code, body) = http_post(&http, &pause, &[json, good, ("Origin", &origin)], "{}");
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "paused");
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/priority"),
+        &[json, good],
+        r#"{"priority": 7}"#,
+    );
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["priority"], 7);
+    // Mistakes are one-line JSON errors.
+    let (code, body) = http_post(&http, "/api/jobs/999/pause", &[json, good], "{}");
+    assert_eq!(code, 404, "{body}");
+    assert_eq!(one_line_error(&body), "no job 999 on this coordinator");
+    let (code, body) = http_post(&http, "/api/workers/ghost/drain", &[json, good], "{}");
+    assert_eq!(code, 404, "{body}");
+    assert!(one_line_error(&body).starts_with("no worker \"ghost\""));
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/delete"),
+        &[json, good],
+        "{}",
+    );
+    assert_eq!(code, 409, "{body}");
+    assert!(one_line_error(&body).contains("cancel"), "{body}");
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/cancel"),
+        &[json, good],
+        "{}",
+    );
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "cancelled");
+}
+
+#[test]
+fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    std::fs::write(dir.path().join("client.token"), "tab-secret\n").unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--client-token-file", "client.token"],
+        "coordinator.log",
+    );
+    let with_token = |args: &[&str]| {
+        let mut all: Vec<&str> = args.to_vec();
+        all.extend(["--coordinator", &addr, "--token-file", "client.token"]);
+        common::tessera(dir.path(), &all, Duration::from_secs(60))
+    };
+    let seed = scene_path("seed.json");
+    let run = with_token(&["submit", &seed, "--width", "32", "--height", "32"]);
+    let job: u64 = common::ok(run, "submit").stdout.trim().parse().unwrap();
+    let state = || {
+        let run = with_token(&["status", &job.to_string(), "--json"]);
+        let v: serde_json::Value =
+            serde_json::from_str(common::ok(run, "status").stdout.trim()).unwrap();
+        v["state"].as_str().unwrap_or_default().to_owned()
+    };
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/?job={job}"),
+        &dir.path().join("chromium.log"),
+    );
+    let pause = format!("button[data-action=\"pause\"][data-job=\"{job}\"]");
+    poll("the pause button", Duration::from_secs(30), || {
+        page.click(&pause).then_some(())
+    });
+    // Refused for want of the token: the page asks for it, and nothing changed.
+    poll("the token form", Duration::from_secs(20), || {
+        (page.eval("document.getElementById('token-form').hidden") == false).then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('control-note').dataset.status"),
+        "401"
+    );
+    assert_eq!(state(), "queued");
+    // Given, the waiting control goes through, and the token stays for the tab.
+    page.eval("document.getElementById('token').value = 'tab-secret'");
+    assert!(page.click("#token-form button[type=\"submit\"]"));
+    poll("the job to be paused", Duration::from_secs(20), || {
+        (state() == "paused").then_some(())
+    });
+    assert_eq!(
+        page.eval("sessionStorage.getItem('tessera-token')"),
+        "tab-secret"
+    );
+    poll("the resume button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"resume\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    poll("the job to be resumed", Duration::from_secs(20), || {
+        (state() == "queued").then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('token-form').hidden"),
+        true,
+        "the page asked again"
+    );
 }

@@ -193,6 +193,15 @@ impl Client {
         }
     }
 
+    /// Drains, disables or enables a worker (see [`ClientRequest::DrainWorker`]): the
+    /// workers once the change is made (and, for a disable or enable, stored).
+    pub async fn control_worker(&mut self, request: ClientRequest) -> Result<Vec<WorkerStatus>> {
+        match self.request(request).await? {
+            ClientResponse::Workers(workers) => Ok(workers),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     pub async fn workers(&mut self) -> Result<Vec<WorkerStatus>> {
         match self.request(ClientRequest::Workers).await? {
             ClientResponse::Workers(workers) => Ok(workers),

@@ -238,6 +238,9 @@ impl Db {
                  rays INTEGER NOT NULL,
                  worker TEXT NOT NULL,
                  PRIMARY KEY (job, tile)
+             );
+             CREATE TABLE IF NOT EXISTS disabled_machines (
+                 name TEXT PRIMARY KEY
              );",
         )
         .context("cannot create the job tables")?;
@@ -349,6 +352,33 @@ impl Db {
             )
             .context("cannot record the job's pause and priority")?;
         Ok(())
+    }
+
+    /// Records that an operator disabled (or enabled again) a machine, by name: it
+    /// stays disabled across restarts until enabled.
+    pub fn set_disabled(&self, machine: &str, disabled: bool) -> Result<()> {
+        let sql = if disabled {
+            "INSERT OR IGNORE INTO disabled_machines (name) VALUES (?1)"
+        } else {
+            "DELETE FROM disabled_machines WHERE name = ?1"
+        };
+        self.conn
+            .execute(sql, params![machine])
+            .context("cannot record the disabled machine")?;
+        Ok(())
+    }
+
+    /// The machines an operator disabled, by name.
+    pub fn load_disabled(&self) -> Result<Vec<String>> {
+        let mut statement = self
+            .conn
+            .prepare("SELECT name FROM disabled_machines ORDER BY name")
+            .context("cannot read the disabled machines")?;
+        let names = statement
+            .query_map([], |r| r.get::<_, String>(0))?
+            .collect::<Result<Vec<_>, _>>()
+            .context("cannot read the disabled machines")?;
+        Ok(names)
     }
 
     pub fn set_ended(
@@ -721,6 +751,23 @@ mod tests {
         let tiles = db.load_tiles(4).unwrap();
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!((tile.samples, tile.error_sq_sum), (Some(272), Some(12.5)));
+    }
+
+    #[test]
+    fn disabled_machines_are_kept_by_name_until_enabled() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tessera.db");
+        let db = Db::open(&path, true).unwrap();
+        assert!(db.load_disabled().unwrap().is_empty());
+        db.set_disabled("render-07", true).unwrap();
+        db.set_disabled("render-07", true).unwrap();
+        db.set_disabled("render-01", true).unwrap();
+        drop(db);
+        let db = Db::open(&path, false).unwrap();
+        assert_eq!(db.load_disabled().unwrap(), ["render-01", "render-07"]);
+        db.set_disabled("render-07", false).unwrap();
+        db.set_disabled("never-disabled", false).unwrap();
+        assert_eq!(db.load_disabled().unwrap(), ["render-01"]);
     }
 
     #[test]

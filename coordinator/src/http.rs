@@ -1,17 +1,26 @@
 //! The HTTP side of the daemons (`--http ADDR`): health for supervisors, Prometheus
-//! metrics, and the coordinator's status page with live previews.
+//! metrics, and the coordinator's status page with live previews and controls.
 //!
-//! It only reads: nothing here can submit, cancel or change a job, so it needs no
-//! authentication beyond where it listens (loopback unless told otherwise).
+//! Reading needs no authentication beyond where it listens (loopback unless told
+//! otherwise). The controls (`POST /api/jobs/ID/ACTION`, `POST
+//! /api/workers/WORKER/ACTION`) change the farm, so they follow the farm's client
+//! secret, as `tessera pause` and the rest do ([`authorize`]): with a secret, a request
+//! must carry it as `Authorization: Bearer TOKEN`; without one, only loopback peers may
+//! use them (the coordinator itself listens on loopback only without secrets). Every
+//! control must also come as JSON from the page's own origin, which a cross-site form
+//! or image cannot do. They run the very requests of the client protocol
+//! ([`Observer::control`]): one implementation of every operation.
 
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 
-use axum::extract::{Path, State};
-use axum::http::{header, StatusCode};
+use axum::extract::{ConnectInfo, Path, State};
+use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use axum::{Json, Router};
-use protocol::JobId;
+use protocol::{ClientRequest, ClientResponse, JobId};
+use sha2::{Digest, Sha256};
 use tokio::net::TcpListener;
 
 use crate::server::{Observer, Picture};
@@ -24,6 +33,8 @@ pub fn coordinator_routes(observer: Observer) -> Router {
     Router::new()
         .route("/", get(|| async { Html(STATUS_PAGE) }))
         .route("/api/status", get(status))
+        .route("/api/jobs/{id}/{action}", post(job_control))
+        .route("/api/workers/{worker}/{action}", post(worker_control))
         .route("/jobs/{id}/image.png", get(picture))
         .route("/metrics", get(metrics))
         .route("/healthz", get(|| async { "ok\n" }))
@@ -51,7 +62,9 @@ pub fn worker_routes(ready: Arc<dyn Fn() -> bool + Send + Sync>) -> Router {
 /// dropped.
 pub fn spawn(listener: TcpListener, routes: Router) -> Serving {
     Serving(tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, routes).await {
+        // The peer's address decides who may use the controls without a secret.
+        let service = routes.into_make_service_with_connect_info::<SocketAddr>();
+        if let Err(e) = axum::serve(listener, service).await {
             tracing::error!(error = %e, "the HTTP listener failed");
         }
     }))
@@ -125,5 +138,306 @@ async fn metrics(State(observer): State<Observer>) -> Response {
         )
             .into_response(),
         Err(_) => StatusCode::INTERNAL_SERVER_ERROR.into_response(),
+    }
+}
+
+/// A refused or failed control: its status and one line saying why, as JSON
+/// (`{"error": "..."}`).
+fn refusal(code: StatusCode, message: impl Into<String>) -> Response {
+    let message: String = message.into();
+    (code, Json(serde_json::json!({ "error": message }))).into_response()
+}
+
+/// What a control request shows of itself, for [`authorize`].
+#[derive(Clone, Copy, Debug)]
+pub struct Asking<'a> {
+    pub peer: IpAddr,
+    /// The `Authorization` header, if any.
+    pub authorization: Option<&'a str>,
+    /// The `Content-Type` header, if any.
+    pub content_type: Option<&'a str>,
+    /// The `Origin` header, if any (browsers send it with every cross-site POST).
+    pub origin: Option<&'a str>,
+    /// The `Host` header, if any.
+    pub host: Option<&'a str>,
+}
+
+/// Whether a control request may change the farm: `Err` is the HTTP status and the
+/// one-line reason.
+///
+/// - It must be JSON (`Content-Type: application/json`): a cross-site form cannot send
+///   that without the browser asking first, and nothing here answers that question.
+///   An `Origin`, when sent, must name the host the request was sent to.
+/// - With a client secret, it must carry `Authorization: Bearer SECRET`, compared in
+///   constant time: missing is 401, wrong is 403.
+/// - Without one, only a loopback peer may: the secretless farm trusts its own machine
+///   only, as its protocol listener does.
+pub fn authorize(secret: Option<&[u8]>, asking: Asking<'_>) -> Result<(), (StatusCode, String)> {
+    let json = asking.content_type.is_some_and(|t| {
+        t.split(';')
+            .next()
+            .is_some_and(|m| m.trim().eq_ignore_ascii_case("application/json"))
+    });
+    if !json {
+        return Err((
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "controls take Content-Type: application/json".into(),
+        ));
+    }
+    if let Some(origin) = asking.origin {
+        let origin_host = origin
+            .split_once("://")
+            .map_or(origin, |(_, rest)| rest)
+            .trim_end_matches('/');
+        if asking.host != Some(origin_host) {
+            return Err((
+                StatusCode::FORBIDDEN,
+                format!("a control from another site ({origin}) is refused"),
+            ));
+        }
+    }
+    match secret {
+        Some(secret) => {
+            let token = asking
+                .authorization
+                .and_then(|v| v.strip_prefix("Bearer "))
+                .map(str::trim);
+            match token {
+                None => Err((
+                    StatusCode::UNAUTHORIZED,
+                    "this farm has a client secret: send it as Authorization: Bearer TOKEN".into(),
+                )),
+                Some(token) if same_secret(token.as_bytes(), secret) => Ok(()),
+                Some(_) => Err((StatusCode::FORBIDDEN, "wrong client token".into())),
+            }
+        }
+        None if asking.peer.is_loopback() => Ok(()),
+        None => Err((
+            StatusCode::FORBIDDEN,
+            "without a client secret only this machine may use the controls: give the \
+             coordinator a client token to use them from elsewhere"
+                .into(),
+        )),
+    }
+}
+
+/// Compares two secrets in time independent of where they differ (and of their
+/// lengths): their SHA-256 digests, every byte looked at.
+fn same_secret(given: &[u8], secret: &[u8]) -> bool {
+    let (a, b) = (Sha256::digest(given), Sha256::digest(secret));
+    a.iter()
+        .zip(b.iter())
+        .fold(0u8, |acc, (x, y)| acc | (x ^ y))
+        == 0
+}
+
+/// Checks a control request against [`authorize`]: the refusal to answer, if any.
+fn check(observer: &Observer, peer: SocketAddr, headers: &HeaderMap) -> Option<Response> {
+    let text = |name: header::HeaderName| headers.get(name).and_then(|v| v.to_str().ok());
+    let asking = Asking {
+        peer: peer.ip(),
+        authorization: text(header::AUTHORIZATION),
+        content_type: text(header::CONTENT_TYPE),
+        origin: text(header::ORIGIN),
+        host: text(header::HOST),
+    };
+    authorize(observer.client_secret(), asking)
+        .err()
+        .map(|(code, message)| refusal(code, message))
+}
+
+/// The answer to a control: the job or the workers as the protocol gives them, or
+/// its error as a one-line JSON error (404 for what does not exist, 409 otherwise).
+fn answer(response: ClientResponse) -> Response {
+    match response {
+        ClientResponse::Error { message } => {
+            let code = if message.starts_with("no job ") || message.starts_with("no worker ") {
+                StatusCode::NOT_FOUND
+            } else {
+                StatusCode::CONFLICT
+            };
+            refusal(code, message)
+        }
+        ClientResponse::Job(status) => Json(serde_json::json!({
+            "id": status.id,
+            "state": if status.paused { "paused" } else { status.state.as_str() },
+            "priority": status.priority,
+        }))
+        .into_response(),
+        ClientResponse::Cancelled { job } => {
+            Json(serde_json::json!({ "id": job, "state": "cancelled" })).into_response()
+        }
+        ClientResponse::Deleted { job } => {
+            Json(serde_json::json!({ "id": job, "state": "deleted" })).into_response()
+        }
+        ClientResponse::Workers(workers) => Json(serde_json::json!({
+            "workers": workers.iter().map(|w| serde_json::json!({
+                "id": w.id,
+                "name": w.name,
+                "draining": w.draining,
+                "disabled": w.disabled,
+            })).collect::<Vec<_>>()
+        }))
+        .into_response(),
+        _ => refusal(StatusCode::INTERNAL_SERVER_ERROR, "unexpected answer"),
+    }
+}
+
+/// `POST /api/jobs/ID/pause|resume|cancel|delete|priority` (`priority` takes
+/// `{"priority": N}`).
+async fn job_control(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    Path((id, action)): Path<(String, String)>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    if let Some(refused) = check(&observer, peer, &headers) {
+        return refused;
+    }
+    let Ok(job) = id.parse::<JobId>() else {
+        return refusal(
+            StatusCode::NOT_FOUND,
+            format!("no job {id:?}: a job id is a number"),
+        );
+    };
+    let request = match action.as_str() {
+        "pause" => ClientRequest::Pause { job },
+        "resume" => ClientRequest::Resume { job },
+        "cancel" => ClientRequest::Cancel { job },
+        "delete" => ClientRequest::Delete { job },
+        "priority" => {
+            let priority = serde_json::from_slice::<serde_json::Value>(&body)
+                .ok()
+                .and_then(|v| v.get("priority").and_then(serde_json::Value::as_i64))
+                .and_then(|p| i32::try_from(p).ok());
+            match priority {
+                Some(priority) => ClientRequest::SetPriority { job, priority },
+                None => {
+                    return refusal(
+                        StatusCode::BAD_REQUEST,
+                        "priority takes {\"priority\": N}, N a 32-bit integer",
+                    )
+                }
+            }
+        }
+        other => {
+            return refusal(
+                StatusCode::NOT_FOUND,
+                format!("no job action {other:?}: pause, resume, cancel, delete or priority"),
+            )
+        }
+    };
+    answer(observer.control(request, peer.ip()).await)
+}
+
+/// `POST /api/workers/WORKER/drain|disable|enable`, WORKER an id or a name.
+async fn worker_control(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    Path((worker, action)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    if let Some(refused) = check(&observer, peer, &headers) {
+        return refused;
+    }
+    let request = match action.as_str() {
+        "drain" => ClientRequest::DrainWorker { worker },
+        "disable" => ClientRequest::DisableWorker { worker },
+        "enable" => ClientRequest::EnableWorker { worker },
+        other => {
+            return refusal(
+                StatusCode::NOT_FOUND,
+                format!("no worker action {other:?}: drain, disable or enable"),
+            )
+        }
+    };
+    answer(observer.control(request, peer.ip()).await)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LOOPBACK: IpAddr = IpAddr::V4(std::net::Ipv4Addr::LOCALHOST);
+    const REMOTE: IpAddr = IpAddr::V4(std::net::Ipv4Addr::new(192, 0, 2, 7));
+
+    fn asking(peer: IpAddr, authorization: Option<&str>) -> Asking<'_> {
+        Asking {
+            peer,
+            authorization,
+            content_type: Some("application/json"),
+            origin: None,
+            host: Some("farm:8080"),
+        }
+    }
+
+    fn code(r: Result<(), (StatusCode, String)>) -> Option<StatusCode> {
+        r.err().map(|(code, _)| code)
+    }
+
+    #[test]
+    fn without_a_secret_only_loopback_may_control() {
+        assert_eq!(code(authorize(None, asking(LOOPBACK, None))), None);
+        assert_eq!(
+            code(authorize(None, asking(REMOTE, None))),
+            Some(StatusCode::FORBIDDEN)
+        );
+        let v6 = IpAddr::V6(std::net::Ipv6Addr::LOCALHOST);
+        assert_eq!(code(authorize(None, asking(v6, None))), None);
+    }
+
+    #[test]
+    fn with_a_secret_the_token_decides_wherever_the_peer_is() {
+        let secret = Some(&b"s3cret"[..]);
+        for peer in [LOOPBACK, REMOTE] {
+            assert_eq!(
+                code(authorize(secret, asking(peer, None))),
+                Some(StatusCode::UNAUTHORIZED)
+            );
+            assert_eq!(
+                code(authorize(secret, asking(peer, Some("Bearer wrong")))),
+                Some(StatusCode::FORBIDDEN)
+            );
+            assert_eq!(
+                code(authorize(secret, asking(peer, Some("Basic s3cret")))),
+                Some(StatusCode::UNAUTHORIZED)
+            );
+            assert_eq!(
+                code(authorize(secret, asking(peer, Some("Bearer s3cret")))),
+                None
+            );
+        }
+    }
+
+    #[test]
+    fn cross_site_requests_are_refused() {
+        let form = Asking {
+            content_type: Some("application/x-www-form-urlencoded"),
+            ..asking(LOOPBACK, None)
+        };
+        assert_eq!(
+            code(authorize(None, form)),
+            Some(StatusCode::UNSUPPORTED_MEDIA_TYPE)
+        );
+        let other = Asking {
+            origin: Some("http://evil.example"),
+            ..asking(LOOPBACK, None)
+        };
+        assert_eq!(code(authorize(None, other)), Some(StatusCode::FORBIDDEN));
+        let same = Asking {
+            origin: Some("http://farm:8080"),
+            content_type: Some("application/json; charset=utf-8"),
+            ..asking(LOOPBACK, None)
+        };
+        assert_eq!(code(authorize(None, same)), None);
+    }
+
+    #[test]
+    fn secrets_compare_equal_only_when_equal() {
+        assert!(same_secret(b"abc", b"abc"));
+        assert!(!same_secret(b"abc", b"abd"));
+        assert!(!same_secret(b"abc", b"abcd"));
+        assert!(!same_secret(b"", b"abc"));
     }
 }

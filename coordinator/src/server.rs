@@ -316,6 +316,9 @@ impl Server {
         });
         {
             let mut core = shared.lock();
+            for machine in opened.disabled {
+                core.tiles_event(&shared, scheduler::Event::DisableMachine { machine });
+            }
             for job in opened.jobs {
                 core.restore(&shared, job);
             }

@@ -182,6 +182,26 @@ pub enum ClientRequest {
         job: JobId,
         priority: i32,
     },
+    /// Have a worker finish the tiles it holds and exit without reconnecting, as it
+    /// does on SIGTERM. `worker` is a connected worker's id (as `Workers` lists it) or
+    /// its name (every connected worker of that name drains). Answered with `Workers`
+    /// once the workers were told.
+    DrainWorker {
+        worker: String,
+    },
+    /// Give the machine no new tile (the tiles it holds finish and count); its workers
+    /// stay connected. Kept by machine name and stored: a worker of that name that
+    /// connects later, even to a restarted coordinator, is disabled too, until
+    /// `EnableWorker`. `worker` is an id or a name as in `DrainWorker`. Answered with
+    /// `Workers` once stored.
+    DisableWorker {
+        worker: String,
+    },
+    /// Undo `DisableWorker`: the machine takes tiles again. Answered with `Workers`
+    /// once stored; enabling a machine that is not disabled changes nothing.
+    EnableWorker {
+        worker: String,
+    },
 }
 
 /// The coordinator's answer to a [`ClientRequest`].
@@ -276,6 +296,10 @@ pub struct JobStatus {
     /// An operator paused the job: no new tile of it is handed out. `state` stays
     /// `Queued` or `Running` (tiles out when it was paused may still finish).
     pub paused: bool,
+    /// Why the job cannot progress now, in one line, while it is queued or running
+    /// and no connected worker may take tiles (none is connected, or all are disabled,
+    /// draining or quarantined). `None` otherwise.
+    pub warning: Option<String>,
 }
 
 /// A connected worker, as reported to clients.
@@ -299,6 +323,11 @@ pub struct WorkerStatus {
     /// Tiles the worker may hold at once: enough to keep its threads busy across the
     /// round trip.
     pub credit: u32,
+    /// The worker is finishing what it holds before it exits (told by an operator or
+    /// shutting down on its own): it gets no new tile.
+    pub draining: bool,
+    /// An operator disabled its machine: it gets no new tile until enabled.
+    pub disabled: bool,
 }
 
 /// One render of the canary: the settings and the rectangle of the canary scene.
@@ -364,6 +393,10 @@ pub enum ToWorker {
         /// to start from the first samples.
         previous: Option<Vec<u8>>,
     },
+    /// An operator asked the worker to drain: finish the tiles it holds, then close
+    /// the connection and exit without reconnecting, exactly as on SIGTERM (it answers
+    /// with [`FromWorker::Draining`] first).
+    Drain,
 }
 
 /// Worker to coordinator.

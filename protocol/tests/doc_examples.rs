@@ -111,6 +111,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 time_limit_ms: None,
                 stopped_on_time_limit: false,
                 paused: false,
+                warning: None,
             })),
         ),
         (

@@ -161,12 +161,12 @@ prop_compose! {
         error in prop::option::of(text()), samples in any::<u64>(),
         estimated_error in prop::option::of(rate()),
         time_limit_ms in any::<Option<u64>>(), stopped_on_time_limit in any::<bool>(),
-        paused in any::<bool>(),
+        paused in any::<bool>(), warning in prop::option::of(text()),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
-            paused,
+            paused, warning,
         }
     }
 }
@@ -177,11 +177,11 @@ prop_compose! {
         tiles_in_flight in any::<u32>(), tiles_done in any::<u64>(), rays in any::<u64>(),
         connected_ms in any::<u64>(), rays_per_second in rate(), build in text(),
         quarantined in prop::option::of(text()), rtt_us in any::<Option<u64>>(),
-        credit in any::<u32>(),
+        credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
     ) -> WorkerStatus {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
-            rays_per_second, build, quarantined, rtt_us, credit,
+            rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
         }
     }
 }
@@ -234,6 +234,7 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
                     previous
                 }
             ),
+        Just(ToWorker::Drain),
     ]
 }
 
@@ -340,6 +341,9 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
         any::<u64>().prop_map(|job| ClientRequest::Resume { job }),
         (any::<u64>(), any::<i32>())
             .prop_map(|(job, priority)| ClientRequest::SetPriority { job, priority }),
+        text().prop_map(|worker| ClientRequest::DrainWorker { worker }),
+        text().prop_map(|worker| ClientRequest::DisableWorker { worker }),
+        text().prop_map(|worker| ClientRequest::EnableWorker { worker }),
     ]
 }
 
@@ -882,6 +886,8 @@ fn nan_rates_keep_their_bits() {
         quarantined: None,
         rtt_us: None,
         credit: 2,
+        draining: false,
+        disabled: false,
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {
@@ -934,8 +940,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&12u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 12 (variants go from 0 to 11)"
+        decode_error::<ClientRequest>(&15u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 15 (variants go from 0 to 14)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(

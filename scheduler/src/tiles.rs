@@ -270,6 +270,16 @@ pub enum Event {
     StorageUnavailable,
     /// Storage records results again: every worker is filled.
     StorageAvailable,
+    /// An operator disabled the machine: its workers get no new tile (tiles they hold
+    /// may finish and count) until `EnableMachine`. Kept by machine name, so that it
+    /// holds for workers of that machine that connect later.
+    DisableMachine {
+        machine: String,
+    },
+    /// The disabled machine's workers take tiles again.
+    EnableMachine {
+        machine: String,
+    },
 }
 
 /// What the daemon must do.
@@ -745,7 +755,16 @@ struct Worker {
     holding: BTreeSet<(JobId, u32)>,
     scenes: BTreeSet<SceneHash>,
     draining: bool,
+    /// Its machine is disabled by an operator: like draining, but undone by an enable.
+    disabled: bool,
     last_seen: Millis,
+}
+
+impl Worker {
+    /// Whether it may be given new tiles.
+    fn takes_tiles(&self) -> bool {
+        !self.draining && !self.disabled
+    }
 }
 
 /// The scheduler's whole state.
@@ -783,6 +802,8 @@ pub struct Scheduler {
     paused: BTreeSet<JobId>,
     /// Machines caught returning wrong pixels: they get no tile again.
     quarantined: BTreeSet<Machine>,
+    /// Machines an operator disabled: they get no new tile until enabled.
+    disabled: BTreeSet<Machine>,
     counters: Counters,
 }
 
@@ -838,6 +859,7 @@ impl Scheduler {
                     holding: BTreeSet::new(),
                     scenes: BTreeSet::new(),
                     draining: false,
+                    disabled: self.disabled.contains(&machine),
                     last_seen: self.now,
                 };
                 let quarantined = self.quarantined.contains(&machine);
@@ -847,7 +869,7 @@ impl Scheduler {
                     draining: quarantined,
                     ..joined
                 };
-                if !quarantined {
+                if joined.takes_tiles() {
                     *self.ready.entry(machine).or_default() += 1;
                 }
                 // A second hello on a live id replaces the worker (a daemon bug, but
@@ -855,7 +877,7 @@ impl Scheduler {
                 // connected throughout, so no stall ends.
                 if let Some(old) = self.workers.insert(worker, joined) {
                     self.by_last_seen.remove(&(old.last_seen, worker));
-                    if !old.draining {
+                    if old.takes_tiles() {
                         self.unready(&old.machine);
                     }
                 }
@@ -871,7 +893,9 @@ impl Scheduler {
             Event::WorkerDraining { worker } => {
                 self.seen(worker);
                 if let Some(w) = self.workers.get_mut(&worker) {
-                    if !std::mem::replace(&mut w.draining, true) {
+                    let was_ready = w.takes_tiles();
+                    w.draining = true;
+                    if was_ready {
                         let machine = w.machine.clone();
                         self.unready(&machine);
                     }
@@ -912,6 +936,13 @@ impl Scheduler {
             } => {
                 self.seen(worker);
                 self.tile_to_confirm(worker, job, tile, required, &mut actions);
+                self.fill_all(&mut actions);
+            }
+            Event::DisableMachine { machine } => {
+                self.set_disabled(Machine::Named(machine), true);
+            }
+            Event::EnableMachine { machine } => {
+                self.set_disabled(Machine::Named(machine), false);
                 self.fill_all(&mut actions);
             }
             Event::Quarantine { machine, revoke } => {
@@ -1123,6 +1154,46 @@ impl Scheduler {
         }
     }
 
+    /// Whether some connected worker may be given tiles: none that is draining,
+    /// disabled or quarantined counts. With active jobs and none, nothing renders
+    /// until one connects or is enabled (what `tessera list` warns about).
+    pub fn can_hand_out(&self) -> bool {
+        !self.ready.is_empty()
+    }
+
+    /// Whether an operator disabled the machine.
+    pub fn is_disabled(&self, machine: &str) -> bool {
+        self.disabled.contains(&Machine::Named(machine.to_string()))
+    }
+
+    /// Disables or enables the machine: its connected workers stop or start taking
+    /// new tiles (the ready count follows); the tiles they hold are left alone.
+    fn set_disabled(&mut self, machine: Machine, disabled: bool) {
+        if disabled {
+            self.disabled.insert(machine.clone());
+        } else {
+            self.disabled.remove(&machine);
+        }
+        let workers: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.machine == machine && w.disabled != disabled)
+            .map(|(&id, _)| id)
+            .collect();
+        for worker in workers {
+            let w = self.workers.get_mut(&worker).expect("listed above");
+            let was_ready = w.takes_tiles();
+            w.disabled = disabled;
+            let is_ready = w.takes_tiles();
+            if was_ready && !is_ready {
+                self.unready(&machine);
+            } else if is_ready && !was_ready {
+                *self.ready.entry(machine.clone()).or_default() += 1;
+                self.hungry.insert(worker);
+            }
+        }
+    }
+
     /// One worker of the machine is gone or draining. When no machine is left ready,
     /// every stall ends: a job without a worker to take its tiles just waits.
     fn unready(&mut self, machine: &Machine) {
@@ -1182,7 +1253,7 @@ impl Scheduler {
         };
         self.hungry.remove(&worker);
         self.by_last_seen.remove(&(w.last_seen, worker));
-        if !w.draining {
+        if w.takes_tiles() {
             self.unready(&w.machine);
         }
         for (job, tile) in w.holding {
@@ -1390,7 +1461,8 @@ impl Scheduler {
             .collect();
         for worker in workers {
             let w = self.workers.get_mut(&worker).expect("listed above");
-            let was_ready = !std::mem::replace(&mut w.draining, true);
+            let was_ready = w.takes_tiles();
+            w.draining = true;
             // It holds nothing afterwards, whatever its entries are about: a tile of an
             // active job, a late copy, or a stale entry no active job knows of (its
             // job's id was submitted again, and that job has ended since).
@@ -1622,7 +1694,7 @@ impl Scheduler {
                 self.hungry.remove(&worker_id);
                 return;
             };
-            if worker.draining || worker.holding.len() >= worker.credit {
+            if !worker.takes_tiles() || worker.holding.len() >= worker.credit {
                 self.hungry.remove(&worker_id);
                 return;
             }
@@ -2369,6 +2441,89 @@ mod tests {
         // A later job of the same scene sends it again.
         let later = submit(&mut s, 2, 0, SCENE_A, 1);
         assert_eq!(later[0], Action::SendScene { worker: 1, job: 2 });
+    }
+
+    #[test]
+    fn a_disabled_machine_gets_no_new_tile_until_enabled_even_after_reconnecting() {
+        let mut s = without_speculation();
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        assert!(s.can_hand_out());
+        s.handle(
+            0,
+            Event::DisableMachine {
+                machine: "a".into(),
+            },
+        );
+        assert!(!s.can_hand_out());
+        assert!(s.is_disabled("a"));
+        assert!(assigns(&submit(&mut s, 1, 0, SCENE_A, 3)).is_empty());
+        // A reconnect of the machine is still disabled.
+        s.handle(0, Event::WorkerLeft { worker: 1 });
+        assert!(assigns(&join_at(&mut s, 0, 2, 1, Some("a"))).is_empty());
+        assert!(!s.can_hand_out());
+        // Another machine is not.
+        assert!(!assigns(&join_at(&mut s, 0, 3, 1, Some("b"))).is_empty());
+        s.handle(0, Event::WorkerLeft { worker: 3 });
+        let enabled = s.handle(
+            0,
+            Event::EnableMachine {
+                machine: "a".into(),
+            },
+        );
+        assert!(s.can_hand_out());
+        assert!(assigns(&enabled).iter().all(|&(w, _, _)| w == 2));
+        assert!(!assigns(&enabled).is_empty());
+    }
+
+    #[test]
+    fn a_disabled_workers_tiles_still_count() {
+        let mut s = without_speculation();
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        let out = assigns(&submit(&mut s, 1, 0, SCENE_A, 3));
+        assert!(!out.is_empty());
+        s.handle(
+            0,
+            Event::DisableMachine {
+                machine: "a".into(),
+            },
+        );
+        let (w, j, t) = out[0];
+        let done = s.handle(
+            1,
+            Event::TileDone {
+                worker: w,
+                job: j,
+                tile: t,
+            },
+        );
+        assert!(done.contains(&Action::AcceptTile { job: j, tile: t }));
+        assert!(assigns(&done).is_empty());
+    }
+
+    #[test]
+    fn a_draining_or_quarantined_farm_cannot_hand_out() {
+        let mut s = Scheduler::new();
+        assert!(!s.can_hand_out());
+        join_at(&mut s, 0, 1, 1, Some("a"));
+        join_at(&mut s, 0, 2, 1, Some("b"));
+        s.handle(0, Event::WorkerDraining { worker: 1 });
+        assert!(s.can_hand_out());
+        s.handle(
+            0,
+            Event::Quarantine {
+                machine: "b".into(),
+                revoke: Vec::new(),
+            },
+        );
+        assert!(!s.can_hand_out());
+        // Enabling a machine that was never disabled changes nothing.
+        s.handle(
+            0,
+            Event::EnableMachine {
+                machine: "a".into(),
+            },
+        );
+        assert!(!s.can_hand_out());
     }
 
     #[test]

@@ -248,7 +248,8 @@ async fn serve(
                 *state.refusal.lock().expect("refusal slot") = Some(reason);
                 None
             }
-            ToWorker::Heartbeat | ToWorker::Cancel { .. } => None,
+            // The fake worker is stopped by its test, never drained.
+            ToWorker::Heartbeat | ToWorker::Cancel { .. } | ToWorker::Drain => None,
             ToWorker::Advance {
                 job,
                 tile,

@@ -2,9 +2,10 @@
 //! of threads, and streams the pixels back.
 //!
 //! The connection loop owns the socket; rendering happens on a rayon pool, and finished
-//! tiles come back through a channel, so the loop never blocks on a render. On shutdown
-//! the worker tells the coordinator it is draining, finishes the tiles it holds, sends
-//! them, and exits.
+//! tiles come back through a channel, so the loop never blocks on a render. On shutdown,
+//! or when an operator drains it through the coordinator (`ToWorker::Drain`), the worker
+//! tells the coordinator it is draining, finishes the tiles it holds, sends them, and
+//! exits without reconnecting.
 
 mod cache;
 
@@ -51,8 +52,8 @@ pub struct Config {
 
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
-/// Works for the coordinator until `shutdown` completes (a clean exit after
-/// draining). A lost or unreachable coordinator is retried with exponential backoff
+/// Works for the coordinator until `shutdown` completes or the coordinator drains it
+/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is retried with exponential backoff
 /// and jitter; a coordinator that refuses the worker (another protocol version) is an
 /// error.
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
@@ -81,6 +82,7 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     in_flight: 0,
                     throttle: config.throttle,
                     pongs: Vec::new(),
+                    drain_asked: false,
                 };
                 config.ready.store(true, Ordering::Relaxed);
                 let outcome = session.run(&mut shutdown, &config.ready).await;
@@ -176,6 +178,8 @@ struct Session {
     throttle: Option<f64>,
     /// Pings read and not yet answered.
     pongs: Vec<u64>,
+    /// The coordinator asked it to drain ([`ToWorker::Drain`]).
+    drain_asked: bool,
 }
 
 impl Drop for Session {
@@ -185,8 +189,8 @@ impl Drop for Session {
 }
 
 impl Session {
-    /// Serves one connection. Returns Ok after a clean drain on shutdown, an error when
-    /// the connection is lost.
+    /// Serves one connection. Returns Ok after a clean drain (on shutdown, or asked by
+    /// the coordinator), an error when the connection is lost.
     async fn run<F: std::future::Future<Output = ()>>(
         mut self,
         shutdown: &mut std::pin::Pin<&mut F>,
@@ -211,6 +215,14 @@ impl Session {
                     // Pongs go out at once, ahead of any result: they time the link.
                     for token in self.pongs.drain(..) {
                         self.conn.send(FromWorker::Pong { token }).await?;
+                    }
+                    if self.drain_asked {
+                        // An operator's drain is a SIGTERM sent from afar: the same
+                        // drain, and the same clean exit without reconnecting.
+                        info!(in_flight = self.in_flight, "drained by an operator: finishing the tiles held");
+                        draining = true;
+                        ready.store(false, Ordering::Relaxed);
+                        self.conn.send(FromWorker::Draining).await?;
                     }
                 }
                 () = tokio::time::sleep_until(last_heard + COORDINATOR_SILENCE), if !draining => {
@@ -263,6 +275,7 @@ impl Session {
                 });
             }
             ToWorker::Ping { token } => self.pongs.push(token),
+            ToWorker::Drain => self.drain_asked = true,
             ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
                 let received = self.received;

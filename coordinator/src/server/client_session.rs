@@ -67,7 +67,13 @@ pub(super) async fn serve(shared: Arc<Shared>, mut conn: ClientConn, peer: IpAdd
     Ok(())
 }
 
-async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> ClientResponse {
+/// Answers one request. The protocol's client sessions and the status page's
+/// controls (`crate::http`) both come here: one implementation of every operation.
+pub(crate) async fn respond(
+    sh: &Arc<Shared>,
+    request: ClientRequest,
+    peer: IpAddr,
+) -> ClientResponse {
     match request {
         ClientRequest::Submit(spec) => submit(sh, spec, peer).await,
         ClientRequest::Watch { job, after_tiles } => watch(sh, job, after_tiles).await,
@@ -111,6 +117,24 @@ async fn respond(sh: &Arc<Shared>, request: ClientRequest, peer: IpAddr) -> Clie
         ClientRequest::SetPriority { job, priority } => {
             let controls = sh.lock().set_priority(sh, job, priority);
             store_controls(sh, job, controls).await
+        }
+        ClientRequest::DrainWorker { worker } => {
+            let drained = sh.lock().drain_workers(sh, &worker);
+            match drained {
+                Ok(()) => {
+                    sh.changed();
+                    ClientResponse::Workers(sh.lock().worker_statuses())
+                }
+                Err(message) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::DisableWorker { worker } => {
+            let machine = sh.lock().set_disabled(sh, &worker, true);
+            store_disabled(sh, machine, true).await
+        }
+        ClientRequest::EnableWorker { worker } => {
+            let machine = sh.lock().set_disabled(sh, &worker, false);
+            store_disabled(sh, machine, false).await
         }
         ClientRequest::Fetch { job, offset } => fetch(sh, job, offset).await,
         ClientRequest::Workers => ClientResponse::Workers(sh.lock().worker_statuses()),
@@ -426,6 +450,46 @@ async fn store_controls(
         Err(_) => ClientResponse::Error {
             message: format!(
                 "the change to job {job} is made, but the disk is slow: it is not yet stored"
+            ),
+        },
+    }
+}
+
+/// Stores that a machine was disabled or enabled and answers with the workers once
+/// it is written (it survives a restart from then on).
+async fn store_disabled(
+    sh: &Arc<Shared>,
+    machine: Result<String, String>,
+    disabled: bool,
+) -> ClientResponse {
+    let machine = match machine {
+        Ok(machine) => machine,
+        Err(message) => return ClientResponse::Error { message },
+    };
+    sh.changed();
+    let (done, stored) = tokio::sync::oneshot::channel();
+    sh.persistence.write(Write::Disabled {
+        machine: machine.clone(),
+        disabled,
+        then: Box::new(move |result| {
+            let _ = done.send(result);
+        }),
+    });
+    match tokio::time::timeout(Duration::from_secs(10), stored).await {
+        Ok(Ok(Ok(()))) => ClientResponse::Workers(sh.lock().worker_statuses()),
+        Ok(Ok(Err(message))) => ClientResponse::Error {
+            message: format!("the change to machine {machine:?} could not be stored: {message}"),
+        },
+        Ok(Err(_)) => ClientResponse::Error {
+            message: format!(
+                "the coordinator stopped before storing the change to machine {machine:?}: \
+                 try again"
+            ),
+        },
+        Err(_) => ClientResponse::Error {
+            message: format!(
+                "the change to machine {machine:?} is made, but the disk is slow: it is not \
+                 yet stored"
             ),
         },
     }

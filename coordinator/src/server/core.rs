@@ -136,6 +136,9 @@ pub struct WorkerRecord {
     pub assigned: HashMap<(JobId, u32), Instant>,
     /// Why it gets no tile, once its machine is quarantined.
     pub quarantined: Option<String>,
+    /// It is finishing what it holds before it exits: it said so, or an operator
+    /// told it to.
+    pub draining: bool,
     /// The last round trips measured, in microseconds.
     rtts: VecDeque<u64>,
     /// The rays of its results of the last [`RATE_WINDOW`], with when each arrived: its
@@ -173,6 +176,7 @@ impl WorkerRecord {
             rays: 0,
             assigned: HashMap::new(),
             quarantined: None,
+            draining: false,
             rtts: VecDeque::new(),
             recent: VecDeque::new(),
             tile_us: None,
@@ -1793,14 +1797,109 @@ impl Core {
     pub fn status(&self, id: JobId) -> Option<JobStatus> {
         let job = self.lifecycle.job(id)?;
         let record = self.jobs.get(&id)?;
-        Some(record.status(id, job))
+        let mut status = record.status(id, job);
+        if !status.state.is_final() {
+            status.warning = self.no_worker_warning();
+        }
+        Some(status)
+    }
+
+    /// Why no tile can go out to any worker, when that is so: the one line clients
+    /// show while jobs wait (the scheduler decides who may take tiles).
+    pub fn no_worker_warning(&self) -> Option<String> {
+        if self.tiles.can_hand_out() {
+            return None;
+        }
+        let connected = self.workers.len();
+        Some(if connected == 0 {
+            "no worker is connected: queued and running jobs wait until one connects".into()
+        } else {
+            format!(
+                "no worker can take tiles: all {connected} connected are disabled, draining or \
+                 quarantined (see tessera workers)"
+            )
+        })
     }
 
     pub fn worker_statuses(&self) -> Vec<WorkerStatus> {
         self.workers
             .iter()
-            .map(|(&id, w)| w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id)))
+            .map(|(&id, w)| {
+                let mut status = w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id));
+                status.disabled = self.tiles.is_disabled(&w.name);
+                status
+            })
             .collect()
+    }
+
+    /// The connected workers an operator names: by id (as `tessera workers` lists
+    /// them), or every worker of that name. `Err` is the one-line reason none is.
+    fn named_workers(&self, key: &str) -> Result<Vec<WorkerId>, String> {
+        if let Ok(id) = key.parse::<WorkerId>() {
+            if self.workers.contains_key(&id) {
+                return Ok(vec![id]);
+            }
+        }
+        let by_name: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.name == key)
+            .map(|(&id, _)| id)
+            .collect();
+        if by_name.is_empty() {
+            Err(format!(
+                "no worker {key:?} is connected: give an id or a name from tessera workers"
+            ))
+        } else {
+            Ok(by_name)
+        }
+    }
+
+    /// An operator drains workers: each is told to finish what it holds and exit (as
+    /// on SIGTERM), and gets no new tile from now on.
+    pub fn drain_workers(&mut self, sh: &Arc<Shared>, key: &str) -> Result<(), String> {
+        let workers = self.named_workers(key)?;
+        for worker in workers {
+            if let Some(w) = self.workers.get_mut(&worker) {
+                info!(worker, name = %w.name, "worker drained by an operator");
+                w.draining = true;
+                let _ = w.outbox.send(ToWorker::Drain);
+            }
+            self.tiles_event(sh, Event::WorkerDraining { worker });
+        }
+        Ok(())
+    }
+
+    /// An operator disables (`true`) or enables a machine, named by a connected
+    /// worker's id or name, or (to enable) by the name of a disabled machine not
+    /// connected now. Returns the machine's name, to be stored before the change is
+    /// acknowledged.
+    pub fn set_disabled(
+        &mut self,
+        sh: &Arc<Shared>,
+        key: &str,
+        disabled: bool,
+    ) -> Result<String, String> {
+        let machine = match self.named_workers(key) {
+            Ok(workers) => self.workers[&workers[0]].name.clone(),
+            Err(_) if !disabled && self.tiles.is_disabled(key) => key.to_string(),
+            Err(message) => return Err(message),
+        };
+        if self.tiles.is_disabled(&machine) != disabled {
+            let verb = if disabled { "disabled" } else { "enabled" };
+            info!(%machine, "machine {verb} by an operator");
+            let event = if disabled {
+                Event::DisableMachine {
+                    machine: machine.clone(),
+                }
+            } else {
+                Event::EnableMachine {
+                    machine: machine.clone(),
+                }
+            };
+            self.tiles_event(sh, event);
+        }
+        Ok(machine)
     }
 }
 
@@ -1958,6 +2057,7 @@ impl JobRecord {
             time_limit_ms: self.time_limit_ms,
             stopped_on_time_limit: self.stopped_on_time_limit,
             paused: self.paused && !state.is_final(),
+            warning: None,
         }
     }
 }
@@ -2004,6 +2104,8 @@ impl WorkerRecord {
             quarantined: self.quarantined.clone(),
             rtt_us: self.rtt_us(),
             credit: credit as u32,
+            draining: self.draining,
+            disabled: false,
         }
     }
 }

@@ -1,5 +1,7 @@
-//! A read-only view of a running coordinator for its HTTP endpoints: the farm's state,
-//! previews of images being assembled, finished images and metrics.
+//! A view of a running coordinator for its HTTP endpoints: the farm's state, previews
+//! of images being assembled, finished images and metrics; and, for the status page's
+//! controls, the very requests clients make ([`Observer::control`]), once `crate::http`
+//! has checked who asks.
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -29,6 +31,9 @@ pub struct Observer {
 pub struct FarmView {
     /// Whether the coordinator takes new jobs (false while it shuts down).
     pub accepting: bool,
+    /// Why queued and running jobs cannot progress, when no connected worker may take
+    /// tiles (the page shows it as a banner); `None` otherwise or without such jobs.
+    pub warning: Option<String>,
     pub jobs: Vec<JobView>,
     pub workers: Vec<WorkerView>,
 }
@@ -64,6 +69,9 @@ pub struct WorkerView {
     pub tiles_done: u64,
     pub rays_per_second: f64,
     pub connected_ms: u64,
+    pub draining: bool,
+    pub disabled: bool,
+    pub quarantined: bool,
 }
 
 /// An image for the page.
@@ -135,11 +143,20 @@ impl Observer {
                 tiles_done: s.tiles_done,
                 rays_per_second: s.rays_per_second,
                 connected_ms: s.connected_ms,
+                draining: s.draining,
+                disabled: s.disabled,
+                quarantined: s.quarantined.is_some(),
             })
             .collect();
+        let active = core
+            .lifecycle
+            .jobs()
+            .any(|(_, j)| !j.phase.visible().is_final());
+        let warning = active.then(|| core.no_worker_warning()).flatten();
         drop(core);
         FarmView {
             accepting: self.not_ready().is_none(),
+            warning,
             jobs,
             workers,
         }
@@ -165,6 +182,22 @@ impl Observer {
         let preview = downscale(image, PREVIEW_SIDE);
         drop(core);
         Some(Picture::Preview(preview.to_png()))
+    }
+
+    /// Carries out an operator's request from the status page exactly as from a
+    /// client connection: the same code answers both.
+    pub async fn control(
+        &self,
+        request: protocol::ClientRequest,
+        peer: std::net::IpAddr,
+    ) -> protocol::ClientResponse {
+        super::client_session::respond(&self.shared, request, peer).await
+    }
+
+    /// The secret clients must prove, if the coordinator has one: the page's controls
+    /// ask for it too.
+    pub fn client_secret(&self) -> Option<&[u8]> {
+        self.shared.client_secret.as_deref()
     }
 
     pub fn metrics(&self) -> String {

@@ -94,6 +94,12 @@ pub enum Write {
         priority: i32,
         then: Then<()>,
     },
+    /// Records that an operator disabled or enabled a machine.
+    Disabled {
+        machine: String,
+        disabled: bool,
+        then: Then<()>,
+    },
 }
 
 /// The handle the daemon queues writes on.
@@ -359,6 +365,15 @@ impl Writer {
                 then,
             }) => {
                 self.until_done(|db| db.set_controls(job, paused, priority));
+                then(Ok(()));
+                false
+            }
+            Step::One(Write::Disabled {
+                machine,
+                disabled,
+                then,
+            }) => {
+                self.until_done(|db| db.set_disabled(&machine, disabled));
                 then(Ok(()));
                 false
             }

@@ -31,6 +31,8 @@ pub struct Opened {
     /// Above every id ever issued.
     pub next_id: JobId,
     pub jobs: Vec<RestoredJob>,
+    /// Machines an operator disabled: they stay so across restarts.
+    pub disabled: Vec<String>,
 }
 
 /// A stored job and, if it is unfinished, its valid tiles.
@@ -91,6 +93,7 @@ pub fn open(data: &Path, reset: bool) -> Result<Opened> {
         }
     }
     highest = highest.max(db.max_job_id().unwrap_or(0));
+    let disabled = db.load_disabled()?;
     if highest > 0 {
         store
             .record_last_id(highest)
@@ -104,6 +107,7 @@ pub fn open(data: &Path, reset: bool) -> Result<Opened> {
             .checked_add(1)
             .context("every job id has been issued: this data directory can take no more jobs")?,
         jobs,
+        disabled,
     })
 }
 

@@ -287,7 +287,11 @@ async fn on_message(
         }
         FromWorker::Draining => {
             info!(worker, "worker draining");
-            sh.lock().tiles_event(sh, Event::WorkerDraining { worker });
+            let mut core = sh.lock();
+            if let Some(w) = core.workers.get_mut(&worker) {
+                w.draining = true;
+            }
+            core.tiles_event(sh, Event::WorkerDraining { worker });
         }
         FromWorker::Heartbeat => {
             sh.lock().tiles_event(sh, Event::Heartbeat { worker });

@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 17] = [
+const EVENT_KINDS: [&str; 19] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -755,6 +755,8 @@ const EVENT_KINDS: [&str; 17] = [
     "PauseJob",
     "ResumeJob",
     "SetPriority",
+    "DisableMachine",
+    "EnableMachine",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -776,6 +778,8 @@ fn kind_of(event: &Event) -> usize {
         Event::PauseJob { .. } => 14,
         Event::ResumeJob { .. } => 15,
         Event::SetPriority { .. } => 16,
+        Event::DisableMachine { .. } => 17,
+        Event::EnableMachine { .. } => 18,
     }
 }
 
