@@ -972,7 +972,10 @@ impl Farm {
             }
         }
         match event {
-            Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+            Event::PauseJob { .. }
+            | Event::ResumeJob { .. }
+            | Event::SetPriority { .. }
+            | Event::RequeueTiles { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout => {
@@ -3361,7 +3364,10 @@ fn reference_policy(p: &Policy) -> reference::Policy {
 fn reference_event(event: &Event) -> reference::Event {
     use reference::Event as R;
     match event.clone() {
-        Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+        Event::PauseJob { .. }
+        | Event::ResumeJob { .. }
+        | Event::SetPriority { .. }
+        | Event::RequeueTiles { .. } => {
             unreachable!("no operator control is generated here: the unit tests cover them")
         }
         Event::Timeout => R::Timeout,
@@ -3457,7 +3463,10 @@ impl Twin {
     /// checks that it answers the same and that both then agree on every query.
     fn check(&mut self, real: &Scheduler, now: Millis, event: &Event, actions: &[Action]) {
         match *event {
-            Event::PauseJob { .. } | Event::ResumeJob { .. } | Event::SetPriority { .. } => {
+            Event::PauseJob { .. }
+            | Event::ResumeJob { .. }
+            | Event::SetPriority { .. }
+            | Event::RequeueTiles { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}

@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 17] = [
+const EVENT_KINDS: [&str; 18] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -755,6 +755,7 @@ const EVENT_KINDS: [&str; 17] = [
     "PauseJob",
     "ResumeJob",
     "SetPriority",
+    "RequeueTiles",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -776,6 +777,7 @@ fn kind_of(event: &Event) -> usize {
         Event::PauseJob { .. } => 14,
         Event::ResumeJob { .. } => 15,
         Event::SetPriority { .. } => 16,
+        Event::RequeueTiles { .. } => 17,
     }
 }
 
