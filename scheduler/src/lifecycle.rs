@@ -245,10 +245,11 @@ pub enum Event {
     Timeout,
     /// An operator puts a failed or cancelled job back in the queue, its stored
     /// tiles (`started`: some) counting ([`Lifecycle::check_retry`] says whether it
-    /// may be). Its retention stops: it is active again.
+    /// may be). Its retention stops: it is active again, with its image's `pixels`.
     Retry {
         job: JobId,
         started: bool,
+        pixels: u64,
     },
 }
 
@@ -537,8 +538,12 @@ impl Lifecycle {
                 };
                 actions.push(Action::Reply { job, result });
             }
-            Event::Retry { job, started } => {
-                let result = self.check_retry(job).map(|()| {
+            Event::Retry {
+                job,
+                started,
+                pixels,
+            } => {
+                let result = self.check_retry(job, pixels).map(|()| {
                     if let Some(j) = self.jobs.get_mut(&job) {
                         j.phase = if started {
                             Phase::Running
@@ -546,6 +551,7 @@ impl Lifecycle {
                             Phase::Queued
                         };
                         j.ended = None;
+                        j.pixels = pixels;
                     }
                     self.expiry.retain(|&(_, j)| j != job);
                     Reply::Retried
@@ -629,8 +635,32 @@ impl Lifecycle {
     /// Whether the job may go back to the queue: only a job that failed or was
     /// cancelled, its end recorded, and not being deleted. A job that is done is not
     /// retried: its image is final and stored (submit the scene again to render it
-    /// anew).
-    pub fn check_retry(&self, job: JobId) -> Result<(), String> {
+    /// anew). Like a submission, it must fit in the pixels of the active jobs, and
+    /// storage must be able to write.
+    pub fn check_retry(&self, job: JobId, pixels: u64) -> Result<(), String> {
+        self.check_retry_state(job)?;
+        if let Some(reason) = &self.storage_down {
+            return Err(format!(
+                "job {job} cannot be retried now (storage unavailable: {reason}): retry later"
+            ));
+        }
+        let active: u64 = self
+            .jobs
+            .values()
+            .filter(|j| !j.phase.has_ended())
+            .map(|j| j.pixels)
+            .sum();
+        if active.saturating_add(pixels) > self.limits.max_active_pixels {
+            return Err(format!(
+                "job {job} cannot be retried now: the coordinator has jobs of {active} pixels \
+                 queued or running, and its {pixels} would pass its limit of {}",
+                self.limits.max_active_pixels
+            ));
+        }
+        Ok(())
+    }
+
+    fn check_retry_state(&self, job: JobId) -> Result<(), String> {
         match self.jobs.get(&job).map(|j| &j.phase) {
             None | Some(Phase::Storing) => Err(unknown(job)),
             Some(_) if self.deleting.contains(&job) => {
@@ -702,7 +732,8 @@ mod retry_tests {
                 1,
                 Event::Retry {
                     job: 1,
-                    started: true
+                    started: true,
+                    pixels: 64,
                 }
             )),
             Ok(Reply::Retried)
@@ -712,7 +743,8 @@ mod retry_tests {
             1,
             Event::Retry {
                 job: 2,
-                started: true
+                started: true,
+                pixels: 64,
             }
         ))
         .unwrap_err()
@@ -721,7 +753,8 @@ mod retry_tests {
             1,
             Event::Retry {
                 job: 3,
-                started: false
+                started: false,
+                pixels: 64,
             }
         ))
         .unwrap_err()
@@ -730,7 +763,8 @@ mod retry_tests {
             1,
             Event::Retry {
                 job: 9,
-                started: false
+                started: false,
+                pixels: 64,
             }
         ))
         .unwrap_err()
@@ -744,6 +778,49 @@ mod retry_tests {
         assert!(
             !expired.contains(&Action::DeleteStored { job: 1 }),
             "{expired:?}"
+        );
+    }
+}
+
+#[cfg(test)]
+mod retry_limit_tests {
+    use super::*;
+
+    #[test]
+    fn a_retry_must_fit_in_the_active_pixels_and_needs_storage() {
+        let mut l = Lifecycle::new(
+            Limits {
+                max_active_pixels: 100,
+                ..Limits::default()
+            },
+            1,
+        );
+        for (job, state) in [(1, JobState::Failed), (2, JobState::Running)] {
+            l.handle(
+                0,
+                Event::Restored {
+                    job,
+                    state,
+                    error: None,
+                    started: true,
+                    pixels: 64,
+                    ended_ago: 0,
+                },
+            );
+        }
+        let refused = l.check_retry(1, 64).unwrap_err();
+        assert!(refused.contains("would pass its limit of 100"), "{refused}");
+        assert_eq!(l.check_retry(1, 36), Ok(()));
+        l.handle(
+            0,
+            Event::StorageUnavailable {
+                reason: "disk full".into(),
+            },
+        );
+        let refused = l.check_retry(1, 36).unwrap_err();
+        assert!(
+            refused.contains("storage unavailable: disk full"),
+            "{refused}"
         );
     }
 }

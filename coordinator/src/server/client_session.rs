@@ -519,7 +519,14 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
     if sh.closing.load(Ordering::SeqCst) {
         return Err("the coordinator is shutting down: retry when it is back".into());
     }
-    sh.lock().lifecycle.check_retry(job)?;
+    {
+        let core = sh.lock();
+        let status = core
+            .status(job)
+            .ok_or_else(|| format!("no job {job} on this coordinator"))?;
+        let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
+        core.lifecycle.check_retry(job, pixels)?;
+    }
     let (done, reopened) = tokio::sync::oneshot::channel();
     let shared = Arc::clone(sh);
     sh.persistence.write(Write::Reopen {

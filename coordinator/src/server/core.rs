@@ -601,7 +601,16 @@ impl Core {
         }
         let kept = restored.tiles.len();
         let started = kept > 0 || restored.job.times.started.is_some();
-        let replies = self.life_event(sh, lifecycle::Event::Retry { job: id, started });
+        let pixels =
+            u64::from(restored.job.settings.width) * u64::from(restored.job.settings.height);
+        let replies = self.life_event(
+            sh,
+            lifecycle::Event::Retry {
+                job: id,
+                started,
+                pixels,
+            },
+        );
         if let Some(Err(message)) = replies.into_iter().next() {
             return Err(message);
         }
@@ -1158,7 +1167,7 @@ impl Core {
             .keys()
             .copied()
             .filter(|&j| {
-                reason.contains(&format!("of job {j}:")) || reason.contains(&format!("of job {j}'"))
+                reason.contains(&format!("of job {j}:")) || reason.contains(&format!("of job {j} "))
             })
             .collect();
         jobs.extend(affected.iter().map(|(j, _)| *j));
