@@ -740,6 +740,9 @@ fn a_jobs_events_tell_what_happened_and_survive_a_restart() {
     let (_coordinator, addr) =
         start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
     assert_eq!(events(dir.path(), &addr, job), seen);
+    let status = common::try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["name"], "ev", "{status}");
+    assert_eq!(status["submitted_from"], "127.0.0.1", "{status}");
     let text = ok(client(dir.path(), &addr, &["events", &id]), "events");
     assert_eq!(text.stdout.lines().count(), seen.len(), "{}", text.stdout);
     assert!(
@@ -752,6 +755,39 @@ fn a_jobs_events_tell_what_happened_and_survive_a_restart() {
     assert_eq!(
         missing.stderr.trim(),
         "error: no job 999 on this coordinator"
+    );
+
+    // An adaptive job's passes are in its log.
+    let adaptive = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed,
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--aa",
+            "4",
+            "--sampler",
+            "adaptive",
+            "--target-error",
+            "2",
+        ],
+    );
+    let _again = start_worker(dir.path(), &addr, "w2");
+    wait_done(dir.path(), &addr, adaptive, Duration::from_secs(60));
+    let passes = events(dir.path(), &addr, adaptive);
+    assert!(
+        passes
+            .iter()
+            .any(|(k, d)| k == "adaptive_pass" && d.contains("estimated error")),
+        "{passes:?}"
+    );
+    assert_eq!(
+        passes.last().map(|(k, _)| k.as_str()),
+        Some("done"),
+        "{passes:?}"
     );
 
     // Deleted with its job.
