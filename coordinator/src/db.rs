@@ -377,7 +377,7 @@ impl Db {
     /// Puts a failed or cancelled job back in the queue (unpaused, its end and error
     /// forgotten) and returns it as stored; `None` if there is no such job. A job in
     /// another state is returned unchanged.
-    pub fn reopen_job(&self, job: JobId) -> Result<Option<StoredJob>> {
+    pub fn reopen_job(&self, job: JobId) -> Result<Option<StoredJob>, ReopenError> {
         self.conn
             .execute(
                 "UPDATE jobs SET state = 'queued', error = NULL, ended_ms = NULL, paused = 0,
@@ -386,13 +386,22 @@ impl Db {
                  WHERE id = ?1 AND state IN ('failed', 'cancelled')",
                 params![job as i64],
             )
-            .context("cannot put the job back in the queue")?;
+            .context("cannot put the job back in the queue")
+            .map_err(ReopenError::Storage)?;
         let found = self
-            .load_jobs()?
-            .into_iter()
-            .filter_map(Result::ok)
-            .find(|j| j.id == job);
-        Ok(found)
+            .conn
+            .prepare(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?1"))
+            .and_then(|mut query| {
+                query
+                    .query_row(params![job as i64], |r| Ok(read_job(r)))
+                    .optional()
+            })
+            .map_err(|e| ReopenError::Storage(e.into()))?;
+        match found {
+            None => Ok(None),
+            Some(Ok(stored)) => Ok(Some(stored)),
+            Some(Err(bad)) => Err(ReopenError::BadRow(bad.what)),
+        }
     }
 
     /// Records what an operator set of a running job: whether it is paused, and its
@@ -586,14 +595,9 @@ impl Db {
     /// Every stored job. A row that cannot be read (a damaged database) is returned as
     /// a [`BadRow`] instead of failing the whole load.
     pub fn load_jobs(&self) -> Result<Vec<Result<StoredJob, BadRow>>> {
-        let mut query = self.conn.prepare(
-            "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
-                    error, sampler, target_milli, total_rays, total_samples,
-                    total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256, verification, time_limit_ms, stopped_on_time_limit, paused,
-                    name, submitter, submitted_from
-             FROM jobs ORDER BY id",
-        )?;
+        let mut query = self
+            .conn
+            .prepare(&format!("SELECT {JOB_COLUMNS} FROM jobs ORDER BY id"))?;
         let rows = query
             .query_map([], |r| Ok(read_job(r)))?
             .map(|row| row.unwrap_or_else(|e| Err(bad(format!("unreadable job row: {e}")))))
@@ -616,6 +620,23 @@ impl Db {
         Ok(rows)
     }
 }
+
+/// Why a job could not be put back in the queue.
+#[derive(Debug, thiserror::Error)]
+pub enum ReopenError {
+    /// The database could not be written or read: storage trouble, tried again.
+    #[error("{0:#}")]
+    Storage(anyhow::Error),
+    /// Its row is there but cannot be used (a damaged database): no use retrying.
+    #[error("its stored row cannot be used: {0}")]
+    BadRow(String),
+}
+
+/// The columns [`read_job`] reads, in its order.
+const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_size, priority,
+    state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
+    total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
+    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from";
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }

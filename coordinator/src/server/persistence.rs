@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use protocol::{JobEvent, JobId, JobState, EVENTS_PER_PAGE};
 use tracing::{info, warn};
 
-use crate::db::{Db, EventWrite, StoredJob, TileWrite, Times, Totals};
+use crate::db::{Db, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
 use crate::store::{JobMetadata, Store};
 
 /// How long after a failed write it is tried again.
@@ -403,11 +403,15 @@ impl Writer {
                 false
             }
             Step::One(Write::Reopen { job, then }) => {
-                let result = self.attempt(|db| match db.reopen_job(job)? {
-                    Some(stored) => super::startup::check_job(db, stored),
-                    None => Ok(None),
+                // A row that cannot be used is the job's problem, not the disk's: it
+                // is answered as such without marking storage unavailable.
+                let result = self.attempt(|db| match db.reopen_job(job) {
+                    Ok(Some(stored)) => super::startup::check_job(db, stored).map(Ok),
+                    Ok(None) => Ok(Ok(None)),
+                    Err(ReopenError::Storage(e)) => Err(e),
+                    Err(bad @ ReopenError::BadRow(_)) => Ok(Err(bad.to_string())),
                 });
-                then(result);
+                then(result.and_then(|r| r));
                 false
             }
             Step::One(Write::Delete { job, then }) => {
