@@ -1,5 +1,5 @@
-//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `delete`,
-//! `fetch` and `workers` (with `workers drain|disable|enable`).
+//! `tessera submit`, `status`, `list`, `cancel`, `pause`, `resume`, `priority`, `events`,
+//! `retry`, `requeue`, `delete`, `fetch` and `workers` (with `workers drain|disable|enable`).
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -24,6 +24,36 @@ pub fn read_scene(path: &Path) -> Result<String> {
         .with_context(|| format!("cannot read scene file {}", path.display()))
 }
 
+/// What a job is called and who submitted it; `None` takes the default.
+#[derive(Clone, Debug, Default)]
+pub struct Label {
+    /// Default: the scene file's stem.
+    pub name: Option<String>,
+    /// Default: [`default_submitter`].
+    pub submitter: Option<String>,
+}
+
+/// `$USER@hostname`: who a job says submitted it unless told. It is the client's
+/// claim, not checked by anyone; the coordinator records the address the submission
+/// came from beside it.
+pub fn default_submitter() -> String {
+    let user = ["USER", "USERNAME", "LOGNAME"]
+        .iter()
+        .find_map(|v| std::env::var(v).ok().filter(|u| !u.is_empty()))
+        .unwrap_or_else(|| "unknown".into());
+    let host = ["/proc/sys/kernel/hostname", "/etc/hostname"]
+        .iter()
+        .find_map(|p| {
+            std::fs::read_to_string(p)
+                .ok()
+                .map(|h| h.trim().to_string())
+                .filter(|h| !h.is_empty())
+        })
+        .or_else(|| std::env::var("COMPUTERNAME").ok())
+        .unwrap_or_else(|| "localhost".into());
+    format!("{user}@{host}")
+}
+
 /// Submits; a refused scene's message is prefixed with the file name, exactly as
 /// `tessera render` reports it.
 pub async fn submit(
@@ -33,8 +63,14 @@ pub async fn submit(
     priority: i32,
     verification: Verification,
     time_limit_ms: Option<u64>,
+    label: Label,
 ) -> Result<JobId> {
     let scene = read_scene(scene_path)?;
+    let name = label.name.unwrap_or_else(|| {
+        scene_path
+            .file_stem()
+            .map_or_else(String::new, |s| s.to_string_lossy().into_owned())
+    });
     client
         .submit(JobSpec {
             scene,
@@ -42,6 +78,8 @@ pub async fn submit(
             priority,
             verification,
             time_limit_ms,
+            name,
+            submitter: label.submitter.unwrap_or_else(default_submitter),
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
@@ -282,7 +320,14 @@ fn naming_job(job: JobId, error: anyhow::Error) -> anyhow::Error {
 /// The one-line summary of a finished job: size, samples spent, estimated error, tiles,
 /// time.
 pub fn summary(output: &Path, status: &JobStatus) -> String {
-    let secs = status.elapsed_ms as f64 / 1000.0;
+    // The time rendering took: the queue's wait is not the farm's speed.
+    let queued = status.queued_ms.unwrap_or(0).min(status.elapsed_ms);
+    let secs = (status.elapsed_ms - queued) as f64 / 1000.0;
+    let wait = if queued > 0 {
+        format!(" after {:.1} s in the queue", queued as f64 / 1000.0)
+    } else {
+        String::new()
+    };
     // As `tessera render` says it: whether the time limit, not the target, ended it.
     let target_given = status.settings.sampling
         != (Sampling::Adaptive {
@@ -294,7 +339,7 @@ pub fn summary(output: &Path, status: &JobStatus) -> String {
         (true, false) => "; as far as the time limit allowed",
     };
     format!(
-        "{}: {}x{}, {}{note}, {} tiles, {:.3} s, {:.1} M rays/s",
+        "{}: {}x{}, {}{note}, {} tiles, rendered in {:.3} s{wait}, {:.1} M rays/s",
         output.display(),
         status.settings.width,
         status.settings.height,
@@ -331,6 +376,7 @@ pub struct JobChoices {
     pub verification: Verification,
     /// Milliseconds of rendering an adaptive job may take, if limited.
     pub time_limit_ms: Option<u64>,
+    pub label: Label,
 }
 
 /// `tessera submit`.
@@ -355,6 +401,7 @@ pub async fn run_submit(
         priority,
         verification,
         time_limit_ms,
+        label,
     } = job;
     let job = submit(
         session.client(),
@@ -363,6 +410,7 @@ pub async fn run_submit(
         priority,
         verification,
         time_limit_ms,
+        label,
     )
     .await?;
     let Some(output) = output else {
@@ -480,11 +528,63 @@ pub async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
         if let Some(warning) = jobs.iter().find_map(|s| s.warning.as_ref()) {
             eprintln!("warning: {warning}");
         }
-        for status in &jobs {
-            println!("{}", status_line(status));
-        }
+        print!("{}", list_table(&jobs));
     }
     Ok(())
+}
+
+/// `tessera list`'s table: one row per job, columns aligned (`tessera status JOB`
+/// gives the rest of a job's figures).
+fn list_table(jobs: &[JobStatus]) -> String {
+    let seconds = |ms: u64| format!("{:.1} s", ms as f64 / 1000.0);
+    let mut rows = vec![[
+        "ID",
+        "STATE",
+        "TILES",
+        "PRIORITY",
+        "NAME",
+        "SUBMITTER",
+        "FROM",
+        "SUBMITTED (UTC)",
+        "QUEUED",
+        "ELAPSED",
+    ]
+    .map(String::from)];
+    for s in jobs {
+        rows.push([
+            s.id.to_string(),
+            shown_state(s).to_string(),
+            format!("{}/{}", s.tiles_done, s.tiles_total),
+            s.priority.to_string(),
+            if s.name.is_empty() {
+                "-".into()
+            } else {
+                s.name.clone()
+            },
+            s.submitter.clone(),
+            s.submitted_from.clone(),
+            utc(s.submitted_unix_ms),
+            s.queued_ms.map_or_else(|| "-".into(), seconds),
+            seconds(s.elapsed_ms),
+        ]);
+    }
+    let mut widths = [0usize; 10];
+    for row in &rows {
+        for (w, cell) in widths.iter_mut().zip(row) {
+            *w = (*w).max(cell.chars().count());
+        }
+    }
+    let mut out = String::new();
+    for row in &rows {
+        let cells: Vec<String> = row
+            .iter()
+            .zip(widths)
+            .map(|(cell, w)| format!("{cell:<w$}"))
+            .collect();
+        out.push_str(cells.join("  ").trim_end());
+        out.push('\n');
+    }
+    out
 }
 
 /// `tessera cancel`: a job already cancelled is no error (what was asked is so); one
@@ -561,6 +661,85 @@ pub async fn run_priority(
         println!(
             "job {job} now has priority {}: its next tiles go out by it",
             status.priority
+        );
+    }
+    Ok(())
+}
+
+/// `tessera events JOB`: the job's event log, one line per entry (every page of it).
+pub async fn run_events(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
+    let mut client = Client::connect(coordinator).await?;
+    let mut after = 0;
+    let mut all = Vec::new();
+    loop {
+        let page = client.events(job, after).await?;
+        let last = page.len() < protocol::EVENTS_PER_PAGE;
+        if let Some(e) = page.last() {
+            after = e.seq;
+        }
+        all.extend(page);
+        if last {
+            break;
+        }
+    }
+    if json_out {
+        let events: Vec<Value> = all
+            .iter()
+            .map(|e| {
+                json!({ "seq": e.seq, "unix_ms": e.unix_ms, "event": e.kind, "detail": e.detail })
+            })
+            .collect();
+        println!("{}", Value::Array(events));
+    } else if all.is_empty() {
+        println!("no events recorded for job {job}");
+    } else {
+        for e in &all {
+            println!(
+                "{}.{:03} {:<16} {}",
+                utc(e.unix_ms),
+                e.unix_ms % 1000,
+                e.kind,
+                e.detail
+            );
+        }
+    }
+    Ok(())
+}
+
+/// `tessera retry JOB`.
+pub async fn run_retry(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
+    let status = Client::connect(coordinator).await?.retry(job).await?;
+    if json_out {
+        println!("{}", status_json(&status));
+    } else {
+        println!(
+            "job {job} is back in the queue: {} of {} tiles kept, the others are rendered",
+            status.tiles_done, status.tiles_total
+        );
+    }
+    Ok(())
+}
+
+/// `tessera requeue JOB TILE...`.
+pub async fn run_requeue(
+    coordinator: &Endpoint,
+    job: JobId,
+    tiles: Vec<u32>,
+    json_out: bool,
+) -> Result<()> {
+    let count = tiles.len();
+    let status = Client::connect(coordinator)
+        .await?
+        .requeue(job, tiles)
+        .await?;
+    if json_out {
+        println!("{}", status_json(&status));
+    } else {
+        println!(
+            "job {job}: {count} tile{} to be rendered again ({} of {} done)",
+            if count == 1 { "" } else { "s" },
+            status.tiles_done,
+            status.tiles_total
         );
     }
     Ok(())
@@ -714,12 +893,22 @@ fn status_line(s: &JobStatus) -> String {
         s.samples,
         s.elapsed_ms as f64 / 1000.0
     );
+    if let Some(q) = s.queued_ms {
+        line.push_str(&format!(" ({:.1} s of it in the queue)", q as f64 / 1000.0));
+    }
     if let Some(e) = s.estimated_error {
         line.push_str(&format!(", estimated error {e:.3} levels"));
     }
     if let Some(eta) = s.eta_ms {
         line.push_str(&format!(", about {:.1} s left", eta as f64 / 1000.0));
     }
+    line.push_str(&format!(
+        "; {:?} by {} from {}, submitted {} UTC",
+        s.name,
+        s.submitter,
+        s.submitted_from,
+        utc(s.submitted_unix_ms)
+    ));
     if let Some(e) = &s.error {
         line.push_str(&format!(": {e}"));
     }
@@ -753,7 +942,35 @@ fn status_json(s: &JobStatus) -> Value {
         "time_limit_ms": s.time_limit_ms,
         "stopped_on_time_limit": s.stopped_on_time_limit,
         "warning": s.warning,
+        "name": s.name,
+        "submitter": s.submitter,
+        "submitted_from": s.submitted_from,
+        "submitted_unix_ms": s.submitted_unix_ms,
+        "queued_ms": s.queued_ms,
     })
+}
+
+/// A Unix time in milliseconds as `YYYY-MM-DD HH:MM:SS` UTC (the civil calendar from
+/// days since the epoch; no time zone database needed).
+pub fn utc(unix_ms: u64) -> String {
+    let secs = unix_ms / 1000;
+    let (days, rest) = ((secs / 86_400) as i64, secs % 86_400);
+    // Howard Hinnant's days-to-civil algorithm.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02}",
+        rest / 3600,
+        rest % 3600 / 60,
+        rest % 60
+    )
 }
 
 fn worker_json(w: &WorkerStatus) -> Value {
@@ -778,6 +995,13 @@ fn worker_json(w: &WorkerStatus) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn utc_times_are_the_calendar() {
+        assert_eq!(utc(0), "1970-01-01 00:00:00");
+        assert_eq!(utc(951_782_400_000), "2000-02-29 00:00:00");
+        assert_eq!(utc(1_795_000_000_123), "2026-11-18 11:06:40");
+    }
 
     #[test]
     fn an_error_that_ends_a_wait_names_the_job() {

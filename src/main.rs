@@ -164,6 +164,61 @@ enum Command {
         common: ClientArgs,
     },
 
+    /// Show a job's event log: what happened to it, one line per event.
+    #[command(
+        long_about = "Show a job's event log, one line per event (time in UTC, event, \
+            details): its submission (name, submitter, address), its first tile out, \
+            each tile handed out and done (by which worker, in how long), failed or \
+            taken back, quarantines affecting it, operators' pauses, priorities, \
+            cancels, retries and requeues (with their address), adaptive passes, and \
+            its end. Kept on the coordinator's disk with the job (at most 10,000 \
+            events, then one saying how many more were not kept, and the end).",
+        after_help = "Example:\n  tessera events 7\n  tessera events 7 --json"
+    )]
+    Events {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Put a failed or cancelled job back in the queue under the same id.
+    #[command(
+        long_about = "Put a failed or cancelled job back in the queue under the same id: \
+            the tiles it has stored count, the others are rendered, and its image is the \
+            same as if it had never stopped. A job that is done, queued or running \
+            cannot be retried.",
+        after_help = "Example:\n  tessera retry 7"
+    )]
+    Retry {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
+    /// Render tiles of a queued or running job again (a machine is suspected).
+    #[command(
+        long_about = "Render the named tiles of a queued or running job again, wherever \
+            they are: waiting, out on a worker (its result no longer counts), or done \
+            (its result is dropped). For a machine an operator suspects; the events of \
+            the job (`tessera events`) say which worker rendered each tile. A job that \
+            has ended cannot be requeued: its image is final (submit it again instead).",
+        after_help = "Example:\n  tessera requeue 7 3 4 12"
+    )]
+    Requeue {
+        /// The job's id (as `tessera submit` and `tessera list` show it).
+        #[arg(value_parser = parse_job_id)]
+        job: JobId,
+        /// The tiles' numbers (from 0, as the job's events name them).
+        #[arg(required = true, num_args = 1..)]
+        tiles: Vec<u32>,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+
     /// Delete an ended job (done, failed or cancelled) and its image from the coordinator.
     #[command(
         long_about = "Delete an ended job (done, failed or cancelled) from the coordinator: \
@@ -633,6 +688,14 @@ struct SubmitArgs {
     /// With --wait: where to write the PNG [default: the scene's file name with .png].
     #[arg(short, long, value_name = "OUT.png", requires = "wait")]
     output: Option<PathBuf>,
+    /// What listings call the job [default: the scene file's name without .json].
+    #[arg(long, value_name = "NAME")]
+    name: Option<String>,
+    /// Who submitted the job, shown in listings [default: $USER@hostname]. The
+    /// client's claim, not checked: the coordinator records the address the
+    /// submission came from beside it.
+    #[arg(long, value_name = "WHO")]
+    submitter: Option<String>,
     #[command(flatten)]
     common: ClientArgs,
 }
@@ -1271,6 +1334,10 @@ fn run(command: Command) -> Result<()> {
                             priority: a.priority,
                             verification: a.verify.into(),
                             time_limit_ms,
+                            label: client_commands::Label {
+                                name: a.name,
+                                submitter: a.submitter,
+                            },
                         }
                     },
                     a.wait,
@@ -1299,6 +1366,15 @@ fn run(command: Command) -> Result<()> {
                 priority,
                 common,
             } => client_commands::run_priority(&common.target()?, job, priority, common.json).await,
+            Command::Events { job, common } => {
+                client_commands::run_events(&common.target()?, job, common.json).await
+            }
+            Command::Retry { job, common } => {
+                client_commands::run_retry(&common.target()?, job, common.json).await
+            }
+            Command::Requeue { job, tiles, common } => {
+                client_commands::run_requeue(&common.target()?, job, tiles, common.json).await
+            }
             Command::Delete { job, common } => {
                 client_commands::run_delete(&common.target()?, job, common.json).await
             }

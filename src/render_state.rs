@@ -113,7 +113,7 @@ mod tests {
     fn a_saved_state_reads_back_and_any_damage_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.state");
-        save(&path, &sample()).unwrap();
+        save(crate::output::FileOutput::create(&path).unwrap(), &sample()).unwrap();
         let back = load(&path).unwrap();
         assert_eq!((back.rung, back.aa, back.scene.as_str()), (17, 4, "{}"));
         let good = std::fs::read(&path).unwrap();

@@ -162,6 +162,7 @@ async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result
         0,
         protocol::Verification::default(),
         opts.job.1,
+        Default::default(),
     )
     .await
     // The one limit left (the scene's size) is not of a coordinator the user started.

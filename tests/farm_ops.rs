@@ -5,7 +5,9 @@
 //! line saying what to give; `up` takes what `render` takes; a job that did not finish
 //! shows no error estimate, and the page and `status --json` agree; a disabled machine
 //! gets no tiles, across a coordinator restart, until enabled; a drained worker finishes
-//! and exits 0; and the clients warn when no worker can take tiles.
+//! and exits 0; the clients warn when no worker can take tiles; jobs carry a name, a
+//! submitter and their queue wait; a job's events tell what happened; and failed or
+//! cancelled jobs are retried and tiles requeued by hand.
 
 mod common;
 
@@ -424,7 +426,7 @@ fn a_paused_job_gets_no_tiles_stays_paused_across_a_restart_and_resumes() {
     coordinator.kill9();
     let (_coordinator, addr) =
         start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
-    let listed = ok(client(dir.path(), &addr, &["list"]), "list");
+    let listed = ok(client(dir.path(), &addr, &["status", &id]), "status");
     assert!(
         listed.stdout.contains(&format!("job {job}: paused, 0/")),
         "{}",
@@ -701,4 +703,473 @@ fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained
     );
     waiting.kill9();
     drop(coordinator);
+}
+
+/// `tessera events JOB --json`, parsed: (kind, detail) of each event, in order, and
+/// checks that the numbers increase.
+fn events(dir: &std::path::Path, addr: &str, job: u64) -> Vec<(String, String)> {
+    let run = ok(
+        client(dir, addr, &["events", &job.to_string(), "--json"]),
+        "events --json",
+    );
+    let value: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+    let list = value.as_array().expect("an array of events");
+    let mut last = 0;
+    list.iter()
+        .map(|e| {
+            let seq = e["seq"].as_u64().unwrap();
+            assert!(seq > last, "event numbers must increase: {value}");
+            last = seq;
+            (
+                e["event"].as_str().unwrap().to_owned(),
+                e["detail"].as_str().unwrap().to_owned(),
+            )
+        })
+        .collect()
+}
+
+/// The tile numbers of the events of `kind` whose detail starts `tile N`.
+fn tiles_of(events: &[(String, String)], kind: &str) -> Vec<u32> {
+    events
+        .iter()
+        .filter(|(k, _)| k == kind)
+        .filter_map(|(_, d)| d.strip_prefix("tile ")?.split(' ').next()?.parse().ok())
+        .collect()
+}
+
+#[test]
+fn names_submitters_and_the_queue_wait_are_shown_and_the_rate_leaves_the_wait_out() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let seed = scene_path("seed.json");
+    let small = ["--width", "64", "--height", "48", "--aa", "2"];
+    let before = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
+    let mut args = vec![seed.as_str()];
+    args.extend(small);
+    args.extend(["--name", "night shot", "--submitter", "ann@studio"]);
+    let named = submit(dir.path(), &addr, &args);
+    let mut args = vec![seed.as_str()];
+    args.extend(small);
+    let plain = submit(dir.path(), &addr, &args);
+
+    // No worker yet: both wait in the queue.
+    let listed = ok(
+        client(dir.path(), &addr, &["list", "--json"]),
+        "list --json",
+    );
+    let jobs: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
+    let job = |id: u64| {
+        jobs.as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == id)
+            .unwrap()
+            .clone()
+    };
+    let first = job(named);
+    assert_eq!(first["name"], "night shot", "{first}");
+    assert_eq!(first["submitter"], "ann@studio", "{first}");
+    assert_eq!(first["submitted_from"], "127.0.0.1", "{first}");
+    assert!(first["queued_ms"].is_null(), "{first}");
+    let at = first["submitted_unix_ms"].as_u64().unwrap();
+    assert!(at >= before && at < before + 60_000, "{at} vs {before}");
+    let second = job(plain);
+    assert_eq!(
+        second["name"], "seed",
+        "the scene's stem by default: {second}"
+    );
+    assert!(
+        second["submitter"].as_str().unwrap().contains('@'),
+        "$USER@hostname by default: {second}"
+    );
+    let table = ok(client(dir.path(), &addr, &["list"]), "list");
+    let lines: Vec<&str> = table.stdout.lines().collect();
+    assert_eq!(lines.len(), 3, "{}", table.stdout);
+    for column in [
+        "ID",
+        "STATE",
+        "NAME",
+        "SUBMITTER",
+        "FROM",
+        "SUBMITTED (UTC)",
+        "QUEUED",
+    ] {
+        assert!(lines[0].contains(column), "{column}: {}", lines[0]);
+    }
+    assert!(
+        lines[1].contains("night shot") && lines[1].contains("ann@studio"),
+        "{}",
+        lines[1]
+    );
+    assert!(lines[1].contains("127.0.0.1"), "{}", lines[1]);
+
+    // `submit --wait` of a job that waits: its summary leaves the wait out of the rate.
+    let mut wait_args = vec!["submit", seed.as_str(), "--wait", "-o", "waited.png"];
+    wait_args.extend(small);
+    wait_args.extend(["--coordinator", addr.as_str()]);
+    let mut waiting = common::spawn_tessera(dir.path(), &wait_args, "wait.log");
+    std::thread::sleep(Duration::from_secs(3));
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let exit = waiting
+        .wait_exit(Duration::from_secs(60))
+        .expect("submit --wait did not end");
+    let said = waiting.log_text();
+    assert!(exit.success(), "{said}");
+    let summary = said.lines().last().unwrap_or_default();
+    let queued: f64 = summary
+        .split(" after ")
+        .nth(1)
+        .and_then(|rest| rest.split(" s in the queue").next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no queue wait in {summary:?}"));
+    assert!(queued >= 2.5, "{summary}");
+    let rendered: f64 = summary
+        .split("rendered in ")
+        .nth(1)
+        .and_then(|rest| rest.split(" s").next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no render time in {summary:?}"));
+    assert!(rendered < queued, "{summary}");
+
+    let done = wait_done(dir.path(), &addr, named, Duration::from_secs(60));
+    let queued_ms = done["queued_ms"].as_u64().expect("queued_ms once started");
+    assert!(queued_ms >= 2_500, "{done}");
+    assert!(done["elapsed_ms"].as_u64().unwrap() >= queued_ms, "{done}");
+    let line = ok(
+        client(dir.path(), &addr, &["status", &named.to_string()]),
+        "status",
+    );
+    assert!(line.stdout.contains("in the queue"), "{}", line.stdout);
+    assert!(
+        line.stdout.contains("\"night shot\" by ann@studio"),
+        "{}",
+        line.stdout
+    );
+    // job.json's rate counts rendering time only.
+    let meta: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(data.join(format!("jobs/{named}/job.json"))).unwrap(),
+    )
+    .unwrap();
+    let rays = meta["rays"].as_f64().unwrap();
+    let wall = meta["wall_time_ms"].as_f64().unwrap() / 1000.0;
+    let rate = meta["rays_per_second"].as_f64().unwrap();
+    assert!(rate > 2.0 * rays / wall, "{meta}");
+}
+
+#[test]
+fn a_jobs_events_tell_what_happened_and_survive_a_restart() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "64", "--height", "48", "--aa", "1", "--tile", "16", "--name", "ev",
+        ],
+    );
+    let id = job.to_string();
+    ok(client(dir.path(), &addr, &["pause", &id]), "pause");
+    ok(
+        client(dir.path(), &addr, &["priority", &id, "3"]),
+        "priority",
+    );
+    ok(client(dir.path(), &addr, &["resume", &id]), "resume");
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    let seen = events(dir.path(), &addr, job);
+    let kinds: Vec<&str> = seen.iter().map(|(k, _)| k.as_str()).collect();
+    assert_eq!(
+        kinds[..4],
+        ["submitted", "paused", "priority", "resumed"],
+        "{seen:?}"
+    );
+    assert_eq!(kinds[4], "started", "{seen:?}");
+    assert_eq!(kinds.last(), Some(&"done"), "{seen:?}");
+    assert!(
+        seen[0].1.contains("\"ev\"") && seen[0].1.contains("127.0.0.1"),
+        "{seen:?}"
+    );
+    assert!(
+        seen[2].1.contains("0 -> 3") && seen[2].1.contains("127.0.0.1"),
+        "{seen:?}"
+    );
+    let mut done = tiles_of(&seen, "tile_done");
+    done.sort_unstable();
+    assert_eq!(done, (0..12).collect::<Vec<u32>>(), "{seen:?}");
+    assert!(
+        seen.iter()
+            .filter(|(k, _)| k == "tile_done")
+            .all(|(_, d)| d.contains("by w1")),
+        "{seen:?}"
+    );
+    assert!(tiles_of(&seen, "tile_assigned").len() >= 12, "{seen:?}");
+
+    // Stored: a coordinator killed and restarted has the same log.
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
+    assert_eq!(events(dir.path(), &addr, job), seen);
+    let status = common::try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["name"], "ev", "{status}");
+    assert_eq!(status["submitted_from"], "127.0.0.1", "{status}");
+    let text = ok(client(dir.path(), &addr, &["events", &id]), "events");
+    assert_eq!(text.stdout.lines().count(), seen.len(), "{}", text.stdout);
+    assert!(
+        text.stdout.lines().all(|l| l.starts_with("20")),
+        "{}",
+        text.stdout
+    );
+    let missing = client(dir.path(), &addr, &["events", "999"]);
+    assert_eq!(missing.status.code(), Some(1));
+    assert_eq!(
+        missing.stderr.trim(),
+        "error: no job 999 on this coordinator"
+    );
+
+    // An adaptive job's passes are in its log.
+    let adaptive = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed,
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--aa",
+            "4",
+            "--sampler",
+            "adaptive",
+            "--target-error",
+            "2",
+        ],
+    );
+    let _again = start_worker(dir.path(), &addr, "w2");
+    wait_done(dir.path(), &addr, adaptive, Duration::from_secs(60));
+    let passes = events(dir.path(), &addr, adaptive);
+    assert!(
+        passes
+            .iter()
+            .any(|(k, d)| k == "adaptive_pass" && d.contains("estimated error")),
+        "{passes:?}"
+    );
+    assert_eq!(
+        passes.last().map(|(k, _)| k.as_str()),
+        Some("done"),
+        "{passes:?}"
+    );
+
+    // Deleted with its job.
+    ok(client(dir.path(), &addr, &["delete", &id]), "delete");
+    let db = rusqlite::Connection::open(data.join("tessera.db")).unwrap();
+    let left: i64 = db
+        .query_row(
+            "SELECT count(*) FROM events WHERE job = ?1",
+            [job as i64],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(left, 0);
+}
+
+#[test]
+fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let seed = scene_path("seed.json");
+    let args = [
+        seed.as_str(),
+        "--width",
+        "96",
+        "--height",
+        "64",
+        "--aa",
+        "3",
+        "--tile",
+        "16",
+    ];
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let refused = client(dir.path(), &addr, &["retry", &id]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert_eq!(
+        refused.stderr.trim(),
+        format!(
+            "error: job {job} cannot be retried: it is queued, only a failed or cancelled \
+             job can be"
+        )
+    );
+    // A slow worker: some tiles are in when the job is cancelled, not all.
+    let mut worker = common::start_worker_with(dir.path(), &addr, "slow", &["--throttle", "400"]);
+    poll("a tile of the job", Duration::from_secs(60), || {
+        let status = common::try_status(dir.path(), &addr, job)?;
+        (common::tiles_done(&status) >= 2).then_some(())
+    });
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    worker.kill9();
+    let cancelled = common::try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(cancelled["state"], "cancelled");
+    let kept = common::tiles_done(&cancelled);
+    assert!((2..24).contains(&kept), "{cancelled}");
+
+    let retried = ok(
+        client(dir.path(), &addr, &["retry", &id, "--json"]),
+        "retry",
+    );
+    let retried: serde_json::Value = serde_json::from_str(retried.stdout.trim()).unwrap();
+    // It had started: it shows running (until it ends), though no tile is out yet.
+    assert_eq!(retried["state"], "running", "{retried}");
+    assert_eq!(retried["paused"], false, "{retried}");
+    let back = common::tiles_done(&retried);
+    assert!(back >= kept, "{back} of {kept} tiles kept: {retried}");
+    let _worker = start_worker(dir.path(), &addr, "w2");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let seen = events(dir.path(), &addr, job);
+    let retry = seen
+        .iter()
+        .position(|(k, _)| k == "retried")
+        .expect("a retried event");
+    assert!(seen[retry].1.contains("127.0.0.1"), "{seen:?}");
+    // Tiles stored before the cancel are not rendered again.
+    let before: Vec<u32> = tiles_of(&seen[..retry], "tile_done");
+    let after: Vec<u32> = tiles_of(&seen[retry..], "tile_done");
+    assert_eq!(before.len() as u64, back, "{seen:?}");
+    assert!(before.iter().all(|t| !after.contains(t)), "{seen:?}");
+    assert_eq!(before.len() + after.len(), 24, "{seen:?}");
+    let image = common::fetch(dir.path(), &addr, job, "retried.png");
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &args[1..7]);
+    common::assert_same_png(&image, &reference, "the cancelled and retried job");
+
+    let again = client(dir.path(), &addr, &["retry", &id]);
+    assert_eq!(again.status.code(), Some(1));
+    assert_eq!(
+        again.stderr.trim(),
+        format!(
+            "error: job {job} cannot be retried: it is done and its image is final (submit \
+             the scene again to render it anew)"
+        )
+    );
+    let unknown = client(dir.path(), &addr, &["retry", "999"]);
+    assert_eq!(
+        unknown.stderr.trim(),
+        "error: no job 999 on this coordinator"
+    );
+}
+
+#[test]
+fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let seed = scene_path("seed.json");
+    let args = [
+        seed.as_str(),
+        "--width",
+        "96",
+        "--height",
+        "64",
+        "--aa",
+        "3",
+        "--tile",
+        "16",
+    ];
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let mut worker = common::start_worker_with(dir.path(), &addr, "slow", &["--throttle", "400"]);
+    poll("tiles of the job", Duration::from_secs(60), || {
+        let status = common::try_status(dir.path(), &addr, job)?;
+        (common::tiles_done(&status) >= 2).then_some(())
+    });
+    ok(client(dir.path(), &addr, &["pause", &id]), "pause");
+    // What was out when it was paused comes in; then nothing moves.
+    worker.kill9();
+    std::thread::sleep(Duration::from_millis(500));
+    let status = common::try_status(dir.path(), &addr, job).unwrap();
+    let done_before = common::tiles_done(&status);
+    let seen = events(dir.path(), &addr, job);
+    let done = tiles_of(&seen, "tile_done");
+    assert_eq!(done.len() as u64, done_before, "{seen:?}");
+
+    for (bad, says) in [
+        (
+            vec!["24"],
+            format!("error: job {job} has tiles 0 to 23: there is no tile 24"),
+        ),
+        (
+            vec!["1", "99"],
+            format!("error: job {job} has tiles 0 to 23: there is no tile 99"),
+        ),
+    ] {
+        let mut all = vec!["requeue", id.as_str()];
+        all.extend(bad.iter().copied());
+        let run = client(dir.path(), &addr, &all);
+        assert_eq!(run.status.code(), Some(1), "{bad:?}");
+        assert_eq!(run.stderr.trim(), says);
+    }
+    let unknown = client(dir.path(), &addr, &["requeue", "999", "0"]);
+    assert_eq!(
+        unknown.stderr.trim(),
+        "error: no job 999 on this coordinator"
+    );
+
+    // A done tile and one never rendered.
+    let again = done[0];
+    let fresh = (0..24).find(|t| !done.contains(t)).unwrap();
+    let run = ok(
+        client(
+            dir.path(),
+            &addr,
+            &[
+                "requeue",
+                &id,
+                &again.to_string(),
+                &fresh.to_string(),
+                "--json",
+            ],
+        ),
+        "requeue",
+    );
+    let status: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+    assert_eq!(common::tiles_done(&status), done_before - 1, "{status}");
+    ok(client(dir.path(), &addr, &["resume", &id]), "resume");
+    let _worker = start_worker(dir.path(), &addr, "w2");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let seen = events(dir.path(), &addr, job);
+    let at = seen
+        .iter()
+        .position(|(k, _)| k == "requeued")
+        .expect("a requeued event");
+    assert!(seen[at].1.contains("127.0.0.1"), "{seen:?}");
+    assert!(
+        tiles_of(&seen[at..], "tile_done").contains(&again),
+        "tile {again} rendered again: {seen:?}"
+    );
+    let image = common::fetch(dir.path(), &addr, job, "requeued.png");
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &args[1..7]);
+    common::assert_same_png(&image, &reference, "the requeued job");
+
+    let refused = client(dir.path(), &addr, &["requeue", &id, "0"]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert_eq!(
+        refused.stderr.trim(),
+        format!(
+            "error: job {job} cannot be requeued: it is done, only a queued or running job \
+             can be"
+        )
+    );
 }

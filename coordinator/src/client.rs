@@ -6,8 +6,8 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Result};
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, FrameError, JobId, JobSpec, JobStatus, MessageCodec, Role,
-    WorkerStatus, DEFAULT_MAX_FRAME,
+    ClientRequest, ClientResponse, FrameError, JobEvent, JobId, JobSpec, JobStatus, MessageCodec,
+    Role, WorkerStatus, DEFAULT_MAX_FRAME,
 };
 use tokio_util::codec::Framed;
 
@@ -180,6 +180,31 @@ impl Client {
             .request(ClientRequest::SetPriority { job, priority })
             .await?
         {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// A page of the job's event log after entry `after` (see
+    /// [`ClientRequest::Events`]).
+    pub async fn events(&mut self, job: JobId, after: u64) -> Result<Vec<JobEvent>> {
+        match self.request(ClientRequest::Events { job, after }).await? {
+            ClientResponse::Events { job: j, events } if j == job => Ok(events),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// Puts a failed or cancelled job back in the queue: its status once stored.
+    pub async fn retry(&mut self, job: JobId) -> Result<JobStatus> {
+        match self.request(ClientRequest::Retry { job }).await? {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
+    /// Has tiles of a queued or running job rendered again: its status once stored.
+    pub async fn requeue(&mut self, job: JobId, tiles: Vec<u32>) -> Result<JobStatus> {
+        match self.request(ClientRequest::Requeue { job, tiles }).await? {
             ClientResponse::Job(status) if status.id == job => Ok(status),
             other => Err(unexpected(&other)),
         }

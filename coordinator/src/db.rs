@@ -21,7 +21,9 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use protocol::{JobId, JobState, Sampling, SceneHash, Settings, Verification};
+use std::collections::BTreeMap;
+
+use protocol::{JobEvent, JobId, JobState, Sampling, SceneHash, Settings, Verification};
 use rusqlite::{params, Connection, OptionalExtension};
 use sha2::{Digest, Sha256};
 
@@ -52,6 +54,17 @@ pub struct StoredJob {
     pub stopped_on_time_limit: bool,
     /// An operator paused it: no tile of it is handed out.
     pub paused: bool,
+    /// Who and what: the job's name, its submitter as the client claimed it, and the
+    /// address the submission came from. Empty for a job stored by an earlier version.
+    pub label: Label,
+}
+
+/// What a job is called and who submitted it.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Label {
+    pub name: String,
+    pub submitter: String,
+    pub submitted_from: String,
 }
 
 /// A job's wall-clock times, in milliseconds since the Unix epoch.
@@ -87,6 +100,13 @@ pub struct StoredTile {
     pub error_sq_sum: Option<f64>,
     /// When it was accepted (ms since the Unix epoch); `None` from an earlier version.
     pub done_ms: Option<u64>,
+}
+
+/// An entry of a job's event log to record.
+#[derive(Clone, Debug)]
+pub struct EventWrite {
+    pub job: JobId,
+    pub event: JobEvent,
 }
 
 /// A tile to record.
@@ -127,6 +147,9 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
         "INTEGER NOT NULL DEFAULT 0",
     ),
     ("jobs", "paused", "INTEGER NOT NULL DEFAULT 0"),
+    ("jobs", "name", "TEXT NOT NULL DEFAULT ''"),
+    ("jobs", "submitter", "TEXT NOT NULL DEFAULT ''"),
+    ("jobs", "submitted_from", "TEXT NOT NULL DEFAULT ''"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -231,6 +254,14 @@ impl Db {
                  state TEXT NOT NULL,
                  error TEXT
              );
+             CREATE TABLE IF NOT EXISTS events (
+                 job INTEGER NOT NULL,
+                 seq INTEGER NOT NULL,
+                 unix_ms INTEGER NOT NULL,
+                 kind TEXT NOT NULL,
+                 detail TEXT NOT NULL,
+                 PRIMARY KEY (job, seq)
+             );
              CREATE TABLE IF NOT EXISTS tiles (
                  job INTEGER NOT NULL,
                  tile INTEGER NOT NULL,
@@ -264,8 +295,9 @@ impl Db {
             .execute(
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
-                                   verification, time_limit_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
+                                   verification, time_limit_ms, name, submitter, submitted_from)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16,
+                         ?17, ?18, ?19)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -283,6 +315,9 @@ impl Db {
                     job.times.submitted.map(|t| t as i64),
                     job.verification.name(),
                     job.time_limit_ms.map(|t| t.min(i64::MAX as u64) as i64),
+                    job.label.name,
+                    job.label.submitter,
+                    job.label.submitted_from,
                 ],
             )
             .context("cannot store the job")?;
@@ -340,6 +375,36 @@ impl Db {
             )
             .context("cannot record the job's end")?;
         Ok(())
+    }
+
+    /// Puts a failed or cancelled job back in the queue (unpaused, its end and error
+    /// forgotten) and returns it as stored; `None` if there is no such job. A job in
+    /// another state is returned unchanged.
+    pub fn reopen_job(&self, job: JobId) -> Result<Option<StoredJob>, ReopenError> {
+        self.conn
+            .execute(
+                "UPDATE jobs SET state = 'queued', error = NULL, ended_ms = NULL, paused = 0,
+                                 total_rays = NULL, total_samples = NULL,
+                                 total_error_sq_sum = NULL, total_error_pixels = NULL
+                 WHERE id = ?1 AND state IN ('failed', 'cancelled')",
+                params![job as i64],
+            )
+            .context("cannot put the job back in the queue")
+            .map_err(ReopenError::Storage)?;
+        let found = self
+            .conn
+            .prepare(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?1"))
+            .and_then(|mut query| {
+                query
+                    .query_row(params![job as i64], |r| Ok(read_job(r)))
+                    .optional()
+            })
+            .map_err(|e| ReopenError::Storage(e.into()))?;
+        match found {
+            None => Ok(None),
+            Some(Ok(stored)) => Ok(Some(stored)),
+            Some(Err(bad)) => Err(ReopenError::BadRow(bad.what)),
+        }
     }
 
     /// Records what an operator set of a running job: whether it is paused, and its
@@ -409,15 +474,93 @@ impl Db {
                 image_sha256.as_ref().map(|h| &h[..]),
             ],
         )?;
-        tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
+        // A failed or cancelled job keeps its tiles until it is deleted: a retry
+        // renders only the others.
+        if state == JobState::Done {
+            tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
+        }
         tx.commit().context("cannot record the job's end")?;
         self.give_back_space();
         Ok(())
     }
 
-    /// Deletes a job and its tiles.
+    /// Records entries of job event logs, all in one transaction. An entry replaces
+    /// one of the same job and number (how the marker of events not kept is updated;
+    /// and a write retried after a failure changes nothing).
+    pub fn save_events(&mut self, events: &[EventWrite]) -> Result<()> {
+        let tx = self.conn.transaction()?;
+        {
+            let mut insert = tx.prepare_cached(
+                "INSERT OR REPLACE INTO events (job, seq, unix_ms, kind, detail)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+            )?;
+            for e in events {
+                insert.execute(params![
+                    e.job as i64,
+                    e.event.seq as i64,
+                    e.event.unix_ms as i64,
+                    e.event.kind,
+                    e.event.detail,
+                ])?;
+            }
+        }
+        tx.commit().context("cannot record job events")?;
+        Ok(())
+    }
+
+    /// The job's events numbered above `after`, oldest first, at most `limit`.
+    pub fn load_events(&self, job: JobId, after: u64, limit: usize) -> Result<Vec<JobEvent>> {
+        let mut query = self.conn.prepare_cached(
+            "SELECT seq, unix_ms, kind, detail FROM events
+             WHERE job = ?1 AND seq > ?2 ORDER BY seq LIMIT ?3",
+        )?;
+        let rows = query
+            .query_map(
+                params![job as i64, after.min(i64::MAX as u64) as i64, limit as i64],
+                |r| {
+                    Ok(JobEvent {
+                        seq: r.get::<_, i64>(0)?.max(0) as u64,
+                        unix_ms: r.get::<_, i64>(1)?.max(0) as u64,
+                        kind: r.get(2)?,
+                        detail: r.get(3)?,
+                    })
+                },
+            )?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .context("cannot read the job's events")?;
+        Ok(rows)
+    }
+
+    /// Where each job's event log stands, by job: its highest number, and the count
+    /// of entries not kept that its `not_kept` marker gives (0 without one).
+    pub fn event_positions(&self) -> Result<BTreeMap<JobId, (u64, u64)>> {
+        let mut query = self.conn.prepare(
+            "SELECT job, MAX(seq),
+                    MAX(CASE WHEN kind = 'not_kept' THEN detail ELSE '' END)
+             FROM events GROUP BY job",
+        )?;
+        let rows = query
+            .query_map([], |r| {
+                let marker: String = r.get(2)?;
+                let dropped = marker
+                    .split(' ')
+                    .next()
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or(0);
+                Ok((
+                    r.get::<_, i64>(0)?.max(0) as JobId,
+                    (r.get::<_, i64>(1)?.max(0) as u64, dropped),
+                ))
+            })?
+            .collect::<rusqlite::Result<BTreeMap<_, _>>>()
+            .context("cannot read the job event logs")?;
+        Ok(rows)
+    }
+
+    /// Deletes a job, its tiles and its event log.
     pub fn delete_job(&mut self, job: JobId) -> Result<()> {
         let tx = self.conn.transaction()?;
+        tx.execute("DELETE FROM events WHERE job = ?1", params![job as i64])?;
         tx.execute("DELETE FROM tiles WHERE job = ?1", params![job as i64])?;
         tx.execute("DELETE FROM jobs WHERE id = ?1", params![job as i64])?;
         tx.commit().context("cannot delete the job")?;
@@ -482,13 +625,9 @@ impl Db {
     /// Every stored job. A row that cannot be read (a damaged database) is returned as
     /// a [`BadRow`] instead of failing the whole load.
     pub fn load_jobs(&self) -> Result<Vec<Result<StoredJob, BadRow>>> {
-        let mut query = self.conn.prepare(
-            "SELECT id, scene, hash, width, height, aa, max_depth, tile_size, priority, state,
-                    error, sampler, target_milli, total_rays, total_samples,
-                    total_error_sq_sum, total_error_pixels, submitted_ms, started_ms, ended_ms,
-                    image_sha256, verification, time_limit_ms, stopped_on_time_limit, paused
-             FROM jobs ORDER BY id",
-        )?;
+        let mut query = self
+            .conn
+            .prepare(&format!("SELECT {JOB_COLUMNS} FROM jobs ORDER BY id"))?;
         let rows = query
             .query_map([], |r| Ok(read_job(r)))?
             .map(|row| row.unwrap_or_else(|e| Err(bad(format!("unreadable job row: {e}")))))
@@ -511,6 +650,23 @@ impl Db {
         Ok(rows)
     }
 }
+
+/// Why a job could not be put back in the queue.
+#[derive(Debug, thiserror::Error)]
+pub enum ReopenError {
+    /// The database could not be written or read: storage trouble, tried again.
+    #[error("{0:#}")]
+    Storage(anyhow::Error),
+    /// Its row is there but cannot be used (a damaged database): no use retrying.
+    #[error("its stored row cannot be used: {0}")]
+    BadRow(String),
+}
+
+/// The columns [`read_job`] reads, in its order.
+const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_size, priority,
+    state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
+    total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
+    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from";
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }
@@ -564,8 +720,14 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
     let time_limit_ms = time(22)?;
     let stopped_on_time_limit = r.get::<_, i64>(23).map_err(field)? != 0;
     let paused = r.get::<_, i64>(24).map_err(field)? != 0;
+    let label = Label {
+        name: r.get(25).map_err(field)?,
+        submitter: r.get(26).map_err(field)?,
+        submitted_from: r.get(27).map_err(field)?,
+    };
     Ok(StoredJob {
         paused,
+        label,
         verification,
         time_limit_ms,
         stopped_on_time_limit,
@@ -676,6 +838,11 @@ mod tests {
                 ..Times::default()
             },
             image_sha256: None,
+            label: Label {
+                name: format!("job {id}"),
+                submitter: "ann@host".into(),
+                submitted_from: "127.0.0.1".into(),
+            },
         }
     }
 
@@ -705,6 +872,10 @@ mod tests {
             (2, JobState::Running)
         );
         assert!(loaded[0].totals.is_none());
+        // No name, submitter or address recorded: empty (the daemon shows defaults).
+        assert_eq!(loaded[0].label, Label::default());
+        // An event log of its own, from nothing.
+        assert!(db.load_events(3, 0, 10).unwrap().is_empty());
         let tiles = db.load_tiles(3).unwrap();
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!(tile.rgb, [1, 2, 3]);
@@ -751,6 +922,46 @@ mod tests {
         let tiles = db.load_tiles(4).unwrap();
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!((tile.samples, tile.error_sq_sum), (Some(272), Some(12.5)));
+        assert_eq!(loaded[1].label, job(4, adaptive).label);
+    }
+
+    #[test]
+    fn event_logs_page_replace_their_marker_and_go_with_their_job() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut db = Db::open(&dir.path().join("tessera.db"), true).unwrap();
+        let entry = |job, seq, detail: &str| EventWrite {
+            job,
+            event: JobEvent {
+                seq,
+                unix_ms: 1_000 + seq,
+                kind: "k".into(),
+                detail: detail.into(),
+            },
+        };
+        let mut batch: Vec<EventWrite> = (1..=5).map(|s| entry(1, s, "a")).collect();
+        batch.push(entry(2, 1, "other job"));
+        batch.push(entry(1, 4, "replaced"));
+        db.save_events(&batch).unwrap();
+        let page = db.load_events(1, 2, 2).unwrap();
+        let seqs: Vec<u64> = page.iter().map(|e| e.seq).collect();
+        assert_eq!(seqs, [3, 4]);
+        assert_eq!(page[1].detail, "replaced");
+        db.save_events(&[EventWrite {
+            job: 2,
+            event: JobEvent {
+                seq: 10_001,
+                unix_ms: 5,
+                kind: "not_kept".into(),
+                detail: "1234 further events not kept".into(),
+            },
+        }])
+        .unwrap();
+        let positions = db.event_positions().unwrap();
+        assert_eq!(positions.get(&1), Some(&(5, 0)));
+        assert_eq!(positions.get(&2), Some(&(10_001, 1234)));
+        db.delete_job(1).unwrap();
+        assert!(db.load_events(1, 0, 100).unwrap().is_empty());
+        assert_eq!(db.load_events(2, 0, 100).unwrap().len(), 2);
     }
 
     #[test]

@@ -98,6 +98,13 @@ pub struct JobSpec {
     /// Milliseconds of rendering after which an adaptive job stops at the deepest rung
     /// it has rendered, whatever its target (see docs/protocol.md); `None`: no limit.
     pub time_limit_ms: Option<u64>,
+    /// What listings call the job (`tessera submit` gives the scene file's stem by
+    /// default). Any text; the coordinator keeps at most 200 characters of it.
+    pub name: String,
+    /// Who submitted the job, as the client claims it (`tessera submit` gives
+    /// `$USER@hostname` by default). Nothing checks it: the coordinator also records
+    /// the address the submission came from, which the client cannot choose.
+    pub submitter: String,
 }
 
 /// How a job's tile results are checked before they count (docs/reliability.md has the
@@ -202,6 +209,43 @@ pub enum ClientRequest {
     EnableWorker {
         worker: String,
     },
+    /// The job's event log from sequence number `after` on (exclusive; 0 for the
+    /// start), at most [`EVENTS_PER_PAGE`] events: answered with `Events`. A client
+    /// follows a job by asking again with the last sequence number it got.
+    Events {
+        job: JobId,
+        after: u64,
+    },
+    /// Put a failed or cancelled job back in the queue under the same id: the tiles it
+    /// has stored count, the others are rendered. Answered with the job's `Job` status
+    /// once stored.
+    Retry {
+        job: JobId,
+    },
+    /// Render the named tiles of a queued or running job again, wherever they are
+    /// (waiting, out on a worker, or done): for a machine an operator suspects.
+    /// Answered with the job's `Job` status once stored.
+    Requeue {
+        job: JobId,
+        tiles: Vec<u32>,
+    },
+}
+
+/// The most events one `Events` answer carries.
+pub const EVENTS_PER_PAGE: usize = 1000;
+
+/// One entry of a job's event log.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobEvent {
+    /// Increasing within the job, from 1; a page is asked for after one of them.
+    pub seq: u64,
+    /// When it happened, in milliseconds since the Unix epoch (the coordinator's clock).
+    pub unix_ms: u64,
+    /// What happened, one lowercase word or two joined by `_` (`submitted`,
+    /// `tile_assigned`, `tile_done`, `paused`, `done`...; docs/operations.md lists them).
+    pub kind: String,
+    /// The particulars, in one line of text.
+    pub detail: String,
 }
 
 /// The coordinator's answer to a [`ClientRequest`].
@@ -229,6 +273,12 @@ pub enum ClientResponse {
     },
     Deleted {
         job: JobId,
+    },
+    /// A page of a job's event log, oldest first (see [`ClientRequest::Events`]); fewer
+    /// than [`EVENTS_PER_PAGE`] events means the end of the log for now.
+    Events {
+        job: JobId,
+        events: Vec<JobEvent>,
     },
 }
 
@@ -300,6 +350,17 @@ pub struct JobStatus {
     /// and no connected worker may take tiles (none is connected, or all are disabled,
     /// draining or quarantined). `None` otherwise.
     pub warning: Option<String>,
+    /// The job's name, as submitted.
+    pub name: String,
+    /// Who submitted it, as the client claimed it.
+    pub submitter: String,
+    /// The address the submission came from, as the coordinator saw it.
+    pub submitted_from: String,
+    /// When it was submitted, in milliseconds since the Unix epoch.
+    pub submitted_unix_ms: u64,
+    /// How long it waited in the queue before its first tile went out; `None` while
+    /// no tile has gone out. `elapsed_ms` less this is the time it took to render.
+    pub queued_ms: Option<u64>,
 }
 
 /// A connected worker, as reported to clients.

@@ -26,9 +26,9 @@ use bytes::{BufMut, BytesMut};
 use proptest::prelude::*;
 use protocol::{
     wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError,
-    JobSpec, JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings, TileRect,
-    ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
-    PROTOCOL_VERSION,
+    JobEvent, JobSpec, JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings,
+    TileRect, ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC,
+    MAX_FRAME_LIMIT, PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -136,10 +136,14 @@ prop_compose! {
 
 prop_compose! {
     fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
-                  full in any::<bool>(), time_limit_ms in any::<Option<u64>>())
+                  full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
+                  name in text())
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
-        JobSpec { scene, overrides, priority, verification, time_limit_ms }
+        JobSpec {
+            scene, overrides, priority, verification, time_limit_ms,
+            name: name.clone(), submitter: name,
+        }
     }
 }
 
@@ -162,11 +166,14 @@ prop_compose! {
         estimated_error in prop::option::of(rate()),
         time_limit_ms in any::<Option<u64>>(), stopped_on_time_limit in any::<bool>(),
         paused in any::<bool>(), warning in prop::option::of(text()),
+        name in text(), submitter in text(),
+        submitted_from in text(), submitted_unix_ms in any::<u64>(),
+        queued_ms in any::<Option<u64>>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
-            paused, warning,
+            paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
         }
     }
 }
@@ -344,6 +351,10 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
         text().prop_map(|worker| ClientRequest::DrainWorker { worker }),
         text().prop_map(|worker| ClientRequest::DisableWorker { worker }),
         text().prop_map(|worker| ClientRequest::EnableWorker { worker }),
+        (any::<u64>(), any::<u64>()).prop_map(|(job, after)| ClientRequest::Events { job, after }),
+        any::<u64>().prop_map(|job| ClientRequest::Retry { job }),
+        (any::<u64>(), prop::collection::vec(any::<u32>(), 0..5))
+            .prop_map(|(job, tiles)| ClientRequest::Requeue { job, tiles }),
     ]
 }
 
@@ -363,6 +374,22 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
         ),
         prop::collection::vec(worker_status(), 0..5).prop_map(ClientResponse::Workers),
         text().prop_map(|message| ClientResponse::Error { message }),
+        (
+            any::<u64>(),
+            prop::collection::vec((any::<u64>(), any::<u64>(), text(), text()), 0..4)
+        )
+            .prop_map(|(job, events)| ClientResponse::Events {
+                job,
+                events: events
+                    .into_iter()
+                    .map(|(seq, unix_ms, kind, detail)| JobEvent {
+                        seq,
+                        unix_ms,
+                        kind,
+                        detail
+                    })
+                    .collect(),
+            }),
     ]
 }
 
@@ -940,8 +967,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&15u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 15 (variants go from 0 to 14)"
+        decode_error::<ClientRequest>(&18u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 18 (variants go from 0 to 17)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(
@@ -960,6 +987,8 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             priority: 0,
             verification: Verification::Sampled,
             time_limit_ms: None,
+            name: String::new(),
+            submitter: String::new(),
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -972,8 +1001,9 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         sampling: Some(Sampling::Grid),
         ..Default::default()
     });
-    // The Sampling variant, before the priority, verification and time limit.
-    let at = nested.len() - 13;
+    // The Sampling variant, before the priority, verification, time limit, and the
+    // name and submitter (two empty strings: their lengths).
+    let at = nested.len() - 13 - 16;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

@@ -243,6 +243,14 @@ pub enum Event {
     StorageAvailable,
     /// The time has come (see [`Lifecycle::next_deadline`]).
     Timeout,
+    /// An operator puts a failed or cancelled job back in the queue, its stored
+    /// tiles (`started`: some) counting ([`Lifecycle::check_retry`] says whether it
+    /// may be). Its retention stops: it is active again, with its image's `pixels`.
+    Retry {
+        job: JobId,
+        started: bool,
+        pixels: u64,
+    },
 }
 
 /// What the daemon must do.
@@ -276,6 +284,7 @@ pub enum Action {
 pub enum Reply {
     Cancelled,
     Deleting,
+    Retried,
 }
 
 /// Every job's lifecycle.
@@ -529,6 +538,26 @@ impl Lifecycle {
                 };
                 actions.push(Action::Reply { job, result });
             }
+            Event::Retry {
+                job,
+                started,
+                pixels,
+            } => {
+                let result = self.check_retry(job, pixels).map(|()| {
+                    if let Some(j) = self.jobs.get_mut(&job) {
+                        j.phase = if started {
+                            Phase::Running
+                        } else {
+                            Phase::Queued
+                        };
+                        j.ended = None;
+                        j.pixels = pixels;
+                    }
+                    self.expiry.retain(|&(_, j)| j != job);
+                    Reply::Retried
+                });
+                actions.push(Action::Reply { job, result });
+            }
             Event::Deleted { job } => {
                 self.deleting.remove(&job);
                 if self.jobs.remove(&job).is_some() {
@@ -602,8 +631,198 @@ impl Lifecycle {
     }
 }
 
+impl Lifecycle {
+    /// Whether the job may go back to the queue: only a job that failed or was
+    /// cancelled, its end recorded, and not being deleted. A job that is done is not
+    /// retried: its image is final and stored (submit the scene again to render it
+    /// anew). Like a submission, it must fit in the pixels of the active jobs, and
+    /// storage must be able to write.
+    pub fn check_retry(&self, job: JobId, pixels: u64) -> Result<(), String> {
+        self.check_retry_state(job)?;
+        if let Some(reason) = &self.storage_down {
+            return Err(format!(
+                "job {job} cannot be retried now (storage unavailable: {reason}): retry later"
+            ));
+        }
+        let active: u64 = self
+            .jobs
+            .values()
+            .filter(|j| !j.phase.has_ended())
+            .map(|j| j.pixels)
+            .sum();
+        if active.saturating_add(pixels) > self.limits.max_active_pixels {
+            return Err(format!(
+                "job {job} cannot be retried now: the coordinator has jobs of {active} pixels \
+                 queued or running, and its {pixels} would pass its limit of {}",
+                self.limits.max_active_pixels
+            ));
+        }
+        Ok(())
+    }
+
+    fn check_retry_state(&self, job: JobId) -> Result<(), String> {
+        match self.jobs.get(&job).map(|j| &j.phase) {
+            None | Some(Phase::Storing) => Err(unknown(job)),
+            Some(_) if self.deleting.contains(&job) => {
+                Err(format!("job {job} cannot be retried: it is being deleted"))
+            }
+            Some(Phase::Ended {
+                state: JobState::Failed | JobState::Cancelled,
+                recorded: true,
+                ..
+            }) => Ok(()),
+            Some(Phase::Ended {
+                state: JobState::Done,
+                ..
+            }) => Err(format!(
+                "job {job} cannot be retried: it is done and its image is final (submit \
+                 the scene again to render it anew)"
+            )),
+            Some(Phase::Ended { .. }) => Err(format!(
+                "job {job} cannot be retried yet: its end is still being stored"
+            )),
+            Some(phase) => Err(format!(
+                "job {job} cannot be retried: it is {}, only a failed or cancelled job can be",
+                phase.visible().as_str()
+            )),
+        }
+    }
+}
+
 fn unknown(job: JobId) -> String {
     format!("no job {job} on this coordinator")
+}
+
+#[cfg(test)]
+mod retry_tests {
+    use super::*;
+
+    #[test]
+    fn only_a_failed_or_cancelled_job_is_retried_and_its_retention_stops() {
+        let mut l = Lifecycle::new(
+            Limits {
+                retention: Some(1_000),
+                ..Limits::default()
+            },
+            1,
+        );
+        for (job, state) in [
+            (1, JobState::Cancelled),
+            (2, JobState::Done),
+            (3, JobState::Queued),
+        ] {
+            l.handle(
+                0,
+                Event::Restored {
+                    job,
+                    state,
+                    error: None,
+                    started: false,
+                    pixels: 64,
+                    ended_ago: 0,
+                },
+            );
+        }
+        let reply = |actions: Vec<Action>| match actions.as_slice() {
+            [Action::Reply { result, .. }] => result.clone(),
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(
+            reply(l.handle(
+                1,
+                Event::Retry {
+                    job: 1,
+                    started: true,
+                    pixels: 64,
+                }
+            )),
+            Ok(Reply::Retried)
+        );
+        assert_eq!(l.job(1).unwrap().phase, Phase::Running);
+        assert!(reply(l.handle(
+            1,
+            Event::Retry {
+                job: 2,
+                started: true,
+                pixels: 64,
+            }
+        ))
+        .unwrap_err()
+        .contains("it is done"));
+        assert!(reply(l.handle(
+            1,
+            Event::Retry {
+                job: 3,
+                started: false,
+                pixels: 64,
+            }
+        ))
+        .unwrap_err()
+        .contains("it is queued"));
+        assert!(reply(l.handle(
+            1,
+            Event::Retry {
+                job: 9,
+                started: false,
+                pixels: 64,
+            }
+        ))
+        .unwrap_err()
+        .contains("no job 9"));
+        // Only the done job is deleted when its retention runs out.
+        let expired = l.handle(5_000, Event::Timeout);
+        assert!(
+            expired.contains(&Action::DeleteStored { job: 2 }),
+            "{expired:?}"
+        );
+        assert!(
+            !expired.contains(&Action::DeleteStored { job: 1 }),
+            "{expired:?}"
+        );
+    }
+}
+
+#[cfg(test)]
+mod retry_limit_tests {
+    use super::*;
+
+    #[test]
+    fn a_retry_must_fit_in_the_active_pixels_and_needs_storage() {
+        let mut l = Lifecycle::new(
+            Limits {
+                max_active_pixels: 100,
+                ..Limits::default()
+            },
+            1,
+        );
+        for (job, state) in [(1, JobState::Failed), (2, JobState::Running)] {
+            l.handle(
+                0,
+                Event::Restored {
+                    job,
+                    state,
+                    error: None,
+                    started: true,
+                    pixels: 64,
+                    ended_ago: 0,
+                },
+            );
+        }
+        let refused = l.check_retry(1, 64).unwrap_err();
+        assert!(refused.contains("would pass its limit of 100"), "{refused}");
+        assert_eq!(l.check_retry(1, 36), Ok(()));
+        l.handle(
+            0,
+            Event::StorageUnavailable {
+                reason: "disk full".into(),
+            },
+        );
+        let refused = l.check_retry(1, 36).unwrap_err();
+        assert!(
+            refused.contains("storage unavailable: disk full"),
+            "{refused}"
+        );
+    }
 }
 
 #[cfg(test)]

@@ -280,6 +280,14 @@ pub enum Event {
     EnableMachine {
         machine: String,
     },
+    /// An operator has the job's tiles rendered again, wherever they are: waiting
+    /// (nothing changes), out on workers (their results will count for nothing; their
+    /// slots are free at once), held for confirmation (dropped), or done (taken back).
+    /// Tile numbers past the job's are ignored (the daemon refuses them first).
+    RequeueTiles {
+        job: JobId,
+        tiles: Vec<u32>,
+    },
 }
 
 /// What the daemon must do.
@@ -908,6 +916,7 @@ impl Scheduler {
                 tiles,
             } => {
                 if tiles == 0 {
+                    self.paused.remove(&job);
                     actions.push(Action::JobDone { job });
                 } else {
                     self.insert_job(job, Job::new(priority, scene, tiles));
@@ -1017,6 +1026,10 @@ impl Scheduler {
                 self.storage_down = false;
                 self.fill_all(&mut actions);
             }
+            Event::RequeueTiles { job, tiles } => {
+                self.requeue_tiles(job, &tiles);
+                self.fill_all(&mut actions);
+            }
         }
         actions
     }
@@ -1078,12 +1091,19 @@ impl Scheduler {
             .retain(|t| state[*t as usize] == TileState::Waiting);
         j.queued = j.remaining;
         if j.remaining == 0 {
+            self.paused.remove(&job);
             actions.push(Action::JobDone { job });
         } else {
             self.insert_job(job, j);
         }
         self.fill_all(&mut actions);
         actions
+    }
+
+    /// Whether an operator's pause of the job is held (from before its submission, or
+    /// while it is active).
+    pub fn is_paused(&self, job: JobId) -> bool {
+        self.paused.contains(&job)
     }
 
     /// What the scheduler has done so far.
@@ -1219,7 +1239,12 @@ impl Scheduler {
         self.jobs.insert(id, job);
     }
 
+    /// Removes an active job that has ended (done, failed or cancelled). Its pause goes
+    /// with it: a job that ends while paused must not leave its id behind, or a later
+    /// job given the same id (a retried one) would start paused. A daemon that renders
+    /// a job in several runs (adaptive passes) pauses each run again.
     fn remove_job(&mut self, id: JobId) -> Option<Job> {
+        self.paused.remove(&id);
         let job = self.jobs.remove(&id)?;
         self.order.remove(&job.rank(id));
         Some(job)
@@ -1383,6 +1408,43 @@ impl Scheduler {
             }
             actions.push(Action::JobDone { job: job_id });
             self.forget_unused_scenes(actions);
+        }
+    }
+
+    /// Takes the tiles back from wherever they are and puts them at the head of the
+    /// queue (see [`Event::RequeueTiles`]).
+    fn requeue_tiles(&mut self, job_id: JobId, tiles: &[u32]) {
+        for &tile in tiles {
+            let Some(job) = self.jobs.get_mut(&job_id) else {
+                return;
+            };
+            if tile as usize >= job.state.len() {
+                continue;
+            }
+            let before = job.rank(job_id);
+            // Every holder lets go: a result it still sends is a stray, which counts for
+            // nothing (as after a cancel).
+            let leases = job.take_leases(tile).unwrap_or_default();
+            let copies: Vec<WorkerId> = job
+                .late_copies
+                .range((tile, WorkerId::MIN)..=(tile, WorkerId::MAX))
+                .map(|&(_, w)| w)
+                .collect();
+            for &worker in &copies {
+                job.late_copies.remove(&(tile, worker));
+            }
+            job.held.remove(&tile);
+            if job.state[tile as usize] == TileState::Done {
+                job.state[tile as usize] = TileState::Out;
+                job.remaining += 1;
+            }
+            if job.requeue(tile) {
+                self.counters.tiles_requeued += 1;
+            }
+            self.rerank(job_id, before);
+            for worker in leases.iter().map(|l| l.worker).chain(copies) {
+                self.drop_holding(worker, job_id, tile);
+            }
         }
     }
 
@@ -2405,6 +2467,103 @@ mod tests {
             !assigns(&resumed).is_empty(),
             "resuming hands tiles out again"
         );
+    }
+
+    #[test]
+    fn a_job_that_ends_while_paused_leaves_no_pause_behind() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 1);
+        let joined = join(&mut s, 1, 1);
+        assert_eq!(assigns(&joined), vec![(1, 1, 0)]);
+        s.handle(0, Event::PauseJob { job: 1 });
+        assert!(s.is_paused(1));
+        let done = s.handle(
+            0,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert!(done.contains(&Action::JobDone { job: 1 }));
+        assert!(!s.is_paused(1), "a finished job's pause is forgotten");
+        // Failed while paused: the tile out fails for good.
+        let mut s = Scheduler::with_policy(Policy {
+            max_attempts: 1,
+            ..Policy::default()
+        });
+        submit(&mut s, 2, 0, SCENE_A, 2);
+        join(&mut s, 1, 1);
+        s.handle(0, Event::PauseJob { job: 2 });
+        let failed = s.handle(
+            0,
+            Event::TileFailed {
+                worker: 1,
+                job: 2,
+                tile: 0,
+                message: "broken".into(),
+            },
+        );
+        assert!(failure(&failed, 2).is_some(), "{failed:?}");
+        assert!(!s.is_paused(2), "a failed job's pause is forgotten");
+        // Taken back with every tile done, or with none to render.
+        s.handle(0, Event::PauseJob { job: 3 });
+        let resumed = s.resume_job(0, 3, 0, SCENE_A, 1, &[0]);
+        assert!(resumed.contains(&Action::JobDone { job: 3 }));
+        assert!(!s.is_paused(3));
+        s.handle(0, Event::PauseJob { job: 4 });
+        submit(&mut s, 4, 0, SCENE_A, 0);
+        assert!(!s.is_paused(4));
+        // A pause before submission still holds once the job is in.
+        s.handle(0, Event::PauseJob { job: 5 });
+        submit(&mut s, 5, 0, SCENE_A, 3);
+        assert!(s.is_paused(5));
+    }
+
+    #[test]
+    fn requeued_tiles_are_taken_back_from_wherever_they_are() {
+        let mut s = Scheduler::new();
+        submit(&mut s, 1, 0, SCENE_A, 3);
+        let out = assigns(&join(&mut s, 1, 4));
+        assert_eq!(out.len(), 3, "{out:?}");
+        // Tile 0 done, tile 1 still out, tile 2 out.
+        let done = s.handle(
+            0,
+            Event::TileDone {
+                worker: 1,
+                job: 1,
+                tile: 0,
+            },
+        );
+        assert!(done.contains(&Action::AcceptTile { job: 1, tile: 0 }));
+        let again = s.handle(
+            0,
+            Event::RequeueTiles {
+                job: 1,
+                tiles: vec![0, 1, 99],
+            },
+        );
+        // Both go out again at once (the worker has free slots).
+        let mut again = assigns(&again);
+        again.sort_unstable();
+        assert_eq!(again, vec![(1, 1, 0), (1, 1, 1)]);
+        // The old lease of tile 1 is gone: the job ends only when the tiles come back.
+        let mut finished = Vec::new();
+        for tile in [2, 1, 0] {
+            finished.extend(s.handle(
+                0,
+                Event::TileDone {
+                    worker: 1,
+                    job: 1,
+                    tile,
+                },
+            ));
+        }
+        assert!(
+            finished.contains(&Action::JobDone { job: 1 }),
+            "{finished:?}"
+        );
+        assert_eq!(s.tiles_in_flight(), 0);
     }
 
     #[test]

@@ -976,7 +976,8 @@ impl Farm {
             | Event::ResumeJob { .. }
             | Event::SetPriority { .. }
             | Event::DisableMachine { .. }
-            | Event::EnableMachine { .. } => {
+            | Event::EnableMachine { .. }
+            | Event::RequeueTiles { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout => {
@@ -3369,7 +3370,8 @@ fn reference_event(event: &Event) -> reference::Event {
         | Event::ResumeJob { .. }
         | Event::SetPriority { .. }
         | Event::DisableMachine { .. }
-        | Event::EnableMachine { .. } => {
+        | Event::EnableMachine { .. }
+        | Event::RequeueTiles { .. } => {
             unreachable!("no operator control is generated here: the unit tests cover them")
         }
         Event::Timeout => R::Timeout,
@@ -3469,7 +3471,8 @@ impl Twin {
             | Event::ResumeJob { .. }
             | Event::SetPriority { .. }
             | Event::DisableMachine { .. }
-            | Event::EnableMachine { .. } => {
+            | Event::EnableMachine { .. }
+            | Event::RequeueTiles { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}

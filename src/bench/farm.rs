@@ -48,6 +48,8 @@ async fn run_job(
             priority: 0,
             verification: protocol::Verification::default(),
             time_limit_ms: None,
+            name: "bench".into(),
+            submitter: "tessera bench".into(),
         })
         .await?;
     let mut seen = 0;

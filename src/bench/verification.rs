@@ -79,6 +79,8 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
                     priority: 0,
                     verification: setting.verification,
                     time_limit_ms: None,
+                    name: "bench".into(),
+                    submitter: "tessera bench".into(),
                 };
                 let (wall, _) = super::latency::run_job(farm.address(), spec).await?;
                 eprintln!("verification: {}: {wall:.3} s", setting.name);

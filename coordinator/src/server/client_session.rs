@@ -13,7 +13,8 @@ use std::time::Duration;
 use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, JobId, JobSpec, JobState, MessageCodec, SceneHash, Settings,
+    ClientRequest, ClientResponse, JobId, JobSpec, JobState, JobStatus, MessageCodec, SceneHash,
+    Settings,
 };
 use scheduler::lifecycle::{self, Reply};
 use sha2::{Digest, Sha256};
@@ -23,6 +24,7 @@ use transport::Stream;
 use super::core::{Controls, Prepared};
 use super::persistence::Write;
 use super::Shared;
+use crate::db::Label;
 use crate::tiling::{self, MAX_TILE, MIN_TILE};
 
 type ClientConn = Framed<Stream, MessageCodec<ClientRequest, ClientResponse>>;
@@ -91,7 +93,16 @@ pub(crate) async fn respond(
             ClientResponse::Jobs(jobs)
         }
         ClientRequest::Cancel { job } => {
-            let replies = sh.lock().life_event(sh, lifecycle::Event::Cancel { job });
+            let mut core = sh.lock();
+            if core
+                .lifecycle
+                .job(job)
+                .is_some_and(|j| !j.phase.has_ended())
+            {
+                core.log(sh, job, "cancel", format!("asked from {peer}"));
+            }
+            let replies = core.life_event(sh, lifecycle::Event::Cancel { job });
+            drop(core);
             match replies.into_iter().next() {
                 Some(Ok(_)) => ClientResponse::Cancelled { job },
                 Some(Err(message)) => ClientResponse::Error { message },
@@ -102,20 +113,56 @@ pub(crate) async fn respond(
             let replies = sh.lock().life_event(sh, lifecycle::Event::Delete { job });
             match replies.into_iter().next() {
                 Some(Ok(Reply::Deleting)) => wait_deleted(sh, job).await,
-                Some(Ok(Reply::Cancelled)) | None => unknown_job(job),
+                Some(Ok(Reply::Cancelled | Reply::Retried)) | None => unknown_job(job),
                 Some(Err(message)) => ClientResponse::Error { message },
             }
         }
         ClientRequest::Pause { job } => {
-            let controls = sh.lock().set_paused(sh, job, true);
+            let controls = {
+                let mut core = sh.lock();
+                let controls = core.set_paused(sh, job, true);
+                if controls.is_ok() {
+                    core.log(sh, job, "paused", format!("from {peer}"));
+                }
+                controls
+            };
             store_controls(sh, job, controls).await
         }
         ClientRequest::Resume { job } => {
-            let controls = sh.lock().set_paused(sh, job, false);
+            let controls = {
+                let mut core = sh.lock();
+                let controls = core.set_paused(sh, job, false);
+                if controls.is_ok() {
+                    core.log(sh, job, "resumed", format!("from {peer}"));
+                }
+                controls
+            };
             store_controls(sh, job, controls).await
         }
         ClientRequest::SetPriority { job, priority } => {
-            let controls = sh.lock().set_priority(sh, job, priority);
+            let controls = {
+                let mut core = sh.lock();
+                let before = core.jobs.get(&job).map(|r| r.priority);
+                let controls = core.set_priority(sh, job, priority);
+                if let (Ok(_), Some(before)) = (&controls, before) {
+                    core.log(
+                        sh,
+                        job,
+                        "priority",
+                        format!("{before} -> {priority}, from {peer}"),
+                    );
+                }
+                controls
+            };
+            store_controls(sh, job, controls).await
+        }
+        ClientRequest::Events { job, after } => events(sh, job, after).await,
+        ClientRequest::Retry { job } => match retry(sh, job, peer).await {
+            Ok(status) => ClientResponse::Job(status),
+            Err(message) => ClientResponse::Error { message },
+        },
+        ClientRequest::Requeue { job, tiles } => {
+            let controls = sh.lock().requeue(sh, job, &tiles, peer);
             store_controls(sh, job, controls).await
         }
         ClientRequest::DrainWorker { worker } => {
@@ -182,11 +229,23 @@ async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     };
     let id = stored.id;
     let shared = Arc::clone(sh);
+    let label = stored.label.clone();
     sh.persistence.write(Write::InsertJob {
         job: Box::new(stored),
         then: Box::new(move |result| {
             let event = match result {
-                Ok(()) => lifecycle::Event::Stored { job: id },
+                Ok(()) => {
+                    shared.lock().log(
+                        &shared,
+                        id,
+                        "submitted",
+                        format!(
+                            "{:?} by {} from {}",
+                            label.name, label.submitter, label.submitted_from
+                        ),
+                    );
+                    lifecycle::Event::Stored { job: id }
+                }
                 Err(message) => lifecycle::Event::StoreFailed { job: id, message },
             };
             shared.lock().life_event(&shared, event);
@@ -215,7 +274,7 @@ async fn refine(
     if sh.closing.load(Ordering::SeqCst) {
         return Err("the coordinator is shutting down: refine again when it is back".into());
     }
-    let (old, tile_size, priority, verification, hash) = {
+    let (old, tile_size, priority, verification, hash, name, submitter) = {
         let core = sh.lock();
         let Some(status) = core.status(job) else {
             return Ok(unknown_job(job));
@@ -239,6 +298,8 @@ async fn refine(
             record.priority,
             record.verification,
             record.hash,
+            status.name.clone(),
+            status.submitter.clone(),
         )
     };
     let aa = aa.unwrap_or(old.aa);
@@ -272,6 +333,8 @@ async fn refine(
             priority,
             verification,
             time_limit_ms,
+            name: format!("{name} (refined)"),
+            submitter,
         };
         let mut prepared = prepare(spec, &limits, peer)?;
         if states.tile_size != tile_size
@@ -380,7 +443,26 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
         request,
         time_limit_ms: spec.time_limit_ms,
         start: None,
+        label: Label {
+            name: one_line(&spec.name, MAX_LABEL),
+            submitter: one_line(&spec.submitter, MAX_LABEL),
+            submitted_from: client.to_string(),
+        },
     })
+}
+
+/// The most characters of a job's name or submitter kept: listings stay readable and
+/// a client cannot make the coordinator store much through them.
+const MAX_LABEL: usize = 200;
+
+/// `text` on one line (control characters become spaces), at most `max` characters.
+fn one_line(text: &str, max: usize) -> String {
+    text.chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .take(max)
+        .collect::<String>()
+        .trim()
+        .to_owned()
 }
 
 /// Answers a `Watch`: waits until the job has progressed past `after_tiles` (and at
@@ -491,6 +573,75 @@ async fn store_disabled(
                 "the change to machine {machine:?} is made, but the disk is slow: it is not \
                  yet stored"
             ),
+        },
+    }
+}
+
+/// Puts a failed or cancelled job back in the queue: checked, written (state queued,
+/// its stored tiles read back), then taken back by the daemon; answered only then.
+async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, String> {
+    if sh.closing.load(Ordering::SeqCst) {
+        return Err("the coordinator is shutting down: retry when it is back".into());
+    }
+    {
+        let core = sh.lock();
+        let status = core
+            .status(job)
+            .ok_or_else(|| format!("no job {job} on this coordinator"))?;
+        let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
+        core.lifecycle.check_retry(job, pixels)?;
+    }
+    let (done, reopened) = tokio::sync::oneshot::channel();
+    let shared = Arc::clone(sh);
+    sh.persistence.write(Write::Reopen {
+        job,
+        // Taken back here, whether or not the client still waits: what is on disk
+        // and what the daemon runs agree.
+        then: Box::new(move |result| {
+            let result = match result {
+                Ok(Some(restored)) => shared.lock().retried(&shared, restored, peer),
+                Ok(None) => Err(format!("no job {job} on this coordinator")),
+                Err(message) => Err(format!("job {job} could not be put back: {message}")),
+            };
+            let _ = done.send(result);
+        }),
+    });
+    match tokio::time::timeout(Duration::from_secs(30), reopened).await {
+        Ok(Ok(result)) => result,
+        Ok(Err(_)) => Err(format!(
+            "the coordinator stopped before putting job {job} back: try again"
+        )),
+        Err(_) => Err(format!(
+            "the disk is slow: job {job} is not yet back in the queue (`tessera status {job}` \
+             shows when it is)"
+        )),
+    }
+}
+
+/// A page of the job's event log, read once every entry before the request is
+/// written.
+async fn events(sh: &Arc<Shared>, job: JobId, after: u64) -> ClientResponse {
+    if sh.lock().status(job).is_none() {
+        return unknown_job(job);
+    }
+    let (done, read) = tokio::sync::oneshot::channel();
+    sh.persistence.write(Write::ReadEvents {
+        job,
+        after,
+        then: Box::new(move |result| {
+            let _ = done.send(result);
+        }),
+    });
+    match tokio::time::timeout(Duration::from_secs(10), read).await {
+        Ok(Ok(Ok(events))) => ClientResponse::Events { job, events },
+        Ok(Ok(Err(message))) => ClientResponse::Error {
+            message: format!("cannot read the events of job {job}: {message}"),
+        },
+        Ok(Err(_)) => ClientResponse::Error {
+            message: "the coordinator stopped before reading the events: try again".into(),
+        },
+        Err(_) => ClientResponse::Error {
+            message: format!("the disk is slow: the events of job {job} could not be read in time"),
         },
     }
 }

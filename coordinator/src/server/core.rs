@@ -11,7 +11,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use protocol::{
-    ClientResponse, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker,
+    ClientResponse, JobEvent, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker,
     Verification, WorkerId, WorkerStatus,
 };
 use render::Tracer;
@@ -24,7 +24,7 @@ use super::adaptive::{self, AdaptiveJob, AdaptivePlan, Answer, Evaluation, PassS
 use super::persistence::Write;
 use super::verification::Verifier;
 use super::{unix_ms, Shared};
-use crate::db::{StoredJob, Times, Totals};
+use crate::db::{EventWrite, Label, StoredJob, Times, Totals};
 use crate::store::JobMetadata;
 use crate::tiling;
 
@@ -101,6 +101,65 @@ pub struct JobRecord {
     pub stopped_on_time_limit: bool,
     /// An operator paused it: none of its tiles is handed out.
     pub paused: bool,
+    /// Its name, its submitter as claimed and the address it came from.
+    pub label: Label,
+    /// Where its event log stands.
+    pub log: EventLog,
+}
+
+/// The most entries a job's event log keeps before its end: a job of many tiles, or
+/// of workers that keep failing, must not fill the disk with its history. Past it,
+/// one entry says how many were not kept, and the job's end is still recorded.
+pub const EVENT_LOG_CAP: u64 = 10_000;
+
+/// Where a job's event log stands: the entries are on disk (written through the
+/// persistence queue, never waited for), only the numbering is kept here.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EventLog {
+    /// The number the next entry gets.
+    pub next_seq: u64,
+    /// Entries past [`EVENT_LOG_CAP`] not kept.
+    pub dropped: u64,
+}
+
+impl EventLog {
+    /// A new job's log: empty.
+    pub fn new() -> EventLog {
+        EventLog {
+            next_seq: 1,
+            dropped: 0,
+        }
+    }
+
+    /// The log of a job found on disk whose highest entry is numbered `last` (0:
+    /// none), whose marker counts `dropped` entries not kept. Those took the numbers
+    /// after the cap.
+    pub fn restored(last: u64, dropped: u64) -> EventLog {
+        let numbered = if dropped > 0 {
+            last.max(EVENT_LOG_CAP + dropped)
+        } else {
+            last
+        };
+        EventLog {
+            next_seq: numbered + 1,
+            dropped,
+        }
+    }
+
+    /// Numbers an entry: `Some(seq)` to store it under, or `None` when it is past the
+    /// cap (and the count of entries not kept, under the number [`EVENT_LOG_CAP`] + 1,
+    /// is to be written again: one small row rewritten, in the batch the entry would
+    /// have been written in, so that the count is exact after any restart). The end
+    /// of a job is always kept.
+    fn number(&mut self, always: bool) -> Option<u64> {
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        if seq <= EVENT_LOG_CAP || always {
+            return Some(seq);
+        }
+        self.dropped += 1;
+        None
+    }
 }
 
 /// What an operator set of an active job, to be stored before the change is
@@ -334,6 +393,8 @@ pub struct Prepared {
     pub time_limit_ms: Option<u64>,
     /// For a refinement: the finished job's tile states the tiles start from.
     pub start: Option<crate::store::TileStates>,
+    /// Its name, its submitter as claimed and the address it came from.
+    pub label: Label,
 }
 
 impl Core {
@@ -378,6 +439,55 @@ impl Core {
         let workers: Vec<WorkerId> = self.workers.keys().copied().collect();
         for worker in workers {
             self.tiles_event(sh, Event::WorkerDraining { worker });
+        }
+    }
+
+    /// Adds an entry to the job's event log (queued for the disk, never waited for).
+    /// `kind` is one of the words docs/operations.md lists.
+    pub fn log(&mut self, sh: &Shared, job: JobId, kind: &str, detail: String) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let end = matches!(kind, "done" | "failed" | "cancelled");
+        let unix_ms = unix_ms();
+        let (seq, kind, detail) = match record.log.number(end) {
+            Some(seq) => (seq, kind.to_owned(), detail),
+            None => (
+                EVENT_LOG_CAP + 1,
+                "not_kept".to_owned(),
+                format!("{} further events not kept", record.log.dropped),
+            ),
+        };
+        sh.persistence.write(Write::Event(EventWrite {
+            job,
+            event: JobEvent {
+                seq,
+                unix_ms,
+                kind,
+                detail,
+            },
+        }));
+    }
+
+    /// A worker is gone (it left, or missed its heartbeats: then `drop` closes its
+    /// connection): the tiles it held go back to the queue, each noted in its job's
+    /// log.
+    pub fn worker_lost(&mut self, sh: &Shared, worker: WorkerId, why: &str, drop: bool) {
+        let Some(w) = self.workers.remove(&worker) else {
+            return;
+        };
+        let mut held: Vec<(JobId, u32)> = w.assigned.keys().copied().collect();
+        held.sort_unstable();
+        for (job, tile) in held {
+            self.log(
+                sh,
+                job,
+                "tile_taken_back",
+                format!("tile {tile} from {}: {why}", w.name),
+            );
+        }
+        if drop {
+            w.dropped.notify_one();
         }
     }
 
@@ -426,6 +536,7 @@ impl Core {
             time_limit_ms: prepared.time_limit_ms,
             stopped_on_time_limit: false,
             paused: false,
+            label: prepared.label.clone(),
         };
         self.jobs.insert(
             id,
@@ -441,6 +552,8 @@ impl Core {
                 time_limit_ms: prepared.time_limit_ms,
                 stopped_on_time_limit: false,
                 paused: false,
+                label: prepared.label,
+                log: EventLog::new(),
                 verification: prepared.verification,
                 accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
@@ -466,6 +579,70 @@ impl Core {
 
     /// Takes back a job found on disk at startup.
     pub fn restore(&mut self, sh: &Arc<Shared>, restored: super::startup::RestoredJob) {
+        self.take_back(sh, restored, false);
+    }
+
+    /// A failed or cancelled job is back in the queue on disk, read back with its
+    /// stored tiles: the lifecycle takes it back (or refuses, if it changed since it
+    /// was checked), and only its missing tiles are rendered. Returns its status.
+    pub fn retried(
+        &mut self,
+        sh: &Arc<Shared>,
+        mut restored: super::startup::RestoredJob,
+        peer: std::net::IpAddr,
+    ) -> Result<JobStatus, String> {
+        let id = restored.job.id;
+        if restored.job.state.is_final() {
+            // Found unusable when read back (its scene or settings): recorded failed.
+            return Err(format!(
+                "job {id} cannot be retried: {}",
+                restored
+                    .job
+                    .error
+                    .as_deref()
+                    .unwrap_or("it cannot be rendered")
+            ));
+        }
+        let kept = restored.tiles.len();
+        let started = kept > 0 || restored.job.times.started.is_some();
+        let pixels =
+            u64::from(restored.job.settings.width) * u64::from(restored.job.settings.height);
+        let replies = self.life_event(
+            sh,
+            lifecycle::Event::Retry {
+                job: id,
+                started,
+                pixels,
+            },
+        );
+        if let Some(Err(message)) = replies.into_iter().next() {
+            return Err(message);
+        }
+        restored.last_event = self.jobs.get(&id).map_or((0, 0), |r| {
+            (r.log.next_seq.saturating_sub(1), r.log.dropped)
+        });
+        self.take_back(sh, restored, true);
+        let total = self.jobs.get(&id).map_or(0, |r| r.tiles_total);
+        info!(job = id, kept, total, "job retried by an operator");
+        self.log(
+            sh,
+            id,
+            "retried",
+            format!("from {peer}: {kept} of {total} tiles kept, the others are rendered"),
+        );
+        sh.changed();
+        self.status(id).ok_or_else(|| unknown(id))
+    }
+
+    /// Takes back a stored job: its record, its frame from the stored tiles, and its
+    /// remaining tiles to the scheduler; the lifecycle learns of it unless it already
+    /// has (`retried`).
+    fn take_back(
+        &mut self,
+        sh: &Arc<Shared>,
+        restored: super::startup::RestoredJob,
+        retried: bool,
+    ) {
         let stored = restored.job;
         let id = stored.id;
         // An adaptive job of an earlier version may have tiles off the blocks: it starts
@@ -485,6 +662,8 @@ impl Core {
             time_limit_ms: stored.time_limit_ms,
             stopped_on_time_limit: stored.stopped_on_time_limit,
             paused: stored.paused && !final_state,
+            label: restored_label(id, &stored.label),
+            log: EventLog::restored(restored.last_event.0, restored.last_event.1),
             verification: stored.verification,
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
@@ -572,17 +751,19 @@ impl Core {
         }
         info!(job = id, done = done.len(), total, "resuming job");
         self.jobs.insert(id, record);
-        self.life_event(
-            sh,
-            lifecycle::Event::Restored {
-                job: id,
-                state: stored.state,
-                error: None,
-                started: !done.is_empty() || stored.times.started.is_some(),
-                pixels: u64::from(stored.settings.width) * u64::from(stored.settings.height),
-                ended_ago: 0,
-            },
-        );
+        if !retried {
+            self.life_event(
+                sh,
+                lifecycle::Event::Restored {
+                    job: id,
+                    state: stored.state,
+                    error: None,
+                    started: !done.is_empty() || stored.times.started.is_some(),
+                    pixels: u64::from(stored.settings.width) * u64::from(stored.settings.height),
+                    ended_ago: 0,
+                },
+            );
+        }
         let actions = self
             .tiles
             .resume_job(sh.now(), id, priority, hash, total, &done);
@@ -944,6 +1125,7 @@ impl Core {
             }
         }
         let mut revoke = Vec::new();
+        let mut affected = Vec::new();
         for (&job, record) in &mut self.jobs {
             let tiles: Vec<u32> = record
                 .accepted
@@ -980,7 +1162,34 @@ impl Core {
                 tiles = tiles.len(),
                 "rendering again the tiles of a quarantined machine"
             );
+            affected.push((job, tiles.clone()));
             sh.persistence.write(Write::ForgetTiles { job, tiles });
+        }
+        // The jobs it named (its wrong tile's) and those whose tiles it had rendered.
+        let mut jobs: Vec<JobId> = self
+            .jobs
+            .keys()
+            .copied()
+            .filter(|&j| {
+                reason.contains(&format!("of job {j}:")) || reason.contains(&format!("of job {j} "))
+            })
+            .collect();
+        jobs.extend(affected.iter().map(|(j, _)| *j));
+        jobs.sort_unstable();
+        jobs.dedup();
+        for job in jobs {
+            let taken = affected
+                .iter()
+                .find(|(j, _)| *j == job)
+                .map_or(String::new(), |(_, t)| {
+                    format!("; {} of its tiles taken back: {t:?}", t.len())
+                });
+            self.log(
+                sh,
+                job,
+                "quarantine",
+                format!("machine {machine} quarantined: {reason}{taken}"),
+            );
         }
         self.tiles_event(
             sh,
@@ -1083,9 +1292,19 @@ impl Core {
                     elapsed_ms = elapsed,
                     "adaptive job: the time limit is reached"
                 );
+                let pass = ad.passes.pass() + 1;
                 record.stopped_on_time_limit = true;
                 record.image = evaluation.image;
                 record.tiles_recorded = record.tiles_total;
+                self.log(
+                    sh,
+                    job,
+                    "adaptive_pass",
+                    format!(
+                        "pass {pass} at rung {rung}: estimated error {estimate:.3} levels; \
+                         the time limit is reached"
+                    ),
+                );
                 self.life_event(sh, lifecycle::Event::TilesComplete { job });
             }
             scheduler::passes::Decision::Finish { rung } => {
@@ -1096,8 +1315,18 @@ impl Core {
                     estimate,
                     "adaptive job: the target is met"
                 );
+                let pass = ad.passes.pass() + 1;
                 record.image = evaluation.image;
                 record.tiles_recorded = record.tiles_total;
+                self.log(
+                    sh,
+                    job,
+                    "adaptive_pass",
+                    format!(
+                        "pass {pass} at rung {rung}: estimated error {estimate:.3} levels; \
+                         the target is met"
+                    ),
+                );
                 self.life_event(sh, lifecycle::Event::TilesComplete { job });
             }
             scheduler::passes::Decision::Next { rung } => {
@@ -1107,6 +1336,15 @@ impl Core {
                     rung,
                     estimate,
                     "adaptive job: next pass"
+                );
+                let pass = ad.passes.pass();
+                self.log(
+                    sh,
+                    job,
+                    "adaptive_pass",
+                    format!(
+                        "estimated error {estimate:.3} levels: pass {pass} goes on to rung {rung}"
+                    ),
                 );
                 self.start_pass(sh, job);
             }
@@ -1147,6 +1385,11 @@ impl Core {
             .filter(|t| send.binary_search(t).is_err())
             .collect();
         let (priority, hash, total) = (record.priority, record.hash, record.tiles_total);
+        // The scheduler forgets a pause when a run of the job ends (each pass is one):
+        // a paused job's next pass starts paused.
+        if record.paused {
+            self.tiles_event(sh, Event::PauseJob { job });
+        }
         let actions = self
             .tiles
             .resume_job(sh.now(), job, priority, hash, total, &done);
@@ -1223,9 +1466,19 @@ impl Core {
         message: String,
     ) {
         warn!(worker, job, tile, error = %message, "tile failed");
-        if let Some(w) = self.workers.get_mut(&worker) {
-            w.assigned.remove(&(job, tile));
-        }
+        let name = match self.workers.get_mut(&worker) {
+            Some(w) => {
+                w.assigned.remove(&(job, tile));
+                w.name.clone()
+            }
+            None => format!("worker {worker}"),
+        };
+        self.log(
+            sh,
+            job,
+            "tile_failed",
+            format!("tile {tile} on {name}: {message}"),
+        );
         let message = format!("tile {tile} failed on a worker: {message}");
         self.tiles_event(
             sh,
@@ -1353,6 +1606,16 @@ impl Core {
             w.rays += cost.rays;
             w.count_rays(Instant::now(), cost.rays);
         }
+        self.log(
+            sh,
+            job,
+            "tile_done",
+            format!(
+                "tile {tile} by {machine} in {:.3} s ({} rays)",
+                cost.render_us as f64 / 1e6,
+                cost.rays
+            ),
+        );
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
@@ -1462,10 +1725,10 @@ impl Core {
                     }
                 }
                 Action::DropWorker { worker } => {
-                    if let Some(w) = self.workers.remove(&worker) {
+                    if let Some(w) = self.workers.get(&worker) {
                         warn!(worker, name = %w.name, "no heartbeat in time: dropping the worker");
-                        w.dropped.notify_one();
                     }
+                    self.worker_lost(sh, worker, "no heartbeat in time (timed out)", true);
                 }
                 Action::JobDone { job } => {
                     self.held.retain(|(j, _), _| *j != job);
@@ -1532,11 +1795,26 @@ impl Core {
                 job,
                 at_unix_ms: at,
             });
+            let queued = at.saturating_sub(record.times.submitted.unwrap_or(at));
+            self.log(
+                sh,
+                job,
+                "started",
+                format!(
+                    "first tile out after {:.1} s in the queue",
+                    queued as f64 / 1000.0
+                ),
+            );
         }
         self.send(worker, message);
-        if let Some(w) = self.workers.get_mut(&worker) {
-            w.assigned.insert((job, tile), Instant::now());
-        }
+        let name = match self.workers.get_mut(&worker) {
+            Some(w) => {
+                w.assigned.insert((job, tile), Instant::now());
+                w.name.clone()
+            }
+            None => format!("worker {worker}"),
+        };
+        self.log(sh, job, "tile_assigned", format!("tile {tile} to {name}"));
         self.life_event(sh, lifecycle::Event::TileAssigned { job });
     }
 
@@ -1700,6 +1978,27 @@ impl Core {
             JobState::Cancelled => info!(job, "job cancelled"),
             _ => {}
         }
+        let queued = record
+            .times
+            .started
+            .map(|s| s.saturating_sub(record.times.submitted.unwrap_or(s)));
+        let detail = match (state, &error) {
+            (JobState::Done, _) => format!(
+                "{} rays, rendered in {:.1} s after {:.1} s in the queue",
+                rays,
+                ended.saturating_sub(record.times.started.unwrap_or(ended)) as f64 / 1000.0,
+                queued.unwrap_or(0) as f64 / 1000.0
+            ),
+            (_, Some(e)) => e.clone(),
+            (_, None) => format!(
+                "{} of {} tiles done",
+                record.tiles_recorded, record.tiles_total
+            ),
+        };
+        self.log(sh, job, state.as_str(), detail);
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
         let shared = Arc::clone(sh);
         sh.persistence.write(Write::End {
             job,
@@ -1791,6 +2090,80 @@ impl Core {
                 state.as_str()
             )),
         }
+    }
+
+    /// An operator has tiles of a queued or running job rendered again, wherever they
+    /// are (see [`Event::RequeueTiles`]): a done tile's result is dropped, from the
+    /// frame's totals and from the disk. Returns what to store before the change is
+    /// acknowledged (the stored tiles are forgotten before it, in the queue's order).
+    pub fn requeue(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        tiles: &[u32],
+        peer: std::net::IpAddr,
+    ) -> Result<Controls, String> {
+        self.check_controllable(id, "requeued")?;
+        let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
+        if record.adaptive.is_some() {
+            return Err(format!(
+                "job {id} cannot be requeued: an adaptive job renders in passes, whose \
+                 tiles are not taken back one by one"
+            ));
+        }
+        if tiles.is_empty() {
+            return Err(format!("job {id}: name at least one tile to requeue"));
+        }
+        let total = record.tiles_total;
+        if let Some(bad) = tiles.iter().find(|&&t| t >= total) {
+            return Err(format!(
+                "job {id} has tiles 0 to {}: there is no tile {bad}",
+                total.saturating_sub(1)
+            ));
+        }
+        let mut tiles = tiles.to_vec();
+        tiles.sort_unstable();
+        tiles.dedup();
+        let mut forget = Vec::new();
+        for &tile in &tiles {
+            if let Some(a) = record.accepted.remove(&tile) {
+                record.remove_cost(&a, rect_pixels(record.tiles[tile as usize]));
+                record.tiles_recorded = record.tiles_recorded.saturating_sub(1);
+                if let Some(count) = record.tiles_per_worker.get_mut(&*a.machine) {
+                    *count = count.saturating_sub(1);
+                }
+                forget.push(tile);
+            }
+        }
+        let controls = Controls {
+            job: id,
+            paused: record.paused,
+            priority: record.priority,
+        };
+        self.held
+            .retain(|&(j, t), _| j != id || tiles.binary_search(&t).is_err());
+        for w in self.workers.values_mut() {
+            w.assigned
+                .retain(|&(j, t), _| j != id || tiles.binary_search(&t).is_err());
+        }
+        if !forget.is_empty() {
+            sh.persistence.write(Write::ForgetTiles {
+                job: id,
+                tiles: forget.clone(),
+            });
+        }
+        info!(job = id, tiles = ?tiles, "tiles requeued by an operator");
+        self.log(
+            sh,
+            id,
+            "requeued",
+            format!(
+                "tiles {tiles:?} from {peer} ({} of them done before)",
+                forget.len()
+            ),
+        );
+        self.tiles_event(sh, Event::RequeueTiles { job: id, tiles });
+        Ok(controls)
     }
 
     /// A client's view of a job.
@@ -2058,7 +2431,32 @@ impl JobRecord {
             stopped_on_time_limit: self.stopped_on_time_limit,
             paused: self.paused && !state.is_final(),
             warning: None,
+            name: self.label.name.clone(),
+            submitter: self.label.submitter.clone(),
+            submitted_from: self.label.submitted_from.clone(),
+            submitted_unix_ms: submitted,
+            queued_ms: self
+                .times
+                .started
+                .map(|started| started.saturating_sub(submitted)),
         }
+    }
+}
+
+/// A stored job's label, with what an earlier version did not record filled in: its
+/// name is `job N`, and who submitted it from where is unknown.
+fn restored_label(id: JobId, stored: &Label) -> Label {
+    let or = |text: &str, default: String| {
+        if text.is_empty() {
+            default
+        } else {
+            text.to_owned()
+        }
+    };
+    Label {
+        name: or(&stored.name, format!("job {id}")),
+        submitter: or(&stored.submitter, "unknown".into()),
+        submitted_from: or(&stored.submitted_from, "unknown".into()),
     }
 }
 
@@ -2117,6 +2515,29 @@ fn hex(bytes: &[u8]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_event_log_keeps_its_cap_then_counts_what_it_drops_and_keeps_the_end() {
+        let mut log = EventLog::new();
+        for seq in 1..=EVENT_LOG_CAP {
+            assert_eq!(log.number(false), Some(seq));
+        }
+        for _ in 0..1500 {
+            assert_eq!(log.number(false), None);
+        }
+        assert_eq!(log.dropped, 1500);
+        // The end is kept, numbered after those not kept.
+        let end = EVENT_LOG_CAP + 1501;
+        assert_eq!(log.number(true), Some(end));
+        // After a restart the numbering and the count go on from what is stored: the
+        // highest number, and the marker's count.
+        let restored = EventLog::restored(end, 1500);
+        assert_eq!((restored.next_seq, restored.dropped), (end + 1, 1500));
+        // Past the cap without an end, the highest number stored is the marker's.
+        let restored = EventLog::restored(EVENT_LOG_CAP + 1, 1500);
+        assert_eq!(restored.next_seq, EVENT_LOG_CAP + 1501);
+        assert_eq!(EventLog::restored(0, 0), EventLog::new());
+    }
 
     #[test]
     fn a_workers_rate_is_that_of_the_last_minute_not_its_lifetime() {

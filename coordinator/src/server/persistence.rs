@@ -21,10 +21,10 @@ use std::sync::mpsc::{Receiver, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use protocol::{JobId, JobState};
+use protocol::{JobEvent, JobId, JobState, EVENTS_PER_PAGE};
 use tracing::{info, warn};
 
-use crate::db::{Db, StoredJob, TileWrite, Times, Totals};
+use crate::db::{Db, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
 use crate::store::{JobMetadata, Store};
 
 /// How long after a failed write it is tried again.
@@ -35,6 +35,9 @@ pub const STALL: Duration = Duration::from_secs(2);
 
 /// Tiles written in one transaction at most.
 const TILE_BATCH: usize = 256;
+
+/// Event log entries written in one transaction at most (they are small).
+const EVENT_BATCH: usize = 4096;
 
 /// Called with a write's outcome (on the persistence thread).
 pub type Then<T> = Box<dyn FnOnce(Result<T, String>) + Send>;
@@ -86,6 +89,22 @@ pub enum Write {
     Delete {
         job: JobId,
         then: Then<()>,
+    },
+    /// An entry of a job's event log: written with the tiles and entries queued with
+    /// it, in one transaction.
+    Event(EventWrite),
+    /// Reads a page of a job's event log, after every entry queued before it is
+    /// written: a client reads what happened up to its request.
+    ReadEvents {
+        job: JobId,
+        after: u64,
+        then: Then<Vec<JobEvent>>,
+    },
+    /// Puts a failed or cancelled job back in the queue and reads it back with its
+    /// stored tiles (checked as at startup); `None`: the job is gone.
+    Reopen {
+        job: JobId,
+        then: Then<Option<super::startup::RestoredJob>>,
     },
     /// Records an operator's pause and priority of an active job.
     Controls {
@@ -236,9 +255,9 @@ struct Writer {
     status: Arc<Status>,
 }
 
-/// A write taken off the queue, with the tiles batched.
+/// A write taken off the queue, with the tiles and event log entries batched.
 enum Step {
-    Tiles(Vec<TileWrite>),
+    Tiles(Vec<TileWrite>, Vec<EventWrite>),
     One(Write),
     /// Checks that the disk can be written again (after a failed insert).
     Probe,
@@ -260,19 +279,27 @@ impl Writer {
                     },
                 };
                 match first {
-                    Write::Tile(t) => {
-                        let mut batch = vec![t];
-                        while batch.len() < TILE_BATCH {
-                            match rx.try_recv() {
-                                Ok(Write::Tile(t)) => batch.push(t),
-                                Ok(other) => {
+                    first @ (Write::Tile(_) | Write::Event(_)) => {
+                        let (mut tiles, mut events) = (Vec::new(), Vec::new());
+                        let mut write = first;
+                        loop {
+                            match write {
+                                Write::Tile(t) => tiles.push(t),
+                                Write::Event(e) => events.push(e),
+                                other => {
                                     next = Some(other);
                                     break;
                                 }
+                            }
+                            if tiles.len() >= TILE_BATCH || events.len() >= EVENT_BATCH {
+                                break;
+                            }
+                            match rx.try_recv() {
+                                Ok(w) => write = w,
                                 Err(_) => break,
                             }
                         }
-                        Step::Tiles(batch)
+                        Step::Tiles(tiles, events)
                     }
                     other => Step::One(other),
                 }
@@ -290,10 +317,23 @@ impl Writer {
                 self.until_done(|db| db.probe().and_then(|()| store.probe()));
                 false
             }
-            Step::Tiles(batch) => {
+            Step::Tiles(batch, events) => {
+                if !events.is_empty() {
+                    self.until_done(|db| db.save_events(&events));
+                }
+                if batch.is_empty() {
+                    return false;
+                }
                 self.until_done(|db| db.save_tiles(&batch));
                 let done: Vec<(JobId, u32)> = batch.iter().map(|t| (t.job, t.tile)).collect();
                 self.hooks.tiles_recorded(&done);
+                false
+            }
+            Step::One(Write::Event(e)) => self.carry_out(Step::Tiles(Vec::new(), vec![e])),
+            Step::One(Write::ReadEvents { job, after, then }) => {
+                // Answered at once either way: a client waits for it, and a read that
+                // fails is no reason to stop writing.
+                then(self.attempt(|db| db.load_events(job, after, EVENTS_PER_PAGE)));
                 false
             }
             Step::One(Write::InsertJob { job, then }) => {
@@ -317,7 +357,7 @@ impl Writer {
                     }
                 }
             }
-            Step::One(Write::Tile(t)) => self.carry_out(Step::Tiles(vec![t])),
+            Step::One(Write::Tile(t)) => self.carry_out(Step::Tiles(vec![t], Vec::new())),
             Step::One(Write::Started { job, at_unix_ms }) => {
                 self.until_done(|db| db.set_started(job, at_unix_ms));
                 false
@@ -375,6 +415,18 @@ impl Writer {
             }) => {
                 self.until_done(|db| db.set_disabled(&machine, disabled));
                 then(Ok(()));
+                false
+            }
+            Step::One(Write::Reopen { job, then }) => {
+                // A row that cannot be used is the job's problem, not the disk's: it
+                // is answered as such without marking storage unavailable.
+                let result = self.attempt(|db| match db.reopen_job(job) {
+                    Ok(Some(stored)) => super::startup::check_job(db, stored).map(Ok),
+                    Ok(None) => Ok(Ok(None)),
+                    Err(ReopenError::Storage(e)) => Err(e),
+                    Err(bad @ ReopenError::BadRow(_)) => Ok(Err(bad.to_string())),
+                });
+                then(result.and_then(|r| r));
                 false
             }
             Step::One(Write::Delete { job, then }) => {

@@ -39,6 +39,9 @@ pub struct Opened {
 pub struct RestoredJob {
     pub job: StoredJob,
     pub tiles: Vec<StoredTile>,
+    /// Its event log: the number of its last entry (0: none), and how many entries
+    /// its marker says were not kept.
+    pub last_event: (u64, u64),
 }
 
 pub fn open(data: &Path, reset: bool) -> Result<Opened> {
@@ -81,11 +84,19 @@ pub fn open(data: &Path, reset: bool) -> Result<Opened> {
     };
     let mut jobs = Vec::new();
     let mut highest = highest;
+    // A log that cannot be read only costs its numbering: it starts again at 1 (and
+    // its new entries replace the old ones).
+    let positions = db.event_positions().unwrap_or_else(|e| {
+        warn!(error = %format!("{e:#}"), "cannot read the job event logs");
+        Default::default()
+    });
     for row in rows {
         match row {
             Ok(job) => {
                 highest = highest.max(job.id);
-                if let Some(job) = check_job(&mut db, job)? {
+                let last_event = positions.get(&job.id).copied().unwrap_or((0, 0));
+                if let Some(mut job) = check_job(&mut db, job)? {
+                    job.last_event = last_event;
                     jobs.push(job);
                 }
             }
@@ -133,7 +144,7 @@ fn set_aside(db_path: &Path) -> Result<()> {
 
 /// Checks a stored job and loads the tiles of an unfinished one; a job that cannot be
 /// rendered any more is recorded as failed.
-fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
+pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
     let id = job.id;
     let s = &job.settings;
     let sane = s.width > 0
@@ -149,6 +160,7 @@ fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
         return Ok(Some(RestoredJob {
             job,
             tiles: Vec::new(),
+            last_event: (0, 0),
         }));
     }
     let hash: [u8; 32] = Sha256::digest(job.scene.as_bytes()).into();
@@ -182,6 +194,7 @@ fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
                 ..job
             },
             tiles: Vec::new(),
+            last_event: (0, 0),
         }));
     }
     let rects = tiling::cut(&job.settings, job.tile_size);
@@ -213,7 +226,11 @@ fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJob>> {
             db.delete_tile(id, number)?;
         }
     }
-    Ok(Some(RestoredJob { job, tiles }))
+    Ok(Some(RestoredJob {
+        job,
+        tiles,
+        last_event: (0, 0),
+    }))
 }
 
 #[cfg(test)]

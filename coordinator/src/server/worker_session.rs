@@ -86,7 +86,7 @@ pub(super) async fn serve(
     .await;
     {
         let mut core = shared.lock();
-        core.workers.remove(&worker);
+        core.worker_lost(&shared, worker, "the worker left", false);
         core.tiles_event(&shared, Event::WorkerLeft { worker });
     }
     writer.abort();

@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 19] = [
+const EVENT_KINDS: [&str; 20] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -757,6 +757,7 @@ const EVENT_KINDS: [&str; 19] = [
     "SetPriority",
     "DisableMachine",
     "EnableMachine",
+    "RequeueTiles",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -780,6 +781,7 @@ fn kind_of(event: &Event) -> usize {
         Event::SetPriority { .. } => 16,
         Event::DisableMachine { .. } => 17,
         Event::EnableMachine { .. } => 18,
+        Event::RequeueTiles { .. } => 19,
     }
 }
 
