@@ -406,6 +406,26 @@ fn browser_or_skip() -> Option<PathBuf> {
     browser
 }
 
+/// Clicks `selector` until `done` holds: a click can miss when the page lays itself out
+/// again between finding the button and pressing it (a row above it added or removed
+/// by a refresh), so one click proves nothing until its effect is seen.
+fn click_until(page: &mut DevTools, what: &str, selector: &str, mut done: impl FnMut() -> bool) {
+    poll(what, Duration::from_secs(30), || {
+        if done() {
+            return Some(());
+        }
+        page.click(selector);
+        let until = std::time::Instant::now() + Duration::from_millis(1500);
+        while std::time::Instant::now() < until {
+            if done() {
+                return Some(());
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        None
+    });
+}
+
 fn job_json(dir: &Path, addr: &str, job: u64) -> serde_json::Value {
     let run = common::ok(
         common::client(dir, addr, &["status", &job.to_string(), "--json"]),
@@ -452,15 +472,12 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
     assert!(banner.contains("no worker is connected"), "{banner}");
 
     // Paused by a click, as `tessera status` shows.
-    poll("the pause button", Duration::from_secs(30), || {
-        page.click(&format!(
-            "button[data-action=\"pause\"][data-job=\"{job}\"]"
-        ))
-        .then_some(())
-    });
-    poll("the job to be paused", Duration::from_secs(20), || {
-        (job_json(dir.path(), &addr, job)["state"] == "paused").then_some(())
-    });
+    click_until(
+        &mut page,
+        "the job paused by its button",
+        &format!("button[data-action=\"pause\"][data-job=\"{job}\"]"),
+        || job_json(dir.path(), &addr, job)["state"] == "paused",
+    );
     // The page shows it without a reload.
     poll(
         "the page to show the pause",
@@ -482,15 +499,18 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
     assert_eq!(job_json(dir.path(), &addr, job)["tiles_done"], 0);
 
     // Disabled from the page: the worker row says so, and `tessera workers` too.
-    poll("the disable button", Duration::from_secs(30), || {
-        page.click("tr[data-worker=\"clicky\"] button[data-action=\"disable\"]")
-            .then_some(())
-    });
-    poll("the worker to be disabled", Duration::from_secs(20), || {
+    let worker_field = |field: &str| {
         let run = common::client(dir.path(), &addr, &["workers", "--json"]);
-        let workers: serde_json::Value = serde_json::from_str(run.stdout.trim()).ok()?;
-        (workers[0]["disabled"] == true).then_some(())
-    });
+        serde_json::from_str::<serde_json::Value>(run.stdout.trim())
+            .map(|workers| workers[0][field].clone())
+            .unwrap_or_default()
+    };
+    click_until(
+        &mut page,
+        "the worker disabled by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"disable\"]",
+        || worker_field("disabled") == true,
+    );
     poll(
         "the banner for a disabled farm",
         Duration::from_secs(20),
@@ -503,33 +523,37 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
     );
 
     // Enabled and resumed from the page: the job renders to the end.
-    poll("the enable button", Duration::from_secs(30), || {
-        page.click("tr[data-worker=\"clicky\"] button[data-action=\"enable\"]")
-            .then_some(())
-    });
-    poll("the resume button", Duration::from_secs(30), || {
-        page.click(&format!(
-            "button[data-action=\"resume\"][data-job=\"{job}\"]"
-        ))
-        .then_some(())
-    });
+    click_until(
+        &mut page,
+        "the worker enabled by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"enable\"]",
+        || worker_field("disabled") == false,
+    );
+    click_until(
+        &mut page,
+        "the job resumed by its button",
+        &format!("button[data-action=\"resume\"][data-job=\"{job}\"]"),
+        || job_json(dir.path(), &addr, job)["state"] != "paused",
+    );
     common::wait_done(dir.path(), &addr, job, Duration::from_secs(120));
     // An ended job offers delete; a click removes it.
-    poll("the delete button", Duration::from_secs(30), || {
-        page.click(&format!(
-            "button[data-action=\"delete\"][data-job=\"{job}\"]"
-        ))
-        .then_some(())
-    });
-    poll("the job to be deleted", Duration::from_secs(20), || {
-        let run = common::client(dir.path(), &addr, &["status", &job.to_string()]);
-        (!run.status.success() && run.stderr.contains(&format!("no job {job}"))).then_some(())
-    });
+    click_until(
+        &mut page,
+        "the job deleted by its button",
+        &format!("button[data-action=\"delete\"][data-job=\"{job}\"]"),
+        || {
+            let run = common::client(dir.path(), &addr, &["status", &job.to_string()]);
+            !run.status.success() && run.stderr.contains(&format!("no job {job}"))
+        },
+    );
     // Drained from the page: the worker exits 0 and the page says no worker is left.
-    poll("the drain button", Duration::from_secs(30), || {
-        page.click("tr[data-worker=\"clicky\"] button[data-action=\"drain\"]")
-            .then_some(())
-    });
+    click_until(
+        &mut page,
+        "the worker drained by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"drain\"]",
+        // Draining, or already gone.
+        || worker_field("draining") != false,
+    );
     let exit = worker
         .wait_exit(Duration::from_secs(30))
         .expect("the drained worker did not exit");

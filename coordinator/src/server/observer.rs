@@ -41,6 +41,13 @@ pub struct FarmView {
 #[derive(Serialize)]
 pub struct JobView {
     pub id: JobId,
+    pub name: String,
+    /// Who submitted it (the client's claim) and from which address.
+    pub submitter: String,
+    pub submitted_from: String,
+    pub submitted_unix_ms: u64,
+    /// The wait in the queue before the first tile went out; `None` until then.
+    pub queued_ms: Option<u64>,
     /// The lifecycle state, or "paused" for a job an operator paused.
     pub state: &'static str,
     pub width: u32,
@@ -51,6 +58,7 @@ pub struct JobView {
     pub tiles_done: u32,
     pub tiles_total: u32,
     pub rays: u64,
+    /// Since submission (to the end, for an ended job): the queue wait included.
     pub elapsed_ms: u64,
     pub eta_ms: Option<u64>,
     /// The mean over the whole image, known once the job is done (as `tessera status
@@ -114,6 +122,11 @@ impl Observer {
                 let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
                 JobView {
                     id: s.id,
+                    name: s.name,
+                    submitter: s.submitter,
+                    submitted_from: s.submitted_from,
+                    submitted_unix_ms: s.submitted_unix_ms,
+                    queued_ms: s.queued_ms,
                     state: if s.paused { "paused" } else { s.state.as_str() },
                     width: s.settings.width,
                     height: s.settings.height,
