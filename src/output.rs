@@ -122,7 +122,7 @@ mod tests {
         let e = ImageOutput::create(&missing).err().unwrap();
         assert!(
             format!("{e:#}").starts_with(&format!("cannot write {}", missing.display()))
-                && !format!("{e:#}").contains(".tmp"),
+                && !format!("{e:#}").contains(".tessera-"),
             "{e:#}"
         );
         let e = ImageOutput::create(dir.path()).err().unwrap();

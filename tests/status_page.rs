@@ -490,6 +490,17 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
         },
     );
 
+    // And in the job's events, under the image.
+    poll(
+        "the pause among the job's events",
+        Duration::from_secs(20),
+        || {
+            (page.eval("document.querySelectorAll('#events tr[data-event=\"paused\"]').length")
+                == 1)
+                .then_some(())
+        },
+    );
+
     // A worker joins; it gets nothing of the paused job; the banner goes.
     let mut worker = start_worker_with(dir.path(), &addr, "clicky", &["--throttle", "50"]);
     poll("the banner to go", Duration::from_secs(30), || {
@@ -708,6 +719,50 @@ fn the_page_controls_follow_the_client_secret() {
     );
     assert_eq!(code, 200, "{body}");
     assert_eq!(status(dir.path())["state"], "cancelled");
+    // Retried from the page: back in the queue, still paused no more.
+    let retry = format!("/api/jobs/{job}/retry");
+    let (code, body) = http_post(&http, &retry, &[json], "{}");
+    assert_eq!(code, 401, "a retry without the token: {body}");
+    let (code, body) = http_post(&http, &retry, &[json, good], "{}");
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "queued");
+    let (code, body) = http_post(&http, &retry, &[json, good], "{}");
+    assert_eq!(code, 409, "a queued job retried: {body}");
+    assert!(
+        one_line_error(&body).contains("cannot be retried"),
+        "{body}"
+    );
+
+    // The job's events, as the page shows them, say who did what, in order.
+    let (code, body) = common::http_get(&http, &format!("/api/jobs/{job}/events"))
+        .expect("the coordinator answers");
+    assert_eq!(code, 200);
+    let events: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let kinds: Vec<&str> = events
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["event"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        kinds,
+        [
+            "submitted",
+            "paused",
+            "priority",
+            "cancel",
+            "cancelled",
+            "retried"
+        ],
+        "{events}"
+    );
+    let first = events[0]["seq"].as_u64().unwrap();
+    let (_, body) = common::http_get(&http, &format!("/api/jobs/{job}/events?after={first}"))
+        .expect("the coordinator answers");
+    let rest: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(rest.as_array().unwrap().len(), kinds.len() - 1, "{rest}");
+    let (code, _) = common::http_get(&http, "/api/jobs/999/events").unwrap();
+    assert_eq!(code, 404);
 }
 
 #[test]

@@ -14,7 +14,7 @@
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 
-use axum::extract::{ConnectInfo, Path, State};
+use axum::extract::{ConnectInfo, Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
@@ -34,6 +34,7 @@ pub fn coordinator_routes(observer: Observer) -> Router {
         .route("/", get(|| async { Html(STATUS_PAGE) }))
         .route("/api/status", get(status))
         .route("/api/jobs/{id}/{action}", post(job_control))
+        .route("/api/jobs/{id}/events", get(job_events))
         .route("/api/workers/{worker}/{action}", post(worker_control))
         .route("/jobs/{id}/image.png", get(picture))
         .route("/metrics", get(metrics))
@@ -306,6 +307,7 @@ async fn job_control(
         "resume" => ClientRequest::Resume { job },
         "cancel" => ClientRequest::Cancel { job },
         "delete" => ClientRequest::Delete { job },
+        "retry" => ClientRequest::Retry { job },
         "priority" => {
             let priority = serde_json::from_slice::<serde_json::Value>(&body)
                 .ok()
@@ -324,11 +326,57 @@ async fn job_control(
         other => {
             return refusal(
                 StatusCode::NOT_FOUND,
-                format!("no job action {other:?}: pause, resume, cancel, delete or priority"),
+                format!(
+                    "no job action {other:?}: pause, resume, cancel, delete, retry or priority"
+                ),
             )
         }
     };
     answer(observer.control(request, peer.ip()).await)
+}
+
+/// `GET /api/jobs/ID/events?after=SEQ`: the job's event log after entry SEQ (0, the
+/// default, for the start), at most a page of it, as `tessera events JOB --json` prints
+/// it. Reading, like the rest of the page: no token.
+async fn job_events(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    Path(id): Path<String>,
+    Query(query): Query<EventsQuery>,
+) -> Response {
+    let Ok(job) = id.parse::<JobId>() else {
+        return refusal(
+            StatusCode::NOT_FOUND,
+            format!("no job {id:?}: a job id is a number"),
+        );
+    };
+    let request = ClientRequest::Events {
+        job,
+        after: query.after.unwrap_or(0),
+    };
+    match observer.control(request, peer.ip()).await {
+        ClientResponse::Events { events, .. } => Json(
+            events
+                .iter()
+                .map(|e| {
+                    serde_json::json!({
+                        "seq": e.seq,
+                        "unix_ms": e.unix_ms,
+                        "event": e.kind,
+                        "detail": e.detail,
+                    })
+                })
+                .collect::<Vec<_>>(),
+        )
+        .into_response(),
+        other => answer(other),
+    }
+}
+
+/// The query of [`job_events`].
+#[derive(serde::Deserialize)]
+struct EventsQuery {
+    after: Option<u64>,
 }
 
 /// `POST /api/workers/WORKER/drain|disable|enable`, WORKER an id or a name.
