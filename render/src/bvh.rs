@@ -856,16 +856,18 @@ impl Bvh {
 
     isa_dispatch! {
         /// [`Bvh::occluder`] for up to four shadow rays at once (lane k: `origin[k]`,
-        /// `dir[k]`, `limit[k]`; the lanes of the bit mask `lanes`), all leaving
-        /// object `from`: the rays traverse the tree together, sharing the stack and
-        /// the node loads. Returns the lanes blocked by some sphere and the lanes the
-        /// hierarchy cannot answer (outside its range; all of `lanes` that are not
-        /// blocked if the stack overflowed), which the caller answers by brute force.
+        /// `dir[k]`, `limit[k]`, leaving object `from[k]`; the lanes of the bit mask
+        /// `lanes`): the rays traverse the tree together, sharing the stack and the
+        /// node loads. Each lane leaves its own object, so that the shadow rays of
+        /// neighbouring pixels that meet different spheres still travel together.
+        /// Returns the lanes blocked by some sphere and the lanes the hierarchy cannot
+        /// answer (outside its range; all of `lanes` that are not blocked if the stack
+        /// overflowed), which the caller answers by brute force.
         pub fn occluders / occluders_avx2(
             &self,
             origin: &[Vec3; 4],
             dir: &[Vec3; 4],
-            from: u32,
+            from: &[u32; 4],
             limit: &[f64; 4],
             lanes: u32,
             stack: &mut Stack,
@@ -887,7 +889,7 @@ impl Bvh {
         &self,
         origin: &[Vec3; 4],
         dir: &[Vec3; 4],
-        from: u32,
+        from: &[u32; 4],
         limit: &[f64; 4],
         lanes: u32,
         stack: &mut Stack,
@@ -945,11 +947,13 @@ impl Bvh {
                     if want == 0 {
                         break;
                     }
-                    if index == from {
+                    // The lanes that leave this sphere do not test it.
+                    let testing = want & !leaving(from, index);
+                    if testing == 0 {
                         continue;
                     }
                     let t = sphere_lanes(sphere, &o4, &d4);
-                    let mut ks = want;
+                    let mut ks = testing;
                     while ks != 0 {
                         let k = ks.trailing_zeros() as usize;
                         ks &= ks - 1;
@@ -974,6 +978,12 @@ impl Bvh {
         }
         (blocked, fallback)
     }
+}
+
+/// The lanes (a bit each) whose ray leaves object `index`.
+#[inline(always)]
+fn leaving(from: &[u32; 4], index: u32) -> u32 {
+    (0..4).fold(0, |lanes, k| lanes | (u32::from(from[k] == index) << k))
 }
 
 /// Four vectors in SIMD lanes.
@@ -1528,7 +1538,7 @@ mod tests {
                     );
                 }
                 let (hit, rest) =
-                    bvh.occluders(&origins, &dirs, u32::MAX, &limits, lanes, &mut stack);
+                    bvh.occluders(&origins, &dirs, &[u32::MAX; 4], &limits, lanes, &mut stack);
                 assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
                 for k in 0..4 {
                     let expected = lanes & (1 << k) != 0
@@ -1541,6 +1551,36 @@ mod tests {
                         expected,
                         "{isa:?} lane {k} of {lanes:b}: {origin:?} {dir:?} {limit}"
                     );
+                }
+                // Each lane leaving its own sphere, as the shadow rays of hits on
+                // different spheres do: lane 0 the sphere the ray meets first (not
+                // tested for that lane alone), lane 3 none, with its limit exactly at
+                // the nearest hit (a tie, which does not block). The same answers as
+                // the brute-force loop and as one ray at a time.
+                let froms = [brute.1, u32::MAX, 0, u32::MAX];
+                let limits = [limit, limit, f64::NAN, brute.0];
+                let (hit, rest) =
+                    bvh.occluders(&origins, &dirs, &froms, &limits, lanes, &mut stack);
+                assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
+                for k in 0..4 {
+                    let expected = lanes & (1 << k) != 0
+                        && spheres.iter().any(|&(i, ref s)| {
+                            i != froms[k]
+                                && s.hit(origins[k], dirs[k], false)
+                                    .is_some_and(|t| t < limits[k])
+                        });
+                    assert_eq!(
+                        hit & (1 << k) != 0,
+                        expected,
+                        "{isa:?} lane {k} of {lanes:b} from {}: {origin:?} {dir:?} {limit}",
+                        froms[k]
+                    );
+                    if lanes & (1 << k) != 0 {
+                        let alone = bvh
+                            .occluder(origins[k], dirs[k], froms[k], limits[k], &mut stack)
+                            .expect("within range");
+                        assert_eq!(alone.is_some(), expected, "{isa:?} lane {k} alone");
+                    }
                 }
             }
         }
