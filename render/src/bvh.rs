@@ -302,7 +302,9 @@ impl BoxRay {
 
     /// Which of the node's child boxes the ray enters within [0, `t_max`] (a bit per
     /// child), which children are leaves (a bit per child; empty slots too, but their
-    /// boxes are never entered), and where the ray enters each. A NaN slab distance
+    /// boxes are never entered), and where the ray enters each (+∞ for the boxes it
+    /// does not enter, so that the packet traversal takes least entries over its
+    /// lanes with element-wise minima). A NaN slab distance
     /// is ignored. With `isa` AVX2 the test runs in 256-bit instructions
     /// ([`BoxRay::enter_avx2`]): the compiler does not vectorise the portable loops
     /// well (it splits them into 128-bit pieces and shuffles to build the masks). The
@@ -333,6 +335,8 @@ impl BoxRay {
         for k in 0..WIDTH {
             if t0[k] <= t1[k] * SLACK {
                 mask |= 1 << k;
+            } else {
+                t0[k] = f32::INFINITY;
             }
             leaves |= (node.children[k] >> 31) << k;
         }
@@ -370,8 +374,9 @@ impl BoxRay {
         }
         let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, _mm256_set1_ps(SLACK)));
         let mut entry = [0.0f32; WIDTH];
+        let entry_or_never = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), t0, hit);
         // SAFETY: `entry` holds eight f32s.
-        unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), t0) };
+        unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), entry_or_never) };
         // SAFETY: the children are eight u32s, 32-byte aligned within the node.
         let children = unsafe { _mm256_load_si256(node.children.as_ptr().cast()) };
         (
@@ -707,6 +712,10 @@ impl Bvh {
             let mut entry = [[0.0f32; WIDTH]; 4];
             let mut entered = [0u32; 4];
             let mut any = 0u32;
+            // Per child, the least entry distance over the lanes entering it (+∞ where
+            // none does): a lane's entries are +∞ for the children it does not enter,
+            // so this is an element-wise minimum.
+            let mut least = [f32::INFINITY; WIDTH];
             let mut ks = active;
             while ks != 0 {
                 let k = ks.trailing_zeros() as usize;
@@ -717,6 +726,9 @@ impl Bvh {
                 entered[k] = hit;
                 entry[k] = e;
                 any |= hit;
+                for c in 0..WIDTH {
+                    least[c] = if e[c] < least[c] { e[c] } else { least[c] };
+                }
             }
             // The children entered by some lane, sorted far to near by their least
             // entry distance over the lanes entering them.
@@ -725,15 +737,7 @@ impl Bvh {
             while any != 0 {
                 let c = any.trailing_zeros() as usize;
                 any &= any - 1;
-                let mut t = f32::INFINITY;
-                let mut ks = active;
-                while ks != 0 {
-                    let k = ks.trailing_zeros() as usize;
-                    ks &= ks - 1;
-                    if entered[k] & (1 << c) != 0 && entry[k][c] < t {
-                        t = entry[k][c];
-                    }
-                }
+                let t = least[c];
                 let mut j = n;
                 while j > 0 && order[j - 1].0 < t {
                     order[j] = order[j - 1];
