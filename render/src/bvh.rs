@@ -302,7 +302,9 @@ impl BoxRay {
 
     /// Which of the node's child boxes the ray enters within [0, `t_max`] (a bit per
     /// child), which children are leaves (a bit per child; empty slots too, but their
-    /// boxes are never entered), and where the ray enters each. A NaN slab distance
+    /// boxes are never entered), and where the ray enters each (+∞ for the boxes it
+    /// does not enter, so that the packet traversal takes least entries over its
+    /// lanes with element-wise minima). A NaN slab distance
     /// is ignored. With `isa` AVX2 the test runs in 256-bit instructions
     /// ([`BoxRay::enter_avx2`]): the compiler does not vectorise the portable loops
     /// well (it splits them into 128-bit pieces and shuffles to build the masks). The
@@ -333,6 +335,8 @@ impl BoxRay {
         for k in 0..WIDTH {
             if t0[k] <= t1[k] * SLACK {
                 mask |= 1 << k;
+            } else {
+                t0[k] = f32::INFINITY;
             }
             leaves |= (node.children[k] >> 31) << k;
         }
@@ -370,8 +374,9 @@ impl BoxRay {
         }
         let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, _mm256_set1_ps(SLACK)));
         let mut entry = [0.0f32; WIDTH];
+        let entry_or_never = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), t0, hit);
         // SAFETY: `entry` holds eight f32s.
-        unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), t0) };
+        unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), entry_or_never) };
         // SAFETY: the children are eight u32s, 32-byte aligned within the node.
         let children = unsafe { _mm256_load_si256(node.children.as_ptr().cast()) };
         (
@@ -707,6 +712,10 @@ impl Bvh {
             let mut entry = [[0.0f32; WIDTH]; 4];
             let mut entered = [0u32; 4];
             let mut any = 0u32;
+            // Per child, the least entry distance over the lanes entering it (+∞ where
+            // none does): a lane's entries are +∞ for the children it does not enter,
+            // so this is an element-wise minimum.
+            let mut least = [f32::INFINITY; WIDTH];
             let mut ks = active;
             while ks != 0 {
                 let k = ks.trailing_zeros() as usize;
@@ -717,6 +726,9 @@ impl Bvh {
                 entered[k] = hit;
                 entry[k] = e;
                 any |= hit;
+                for c in 0..WIDTH {
+                    least[c] = if e[c] < least[c] { e[c] } else { least[c] };
+                }
             }
             // The children entered by some lane, sorted far to near by their least
             // entry distance over the lanes entering them.
@@ -725,15 +737,7 @@ impl Bvh {
             while any != 0 {
                 let c = any.trailing_zeros() as usize;
                 any &= any - 1;
-                let mut t = f32::INFINITY;
-                let mut ks = active;
-                while ks != 0 {
-                    let k = ks.trailing_zeros() as usize;
-                    ks &= ks - 1;
-                    if entered[k] & (1 << c) != 0 && entry[k][c] < t {
-                        t = entry[k][c];
-                    }
-                }
+                let t = least[c];
                 let mut j = n;
                 while j > 0 && order[j - 1].0 < t {
                     order[j] = order[j - 1];
@@ -856,16 +860,18 @@ impl Bvh {
 
     isa_dispatch! {
         /// [`Bvh::occluder`] for up to four shadow rays at once (lane k: `origin[k]`,
-        /// `dir[k]`, `limit[k]`; the lanes of the bit mask `lanes`), all leaving
-        /// object `from`: the rays traverse the tree together, sharing the stack and
-        /// the node loads. Returns the lanes blocked by some sphere and the lanes the
-        /// hierarchy cannot answer (outside its range; all of `lanes` that are not
-        /// blocked if the stack overflowed), which the caller answers by brute force.
+        /// `dir[k]`, `limit[k]`, leaving object `from[k]`; the lanes of the bit mask
+        /// `lanes`): the rays traverse the tree together, sharing the stack and the
+        /// node loads. Each lane leaves its own object, so that the shadow rays of
+        /// neighbouring pixels that meet different spheres still travel together.
+        /// Returns the lanes blocked by some sphere and the lanes the hierarchy cannot
+        /// answer (outside its range; all of `lanes` that are not blocked if the stack
+        /// overflowed), which the caller answers by brute force.
         pub fn occluders / occluders_avx2(
             &self,
             origin: &[Vec3; 4],
             dir: &[Vec3; 4],
-            from: u32,
+            from: &[u32; 4],
             limit: &[f64; 4],
             lanes: u32,
             stack: &mut Stack,
@@ -887,7 +893,7 @@ impl Bvh {
         &self,
         origin: &[Vec3; 4],
         dir: &[Vec3; 4],
-        from: u32,
+        from: &[u32; 4],
         limit: &[f64; 4],
         lanes: u32,
         stack: &mut Stack,
@@ -945,11 +951,13 @@ impl Bvh {
                     if want == 0 {
                         break;
                     }
-                    if index == from {
+                    // The lanes that leave this sphere do not test it.
+                    let testing = want & !leaving(from, index);
+                    if testing == 0 {
                         continue;
                     }
                     let t = sphere_lanes(sphere, &o4, &d4);
-                    let mut ks = want;
+                    let mut ks = testing;
                     while ks != 0 {
                         let k = ks.trailing_zeros() as usize;
                         ks &= ks - 1;
@@ -974,6 +982,12 @@ impl Bvh {
         }
         (blocked, fallback)
     }
+}
+
+/// The lanes (a bit each) whose ray leaves object `index`.
+#[inline(always)]
+fn leaving(from: &[u32; 4], index: u32) -> u32 {
+    (0..4).fold(0, |lanes, k| lanes | (u32::from(from[k] == index) << k))
 }
 
 /// Four vectors in SIMD lanes.
@@ -1528,7 +1542,7 @@ mod tests {
                     );
                 }
                 let (hit, rest) =
-                    bvh.occluders(&origins, &dirs, u32::MAX, &limits, lanes, &mut stack);
+                    bvh.occluders(&origins, &dirs, &[u32::MAX; 4], &limits, lanes, &mut stack);
                 assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
                 for k in 0..4 {
                     let expected = lanes & (1 << k) != 0
@@ -1541,6 +1555,36 @@ mod tests {
                         expected,
                         "{isa:?} lane {k} of {lanes:b}: {origin:?} {dir:?} {limit}"
                     );
+                }
+                // Each lane leaving its own sphere, as the shadow rays of hits on
+                // different spheres do: lane 0 the sphere the ray meets first (not
+                // tested for that lane alone), lane 3 none, with its limit exactly at
+                // the nearest hit (a tie, which does not block). The same answers as
+                // the brute-force loop and as one ray at a time.
+                let froms = [brute.1, u32::MAX, 0, u32::MAX];
+                let limits = [limit, limit, f64::NAN, brute.0];
+                let (hit, rest) =
+                    bvh.occluders(&origins, &dirs, &froms, &limits, lanes, &mut stack);
+                assert_eq!(rest, 0, "{isa:?} {origin:?} {dir:?}: out of range");
+                for k in 0..4 {
+                    let expected = lanes & (1 << k) != 0
+                        && spheres.iter().any(|&(i, ref s)| {
+                            i != froms[k]
+                                && s.hit(origins[k], dirs[k], false)
+                                    .is_some_and(|t| t < limits[k])
+                        });
+                    assert_eq!(
+                        hit & (1 << k) != 0,
+                        expected,
+                        "{isa:?} lane {k} of {lanes:b} from {}: {origin:?} {dir:?} {limit}",
+                        froms[k]
+                    );
+                    if lanes & (1 << k) != 0 {
+                        let alone = bvh
+                            .occluder(origins[k], dirs[k], froms[k], limits[k], &mut stack)
+                            .expect("within range");
+                        assert_eq!(alone.is_some(), expected, "{isa:?} lane {k} alone");
+                    }
                 }
             }
         }

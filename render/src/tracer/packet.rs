@@ -5,7 +5,8 @@
 
 use super::prepare::Geometry;
 use super::ray::{Packet, Path, Ray, FROM_CAMERA};
-use super::shading::{checker_white_lanes, clip_lanes, pow10};
+use super::shading::{checker_white_lanes, clip, clip_lanes, pow10};
+use super::single::{Shading, Towards};
 use super::{Ctx, Tracer, SHADOW_REACH};
 use crate::bvh::consider;
 use crate::geometry::{plane_hits, sphere_hits, SphereGeom};
@@ -39,6 +40,9 @@ impl Tracer {
             .any()
         {
             return self.shade_lanes(&packet.with_active(hit), t, object as u32, path, ctx);
+        }
+        if self.bvh.is_some() {
+            return self.shade_apart(&packet.with_active(hit), t, index, path, ctx);
         }
         for k in 0..LANES {
             if hit.get(k) {
@@ -202,42 +206,74 @@ impl Tracer {
         hit.select3(clip_lanes(acc), V4::splat(Vec3::ZERO))
     }
 
+    /// [`Tracer::shade`] for the packet's active lanes, which meet the objects
+    /// `index` (as f64) at distances `t`, not all the same one (other lanes are
+    /// black), in a scene with a hierarchy. Each lane is shaded alone up to its
+    /// direct light; then the shadow rays of all lanes towards each light, each
+    /// leaving its own object, traverse the hierarchy together.
+    #[inline(always)]
+    fn shade_apart(&self, packet: &Packet, t: F4, index: F4, path: Path, ctx: &mut Ctx) -> V4 {
+        let hit = packet.active;
+        let objects: [u32; LANES] = std::array::from_fn(|k| index.0[k] as u32);
+        let mut shadings: [Option<Shading>; LANES] = [None; LANES];
+        for k in 0..LANES {
+            if hit.get(k) {
+                let ray = packet.lane(k);
+                shadings[k] = Some(self.shading(&ray, t.0[k], objects[k], path, ctx));
+            }
+        }
+        for light in &self.lights {
+            let mut shadows = [Ray::camera(Vec3::ZERO, Vec3::ZERO); LANES];
+            let mut distance = [0.0; LANES];
+            let mut towards: [Option<Towards>; LANES] = [None; LANES];
+            let mut lit = M4::NONE;
+            for k in 0..LANES {
+                let Some(shading) = &shadings[k] else {
+                    continue;
+                };
+                if let Some(way) = shading.towards(light) {
+                    shadows[k] = Ray {
+                        origin: shading.p,
+                        dir: way.dir,
+                        from: objects[k],
+                    };
+                    distance[k] = way.distance;
+                    towards[k] = Some(way);
+                    lit.0[k] = u64::MAX;
+                }
+            }
+            if !lit.any() {
+                continue;
+            }
+            ctx.count(lit);
+            let blocked = self.occluded_rays(&shadows, &distance, lit, ctx);
+            for k in 0..LANES {
+                if let (Some(shading), Some(way), false) =
+                    (&mut shadings[k], &towards[k], blocked.get(k))
+                {
+                    shading.add(light, way);
+                }
+            }
+        }
+        let mut colors = V4::splat(Vec3::ZERO);
+        for (k, shading) in shadings.iter().enumerate() {
+            if let Some(shading) = shading {
+                colors.set_lane(k, clip(shading.color));
+            }
+        }
+        colors
+    }
+
     /// [`Tracer::occluded`] for the shadow rays of the packet's active lanes, towards
     /// lights at `distance`: the lanes that are blocked.
     #[inline(always)]
     fn occluded_lanes(&self, shadow: &Packet, distance: F4, ctx: &mut Ctx) -> M4 {
         let (p, l, from, lit) = (shadow.origin, shadow.dir, shadow.from, shadow.active);
-        let mut blocked = M4::NONE;
-        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
-            // Lane by lane the tests before the hierarchy in `Tracer::occluded`, then
-            // the hierarchy for the lanes still open, all four rays together, and the
-            // brute-force loop for any lane it cannot answer.
+        if self.bvh.is_some() {
             let rays: [Ray; LANES] = std::array::from_fn(|k| shadow.lane(k));
-            let limit: [f64; LANES] = std::array::from_fn(|k| distance.0[k] * SHADOW_REACH);
-            let mut open = 0u32;
-            for k in 0..LANES {
-                if lit.get(k) {
-                    if self.occluded_before_bvh(&rays[k], limit[k]) {
-                        blocked.0[k] = u64::MAX;
-                    } else {
-                        open |= 1 << k;
-                    }
-                }
-            }
-            if open != 0 {
-                let origins = rays.map(|r| r.origin);
-                let dirs = rays.map(|r| r.dir);
-                let (hit, rest) = bvh.occluders(&origins, &dirs, from, &limit, open, stack);
-                for k in 0..LANES {
-                    if hit & (1 << k) != 0
-                        || (rest & (1 << k) != 0 && self.occluded_brute(&rays[k], limit[k]))
-                    {
-                        blocked.0[k] = u64::MAX;
-                    }
-                }
-            }
-            return blocked;
+            return self.occluded_rays(&rays, &distance.0, lit, ctx);
         }
+        let mut blocked = M4::NONE;
         let zero = F4::splat(0.0);
         let limit = distance * SHADOW_REACH;
         for &(index, ref plane) in &self.planes {
@@ -259,6 +295,58 @@ impl Tracer {
             }
             let t = sphere_lane_hits(s, p, l, index == from);
             blocked = blocked.or(t.lt(limit));
+        }
+        blocked
+    }
+}
+
+impl Tracer {
+    /// [`Tracer::occluded`] for the shadow rays `rays` of the lanes `lit`, each
+    /// leaving its own object, towards lights at `distance`: the lanes that are
+    /// blocked. With a hierarchy: lane by lane the tests before the hierarchy in
+    /// [`Tracer::occluded`], then the hierarchy for the lanes still open, all four rays
+    /// together, and the brute-force loop for any lane it cannot answer; without one,
+    /// lane by lane [`Tracer::occluded`].
+    #[inline(always)]
+    fn occluded_rays(
+        &self,
+        rays: &[Ray; LANES],
+        distance: &[f64; LANES],
+        lit: M4,
+        ctx: &mut Ctx,
+    ) -> M4 {
+        let mut blocked = M4::NONE;
+        if let (Some(bvh), Some(stack)) = (&self.bvh, ctx.stack.as_deref_mut()) {
+            let limit = distance.map(|d| d * SHADOW_REACH);
+            let mut open = 0u32;
+            for k in 0..LANES {
+                if lit.get(k) {
+                    if self.occluded_before_bvh(&rays[k], limit[k]) {
+                        blocked.0[k] = u64::MAX;
+                    } else {
+                        open |= 1 << k;
+                    }
+                }
+            }
+            if open != 0 {
+                let origins = rays.map(|r| r.origin);
+                let dirs = rays.map(|r| r.dir);
+                let from = rays.map(|r| r.from);
+                let (hit, rest) = bvh.occluders(&origins, &dirs, &from, &limit, open, stack);
+                for k in 0..LANES {
+                    if hit & (1 << k) != 0
+                        || (rest & (1 << k) != 0 && self.occluded_brute(&rays[k], limit[k]))
+                    {
+                        blocked.0[k] = u64::MAX;
+                    }
+                }
+            }
+            return blocked;
+        }
+        for k in 0..LANES {
+            if lit.get(k) && self.occluded(&rays[k], distance[k], ctx) {
+                blocked.0[k] = u64::MAX;
+            }
         }
         blocked
     }

@@ -2,7 +2,7 @@
 //! reproduces. Nearest hits and shadow tests go through the hierarchy when the scene
 //! has one, else over every object.
 
-use super::prepare::Geometry;
+use super::prepare::{Geometry, LightSource};
 use super::ray::{Path, Ray, FROM_CAMERA};
 use super::shading::{checker, clip, pow10};
 use super::{Ctx, Tracer, SHADOW_REACH};
@@ -187,6 +187,38 @@ impl Tracer {
     /// Section 5, steps 1 to 6, where `ray` meets object `index` at distance `t`.
     #[inline(always)]
     pub(super) fn shade(&self, ray: &Ray, t: f64, index: u32, path: Path, ctx: &mut Ctx) -> Vec3 {
+        let mut shading = self.shading(ray, t, index, path, ctx);
+        // 5. Direct light, diffuse and highlight, where the light is not shadowed.
+        for light in &self.lights {
+            let Some(towards) = shading.towards(light) else {
+                continue;
+            };
+            ctx.rays += 1;
+            let shadow = Ray {
+                origin: shading.p,
+                dir: towards.dir,
+                from: index,
+            };
+            if self.occluded(&shadow, towards.distance, ctx) {
+                continue;
+            }
+            shading.add(light, &towards);
+        }
+        // 6. Clip.
+        clip(shading.color)
+    }
+
+    /// Section 5, steps 1 to 4, where `ray` meets object `index` at distance `t`: the
+    /// hit's shading up to its direct light, which is added light by light.
+    #[inline(always)]
+    pub(super) fn shading(
+        &self,
+        ray: &Ray,
+        t: f64,
+        index: u32,
+        path: Path,
+        ctx: &mut Ctx,
+    ) -> Shading {
         let surface = &self.surfaces[index as usize];
         let dir = ray.dir;
         let p = ray.at(t);
@@ -224,33 +256,64 @@ impl Tracer {
             };
             color += self.radiance(&bounce, mirror, ctx) * special;
         }
-        // 5. Direct light, diffuse and highlight, where the light is not shadowed.
-        for light in &self.lights {
-            let to_light = light.position - p;
-            let distance = to_light.length();
-            let l = to_light / distance;
-            let cos = normal.dot(l);
-            if cos <= 0.0 {
-                continue;
-            }
-            ctx.rays += 1;
-            let shadow = Ray {
-                origin: p,
-                dir: l,
-                from: index,
-            };
-            if self.occluded(&shadow, distance, ctx) {
-                continue;
-            }
-            color += base.hadamard(light.color) * cos;
-            if special > 0.0 {
-                let r_dot_l = reflected.dot(l);
-                if r_dot_l > 0.0 {
-                    color += light.color * (special * pow10(r_dot_l));
-                }
+        Shading {
+            p,
+            base,
+            normal,
+            special,
+            reflected,
+            color,
+        }
+    }
+}
+
+/// A hit being shaded (section 5): steps 1 to 4 done, the colour so far, and what
+/// step 5 needs to add each light. Split from the shadow tests so that the packet
+/// integrator can test the shadow rays of hits on different objects together.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Shading {
+    /// The hit point, where shadow rays start.
+    pub p: Vec3,
+    base: Vec3,
+    normal: Vec3,
+    special: f64,
+    reflected: Vec3,
+    pub color: Vec3,
+}
+
+/// The way from a hit point to a light that faces it: the unit direction, the distance
+/// and the cosine with the normal.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Towards {
+    pub dir: Vec3,
+    pub distance: f64,
+    cos: f64,
+}
+
+impl Shading {
+    /// The way to `light`, unless the surface faces away from it (a NaN cosine is
+    /// traced on).
+    #[inline(always)]
+    pub fn towards(&self, light: &LightSource) -> Option<Towards> {
+        let to_light = light.position - self.p;
+        let distance = to_light.length();
+        let dir = to_light / distance;
+        let cos = self.normal.dot(dir);
+        if cos <= 0.0 {
+            return None;
+        }
+        Some(Towards { dir, distance, cos })
+    }
+
+    /// Adds the diffuse light and the highlight of `light`, which is not shadowed.
+    #[inline(always)]
+    pub fn add(&mut self, light: &LightSource, towards: &Towards) {
+        self.color += self.base.hadamard(light.color) * towards.cos;
+        if self.special > 0.0 {
+            let r_dot_l = self.reflected.dot(towards.dir);
+            if r_dot_l > 0.0 {
+                self.color += light.color * (self.special * pow10(r_dot_l));
             }
         }
-        // 6. Clip.
-        clip(color)
     }
 }
