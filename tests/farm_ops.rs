@@ -1173,3 +1173,73 @@ fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
         )
     );
 }
+
+#[test]
+fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let seed = scene_path("seed.json");
+    let settings = ["--width", "1600", "--height", "1200", "--aa", "2"];
+    let mut args = vec![seed.as_str(), "--tile", "64"];
+    args.extend(settings);
+    let job = submit(dir.path(), &addr, &args);
+    // A fast worker first: its tiles set the job's lease to about a second...
+    let _fast = common::start_worker_with(dir.path(), &addr, "fast", &["--threads", "1"]);
+    poll("the first tiles", Duration::from_secs(30), || {
+        let status = common::try_status(dir.path(), &addr, job)?;
+        (status["tiles_done"].as_u64()? >= 20).then_some(())
+    });
+    // ...which a worker taking 3000 times as long (seconds a tile) runs past.
+    let _slow = common::start_worker_with(
+        dir.path(),
+        &addr,
+        "slow",
+        &["--threads", "1", "--throttle", "3000"],
+    );
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let log = events(dir.path(), &addr, job);
+    let expired: Vec<&String> = log
+        .iter()
+        .filter(|(kind, _)| kind == "tile_lease_expired")
+        .map(|(_, detail)| detail)
+        .collect();
+    let kinds: std::collections::BTreeSet<&str> = log.iter().map(|(k, _)| k.as_str()).collect();
+    assert!(
+        !expired.is_empty() && expired.iter().all(|d| d.contains(" on slow for ")),
+        "expiries {expired:?} among {} events of kinds {kinds:?}",
+        log.len()
+    );
+    // Each expiry once, though the lease stays expired over many timeouts.
+    let mut tiles: Vec<u32> = tiles_of(&log, "tile_lease_expired");
+    let count = tiles.len();
+    tiles.sort_unstable();
+    tiles.dedup();
+    assert_eq!(tiles.len(), count, "{expired:?}");
+
+    let out = dir.path().join("farm.png");
+    ok(
+        client(
+            dir.path(),
+            &addr,
+            &["fetch", &job.to_string(), "-o", out.to_str().unwrap()],
+        ),
+        "fetch",
+    );
+    let mut render = vec!["render", seed.as_str(), "-o", "reference.png"];
+    render.extend(settings);
+    ok(
+        tessera(dir.path(), &render, Duration::from_secs(120)),
+        "render",
+    );
+    assert!(
+        std::fs::read(&out).unwrap() == std::fs::read(dir.path().join("reference.png")).unwrap(),
+        "the farm's image differs from tessera render's"
+    );
+}

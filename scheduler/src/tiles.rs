@@ -1106,6 +1106,26 @@ impl Scheduler {
         self.paused.contains(&job)
     }
 
+    /// The leases that ran out while their workers still hold the tile, as (job, tile,
+    /// worker, milliseconds since the tile went out), in job and tile order: what a job's
+    /// event log reports as a tile put back for another worker to take.
+    pub fn expired_leases(&self) -> Vec<(JobId, u32, WorkerId, Millis)> {
+        let mut out = Vec::new();
+        for (&id, job) in &self.jobs {
+            for (&tile, leases) in &job.in_flight {
+                for lease in leases.iter().filter(|l| l.expired) {
+                    out.push((
+                        id,
+                        tile,
+                        lease.worker,
+                        self.now.saturating_sub(lease.started),
+                    ));
+                }
+            }
+        }
+        out
+    }
+
     /// What the scheduler has done so far.
     pub fn counters(&self) -> Counters {
         self.counters
@@ -2741,6 +2761,12 @@ mod tests {
             workers_dropped: 0,
         };
         assert_eq!(s.counters(), counted);
+        // The expired lease is listed (worker 1 may still deliver), the fresh one not.
+        let listed = s.expired_leases();
+        assert_eq!(listed.len(), 1, "{listed:?}");
+        let (job, tile, worker, out_for) = listed[0];
+        assert_eq!((job, tile, worker), (1, 0, 1));
+        assert!(out_for >= policy.initial_lease, "{out_for}");
         // Worker 1 falls silent and is dropped at the first timeout past the limit;
         // worker 2 keeps the tile.
         let mut now = policy.initial_lease;
@@ -2753,6 +2779,10 @@ mod tests {
             }
         };
         assert_eq!(dropped, vec![Action::DropWorker { worker: 1 }]);
+        assert!(
+            s.expired_leases().is_empty(),
+            "a dropped worker's lease is gone"
+        );
         // Its lease had run out already: dropping it requeues nothing more.
         assert_eq!(
             s.counters(),

@@ -6,7 +6,7 @@
 //! per-worker channels, writes to the persistence queue, and encoding an image to the
 //! blocking pool.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -41,6 +41,10 @@ pub struct Core {
     held: HashMap<(JobId, u32), Held>,
     /// Machines caught returning wrong pixels, with why: they get no tile again.
     pub quarantined: BTreeMap<String, String>,
+    /// The scheduler's count of expired leases when last looked at, and the expired
+    /// leases already in the jobs' event logs.
+    leases_expired_seen: u64,
+    expiries_logged: HashSet<(JobId, u32, WorkerId)>,
 }
 
 /// A result waiting for another machine's identical one.
@@ -408,6 +412,8 @@ impl Core {
             submits: HashMap::new(),
             held: HashMap::new(),
             quarantined: BTreeMap::new(),
+            leases_expired_seen: 0,
+            expiries_logged: HashSet::new(),
         }
     }
 
@@ -422,7 +428,44 @@ impl Core {
     /// The time has come: both state machines look at their deadlines.
     pub fn timeout(&mut self, sh: &Arc<Shared>) {
         self.tiles_event(sh, Event::Timeout);
+        self.log_expired_leases(sh);
         self.life_event(sh, lifecycle::Event::Timeout);
+    }
+
+    /// Logs, once each, the tiles whose worker ran past its lease: the scheduler has put
+    /// them back for another worker (what the first one returns may still count). Looked
+    /// for only when the scheduler's count of expired leases moved.
+    fn log_expired_leases(&mut self, sh: &Shared) {
+        let count = self.tiles.counters().leases_expired;
+        if count == self.leases_expired_seen && self.expiries_logged.is_empty() {
+            return;
+        }
+        self.leases_expired_seen = count;
+        let now: HashSet<(JobId, u32, WorkerId)> = self
+            .tiles
+            .expired_leases()
+            .into_iter()
+            .map(|(job, tile, worker, out_for)| {
+                if !self.expiries_logged.contains(&(job, tile, worker)) {
+                    let name = self
+                        .workers
+                        .get(&worker)
+                        .map_or_else(|| format!("worker {worker}"), |w| w.name.clone());
+                    self.log(
+                        sh,
+                        job,
+                        "tile_lease_expired",
+                        format!(
+                            "tile {tile} on {name} for {:.1} s, past its lease: put back for \
+                             another worker (a late result still counts)",
+                            out_for as f64 / 1000.0
+                        ),
+                    );
+                }
+                (job, tile, worker)
+            })
+            .collect();
+        self.expiries_logged = now;
     }
 
     /// Whether tiles are out or images are being stored (a shutdown waits for them).
