@@ -982,6 +982,22 @@ fn a_jobs_events_tell_what_happened_and_survive_a_restart() {
     assert_eq!(left, 0);
 }
 
+/// The settings of the seed job the retry and requeue tests stop half way: 24 tiles.
+const SMALL_JOB: [&str; 8] = [
+    "--width", "96", "--height", "64", "--aa", "3", "--tile", "16",
+];
+
+/// A worker slow enough (400 times) that a job of [`SMALL_JOB`] is stopped half way:
+/// returned once two of its tiles are in.
+fn slow_worker_past_two_tiles(dir: &std::path::Path, addr: &str, job: u64) -> Daemon {
+    let worker = common::start_worker_with(dir, addr, "slow", &["--throttle", "400"]);
+    poll("tiles of the job", Duration::from_secs(60), || {
+        let status = common::try_status(dir, addr, job)?;
+        (common::tiles_done(&status) >= 2).then_some(())
+    });
+    worker
+}
+
 #[test]
 fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
     let _serial = serial();
@@ -990,17 +1006,8 @@ fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
     let (_coordinator, addr) =
         start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
     let seed = scene_path("seed.json");
-    let args = [
-        seed.as_str(),
-        "--width",
-        "96",
-        "--height",
-        "64",
-        "--aa",
-        "3",
-        "--tile",
-        "16",
-    ];
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
     let job = submit(dir.path(), &addr, &args);
     let id = job.to_string();
     let refused = client(dir.path(), &addr, &["retry", &id]);
@@ -1013,11 +1020,7 @@ fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
         )
     );
     // A slow worker: some tiles are in when the job is cancelled, not all.
-    let mut worker = common::start_worker_with(dir.path(), &addr, "slow", &["--throttle", "400"]);
-    poll("a tile of the job", Duration::from_secs(60), || {
-        let status = common::try_status(dir.path(), &addr, job)?;
-        (common::tiles_done(&status) >= 2).then_some(())
-    });
+    let mut worker = slow_worker_past_two_tiles(dir.path(), &addr, job);
     ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
     worker.kill9();
     let cancelled = common::try_status(dir.path(), &addr, job).unwrap();
@@ -1050,7 +1053,7 @@ fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
     assert!(before.iter().all(|t| !after.contains(t)), "{seen:?}");
     assert_eq!(before.len() + after.len(), 24, "{seen:?}");
     let image = common::fetch(dir.path(), &addr, job, "retried.png");
-    let reference = common::render_reference(dir.path(), &seed, "reference.png", &args[1..7]);
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &SMALL_JOB[..6]);
     common::assert_same_png(&image, &reference, "the cancelled and retried job");
 
     let again = client(dir.path(), &addr, &["retry", &id]);
@@ -1077,24 +1080,11 @@ fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
     let (_coordinator, addr) =
         start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
     let seed = scene_path("seed.json");
-    let args = [
-        seed.as_str(),
-        "--width",
-        "96",
-        "--height",
-        "64",
-        "--aa",
-        "3",
-        "--tile",
-        "16",
-    ];
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
     let job = submit(dir.path(), &addr, &args);
     let id = job.to_string();
-    let mut worker = common::start_worker_with(dir.path(), &addr, "slow", &["--throttle", "400"]);
-    poll("tiles of the job", Duration::from_secs(60), || {
-        let status = common::try_status(dir.path(), &addr, job)?;
-        (common::tiles_done(&status) >= 2).then_some(())
-    });
+    let mut worker = slow_worker_past_two_tiles(dir.path(), &addr, job);
     ok(client(dir.path(), &addr, &["pause", &id]), "pause");
     // What was out when it was paused comes in; then nothing moves.
     worker.kill9();
@@ -1160,7 +1150,7 @@ fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
         "tile {again} rendered again: {seen:?}"
     );
     let image = common::fetch(dir.path(), &addr, job, "requeued.png");
-    let reference = common::render_reference(dir.path(), &seed, "reference.png", &args[1..7]);
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &SMALL_JOB[..6]);
     common::assert_same_png(&image, &reference, "the requeued job");
 
     let refused = client(dir.path(), &addr, &["requeue", &id, "0"]);
@@ -1223,23 +1213,7 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     tiles.dedup();
     assert_eq!(tiles.len(), count, "{expired:?}");
 
-    let out = dir.path().join("farm.png");
-    ok(
-        client(
-            dir.path(),
-            &addr,
-            &["fetch", &job.to_string(), "-o", out.to_str().unwrap()],
-        ),
-        "fetch",
-    );
-    let mut render = vec!["render", seed.as_str(), "-o", "reference.png"];
-    render.extend(settings);
-    ok(
-        tessera(dir.path(), &render, Duration::from_secs(120)),
-        "render",
-    );
-    assert!(
-        std::fs::read(&out).unwrap() == std::fs::read(dir.path().join("reference.png")).unwrap(),
-        "the farm's image differs from tessera render's"
-    );
+    let image = common::fetch(dir.path(), &addr, job, "farm.png");
+    let reference = common::render_reference(dir.path(), &seed, "reference.png", &settings);
+    common::assert_same_png(&image, &reference, "the job with an expired lease");
 }
