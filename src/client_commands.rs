@@ -683,12 +683,7 @@ pub async fn run_events(coordinator: &Endpoint, job: JobId, json_out: bool) -> R
         }
     }
     if json_out {
-        let events: Vec<Value> = all
-            .iter()
-            .map(|e| {
-                json!({ "seq": e.seq, "unix_ms": e.unix_ms, "event": e.kind, "detail": e.detail })
-            })
-            .collect();
+        let events: Vec<Value> = all.iter().map(coordinator::client::event_json).collect();
         println!("{}", Value::Array(events));
     } else if all.is_empty() {
         println!("no events recorded for job {job}");

@@ -36,22 +36,24 @@ fn chromium() -> Option<PathBuf> {
 }
 
 /// The page at `url` after its scripts have run for a moment, as HTML.
+/// How every test here runs the browser: headless, quiet, nothing fetched from outside.
+const BROWSER_FLAGS: [&str; 8] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+];
+
 fn dump_dom(browser: &Path, profile: &Path, url: &str) -> String {
     let out = Command::new("timeout")
         .arg("60")
         .arg(browser)
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--virtual-time-budget=2000",
-            "--dump-dom",
-        ])
+        .args(BROWSER_FLAGS)
+        .args(["--virtual-time-budget=2000", "--dump-dom"])
         .arg(format!("--user-data-dir={}", profile.display()))
         .arg(url)
         .output()
@@ -218,15 +220,8 @@ impl DevTools {
     fn open(browser: &Path, profile: &Path, url: &str, log: &Path) -> DevTools {
         let port = free_port();
         let child = Command::new(browser)
+            .args(BROWSER_FLAGS)
             .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
                 "--remote-debugging-address=127.0.0.1",
                 "--window-size=1400,1000",
             ])

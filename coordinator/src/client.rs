@@ -263,3 +263,9 @@ impl Client {
 fn unexpected(response: &ClientResponse) -> anyhow::Error {
     anyhow!("unexpected answer from the coordinator: {response:?}")
 }
+
+/// A job's event as JSON, one shape wherever it is shown (`tessera events --json` and
+/// the status page's `/api/jobs/ID/events`).
+pub fn event_json(e: &protocol::JobEvent) -> serde_json::Value {
+    serde_json::json!({ "seq": e.seq, "unix_ms": e.unix_ms, "event": e.kind, "detail": e.detail })
+}

@@ -358,14 +358,7 @@ async fn job_events(
         ClientResponse::Events { events, .. } => Json(
             events
                 .iter()
-                .map(|e| {
-                    serde_json::json!({
-                        "seq": e.seq,
-                        "unix_ms": e.unix_ms,
-                        "event": e.kind,
-                        "detail": e.detail,
-                    })
-                })
+                .map(crate::client::event_json)
                 .collect::<Vec<_>>(),
         )
         .into_response(),
