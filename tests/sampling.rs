@@ -223,6 +223,20 @@ fn up_with_adaptive_sampling_equals_the_local_render() {
     );
     assert_eq!(summary_samples(&line), summary_samples(&local), "{line}");
     assert!((summary_error(&line) - summary_error(&local)).abs() < 0.0015);
+
+    // At aa 1 every block has one level: its state is exactly as large as the bound
+    // the coordinator checks it against.
+    let flags = args(&[
+        SIZE,
+        &["--aa", "1", "--sampler", "adaptive", "--target-error", "1"],
+    ]);
+    let (reference, _) = render(dir, &scene, "ref1.png", &flags);
+    let out = dir.join("up1.png");
+    let mut up_args = vec!["up", scene.as_str(), "--workers", "2", "-o"];
+    up_args.push(out.to_str().unwrap());
+    up_args.extend(&flags);
+    ok(tessera(dir, &up_args, RUN_TIMEOUT), "tessera up --aa 1");
+    assert_same_png(&out, &reference, "up --sampler adaptive --aa 1");
 }
 
 #[test]

@@ -53,10 +53,11 @@ pub fn state_bound(rect: TileRect, aa: u32) -> usize {
     let pixels = u64::from(rect.width) * u64::from(rect.height);
     let blocks = blocks_in(rect);
     let levels = max_levels(aa);
-    // Vec length; per block its rectangle, the lengths of its levels and sums; per
-    // level its count, spread, contrast, rays and pixels' length and bytes; per pixel
-    // its two sums of three f64.
-    let bytes = 8 + blocks * (16 + 8 + 8) + levels * (blocks * 36 + pixels * 3) + pixels * 48;
+    // In the wire's fixed-width integers: the Vec's length; per block its rectangle
+    // (four u32) and the lengths of its levels and sums; per level its count (u32),
+    // spread, contrast and rounding (f64), rays (u64), its pixels' length and bytes;
+    // per pixel its two sums of three f64.
+    let bytes = 8 + blocks * (16 + 8 + 8) + levels * (blocks * 44 + pixels * 3) + pixels * 48;
     usize::try_from(bytes).unwrap_or(usize::MAX)
 }
 
@@ -375,6 +376,32 @@ mod tests {
         assert!(check_block(&t, &fp, Some(&back), &lie, 150, 2).is_err());
         let (a, b) = arbitrate(&t, &fp, Some(&back), &second.blocks, &lie, 150);
         assert_eq!((a, b.map(|w| (w.x, w.y))), (None, Some((32, 24))));
+    }
+
+    #[test]
+    fn a_finished_state_fits_its_bound_exactly_at_one_level() {
+        // aa 1: one level per block, the bound is the size itself; above, every block
+        // at its cap still fits.
+        for aa in [1, 2, 3, 4] {
+            let t = tracer(aa);
+            let fp = footprints(&t);
+            let done = advance(
+                &t,
+                Arc::clone(&fp),
+                TILE,
+                None,
+                render::progressive::LAST_RUNG,
+            )
+            .unwrap();
+            let raw = protocol::wire::encode(&done.blocks);
+            let bound = state_bound(TILE, aa);
+            assert!(raw.len() <= bound, "aa {aa}: {} > {bound}", raw.len());
+            if aa == 1 {
+                assert_eq!(raw.len(), bound);
+            }
+            let packed = encode_state(&done.blocks);
+            assert_eq!(decompress_state(&packed, TILE, aa).unwrap(), raw);
+        }
     }
 
     #[test]
