@@ -11,6 +11,7 @@ pub mod http;
 mod metrics;
 pub mod server;
 mod store;
+pub mod studio;
 mod tiling;
 
 pub use crate::server::{serve, Config, VerifyConfig};

@@ -1,0 +1,8 @@
+//! The studio: a page that edits a scene and moves its camera while the farm renders
+//! each change progressively (docs/studio.md).
+//!
+//! [`plan`] says which passes a view renders; [`views`] decides, as a pure state
+//! machine, which interactive jobs are still wanted.
+
+pub mod plan;
+pub mod views;
