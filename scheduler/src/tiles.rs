@@ -256,6 +256,14 @@ pub enum Event {
     PauseJob {
         job: JobId,
     },
+    /// The job renders for an interactive view (docs/studio.md): its tiles go ahead of
+    /// every batch job's, whatever their priorities, but while batch tiles wait at
+    /// least one tile in every [`INTERACTIVE_RUN`] + 1 handed out is a batch tile, so
+    /// that batch jobs are slowed, never starved. Holds for the job's life (a daemon
+    /// that renders a job in several runs marks each run).
+    Interactive {
+        job: JobId,
+    },
     /// The paused job's tiles are handed out again.
     ResumeJob {
         job: JobId,
@@ -386,8 +394,13 @@ fn straggler_key(leases: &[Lease]) -> Option<Millis> {
 /// oldest (ids grow with submission order).
 type JobRank = (Reverse<i32>, usize, JobId);
 
+/// At most this many tiles in a row go to interactive jobs while batch tiles wait.
+pub const INTERACTIVE_RUN: u32 = 4;
+
 struct Job {
     priority: i32,
+    /// Renders for an interactive view ([`Event::Interactive`]).
+    interactive: bool,
     scene: SceneHash,
     /// The tiles waiting, in the order they are handed out. Accepting a tile that is
     /// still queued (its lease ran out, then its holder delivered) leaves its entry
@@ -433,6 +446,7 @@ impl Job {
     fn new(priority: i32, scene: SceneHash, tiles: u32) -> Job {
         Job {
             priority,
+            interactive: false,
             scene,
             waiting: (0..tiles).collect(),
             queued: tiles,
@@ -808,6 +822,8 @@ pub struct Scheduler {
     /// the job, so that a pause holds from before the job is submitted and across
     /// the passes of an adaptive job (each a [`Scheduler::resume_job`]).
     paused: BTreeSet<JobId>,
+    /// Tiles handed out in a row to interactive jobs (see [`Event::Interactive`]).
+    interactive_run: u32,
     /// Machines caught returning wrong pixels: they get no tile again.
     quarantined: BTreeSet<Machine>,
     /// Machines an operator disabled: they get no new tile until enabled.
@@ -1011,6 +1027,12 @@ impl Scheduler {
             }
             Event::ResumeJob { job } => {
                 self.paused.remove(&job);
+                self.fill_all(&mut actions);
+            }
+            Event::Interactive { job } => {
+                if let Some(j) = self.jobs.get_mut(&job) {
+                    j.interactive = true;
+                }
                 self.fill_all(&mut actions);
             }
             Event::SetPriority { job, priority } => {
@@ -1823,13 +1845,25 @@ impl Scheduler {
     /// a straggler to duplicate.
     fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
         let machine = &self.workers.get(&worker)?.machine;
-        for &(_, _, id) in &self.order {
-            let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
-            if self.paused.contains(&id) || job.blocked.contains(machine) {
-                continue;
-            }
-            if let Some(tile) = job.take_waiting_for(worker, machine) {
-                return Some((id, tile));
+        // Interactive jobs first; after a run of them, batch jobs first for one tile.
+        let first_interactive = self.interactive_run < INTERACTIVE_RUN;
+        for first in [true, false] {
+            for &(_, _, id) in &self.order {
+                let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
+                if first && job.interactive != first_interactive {
+                    continue;
+                }
+                if self.paused.contains(&id) || job.blocked.contains(machine) {
+                    continue;
+                }
+                if let Some(tile) = job.take_waiting_for(worker, machine) {
+                    self.interactive_run = if job.interactive {
+                        self.interactive_run.saturating_add(1)
+                    } else {
+                        0
+                    };
+                    return Some((id, tile));
+                }
             }
         }
         if !self.policy.speculate {
@@ -2384,6 +2418,44 @@ mod tests {
             speculate: false,
             ..Policy::default()
         })
+    }
+
+    #[test]
+    fn interactive_jobs_go_first_but_batch_jobs_get_one_tile_in_five() {
+        let mut s = without_speculation();
+        // A batch job of the highest priority, and an interactive one of the lowest.
+        submit(&mut s, 1, i32::MAX, SCENE_A, 20);
+        submit(&mut s, 2, i32::MIN, SCENE_B, 20);
+        s.handle(0, Event::Interactive { job: 2 });
+        s.handle(0, Event::Interactive { job: 99 }); // not active: nothing to mark
+                                                     // The tiles in the order they are handed out, each result freeing a slot.
+        let mut out: std::collections::VecDeque<_> = assigns(&join(&mut s, 1, 1)).into();
+        let mut order: Vec<JobId> = out.iter().map(|a| a.1).collect();
+        while let Some((worker, job, tile)) = out.pop_front() {
+            let next = assigns(&s.handle(0, Event::TileDone { worker, job, tile }));
+            order.extend(next.iter().map(|a| a.1));
+            out.extend(next);
+        }
+        assert_eq!(order.len(), 40, "{order:?}");
+        let run = INTERACTIVE_RUN as usize;
+        // The worker's credit is filled first, then every slot: count from the first
+        // batch tile on, runs of `run` interactive tiles between single batch tiles.
+        let first_batch = order.iter().position(|&j| j == 1).unwrap();
+        assert!(order[..first_batch].iter().all(|&j| j == 2), "{order:?}");
+        for window in order[first_batch..]
+            .chunks(run + 1)
+            .filter(|w| w.len() == run + 1)
+        {
+            if !window.contains(&2) {
+                break; // the interactive job is done
+            }
+            assert_eq!(
+                window.iter().filter(|&&j| j == 1).count(),
+                1,
+                "one batch tile in every {}: {order:?}",
+                run + 1
+            );
+        }
     }
 
     #[test]

@@ -977,7 +977,8 @@ impl Farm {
             | Event::SetPriority { .. }
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
-            | Event::RequeueTiles { .. } => {
+            | Event::RequeueTiles { .. }
+            | Event::Interactive { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout => {
@@ -3371,7 +3372,8 @@ fn reference_event(event: &Event) -> reference::Event {
         | Event::SetPriority { .. }
         | Event::DisableMachine { .. }
         | Event::EnableMachine { .. }
-        | Event::RequeueTiles { .. } => {
+        | Event::RequeueTiles { .. }
+        | Event::Interactive { .. } => {
             unreachable!("no operator control is generated here: the unit tests cover them")
         }
         Event::Timeout => R::Timeout,
@@ -3472,7 +3474,8 @@ impl Twin {
             | Event::SetPriority { .. }
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
-            | Event::RequeueTiles { .. } => {
+            | Event::RequeueTiles { .. }
+            | Event::Interactive { .. } => {
                 unreachable!("no operator control is generated here: the unit tests cover them")
             }
             Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}

@@ -737,7 +737,7 @@ struct SimJob {
 // ---------------------------------------------------------------------------------------
 // The scheduler, metered.
 
-const EVENT_KINDS: [&str; 20] = [
+const EVENT_KINDS: [&str; 21] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -758,6 +758,7 @@ const EVENT_KINDS: [&str; 20] = [
     "DisableMachine",
     "EnableMachine",
     "RequeueTiles",
+    "Interactive",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -782,6 +783,7 @@ fn kind_of(event: &Event) -> usize {
         Event::DisableMachine { .. } => 17,
         Event::EnableMachine { .. } => 18,
         Event::RequeueTiles { .. } => 19,
+        Event::Interactive { .. } => 20,
     }
 }
 
