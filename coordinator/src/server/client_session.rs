@@ -230,7 +230,7 @@ async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     let id = stored.id;
     let shared = Arc::clone(sh);
     let label = stored.label.clone();
-    sh.persistence.write(Write::InsertJob {
+    let write = Write::InsertJob {
         job: Box::new(stored),
         then: Box::new(move |result| {
             let event = match result {
@@ -250,7 +250,9 @@ async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
             };
             shared.lock().life_event(&shared, event);
         }),
-    });
+    };
+    // A studio view's pass is not stored: `store` discards the write.
+    sh.lock().store(sh, id, write);
     answer.await.unwrap_or_else(|_| ClientResponse::Error {
         message: "the coordinator stopped before storing the job: submit again".into(),
     })
@@ -433,6 +435,7 @@ fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<
     limits.check(&request)?;
     let tiles = tiling::cut(&settings, tile_size);
     Ok(Prepared {
+        interactive: false,
         scene: spec.scene,
         hash,
         settings,

@@ -66,6 +66,9 @@ impl Held {
 
 /// What the daemon keeps of a job beside its lifecycle.
 pub struct JobRecord {
+    /// A pass of a studio view: nothing of it is stored or listed, its tiles go to
+    /// the view's page, and it is forgotten once it ends (docs/studio.md).
+    pub interactive: bool,
     /// The scene text, while the job is active (workers may still ask for it).
     pub scene: Option<Arc<str>>,
     pub hash: SceneHash,
@@ -386,6 +389,8 @@ impl Verdict {
 
 /// A job admitted by the lifecycle, to be stored.
 pub struct Prepared {
+    /// A pass of a studio view ([`JobRecord::interactive`]).
+    pub interactive: bool,
     pub scene: String,
     pub hash: SceneHash,
     pub settings: Settings,
@@ -485,12 +490,27 @@ impl Core {
         }
     }
 
+    /// Hands a write about `job` to the disk, or, for a job nothing is kept of (a
+    /// studio view's pass), discards it on the blocking pool, where its callback runs
+    /// as if it had been stored: never under the lock the caller holds.
+    pub fn store(&self, sh: &Shared, job: JobId, write: Write) {
+        if self.jobs.get(&job).is_some_and(|r| r.interactive) {
+            drop(sh.runtime.spawn_blocking(move || write.discard()));
+        } else {
+            sh.persistence.write(write);
+        }
+    }
+
     /// Adds an entry to the job's event log (queued for the disk, never waited for).
-    /// `kind` is one of the words docs/operations.md lists.
+    /// `kind` is one of the words docs/operations.md lists. A studio view's pass keeps
+    /// no log.
     pub fn log(&mut self, sh: &Shared, job: JobId, kind: &str, detail: String) {
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
+        if record.interactive {
+            return;
+        }
         let end = matches!(kind, "done" | "failed" | "cancelled");
         let unix_ms = unix_ms();
         let (seq, kind, detail) = match record.log.number(end) {
@@ -584,6 +604,7 @@ impl Core {
         self.jobs.insert(
             id,
             JobRecord {
+                interactive: prepared.interactive,
                 adaptive: is_adaptive(&prepared.settings).then(|| {
                     AdaptiveJob::new(
                         &prepared.settings,
@@ -701,6 +722,7 @@ impl Core {
         let adaptive = (!final_state && is_adaptive(&stored.settings))
             .then(|| AdaptiveJob::new(&stored.settings, tiles.len(), stored.time_limit_ms, None));
         let mut record = JobRecord {
+            interactive: false,
             adaptive,
             time_limit_ms: stored.time_limit_ms,
             stopped_on_time_limit: stored.stopped_on_time_limit,
@@ -1437,6 +1459,7 @@ impl Core {
             .tiles
             .resume_job(sh.now(), job, priority, hash, total, &done);
         self.apply_tiles(sh, actions);
+        self.mark_interactive(sh, job);
     }
 
     /// A machine of the quarantine built some of an adaptive job's tiles: they start
@@ -1710,16 +1733,20 @@ impl Core {
             record.remove_cost(&earlier, rect_pixels(rect));
         }
         *record.tiles_per_worker.entry(name.clone()).or_default() += 1;
-        sh.persistence.write(Write::Tile(crate::db::TileWrite {
+        self.store(
+            sh,
             job,
-            tile,
-            rgb,
-            rays: cost.rays,
-            worker: name,
-            samples: cost.samples,
-            error_sq_sum,
-            done_ms: unix_ms(),
-        }));
+            Write::Tile(crate::db::TileWrite {
+                job,
+                tile,
+                rgb,
+                rays: cost.rays,
+                worker: name,
+                samples: cost.samples,
+                error_sq_sum,
+                done_ms: unix_ms(),
+            }),
+        );
     }
 
     /// Carries out the tile scheduler's actions.
@@ -1834,11 +1861,15 @@ impl Core {
         if first {
             let at = record.running_since.unwrap_or_else(unix_ms);
             record.times.started = Some(at);
-            sh.persistence.write(Write::Started {
-                job,
-                at_unix_ms: at,
-            });
             let queued = at.saturating_sub(record.times.submitted.unwrap_or(at));
+            self.store(
+                sh,
+                job,
+                Write::Started {
+                    job,
+                    at_unix_ms: at,
+                },
+            );
             self.log(
                 sh,
                 job,
@@ -1891,17 +1922,21 @@ impl Core {
                 A::RecordEnd { job, state, error } => self.record_end(sh, job, state, error),
                 A::DeleteStored { job } => {
                     let shared = Arc::clone(sh);
-                    sh.persistence.write(Write::Delete {
+                    self.store(
+                        sh,
                         job,
-                        then: Box::new(move |_| {
-                            let mut core = shared.lock();
-                            core.jobs.remove(&job);
-                            core.life_event(&shared, lifecycle::Event::Deleted { job });
-                            drop(core);
-                            info!(job, "job deleted");
-                            shared.changed();
-                        }),
-                    });
+                        Write::Delete {
+                            job,
+                            then: Box::new(move |_| {
+                                let mut core = shared.lock();
+                                core.jobs.remove(&job);
+                                core.life_event(&shared, lifecycle::Event::Deleted { job });
+                                drop(core);
+                                info!(job, "job deleted");
+                                shared.changed();
+                            }),
+                        },
+                    );
                 }
                 A::Reply { result, .. } => replies.push(result),
             }
@@ -1943,6 +1978,15 @@ impl Core {
                 tiles,
             },
         );
+        self.mark_interactive(sh, job);
+    }
+
+    /// Tells the scheduler that a studio view's pass goes ahead of batch jobs; each run
+    /// of the job (an adaptive pass) is told again, as a pause is.
+    fn mark_interactive(&mut self, sh: &Arc<Shared>, job: JobId) {
+        if self.jobs.get(&job).is_some_and(|r| r.interactive) {
+            self.tiles_event(sh, Event::Interactive { job });
+        }
     }
 
     /// Every tile is in: encode and store the image on the blocking pool; the
@@ -1957,6 +2001,19 @@ impl Core {
         };
         let ended = unix_ms();
         record.times.ended = Some(ended);
+        if record.interactive {
+            // Its tiles went to the view's page as they came: nothing to encode or keep.
+            drop(image);
+            let shared = Arc::clone(sh);
+            drop(sh.runtime.spawn_blocking(move || {
+                let event = lifecycle::Event::ImageStored {
+                    job,
+                    result: Ok(()),
+                };
+                shared.lock().life_event(&shared, event);
+            }));
+            return;
+        }
         let meta = record.metadata(job, ended);
         let scene = record.scene.clone().unwrap_or_else(|| Arc::from(""));
         // An adaptive job keeps its tiles' final states beside its image: a refinement
@@ -2043,7 +2100,9 @@ impl Core {
             return;
         };
         let shared = Arc::clone(sh);
-        sh.persistence.write(Write::End {
+        // A studio view's pass is forgotten once it has ended: a long drag makes many.
+        let forget = record.interactive;
+        let write = Write::End {
             job,
             state,
             error,
@@ -2052,12 +2111,16 @@ impl Core {
             image_sha256: record.image_sha256,
             stopped_on_time_limit: record.stopped_on_time_limit,
             then: Box::new(move |_| {
-                shared
-                    .lock()
-                    .life_event(&shared, lifecycle::Event::EndRecorded { job });
+                let mut core = shared.lock();
+                core.life_event(&shared, lifecycle::Event::EndRecorded { job });
+                if forget {
+                    core.life_event(&shared, lifecycle::Event::Delete { job });
+                }
+                drop(core);
                 shared.changed();
             }),
-        });
+        };
+        self.store(sh, job, write);
     }
 
     /// An operator pauses (`true`) or resumes a job: its tiles stop going out at once
@@ -2210,9 +2273,11 @@ impl Core {
     }
 
     /// A client's view of a job.
+    /// None for an unknown job, and for a studio view's pass: clients and the status
+    /// page see only the jobs that are kept.
     pub fn status(&self, id: JobId) -> Option<JobStatus> {
         let job = self.lifecycle.job(id)?;
-        let record = self.jobs.get(&id)?;
+        let record = self.jobs.get(&id).filter(|r| !r.interactive)?;
         let mut status = record.status(id, job);
         if !status.state.is_final() {
             status.warning = self.no_worker_warning();

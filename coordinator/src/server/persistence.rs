@@ -121,6 +121,28 @@ pub enum Write {
     },
 }
 
+impl Write {
+    /// Carries out nothing of the write, for a job nothing is kept of (a pass of a
+    /// studio view, docs/studio.md): its callback, if it has one, is told it was
+    /// stored. Must not run with the coordinator's lock held (callbacks take it).
+    pub fn discard(self) {
+        match self {
+            Write::InsertJob { then, .. }
+            | Write::End { then, .. }
+            | Write::Delete { then, .. }
+            | Write::Controls { then, .. }
+            | Write::Disabled { then, .. } => then(Ok(())),
+            Write::Image { then, .. } => then(Ok([0; 32])),
+            Write::ReadEvents { then, .. } => then(Ok(Vec::new())),
+            Write::Reopen { then, .. } => then(Ok(None)),
+            Write::Tile(_)
+            | Write::Started { .. }
+            | Write::ForgetTiles { .. }
+            | Write::Event(_) => {}
+        }
+    }
+}
+
 /// The handle the daemon queues writes on.
 pub struct Persistence {
     queue: Mutex<Option<Sender<Write>>>,
