@@ -27,12 +27,16 @@ use crate::server::{Observer, Picture};
 
 /// The status page: one self-contained file, polling `/api/status`.
 const STATUS_PAGE: &str = include_str!("status.html");
+const STUDIO_PAGE: &str = include_str!("studio.html");
 
 /// The coordinator's endpoints.
 pub fn coordinator_routes(observer: Observer) -> Router {
     Router::new()
         .route("/", get(|| async { Html(STATUS_PAGE) }))
         .route("/api/status", get(status))
+        .route("/studio", get(|| async { Html(STUDIO_PAGE) }))
+        .route("/api/studio/view", post(studio_view))
+        .route("/api/studio/stream", get(studio_stream))
         .route("/api/jobs/{id}/{action}", post(job_control))
         .route("/api/jobs/{id}/events", get(job_events))
         .route("/api/workers/{worker}/{action}", post(worker_control))
@@ -370,6 +374,71 @@ async fn job_events(
 #[derive(serde::Deserialize)]
 struct EventsQuery {
     after: Option<u64>,
+}
+
+/// `POST /api/studio/view` with `{"session": VIEW, "scene": SCENE}`: an edit of a
+/// studio view, a control like the others ([`authorize`]). Answers `{"generation": N}`,
+/// or 422 with the loader's one-line error for a scene that is not valid.
+async fn studio_view(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    if let Some(refused) = check(&observer, peer, &headers) {
+        return refused;
+    }
+    #[derive(serde::Deserialize)]
+    struct Edit {
+        session: String,
+        scene: serde_json::Value,
+    }
+    let edit: Edit = match serde_json::from_slice(&body) {
+        Ok(edit) => edit,
+        Err(e) => {
+            return refusal(
+                StatusCode::BAD_REQUEST,
+                format!("a studio edit is {{\"session\": ID, \"scene\": SCENE}}: {e}"),
+            )
+        }
+    };
+    if edit.session.is_empty() || edit.session.len() > 64 {
+        return refusal(StatusCode::BAD_REQUEST, "session: 1 to 64 characters");
+    }
+    let scene = edit.scene.to_string();
+    match observer.studio_edit(edit.session, scene, peer.ip()).await {
+        Ok(generation) => Json(serde_json::json!({ "generation": generation })).into_response(),
+        Err(message) => refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    }
+}
+
+/// `GET /api/studio/stream?session=VIEW`: the view's tiles and passes as server-sent
+/// events (`tile`, `pass`), pushed as the coordinator accepts them.
+async fn studio_stream(
+    State(observer): State<Observer>,
+    Query(query): Query<StreamQuery>,
+) -> Response {
+    use axum::response::sse::{Event, KeepAlive, Sse};
+    let stream = match observer.studio_stream(query.session) {
+        Ok(stream) => stream,
+        Err(message) => return refusal(StatusCode::SERVICE_UNAVAILABLE, message),
+    };
+    let events = futures_util::stream::unfold(stream, |mut stream| async move {
+        let (name, data) = stream.next().await?;
+        Some((
+            Ok::<_, std::convert::Infallible>(Event::default().event(name).data(data)),
+            stream,
+        ))
+    });
+    Sse::new(events)
+        .keep_alive(KeepAlive::default())
+        .into_response()
+}
+
+/// The query of [`studio_stream`].
+#[derive(serde::Deserialize)]
+struct StreamQuery {
+    session: String,
 }
 
 /// `POST /api/workers/WORKER/drain|disable|enable`, WORKER an id or a name.

@@ -43,12 +43,13 @@ mod handshake;
 mod observer;
 mod persistence;
 mod startup;
+mod studio_session;
 mod verification;
 mod worker_session;
 
 pub use verification::VerifyConfig;
 
-pub use observer::{FarmView, JobView, Observer, Picture, WorkerView};
+pub use observer::{FarmView, JobView, Observer, Picture, StudioStream, WorkerView};
 
 use self::core::Core;
 use self::persistence::{Hooks, Persistence};
@@ -187,6 +188,8 @@ struct Shared {
     metrics: Metrics,
     /// The canary's reference render, and the spot checks.
     verifier: verification::Verifier,
+    /// The studio's views and their pages (docs/studio.md).
+    studio: studio_session::Studio,
     /// This coordinator's hold on its data directory, for as long as it lives.
     _data_lock: data_lock::DataLock,
 }
@@ -312,6 +315,7 @@ impl Server {
             rearm: tokio::sync::Notify::new(),
             metrics: Metrics::new(),
             verifier,
+            studio: studio_session::Studio::default(),
             _data_lock: data_lock,
         });
         {

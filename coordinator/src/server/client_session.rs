@@ -221,7 +221,7 @@ async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse
 }
 
 /// Has the lifecycle admit a prepared job, and answers once its row is written.
-async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
+pub(super) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     let (reply, answer) = tokio::sync::oneshot::channel();
     let stored = match sh.lock().admit(sh, prepared, reply) {
         Ok(stored) => stored,
@@ -379,7 +379,11 @@ async fn refine(
 
 /// Parses and checks a job: the settings it will render with, its tiles and what the
 /// lifecycle needs to admit it.
-fn prepare(spec: JobSpec, limits: &lifecycle::Limits, client: IpAddr) -> Result<Prepared, String> {
+pub(super) fn prepare(
+    spec: JobSpec,
+    limits: &lifecycle::Limits,
+    client: IpAddr,
+) -> Result<Prepared, String> {
     limits.check_scene_bytes(spec.scene.len())?;
     let scene = render::parse_scene(&spec.scene).map_err(|e| e.to_string())?;
     let o = spec.overrides;

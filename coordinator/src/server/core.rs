@@ -432,6 +432,9 @@ impl Core {
 
     /// The time has come: both state machines look at their deadlines.
     pub fn timeout(&mut self, sh: &Arc<Shared>) {
+        for job in sh.studio.tick(sh.now()) {
+            self.life_event(sh, lifecycle::Event::Cancel { job });
+        }
         self.tiles_event(sh, Event::Timeout);
         self.log_expired_leases(sh);
         self.life_event(sh, lifecycle::Event::Timeout);
@@ -1708,6 +1711,9 @@ impl Core {
             if let Some(image) = record.image.as_mut() {
                 image.put_rect(to_render_rect(rect), &rgb);
             }
+            if record.interactive {
+                sh.studio.tile(job, rect, &rgb);
+            }
             *record
                 .tiles_per_worker
                 .entry(machine.to_string())
@@ -1716,6 +1722,9 @@ impl Core {
         }
         if let Some(image) = record.image.as_mut() {
             image.put_rect(to_render_rect(rect), &rgb);
+        }
+        if record.interactive {
+            sh.studio.tile(job, rect, &rgb);
         }
         // An estimate that is not a sum of squares (a broken worker) counts as unknown.
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
@@ -2102,6 +2111,9 @@ impl Core {
         let shared = Arc::clone(sh);
         // A studio view's pass is forgotten once it has ended: a long drag makes many.
         let forget = record.interactive;
+        if forget {
+            sh.studio.ended(sh.now(), job, state == JobState::Done);
+        }
         let write = Write::End {
             job,
             state,

@@ -26,6 +26,29 @@ pub struct Observer {
     pub(super) shared: Arc<Shared>,
 }
 
+/// A studio page's stream: what its view's jobs push, until it is dropped.
+pub struct StudioStream {
+    rx: tokio::sync::mpsc::UnboundedReceiver<super::studio_session::Push>,
+    view: String,
+    shared: Arc<Shared>,
+}
+
+impl StudioStream {
+    /// The next push, as a server-sent event's name and JSON data; `None` once the
+    /// coordinator forgets the view.
+    pub async fn next(&mut self) -> Option<(&'static str, String)> {
+        let push = self.rx.recv().await?;
+        let data = serde_json::to_string(&push).expect("a push serializes");
+        Some((push.name(), data))
+    }
+}
+
+impl Drop for StudioStream {
+    fn drop(&mut self) {
+        self.shared.studio.disconnect(self.shared.now(), &self.view);
+    }
+}
+
 /// The farm as the status page shows it.
 #[derive(Serialize)]
 pub struct FarmView {
@@ -195,6 +218,32 @@ impl Observer {
         let preview = downscale(image, PREVIEW_SIDE);
         drop(core);
         Some(Picture::Preview(preview.to_png()))
+    }
+
+    /// A studio page's edit of its view: the new generation, or the loader's one-line
+    /// error (docs/studio.md).
+    pub async fn studio_edit(
+        &self,
+        view: String,
+        scene: String,
+        peer: std::net::IpAddr,
+    ) -> Result<u64, String> {
+        super::studio_session::edit(&self.shared, view, scene, peer).await
+    }
+
+    /// A studio page's stream of its view's tiles; [`StudioStream`]'s drop tells the
+    /// view the page went away.
+    pub fn studio_stream(&self, view: String) -> Result<StudioStream, String> {
+        let rx = self
+            .shared
+            .studio
+            .connect(self.shared.now(), &view)
+            .map_err(|e| e.to_string())?;
+        Ok(StudioStream {
+            rx,
+            view,
+            shared: Arc::clone(&self.shared),
+        })
     }
 
     /// Carries out an operator's request from the status page exactly as from a
