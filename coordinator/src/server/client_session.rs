@@ -440,6 +440,7 @@ pub(super) fn prepare(
     let tiles = tiling::cut(&settings, tile_size);
     Ok(Prepared {
         interactive: false,
+        owner: None,
         scene: spec.scene,
         hash,
         settings,

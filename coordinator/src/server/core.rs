@@ -69,6 +69,8 @@ pub struct JobRecord {
     /// A pass of a studio view: nothing of it is stored or listed, its tiles go to
     /// the view's page, and it is forgotten once it ends (docs/studio.md).
     pub interactive: bool,
+    /// The studio view and pass it renders for, known before any tile goes out.
+    pub owner: Option<crate::studio::views::Owner>,
     /// The scene text, while the job is active (workers may still ask for it).
     pub scene: Option<Arc<str>>,
     pub hash: SceneHash,
@@ -391,6 +393,8 @@ impl Verdict {
 pub struct Prepared {
     /// A pass of a studio view ([`JobRecord::interactive`]).
     pub interactive: bool,
+    /// The studio view and pass it renders for, known before any tile goes out.
+    pub owner: Option<crate::studio::views::Owner>,
     pub scene: String,
     pub hash: SceneHash,
     pub settings: Settings,
@@ -608,6 +612,7 @@ impl Core {
             id,
             JobRecord {
                 interactive: prepared.interactive,
+                owner: prepared.owner,
                 adaptive: is_adaptive(&prepared.settings).then(|| {
                     AdaptiveJob::new(
                         &prepared.settings,
@@ -726,6 +731,7 @@ impl Core {
             .then(|| AdaptiveJob::new(&stored.settings, tiles.len(), stored.time_limit_ms, None));
         let mut record = JobRecord {
             interactive: false,
+            owner: None,
             adaptive,
             time_limit_ms: stored.time_limit_ms,
             stopped_on_time_limit: stored.stopped_on_time_limit,
@@ -1711,8 +1717,8 @@ impl Core {
             if let Some(image) = record.image.as_mut() {
                 image.put_rect(to_render_rect(rect), &rgb);
             }
-            if record.interactive {
-                sh.studio.tile(job, rect, &rgb);
+            if let Some(owner) = &record.owner {
+                sh.studio.tile(owner, rect, &rgb);
             }
             *record
                 .tiles_per_worker
@@ -1723,8 +1729,8 @@ impl Core {
         if let Some(image) = record.image.as_mut() {
             image.put_rect(to_render_rect(rect), &rgb);
         }
-        if record.interactive {
-            sh.studio.tile(job, rect, &rgb);
+        if let Some(owner) = &record.owner {
+            sh.studio.tile(owner, rect, &rgb);
         }
         // An estimate that is not a sum of squares (a broken worker) counts as unknown.
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)

@@ -19,7 +19,7 @@ use tokio::sync::mpsc;
 use super::client_session::{admit, prepare};
 use super::Shared;
 use crate::studio::plan::{self, Pass};
-use crate::studio::views::{Action, Event, Refused, ViewId, Views};
+use crate::studio::views::{Action, Event, Owner, Refused, ViewId, Views};
 
 /// What a view's pages are sent, as server-sent events (`tile` and `pass`).
 #[derive(Clone, Debug, Serialize)]
@@ -104,12 +104,9 @@ impl Studio {
         }
     }
 
-    /// A tile of a job was accepted (called under the coordinator's lock): to the
-    /// pages of the view it renders for, if it is still wanted.
-    pub fn tile(&self, job: JobId, rect: TileRect, rgb: &[u8]) {
-        let Some(owner) = locked(&self.views).owner(job).cloned() else {
-            return;
-        };
+    /// A tile of a view's pass was accepted (called under the coordinator's lock): to
+    /// the view's pages, if its generation is still the view's.
+    pub fn tile(&self, owner: &Owner, rect: TileRect, rgb: &[u8]) {
         let plans = locked(&self.plans);
         let Some((generation, plan)) = plans.get(&owner.view) else {
             return;
@@ -274,6 +271,13 @@ async fn submit_passes(
             return;
         };
         prepared.interactive = true;
+        // Known to the job before its first tile goes out: its results may come back
+        // before this task hears it was admitted.
+        prepared.owner = Some(Owner {
+            view: view.clone(),
+            generation,
+            pass: pass.index,
+        });
         let ClientResponse::Submitted { job } = admit(sh, prepared).await else {
             return;
         };
