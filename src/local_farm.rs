@@ -36,6 +36,8 @@ impl Default for WorkerSpec {
 /// The child processes of a local farm; dropping it stops them all.
 pub struct LocalFarm {
     address: String,
+    /// The coordinator's HTTP address, when it serves HTTP.
+    http: Option<String>,
     children: Mutex<Vec<(Child, Option<ChildStdin>)>>,
     dir: tempfile::TempDir,
 }
@@ -87,6 +89,7 @@ impl LocalFarm {
             .context("cannot create a temporary directory")?;
         let mut farm = LocalFarm {
             address: String::new(),
+            http: None,
             children: Mutex::new(Vec::new()),
             dir,
         };
@@ -106,8 +109,9 @@ impl LocalFarm {
             .get_mut()
             .expect("children lock")
             .push((coordinator, stdin));
+        let mut stdout = BufReader::new(stdout);
         let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line)?;
+        stdout.read_line(&mut line)?;
         farm.address = match line.trim().strip_prefix("listening on ") {
             Some(addr) => addr.to_string(),
             None => bail!(
@@ -115,6 +119,18 @@ impl LocalFarm {
                 last_line(&farm.dir.path().join("coordinator.log"))
             ),
         };
+        // With --http, its address is the next line.
+        if coordinator_args.contains(&"--http") {
+            line.clear();
+            stdout.read_line(&mut line)?;
+            farm.http = match line.trim().strip_prefix("http on ") {
+                Some(addr) => Some(addr.to_string()),
+                None => bail!(
+                    "the local coordinator did not serve HTTP: {}",
+                    last_line(&farm.dir.path().join("coordinator.log"))
+                ),
+            };
+        }
         for (i, spec) in workers.iter().enumerate() {
             let name = format!("local-{}", i + 1);
             let threads = spec.threads.to_string();
@@ -151,6 +167,11 @@ impl LocalFarm {
     /// The coordinator's address.
     pub fn address(&self) -> &str {
         &self.address
+    }
+
+    /// Where the coordinator serves HTTP, when it was started with `--http`.
+    pub fn http_address(&self) -> Option<&str> {
+        self.http.as_deref()
     }
 
     /// Waits until `n` workers have registered with the coordinator.

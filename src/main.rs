@@ -11,6 +11,7 @@ mod plot;
 mod render_command;
 mod render_state;
 mod simulate_command;
+mod studio_command;
 mod up_command;
 
 use std::net::SocketAddr;
@@ -78,6 +79,16 @@ enum Command {
         after_help = "Example:\n  tessera up scenes/seed.json --workers 3 -o seed.png"
     )]
     Up(UpArgs),
+    /// Edit a scene and move its camera in the browser while a local farm renders it.
+    #[command(
+        long_about = "Start a coordinator and worker processes on this machine (loopback \
+            only), serve the studio page and print its address: a scene editor whose \
+            every change the farm renders progressively. Ctrl-C stops the farm and removes \
+            its files.",
+        after_help = "Example:\n  tessera studio scenes/seed.json\n  \
+            (then open the printed http://127.0.0.1:PORT/studio)"
+    )]
+    Studio(StudioArgs),
 
     /// Run a coordinator: accept jobs, hand tiles to workers, store images.
     #[command(
@@ -492,6 +503,27 @@ struct UpArgs {
     tile: Option<u32>,
 }
 
+/// The threads of each local worker: as asked, or the cores shared among them.
+fn threads_per_worker(workers: usize, asked: Option<u32>) -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    asked.map_or((cores / workers).max(1), |n| n as usize)
+}
+
+#[derive(Args)]
+struct StudioArgs {
+    /// The scene to open [default: the seed scene at 960 x 540, aa 2].
+    scene: Option<PathBuf>,
+    /// Worker processes to start.
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=64))]
+    workers: u32,
+    /// Rendering threads of each worker [default: cores / workers, at least 1].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads_per_worker: Option<u32>,
+    /// Where to serve the page: a loopback address; port 0 takes a free one.
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:0")]
+    http: SocketAddr,
+}
+
 /// What both daemons take: where their settings come from, HTTP and logs.
 #[derive(Args)]
 struct DaemonArgs {
@@ -634,6 +666,10 @@ struct CoordinatorArgs {
     /// no environment variable or config file key.
     #[arg(long)]
     reset_database: bool,
+    /// The scene the studio page (`/studio`) opens with [default: the seed scene at
+    /// 960 x 540, aa 2]. Checked at start like any scene.
+    #[arg(long, env = "TESSERA_STUDIO_SCENE", value_name = "FILE")]
+    studio_scene: Option<PathBuf>,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -1234,15 +1270,22 @@ fn run(command: Command) -> Result<()> {
             }
             Command::Up(a) => {
                 let workers = a.workers as usize;
-                let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
                 up_command::run(up_command::Options {
                     scene: a.scene,
                     workers,
-                    threads_per_worker: a
-                        .threads_per_worker
-                        .map_or((cores / workers).max(1), |n| n as usize),
+                    threads_per_worker: threads_per_worker(workers, a.threads_per_worker),
                     output: a.output,
                     job: a.image.farm_job(a.tile, a.time_limit)?,
+                })
+                .await
+            }
+            Command::Studio(a) => {
+                let workers = a.workers as usize;
+                studio_command::run(studio_command::Options {
+                    scene: a.scene,
+                    workers,
+                    threads_per_worker: threads_per_worker(workers, a.threads_per_worker),
+                    http: a.http,
                 })
                 .await
             }
@@ -1309,6 +1352,11 @@ fn run(command: Command) -> Result<()> {
                     http: a.daemon.http,
                     retention: a.retention,
                     reset_database: a.reset_database,
+                    studio_scene: a
+                        .studio_scene
+                        .as_deref()
+                        .map(studio_command::read_checked_scene)
+                        .transpose()?,
                 };
                 daemons::coordinator(config, a.exit_on_stdin_eof).await
             }

@@ -63,7 +63,7 @@ pub async fn run(opts: Options) -> Result<()> {
 
 /// The limits of the coordinator `up` starts: whatever `tessera render` renders (its
 /// size and antialiasing), not the defaults that guard a shared farm.
-fn up_limits() -> Vec<String> {
+pub fn up_limits() -> Vec<String> {
     use render::limits::{MAX_AA, MAX_SIDE};
     vec![
         "--max-aa".into(),
@@ -98,13 +98,13 @@ impl std::fmt::Display for Interrupted {
 impl std::error::Error for Interrupted {}
 
 /// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
-struct StopSignals {
+pub struct StopSignals {
     #[cfg(unix)]
     signals: [(tokio::signal::unix::Signal, Interrupted); 3],
 }
 
 impl StopSignals {
-    fn new() -> Result<StopSignals> {
+    pub fn new() -> Result<StopSignals> {
         #[cfg(unix)]
         {
             use tokio::signal::unix::{signal, SignalKind};
@@ -127,7 +127,7 @@ impl StopSignals {
     }
 
     /// The next signal caught.
-    async fn next(&mut self) -> Interrupted {
+    pub async fn next(&mut self) -> Interrupted {
         #[cfg(unix)]
         {
             let [(int, _), (term, _), (hup, _)] = &mut self.signals;

@@ -34,8 +34,10 @@ pub fn coordinator_routes(observer: Observer) -> Router {
     Router::new()
         .route("/", get(|| async { Html(STATUS_PAGE) }))
         .route("/api/status", get(status))
-        .route("/studio", get(|| async { Html(STUDIO_PAGE) }))
+        .route("/studio", get(studio_page))
+        .route("/api/studio/open", post(studio_open))
         .route("/api/studio/view", post(studio_view))
+        .route("/api/studio/submit", post(studio_submit))
         .route("/api/studio/stream", get(studio_stream))
         .route("/api/jobs/{id}/{action}", post(job_control))
         .route("/api/jobs/{id}/events", get(job_events))
@@ -376,9 +378,93 @@ struct EventsQuery {
     after: Option<u64>,
 }
 
-/// `POST /api/studio/view` with `{"session": VIEW, "scene": SCENE}`: an edit of a
-/// studio view, a control like the others ([`authorize`]). Answers `{"generation": N}`,
-/// or 422 with the loader's one-line error for a scene that is not valid.
+/// `GET /studio`: the studio page, opening the coordinator's `--studio-scene` if it has
+/// one (written into the page as a script value, `<` escaped so that no text of the
+/// scene can end the script).
+async fn studio_page(State(observer): State<Observer>) -> Response {
+    let Some(scene) = observer.studio_scene() else {
+        return Html(STUDIO_PAGE).into_response();
+    };
+    let json = match serde_json::from_str::<serde_json::Value>(scene) {
+        Ok(value) => value.to_string().replace('<', "\\u003c"),
+        Err(_) => return Html(STUDIO_PAGE).into_response(),
+    };
+    let page = STUDIO_PAGE.replacen(
+        "/*STUDIO_SCENE*/",
+        &format!("window.STUDIO_SCENE = {json};"),
+        1,
+    );
+    Html(page).into_response()
+}
+
+/// `POST /api/studio/open`: a new view for this page, a control like the others
+/// ([`authorize`]). Answers `{"session": VIEW}`: the view's random name, which is all a
+/// page needs to follow its stream (an `EventSource` cannot send a token).
+async fn studio_open(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+) -> Response {
+    if let Some(refused) = check(&observer, peer, &headers) {
+        return refused;
+    }
+    match observer.studio_open() {
+        Ok(session) => Json(serde_json::json!({ "session": session })).into_response(),
+        Err(message) => refusal(StatusCode::SERVICE_UNAVAILABLE, message),
+    }
+}
+
+/// The sampler of a studio request's `settings` (`{"sampler": "grid" | "jittered" |
+/// "adaptive", "target_error": LEVELS}`; the grid without settings).
+fn studio_sampling(settings: Option<&serde_json::Value>) -> Result<protocol::Sampling, String> {
+    let Some(settings) = settings else {
+        return Ok(protocol::Sampling::Grid);
+    };
+    let sampler = settings.get("sampler").and_then(serde_json::Value::as_str);
+    match sampler {
+        None | Some("grid") => Ok(protocol::Sampling::Grid),
+        Some("jittered") => Ok(protocol::Sampling::Jittered),
+        Some("adaptive") => {
+            let target = settings
+                .get("target_error")
+                .and_then(serde_json::Value::as_f64)
+                .unwrap_or(1.0);
+            match render::Sampling::adaptive(target) {
+                Ok(render::Sampling::Adaptive { target_milli }) => {
+                    Ok(protocol::Sampling::Adaptive { target_milli })
+                }
+                Ok(_) => unreachable!("adaptive gives adaptive sampling"),
+                Err(e) => Err(format!("job.target_error: {e}")),
+            }
+        }
+        Some(other) => Err(format!(
+            "job.sampler: {other:?} is not a sampler: grid, jittered or adaptive"
+        )),
+    }
+}
+
+/// A studio request's body: `scene` is required, `session` and `settings` optional.
+#[derive(serde::Deserialize)]
+struct StudioRequest {
+    #[serde(default)]
+    session: String,
+    scene: serde_json::Value,
+    settings: Option<serde_json::Value>,
+}
+
+fn studio_request(body: &[u8], what: &str) -> Result<StudioRequest, Response> {
+    serde_json::from_slice(body).map_err(|e| {
+        refusal(
+            StatusCode::BAD_REQUEST,
+            format!("a studio {what} is {{\"session\": ID, \"scene\": SCENE, \"settings\": {{...}}}}: {e}"),
+        )
+    })
+}
+
+/// `POST /api/studio/view` with `{"session": VIEW, "scene": SCENE, "settings": ...}`:
+/// an edit of an opened studio view, a control like the others ([`authorize`]).
+/// Answers `{"generation": N}`, or 422 with the loader's one-line error for a scene that
+/// is not valid.
 async fn studio_view(
     State(observer): State<Observer>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
@@ -388,32 +474,71 @@ async fn studio_view(
     if let Some(refused) = check(&observer, peer, &headers) {
         return refused;
     }
-    #[derive(serde::Deserialize)]
-    struct Edit {
-        session: String,
-        scene: serde_json::Value,
-    }
-    let edit: Edit = match serde_json::from_slice(&body) {
+    let edit = match studio_request(&body, "edit") {
         Ok(edit) => edit,
-        Err(e) => {
-            return refusal(
-                StatusCode::BAD_REQUEST,
-                format!("a studio edit is {{\"session\": ID, \"scene\": SCENE}}: {e}"),
-            )
-        }
+        Err(refused) => return refused,
     };
-    if edit.session.is_empty() || edit.session.len() > 64 {
-        return refusal(StatusCode::BAD_REQUEST, "session: 1 to 64 characters");
-    }
+    let sampling = match studio_sampling(edit.settings.as_ref()) {
+        Ok(sampling) => sampling,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
     let scene = edit.scene.to_string();
-    match observer.studio_edit(edit.session, scene, peer.ip()).await {
+    match observer
+        .studio_edit(edit.session, scene, sampling, peer.ip())
+        .await
+    {
         Ok(generation) => Json(serde_json::json!({ "generation": generation })).into_response(),
         Err(message) => refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
     }
 }
 
+/// `POST /api/studio/submit` with `{"scene": SCENE, "settings": ...}`: the scene as an
+/// ordinary job (stored, listed, its image downloadable), submitted as `tessera submit`
+/// does. Answers `{"job": ID}`.
+async fn studio_submit(
+    State(observer): State<Observer>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    if let Some(refused) = check(&observer, peer, &headers) {
+        return refused;
+    }
+    let request = match studio_request(&body, "job") {
+        Ok(request) => request,
+        Err(refused) => return refused,
+    };
+    let sampling = match studio_sampling(request.settings.as_ref()) {
+        Ok(sampling) => sampling,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
+    let spec = protocol::JobSpec {
+        scene: request.scene.to_string(),
+        overrides: protocol::Overrides {
+            sampling: Some(sampling),
+            ..Default::default()
+        },
+        priority: 0,
+        verification: protocol::Verification::default(),
+        time_limit_ms: None,
+        name: "studio scene".into(),
+        submitter: "studio".into(),
+    };
+    match observer
+        .control(ClientRequest::Submit(spec), peer.ip())
+        .await
+    {
+        ClientResponse::Submitted { job } => {
+            Json(serde_json::json!({ "job": job })).into_response()
+        }
+        ClientResponse::Error { message } => refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+        _ => refusal(StatusCode::INTERNAL_SERVER_ERROR, "unexpected answer"),
+    }
+}
+
 /// `GET /api/studio/stream?session=VIEW`: the view's tiles and passes as server-sent
-/// events (`tile`, `pass`), pushed as the coordinator accepts them.
+/// events (`tile`, `pass`), pushed as the coordinator accepts them. Only an opened view
+/// has a stream: its random name is the page's proof.
 async fn studio_stream(
     State(observer): State<Observer>,
     Query(query): Query<StreamQuery>,
@@ -421,7 +546,7 @@ async fn studio_stream(
     use axum::response::sse::{Event, KeepAlive, Sse};
     let stream = match observer.studio_stream(query.session) {
         Ok(stream) => stream,
-        Err(message) => return refusal(StatusCode::SERVICE_UNAVAILABLE, message),
+        Err(message) => return refusal(StatusCode::NOT_FOUND, message),
     };
     let events = futures_util::stream::unfold(stream, |mut stream| async move {
         let (name, data) = stream.next().await?;

@@ -128,6 +128,9 @@ pub struct Config {
     /// Start with a new, empty job database when the one in `data` is missing or
     /// unreadable (its unfinished jobs are lost; ids continue above every id issued).
     pub reset_database: bool,
+    /// The scene the studio page opens with (already checked by the loader); the
+    /// page's own default without one.
+    pub studio_scene: Option<String>,
 }
 
 impl Config {
@@ -147,6 +150,7 @@ impl Config {
             http: None,
             retention: None,
             reset_database: false,
+            studio_scene: None,
         }
     }
 
@@ -190,6 +194,8 @@ struct Shared {
     verifier: verification::Verifier,
     /// The studio's views and their pages (docs/studio.md).
     studio: studio_session::Studio,
+    /// The scene the studio page opens with, if one was given.
+    studio_scene: Option<String>,
     /// This coordinator's hold on its data directory, for as long as it lives.
     _data_lock: data_lock::DataLock,
 }
@@ -316,6 +322,7 @@ impl Server {
             metrics: Metrics::new(),
             verifier,
             studio: studio_session::Studio::default(),
+            studio_scene: config.studio_scene.clone(),
             _data_lock: data_lock,
         });
         {

@@ -226,9 +226,20 @@ impl Observer {
         &self,
         view: String,
         scene: String,
+        sampling: protocol::Sampling,
         peer: std::net::IpAddr,
     ) -> Result<u64, String> {
-        super::studio_session::edit(&self.shared, view, scene, peer).await
+        super::studio_session::edit(&self.shared, view, scene, sampling, peer).await
+    }
+
+    /// Opens a studio view for an authorised page: its random name.
+    pub fn studio_open(&self) -> Result<String, String> {
+        self.shared.studio.open(self.shared.now())
+    }
+
+    /// The scene the studio page opens with (`--studio-scene`), if one was given.
+    pub fn studio_scene(&self) -> Option<&str> {
+        self.shared.studio_scene.as_deref()
     }
 
     /// A studio page's stream of its view's tiles; [`StudioStream`]'s drop tells the

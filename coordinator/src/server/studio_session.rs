@@ -88,6 +88,18 @@ fn locked<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Studio {
+    /// Opens a view for an authorised page: its name, 128 random bits in hex, is what
+    /// lets the page follow the view's stream.
+    pub fn open(&self, now: u64) -> Result<ViewId, String> {
+        let mut bytes = [0u8; 16];
+        getrandom::fill(&mut bytes).map_err(|e| format!("no randomness for a view name: {e}"))?;
+        let view: ViewId = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        locked(&self.views)
+            .handle(now, Event::Opened { view: view.clone() })
+            .map_err(|e| e.to_string())?;
+        Ok(view)
+    }
+
     /// A page connects to its view's stream.
     pub fn connect(&self, now: u64, view: &str) -> Result<mpsc::UnboundedReceiver<Push>, Refused> {
         locked(&self.views).handle(now, Event::Connected { view: view.into() })?;
@@ -192,11 +204,12 @@ impl Studio {
 
 /// An edit of `view`: the scene checked by the renderer's own loader (its one-line
 /// error if it is not valid), the view's jobs superseded and the passes of the new
-/// generation submitted. Returns the new generation.
+/// generation submitted, the last with `sampling`. Returns the new generation.
 pub async fn edit(
     sh: &Arc<Shared>,
     view: String,
     scene: String,
+    sampling: protocol::Sampling,
     peer: IpAddr,
 ) -> Result<u64, String> {
     if sh.closing.load(std::sync::atomic::Ordering::SeqCst) {
@@ -214,7 +227,7 @@ pub async fn edit(
         height: s.height,
         aa: s.aa,
         max_depth: s.max_depth,
-        sampling: protocol::Sampling::Grid,
+        sampling,
     };
     let actions = locked(&sh.studio.views)
         .handle(sh.now(), Event::Edit { view: view.clone() })

@@ -8,6 +8,11 @@
 //! the next crossed) is cancelled as soon as it is known. A view whose page has not been
 //! connected for [`ABANDONED_AFTER_MS`] is dropped with its jobs, so a closed tab costs
 //! the farm nothing.
+//!
+//! A view exists only once it was opened ([`Event::Opened`]), which the coordinator
+//! does for an authorised page under a name it draws at random: that name is what
+//! lets a page follow the view's stream (a browser's event stream cannot carry a
+//! token), so edits and streams of a view nobody opened are refused.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -16,7 +21,7 @@ use protocol::JobId;
 /// Milliseconds on the coordinator's clock.
 pub type Millis = u64;
 
-/// A page's own name for its view (random, chosen by the page).
+/// A view's name: 128 random bits drawn by the coordinator when it is opened.
 pub type ViewId = String;
 
 /// A view without a connected page for this long is dropped.
@@ -28,6 +33,10 @@ pub const MAX_VIEWS: usize = 32;
 /// What happened.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Event {
+    /// An authorised page opened a new view under this (fresh, random) name.
+    Opened {
+        view: ViewId,
+    },
     /// The page of `view` sent a scene that the loader accepted: a new generation.
     Edit {
         view: ViewId,
@@ -68,6 +77,8 @@ pub enum Action {
 pub enum Refused {
     #[error("the farm already has {MAX_VIEWS} studio views open: close one and try again")]
     TooManyViews,
+    #[error("no studio view {0:?} (closed after {ABANDONED_AFTER_MS} ms without a page): reload the page")]
+    UnknownView(ViewId),
 }
 
 /// Where a job's tiles go.
@@ -104,8 +115,17 @@ impl Views {
     pub fn handle(&mut self, now: Millis, event: Event) -> Result<Vec<Action>, Refused> {
         let mut actions = Vec::new();
         match event {
+            Event::Opened { view } => {
+                if self.views.len() >= MAX_VIEWS {
+                    return Err(Refused::TooManyViews);
+                }
+                self.views.entry(view).or_insert_with(|| View {
+                    alone_since: Some(now),
+                    ..View::default()
+                });
+            }
             Event::Edit { view } => {
-                let v = self.view(&view, now)?;
+                let v = self.view(&view)?;
                 v.generation += 1;
                 let generation = v.generation;
                 let old: Vec<JobId> = std::mem::take(&mut v.jobs).into_values().collect();
@@ -142,7 +162,7 @@ impl Views {
                 }
             }
             Event::Connected { view } => {
-                let v = self.view(&view, now)?;
+                let v = self.view(&view)?;
                 v.pages += 1;
                 v.alone_since = None;
             }
@@ -195,20 +215,22 @@ impl Views {
             .map(|t| t + ABANDONED_AFTER_MS)
     }
 
-    fn view(&mut self, id: &str, now: Millis) -> Result<&mut View, Refused> {
-        if !self.views.contains_key(id) && self.views.len() >= MAX_VIEWS {
-            return Err(Refused::TooManyViews);
-        }
-        Ok(self.views.entry(id.to_owned()).or_insert_with(|| View {
-            alone_since: Some(now),
-            ..View::default()
-        }))
+    fn view(&mut self, id: &str) -> Result<&mut View, Refused> {
+        self.views
+            .get_mut(id)
+            .ok_or_else(|| Refused::UnknownView(id.to_owned()))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn open(views: &mut Views, now: Millis, view: &str) {
+        views
+            .handle(now, Event::Opened { view: view.into() })
+            .unwrap();
+    }
 
     fn edit(views: &mut Views, now: Millis, view: &str) -> Vec<Action> {
         views
@@ -233,6 +255,7 @@ mod tests {
     #[test]
     fn an_edit_cancels_every_job_of_the_previous_generation() {
         let mut views = Views::new();
+        open(&mut views, 0, "a");
         views
             .handle(0, Event::Connected { view: "a".into() })
             .unwrap();
@@ -267,6 +290,7 @@ mod tests {
     #[test]
     fn a_job_admitted_after_its_generation_was_superseded_is_cancelled() {
         let mut views = Views::new();
+        open(&mut views, 0, "a");
         edit(&mut views, 0, "a");
         edit(&mut views, 1, "a");
         assert_eq!(admit(&mut views, "a", 1, 0, 7), [Action::Cancel { job: 7 }]);
@@ -290,6 +314,7 @@ mod tests {
     #[test]
     fn a_view_left_without_a_page_is_dropped_with_its_jobs() {
         let mut views = Views::new();
+        open(&mut views, 0, "a");
         views
             .handle(0, Event::Connected { view: "a".into() })
             .unwrap();
@@ -331,12 +356,13 @@ mod tests {
     fn the_number_of_views_is_bounded() {
         let mut views = Views::new();
         for i in 0..MAX_VIEWS {
+            open(&mut views, 0, &format!("v{i}"));
             edit(&mut views, 0, &format!("v{i}"));
         }
         assert_eq!(
             views.handle(
                 0,
-                Event::Edit {
+                Event::Opened {
                     view: "one more".into()
                 }
             ),
@@ -348,6 +374,7 @@ mod tests {
         let dropped = views.handle(ABANDONED_AFTER_MS, Event::Tick).unwrap();
         assert!(dropped.is_empty());
         assert_eq!(views.generation("v0"), None);
+        open(&mut views, 0, "one more");
         assert!(views
             .handle(
                 0,
@@ -356,5 +383,45 @@ mod tests {
                 }
             )
             .is_ok());
+    }
+
+    #[test]
+    fn only_an_opened_view_takes_edits_and_pages() {
+        let mut views = Views::new();
+        let unknown = Err(Refused::UnknownView("guess".into()));
+        assert_eq!(
+            views.handle(
+                0,
+                Event::Connected {
+                    view: "guess".into()
+                }
+            ),
+            unknown
+        );
+        assert_eq!(
+            views.handle(
+                0,
+                Event::Edit {
+                    view: "guess".into()
+                }
+            ),
+            unknown
+        );
+        assert_eq!(views.generation("guess"), None);
+        open(&mut views, 0, "guess");
+        assert_eq!(views.generation("guess"), Some(0));
+        assert!(views
+            .handle(
+                0,
+                Event::Connected {
+                    view: "guess".into()
+                }
+            )
+            .is_ok());
+        // Opened and never connected: abandoned like a closed page.
+        open(&mut views, 0, "other");
+        views.handle(ABANDONED_AFTER_MS, Event::Tick).unwrap();
+        assert_eq!(views.generation("other"), None);
+        assert_eq!(views.generation("guess"), Some(0));
     }
 }
