@@ -452,13 +452,21 @@ struct StudioRequest {
     settings: Option<serde_json::Value>,
 }
 
-fn studio_request(body: &[u8], what: &str) -> Result<StudioRequest, Response> {
-    serde_json::from_slice(body).map_err(|e| {
-        refusal(
+/// A studio request's body and its sampler, or the status and one line saying what is
+/// wrong with it.
+fn studio_request(
+    body: &[u8],
+    what: &str,
+) -> Result<(StudioRequest, protocol::Sampling), (StatusCode, String)> {
+    let request: StudioRequest = serde_json::from_slice(body).map_err(|e| {
+        (
             StatusCode::BAD_REQUEST,
             format!("a studio {what} is {{\"session\": ID, \"scene\": SCENE, \"settings\": {{...}}}}: {e}"),
         )
-    })
+    })?;
+    let sampling = studio_sampling(request.settings.as_ref())
+        .map_err(|message| (StatusCode::UNPROCESSABLE_ENTITY, message))?;
+    Ok((request, sampling))
 }
 
 /// `POST /api/studio/view` with `{"session": VIEW, "scene": SCENE, "settings": ...}`:
@@ -474,13 +482,9 @@ async fn studio_view(
     if let Some(refused) = check(&observer, peer, &headers) {
         return refused;
     }
-    let edit = match studio_request(&body, "edit") {
-        Ok(edit) => edit,
-        Err(refused) => return refused,
-    };
-    let sampling = match studio_sampling(edit.settings.as_ref()) {
-        Ok(sampling) => sampling,
-        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    let (edit, sampling) = match studio_request(&body, "edit") {
+        Ok(request) => request,
+        Err((code, message)) => return refusal(code, message),
     };
     let scene = edit.scene.to_string();
     match observer
@@ -504,13 +508,9 @@ async fn studio_submit(
     if let Some(refused) = check(&observer, peer, &headers) {
         return refused;
     }
-    let request = match studio_request(&body, "job") {
+    let (request, sampling) = match studio_request(&body, "job") {
         Ok(request) => request,
-        Err(refused) => return refused,
-    };
-    let sampling = match studio_sampling(request.settings.as_ref()) {
-        Ok(sampling) => sampling,
-        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+        Err((code, message)) => return refusal(code, message),
     };
     let spec = protocol::JobSpec {
         scene: request.scene.to_string(),
