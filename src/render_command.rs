@@ -511,3 +511,49 @@ impl DelayedProgress {
         self.bar.finish_and_clear();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_ranges_are_a_dash_b_k_or_all() {
+        assert_eq!(parse_frame_range("all"), Ok(FrameRange::All));
+        assert_eq!(
+            parse_frame_range("3-5"),
+            Ok(FrameRange::Span { first: 3, last: 5 })
+        );
+        assert_eq!(
+            parse_frame_range("7"),
+            Ok(FrameRange::Span { first: 7, last: 7 })
+        );
+        assert_eq!(
+            parse_frame_range("5-3").unwrap_err(),
+            "the range ends (frame 3) before it starts (frame 5)"
+        );
+        assert_eq!(
+            parse_frame_range("0").unwrap_err(),
+            "frames are numbered from 1"
+        );
+        for bad in ["", "-", "1-", "-3", "+1", "1-2-3", " 1", "1.5", "a-b"] {
+            assert_eq!(
+                parse_frame_range(bad).unwrap_err(),
+                format!("expected A-B, K or all (frame numbers from 1), got {bad:?}"),
+                "{bad:?}"
+            );
+        }
+        assert_eq!(
+            parse_frame_range("99999999999999999999").unwrap_err(),
+            "frame 99999999999999999999 is too large"
+        );
+    }
+
+    #[test]
+    fn frame_files_have_at_least_four_digits() {
+        assert_eq!(frame_file_name(7, 1), "frame_0007.png");
+        assert_eq!(frame_file_name(120, 121), "frame_0120.png");
+        assert_eq!(frame_file_name(9999, 9999), "frame_9999.png");
+        assert_eq!(frame_file_name(7, 10_000), "frame_00007.png");
+        assert_eq!(frame_file_name(100_000, 100_000), "frame_100000.png");
+    }
+}

@@ -118,12 +118,14 @@ fn parse_track(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Track
             match string(v, &p)? {
                 "linear" => Interpolation::Linear,
                 "catmull-rom" => Interpolation::CatmullRom,
-                other => return Err(SceneError::invalid(
-                    p,
-                    format!(
+                other => {
+                    return Err(SceneError::invalid(
+                        p,
+                        format!(
                         "unknown interpolation {other:?} (expected \"linear\" or \"catmull-rom\")"
                     ),
-                )),
+                    ))
+                }
             }
         }
         None => Interpolation::Linear,
@@ -501,6 +503,30 @@ mod tests {
                 radius: 1.0
             }
         );
+    }
+
+    #[test]
+    fn the_example_animations_load_and_every_frame_is_a_scene() {
+        for (text, frames) in [
+            (include_str!("../../../scenes/seed-orbit.json"), 121),
+            (include_str!("../../../scenes/moving-spheres.json"), 48),
+        ] {
+            let a = parse_animated(text).unwrap();
+            assert_eq!(a.frame_count(), frames);
+            for k in 1..=u64::from(frames) {
+                let frame = a.frame(k).unwrap();
+                // Each frame is a static scene that reads back as itself.
+                if let Ok(json) = frame.to_json() {
+                    assert_eq!(parse_scene(&json).unwrap(), frame, "frame {k}");
+                }
+            }
+        }
+        // The orbit comes back to where it started, on the circle at its keys.
+        let orbit = parse_animated(include_str!("../../../scenes/seed-orbit.json")).unwrap();
+        assert_eq!(orbit.frame(1).unwrap(), orbit.frame(121).unwrap());
+        assert_eq!(orbit.frame(1).unwrap(), orbit.base);
+        let p = orbit.frame(31).unwrap().camera.position;
+        assert_eq!(p, Vec3::new(-3.5, 1.5, 0.0));
     }
 
     #[test]
