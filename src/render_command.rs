@@ -173,6 +173,15 @@ fn run_sequence(
         .output
         .clone()
         .unwrap_or_else(|| default_output(scene_path).with_extension(""));
+    if dir
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "{}: --frames writes one file per frame into a directory: give -o DIR/",
+            dir.display()
+        );
+    }
     if dir.exists() && !dir.is_dir() {
         bail!(
             "{}: --frames writes one file per frame into a directory, and this is a file",

@@ -180,7 +180,11 @@ fn invalid_frame_choices_are_refused_before_anything_is_written() {
     let dir = TempDir::new().unwrap();
     let orbit = orbit();
     let seed = scene_path("seed.json");
-    let cases: [(&[&str], &str); 6] = [
+    let cases: [(&[&str], &str); 7] = [
+        (
+            &["render", &orbit, "--frames", "1-2", "-o", "orbit.png"],
+            "error: orbit.png: --frames writes one file per frame into a directory: give -o DIR/",
+        ),
         (
             &["render", &orbit, "--frame", "122"],
             "error: ORBIT: frame 122 is beyond the scene's 121 frames",
