@@ -1228,6 +1228,28 @@ mod tests {
                 agree(&text);
             }
 
+            /// A generated scene with an animation put first: the fast reading leaves it
+            /// to the reference, which accepts it exactly when it accepts the scene
+            /// without it, with that scene as its static part.
+            #[test]
+            fn an_animation_changes_nothing_else(text in scene()) {
+                let animated = format!(
+                    r#"{{"animation": {{"frames": 3, "tracks": [{{"target": "camera.position",
+                        "keys": [{{"frame": 1, "value": "0 1 -5"}}, {{"frame": 3, "value": [1, 1, -5]}}]}}]}}, {}"#,
+                    &text[1..]
+                );
+                prop_assert!(fast::parse(&animated).is_none());
+                agree(&animated);
+                let still = crate::parse_scene(&text);
+                let moving = crate::parse_animated(&animated);
+                prop_assert_eq!(still.is_ok(), moving.is_ok(), "{}", animated);
+                if let (Ok(still), Ok(moving)) = (still, moving) {
+                    prop_assert_eq!(format!("{:?}", moving.base), format!("{still:?}"));
+                    let last = moving.frame(3).unwrap();
+                    prop_assert_eq!(last.camera.position, crate::Vec3::new(1.0, 1.0, -5.0));
+                }
+            }
+
             #[test]
             fn numbers_are_read_as_serde_json_reads_them(
                 token in r"-?(0|[0-9]{0,22})(\.[0-9]{0,22})?([eE][+-]?[0-9]{1,3})?[.0-9]?",
