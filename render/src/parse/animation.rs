@@ -813,5 +813,11 @@ mod tests {
             )),
             "animation: at frame 2, camera.look_at equals camera.position"
         );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.position", "keys": [{"frame": 7, "value": "1e-310 0 0"}]}"#
+            )),
+            "animation: at frame 1, camera.look_at is too far from or too close to camera.position to define a direction"
+        );
     }
 }
