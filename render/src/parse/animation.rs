@@ -34,6 +34,11 @@ use crate::vec3::Vec3;
 /// The most tracks an animation may have.
 pub const MAX_TRACKS: usize = 4096;
 
+/// The most track values checked (tracks × frames): every frame of every track is
+/// checked when the scene is read, by a coordinator too, so this bounds what one
+/// submitted scene can cost it (about a tenth of a second).
+pub const MAX_TRACK_FRAMES: u64 = 10_000_000;
+
 /// The frame rate when the file gives none.
 const DEFAULT_FPS: f64 = 24.0;
 
@@ -85,6 +90,17 @@ fn parse_tracks(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Vec<
         return Err(SceneError::invalid(
             path,
             format!("at most {MAX_TRACKS} tracks, got {}", items.len()),
+        ));
+    }
+    let checks = items.len() as u64 * u64::from(frames);
+    if checks > MAX_TRACK_FRAMES {
+        return Err(SceneError::invalid(
+            path,
+            format!(
+                "{} tracks of {frames} frames are {checks} values to check, at most \
+                 {MAX_TRACK_FRAMES}: use fewer tracks or frames",
+                items.len()
+            ),
         ));
     }
     let mut seen: HashMap<Target, usize> = HashMap::new();
@@ -587,6 +603,19 @@ mod tests {
                 super::MAX_TRACKS,
                 super::MAX_TRACKS + 1
             )
+        );
+    }
+
+    #[test]
+    fn error_too_many_track_frames() {
+        let text = scene(&format!(
+            r#"{{"frames": 100000, "tracks": [{}]}}"#,
+            vec![RADIUS; 101].join(", ")
+        ));
+        assert_eq!(
+            error_of(&text),
+            "animation.tracks: 101 tracks of 100000 frames are 10100000 values to check, at \
+             most 10000000: use fewer tracks or frames"
         );
     }
 
