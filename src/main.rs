@@ -50,10 +50,14 @@ enum Command {
         long_about = "Render a scene file to a PNG image on this machine, using all cores.\n\n\
             The scene is a JSON file (see docs/scene-format.md); its optional \"image\" \
             settings give the size and antialiasing, and the flags below override them. \
-            The image is written only when the whole render succeeds.",
+            The image is written only when the whole render succeeds.\n\n\
+            An animated scene renders its frame 1, or frame K with --frame K; --frames \
+            renders a sequence into a directory, one PNG per frame, each written whole.",
         after_help = "Examples:\n  \
             tessera render scenes/seed.json                 writes seed.png here\n  \
-            tessera render scenes/seed.json -o big.png --width 1920 --height 1080 --aa 4"
+            tessera render scenes/seed.json -o big.png --width 1920 --height 1080 --aa 4\n  \
+            tessera render scenes/seed-orbit.json --frame 17 -o orbit17.png\n  \
+            tessera render scenes/seed-orbit.json --frames 1-120 -o orbit/"
     )]
     Render(RenderArgs),
 
@@ -449,6 +453,16 @@ struct RenderArgs {
     /// FILE` can go on to a lower error or a larger --aa without taking them again.
     #[arg(long, value_name = "FILE")]
     state: Option<PathBuf>,
+    /// Render frame K of an animated scene (frames are numbered from 1; a scene
+    /// without animation has frame 1 only) [default: 1].
+    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u64).range(1..), conflicts_with = "frames")]
+    frame: Option<u64>,
+    /// Render frames A to B of an animated scene (A-B, K or all; alone: all) into the
+    /// directory given by -o, as frame_0001.png, ... [default directory: the scene's
+    /// file name without .json, here].
+    #[arg(long, value_name = "A-B", num_args = 0..=1, default_missing_value = "all",
+          value_parser = render_command::parse_frame_range)]
+    frames: Option<render_command::FrameRange>,
 }
 
 #[derive(Args)]
@@ -1200,6 +1214,8 @@ fn run(command: Command) -> Result<()> {
             threads: a.threads,
             time_limit: a.time_limit,
             state: a.state,
+            frame: a.frame,
+            frames: a.frames,
         });
     }
     let command = match command {

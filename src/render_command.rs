@@ -1,8 +1,13 @@
 //! `tessera render`: load a scene, render it on a local thread pool, write the PNG
 //! atomically and print a one-line summary: size, samples spent, estimated error, time.
+//!
+//! An animated scene renders its frame 1, or the frame `--frame K` names, or with
+//! `--frames A-B` a sequence of frames into a directory, one file per frame, each
+//! written atomically. Every choice is checked against the scene before anything is
+//! rendered or written.
 
 use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -12,8 +17,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use render::progressive::{meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG};
 use render::{
-    parse_scene, render_frame, validate_settings, RenderSettings, Sampling, Tracer,
-    DEFAULT_TILE_SIZE,
+    parse_animated, parse_scene, render_frame, validate_settings, AnimatedScene, RenderSettings,
+    Sampling, Tracer, DEFAULT_TILE_SIZE,
 };
 
 /// What the user asked for; `None` keeps the scene's own value.
@@ -31,6 +36,60 @@ pub struct Options {
     /// `None`: the regular grid (a scene file never chooses a sampler).
     pub sampling: Option<Sampling>,
     pub threads: Option<u32>,
+    /// `--frame K`: one frame of an animated scene (frame 1 when neither is given).
+    pub frame: Option<u64>,
+    /// `--frames RANGE`: a sequence of frames, into the directory `output`.
+    pub frames: Option<FrameRange>,
+}
+
+/// Which frames `--frames` asks for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameRange {
+    /// Every frame of the scene (`--frames` alone, or `--frames all`).
+    All,
+    /// Frames `first` to `last`, both included (`A-B`, or `K` for one).
+    Span { first: u64, last: u64 },
+}
+
+/// Reads `--frames`: `A-B`, `K` or `all`, frame numbers from 1.
+pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> {
+    if text == "all" {
+        return Ok(FrameRange::All);
+    }
+    let number = |t: &str| -> std::result::Result<u64, String> {
+        if t.is_empty() || !t.bytes().all(|b| b.is_ascii_digit()) {
+            return Err(format!(
+                "expected A-B, K or all (frame numbers from 1), got {text:?}"
+            ));
+        }
+        let n = t
+            .parse::<u64>()
+            .map_err(|_| format!("frame {t} is too large"))?;
+        if n == 0 {
+            return Err("frames are numbered from 1".to_owned());
+        }
+        Ok(n)
+    };
+    let (first, last) = match text.split_once('-') {
+        Some((a, b)) => (number(a)?, number(b)?),
+        None => {
+            let k = number(text)?;
+            (k, k)
+        }
+    };
+    if last < first {
+        return Err(format!(
+            "the range ends (frame {last}) before it starts (frame {first})"
+        ));
+    }
+    Ok(FrameRange::Span { first, last })
+}
+
+/// The name of frame `k` in a sequence of `count` frames: `frame_0007.png`, with as
+/// many digits as the count has, at least 4.
+pub fn frame_file_name(k: u64, count: u32) -> String {
+    let width = count.to_string().len().max(4);
+    format!("frame_{k:0width$}.png")
 }
 
 /// The progress bar appears only after this long, so quick renders stay quiet.
@@ -40,16 +99,20 @@ pub fn run(opts: Options) -> Result<()> {
     let scene_path = &opts.scene;
     let text = std::fs::read_to_string(scene_path)
         .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
+    if opts.state.is_some() && (opts.frame.is_some() || opts.frames.is_some()) {
+        bail!("--state saves one render of a scene's frame 1: it cannot be used with --frame or --frames");
+    }
     // The pool renders, and reads a large scene's objects first.
     let pool = thread_pool(opts.threads)?;
-    let scene = pool
-        .install(|| parse_scene(&text))
+    let animated = pool
+        .install(|| parse_animated(&text))
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
     // Only a render that saves its samples needs the text again; otherwise it goes now,
     // before the tracer is built (a large scene's text is larger than the scene).
     let text = opts.state.is_some().then_some(text);
 
-    let mut settings = scene.settings;
+    // Image settings are not animated: the same for every frame.
+    let mut settings = animated.base.settings;
     settings.width = opts.width.unwrap_or(settings.width);
     settings.height = opts.height.unwrap_or(settings.height);
     settings.aa = opts.aa.unwrap_or(settings.aa);
@@ -59,6 +122,14 @@ pub fn run(opts: Options) -> Result<()> {
     if opts.state.is_some() && settings.sampling.target_error().is_none() {
         bail!("--state saves the samples of adaptive sampling: add --sampler adaptive");
     }
+    if let Some(range) = opts.frames {
+        return run_sequence(&opts, &animated, range, settings, pool);
+    }
+    let frame = opts.frame.unwrap_or(1);
+    let scene = animated
+        .frame(frame)
+        .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
+    drop(animated);
     let output = ImageOutput::create(
         &opts
             .output
@@ -70,12 +141,80 @@ pub fn run(opts: Options) -> Result<()> {
         text: text.as_deref(),
         settings,
         output,
-        pool,
+        pool: &pool,
         time_limit: opts.time_limit,
         state: opts.state.as_deref().map(FileOutput::create).transpose()?,
         resume: None,
     };
     job.run()
+}
+
+/// `--frames`: checks the range against the scene and every output file, then renders
+/// the frames in order, each written atomically into the directory as soon as it is
+/// done. An interrupted sequence leaves whole frames only.
+fn run_sequence(
+    opts: &Options,
+    animated: &AnimatedScene,
+    range: FrameRange,
+    settings: RenderSettings,
+    pool: rayon::ThreadPool,
+) -> Result<()> {
+    let scene_path = &opts.scene;
+    let count = animated.frame_count();
+    let (first, last) = match range {
+        FrameRange::All => (1, u64::from(count)),
+        FrameRange::Span { first, last } => (first, last),
+    };
+    // The last frame is the largest: if it exists, they all do.
+    if let Err(e) = animated.frame(last) {
+        bail!("{}: --frames {first}-{last}: {e}", scene_path.display());
+    }
+    let dir = opts
+        .output
+        .clone()
+        .unwrap_or_else(|| default_output(scene_path).with_extension(""));
+    if dir
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "{}: --frames writes one file per frame into a directory: give -o DIR/",
+            dir.display()
+        );
+    }
+    if dir.exists() && !dir.is_dir() {
+        bail!(
+            "{}: --frames writes one file per frame into a directory, and this is a file",
+            dir.display()
+        );
+    }
+    std::fs::create_dir_all(&dir)
+        .with_context(|| format!("cannot create the directory {}", dir.display()))?;
+    let outputs = (first..=last)
+        .map(|k| Ok((k, ImageOutput::create(&frame_path(&dir, k, count))?)))
+        .collect::<Result<Vec<_>>>()?;
+    for (k, output) in outputs {
+        let scene = animated
+            .frame(k)
+            .map_err(|e| anyhow!("{}: frame {k}: {e}", scene_path.display()))?;
+        let job = Job {
+            scene: &scene,
+            text: None,
+            settings,
+            output,
+            pool: &pool,
+            time_limit: opts.time_limit,
+            state: None,
+            resume: None,
+        };
+        job.run()?;
+    }
+    Ok(())
+}
+
+/// Where frame `k` of a sequence of `count` frames goes in `dir`.
+fn frame_path(dir: &Path, k: u64, count: u32) -> PathBuf {
+    dir.join(frame_file_name(k, count))
 }
 
 /// What `tessera refine` asked for.
@@ -121,7 +260,7 @@ pub fn refine(opts: RefineOptions) -> Result<()> {
         text: Some(&saved.scene),
         settings,
         output,
-        pool,
+        pool: &pool,
         time_limit: opts.time_limit,
         state: Some(FileOutput::create(&opts.state)?),
         resume: Some((opts.state.clone(), saved.blocks)),
@@ -146,7 +285,7 @@ struct Job<'a> {
     /// Checked writable before the render starts.
     output: ImageOutput,
     /// Renders: `--threads` threads, one per core by default.
-    pool: rayon::ThreadPool,
+    pool: &'a rayon::ThreadPool,
     time_limit: Option<Duration>,
     /// Where the samples are saved: checked writable before the render starts, too.
     state: Option<FileOutput>,
@@ -157,7 +296,7 @@ struct Job<'a> {
 impl Job<'_> {
     fn run(self) -> Result<()> {
         let settings = self.settings;
-        let pool = &self.pool;
+        let pool = self.pool;
         // In the pool: a large scene's hierarchy is built in parallel, on `--threads` threads.
         let tracer = pool.install(|| Tracer::new(self.scene, settings));
         let started = Instant::now();
@@ -379,5 +518,51 @@ impl DelayedProgress {
 
     fn finish(&self) {
         self.bar.finish_and_clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_ranges_are_a_dash_b_k_or_all() {
+        assert_eq!(parse_frame_range("all"), Ok(FrameRange::All));
+        assert_eq!(
+            parse_frame_range("3-5"),
+            Ok(FrameRange::Span { first: 3, last: 5 })
+        );
+        assert_eq!(
+            parse_frame_range("7"),
+            Ok(FrameRange::Span { first: 7, last: 7 })
+        );
+        assert_eq!(
+            parse_frame_range("5-3").unwrap_err(),
+            "the range ends (frame 3) before it starts (frame 5)"
+        );
+        assert_eq!(
+            parse_frame_range("0").unwrap_err(),
+            "frames are numbered from 1"
+        );
+        for bad in ["", "-", "1-", "-3", "+1", "1-2-3", " 1", "1.5", "a-b"] {
+            assert_eq!(
+                parse_frame_range(bad).unwrap_err(),
+                format!("expected A-B, K or all (frame numbers from 1), got {bad:?}"),
+                "{bad:?}"
+            );
+        }
+        assert_eq!(
+            parse_frame_range("99999999999999999999").unwrap_err(),
+            "frame 99999999999999999999 is too large"
+        );
+    }
+
+    #[test]
+    fn frame_files_have_at_least_four_digits() {
+        assert_eq!(frame_file_name(7, 1), "frame_0007.png");
+        assert_eq!(frame_file_name(120, 121), "frame_0120.png");
+        assert_eq!(frame_file_name(9999, 9999), "frame_9999.png");
+        assert_eq!(frame_file_name(7, 10_000), "frame_00007.png");
+        assert_eq!(frame_file_name(100_000, 100_000), "frame_100000.png");
     }
 }

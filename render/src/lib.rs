@@ -1,6 +1,7 @@
 //! Tessera's ray tracer: the seed scene format's Whitted-style renderer.
 //!
-//! Pure computation: a scene's text goes in ([`parse_scene`]), tiles or whole frames
+//! Pure computation: a scene's text goes in ([`parse_scene`]; an animated scene's frames
+//! through [`parse_animated`] and [`AnimatedScene::frame`]), tiles or whole frames
 //! come out ([`render_tile`], [`render_frame`]), and every pixel is a deterministic
 //! function of the scene, the settings and its coordinates. No I/O, no network, no async,
 //! so the same code serves `tessera render`, the workers of the farm and the tests.
@@ -9,6 +10,7 @@
 //! adaptively ([`Sampling`]); every tile reports the samples it took and its estimated
 //! error, and [`metrics`] measures an image's real error against a reference.
 
+pub mod animation;
 mod bvh;
 mod camera;
 mod error;
@@ -25,10 +27,12 @@ pub mod simd;
 mod tile;
 mod tracer;
 mod vec3;
+mod write;
 
+pub use crate::animation::{AnimatedScene, Animation, FrameOutOfRange, MAX_FRAMES};
 pub use crate::error::SceneError;
 pub use crate::image::Image;
-pub use crate::parse::{parse_scene, validate_settings};
+pub use crate::parse::{parse_animated, parse_scene, validate_settings, MAX_TRACKS};
 pub use crate::sampling::{
     sample_offsets, InvalidTarget, Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI,
 };
@@ -39,6 +43,7 @@ pub use crate::tile::{
 };
 pub use crate::tracer::{Hit, Tracer};
 pub use crate::vec3::Vec3;
+pub use crate::write::Unwritable;
 
 /// This renderer's build: version, target and profile (and the packager's stamp from
 /// `TESSERA_BUILD` at compile time, if any). Workers announce it; the canary render,

@@ -10,10 +10,14 @@
 //! with the objects in parallel; the fast reading gives up on anything unusual, and then
 //! the reference reads the text again and words the error. Both give the same scene.
 
+mod animation;
 mod fast;
+
+pub use animation::MAX_TRACKS;
 
 use serde_json::{Map, Value};
 
+use crate::animation::AnimatedScene;
 use crate::error::SceneError;
 use crate::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 use crate::sampling::{Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI};
@@ -28,17 +32,38 @@ type Result<T> = std::result::Result<T, SceneError>;
 /// errors with line and column, everything else with the path of the offending value.
 ///
 /// The objects are converted in parallel on the current rayon pool.
+///
+/// An animated scene gives its frame 1 (see [`parse_animated`] for the others).
 pub fn parse_scene(text: &str) -> Result<Scene> {
+    parse_animated(text).map(AnimatedScene::into_first_frame)
+}
+
+/// Parses and validates a scene file's text with its animation, if it has one.
+///
+/// A scene without an `"animation"` key is read the fast way when it can be, as by
+/// [`parse_scene`]; the fast reading leaves the `"animation"` key (like every key it
+/// does not know) to the reference reading.
+pub fn parse_animated(text: &str) -> Result<AnimatedScene> {
     match fast::parse(text) {
-        Some(scene) => Ok(scene),
-        None => parse_reference(text),
+        Some(base) => Ok(AnimatedScene {
+            base,
+            animation: None,
+        }),
+        None => parse_reference_animated(text),
     }
 }
 
-/// The reference reading: every check in a fixed order, so that among several errors
-/// the same one is always reported. [`fast::parse`] must agree with it on every scene
-/// it accepts.
+/// The reference reading of a scene as [`parse_scene`] gives it: frame 1 of an animated
+/// scene. [`fast::parse`] must agree with it on every scene it accepts.
+#[cfg(test)]
 fn parse_reference(text: &str) -> Result<Scene> {
+    parse_reference_animated(text).map(AnimatedScene::into_first_frame)
+}
+
+/// The reference reading: every check in a fixed order, so that among several errors
+/// the same one is always reported. The animation, if any, is read last: it names the
+/// scene's objects and lights.
+fn parse_reference_animated(text: &str) -> Result<AnimatedScene> {
     let root: Value = serde_json::from_str(text).map_err(|e| SceneError::Syntax {
         message: syntax_message(&e),
         line: e.line(),
@@ -48,7 +73,14 @@ fn parse_reference(text: &str) -> Result<Scene> {
     check_keys(
         root,
         "",
-        &["lights", "objects", "camera", "image", "ambient"],
+        &[
+            "lights",
+            "objects",
+            "camera",
+            "image",
+            "ambient",
+            "animation",
+        ],
     )?;
 
     let lights = required_array(root, "", "lights")?
@@ -82,13 +114,18 @@ fn parse_reference(text: &str) -> Result<Scene> {
         }
         None => 0.2,
     };
-    Ok(Scene {
+    let base = Scene {
         lights,
         objects,
         camera,
         settings,
         ambient,
-    })
+    };
+    let animation = match root.get("animation") {
+        Some(v) => Some(animation::parse(v, &base)?),
+        None => None,
+    };
+    Ok(AnimatedScene { base, animation })
 }
 
 /// serde_json appends " at line L column C" to its messages; we report those separately.
@@ -404,29 +441,59 @@ fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {
         Some(v) => vec3(v, &join(path, "look_at"))?,
         None => default.look_at,
     };
+    match camera_problem(position, look_at) {
+        None => {}
+        Some(CameraProblem::Vertical) => return Err(SceneError::invalid(path, VERTICAL)),
+        Some(problem) => {
+            return Err(SceneError::invalid(
+                join(path, "look_at"),
+                problem.message(),
+            ))
+        }
+    }
+    Ok(CameraSpec { position, look_at })
+}
+
+/// What the camera check says about a vertical view (with the path `camera`).
+const VERTICAL: &str =
+    "the viewing direction (look_at - position) is parallel to the world up axis (0 1 0)";
+
+/// Why a camera position and look-at point give no camera.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum CameraProblem {
+    Same,
+    NoDirection,
+    Vertical,
+}
+
+impl CameraProblem {
+    fn message(self) -> &'static str {
+        match self {
+            CameraProblem::Same => "must differ from camera.position",
+            CameraProblem::NoDirection => {
+                "is too far from or too close to camera.position to define a direction"
+            }
+            CameraProblem::Vertical => VERTICAL,
+        }
+    }
+}
+
+/// The camera's checks, shared by the static scene and every frame of an animation.
+fn camera_problem(position: Vec3, look_at: Vec3) -> Option<CameraProblem> {
     let forward = look_at - position;
     if forward == Vec3::ZERO {
-        return Err(SceneError::invalid(
-            join(path, "look_at"),
-            "must differ from camera.position",
-        ));
+        return Some(CameraProblem::Same);
     }
     if !forward.is_finite() || !forward.length().is_normal() {
-        return Err(SceneError::invalid(
-            join(path, "look_at"),
-            "is too far from or too close to camera.position to define a direction",
-        ));
+        return Some(CameraProblem::NoDirection);
     }
     // The right axis is up × forward = (f.z, 0, -f.x): it vanishes (or underflows) when
     // the camera looks straight up or down.
     let f = forward.normalize();
     if !Vec3::new(f.z, 0.0, -f.x).length().is_normal() {
-        return Err(SceneError::invalid(
-            path,
-            "the viewing direction (look_at - position) is parallel to the world up axis (0 1 0)",
-        ));
+        return Some(CameraProblem::Vertical);
     }
-    Ok(CameraSpec { position, look_at })
+    None
 }
 
 fn parse_image(v: &Value, path: &str) -> Result<RenderSettings> {
@@ -785,7 +852,7 @@ mod tests {
             // Unknown keys are named in sorted order, before missing keys and values.
             (
                 r#"{"zeta": 1, "lights": 2, "alpha": 3}"#.to_string(),
-                "alpha: unknown key (expected one of: lights, objects, camera, image, ambient)",
+                "alpha: unknown key (expected one of: lights, objects, camera, image, ambient, animation)",
             ),
             (
                 objects(&[r#"{"type": "sphere", "radius": -1, "shiny": 1, "normal": 2}"#]),
@@ -846,6 +913,38 @@ mod tests {
             error_of(&text),
             "objects[5000].color: special (4th number) must be 0, in (0, 1] or 2, got 3"
         );
+    }
+
+    /// The fast reading leaves an animated scene to the reference, and agrees with it on
+    /// the same scene without its animation.
+    #[test]
+    fn the_fast_reading_leaves_animations_to_the_reference() {
+        let still = SEED.trim_end().strip_suffix('}').unwrap();
+        let animated = format!(
+            r#"{still}, "animation": {{"frames": 10, "tracks": [{{"target": "objects[0].radius",
+                "keys": [{{"frame": 1, "value": 0.5}}, {{"frame": 10, "value": 2}}]}}]}}}}"#
+        );
+        assert!(fast::parse(&animated).is_none());
+        assert!(fast::parse(SEED).is_some());
+        agree(&animated);
+        agree(SEED);
+        // The static part of the animated scene is the seed, read the fast way.
+        let a = parse_animated(&animated).unwrap();
+        assert_eq!(a.base, fast::parse(SEED).unwrap());
+        assert_eq!(parse_animated(SEED).unwrap().animation, None);
+        // Without a frame, the animated scene is its frame 1.
+        let first = parse_scene(&animated).unwrap();
+        assert_eq!(first, a.frame(1).unwrap());
+        assert_eq!(
+            first.objects[0].shape,
+            Shape::Sphere {
+                center: Vec3::ZERO,
+                radius: 0.5
+            }
+        );
+        // An error in the static part is the static reading's error, animation or not.
+        let broken = animated.replacen("\"radius\": 1.0", "\"radius\": -1", 1);
+        assert_eq!(error_of(&broken), "objects[0].radius: must be > 0, got -1");
     }
 
     /// Scenes the reference accepts but the fast reading leaves to it: same scene.
@@ -1127,6 +1226,28 @@ mod tests {
             #[test]
             fn the_fast_reading_agrees_with_the_reference(text in scene()) {
                 agree(&text);
+            }
+
+            /// A generated scene with an animation put first: the fast reading leaves it
+            /// to the reference, which accepts it exactly when it accepts the scene
+            /// without it, with that scene as its static part.
+            #[test]
+            fn an_animation_changes_nothing_else(text in scene()) {
+                let animated = format!(
+                    r#"{{"animation": {{"frames": 3, "tracks": [{{"target": "camera.position",
+                        "keys": [{{"frame": 1, "value": "0 1 -5"}}, {{"frame": 3, "value": [1, 1, -5]}}]}}]}}, {}"#,
+                    &text[1..]
+                );
+                prop_assert!(fast::parse(&animated).is_none());
+                agree(&animated);
+                let still = crate::parse_scene(&text);
+                let moving = crate::parse_animated(&animated);
+                prop_assert_eq!(still.is_ok(), moving.is_ok(), "{}", animated);
+                if let (Ok(still), Ok(moving)) = (still, moving) {
+                    prop_assert_eq!(format!("{:?}", moving.base), format!("{still:?}"));
+                    let last = moving.frame(3).unwrap();
+                    prop_assert_eq!(last.camera.position, crate::Vec3::new(1.0, 1.0, -5.0));
+                }
             }
 
             #[test]

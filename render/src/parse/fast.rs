@@ -4,7 +4,7 @@
 //!
 //! It only ever answers "here is the scene" or "not me". Anything unusual (any error, a
 //! repeated or unknown key, an escape sequence in a key or in a string it reads, a
-//! `null`) gives `None`, and [`super::parse_scene`] then reads the text the reference
+//! `null`, and also an `"animation"` key, which only the reference reads) gives `None`, and [`super::parse_scene`] then reads the text the reference
 //! way, which alone words errors. So the rule here is: when this returns a scene, the
 //! reference returns the same scene.
 //!

@@ -1,0 +1,852 @@
+//! Reading the `"animation"` key of a scene file into an [`Animation`].
+//!
+//! Kept apart from the static scene's reading because it is read after it and against
+//! it: a track names an object or a light by its index and a field its type must have,
+//! and every frame's values must make a valid scene. So the checks come in this order,
+//! and the first problem found is the one reported:
+//! 1. the structure, key by key (`frames`, `fps`, then each track: its target, its
+//!    interpolation, its keys in order);
+//! 2. each track in order, at every frame from 1 to `frames`: the interpolated value
+//!    must be valid where the static scene's would have to be (finite, radius > 0,
+//!    normal non-zero, r g b ≥ 0);
+//! 3. the camera at every frame, when a track moves it: its view direction must exist
+//!    and must not be parallel to the up axis.
+//!
+//! Checking every frame is cheap (a few operations per track and frame, with at most
+//! [`MAX_TRACKS`] tracks and [`MAX_FRAMES`] frames), and it means that every frame of an
+//! accepted animation renders.
+
+use std::collections::HashMap;
+
+use serde_json::{Map, Value};
+
+use super::{
+    as_object, camera_problem, check_keys, join, number, required, type_name, vec3, whole_number,
+    CameraProblem, Result,
+};
+use crate::animation::{
+    Animation, Interpolation, Key, Target, Track, Value as KeyValue, MAX_FRAMES,
+};
+use crate::error::SceneError;
+use crate::scene::{Scene, Shape};
+use crate::vec3::Vec3;
+
+/// The most tracks an animation may have.
+pub const MAX_TRACKS: usize = 4096;
+
+/// The most track values checked (tracks × frames): every frame of every track is
+/// checked when the scene is read, by a coordinator too, so this bounds what one
+/// submitted scene can cost it (about a tenth of a second).
+pub const MAX_TRACK_FRAMES: u64 = 10_000_000;
+
+/// The frame rate when the file gives none.
+const DEFAULT_FPS: f64 = 24.0;
+
+/// Reads and checks the value of the `"animation"` key against the static scene `base`.
+pub(super) fn parse(v: &Value, base: &Scene) -> Result<Animation> {
+    let path = "animation";
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["frames", "fps", "tracks"])?;
+    let frames_path = join(path, "frames");
+    let frames = whole_number(required(obj, path, "frames")?, &frames_path)?;
+    if !(1..=MAX_FRAMES).contains(&frames) {
+        return Err(SceneError::invalid(
+            frames_path,
+            format!("must be between 1 and {MAX_FRAMES}, got {frames}"),
+        ));
+    }
+    let fps = match obj.get("fps") {
+        Some(v) => {
+            let fps_path = join(path, "fps");
+            let fps = number(v, &fps_path)?;
+            if fps <= 0.0 {
+                return Err(SceneError::invalid(
+                    fps_path,
+                    format!("must be > 0, got {fps}"),
+                ));
+            }
+            fps
+        }
+        None => DEFAULT_FPS,
+    };
+    let tracks = match obj.get("tracks") {
+        Some(v) => parse_tracks(v, &join(path, "tracks"), frames, base)?,
+        None => Vec::new(),
+    };
+    let animation = Animation {
+        frames,
+        fps,
+        tracks,
+    };
+    check_frames(&animation, base)?;
+    Ok(animation)
+}
+
+fn parse_tracks(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Vec<Track>> {
+    let items = v.as_array().ok_or_else(|| {
+        SceneError::invalid(path, format!("expected an array, got {}", type_name(v)))
+    })?;
+    if items.len() > MAX_TRACKS {
+        return Err(SceneError::invalid(
+            path,
+            format!("at most {MAX_TRACKS} tracks, got {}", items.len()),
+        ));
+    }
+    let checks = items.len() as u64 * u64::from(frames);
+    if checks > MAX_TRACK_FRAMES {
+        return Err(SceneError::invalid(
+            path,
+            format!(
+                "{} tracks of {frames} frames are {checks} values to check, at most \
+                 {MAX_TRACK_FRAMES}: use fewer tracks or frames",
+                items.len()
+            ),
+        ));
+    }
+    let mut seen: HashMap<Target, usize> = HashMap::new();
+    let mut tracks = Vec::with_capacity(items.len());
+    for (i, item) in items.iter().enumerate() {
+        let track_path = format!("{path}[{i}]");
+        let track = parse_track(item, &track_path, frames, base)?;
+        if let Some(first) = seen.insert(track.target, i) {
+            return Err(SceneError::invalid(
+                join(&track_path, "target"),
+                format!("{} is already animated by tracks[{first}]", track.target),
+            ));
+        }
+        tracks.push(track);
+    }
+    Ok(tracks)
+}
+
+fn parse_track(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Track> {
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["target", "interpolation", "keys"])?;
+    let target_path = join(path, "target");
+    let target = target(
+        string(required(obj, path, "target")?, &target_path)?,
+        &target_path,
+        base,
+    )?;
+    let interpolation = match obj.get("interpolation") {
+        Some(v) => {
+            let p = join(path, "interpolation");
+            match string(v, &p)? {
+                "linear" => Interpolation::Linear,
+                "catmull-rom" => Interpolation::CatmullRom,
+                other => {
+                    return Err(SceneError::invalid(
+                        p,
+                        format!(
+                        "unknown interpolation {other:?} (expected \"linear\" or \"catmull-rom\")"
+                    ),
+                    ))
+                }
+            }
+        }
+        None => Interpolation::Linear,
+    };
+    let keys = parse_keys(obj, path, frames, target)?;
+    Ok(Track {
+        target,
+        interpolation,
+        keys,
+    })
+}
+
+fn parse_keys(
+    obj: &Map<String, Value>,
+    path: &str,
+    frames: u32,
+    target: Target,
+) -> Result<Vec<Key>> {
+    let keys_path = join(path, "keys");
+    let v = required(obj, path, "keys")?;
+    let items = v.as_array().ok_or_else(|| {
+        SceneError::invalid(
+            &*keys_path,
+            format!("expected an array, got {}", type_name(v)),
+        )
+    })?;
+    if items.is_empty() {
+        return Err(SceneError::invalid(keys_path, "must hold at least one key"));
+    }
+    let mut keys: Vec<Key> = Vec::with_capacity(items.len());
+    for (j, item) in items.iter().enumerate() {
+        let key_path = format!("{keys_path}[{j}]");
+        let key = as_object(item, &key_path)?;
+        check_keys(key, &key_path, &["frame", "value"])?;
+        let frame_path = join(&key_path, "frame");
+        let frame = whole_number(required(key, &key_path, "frame")?, &frame_path)?;
+        if frame == 0 {
+            return Err(SceneError::invalid(
+                frame_path,
+                "frames are numbered from 1, got 0",
+            ));
+        }
+        if frame > frames {
+            return Err(SceneError::invalid(
+                frame_path,
+                format!("{frame} is beyond the {frames} frames"),
+            ));
+        }
+        if let Some(previous) = keys.last() {
+            if frame <= previous.frame {
+                return Err(SceneError::invalid(
+                    frame_path,
+                    format!(
+                        "{frame} does not come after the previous key's frame {}",
+                        previous.frame
+                    ),
+                ));
+            }
+        }
+        let value_path = join(&key_path, "value");
+        let value = required(key, &key_path, "value")?;
+        let value = if target.is_vector() {
+            KeyValue::Vector(vec3(value, &value_path)?)
+        } else {
+            KeyValue::Number(number(value, &value_path)?)
+        };
+        keys.push(Key { frame, value });
+    }
+    Ok(keys)
+}
+
+fn string<'a>(v: &'a Value, path: &str) -> Result<&'a str> {
+    v.as_str().ok_or_else(|| {
+        SceneError::invalid(path, format!("expected a string, got {}", type_name(v)))
+    })
+}
+
+/// What a target string names: `camera.position`, `camera.look_at`,
+/// `objects[N].FIELD` or `lights[N].FIELD`, checked against the scene.
+fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
+    let unknown = || {
+        SceneError::invalid(
+            path,
+            format!(
+                "unknown target {text:?} (expected camera.position, camera.look_at, \
+                 objects[N].FIELD or lights[N].FIELD)"
+            ),
+        )
+    };
+    let (head, field) = text.split_once('.').ok_or_else(unknown)?;
+    if head == "camera" {
+        return match field {
+            "position" => Ok(Target::CameraPosition),
+            "look_at" => Ok(Target::CameraLookAt),
+            other => Err(SceneError::invalid(
+                path,
+                format!(
+                    "the camera has no field {other:?} to animate (expected position or look_at)"
+                ),
+            )),
+        };
+    }
+    let (list, index) = head
+        .strip_suffix(']')
+        .and_then(|h| h.split_once('['))
+        .ok_or_else(unknown)?;
+    if index.is_empty() || !index.bytes().all(|b| b.is_ascii_digit()) {
+        return Err(unknown());
+    }
+    // More digits than a usize holds: certainly beyond the list.
+    let i = index.parse::<usize>().unwrap_or(usize::MAX);
+    match list {
+        "objects" => {
+            let object = base.objects.get(i).ok_or_else(|| {
+                SceneError::invalid(
+                    path,
+                    format!(
+                        "there is no objects[{index}]: the scene has {} objects",
+                        base.objects.len()
+                    ),
+                )
+            })?;
+            match (object.shape, field) {
+                (Shape::Sphere { .. }, "center") => Ok(Target::SphereCenter(i)),
+                (Shape::Sphere { .. }, "radius") => Ok(Target::SphereRadius(i)),
+                (Shape::Plane { .. }, "normal") => Ok(Target::PlaneNormal(i)),
+                (Shape::Plane { .. }, "distance") => Ok(Target::PlaneDistance(i)),
+                (_, "color") => Ok(Target::ObjectColor(i)),
+                (Shape::Sphere { .. }, other) => Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "objects[{i}] is a sphere, which has no field {other:?} to animate \
+                         (expected center, radius or color)"
+                    ),
+                )),
+                (Shape::Plane { .. }, other) => Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "objects[{i}] is a plane, which has no field {other:?} to animate \
+                         (expected normal, distance or color)"
+                    ),
+                )),
+            }
+        }
+        "lights" => {
+            if i >= base.lights.len() {
+                return Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "there is no lights[{index}]: the scene has {} lights",
+                        base.lights.len()
+                    ),
+                ));
+            }
+            match field {
+                "position" => Ok(Target::LightPosition(i)),
+                "color" => Ok(Target::LightColor(i)),
+                other => Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "lights[{i}] has no field {other:?} to animate (expected position or color)"
+                    ),
+                )),
+            }
+        }
+        _ => Err(unknown()),
+    }
+}
+
+/// Steps 2 and 3 of the module's checks: every frame of every track, then the camera.
+fn check_frames(animation: &Animation, base: &Scene) -> Result<()> {
+    for (i, track) in animation.tracks.iter().enumerate() {
+        for k in 1..=animation.frames {
+            if let Some(problem) = value_problem(track.target, track.value_at(k)) {
+                return Err(SceneError::invalid(
+                    format!("animation.tracks[{i}]"),
+                    format!("at frame {k}, {} {problem}", track.target),
+                ));
+            }
+        }
+    }
+    let track_of = |target: Target| animation.tracks.iter().find(|t| t.target == target);
+    let position = track_of(Target::CameraPosition);
+    let look_at = track_of(Target::CameraLookAt);
+    if position.is_none() && look_at.is_none() {
+        return Ok(());
+    }
+    let at = |track: Option<&Track>, k: u32, still: Vec3| match track.map(|t| t.value_at(k)) {
+        Some(KeyValue::Vector(v)) => v,
+        _ => still,
+    };
+    for k in 1..=animation.frames {
+        let p = at(position, k, base.camera.position);
+        let l = at(look_at, k, base.camera.look_at);
+        let problem = match camera_problem(p, l) {
+            None => continue,
+            Some(CameraProblem::Same) => "camera.look_at equals camera.position",
+            Some(CameraProblem::NoDirection) => {
+                "camera.look_at is too far from or too close to camera.position to define a direction"
+            }
+            Some(CameraProblem::Vertical) => {
+                "the camera's viewing direction (look_at - position) is parallel to the world up axis (0 1 0)"
+            }
+        };
+        return Err(SceneError::invalid(
+            "animation",
+            format!("at frame {k}, {problem}"),
+        ));
+    }
+    Ok(())
+}
+
+/// What is wrong with a field's value, worded to follow the field's name; `None` if
+/// the static scene could hold it.
+fn value_problem(target: Target, value: KeyValue) -> Option<String> {
+    match value {
+        KeyValue::Number(x) => {
+            if !x.is_finite() {
+                return Some(format!("is not a finite number: {x}"));
+            }
+            if matches!(target, Target::SphereRadius(_)) && x <= 0.0 {
+                return Some(format!("must be > 0, got {x}"));
+            }
+        }
+        KeyValue::Vector(v) => {
+            if !v.is_finite() {
+                return Some(format!("is not finite: {} {} {}", v.x, v.y, v.z));
+            }
+            match target {
+                Target::PlaneNormal(_) => {
+                    let len = v.length();
+                    if len == 0.0 || !len.is_finite() {
+                        return Some("must be a non-zero vector of finite length".into());
+                    }
+                }
+                Target::ObjectColor(_) | Target::LightColor(_) => {
+                    if let Some(c) = [v.x, v.y, v.z].into_iter().find(|c| *c < 0.0) {
+                        return Some(format!("must have r, g and b >= 0, got {c}"));
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::animation::AnimatedScene;
+    use crate::scene::{CameraSpec, Shape};
+    use crate::vec3::Vec3;
+    use crate::{parse_animated, parse_scene};
+
+    /// Two lights, two spheres and a plane, with `animation` as the animation key's
+    /// value.
+    fn scene(animation: &str) -> String {
+        format!(
+            r#"{{"lights": [{{"position": "-7 10 -10", "color": "1 1 1"}},
+                         {{"position": "7 10 10", "color": "1 1 1"}}],
+               "objects": [
+                 {{"type": "sphere", "center": "0 0 0", "radius": 1, "color": "0.5 1 0.5 0.3"}},
+                 {{"type": "sphere", "center": "3 0 0", "radius": 1, "color": "0.5 0.5 0.5 0.6"}},
+                 {{"type": "plan", "normal": "0 1 0", "distance": -1, "color": "0.5 0.25 0.2 2"}}],
+               "image": {{"width": 32, "height": 24}},
+               "animation": {animation}}}"#
+        )
+    }
+
+    /// An animation of 120 frames with the given tracks.
+    fn tracks(tracks: &str) -> String {
+        scene(&format!(
+            r#"{{"frames": 120, "fps": 24, "tracks": [{tracks}]}}"#
+        ))
+    }
+
+    fn error_of(text: &str) -> String {
+        let e = parse_animated(text).unwrap_err().to_string();
+        // The same error when read as a plain scene (frame 1).
+        assert_eq!(parse_scene(text).unwrap_err().to_string(), e);
+        assert!(!e.contains('\n'), "{e}");
+        e
+    }
+
+    const RADIUS: &str = r#"{"target": "objects[1].radius", "keys": [{"frame": 1, "value": 0.5}, {"frame": 120, "value": 1.0}]}"#;
+
+    #[test]
+    fn an_animation_is_read_with_its_tracks() {
+        let s = parse_animated(&tracks(&format!(
+            r#"{{"target": "camera.position", "interpolation": "catmull-rom",
+                 "keys": [{{"frame": 1, "value": "0 1 -5"}}, {{"frame": 61, "value": [5, 1, 0]}}]}},
+               {RADIUS}"#
+        )))
+        .unwrap();
+        let a = s.animation.as_ref().unwrap();
+        assert_eq!((a.frames, a.fps, a.tracks.len()), (120, 24.0, 2));
+        assert_eq!(s.frame_count(), 120);
+        // Defaults: 24 frames per second, no tracks.
+        let s = parse_animated(&scene(r#"{"frames": 3}"#)).unwrap();
+        let a = s.animation.as_ref().unwrap();
+        assert_eq!((a.frames, a.fps, a.tracks.len()), (3, 24.0, 0));
+        assert_eq!(s.frame(3).unwrap(), s.base);
+    }
+
+    /// Frame k is the static scene with the interpolated values written by hand.
+    #[test]
+    fn frame_k_is_the_static_scene_with_the_interpolated_values() {
+        let text = tracks(&format!(
+            r#"{{"target": "camera.position", "keys": [{{"frame": 11, "value": "0 1 -5"}}, {{"frame": 21, "value": "10 1 -5"}}]}},
+               {RADIUS},
+               {{"target": "objects[0].color", "keys": [{{"frame": 1, "value": "0 0 0"}}, {{"frame": 3, "value": "1 0.5 0.25"}}]}},
+               {{"target": "lights[1].position", "interpolation": "catmull-rom",
+                 "keys": [{{"frame": 1, "value": "0 0 0"}}, {{"frame": 5, "value": "4 0 0"}}, {{"frame": 9, "value": "8 0 0"}}, {{"frame": 13, "value": "12 0 0"}}]}},
+               {{"target": "objects[2].distance", "keys": [{{"frame": 60, "value": -2}}]}}"#
+        ));
+        let animated = parse_animated(&text).unwrap();
+        let by_hand = |camera_x: f64, radius: f64, rgb: Vec3, light_x: f64| {
+            let mut s = parse_scene(&scene(r#"{"frames": 1}"#)).unwrap();
+            s.camera = CameraSpec {
+                position: Vec3::new(camera_x, 1.0, -5.0),
+                look_at: Vec3::ZERO,
+            };
+            s.objects[1].shape = Shape::Sphere {
+                center: Vec3::new(3.0, 0.0, 0.0),
+                radius,
+            };
+            s.objects[0].color = rgb;
+            s.lights[1].position = Vec3::new(light_x, 0.0, 0.0);
+            s.objects[2].shape = Shape::Plane {
+                normal: Vec3::new(0.0, 1.0, 0.0),
+                distance: -2.0,
+            };
+            s
+        };
+        // Frame 1: every track at its first key (the camera and the plane hold theirs).
+        assert_eq!(
+            animated.frame(1).unwrap(),
+            by_hand(0.0, 0.5, Vec3::ZERO, 0.0)
+        );
+        // Frame 2: the colour halfway; the radius 1/119 of the way.
+        assert_eq!(
+            animated.frame(2).unwrap(),
+            by_hand(
+                0.0,
+                0.5 + (1.0 - 0.5) * (1.0 / 119.0),
+                Vec3::new(0.5, 0.25, 0.125),
+                0.71875
+            )
+        );
+        // Frame 16: the camera halfway between its keys; the light past its last key.
+        assert_eq!(
+            animated.frame(16).unwrap(),
+            by_hand(
+                5.0,
+                0.5 + 0.5 * (15.0 / 119.0),
+                Vec3::new(1.0, 0.5, 0.25),
+                12.0
+            )
+        );
+        // Frame 7: the light between inner keys of a straight line stays on it.
+        assert_eq!(animated.frame(7).unwrap().lights[1].position.x, 6.0);
+        // Frame 120: the last keys.
+        assert_eq!(
+            animated.frame(120).unwrap(),
+            by_hand(10.0, 1.0, Vec3::new(1.0, 0.5, 0.25), 12.0)
+        );
+        // Without a frame, an animated scene is its frame 1; the static part is kept.
+        assert_eq!(parse_scene(&text).unwrap(), animated.frame(1).unwrap());
+        assert_eq!(animated.base.objects[2].material, crate::Material::Checker);
+        let AnimatedScene { base, .. } = animated;
+        assert_eq!(
+            base.objects[1].shape,
+            Shape::Sphere {
+                center: Vec3::new(3.0, 0.0, 0.0),
+                radius: 1.0
+            }
+        );
+    }
+
+    #[test]
+    fn the_example_animations_load_and_every_frame_is_a_scene() {
+        for (text, frames) in [
+            (include_str!("../../../scenes/seed-orbit.json"), 121),
+            (include_str!("../../../scenes/moving-spheres.json"), 48),
+        ] {
+            let a = parse_animated(text).unwrap();
+            assert_eq!(a.frame_count(), frames);
+            for k in 1..=u64::from(frames) {
+                let frame = a.frame(k).unwrap();
+                // Each frame is a static scene that reads back as itself.
+                if let Ok(json) = frame.to_json() {
+                    assert_eq!(parse_scene(&json).unwrap(), frame, "frame {k}");
+                }
+            }
+        }
+        // The orbit comes back to where it started, on the circle at its keys.
+        let orbit = parse_animated(include_str!("../../../scenes/seed-orbit.json")).unwrap();
+        assert_eq!(orbit.frame(1).unwrap(), orbit.frame(121).unwrap());
+        assert_eq!(orbit.frame(1).unwrap(), orbit.base);
+        let p = orbit.frame(31).unwrap().camera.position;
+        assert_eq!(p, Vec3::new(-3.5, 1.5, 0.0));
+    }
+
+    #[test]
+    fn error_animation_not_an_object() {
+        assert_eq!(
+            error_of(&scene("[]")),
+            "animation: expected an object, got an array"
+        );
+    }
+
+    #[test]
+    fn error_unknown_key() {
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 2, "loop": true}"#)),
+            "animation.loop: unknown key (expected one of: frames, fps, tracks)"
+        );
+    }
+
+    #[test]
+    fn error_frames_missing_or_out_of_range() {
+        assert_eq!(
+            error_of(&scene(r#"{"fps": 24}"#)),
+            "animation: missing key \"frames\""
+        );
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 0}"#)),
+            "animation.frames: must be between 1 and 100000, got 0"
+        );
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 100001}"#)),
+            "animation.frames: must be between 1 and 100000, got 100001"
+        );
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 2.5}"#)),
+            "animation.frames: expected a whole number >= 0, got 2.5"
+        );
+    }
+
+    #[test]
+    fn error_fps_not_positive() {
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 2, "fps": 0}"#)),
+            "animation.fps: must be > 0, got 0"
+        );
+        assert_eq!(
+            error_of(&scene(r#"{"frames": 2, "fps": "24"}"#)),
+            "animation.fps: expected a number, got a string"
+        );
+    }
+
+    #[test]
+    fn error_too_many_tracks() {
+        let many = vec![RADIUS; super::MAX_TRACKS + 1].join(", ");
+        assert_eq!(
+            error_of(&tracks(&many)),
+            format!(
+                "animation.tracks: at most {} tracks, got {}",
+                super::MAX_TRACKS,
+                super::MAX_TRACKS + 1
+            )
+        );
+    }
+
+    #[test]
+    fn error_too_many_track_frames() {
+        let text = scene(&format!(
+            r#"{{"frames": 100000, "tracks": [{}]}}"#,
+            vec![RADIUS; 101].join(", ")
+        ));
+        assert_eq!(
+            error_of(&text),
+            "animation.tracks: 101 tracks of 100000 frames are 10100000 values to check, at \
+             most 10000000: use fewer tracks or frames"
+        );
+    }
+
+    #[test]
+    fn error_key_frame_beyond_the_frames() {
+        assert_eq!(
+            error_of(&tracks(&format!(
+                r#"{RADIUS}, {RADIUS}, {{"target": "camera.look_at", "keys": [{{"frame": 1, "value": "0 0 0"}}, {{"frame": 130, "value": "0 0 1"}}]}}"#
+            ))),
+            // The duplicate comes first: tracks are read in order.
+            "animation.tracks[1].target: objects[1].radius is already animated by tracks[0]"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 1, "value": "0 0 0"}, {"frame": 130, "value": "0 0 1"}]}"#
+            )),
+            "animation.tracks[0].keys[1].frame: 130 is beyond the 120 frames"
+        );
+    }
+
+    #[test]
+    fn error_key_frame_zero() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 0, "value": "0 0 0"}]}"#
+            )),
+            "animation.tracks[0].keys[0].frame: frames are numbered from 1, got 0"
+        );
+    }
+
+    #[test]
+    fn error_key_frames_not_increasing() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 1, "value": "0 0 0"}, {"frame": 61, "value": "0 0 1"}, {"frame": 40, "value": "0 0 2"}]}"#
+            )),
+            "animation.tracks[0].keys[2].frame: 40 does not come after the previous key's frame 61"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 5, "value": "0 0 0"}, {"frame": 5, "value": "0 0 1"}]}"#
+            )),
+            "animation.tracks[0].keys[1].frame: 5 does not come after the previous key's frame 5"
+        );
+    }
+
+    #[test]
+    fn error_no_keys() {
+        assert_eq!(
+            error_of(&tracks(r#"{"target": "camera.look_at", "keys": []}"#)),
+            "animation.tracks[0].keys: must hold at least one key"
+        );
+        assert_eq!(
+            error_of(&tracks(r#"{"target": "camera.look_at"}"#)),
+            "animation.tracks[0]: missing key \"keys\""
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 1, "value": "0 0 0", "ease": 1}]}"#
+            )),
+            "animation.tracks[0].keys[0].ease: unknown key (expected one of: frame, value)"
+        );
+    }
+
+    #[test]
+    fn error_unknown_object_or_light() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[3].radius", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].target: there is no objects[3]: the scene has 3 objects"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "lights[2].position", "keys": [{"frame": 1, "value": "0 0 0"}]}"#
+            )),
+            "animation.tracks[0].target: there is no lights[2]: the scene has 2 lights"
+        );
+    }
+
+    #[test]
+    fn error_unknown_target() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "sun.position", "keys": [{"frame": 1, "value": "0 0 0"}]}"#
+            )),
+            "animation.tracks[0].target: unknown target \"sun.position\" (expected camera.position, camera.look_at, objects[N].FIELD or lights[N].FIELD)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[-1].radius", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].target: unknown target \"objects[-1].radius\" (expected camera.position, camera.look_at, objects[N].FIELD or lights[N].FIELD)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].target: the camera has no field \"fov\" to animate (expected position or look_at)"
+        );
+    }
+
+    #[test]
+    fn error_field_the_object_does_not_have() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[2].radius", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].target: objects[2] is a plane, which has no field \"radius\" to animate (expected normal, distance or color)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].normal", "keys": [{"frame": 1, "value": "0 1 0"}]}"#
+            )),
+            "animation.tracks[0].target: objects[0] is a sphere, which has no field \"normal\" to animate (expected center, radius or color)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "lights[0].radius", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].target: lights[0] has no field \"radius\" to animate (expected position or color)"
+        );
+    }
+
+    #[test]
+    fn error_wrong_value_type() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].radius", "keys": [{"frame": 1, "value": "1 2 3"}]}"#
+            )),
+            "animation.tracks[0].keys[0].value: expected a number, got a string"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].center", "keys": [{"frame": 1, "value": 2}]}"#
+            )),
+            "animation.tracks[0].keys[0].value: expected 3 numbers as a string or an array, got a number"
+        );
+        // A colour track animates r g b only: the material (special) stays the scene's.
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].color", "keys": [{"frame": 1, "value": "1 1 1 0.5"}]}"#
+            )),
+            "animation.tracks[0].keys[0].value: expected 3 numbers, got 4"
+        );
+    }
+
+    #[test]
+    fn error_unknown_interpolation() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].radius", "interpolation": "cubic", "keys": [{"frame": 1, "value": 1}]}"#
+            )),
+            "animation.tracks[0].interpolation: unknown interpolation \"cubic\" (expected \"linear\" or \"catmull-rom\")"
+        );
+    }
+
+    #[test]
+    fn error_radius_not_positive_at_some_frame() {
+        // Catmull-Rom overshoots below zero between keys that are all positive.
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].radius", "interpolation": "catmull-rom",
+                    "keys": [{"frame": 1, "value": 10}, {"frame": 2, "value": 10}, {"frame": 3, "value": 0.01}, {"frame": 100, "value": 0.01}]}"#
+            )),
+            "animation.tracks[0]: at frame 4, objects[0].radius must be > 0, got -0.08984777926475086"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[1].radius", "keys": [{"frame": 1, "value": 1}, {"frame": 3, "value": -1}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, objects[1].radius must be > 0, got 0"
+        );
+    }
+
+    #[test]
+    fn error_zero_normal_at_some_frame() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[2].normal", "keys": [{"frame": 1, "value": "0 1 0"}, {"frame": 11, "value": "0 -1 0"}]}"#
+            )),
+            "animation.tracks[0]: at frame 6, objects[2].normal must be a non-zero vector of finite length"
+        );
+    }
+
+    #[test]
+    fn error_negative_colour_at_some_frame() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "lights[1].color", "keys": [{"frame": 1, "value": "1 1 1"}, {"frame": 2, "value": "-1 1 1"}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, lights[1].color must have r, g and b >= 0, got -1"
+        );
+    }
+
+    #[test]
+    fn error_not_finite_at_some_frame() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[0].center", "keys": [{"frame": 1, "value": "-1e308 0 0"}, {"frame": 3, "value": "1e308 0 0"}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, objects[0].center is not finite: inf 0 0"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "objects[2].distance", "keys": [{"frame": 1, "value": -1e308}, {"frame": 5, "value": 1.7e308}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, objects[2].distance is not a finite number: inf"
+        );
+    }
+
+    #[test]
+    fn error_camera_vertical_at_some_frame() {
+        // Default camera at (3, 1.5, -4); the look-at point passes above it at frame 31.
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.look_at", "keys": [{"frame": 1, "value": "3 5 -34"}, {"frame": 61, "value": "3 5 26"}]}"#
+            )),
+            "animation: at frame 31, the camera's viewing direction (look_at - position) is parallel to the world up axis (0 1 0)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.position", "keys": [{"frame": 1, "value": "0 0 -2"}, {"frame": 3, "value": "0 0 2"}]}"#
+            )),
+            "animation: at frame 2, camera.look_at equals camera.position"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.position", "keys": [{"frame": 7, "value": "1e-310 0 0"}]}"#
+            )),
+            "animation: at frame 1, camera.look_at is too far from or too close to camera.position to define a direction"
+        );
+    }
+}
