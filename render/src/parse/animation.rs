@@ -36,7 +36,8 @@ pub const MAX_TRACKS: usize = 4096;
 
 /// The most track values checked (tracks × frames): every frame of every track is
 /// checked when the scene is read, by a coordinator too, so this bounds what one
-/// submitted scene can cost it (about a tenth of a second).
+/// submitted scene can cost it (0.3 s at the bound, 100 Catmull–Rom vector tracks of
+/// 100,000 frames, on a 2-core Intel Xeon).
 pub const MAX_TRACK_FRAMES: u64 = 10_000_000;
 
 /// The frame rate when the file gives none.
