@@ -28,7 +28,7 @@ pub struct Observer {
 
 /// A studio page's stream: what its view's jobs push, until it is dropped.
 pub struct StudioStream {
-    rx: tokio::sync::mpsc::UnboundedReceiver<super::studio_session::Push>,
+    rx: tokio::sync::mpsc::Receiver<super::studio_session::Push>,
     view: String,
     shared: Arc<Shared>,
 }

@@ -21,6 +21,11 @@ use super::Shared;
 use crate::studio::plan::{self, Pass};
 use crate::studio::views::{Action, Event, Owner, Refused, ViewId, Views};
 
+/// Pushes a page may leave unread before it is dropped: several whole passes of a 960 ×
+/// 540 view (135 tiles each), and at most about 17 MB of base64, every pass being cut
+/// in 64-pixel tiles ([`plan::PREVIEW_TILE`]).
+pub const PAGE_BACKLOG: usize = 1024;
+
 /// What a view's pages are sent, as server-sent events (`tile` and `pass`).
 #[derive(Clone, Debug, Serialize)]
 #[serde(untagged)]
@@ -76,7 +81,7 @@ impl Push {
 pub struct Studio {
     views: Mutex<Views>,
     /// Each view's pages, by view.
-    pages: Mutex<HashMap<ViewId, Vec<mpsc::UnboundedSender<Push>>>>,
+    pages: Mutex<HashMap<ViewId, Vec<mpsc::Sender<Push>>>>,
     /// Each view's plan for its current generation.
     plans: Mutex<HashMap<ViewId, (u64, Vec<Pass>)>>,
     /// Generations whose first tile went out.
@@ -101,9 +106,9 @@ impl Studio {
     }
 
     /// A page connects to its view's stream.
-    pub fn connect(&self, now: u64, view: &str) -> Result<mpsc::UnboundedReceiver<Push>, Refused> {
+    pub fn connect(&self, now: u64, view: &str) -> Result<mpsc::Receiver<Push>, Refused> {
         locked(&self.views).handle(now, Event::Connected { view: view.into() })?;
-        let (tx, rx) = mpsc::unbounded_channel();
+        let (tx, rx) = mpsc::channel(PAGE_BACKLOG);
         locked(&self.pages).entry(view.into()).or_default().push(tx);
         Ok(rx)
     }
@@ -195,9 +200,13 @@ impl Studio {
             .collect()
     }
 
+    /// To every page of the view. A page that has not read [`PAGE_BACKLOG`] pushes is
+    /// dropped (its stream ends): a tab that stopped reading must not make the
+    /// coordinator keep every tile since. Its browser reconnects and the page sends its
+    /// scene again, which renders it afresh.
     fn send(&self, view: &str, push: Push) {
         if let Some(list) = locked(&self.pages).get_mut(view) {
-            list.retain(|tx| tx.send(push.clone()).is_ok());
+            list.retain(|tx| tx.try_send(push.clone()).is_ok());
         }
     }
 }
@@ -316,4 +325,54 @@ async fn submit_passes(
 /// Cancels a superseded interactive job at once, on the workers too.
 fn cancel(sh: &Arc<Shared>, job: JobId) {
     sh.lock().life_event(sh, lifecycle::Event::Cancel { job });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_page_that_stops_reading_is_dropped_not_buffered() {
+        let studio = Studio::default();
+        let view = studio.open(0).unwrap();
+        let mut stalled = studio.connect(0, &view).unwrap();
+        let mut reading = studio.connect(0, &view).unwrap();
+        let full = Settings {
+            width: 960,
+            height: 540,
+            aa: 2,
+            max_depth: 10,
+            sampling: protocol::Sampling::Grid,
+        };
+        locked(&studio.plans).insert(view.clone(), (1, plan::passes(full)));
+        let owner = Owner {
+            view: view.clone(),
+            generation: 1,
+            pass: 0,
+        };
+        let rect = TileRect {
+            x: 0,
+            y: 0,
+            width: 1,
+            height: 1,
+        };
+        let mut read = 0;
+        for _ in 0..PAGE_BACKLOG + 10 {
+            studio.tile(&owner, rect, &[1, 2, 3]);
+            while reading.try_recv().is_ok() {
+                read += 1;
+            }
+        }
+        assert_eq!(read, PAGE_BACKLOG + 10, "a page that reads gets every tile");
+        assert_eq!(
+            locked(&studio.pages)[&view].len(),
+            1,
+            "the stalled page is gone"
+        );
+        let mut queued = 0;
+        while stalled.recv().await.is_some() {
+            queued += 1;
+        }
+        assert_eq!(queued, PAGE_BACKLOG, "then its stream ends");
+    }
 }

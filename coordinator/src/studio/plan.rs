@@ -9,14 +9,12 @@
 
 use protocol::{Sampling, Settings};
 
-use crate::tiling;
-
 /// The coarse pass has at most this many pixels: 240 × 135 for a 960 × 540 view, a few
 /// milliseconds of rendering for a simple scene.
 pub const COARSE_PIXELS: u64 = 32_768;
 
-/// Tile side of the preview passes: small, so that the first tiles come back at once
-/// and every worker gets some.
+/// Tile side of every pass: small, so that the first tiles come back at once, every
+/// worker gets some, and each tile pushed to a page is small.
 pub const PREVIEW_TILE: u32 = 64;
 
 /// One pass of a view.
@@ -75,7 +73,10 @@ pub fn passes(full: Settings) -> Vec<Pass> {
     if !one_sample {
         plan.push((1, preview(1), PREVIEW_TILE));
     }
-    plan.push((1, full, tiling::default_tile_size(&full)));
+    // The final pass in the same small tiles: the first of them come back as fast, and
+    // every tile pushed to a page is at most 12 KiB of pixels, which bounds a page's
+    // backlog in bytes.
+    plan.push((1, full, PREVIEW_TILE));
     let count = plan.len();
     plan.into_iter()
         .enumerate()
@@ -128,6 +129,7 @@ mod tests {
             ]
         );
         assert_eq!(plan[2].settings, full, "the last pass is the view itself");
+        assert!(plan.iter().all(|p| p.tile_size == PREVIEW_TILE));
         assert_eq!(plan[0].description(), "240 × 135, 1 sample per pixel");
         assert_eq!(plan[2].description(), "960 × 540, aa 2 grid");
     }
