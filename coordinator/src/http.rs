@@ -240,6 +240,17 @@ fn same_secret(given: &[u8], secret: &[u8]) -> bool {
 
 /// Checks a control request against [`authorize`]: the refusal to answer, if any.
 fn check(observer: &Observer, peer: SocketAddr, headers: &HeaderMap) -> Option<Response> {
+    authorized(observer, peer, headers)
+        .err()
+        .map(|(code, message)| refusal(code, message))
+}
+
+/// [`authorize`] of a request with these headers from `peer`.
+fn authorized(
+    observer: &Observer,
+    peer: SocketAddr,
+    headers: &HeaderMap,
+) -> Result<(), (StatusCode, String)> {
     let text = |name: header::HeaderName| headers.get(name).and_then(|v| v.to_str().ok());
     let asking = Asking {
         peer: peer.ip(),
@@ -249,8 +260,6 @@ fn check(observer: &Observer, peer: SocketAddr, headers: &HeaderMap) -> Option<R
         host: text(header::HOST),
     };
     authorize(observer.client_secret(), asking)
-        .err()
-        .map(|(code, message)| refusal(code, message))
 }
 
 /// The answer to a control: the job or the workers as the protocol gives them, or
@@ -452,12 +461,16 @@ struct StudioRequest {
     settings: Option<serde_json::Value>,
 }
 
-/// A studio request's body and its sampler, or the status and one line saying what is
-/// wrong with it.
+/// A studio control's body and its sampler, once [`authorize`]d, or the status and one
+/// line saying what is wrong with it.
 fn studio_request(
+    observer: &Observer,
+    peer: SocketAddr,
+    headers: &HeaderMap,
     body: &[u8],
     what: &str,
 ) -> Result<(StudioRequest, protocol::Sampling), (StatusCode, String)> {
+    authorized(observer, peer, headers)?;
     let request: StudioRequest = serde_json::from_slice(body).map_err(|e| {
         (
             StatusCode::BAD_REQUEST,
@@ -479,10 +492,7 @@ async fn studio_view(
     headers: HeaderMap,
     body: axum::body::Bytes,
 ) -> Response {
-    if let Some(refused) = check(&observer, peer, &headers) {
-        return refused;
-    }
-    let (edit, sampling) = match studio_request(&body, "edit") {
+    let (edit, sampling) = match studio_request(&observer, peer, &headers, &body, "edit") {
         Ok(request) => request,
         Err((code, message)) => return refusal(code, message),
     };
@@ -505,10 +515,7 @@ async fn studio_submit(
     headers: HeaderMap,
     body: axum::body::Bytes,
 ) -> Response {
-    if let Some(refused) = check(&observer, peer, &headers) {
-        return refused;
-    }
-    let (request, sampling) = match studio_request(&body, "job") {
+    let (request, sampling) = match studio_request(&observer, peer, &headers, &body, "job") {
         Ok(request) => request,
         Err((code, message)) => return refusal(code, message),
     };
