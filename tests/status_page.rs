@@ -415,6 +415,40 @@ fn the_page_controls_follow_the_client_secret() {
     );
     assert_eq!(code, 200, "{body}");
     assert_eq!(status(dir.path())["priority"], 7);
+    // The studio's controls follow the same secret: a view is opened, and a scene
+    // submitted, only with it.
+    let (code, body) = http_post(&http, "/api/studio/open", &[json], "{}");
+    assert_eq!(code, 401, "{body}");
+    let (code, body) = http_post(
+        &http,
+        "/api/studio/open",
+        &[json, ("Authorization", "Bearer nope")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    let (code, body) = http_post(&http, "/api/studio/open", &[json, good], "{}");
+    assert_eq!(code, 200, "{body}");
+    let session = serde_json::from_str::<serde_json::Value>(&body).unwrap()["session"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert_eq!(session.len(), 32, "128 random bits in hex: {session}");
+    let scene = std::fs::read_to_string(scene_path("seed.json")).unwrap();
+    let edit = format!(r#"{{"session": "{session}", "scene": {scene}}}"#);
+    let (code, body) = http_post(&http, "/api/studio/view", &[json], &edit);
+    assert_eq!(code, 401, "{body}");
+    let (code, body) = http_post(&http, "/api/studio/view", &[json, good], &edit);
+    assert_eq!(code, 200, "{body}");
+    let job_body = format!(r#"{{"scene": {scene}, "settings": {{"sampler": "wobbly"}}}}"#);
+    let (code, body) = http_post(&http, "/api/studio/submit", &[json, good], &job_body);
+    assert_eq!(code, 422, "{body}");
+    assert_eq!(
+        one_line_error(&body),
+        "job.sampler: \"wobbly\" is not a sampler: grid, jittered or adaptive"
+    );
+    let (code, body) = http_post(&http, "/api/studio/submit", &[json], &job_body);
+    assert_eq!(code, 401, "{body}");
+
     // Mistakes are one-line JSON errors.
     let (code, body) = http_post(&http, "/api/jobs/999/pause", &[json, good], "{}");
     assert_eq!(code, 404, "{body}");

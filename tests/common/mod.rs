@@ -218,10 +218,24 @@ pub fn start_worker_with(dir: &Path, addr: &str, name: &str, extra: &[&str]) -> 
     }
 }
 
-/// A port that was free a moment ago on 127.0.0.1.
+/// A port that was free a moment ago on 127.0.0.1, for a daemon the test starts on it.
+///
+/// Taken below the kernel's range of ephemeral ports (`ip_local_port_range`, 32768 and
+/// up on Linux): a port the kernel hands out for port 0 can be given again, between our
+/// check and the daemon's bind, to any outgoing connection of any process, and the
+/// daemon then fails with "address in use". Below that range only an explicit bind can
+/// take it; each port is handed out once per test process.
 pub fn free_port() -> u16 {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("cannot bind a port");
-    listener.local_addr().expect("no local address").port()
+    static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    // A start that differs between test processes run one after the other.
+    let start = std::process::id() * 7919 % 12_000;
+    loop {
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let port = 20_000 + (start + n) % 12_000;
+        if std::net::TcpListener::bind(("127.0.0.1", port as u16)).is_ok() {
+            return port as u16;
+        }
+    }
 }
 
 /// Calls `probe` every [`POLL`] until it returns a value; panics after `timeout`.
