@@ -400,10 +400,11 @@ fn tls_auto_serves_peers_pinned_to_its_fingerprint_and_refuses_other_pins() {
         &coordinator_args,
         "coordinator.log",
     );
-    assert!(
-        coordinator.log_text().contains(&fingerprint),
-        "the coordinator logs its fingerprint: {}",
-        coordinator.log_text()
+    // Logged just after the address is printed: looked for until it is there.
+    common::poll(
+        "the coordinator to log its fingerprint",
+        Duration::from_secs(10),
+        || coordinator.log_text().contains(&fingerprint).then_some(()),
     );
 
     let pin = ["--tls-fingerprint", fingerprint.as_str()];

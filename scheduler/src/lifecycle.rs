@@ -501,9 +501,15 @@ impl Lifecycle {
                     if let Phase::Ended { recorded, .. } = &mut j.phase {
                         if !*recorded {
                             *recorded = true;
-                            // Retention counts from the end; only a written end expires.
-                            let ended = j.ended.unwrap_or(now);
-                            self.schedule_expiry(job, ended);
+                            if self.deleting.contains(&job) {
+                                // Deleted while its end was being written.
+                                actions.push(Action::DeleteStored { job });
+                            } else {
+                                // Retention counts from the end; only a written end
+                                // expires.
+                                let ended = j.ended.unwrap_or(now);
+                                self.schedule_expiry(job, ended);
+                            }
                         }
                     }
                 }
@@ -529,6 +535,15 @@ impl Lifecycle {
                         if self.deleting.insert(job) {
                             actions.push(Action::DeleteStored { job });
                         }
+                        Ok(Reply::Deleting)
+                    }
+                    // Ended (a cancel answered a moment ago) but its end not yet
+                    // written: deleted once it is, so that a file written later does
+                    // not bring it back.
+                    Some(Phase::Ended {
+                        recorded: false, ..
+                    }) => {
+                        self.deleting.insert(job);
                         Ok(Reply::Deleting)
                     }
                     Some(phase) => Err(format!(
@@ -1006,9 +1021,24 @@ mod tests {
                 result: Err(format!("job {b} is already cancelled"))
             }]
         );
-        l.handle(6, Event::EndRecorded { job: b });
-        let deleting = l.handle(7, Event::Delete { job: b });
-        assert_eq!(deleting[0], Action::DeleteStored { job: b });
+        // Deleted before its end is written: the deletion waits for the write.
+        assert_eq!(
+            l.handle(6, Event::Delete { job: b }),
+            [Action::Reply {
+                job: b,
+                result: Ok(Reply::Deleting)
+            }]
+        );
+        assert_eq!(
+            l.handle(6, Event::EndRecorded { job: b }),
+            [Action::DeleteStored { job: b }]
+        );
+        assert!(
+            l.handle(7, Event::Delete { job: b })
+                .iter()
+                .all(|a| !matches!(a, Action::DeleteStored { .. })),
+            "one deletion at a time"
+        );
         l.handle(8, Event::Deleted { job: b });
         assert!(l.job(b).is_none());
         assert_eq!(

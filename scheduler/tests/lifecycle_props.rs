@@ -144,8 +144,12 @@ impl Run {
                     assert!(state.is_final());
                 }
                 Action::DeleteStored { job } => {
+                    // Its end written before, or by this very event (a delete asked
+                    // while the end was being written).
                     assert!(
-                        matches!(before.get(job), Some(Phase::Ended { recorded: true, .. })),
+                        matches!(before.get(job), Some(Phase::Ended { recorded: true, .. }))
+                            || (event == Event::EndRecorded { job: *job }
+                                && matches!(before.get(job), Some(Phase::Ended { .. }))),
                         "deleting job {job} whose end is not written: {:?}",
                         before.get(job)
                     );
