@@ -56,15 +56,15 @@ pub fn default_submitter() -> String {
 
 /// Submits; a refused scene's message is prefixed with the file name, exactly as
 /// `tessera render` reports it.
-pub async fn submit(
-    client: &mut Client,
-    scene_path: &Path,
-    overrides: Overrides,
-    priority: i32,
-    verification: Verification,
-    time_limit_ms: Option<u64>,
-    label: Label,
-) -> Result<JobId> {
+pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> Result<JobId> {
+    let JobChoices {
+        overrides,
+        priority,
+        verification,
+        time_limit_ms,
+        label,
+        frame,
+    } = job;
     let scene = read_scene(scene_path)?;
     let name = label.name.unwrap_or_else(|| {
         scene_path
@@ -80,6 +80,7 @@ pub async fn submit(
             time_limit_ms,
             name,
             submitter: label.submitter.unwrap_or_else(default_submitter),
+            frame,
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
@@ -377,6 +378,8 @@ pub struct JobChoices {
     /// Milliseconds of rendering an adaptive job may take, if limited.
     pub time_limit_ms: Option<u64>,
     pub label: Label,
+    /// The frame of the scene, from 1.
+    pub frame: u32,
 }
 
 /// `tessera submit`.
@@ -396,23 +399,7 @@ pub async fn run_submit(
         false => None,
     };
     let mut session = Session::connect(coordinator).await?;
-    let JobChoices {
-        overrides,
-        priority,
-        verification,
-        time_limit_ms,
-        label,
-    } = job;
-    let job = submit(
-        session.client(),
-        scene,
-        overrides,
-        priority,
-        verification,
-        time_limit_ms,
-        label,
-    )
-    .await?;
+    let job = submit(session.client(), scene, job).await?;
     let Some(output) = output else {
         if json_out {
             println!("{}", json!({ "id": job, "state": "queued" }));
@@ -875,8 +862,13 @@ fn shown_state(s: &JobStatus) -> &'static str {
 }
 
 fn status_line(s: &JobStatus) -> String {
+    // Frame 1 (every job of a scene without animation) goes without saying.
+    let frame = match s.frame {
+        1 => String::new(),
+        k => format!("frame {k}, "),
+    };
     let mut line = format!(
-        "job {}: {}, {}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
+        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
         s.id,
         shown_state(s),
         s.tiles_done,
@@ -915,6 +907,7 @@ fn status_json(s: &JobStatus) -> Value {
         "id": s.id,
         "state": shown_state(s),
         "paused": s.paused,
+        "frame": s.frame,
         "width": s.settings.width,
         "height": s.settings.height,
         "aa": s.settings.aa,

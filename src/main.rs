@@ -107,7 +107,8 @@ enum Command {
     /// Submit a scene to a coordinator; print the job id, or with --wait, write the image.
     #[command(after_help = "Examples:\n  \
         tessera submit scenes/seed.json                  prints the job id\n  \
-        tessera submit scenes/seed.json --wait -o seed.png --aa 4")]
+        tessera submit scenes/seed.json --wait -o seed.png --aa 4\n  \
+        tessera submit scenes/seed-orbit.json --frame 17 --wait -o orbit17.png")]
     Submit(SubmitArgs),
 
     /// Show a job's state and progress.
@@ -714,6 +715,11 @@ struct WorkerArgs {
 struct SubmitArgs {
     /// The scene file (JSON).
     scene: PathBuf,
+    /// Render frame K of an animated scene (frames are numbered from 1; a scene
+    /// without animation has frame 1 only): the image is `tessera render --frame K`'s.
+    #[arg(long, value_name = "K", default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..))]
+    frame: u32,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m) of the farm's rendering:
@@ -1402,6 +1408,7 @@ fn run(command: Command) -> Result<()> {
                                 name: a.name,
                                 submitter: a.submitter,
                             },
+                            frame: a.frame,
                         }
                     },
                     a.wait,

@@ -11,7 +11,7 @@ use anyhow::{Context, Result};
 use protocol::Overrides;
 use transport::Endpoint;
 
-use crate::client_commands::{submit, summary, wait, Session};
+use crate::client_commands::{submit, summary, wait, JobChoices, Session};
 use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::output::{default_output, ImageOutput};
 
@@ -158,11 +158,14 @@ async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result
     let job = submit(
         session.client(),
         &opts.scene,
-        opts.job.0,
-        0,
-        protocol::Verification::default(),
-        opts.job.1,
-        Default::default(),
+        JobChoices {
+            overrides: opts.job.0,
+            priority: 0,
+            verification: protocol::Verification::default(),
+            time_limit_ms: opts.job.1,
+            label: Default::default(),
+            frame: 1,
+        },
     )
     .await
     // The one limit left (the scene's size) is not of a coordinator the user started.

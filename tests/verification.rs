@@ -16,6 +16,9 @@
 //!   block of its answer again (`--spot-pixels 1024` checks a block of every answer).
 //! - A worker whose renderer differs (one pixel of every output, the canary included):
 //!   refused at the canary with both builds named, it never gets a tile.
+//! - A worker rendering frame 1 of an animated scene for a job of frame 17: caught by
+//!   the spot checks, which render the job's frame, and the job done with
+//!   `tessera render --frame 17`'s image.
 //!
 //! Each job ends `done` with the fetched image byte for byte that of `tessera render`,
 //! and the culprit is found in `tessera workers --json`, the coordinator's /metrics
@@ -356,6 +359,31 @@ fn one_changed_byte_is_caught_by_full_verification_and_by_audits_of_every_tile()
         );
         farm.assert_quarantined("flipper", &["w1", "w2"]);
     }
+}
+
+#[test]
+fn a_worker_rendering_another_frame_is_caught_by_the_checks_of_the_jobs_frame() {
+    let _serial = serial();
+    let farm = Farm::start(&[]);
+    let liar = FakeWorker::start(&farm.addr, "liar", &render::build_identity(), Lie::FrameOne);
+    let _honest = farm.worker("honest");
+    farm.wait_listed(&["liar", "honest"]);
+    let orbit = scene_path("seed-orbit.json");
+    let mut args = vec![orbit.as_str(), "--frame", "17"];
+    args.extend(JOB);
+    let job = submit(farm.path(), &farm.addr, &args);
+    wait_done(farm.path(), &farm.addr, job, JOB_TIMEOUT);
+    let image = fetch(farm.path(), &farm.addr, job, "orbit-17.png");
+    let mut render = render_args(JOB);
+    render.extend(["--frame", "17"]);
+    let reference = render_reference(farm.path(), &orbit, "orbit-17-reference.png", &render);
+    assert_same_png(&image, &reference, "frame 17");
+    assert!(
+        liar.tiles_lied() >= 1,
+        "the liar was given no tile, so nothing was tested (error: {:?})",
+        liar.error()
+    );
+    farm.assert_quarantined("liar", &["honest"]);
 }
 
 #[test]

@@ -33,6 +33,9 @@ pub struct StoredJob {
     pub id: JobId,
     pub scene: String,
     pub hash: SceneHash,
+    /// The frame of the scene it renders, from 1 (1 for a job stored by an earlier
+    /// version, which rendered frame 1).
+    pub frame: u32,
     pub settings: Settings,
     pub tile_size: u32,
     pub priority: i32,
@@ -150,6 +153,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "name", "TEXT NOT NULL DEFAULT ''"),
     ("jobs", "submitter", "TEXT NOT NULL DEFAULT ''"),
     ("jobs", "submitted_from", "TEXT NOT NULL DEFAULT ''"),
+    ("jobs", "frame", "INTEGER NOT NULL DEFAULT 1"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -295,9 +299,10 @@ impl Db {
             .execute(
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
-                                   verification, time_limit_ms, name, submitter, submitted_from)
+                                   verification, time_limit_ms, name, submitter, submitted_from,
+                                   frame)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16,
-                         ?17, ?18, ?19)",
+                         ?17, ?18, ?19, ?20)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -318,6 +323,7 @@ impl Db {
                     job.label.name,
                     job.label.submitter,
                     job.label.submitted_from,
+                    job.frame,
                 ],
             )
             .context("cannot store the job")?;
@@ -666,7 +672,7 @@ pub enum ReopenError {
 const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_size, priority,
     state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
     total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
-    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from";
+    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame";
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }
@@ -725,7 +731,14 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
         submitter: r.get(26).map_err(field)?,
         submitted_from: r.get(27).map_err(field)?,
     };
+    let frame: u32 = r.get(28).map_err(field)?;
+    if frame == 0 {
+        return Err(bad(format!(
+            "job {id}: frame 0 (frames are numbered from 1)"
+        )));
+    }
     Ok(StoredJob {
+        frame,
         paused,
         label,
         verification,
@@ -817,6 +830,7 @@ mod tests {
             id,
             scene: "{}".into(),
             hash: [7; 32],
+            frame: id as u32,
             settings: Settings {
                 width: 8,
                 height: 8,
@@ -874,6 +888,8 @@ mod tests {
         assert!(loaded[0].totals.is_none());
         // No name, submitter or address recorded: empty (the daemon shows defaults).
         assert_eq!(loaded[0].label, Label::default());
+        // Frames did not exist: it rendered frame 1.
+        assert_eq!(loaded[0].frame, 1);
         // An event log of its own, from nothing.
         assert!(db.load_events(3, 0, 10).unwrap().is_empty());
         let tiles = db.load_tiles(3).unwrap();
@@ -923,6 +939,8 @@ mod tests {
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!((tile.samples, tile.error_sq_sum), (Some(272), Some(12.5)));
         assert_eq!(loaded[1].label, job(4, adaptive).label);
+        let frames: Vec<u32> = loaded.iter().map(|j| j.frame).collect();
+        assert_eq!(frames, [1, 4, 5]);
     }
 
     #[test]

@@ -530,6 +530,7 @@ async fn studio_submit(
         time_limit_ms: None,
         name: "studio scene".into(),
         submitter: "studio".into(),
+        frame: 1,
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())

@@ -19,6 +19,8 @@ pub struct JobMetadata {
     pub id: JobId,
     pub state: &'static str,
     pub scene_sha256: String,
+    /// The frame of the scene rendered, from 1.
+    pub frame: u32,
     pub width: u32,
     pub height: u32,
     pub aa: u32,

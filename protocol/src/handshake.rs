@@ -11,7 +11,7 @@ use crate::wire;
 pub const MAGIC: [u8; 4] = *b"TSRA";
 
 /// Bumped whenever any message changes shape.
-pub const PROTOCOL_VERSION: u16 = 7;
+pub const PROTOCOL_VERSION: u16 = 8;
 
 /// The peer's first frame.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -105,6 +105,9 @@ pub struct JobSpec {
     /// `$USER@hostname` by default). Nothing checks it: the coordinator also records
     /// the address the submission came from, which the client cannot choose.
     pub submitter: String,
+    /// The frame of the scene to render, from 1 (`tessera submit --frame K`; 1 for a
+    /// scene without animation). A frame the scene does not have is refused.
+    pub frame: u32,
 }
 
 /// How a job's tile results are checked before they count (docs/reliability.md has the
@@ -366,6 +369,8 @@ pub struct JobStatus {
     /// How long it waited in the queue before its first tile went out; `None` while
     /// no tile has gone out. `elapsed_ms` less this is the time it took to render.
     pub queued_ms: Option<u64>,
+    /// The frame of the scene the job renders, from 1.
+    pub frame: u32,
 }
 
 /// A connected worker, as reported to clients.
@@ -413,6 +418,9 @@ pub enum ToWorker {
         job: JobId,
         tile: u32,
         scene: SceneHash,
+        /// The frame of the scene to render, from 1 (1 for a scene without animation):
+        /// the worker computes it from the scene it has.
+        frame: u32,
         settings: Settings,
         rect: TileRect,
     },
@@ -447,6 +455,8 @@ pub enum ToWorker {
         job: JobId,
         tile: u32,
         scene: SceneHash,
+        /// The frame of the scene, as in [`ToWorker::Render`].
+        frame: u32,
         settings: Settings,
         /// Block-aligned: `x` and `y` multiples of 8, the right and bottom edges on a
         /// multiple of 8 or on the frame's edge.

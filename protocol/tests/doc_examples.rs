@@ -92,6 +92,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 time_limit_ms: None,
                 name: "n".into(),
                 submitter: "u@h".into(),
+                frame: 1,
             })),
         ),
         ("Status", frame(&ClientRequest::Status { job: 7 })),
@@ -119,6 +120,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 submitted_from: "::1".into(),
                 submitted_unix_ms: 1_000,
                 queued_ms: Some(3),
+                frame: 1,
             })),
         ),
         (
@@ -134,6 +136,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 job: 7,
                 tile: 5,
                 scene: scene_hash(),
+                frame: 1,
                 settings: SETTINGS,
                 rect: TileRect {
                     x: 32,
@@ -152,6 +155,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 job: 8,
                 tile: 5,
                 scene: scene_hash(),
+                frame: 1,
                 settings: Settings {
                     sampling: Sampling::Jittered,
                     ..SETTINGS

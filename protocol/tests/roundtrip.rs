@@ -137,12 +137,12 @@ prop_compose! {
 prop_compose! {
     fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
                   full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
-                  name in text())
+                  name in text(), frame in any::<u32>())
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name,
+            name: name.clone(), submitter: name, frame,
         }
     }
 }
@@ -168,12 +168,13 @@ prop_compose! {
         paused in any::<bool>(), warning in prop::option::of(text()),
         name in text(), submitter in text(),
         submitted_from in text(), submitted_unix_ms in any::<u64>(),
-        queued_ms in any::<Option<u64>>(),
+        queued_ms in any::<Option<u64>>(), frame in any::<u32>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
+            frame,
         }
     }
 }
@@ -200,16 +201,20 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
             any::<u64>(),
             any::<u32>(),
             any::<[u8; 32]>(),
+            any::<u32>(),
             settings(),
             rect()
         )
-            .prop_map(|(job, tile, scene, settings, rect)| ToWorker::Render {
-                job,
-                tile,
-                scene,
-                settings,
-                rect
-            }),
+            .prop_map(
+                |(job, tile, scene, frame, settings, rect)| ToWorker::Render {
+                    job,
+                    tile,
+                    scene,
+                    frame,
+                    settings,
+                    rect
+                }
+            ),
         any::<u64>().prop_map(|job| ToWorker::Cancel { job }),
         any::<[u8; 32]>().prop_map(|hash| ToWorker::ForgetScene { hash }),
         Just(ToWorker::Heartbeat),
@@ -224,21 +229,24 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
         text().prop_map(|reason| ToWorker::Refuse { reason }),
         any::<u64>().prop_map(|token| ToWorker::Ping { token }),
         (
-            (any::<u64>(), any::<u32>(), any::<[u8; 32]>()),
+            (any::<u64>(), any::<u32>(), any::<[u8; 32]>(), any::<u32>()),
             settings(),
             rect(),
             (any::<u32>(), any::<u32>(), prop::option::of(blob()))
         )
             .prop_map(
-                |((job, tile, scene), settings, rect, (pass, rung, previous))| ToWorker::Advance {
-                    job,
-                    tile,
-                    scene,
-                    settings,
-                    rect,
-                    pass,
-                    rung,
-                    previous
+                |((job, tile, scene, frame), settings, rect, (pass, rung, previous))| {
+                    ToWorker::Advance {
+                        job,
+                        tile,
+                        scene,
+                        frame,
+                        settings,
+                        rect,
+                        pass,
+                        rung,
+                        previous,
+                    }
                 }
             ),
         Just(ToWorker::Drain),
@@ -812,6 +820,66 @@ fn the_hand_made_layout_matches_the_encoder() {
 }
 
 #[test]
+fn a_tile_names_its_frame_after_the_scene_hash() {
+    // Version 8: `Render` and `Advance` carry the frame of the scene, a u32 right after
+    // the scene's hash, and it comes back as sent.
+    let settings = Settings {
+        width: 64,
+        height: 48,
+        aa: 2,
+        max_depth: 5,
+        sampling: Sampling::Grid,
+    };
+    let rect = TileRect {
+        x: 16,
+        y: 0,
+        width: 16,
+        height: 16,
+    };
+    let render = ToWorker::Render {
+        job: 3,
+        tile: 1,
+        scene: [9; 32],
+        frame: 17,
+        settings,
+        rect,
+    };
+    let advance = ToWorker::Advance {
+        job: 3,
+        tile: 1,
+        scene: [9; 32],
+        frame: 120,
+        settings,
+        rect,
+        pass: 0,
+        rung: 0,
+        previous: None,
+    };
+    for (message, frame) in [(render, 17u32), (advance, 120)] {
+        let bytes = wire::encode(&message);
+        // variant (4), job (8), tile (4), scene (32), then the frame.
+        assert_eq!(bytes[48..52], frame.to_le_bytes(), "{message:?}");
+        let back: ToWorker = wire::decode(&bytes).unwrap();
+        assert_eq!(back, message);
+    }
+    let spec = JobSpec {
+        scene: "{}".into(),
+        overrides: Overrides::default(),
+        priority: 0,
+        verification: Verification::Sampled,
+        time_limit_ms: None,
+        name: String::new(),
+        submitter: String::new(),
+        frame: 17,
+    };
+    let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
+    // The frame is the JobSpec's last field.
+    assert_eq!(bytes[bytes.len() - 4..], 17u32.to_le_bytes());
+    let back: ClientRequest = wire::decode(&bytes).unwrap();
+    assert_eq!(back, ClientRequest::Submit(spec));
+}
+
+#[test]
 fn a_huge_claimed_vector_is_refused_without_allocating_it() {
     for claimed in [1u64 << 40, u64::MAX, MAX_FRAME_LIMIT as u64 + 1] {
         let body = tile_done_claiming(claimed);
@@ -989,6 +1057,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             time_limit_ms: None,
             name: String::new(),
             submitter: String::new(),
+            frame: 1,
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1001,9 +1070,9 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         sampling: Some(Sampling::Grid),
         ..Default::default()
     });
-    // The Sampling variant, before the priority, verification, time limit, and the
-    // name and submitter (two empty strings: their lengths).
-    let at = nested.len() - 13 - 16;
+    // The Sampling variant, before the priority, verification, time limit, the name
+    // and submitter (two empty strings: their lengths) and the frame.
+    let at = nested.len() - 13 - 16 - 4;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

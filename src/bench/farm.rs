@@ -50,6 +50,7 @@ async fn run_job(
             time_limit_ms: None,
             name: "bench".into(),
             submitter: "tessera bench".into(),
+            frame: 1,
         })
         .await?;
     let mut seen = 0;

@@ -261,6 +261,9 @@ fn job_spec(job: JobSize) -> Result<JobSpec> {
         "overrides": overrides,
         "priority": 0,
         "verification": "Sampled",
+        "name": "bench",
+        "submitter": "tessera bench",
+        "frame": 1,
     });
     serde_json::from_value(spec).context("building the job's spec")
 }

@@ -81,6 +81,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
                     time_limit_ms: None,
                     name: "bench".into(),
                     submitter: "tessera bench".into(),
+                    frame: 1,
                 };
                 let (wall, _) = super::latency::run_job(farm.address(), spec).await?;
                 eprintln!("verification: {}: {wall:.3} s", setting.name);

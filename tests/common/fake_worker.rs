@@ -2,8 +2,9 @@
 //! `transport::dial` (no token, plain TCP on 127.0.0.1), renders the canary, its tiles
 //! and its adaptive passes honestly with the `verify` and `render` crates, exactly as
 //! a real worker does, and then lies as it is told: every pixel wrong, one byte of
-//! some tiles (for an adaptive pass: one sum of each block of its state), or one pixel
-//! of every output (the canary included), as a worker with a different renderer would.
+//! some tiles (for an adaptive pass: one sum of each block of its state), one pixel
+//! of every output (the canary included), as a worker with a different renderer would,
+//! or frame 1 of an animated scene whatever the frame asked for.
 //!
 //! It runs on a thread of its own with a small tokio runtime, answers pings and sends
 //! a heartbeat every second, and records what it was sent. Dropping it closes its
@@ -30,6 +31,9 @@ pub enum Lie {
     /// A renderer that differs: one pixel of every output changed, the canary's
     /// renders included.
     Perturbed,
+    /// Renders frame 1 of the scene whatever frame it is asked for (what a worker
+    /// that ignored the frame would return), honestly otherwise.
+    FrameOne,
 }
 
 /// What the fake worker saw and did, shared with its thread.
@@ -193,7 +197,7 @@ async fn serve(
             }
         }
     });
-    let mut scenes: HashMap<SceneHash, render::Scene> = HashMap::new();
+    let mut scenes: HashMap<SceneHash, render::AnimatedScene> = HashMap::new();
     let mut heartbeat = tokio::time::interval(Duration::from_secs(1));
     let mut check_stop = tokio::time::interval(Duration::from_millis(20));
     loop {
@@ -234,7 +238,7 @@ async fn serve(
                 Some(FromWorker::CanaryDone { images })
             }
             ToWorker::Scene { hash, scene } => {
-                let parsed = render::parse_scene(&scene)
+                let parsed = render::parse_animated(&scene)
                     .map_err(|e| format!("the coordinator sent a bad scene: {e}"))?;
                 scenes.insert(hash, parsed);
                 None
@@ -254,6 +258,7 @@ async fn serve(
                 job,
                 tile,
                 scene,
+                frame,
                 settings,
                 rect,
                 pass,
@@ -265,7 +270,8 @@ async fn serve(
                     .get(&scene)
                     .ok_or_else(|| format!("tile {tile} of job {job} before its scene"))?;
                 let started = Instant::now();
-                let tracer = verify::tracer(scene, &settings)?;
+                let scene = frame_of(scene, frame, lie)?;
+                let tracer = verify::tracer(&scene, &settings)?;
                 let previous = previous
                     .map(|p| verify::adaptive::unpack_state(&p, rect, settings.aa))
                     .transpose()?;
@@ -274,6 +280,7 @@ async fn serve(
                     verify::adaptive::advance(&tracer, footprints, rect, previous, rung)?;
                 let lied = match lie {
                     Lie::Honest => false,
+                    Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in advanced.rgb.chunks_exact_mut(3) {
                             pixel.copy_from_slice(&[255, 0, 0]);
@@ -310,6 +317,7 @@ async fn serve(
                 job,
                 tile,
                 scene,
+                frame,
                 settings,
                 rect,
             } => {
@@ -318,9 +326,11 @@ async fn serve(
                     .get(&scene)
                     .ok_or_else(|| format!("tile {tile} of job {job} before its scene"))?;
                 let started = Instant::now();
-                let mut image = render_tile(scene, &settings, rect)?;
+                let scene = frame_of(scene, frame, lie)?;
+                let mut image = render_tile(&scene, &settings, rect)?;
                 let lied = match lie {
                     Lie::Honest => false,
+                    Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in image.rgb.chunks_exact_mut(3) {
                             pixel.copy_from_slice(&[255, 0, 0]);
@@ -375,6 +385,13 @@ async fn send(
 fn perturb(rgb: &mut [u8], seed: usize) {
     let at = (seed.wrapping_mul(7919) + rgb.len() / 2) % rgb.len();
     rgb[at] ^= 0x01;
+}
+
+/// The frame of the scene to render: the one asked for, or frame 1 for
+/// [`Lie::FrameOne`].
+fn frame_of(scene: &render::AnimatedScene, frame: u32, lie: Lie) -> Result<render::Scene, String> {
+    let frame = if lie == Lie::FrameOne { 1 } else { frame };
+    scene.frame(u64::from(frame)).map_err(|e| e.to_string())
 }
 
 /// Renders one rectangle honestly, as a real worker does.

@@ -1,24 +1,47 @@
-//! Scenes by content hash, and tracers by (scene, settings), so that a scene crosses the
-//! network once per worker and is parsed and prepared once per job.
+//! Scenes by content hash, and tracers by (scene, frame, settings), so that a scene
+//! crosses the network once per worker, is parsed once, and each of its frames is
+//! prepared once per job.
+//!
+//! A scene is kept as the file describes it (an [`AnimatedScene`]): an animation's
+//! frames are computed here, from the one text received, not sent one by one. The
+//! tracers of one scene are bounded: a sequence of frame jobs keeps the same scene for
+//! as long as it runs, so without a bound every frame's tracer (a copy of the scene and
+//! its hierarchy) would stay until the last frame is done.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
 use protocol::{SceneHash, Settings};
 use render::progressive::Footprints;
-use render::{Scene, Tracer};
+use render::{AnimatedScene, Tracer};
 use sha2::{Digest, Sha256};
 
 /// A scene as received: parsed, or why it could not be used.
-type Loaded = Result<Arc<Scene>, String>;
+type Loaded = Result<Arc<AnimatedScene>, String>;
+
+/// What a tracer is for: a scene's frame at given settings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct TracerKey {
+    pub scene: SceneHash,
+    /// From 1.
+    pub frame: u32,
+    pub settings: Settings,
+}
+
+/// The most tracers kept per scene: those of the frames (and settings) most recently
+/// used. Enough for a few frames of a sequence rendered at once; an older one is
+/// prepared again if a tile of it comes back (a retried tile), which changes no pixel.
+pub const TRACERS_PER_SCENE: usize = 4;
 
 #[derive(Default)]
 pub struct SceneCache {
     scenes: HashMap<SceneHash, Loaded>,
-    tracers: HashMap<(SceneHash, Settings), Arc<Tracer>>,
-    /// The adaptive footprints of each (scene, settings): computed once per job, not
-    /// once per tile.
-    footprints: HashMap<(SceneHash, Settings), Arc<Footprints>>,
+    /// Each tracer with when it was last used (a count of uses, for the bound).
+    tracers: HashMap<TracerKey, (Arc<Tracer>, u64)>,
+    /// The adaptive footprints of each kept tracer: computed once per job, not once
+    /// per tile.
+    footprints: HashMap<TracerKey, Arc<Footprints>>,
+    uses: u64,
 }
 
 impl SceneCache {
@@ -28,7 +51,7 @@ impl SceneCache {
         let loaded = if actual != hash {
             Err("the scene received does not match its hash".to_string())
         } else {
-            render::parse_scene(&text)
+            render::parse_animated(&text)
                 .map(Arc::new)
                 .map_err(|e| format!("the scene does not load: {e}"))
         };
@@ -37,26 +60,34 @@ impl SceneCache {
 
     pub fn forget(&mut self, hash: &SceneHash) {
         self.scenes.remove(hash);
-        self.tracers.retain(|(h, _), _| h != hash);
-        self.footprints.retain(|(h, _), _| h != hash);
+        self.tracers.retain(|k, _| k.scene != *hash);
+        self.footprints.retain(|k, _| k.scene != *hash);
     }
 
     /// The footprints of a frame, computed by the first tile that needs them (on the
     /// rendering pool) and shared by the job's later tiles.
-    pub fn footprints(&self, hash: &SceneHash, settings: Settings) -> Option<Arc<Footprints>> {
-        self.footprints.get(&(*hash, settings)).cloned()
+    pub fn footprints(&self, key: &TracerKey) -> Option<Arc<Footprints>> {
+        self.footprints.get(key).cloned()
     }
 
-    pub fn keep_footprints(&mut self, hash: SceneHash, settings: Settings, f: Arc<Footprints>) {
-        self.footprints.insert((hash, settings), f);
+    /// Keeps footprints computed on the pool, as long as their tracer is kept.
+    pub fn keep_footprints(&mut self, key: TracerKey, f: Arc<Footprints>) {
+        if self.tracers.contains_key(&key) {
+            self.footprints.insert(key, f);
+        }
     }
 
-    /// The tracer for a scene at given settings, prepared on first use.
-    pub fn tracer(&mut self, hash: &SceneHash, settings: Settings) -> Result<Arc<Tracer>, String> {
-        if let Some(t) = self.tracers.get(&(*hash, settings)) {
+    /// The tracer for a frame of a scene at given settings, prepared on first use. A
+    /// frame the scene does not have is the loader's one-line message ("frame 122 is
+    /// beyond the scene's 121 frames").
+    pub fn tracer(&mut self, key: TracerKey) -> Result<Arc<Tracer>, String> {
+        self.uses += 1;
+        let now = self.uses;
+        if let Some((t, used)) = self.tracers.get_mut(&key) {
+            *used = now;
             return Ok(Arc::clone(t));
         }
-        let scene = match self.scenes.get(hash) {
+        let scene = match self.scenes.get(&key.scene) {
             Some(Ok(scene)) => Arc::clone(scene),
             Some(Err(e)) => return Err(e.clone()),
             None => {
@@ -65,8 +96,151 @@ impl SceneCache {
                 )
             }
         };
-        let tracer = Arc::new(verify::tracer(&scene, &settings)?);
-        self.tracers.insert((*hash, settings), Arc::clone(&tracer));
+        let frame = scene
+            .frame(u64::from(key.frame))
+            .map_err(|e| e.to_string())?;
+        let tracer = Arc::new(verify::tracer(&frame, &key.settings)?);
+        self.tracers.insert(key, (Arc::clone(&tracer), now));
+        self.bound(&key.scene);
         Ok(tracer)
+    }
+
+    /// Drops the least recently used tracers of a scene (and their footprints) beyond
+    /// [`TRACERS_PER_SCENE`]. Tiles already given a tracer keep theirs alive.
+    fn bound(&mut self, scene: &SceneHash) {
+        loop {
+            let of_scene = self.tracers.iter().filter(|(k, _)| k.scene == *scene);
+            if of_scene.clone().count() <= TRACERS_PER_SCENE {
+                return;
+            }
+            let Some(oldest) = of_scene.min_by_key(|(_, (_, used))| *used).map(|(k, _)| *k) else {
+                return;
+            };
+            self.tracers.remove(&oldest);
+            self.footprints.remove(&oldest);
+        }
+    }
+
+    /// How many tracers are kept (for tests).
+    #[cfg(test)]
+    fn tracers_kept(&self) -> usize {
+        self.tracers.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use protocol::{Sampling, TileRect};
+
+    const ORBIT: &str = include_str!("../../scenes/seed-orbit.json");
+
+    fn settings() -> Settings {
+        Settings {
+            width: 48,
+            height: 36,
+            aa: 2,
+            max_depth: 5,
+            sampling: Sampling::Grid,
+        }
+    }
+
+    fn loaded() -> (SceneCache, SceneHash) {
+        let hash: SceneHash = Sha256::digest(ORBIT.as_bytes()).into();
+        let mut cache = SceneCache::default();
+        cache.insert(hash, ORBIT.to_string());
+        (cache, hash)
+    }
+
+    fn key(scene: SceneHash, frame: u32) -> TracerKey {
+        TracerKey {
+            scene,
+            frame,
+            settings: settings(),
+        }
+    }
+
+    /// The whole frame, rendered as one tile.
+    fn pixels(tracer: &Tracer) -> Vec<u8> {
+        let s = settings();
+        let rect = TileRect {
+            x: 0,
+            y: 0,
+            width: s.width,
+            height: s.height,
+        };
+        render::render_tile(tracer, verify::render_rect(rect))
+            .unwrap()
+            .rgb
+    }
+
+    #[test]
+    fn a_tile_of_frame_k_is_frame_k_of_the_animation() {
+        let (mut cache, hash) = loaded();
+        let animated = render::parse_animated(ORBIT).unwrap();
+        let reference = |k: u64| {
+            let scene = animated.frame(k).unwrap();
+            pixels(&verify::tracer(&scene, &settings()).unwrap())
+        };
+        let frame_1 = reference(1);
+        let frame_17 = reference(17);
+        assert_ne!(
+            frame_1, frame_17,
+            "the camera moves between frames 1 and 17"
+        );
+        assert_eq!(pixels(&cache.tracer(key(hash, 17)).unwrap()), frame_17);
+        assert_eq!(pixels(&cache.tracer(key(hash, 1)).unwrap()), frame_1);
+        // A static scene's frame 1 is what parse_scene gives, as before frames existed.
+        let still = render::parse_scene(ORBIT).unwrap();
+        assert_eq!(
+            pixels(&verify::tracer(&still, &settings()).unwrap()),
+            frame_1
+        );
+    }
+
+    #[test]
+    fn a_frame_the_scene_does_not_have_fails_in_one_line() {
+        let (mut cache, hash) = loaded();
+        assert_eq!(
+            cache.tracer(key(hash, 122)).err().unwrap(),
+            "frame 122 is beyond the scene's 121 frames"
+        );
+        assert_eq!(
+            cache.tracer(key(hash, 0)).err().unwrap(),
+            "frame 0: frames are numbered from 1"
+        );
+        assert!(cache.tracer(key(hash, 121)).is_ok());
+        let text = r#"{"lights": [], "objects": []}"#;
+        let still: SceneHash = Sha256::digest(text.as_bytes()).into();
+        cache.insert(still, text.to_string());
+        assert_eq!(
+            cache.tracer(key(still, 2)).err().unwrap(),
+            "frame 2: the scene has no animation, only frame 1"
+        );
+        assert!(cache.tracer(key(still, 1)).is_ok());
+    }
+
+    #[test]
+    fn the_tracers_of_a_scene_are_bounded_to_the_frames_last_used() {
+        let (mut cache, hash) = loaded();
+        let first = cache.tracer(key(hash, 1)).unwrap();
+        for k in 2..=TRACERS_PER_SCENE as u32 {
+            cache.tracer(key(hash, k)).unwrap();
+        }
+        // Frame 1 used again: it is now the most recent, and stays.
+        assert!(Arc::ptr_eq(&first, &cache.tracer(key(hash, 1)).unwrap()));
+        let second = cache.tracer(key(hash, 2)).unwrap();
+        for k in 10..20 {
+            cache.tracer(key(hash, k)).unwrap();
+            cache.tracer(key(hash, 1)).unwrap();
+            assert!(cache.tracers_kept() <= TRACERS_PER_SCENE);
+        }
+        assert!(Arc::ptr_eq(&first, &cache.tracer(key(hash, 1)).unwrap()));
+        // Frame 2 was dropped long ago: it is prepared again, the same pixels.
+        let again = cache.tracer(key(hash, 2)).unwrap();
+        assert!(!Arc::ptr_eq(&second, &again));
+        assert_eq!(pixels(&second), pixels(&again));
+        cache.forget(&hash);
+        assert_eq!(cache.tracers_kept(), 0);
     }
 }

@@ -22,7 +22,7 @@ use tokio_util::codec::Framed;
 use tracing::{info, warn};
 use transport::{self, DialError, Endpoint, Stream};
 
-use crate::cache::SceneCache;
+use crate::cache::{SceneCache, TracerKey};
 
 /// How often the worker tells the coordinator it is alive, also while it renders.
 const HEARTBEAT: Duration = Duration::from_secs(1);
@@ -288,6 +288,7 @@ impl Session {
                 job,
                 tile,
                 scene,
+                frame,
                 settings,
                 rect,
                 pass,
@@ -296,8 +297,13 @@ impl Session {
             } => {
                 self.take_footprints();
                 let start = self.start_tile(job, done);
-                let tracer = self.cache.tracer(&scene, settings);
-                let footprints = self.cache.footprints(&scene, settings);
+                let key = TracerKey {
+                    scene,
+                    frame,
+                    settings,
+                };
+                let tracer = self.cache.tracer(key);
+                let footprints = self.cache.footprints(&key);
                 let back = self.footprints_channel();
                 self.pool.spawn(move || {
                     let Some(started) = start() else {
@@ -306,7 +312,7 @@ impl Session {
                     let advanced = tracer.and_then(|t| {
                         let footprints = footprints.unwrap_or_else(|| {
                             let f = verify::adaptive::footprints(&t);
-                            let _ = back.send((scene, settings, Arc::clone(&f)));
+                            let _ = back.send((key, Arc::clone(&f)));
                             f
                         });
                         let previous = previous
@@ -328,11 +334,16 @@ impl Session {
                 job,
                 tile,
                 scene,
+                frame,
                 settings,
                 rect,
             } => {
                 let start = self.start_tile(job, done);
-                let tracer = self.cache.tracer(&scene, settings);
+                let tracer = self.cache.tracer(TracerKey {
+                    scene,
+                    frame,
+                    settings,
+                });
                 self.pool.spawn(move || {
                     let Some(started) = start() else {
                         return;
@@ -407,19 +418,15 @@ impl Session {
     /// Keeps the footprints the pool computed since the last message.
     fn take_footprints(&mut self) {
         if let Some((_, rx)) = &self.footprints_back {
-            while let Ok((hash, settings, f)) = rx.try_recv() {
-                self.cache.keep_footprints(hash, settings, f);
+            while let Ok((key, f)) = rx.try_recv() {
+                self.cache.keep_footprints(key, f);
             }
         }
     }
 }
 
-/// Footprints computed on the pool: the scene and settings they are for.
-type FootprintsKept = (
-    protocol::SceneHash,
-    protocol::Settings,
-    Arc<render::progressive::Footprints>,
-);
+/// Footprints computed on the pool: the scene's frame and settings they are for.
+type FootprintsKept = (TracerKey, Arc<render::progressive::Footprints>);
 type FootprintsBack = (
     std::sync::mpsc::Sender<FootprintsKept>,
     std::sync::mpsc::Receiver<FootprintsKept>,

@@ -276,7 +276,7 @@ async fn refine(
     if sh.closing.load(Ordering::SeqCst) {
         return Err("the coordinator is shutting down: refine again when it is back".into());
     }
-    let (old, tile_size, priority, verification, hash, name, submitter) = {
+    let (old, tile_size, priority, verification, hash, name, submitter, frame) = {
         let core = sh.lock();
         let Some(status) = core.status(job) else {
             return Ok(unknown_job(job));
@@ -302,6 +302,7 @@ async fn refine(
             record.hash,
             status.name.clone(),
             status.submitter.clone(),
+            status.frame,
         )
     };
     let aa = aa.unwrap_or(old.aa);
@@ -337,6 +338,7 @@ async fn refine(
             time_limit_ms,
             name: format!("{name} (refined)"),
             submitter,
+            frame,
         };
         let mut prepared = prepare(spec, &limits, peer)?;
         if states.tile_size != tile_size
@@ -354,7 +356,12 @@ async fn refine(
             ));
         }
         let verifier = &shared.verifier;
-        let tracer = verifier.tracer(prepared.hash, prepared.settings, &prepared.scene)?;
+        let tracer = verifier.tracer(
+            prepared.hash,
+            prepared.frame,
+            prepared.settings,
+            &prepared.scene,
+        )?;
         let footprints = verifier.footprints(&tracer);
         for (t, (state, &rect)) in states.states.iter().zip(&prepared.tiles).enumerate() {
             verify::adaptive::unpack_state(state, rect, prepared.settings.aa)
@@ -385,7 +392,20 @@ pub(super) fn prepare(
     client: IpAddr,
 ) -> Result<Prepared, String> {
     limits.check_scene_bytes(spec.scene.len())?;
-    let scene = render::parse_scene(&spec.scene).map_err(|e| e.to_string())?;
+    // The frame is checked with the scene: a frame it does not have is refused in the
+    // loader's one line ("frame 122 is beyond the scene's 121 frames"). Image settings
+    // are not animated, so the base scene's are every frame's.
+    let animated = render::parse_animated(&spec.scene).map_err(|e| e.to_string())?;
+    let frames = animated.frame_count();
+    if spec.frame == 0 || spec.frame > frames {
+        return Err(render::FrameOutOfRange {
+            frame: u64::from(spec.frame),
+            frames,
+            animated: animated.animation.is_some(),
+        }
+        .to_string());
+    }
+    let scene = animated.base;
     let o = spec.overrides;
     let mut s = scene.settings;
     s.width = o.width.unwrap_or(s.width);
@@ -443,6 +463,7 @@ pub(super) fn prepare(
         owner: None,
         scene: spec.scene,
         hash,
+        frame: spec.frame,
         settings,
         tile_size,
         tiles,

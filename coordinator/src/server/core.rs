@@ -74,6 +74,9 @@ pub struct JobRecord {
     /// The scene text, while the job is active (workers may still ask for it).
     pub scene: Option<Arc<str>>,
     pub hash: SceneHash,
+    /// The frame of the scene it renders, from 1: sent with every tile, and the frame
+    /// its results are checked against.
+    pub frame: u32,
     pub settings: Settings,
     pub tile_size: u32,
     /// The tiles' rectangles, while the job is active.
@@ -284,6 +287,7 @@ pub struct Cost {
 /// What a result is checked against, gathered under the lock.
 pub struct CheckPlan {
     hash: SceneHash,
+    frame: u32,
     settings: Settings,
     scene: Arc<str>,
     rect: TileRect,
@@ -310,7 +314,7 @@ impl CheckPlan {
     /// Spot-checks the result (off the lock: it renders). An adaptive answer's state
     /// comes in `state`.
     pub fn run(self, verifier: &Verifier, rgb: &[u8], state: Option<Vec<u8>>) -> Verdict {
-        match verifier.tracer(self.hash, self.settings, &self.scene) {
+        match verifier.tracer(self.hash, self.frame, self.settings, &self.scene) {
             Ok(tracer) => match (&self.adaptive, state) {
                 (Some(plan), Some(state)) => {
                     let checked = adaptive::check_answer(
@@ -397,6 +401,8 @@ pub struct Prepared {
     pub owner: Option<crate::studio::views::Owner>,
     pub scene: String,
     pub hash: SceneHash,
+    /// The frame of the scene, from 1 (checked: the scene has it).
+    pub frame: u32,
     pub settings: Settings,
     pub tile_size: u32,
     pub tiles: Vec<TileRect>,
@@ -591,6 +597,7 @@ impl Core {
             id,
             scene: prepared.scene.clone(),
             hash: prepared.hash,
+            frame: prepared.frame,
             settings: prepared.settings,
             tile_size: prepared.tile_size,
             priority: prepared.priority,
@@ -630,6 +637,7 @@ impl Core {
                 accepted: HashMap::new(),
                 scene: Some(Arc::from(prepared.scene)),
                 hash: prepared.hash,
+                frame: prepared.frame,
                 settings: prepared.settings,
                 tile_size: prepared.tile_size,
                 tiles_total: prepared.tiles.len() as u32,
@@ -742,6 +750,7 @@ impl Core {
             accepted: HashMap::new(),
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
             hash: stored.hash,
+            frame: stored.frame,
             settings: stored.settings,
             tile_size: stored.tile_size,
             tiles_total: tiles.len() as u32,
@@ -964,6 +973,7 @@ impl Core {
         );
         Ok(record.scene.clone().map(|scene| CheckPlan {
             hash: record.hash,
+            frame: record.frame,
             settings: record.settings,
             scene,
             rect,
@@ -1292,12 +1302,12 @@ impl Core {
             states: ad.tiles.iter().map(|t| t.state.clone()).collect(),
             paint_last: record.time_limit_ms.is_some(),
         };
-        let hash = record.hash;
+        let (hash, frame) = (record.hash, record.frame);
         let shared = Arc::clone(sh);
         sh.runtime.spawn_blocking(move || {
             let verifier = &shared.verifier;
             let evaluation = verifier
-                .tracer(hash, snap.settings, &scene)
+                .tracer(hash, frame, snap.settings, &scene)
                 .and_then(|tracer| adaptive::evaluate(verifier, &tracer, snap));
             shared.lock().pass_evaluated(&shared, job, evaluation);
         });
@@ -1852,6 +1862,7 @@ impl Core {
                 job,
                 tile,
                 scene: record.hash,
+                frame: record.frame,
                 settings: record.settings,
                 rect,
                 pass: ad.passes.pass(),
@@ -1865,6 +1876,7 @@ impl Core {
                 job,
                 tile,
                 scene: record.hash,
+                frame: record.frame,
                 settings: record.settings,
                 rect,
             },
@@ -2478,6 +2490,7 @@ impl JobRecord {
             id,
             state: "done",
             scene_sha256: hex(&self.hash),
+            frame: self.frame,
             width: s.width,
             height: s.height,
             aa: s.aa,
@@ -2565,6 +2578,7 @@ impl JobRecord {
                 .times
                 .started
                 .map(|started| started.saturating_sub(submitted)),
+            frame: self.frame,
         }
     }
 }

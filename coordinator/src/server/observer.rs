@@ -73,6 +73,8 @@ pub struct JobView {
     pub queued_ms: Option<u64>,
     /// The lifecycle state, or "paused" for a job an operator paused.
     pub state: &'static str,
+    /// The frame of the scene it renders, from 1.
+    pub frame: u32,
     pub width: u32,
     pub height: u32,
     pub aa: u32,
@@ -151,6 +153,7 @@ impl Observer {
                     submitted_unix_ms: s.submitted_unix_ms,
                     queued_ms: s.queued_ms,
                     state: if s.paused { "paused" } else { s.state.as_str() },
+                    frame: s.frame,
                     width: s.settings.width,
                     height: s.settings.height,
                     aa: s.settings.aa,

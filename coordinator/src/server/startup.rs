@@ -167,9 +167,13 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
     let damaged = if hash != job.hash {
         Some("its stored scene does not match its hash".to_owned())
     } else {
-        render::parse_scene(&job.scene)
-            .err()
-            .map(|e| format!("its stored scene no longer parses: {e}"))
+        match render::parse_animated(&job.scene) {
+            Err(e) => Some(format!("its stored scene no longer parses: {e}")),
+            Ok(scene) => scene
+                .frame(u64::from(job.frame))
+                .err()
+                .map(|e| format!("its stored scene lacks its frame: {e}")),
+        }
     };
     if let Some(reason) = damaged {
         let message = format!("job {id} cannot be resumed: {reason}");

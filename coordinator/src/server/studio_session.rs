@@ -286,6 +286,8 @@ async fn submit_passes(
             time_limit_ms: None,
             name: format!("studio view, pass {}", pass.index + 1),
             submitter: "studio".into(),
+            // The studio edits and shows a scene's frame 1.
+            frame: 1,
         };
         let limits = sh.limits;
         let prepared = tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await;

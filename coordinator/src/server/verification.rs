@@ -38,8 +38,8 @@ impl Default for VerifyConfig {
 /// Tracers kept for spot checks: the jobs running at once, give or take.
 const TRACERS_KEPT: usize = 16;
 
-/// Recently used tracers by scene and settings, oldest first.
-type Tracers = VecDeque<((SceneHash, Settings), Arc<Tracer>)>;
+/// Recently used tracers by scene, frame and settings, oldest first.
+type Tracers = VecDeque<((SceneHash, u32, Settings), Arc<Tracer>)>;
 
 /// The adaptive footprints of recent tracers (by the tracer's address, which the cache
 /// of tracers keeps alive), oldest first.
@@ -72,19 +72,25 @@ impl Verifier {
         })
     }
 
-    /// The tracer for a job's scene and settings, built on first use (parsing and
-    /// building the hierarchy: call it off the state lock).
+    /// The tracer for a job's frame of its scene (from 1) and settings, built on first
+    /// use (parsing, computing the frame and building the hierarchy: call it off the
+    /// state lock). The frame is the job's, so a result rendered from another frame
+    /// fails its checks.
     pub fn tracer(
         &self,
         hash: SceneHash,
+        frame: u32,
         settings: Settings,
         scene: &str,
     ) -> Result<Arc<Tracer>, String> {
-        let key = (hash, settings);
+        let key = (hash, frame, settings);
         if let Some((_, t)) = self.cache().iter().find(|(k, _)| *k == key) {
             return Ok(Arc::clone(t));
         }
-        let parsed = render::parse_scene(scene).map_err(|e| e.to_string())?;
+        let parsed = render::parse_animated(scene)
+            .map_err(|e| e.to_string())?
+            .frame(u64::from(frame))
+            .map_err(|e| e.to_string())?;
         let tracer = Arc::new(verify::tracer(&parsed, &settings)?);
         let mut cache = self.cache();
         if !cache.iter().any(|(k, _)| *k == key) {
