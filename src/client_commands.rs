@@ -81,6 +81,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
             name,
             submitter: label.submitter.unwrap_or_else(default_submitter),
             frame,
+            frames: None,
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))

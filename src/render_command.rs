@@ -85,12 +85,7 @@ pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> 
     Ok(FrameRange::Span { first, last })
 }
 
-/// The name of frame `k` in a sequence of `count` frames: `frame_0007.png`, with as
-/// many digits as the count has, at least 4.
-pub fn frame_file_name(k: u64, count: u32) -> String {
-    let width = count.to_string().len().max(4);
-    format!("frame_{k:0width$}.png")
-}
+pub use render::frame_file_name;
 
 /// The progress bar appears only after this long, so quick renders stay quiet.
 const PROGRESS_DELAY: Duration = Duration::from_secs(1);

@@ -34,8 +34,14 @@ pub struct StoredJob {
     pub scene: String,
     pub hash: SceneHash,
     /// The frame of the scene it renders, from 1 (1 for a job stored by an earlier
-    /// version, which rendered frame 1).
+    /// version, which rendered frame 1); a sequence's first frame.
     pub frame: u32,
+    /// For a sequence job (its frames `frame..=last_frame`, each a frame job): its last
+    /// frame. `None` for a job of one frame.
+    pub last_frame: Option<u32>,
+    /// For a frame job: the sequence it renders a frame of. Its scene is kept in its
+    /// row while it is active only (the sequence's row keeps it for good).
+    pub sequence: Option<JobId>,
     pub settings: Settings,
     pub tile_size: u32,
     pub priority: i32,
@@ -154,6 +160,8 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "submitter", "TEXT NOT NULL DEFAULT ''"),
     ("jobs", "submitted_from", "TEXT NOT NULL DEFAULT ''"),
     ("jobs", "frame", "INTEGER NOT NULL DEFAULT 1"),
+    ("jobs", "last_frame", "INTEGER"),
+    ("jobs", "sequence", "INTEGER"),
 ];
 
 fn target_milli(sampling: Sampling) -> u32 {
@@ -300,9 +308,9 @@ impl Db {
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
                                    verification, time_limit_ms, name, submitter, submitted_from,
-                                   frame)
+                                   frame, last_frame, sequence)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16,
-                         ?17, ?18, ?19, ?20)",
+                         ?17, ?18, ?19, ?20, ?21, ?22)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -324,6 +332,8 @@ impl Db {
                     job.label.submitter,
                     job.label.submitted_from,
                     job.frame,
+                    job.last_frame,
+                    job.sequence.map(|s| s as i64),
                 ],
             )
             .context("cannot store the job")?;
@@ -413,6 +423,21 @@ impl Db {
         }
     }
 
+    /// A sequence job runs again (a frame of it was requeued): its end and totals are
+    /// forgotten until it ends anew.
+    pub fn set_running_again(&self, job: JobId) -> Result<()> {
+        self.conn
+            .execute(
+                "UPDATE jobs SET state = 'running', error = NULL, ended_ms = NULL,
+                                 total_rays = NULL, total_samples = NULL,
+                                 total_error_sq_sum = NULL, total_error_pixels = NULL
+                 WHERE id = ?1",
+                params![job as i64],
+            )
+            .context("cannot record that the sequence runs again")?;
+        Ok(())
+    }
+
     /// Records what an operator set of a running job: whether it is paused, and its
     /// priority.
     pub fn set_controls(&self, job: JobId, paused: bool, priority: i32) -> Result<()> {
@@ -465,7 +490,8 @@ impl Db {
         tx.execute(
             "UPDATE jobs SET state = ?2, error = ?3, total_rays = ?4, total_samples = ?5,
                              total_error_sq_sum = ?6, total_error_pixels = ?7,
-                             started_ms = ?8, ended_ms = ?9, image_sha256 = ?10
+                             started_ms = ?8, ended_ms = ?9, image_sha256 = ?10,
+                             scene = CASE WHEN sequence IS NULL THEN scene ELSE '' END
              WHERE id = ?1",
             params![
                 job as i64,
@@ -672,7 +698,8 @@ pub enum ReopenError {
 const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_size, priority,
     state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
     total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
-    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame";
+    time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame,
+    last_frame, sequence";
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }
@@ -737,8 +764,21 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
             "job {id}: frame 0 (frames are numbered from 1)"
         )));
     }
+    let last_frame: Option<u32> = r.get(29).map_err(field)?;
+    if last_frame.is_some_and(|last| last < frame) {
+        return Err(bad(format!(
+            "job {id}: a sequence whose last frame comes before its first"
+        )));
+    }
+    let sequence = r
+        .get::<_, Option<i64>>(30)
+        .map_err(field)?
+        .map(|s| JobId::try_from(s).map_err(|_| bad(format!("job {id}: sequence {s}"))))
+        .transpose()?;
     Ok(StoredJob {
         frame,
+        last_frame,
+        sequence,
         paused,
         label,
         verification,
@@ -831,6 +871,8 @@ mod tests {
             scene: "{}".into(),
             hash: [7; 32],
             frame: id as u32,
+            last_frame: None,
+            sequence: None,
             settings: Settings {
                 width: 8,
                 height: 8,

@@ -531,6 +531,7 @@ async fn studio_submit(
         name: "studio scene".into(),
         submitter: "studio".into(),
         frame: 1,
+        frames: None,
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())

@@ -331,8 +331,13 @@ impl Server {
                 core.tiles_event(&shared, scheduler::Event::DisableMachine { machine });
             }
             for job in opened.jobs {
-                core.restore(&shared, job);
+                if job.job.last_frame.is_some() {
+                    core.restore_sequence(job.job, job.last_event);
+                } else {
+                    core.restore(&shared, job);
+                }
             }
+            core.sequences_restored(&shared);
         }
         Ok(Server {
             listener: Some(listener),
@@ -437,7 +442,7 @@ impl Server {
 /// again). No periodic tick: an idle coordinator sleeps.
 async fn timer(sh: Arc<Shared>) {
     loop {
-        let deadline = sh.lock().next_deadline().map(scheduler::wake_time);
+        let deadline = sh.lock().next_deadline(sh.now()).map(scheduler::wake_time);
         let sleep = async {
             match deadline {
                 Some(at) => {

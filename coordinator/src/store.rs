@@ -55,6 +55,46 @@ pub struct Store {
     root: PathBuf,
 }
 
+/// Where a job's image is kept: a job of one frame in its own folder
+/// (`jobs/ID/image.png`, `job.json`, `scene.json`); a frame job of a sequence in the
+/// sequence's folder, as `jobs/SEQ/frame_0007.png` and `frame_0007.json` (named as
+/// `tessera render --frames` names them, `count` being the scene's frames), beside the
+/// sequence's one `scene.json`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImagePlace {
+    Job(JobId),
+    Frame {
+        sequence: JobId,
+        frame: u32,
+        count: u32,
+    },
+}
+
+impl ImagePlace {
+    /// The job whose folder holds the image.
+    fn folder(self) -> JobId {
+        match self {
+            ImagePlace::Job(job) | ImagePlace::Frame { sequence: job, .. } => job,
+        }
+    }
+
+    fn image_name(self) -> String {
+        match self {
+            ImagePlace::Job(_) => "image.png".into(),
+            ImagePlace::Frame { frame, count, .. } => {
+                render::frame_file_name(u64::from(frame), count)
+            }
+        }
+    }
+
+    fn metadata_name(self) -> String {
+        match self {
+            ImagePlace::Job(_) => "job.json".into(),
+            ImagePlace::Frame { .. } => self.image_name().replace(".png", ".json"),
+        }
+    }
+}
+
 impl Store {
     /// Opens (creating if needed) the data directory.
     pub fn open(root: &Path) -> Result<Store> {
@@ -119,14 +159,14 @@ impl Store {
         self.root.join("jobs").join(job.to_string())
     }
 
-    fn image_path(&self, job: JobId) -> PathBuf {
-        self.job_dir(job).join("image.png")
+    fn image_path(&self, place: ImagePlace) -> PathBuf {
+        self.job_dir(place.folder()).join(place.image_name())
     }
 
     /// Checks the stored image of a finished job against its checksum, reading it in
     /// chunks; returns its length.
-    pub fn verify_image(&self, job: JobId, sha256: &[u8; 32]) -> Result<u64> {
-        let path = self.image_path(job);
+    pub fn verify_image(&self, place: ImagePlace, sha256: &[u8; 32]) -> Result<u64> {
+        let path = self.image_path(place);
         let mut file = std::fs::File::open(&path)
             .with_context(|| format!("cannot read {}", path.display()))?;
         let mut hasher = Sha256::new();
@@ -152,8 +192,13 @@ impl Store {
     }
 
     /// Up to `len` bytes of a finished job's image from `offset`, and the image's size.
-    pub fn read_image_chunk(&self, job: JobId, offset: u64, len: usize) -> Result<(u64, Vec<u8>)> {
-        let path = self.image_path(job);
+    pub fn read_image_chunk(
+        &self,
+        place: ImagePlace,
+        offset: u64,
+        len: usize,
+    ) -> Result<(u64, Vec<u8>)> {
+        let path = self.image_path(place);
         let mut file = std::fs::File::open(&path)
             .with_context(|| format!("cannot read {}", path.display()))?;
         let total = file
@@ -202,33 +247,53 @@ impl Store {
     /// back and compared with `png`'s checksum before this returns.
     pub fn save(
         &self,
+        place: ImagePlace,
         meta: &JobMetadata,
         scene: &str,
         png: &[u8],
         states: Option<&TileStates>,
     ) -> Result<[u8; 32]> {
-        let dir = self.job_dir(meta.id);
+        let dir = self.job_dir(place.folder());
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
-        write_atomically(&dir.join("scene.json"), scene.as_bytes())?;
+        let scene_path = dir.join("scene.json");
+        // A sequence keeps one copy of its scene, written with its first frame.
+        if matches!(place, ImagePlace::Job(_)) || !scene_path.exists() {
+            write_atomically(&scene_path, scene.as_bytes())?;
+        }
         if let Some(states) = states {
             write_atomically(&self.states_path(meta.id), &states.encode())?;
         }
-        write_atomically(&self.image_path(meta.id), png)?;
+        write_atomically(&self.image_path(place), png)?;
         let sha: [u8; 32] = Sha256::digest(png).into();
-        self.verify_image(meta.id, &sha)?;
+        self.verify_image(place, &sha)?;
         let meta = JobMetadata {
             image_sha256: sha.iter().map(|b| format!("{b:02x}")).collect(),
             ..meta.clone()
         };
         let json = serde_json::to_vec_pretty(&meta).expect("metadata serialises");
-        write_atomically(&dir.join("job.json"), &json)?;
+        write_atomically(&dir.join(place.metadata_name()), &json)?;
         Ok(sha)
     }
 
-    /// Removes a job's folder, if any.
-    pub fn delete(&self, job: JobId) -> Result<()> {
-        let dir = self.job_dir(job);
+    /// Removes a job's stored files: a job's folder (a sequence's, with its frames),
+    /// or a frame's image and metadata.
+    pub fn delete(&self, place: ImagePlace) -> Result<()> {
+        if let ImagePlace::Frame { .. } = place {
+            let dir = self.job_dir(place.folder());
+            for name in [place.image_name(), place.metadata_name()] {
+                let path = dir.join(name);
+                match std::fs::remove_file(&path) {
+                    Ok(()) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                    Err(e) => {
+                        return Err(e).with_context(|| format!("cannot delete {}", path.display()))
+                    }
+                }
+            }
+            return Ok(());
+        }
+        let dir = self.job_dir(place.folder());
         match std::fs::remove_dir_all(&dir) {
             Ok(()) => Ok(()),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),

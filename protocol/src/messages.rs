@@ -108,6 +108,55 @@ pub struct JobSpec {
     /// The frame of the scene to render, from 1 (`tessera submit --frame K`; 1 for a
     /// scene without animation). A frame the scene does not have is refused.
     pub frame: u32,
+    /// A sequence job instead: frames `first..=last` of an animated scene, each
+    /// rendered as a frame job of its own (`frame` must then be 1). A range the scene
+    /// does not have, or of more than [`MAX_SEQUENCE_FRAMES`] frames, is refused.
+    pub frames: Option<FrameRange>,
+}
+
+/// Frames `first..=last` of an animated scene, from 1.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameRange {
+    pub first: u32,
+    pub last: u32,
+}
+
+/// The most frames a sequence job may have (a scene has at most as many).
+pub const MAX_SEQUENCE_FRAMES: u32 = 100_000;
+
+/// The most frames of one sequence job rendering at once: a coordinator holds at most
+/// this many frames' pixels of a sequence, and a worker keeps at most this many frames'
+/// prepared scenes of one scene.
+pub const MAX_ACTIVE_FRAMES: usize = 8;
+
+/// A sequence job's frames, as reported to clients.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameProgress {
+    pub first: u32,
+    pub last: u32,
+    pub done: u32,
+    /// Frames queued or running now.
+    pub active: u32,
+    pub pending: u32,
+    pub cancelled: u32,
+    /// Frames done one after another from the first: what the preview plays.
+    pub done_prefix: u32,
+    /// The failed frames, lowest first, each with its frame job's error (at most
+    /// [`FAILED_FRAMES_LISTED`]; `failed` counts them all).
+    pub failed: u32,
+    pub failures: Vec<FrameFailure>,
+}
+
+/// The most failed frames a status lists with their errors.
+pub const FAILED_FRAMES_LISTED: usize = 100;
+
+/// A frame that failed, and why.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameFailure {
+    pub frame: u32,
+    /// The frame job that failed (its events say more).
+    pub job: JobId,
+    pub error: String,
 }
 
 /// How a job's tile results are checked before they count (docs/reliability.md has the
@@ -231,6 +280,19 @@ pub enum ClientRequest {
     Requeue {
         job: JobId,
         tiles: Vec<u32>,
+    },
+    /// A slice of a done frame's PNG of a sequence job, starting at byte `offset`:
+    /// answered with `ImageChunk` (its `job` the sequence).
+    FetchFrame {
+        job: JobId,
+        frame: u32,
+        offset: u64,
+    },
+    /// Render a done, failed or cancelled frame of a sequence job again, alone (a new
+    /// frame job replaces the old one). Answered with the sequence's `Job` status.
+    RequeueFrame {
+        job: JobId,
+        frame: u32,
     },
 }
 
@@ -369,8 +431,13 @@ pub struct JobStatus {
     /// How long it waited in the queue before its first tile went out; `None` while
     /// no tile has gone out. `elapsed_ms` less this is the time it took to render.
     pub queued_ms: Option<u64>,
-    /// The frame of the scene the job renders, from 1.
+    /// The frame of the scene the job renders, from 1 (a sequence job's first frame).
     pub frame: u32,
+    /// A sequence job's frames; `None` for a job of one frame. A sequence's `tiles_*`,
+    /// `rays` and `samples` add up its frames'.
+    pub frames: Option<FrameProgress>,
+    /// For a frame job of a sequence: the sequence.
+    pub sequence: Option<JobId>,
 }
 
 /// A connected worker, as reported to clients.

@@ -93,6 +93,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 name: "n".into(),
                 submitter: "u@h".into(),
                 frame: 1,
+                frames: None,
             })),
         ),
         ("Status", frame(&ClientRequest::Status { job: 7 })),
@@ -121,6 +122,8 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 submitted_unix_ms: 1_000,
                 queued_ms: Some(3),
                 frame: 1,
+                frames: None,
+                sequence: None,
             })),
         ),
         (

@@ -25,10 +25,10 @@ use std::fmt::Debug;
 use bytes::{BufMut, BytesMut};
 use proptest::prelude::*;
 use protocol::{
-    wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FromWorker, Hello, HelloError,
-    JobEvent, JobSpec, JobState, JobStatus, MessageCodec, Overrides, Role, Sampling, Settings,
-    TileRect, ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC,
-    MAX_FRAME_LIMIT, PROTOCOL_VERSION,
+    wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FrameFailure, FrameProgress,
+    FrameRange, FromWorker, Hello, HelloError, JobEvent, JobSpec, JobState, JobStatus,
+    MessageCodec, Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome,
+    WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT, PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -137,12 +137,36 @@ prop_compose! {
 prop_compose! {
     fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
                   full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
-                  name in text(), frame in any::<u32>())
+                  name in text(), frame in any::<u32>(),
+                  frames in prop::option::of(frame_range()))
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name, frame,
+            name: name.clone(), submitter: name, frame, frames,
+        }
+    }
+}
+
+prop_compose! {
+    fn frame_range()(first in any::<u32>(), last in any::<u32>()) -> FrameRange {
+        FrameRange { first, last }
+    }
+}
+
+prop_compose! {
+    fn frame_progress()(
+        first in any::<u32>(), last in any::<u32>(), done in any::<u32>(),
+        active in any::<u32>(), pending in any::<u32>(), cancelled in any::<u32>(),
+        done_prefix in any::<u32>(), failed in any::<u32>(),
+        failures in prop::collection::vec(
+            (any::<u32>(), any::<u64>(), text())
+                .prop_map(|(frame, job, error)| FrameFailure { frame, job, error }),
+            0..3,
+        ),
+    ) -> FrameProgress {
+        FrameProgress {
+            first, last, done, active, pending, cancelled, done_prefix, failed, failures,
         }
     }
 }
@@ -169,12 +193,13 @@ prop_compose! {
         name in text(), submitter in text(),
         submitted_from in text(), submitted_unix_ms in any::<u64>(),
         queued_ms in any::<Option<u64>>(), frame in any::<u32>(),
+        frames in prop::option::of(frame_progress()), sequence in any::<Option<u64>>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
-            frame,
+            frame, frames, sequence,
         }
     }
 }
@@ -363,6 +388,10 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
         any::<u64>().prop_map(|job| ClientRequest::Retry { job }),
         (any::<u64>(), prop::collection::vec(any::<u32>(), 0..5))
             .prop_map(|(job, tiles)| ClientRequest::Requeue { job, tiles }),
+        (any::<u64>(), any::<u32>(), any::<u64>())
+            .prop_map(|(job, frame, offset)| ClientRequest::FetchFrame { job, frame, offset }),
+        (any::<u64>(), any::<u32>())
+            .prop_map(|(job, frame)| ClientRequest::RequeueFrame { job, frame }),
     ]
 }
 
@@ -871,10 +900,12 @@ fn a_tile_names_its_frame_after_the_scene_hash() {
         name: String::new(),
         submitter: String::new(),
         frame: 17,
+        frames: None,
     };
     let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
-    // The frame is the JobSpec's last field.
-    assert_eq!(bytes[bytes.len() - 4..], 17u32.to_le_bytes());
+    // The frame, then the range (`None`: one byte 0), are the JobSpec's last fields.
+    assert_eq!(bytes[bytes.len() - 5..bytes.len() - 1], 17u32.to_le_bytes());
+    assert_eq!(bytes[bytes.len() - 1], 0);
     let back: ClientRequest = wire::decode(&bytes).unwrap();
     assert_eq!(back, ClientRequest::Submit(spec));
 }
@@ -1035,8 +1066,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&18u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 18 (variants go from 0 to 17)"
+        decode_error::<ClientRequest>(&20u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 20 (variants go from 0 to 19)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(
@@ -1058,6 +1089,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             name: String::new(),
             submitter: String::new(),
             frame: 1,
+            frames: None,
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1071,8 +1103,8 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         ..Default::default()
     });
     // The Sampling variant, before the priority, verification, time limit, the name
-    // and submitter (two empty strings: their lengths) and the frame.
-    let at = nested.len() - 13 - 16 - 4;
+    // and submitter (two empty strings: their lengths), the frame and the range.
+    let at = nested.len() - 13 - 16 - 4 - 1;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

@@ -191,6 +191,14 @@ impl fmt::Display for FrameOutOfRange {
 
 impl std::error::Error for FrameOutOfRange {}
 
+/// The name of frame `k` of a scene of `count` frames: `frame_0007.png`, with as many
+/// digits as the count has, at least 4. `tessera render --frames`, the coordinator's
+/// store and `tessera fetch` of a sequence all name frames so.
+pub fn frame_file_name(k: u64, count: u32) -> String {
+    let width = count.to_string().len().max(4);
+    format!("frame_{k:0width$}.png")
+}
+
 impl AnimatedScene {
     /// How many frames the scene has: the animation's, or 1 for a static scene.
     pub fn frame_count(&self) -> u32 {

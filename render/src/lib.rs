@@ -29,7 +29,9 @@ mod tracer;
 mod vec3;
 mod write;
 
-pub use crate::animation::{AnimatedScene, Animation, FrameOutOfRange, MAX_FRAMES};
+pub use crate::animation::{
+    frame_file_name, AnimatedScene, Animation, FrameOutOfRange, MAX_FRAMES,
+};
 pub use crate::error::SceneError;
 pub use crate::image::Image;
 pub use crate::parse::{parse_animated, parse_scene, validate_settings, MAX_TRACKS};

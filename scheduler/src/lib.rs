@@ -10,11 +10,13 @@
 //! - [`lifecycle`]: the jobs themselves: admission, Queued → Running → Done, Failed or
 //!   Cancelled, when each change is stored, and when a failure is final.
 //! - [`passes`]: how far each pass of an adaptive job goes, and which rung is its image.
+//! - [`sequence`]: which frames of a sequence job start when, and its state.
 //! - [`sim`]: a farm of simulated workers driving both, to show the design holds far
 //!   beyond one machine.
 
 pub mod lifecycle;
 pub mod passes;
+pub mod sequence;
 pub mod sim;
 pub mod tiles;
 

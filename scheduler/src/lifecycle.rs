@@ -301,6 +301,9 @@ pub struct Lifecycle {
     expiry: BTreeSet<(Millis, JobId)>,
     /// Jobs being deleted.
     deleting: BTreeSet<JobId>,
+    /// Jobs that never expire on their own: the frame jobs of a sequence, which the
+    /// sequence's own retention deletes with it.
+    kept: BTreeSet<JobId>,
 }
 
 impl Lifecycle {
@@ -388,6 +391,21 @@ impl Lifecycle {
         Ok(id)
     }
 
+    /// Issues an id that is not a job of the lifecycle's own: a sequence job's (its
+    /// frames are jobs). Ids are never issued twice either way.
+    pub fn issue_id(&mut self) -> JobId {
+        let id = self.next_id;
+        self.next_id += 1;
+        id
+    }
+
+    /// The job never expires on its own (a sequence's frame job: it is deleted with
+    /// its sequence).
+    pub fn keep(&mut self, job: JobId) {
+        self.kept.insert(job);
+        self.expiry.retain(|&(_, j)| j != job);
+    }
+
     /// The earliest time at which [`Event::Timeout`] has something to do.
     pub fn next_deadline(&self) -> Option<Millis> {
         let retry = self
@@ -456,7 +474,7 @@ impl Lifecycle {
                         ended,
                     },
                 );
-                if ended.is_some() {
+                if ended.is_some() && !self.kept.contains(&job) {
                     if let Some(keep) = self.limits.retention {
                         let at = (now + keep).saturating_sub(ended_ago);
                         self.expiry.insert((at, job));
@@ -575,6 +593,7 @@ impl Lifecycle {
             }
             Event::Deleted { job } => {
                 self.deleting.remove(&job);
+                self.kept.remove(&job);
                 if self.jobs.remove(&job).is_some() {
                     // Deletions are rare: a walk of the expiry list costs nothing much.
                     self.expiry.retain(|&(_, j)| j != job);
@@ -640,6 +659,9 @@ impl Lifecycle {
     }
 
     fn schedule_expiry(&mut self, job: JobId, ended: Millis) {
+        if self.kept.contains(&job) {
+            return;
+        }
         if let Some(keep) = self.limits.retention {
             self.expiry.insert((ended + keep, job));
         }

@@ -1170,6 +1170,16 @@ impl Scheduler {
             .is_some_and(|j| (j.queued as usize) < j.state.len())
     }
 
+    /// Tiles of the job waiting to be handed out (none for a job it does not have).
+    pub fn waiting(&self, job: JobId) -> u64 {
+        self.jobs.get(&job).map_or(0, |j| u64::from(j.queued))
+    }
+
+    /// Tiles all workers may hold at once: what keeps the farm busy.
+    pub fn total_credit(&self) -> u64 {
+        self.workers.values().map(|w| w.credit as u64).sum()
+    }
+
     /// Tiles the worker holds.
     pub fn held_by(&self, worker: WorkerId) -> usize {
         self.workers.get(&worker).map_or(0, |w| w.holding.len())

@@ -51,6 +51,7 @@ async fn run_job(
             name: "bench".into(),
             submitter: "tessera bench".into(),
             frame: 1,
+            frames: None,
         })
         .await?;
     let mut seen = 0;

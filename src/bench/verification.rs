@@ -82,6 +82,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
                     name: "bench".into(),
                     submitter: "tessera bench".into(),
                     frame: 1,
+                    frames: None,
                 };
                 let (wall, _) = super::latency::run_job(farm.address(), spec).await?;
                 eprintln!("verification: {}: {wall:.3} s", setting.name);

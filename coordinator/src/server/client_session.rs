@@ -83,14 +83,105 @@ pub(crate) async fn respond(
             Some(status) => ClientResponse::Job(status),
             None => unknown_job(job),
         },
-        ClientRequest::List => {
-            let core = sh.lock();
-            let jobs = core
-                .lifecycle
-                .jobs()
-                .filter_map(|(id, _)| core.status(id))
-                .collect();
-            ClientResponse::Jobs(jobs)
+        ClientRequest::List => ClientResponse::Jobs(sh.lock().list()),
+        ClientRequest::Cancel { job } if sh.lock().sequences.contains_key(&job) => {
+            match sh.lock().cancel_sequence(sh, job, peer) {
+                Ok(()) => ClientResponse::Cancelled { job },
+                Err(message) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::Delete { job } if sh.lock().sequences.contains_key(&job) => {
+            let (done, gone) = tokio::sync::oneshot::channel();
+            let deleting = sh.lock().delete_sequence(sh, job, done);
+            match deleting {
+                Err(message) => ClientResponse::Error { message },
+                Ok(()) => match tokio::time::timeout(Duration::from_secs(10), gone).await {
+                    Ok(Ok(())) => ClientResponse::Deleted { job },
+                    _ => ClientResponse::Error {
+                        message: format!("job {job} is being deleted: the disk is slow"),
+                    },
+                },
+            }
+        }
+        ClientRequest::Pause { job } | ClientRequest::Resume { job }
+            if sh.lock().sequences.contains_key(&job) =>
+        {
+            let paused = matches!(request, ClientRequest::Pause { .. });
+            let controls = {
+                let mut core = sh.lock();
+                let controls = core.set_sequence_paused(sh, job, paused);
+                if controls.is_ok() {
+                    let kind = if paused { "paused" } else { "resumed" };
+                    core.log(sh, job, kind, format!("from {peer}"));
+                }
+                controls
+            };
+            store_controls(sh, job, controls).await
+        }
+        ClientRequest::SetPriority { job, priority } if sh.lock().sequences.contains_key(&job) => {
+            let controls = {
+                let mut core = sh.lock();
+                let before = core.sequences.get(&job).map(|r| r.priority);
+                let controls = core.set_sequence_priority(sh, job, priority);
+                if let (Ok(_), Some(before)) = (&controls, before) {
+                    core.log(
+                        sh,
+                        job,
+                        "priority",
+                        format!("{before} -> {priority}, from {peer}"),
+                    );
+                }
+                controls
+            };
+            store_controls(sh, job, controls).await
+        }
+        ClientRequest::Retry { job } if sh.lock().sequences.contains_key(&job) => {
+            match sh.lock().requeue_frames(sh, job, None, peer) {
+                Ok(status) => ClientResponse::Job(status),
+                Err(message) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::RequeueFrame { job, frame } => {
+            match sh.lock().requeue_frames(sh, job, Some(frame), peer) {
+                Ok(status) => ClientResponse::Job(status),
+                Err(message) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::FetchFrame { job, frame, offset } => {
+            let image = sh.lock().frame_image(job, frame);
+            match image {
+                Ok((place, sha)) => serve_image(sh, job, place, sha, offset).await,
+                Err(message) => ClientResponse::Error { message },
+            }
+        }
+        ClientRequest::Requeue { job, .. } | ClientRequest::Refine { job, .. }
+            if sh.lock().sequences.contains_key(&job) =>
+        {
+            ClientResponse::Error {
+                message: format!(
+                    "job {job} is a sequence: requeue or refine one of its frames' jobs, or \
+                     requeue a frame (`tessera retry {job} --frame K`)"
+                ),
+            }
+        }
+        ClientRequest::Retry { job }
+            if sh
+                .lock()
+                .jobs
+                .get(&job)
+                .is_some_and(|r| r.sequence.is_some()) =>
+        {
+            let (sequence, frame) = {
+                let core = sh.lock();
+                let r = &core.jobs[&job];
+                (r.sequence.unwrap_or_default(), r.frame)
+            };
+            ClientResponse::Error {
+                message: format!(
+                    "job {job} renders frame {frame} of sequence {sequence}: requeue the frame \
+                     (`tessera retry {sequence} --frame {frame}`)"
+                ),
+            }
         }
         ClientRequest::Cancel { job } => {
             let mut core = sh.lock();
@@ -220,39 +311,34 @@ async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse
     admit(sh, prepared).await
 }
 
-/// Has the lifecycle admit a prepared job, and answers once its row is written.
+/// Has the lifecycle admit a prepared job (or a sequence), and answers once its row is
+/// written.
 pub(super) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     let (reply, answer) = tokio::sync::oneshot::channel();
-    let stored = match sh.lock().admit(sh, prepared, reply) {
-        Ok(stored) => stored,
-        Err(message) => return ClientResponse::Error { message },
-    };
-    let id = stored.id;
-    let shared = Arc::clone(sh);
-    let label = stored.label.clone();
-    let write = Write::InsertJob {
-        job: Box::new(stored),
-        then: Box::new(move |result| {
-            let event = match result {
-                Ok(()) => {
-                    shared.lock().log(
-                        &shared,
-                        id,
-                        "submitted",
-                        format!(
-                            "{:?} by {} from {}",
-                            label.name, label.submitter, label.submitted_from
-                        ),
-                    );
-                    lifecycle::Event::Stored { job: id }
-                }
-                Err(message) => lifecycle::Event::StoreFailed { job: id, message },
-            };
-            shared.lock().life_event(&shared, event);
-        }),
-    };
-    // A studio view's pass is not stored: `store` discards the write.
-    sh.lock().store(sh, id, write);
+    if prepared.frames.is_some() {
+        let stored = match sh.lock().admit_sequence(prepared, reply) {
+            Ok(stored) => stored,
+            Err(message) => return ClientResponse::Error { message },
+        };
+        let id = stored.id;
+        let shared = Arc::clone(sh);
+        sh.persistence.write(Write::InsertJob {
+            job: Box::new(stored),
+            then: Box::new(move |result| {
+                shared.lock().sequence_stored(&shared, id, result);
+            }),
+        });
+    } else {
+        let mut core = sh.lock();
+        let stored = match core.admit(sh, prepared, reply) {
+            Ok(stored) => stored,
+            Err(message) => return ClientResponse::Error { message },
+        };
+        let id = stored.id;
+        let write = core.insert_write(sh, stored);
+        // A studio view's pass is not stored: `store` discards the write.
+        core.store(sh, id, write);
+    }
     answer.await.unwrap_or_else(|_| ClientResponse::Error {
         message: "the coordinator stopped before storing the job: submit again".into(),
     })
@@ -339,6 +425,7 @@ async fn refine(
             name: format!("{name} (refined)"),
             submitter,
             frame,
+            frames: None,
         };
         let mut prepared = prepare(spec, &limits, peer)?;
         if states.tile_size != tile_size
@@ -397,13 +484,27 @@ pub(super) fn prepare(
     // are not animated, so the base scene's are every frame's.
     let animated = render::parse_animated(&spec.scene).map_err(|e| e.to_string())?;
     let frames = animated.frame_count();
+    let out_of_range = |frame: u32| render::FrameOutOfRange {
+        frame: u64::from(frame),
+        frames,
+        animated: animated.animation.is_some(),
+    };
     if spec.frame == 0 || spec.frame > frames {
-        return Err(render::FrameOutOfRange {
-            frame: u64::from(spec.frame),
-            frames,
-            animated: animated.animation.is_some(),
+        return Err(out_of_range(spec.frame).to_string());
+    }
+    if let Some(range) = spec.frames {
+        if spec.frame != 1 {
+            return Err("frames: a sequence job names its range, not a frame".into());
         }
-        .to_string());
+        if range.first == 0 || range.first > range.last {
+            return Err(format!(
+                "frames: {}-{} is not a range of frames (from 1, first to last)",
+                range.first, range.last
+            ));
+        }
+        if range.last > frames {
+            return Err(out_of_range(range.last).to_string());
+        }
     }
     let scene = animated.base;
     let o = spec.overrides;
@@ -477,6 +578,9 @@ pub(super) fn prepare(
             submitter: one_line(&spec.submitter, MAX_LABEL),
             submitted_from: client.to_string(),
         },
+        sequence: None,
+        frames: spec.frames,
+        frame_count: frames,
     })
 }
 
@@ -698,24 +802,46 @@ async fn wait_deleted(sh: &Shared, job: JobId) -> ClientResponse {
 /// A chunk of a finished job's image, read from disk; the whole file is checked
 /// against its recorded checksum when the first chunk is asked for.
 async fn fetch(sh: &Arc<Shared>, job: JobId, offset: u64) -> ClientResponse {
-    let sha = {
+    let (place, sha) = {
         let core = sh.lock();
         match core.status(job) {
             None => return unknown_job(job),
+            Some(s) if s.frames.is_some() => {
+                return ClientResponse::Error {
+                    message: format!(
+                        "job {job} is a sequence: fetch its frames (`tessera fetch {job} -o DIR/`)"
+                    ),
+                }
+            }
             Some(s) if s.state != JobState::Done => {
                 return ClientResponse::Error {
                     message: format!("job {job} has no image: it is {}", s.state.as_str()),
                 }
             }
-            Some(_) => core.jobs.get(&job).and_then(|r| r.image_sha256),
+            Some(_) => (
+                core.image_place(job),
+                core.jobs.get(&job).and_then(|r| r.image_sha256),
+            ),
         }
     };
+    serve_image(sh, job, place, sha, offset).await
+}
+
+/// A chunk of a stored image from `offset`, its checksum checked when it is read from
+/// the start.
+async fn serve_image(
+    sh: &Arc<Shared>,
+    job: JobId,
+    place: crate::store::ImagePlace,
+    sha: Option<[u8; 32]>,
+    offset: u64,
+) -> ClientResponse {
     let store = Arc::clone(&sh.store);
     let read = tokio::task::spawn_blocking(move || -> anyhow::Result<(u64, Vec<u8>)> {
         if let (0, Some(sha)) = (offset, sha) {
-            store.verify_image(job, &sha)?;
+            store.verify_image(place, &sha)?;
         }
-        store.read_image_chunk(job, offset, CHUNK)
+        store.read_image_chunk(place, offset, CHUNK)
     })
     .await;
     match read {

@@ -28,11 +28,16 @@ use crate::db::{EventWrite, Label, StoredJob, Times, Totals};
 use crate::store::JobMetadata;
 use crate::tiling;
 
+mod sequences;
+pub use sequences::SequenceRecord;
+
 /// The state machines and their data.
 pub struct Core {
     pub tiles: Scheduler,
     pub lifecycle: Lifecycle,
     pub jobs: BTreeMap<JobId, JobRecord>,
+    /// Sequence jobs, whose frames are jobs of `jobs`.
+    pub sequences: BTreeMap<JobId, SequenceRecord>,
     pub workers: BTreeMap<WorkerId, WorkerRecord>,
     next_worker: WorkerId,
     /// Clients waiting for their submission to be stored.
@@ -77,6 +82,9 @@ pub struct JobRecord {
     /// The frame of the scene it renders, from 1: sent with every tile, and the frame
     /// its results are checked against.
     pub frame: u32,
+    /// For a frame job: the sequence it renders a frame of (it is not listed; its
+    /// image goes to the sequence's folder).
+    pub sequence: Option<JobId>,
     pub settings: Settings,
     pub tile_size: u32,
     /// The tiles' rectangles, while the job is active.
@@ -414,6 +422,12 @@ pub struct Prepared {
     pub start: Option<crate::store::TileStates>,
     /// Its name, its submitter as claimed and the address it came from.
     pub label: Label,
+    /// For a frame job: its sequence.
+    pub sequence: Option<JobId>,
+    /// For a sequence job: its frames (`frame` must be 1).
+    pub frames: Option<protocol::FrameRange>,
+    /// The scene's frame count.
+    pub frame_count: u32,
 }
 
 impl Core {
@@ -429,15 +443,25 @@ impl Core {
             quarantined: BTreeMap::new(),
             leases_expired_seen: 0,
             expiries_logged: HashSet::new(),
+            sequences: BTreeMap::new(),
         }
     }
 
     /// The earliest deadline of either state machine.
-    pub fn next_deadline(&self) -> Option<Millis> {
-        [self.tiles.next_deadline(), self.lifecycle.next_deadline()]
-            .into_iter()
-            .flatten()
-            .min()
+    pub fn next_deadline(&self, now: Millis) -> Option<Millis> {
+        // Frames refused admission, and sequences whose retention runs out, are looked
+        // at again every second.
+        let sequences = (self.sequences_waiting()
+            || (self.lifecycle.limits().retention.is_some() && !self.sequences.is_empty()))
+        .then_some(now + 1_000);
+        [
+            self.tiles.next_deadline(),
+            self.lifecycle.next_deadline(),
+            sequences,
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     /// The time has come: both state machines look at their deadlines.
@@ -448,6 +472,8 @@ impl Core {
         self.tiles_event(sh, Event::Timeout);
         self.log_expired_leases(sh);
         self.life_event(sh, lifecycle::Event::Timeout);
+        self.fill_all(sh);
+        self.expire_sequences(sh);
     }
 
     /// Logs, once each, the tiles whose worker ran past its lease: the scheduler has put
@@ -518,20 +544,19 @@ impl Core {
     /// `kind` is one of the words docs/operations.md lists. A studio view's pass keeps
     /// no log.
     pub fn log(&mut self, sh: &Shared, job: JobId, kind: &str, detail: String) {
-        let Some(record) = self.jobs.get_mut(&job) else {
-            return;
+        let log = match (self.jobs.get_mut(&job), self.sequences.get_mut(&job)) {
+            (Some(record), _) if !record.interactive => &mut record.log,
+            (None, Some(sequence)) => &mut sequence.log,
+            _ => return,
         };
-        if record.interactive {
-            return;
-        }
         let end = matches!(kind, "done" | "failed" | "cancelled");
         let unix_ms = unix_ms();
-        let (seq, kind, detail) = match record.log.number(end) {
+        let (seq, kind, detail) = match log.number(end) {
             Some(seq) => (seq, kind.to_owned(), detail),
             None => (
                 EVENT_LOG_CAP + 1,
                 "not_kept".to_owned(),
-                format!("{} further events not kept", record.log.dropped),
+                format!("{} further events not kept", log.dropped),
             ),
         };
         sh.persistence.write(Write::Event(EventWrite {
@@ -598,6 +623,8 @@ impl Core {
             scene: prepared.scene.clone(),
             hash: prepared.hash,
             frame: prepared.frame,
+            last_frame: None,
+            sequence: prepared.sequence,
             settings: prepared.settings,
             tile_size: prepared.tile_size,
             priority: prepared.priority,
@@ -638,6 +665,7 @@ impl Core {
                 scene: Some(Arc::from(prepared.scene)),
                 hash: prepared.hash,
                 frame: prepared.frame,
+                sequence: prepared.sequence,
                 settings: prepared.settings,
                 tile_size: prepared.tile_size,
                 tiles_total: prepared.tiles.len() as u32,
@@ -655,6 +683,35 @@ impl Core {
         );
         self.submits.insert(id, reply);
         Ok(stored)
+    }
+
+    /// The write that stores an admitted job's row, and then has the lifecycle hear
+    /// whether it was stored.
+    pub fn insert_write(&self, sh: &Arc<Shared>, stored: StoredJob) -> Write {
+        let id = stored.id;
+        let shared = Arc::clone(sh);
+        let label = stored.label.clone();
+        Write::InsertJob {
+            job: Box::new(stored),
+            then: Box::new(move |result| {
+                let event = match result {
+                    Ok(()) => {
+                        shared.lock().log(
+                            &shared,
+                            id,
+                            "submitted",
+                            format!(
+                                "{:?} by {} from {}",
+                                label.name, label.submitter, label.submitted_from
+                            ),
+                        );
+                        lifecycle::Event::Stored { job: id }
+                    }
+                    Err(message) => lifecycle::Event::StoreFailed { job: id, message },
+                };
+                shared.lock().life_event(&shared, event);
+            }),
+        }
     }
 
     /// Takes back a job found on disk at startup.
@@ -751,6 +808,7 @@ impl Core {
             scene: (!final_state).then(|| Arc::from(stored.scene.as_str())),
             hash: stored.hash,
             frame: stored.frame,
+            sequence: stored.sequence,
             settings: stored.settings,
             tile_size: stored.tile_size,
             tiles_total: tiles.len() as u32,
@@ -768,6 +826,15 @@ impl Core {
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
         };
+        if let Some(sequence) = stored.sequence {
+            self.lifecycle.keep(id);
+            if let Some(s) = self.sequences.get_mut(&sequence) {
+                s.frames.restore(stored.frame, id, stored.state);
+                // The sequence's controls are its frames'.
+                record.paused = s.paused && !final_state;
+                record.priority = s.priority;
+            }
+        }
         if final_state {
             if stored.state == JobState::Done {
                 record.tiles_recorded = record.tiles_total;
@@ -871,6 +938,8 @@ impl Core {
                 machine: Some(name),
             },
         );
+        // More credit: a sequence may start another frame to keep it busy.
+        self.fill_all(sh);
         id
     }
 
@@ -1917,6 +1986,10 @@ impl Core {
         };
         self.log(sh, job, "tile_assigned", format!("tile {tile} to {name}"));
         self.life_event(sh, lifecycle::Event::TileAssigned { job });
+        // Fewer tiles wait: the sequence may start its next frame.
+        if let Some(sequence) = self.jobs.get(&job).and_then(|r| r.sequence) {
+            self.fill(sh, sequence);
+        }
     }
 
     /// Carries out the lifecycle's actions; returns its replies.
@@ -1931,7 +2004,11 @@ impl Core {
             match action {
                 A::Acknowledge { job } => self.acknowledge(sh, job),
                 A::RefuseStored { job, message } => {
-                    self.jobs.remove(&job);
+                    if let Some(r) = self.jobs.remove(&job) {
+                        if let Some(sequence) = r.sequence {
+                            self.frame_refused(sequence, r.frame);
+                        }
+                    }
                     error!(job, error = %message, "cannot store a job");
                     if let Some(reply) = self.submits.remove(&job) {
                         let _ = reply.send(ClientResponse::Error {
@@ -1954,6 +2031,7 @@ impl Core {
                         job,
                         Write::Delete {
                             job,
+                            place: self.image_place(job),
                             then: Box::new(move |_| {
                                 let mut core = shared.lock();
                                 core.jobs.remove(&job);
@@ -2006,6 +2084,13 @@ impl Core {
             },
         );
         self.mark_interactive(sh, job);
+        if let Some((sequence, frame)) = self
+            .jobs
+            .get(&job)
+            .and_then(|r| Some((r.sequence?, r.frame)))
+        {
+            self.frame_acknowledged(sh, sequence, frame, job);
+        }
     }
 
     /// Tells the scheduler that a studio view's pass goes ahead of batch jobs; each run
@@ -2055,12 +2140,14 @@ impl Core {
                 states: states?,
             }))
         });
+        let place = self.image_place(job);
         let shared = Arc::clone(sh);
         sh.runtime.spawn_blocking(move || {
             let png = image.to_png();
             drop(image);
             let then_shared = Arc::clone(&shared);
             shared.persistence.write(Write::Image {
+                place,
                 meta: Box::new(meta),
                 scene,
                 png,
@@ -2132,6 +2219,7 @@ impl Core {
         if forget {
             sh.studio.ended(sh.now(), job, state == JobState::Done);
         }
+        let frame_of = record.sequence.map(|s| (s, record.frame));
         let write = Write::End {
             job,
             state,
@@ -2145,6 +2233,9 @@ impl Core {
                 core.life_event(&shared, lifecycle::Event::EndRecorded { job });
                 if forget {
                     core.life_event(&shared, lifecycle::Event::Delete { job });
+                }
+                if let Some((sequence, frame)) = frame_of {
+                    core.frame_ended(&shared, sequence, frame, job);
                 }
                 drop(core);
                 shared.changed();
@@ -2306,6 +2397,9 @@ impl Core {
     /// None for an unknown job, and for a studio view's pass: clients and the status
     /// page see only the jobs that are kept.
     pub fn status(&self, id: JobId) -> Option<JobStatus> {
+        if self.sequences.contains_key(&id) {
+            return self.sequence_status(id);
+        }
         let job = self.lifecycle.job(id)?;
         let record = self.jobs.get(&id).filter(|r| !r.interactive)?;
         let mut status = record.status(id, job);
@@ -2579,6 +2673,8 @@ impl JobRecord {
                 .started
                 .map(|started| started.saturating_sub(submitted)),
             frame: self.frame,
+            frames: None,
+            sequence: self.sequence,
         }
     }
 }

@@ -207,14 +207,15 @@ impl Observer {
         let core = self.shared.lock();
         if core.status(job)?.state == JobState::Done {
             let sha = core.jobs.get(&job).and_then(|r| r.image_sha256);
+            let place = core.image_place(job);
             drop(core);
             // Checked like a fetch: a damaged image is not served.
             let store = &self.shared.store;
             if let Some(sha) = sha {
-                store.verify_image(job, &sha).ok()?;
+                store.verify_image(place, &sha).ok()?;
             }
-            let (total, _) = store.read_image_chunk(job, 0, 0).ok()?;
-            let (_, png) = store.read_image_chunk(job, 0, total as usize).ok()?;
+            let (total, _) = store.read_image_chunk(place, 0, 0).ok()?;
+            let (_, png) = store.read_image_chunk(place, 0, total as usize).ok()?;
             return Some(Picture::Final(png));
         }
         let image = core.jobs.get(&job)?.image.as_ref()?;

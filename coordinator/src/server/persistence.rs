@@ -25,7 +25,7 @@ use protocol::{JobEvent, JobId, JobState, EVENTS_PER_PAGE};
 use tracing::{info, warn};
 
 use crate::db::{Db, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
-use crate::store::{JobMetadata, Store};
+use crate::store::{ImagePlace, JobMetadata, Store};
 
 /// How long after a failed write it is tried again.
 pub const RETRY: Duration = Duration::from_millis(500);
@@ -68,6 +68,7 @@ pub enum Write {
     },
     /// Stores the image files; `then` gets the image's checksum.
     Image {
+        place: ImagePlace,
         meta: Box<JobMetadata>,
         scene: Arc<str>,
         png: Vec<u8>,
@@ -88,7 +89,13 @@ pub enum Write {
     },
     Delete {
         job: JobId,
+        place: ImagePlace,
         then: Then<()>,
+    },
+    /// A sequence job is running again (a frame of it was requeued): its row says so,
+    /// its end forgotten.
+    SequenceRunning {
+        job: JobId,
     },
     /// An entry of a job's event log: written with the tiles and entries queued with
     /// it, in one transaction.
@@ -137,6 +144,7 @@ impl Write {
             Write::Reopen { then, .. } => then(Ok(None)),
             Write::Tile(_)
             | Write::Started { .. }
+            | Write::SequenceRunning { .. }
             | Write::ForgetTiles { .. }
             | Write::Event(_) => {}
         }
@@ -389,6 +397,7 @@ impl Writer {
                 false
             }
             Step::One(Write::Image {
+                place,
                 meta,
                 scene,
                 png,
@@ -396,7 +405,8 @@ impl Writer {
                 then,
             }) => {
                 let store = Arc::clone(&self.store);
-                let sha = self.until_done(|_| store.save(&meta, &scene, &png, states.as_deref()));
+                let sha =
+                    self.until_done(|_| store.save(place, &meta, &scene, &png, states.as_deref()));
                 then(Ok(sha));
                 false
             }
@@ -451,13 +461,17 @@ impl Writer {
                 then(result.and_then(|r| r));
                 false
             }
-            Step::One(Write::Delete { job, then }) => {
+            Step::One(Write::Delete { job, place, then }) => {
                 let store = Arc::clone(&self.store);
                 self.until_done(|db| {
                     db.delete_job(job)?;
-                    store.delete(job)
+                    store.delete(place)
                 });
                 then(Ok(()));
+                false
+            }
+            Step::One(Write::SequenceRunning { job }) => {
+                self.until_done(|db| db.set_running_again(job));
                 false
             }
         }

@@ -288,6 +288,7 @@ async fn submit_passes(
             submitter: "studio".into(),
             // The studio edits and shows a scene's frame 1.
             frame: 1,
+            frames: None,
         };
         let limits = sh.limits;
         let prepared = tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await;

@@ -1,0 +1,877 @@
+//! Sequence jobs on the daemon: the decisions are [`scheduler::sequence`]'s, this is
+//! where they are carried out.
+//!
+//! A sequence is a row of the jobs table (its scene, settings and label, `frame` and
+//! `last_frame` its range) and, per frame, a frame job: an ordinary job with its
+//! tiles, checks, image and end, whose row names the sequence and keeps the scene only
+//! while it is active, and whose image is stored in the sequence's folder as
+//! `frame_0007.png`. Frame jobs are not listed; the sequence's status adds them up.
+//! After a restart, a sequence's state is rebuilt from its frame jobs' rows.
+
+use std::sync::Arc;
+
+use protocol::{
+    ClientResponse, FrameFailure, FrameProgress, JobId, JobState, JobStatus, SceneHash, Settings,
+    Verification, FAILED_FRAMES_LISTED,
+};
+use scheduler::lifecycle::{self, Phase};
+use scheduler::sequence::{FrameState, Sequence};
+use tokio::sync::oneshot;
+use tracing::{info, warn};
+
+use super::{unix_ms, unknown, Controls, Core, EventLog, Prepared, Shared, Write};
+use crate::db::{Label, StoredJob, Times, Totals};
+use crate::store::ImagePlace;
+use crate::tiling;
+
+/// What the daemon keeps of a sequence job.
+pub struct SequenceRecord {
+    pub frames: Sequence,
+    pub scene: Arc<str>,
+    pub hash: SceneHash,
+    /// The scene's frame count (frames are named by it: `frame_0007.png`).
+    pub frame_count: u32,
+    pub settings: Settings,
+    pub tile_size: u32,
+    pub tiles_per_frame: u32,
+    pub priority: i32,
+    pub paused: bool,
+    pub verification: Verification,
+    /// What each frame job is admitted as.
+    pub request: lifecycle::Request,
+    pub label: Label,
+    pub times: Times,
+    pub log: EventLog,
+    /// Its row is written: frames start only then.
+    pub stored: bool,
+    /// The final state written to its row, if it has ended.
+    pub recorded: Option<JobState>,
+    /// Being deleted: nothing starts, nothing more is written.
+    pub deleting: bool,
+    /// Why the last frame could not be admitted, to log it once.
+    last_refusal: Option<String>,
+}
+
+impl Core {
+    /// Enters an admitted sequence, waiting for its row to be written; `reply` gets
+    /// the client's answer. Its frames start once it is stored.
+    pub fn admit_sequence(
+        &mut self,
+        prepared: Prepared,
+        reply: oneshot::Sender<ClientResponse>,
+    ) -> Result<StoredJob, String> {
+        let range = prepared.frames.expect("a sequence has a frame range");
+        if let Some(reason) = self.lifecycle.storage_down() {
+            return Err(format!(
+                "the coordinator cannot store new jobs now (storage unavailable: {reason}): \
+                 submit again later"
+            ));
+        }
+        self.lifecycle.limits().check(&prepared.request)?;
+        let id = self.lifecycle.issue_id();
+        let times = Times {
+            submitted: Some(unix_ms()),
+            ..Times::default()
+        };
+        let stored = StoredJob {
+            id,
+            scene: prepared.scene.clone(),
+            hash: prepared.hash,
+            frame: range.first,
+            last_frame: Some(range.last),
+            sequence: None,
+            settings: prepared.settings,
+            tile_size: prepared.tile_size,
+            priority: prepared.priority,
+            state: JobState::Queued,
+            error: None,
+            totals: None,
+            times,
+            image_sha256: None,
+            verification: prepared.verification,
+            time_limit_ms: None,
+            stopped_on_time_limit: false,
+            paused: false,
+            label: prepared.label.clone(),
+        };
+        self.sequences.insert(
+            id,
+            SequenceRecord {
+                frames: Sequence::new(range.first, range.last),
+                scene: Arc::from(prepared.scene),
+                hash: prepared.hash,
+                frame_count: prepared.frame_count,
+                settings: prepared.settings,
+                tile_size: prepared.tile_size,
+                tiles_per_frame: prepared.tiles.len() as u32,
+                priority: prepared.priority,
+                paused: false,
+                verification: prepared.verification,
+                request: prepared.request,
+                label: prepared.label,
+                times,
+                log: EventLog::new(),
+                stored: false,
+                recorded: None,
+                deleting: false,
+                last_refusal: None,
+            },
+        );
+        self.submits.insert(id, reply);
+        Ok(stored)
+    }
+
+    /// The sequence's row is written (`Ok`) or could not be: the client hears, and its
+    /// first frames start.
+    pub fn sequence_stored(&mut self, sh: &Arc<Shared>, id: JobId, result: Result<(), String>) {
+        let reply = self.submits.remove(&id);
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return;
+        };
+        match result {
+            Ok(()) => {
+                record.stored = true;
+                let (first, last) = (record.frames.first(), record.frames.last());
+                let label = record.label.clone();
+                info!(job = id, first, last, "sequence accepted");
+                self.log(
+                    sh,
+                    id,
+                    "submitted",
+                    format!(
+                        "{:?} by {} from {}: frames {first} to {last}",
+                        label.name, label.submitter, label.submitted_from
+                    ),
+                );
+                if let Some(reply) = reply {
+                    let _ = reply.send(ClientResponse::Submitted { job: id });
+                }
+                self.fill(sh, id);
+                sh.changed();
+            }
+            Err(message) => {
+                self.sequences.remove(&id);
+                if let Some(reply) = reply {
+                    let _ = reply.send(ClientResponse::Error {
+                        message: format!("the coordinator cannot store new jobs now: {message}"),
+                    });
+                }
+            }
+        }
+    }
+
+    /// Takes back a sequence found on disk at startup; its frame jobs follow it (their
+    /// ids are higher) and tell it where each frame stands.
+    pub fn restore_sequence(&mut self, stored: StoredJob, last_event: (u64, u64)) {
+        let id = stored.id;
+        let Some(last) = stored.last_frame else {
+            return;
+        };
+        let frame_count = render::parse_animated(&stored.scene)
+            .map(|a| a.frame_count())
+            .unwrap_or(last);
+        let tiles_per_frame = tiling::cut(&stored.settings, stored.tile_size).len() as u32;
+        let mut frames = Sequence::new(stored.frame, last);
+        frames.set_paused(stored.paused);
+        let request = lifecycle::Request {
+            client: stored.label.submitted_from.parse().ok(),
+            scene_bytes: stored.scene.len(),
+            objects: 0,
+            width: stored.settings.width,
+            height: stored.settings.height,
+            aa: stored.settings.aa,
+        };
+        self.sequences.insert(
+            id,
+            SequenceRecord {
+                frames,
+                scene: Arc::from(stored.scene),
+                hash: stored.hash,
+                frame_count,
+                settings: stored.settings,
+                tile_size: stored.tile_size,
+                tiles_per_frame,
+                priority: stored.priority,
+                paused: stored.paused,
+                verification: stored.verification,
+                request,
+                label: stored.label,
+                times: stored.times,
+                log: EventLog::restored(last_event.0, last_event.1),
+                stored: true,
+                recorded: stored.state.is_final().then_some(stored.state),
+                deleting: false,
+                last_refusal: None,
+            },
+        );
+    }
+
+    /// Every sequence and frame job is back: a sequence cancelled before the restart
+    /// starts none of its pending frames; the others go on.
+    pub fn sequences_restored(&mut self, sh: &Arc<Shared>) {
+        let ids: Vec<JobId> = self.sequences.keys().copied().collect();
+        for id in ids {
+            let Some(record) = self.sequences.get_mut(&id) else {
+                continue;
+            };
+            if record.recorded == Some(JobState::Cancelled) {
+                record.frames.cancel();
+            }
+            info!(
+                job = id,
+                done = record.frames.counts().done,
+                frames = record.frames.len(),
+                "resuming sequence"
+            );
+            self.settle(sh, id);
+            self.fill(sh, id);
+        }
+    }
+
+    /// Starts the frames the sequence's machine asks for.
+    pub fn fill(&mut self, sh: &Arc<Shared>, id: JobId) {
+        let Some(record) = self.sequences.get(&id) else {
+            return;
+        };
+        if !record.stored || record.deleting || self.lifecycle.storage_down().is_some() {
+            return;
+        }
+        let tiles = u64::from(record.tiles_per_frame);
+        let starting = record.frames.frames_in(FrameState::Starting).count() as u64;
+        let waiting = record
+            .frames
+            .active()
+            .map(|(_, job)| self.tiles.waiting(job))
+            .sum::<u64>()
+            + starting * tiles;
+        let credit = self.tiles.total_credit();
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return;
+        };
+        for frame in record.frames.to_start(waiting, credit, tiles) {
+            self.start_frame(sh, id, frame);
+        }
+    }
+
+    /// Gives every sequence the frames it needs (a worker joined: more credit; or
+    /// frames wait for admission).
+    pub fn fill_all(&mut self, sh: &Arc<Shared>) {
+        let ids: Vec<JobId> = self.sequences.keys().copied().collect();
+        for id in ids {
+            self.fill(sh, id);
+        }
+    }
+
+    /// Whether a sequence has frames waiting while none of its frames runs (the
+    /// admission refused them): the daemon wakes to try again.
+    pub fn sequences_waiting(&self) -> bool {
+        self.sequences.values().any(|s| {
+            s.stored
+                && !s.deleting
+                && !s.frames.paused()
+                && s.frames.counts().pending > 0
+                && s.frames.counts().active == 0
+        })
+    }
+
+    /// Admits frame `frame` of the sequence as a frame job, and stores it.
+    fn start_frame(&mut self, sh: &Arc<Shared>, id: JobId, frame: u32) {
+        let Some(record) = self.sequences.get(&id) else {
+            return;
+        };
+        let prepared = Prepared {
+            interactive: false,
+            owner: None,
+            scene: record.scene.to_string(),
+            hash: record.hash,
+            frame,
+            settings: record.settings,
+            tile_size: record.tile_size,
+            tiles: tiling::cut(&record.settings, record.tile_size),
+            priority: record.priority,
+            verification: record.verification,
+            request: record.request.clone(),
+            time_limit_ms: None,
+            start: None,
+            label: Label {
+                name: format!("{} frame {frame}", record.label.name),
+                ..record.label.clone()
+            },
+            sequence: Some(id),
+            frames: None,
+            frame_count: record.frame_count,
+        };
+        // The answer goes to the sequence (see `frame_acknowledged`), not to a client.
+        let (reply, _) = oneshot::channel();
+        match self.admit(sh, prepared, reply) {
+            Ok(stored) => {
+                let job = stored.id;
+                self.lifecycle.keep(job);
+                let write = self.insert_write(sh, stored);
+                self.store(sh, job, write);
+                if let Some(record) = self.sequences.get_mut(&id) {
+                    record.last_refusal = None;
+                }
+            }
+            Err(message) => {
+                let Some(record) = self.sequences.get_mut(&id) else {
+                    return;
+                };
+                record.frames.start_failed(frame);
+                if record.last_refusal.as_deref() != Some(message.as_str()) {
+                    warn!(job = id, frame, error = %message, "a frame waits for admission");
+                    record.last_refusal = Some(message.clone());
+                    self.log(
+                        sh,
+                        id,
+                        "frame_waiting",
+                        format!("frame {frame} waits: {message}"),
+                    );
+                }
+            }
+        }
+    }
+
+    /// A frame job is stored and its tiles are out to the scheduler.
+    pub(super) fn frame_acknowledged(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        frame: u32,
+        job: JobId,
+    ) {
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return;
+        };
+        if record.frames.started(frame, job) {
+            // The sequence was cancelled while this frame was being stored.
+            self.life_event(sh, lifecycle::Event::Cancel { job });
+        }
+    }
+
+    /// A frame job could not be stored: its frame waits again.
+    pub(super) fn frame_refused(&mut self, id: JobId, frame: u32) {
+        if let Some(record) = self.sequences.get_mut(&id) {
+            record.frames.start_failed(frame);
+        }
+    }
+
+    /// A frame job's end is written: its frame is done, failed or cancelled.
+    pub(super) fn frame_ended(&mut self, sh: &Arc<Shared>, id: JobId, frame: u32, job: JobId) {
+        let state = match self.lifecycle.job(job).map(|j| &j.phase) {
+            Some(Phase::Ended { state, .. }) => *state,
+            _ => return,
+        };
+        let error = self.frame_error(job);
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return;
+        };
+        if !record.frames.ended(frame, job, state) {
+            return;
+        }
+        if state == JobState::Failed {
+            let detail = format!(
+                "frame {frame} (job {job}): {}",
+                error.as_deref().unwrap_or("failed")
+            );
+            warn!(job = id, frame, "a frame failed");
+            self.log(sh, id, "frame_failed", detail);
+        }
+        self.settle(sh, id);
+        self.fill(sh, id);
+        sh.changed();
+    }
+
+    fn frame_error(&self, job: JobId) -> Option<String> {
+        match self.lifecycle.job(job).map(|j| &j.phase) {
+            Some(Phase::Ended { error, .. }) => error.clone(),
+            _ => None,
+        }
+    }
+
+    /// Writes the sequence's end once every frame has ended (and its return to
+    /// running if a requeued frame made it run again).
+    fn settle(&mut self, sh: &Arc<Shared>, id: JobId) {
+        let Some(record) = self.sequences.get(&id) else {
+            return;
+        };
+        let state = record.frames.state();
+        if record.deleting || record.recorded == Some(state) {
+            return;
+        }
+        if !state.is_final() {
+            if record.recorded.is_some() {
+                if let Some(record) = self.sequences.get_mut(&id) {
+                    record.recorded = None;
+                    record.times.ended = None;
+                }
+                sh.persistence.write(Write::SequenceRunning { job: id });
+            }
+            return;
+        }
+        let totals = self.sequence_totals(id);
+        let error = (state == JobState::Failed).then(|| self.failure_summary(id));
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return;
+        };
+        record.recorded = Some(state);
+        let ended = unix_ms();
+        record.times.ended = Some(ended);
+        let times = record.times;
+        let c = record.frames.counts();
+        let detail = match state {
+            JobState::Done => format!("{} frames, {} rays", c.done, totals.rays),
+            _ => error
+                .clone()
+                .unwrap_or_else(|| format!("{} of {} frames done", c.done, record.frames.len())),
+        };
+        info!(job = id, state = state.as_str(), "sequence ended");
+        self.log(sh, id, state.as_str(), detail);
+        sh.persistence.write(Write::End {
+            job: id,
+            state,
+            error,
+            totals,
+            times,
+            image_sha256: None,
+            stopped_on_time_limit: false,
+            then: Box::new(|_| {}),
+        });
+    }
+
+    /// Why a sequence failed, in one line: its failed frames and the first error.
+    fn failure_summary(&self, id: JobId) -> String {
+        let Some(record) = self.sequences.get(&id) else {
+            return String::new();
+        };
+        let failed: Vec<(u32, JobId)> = record.frames.failed().collect();
+        let listed: Vec<String> = failed.iter().take(10).map(|(f, _)| f.to_string()).collect();
+        let more = if failed.len() > listed.len() {
+            format!(" and {} more", failed.len() - listed.len())
+        } else {
+            String::new()
+        };
+        let first = failed
+            .first()
+            .and_then(|&(_, job)| self.frame_error(job))
+            .unwrap_or_default();
+        format!(
+            "{} of {} frames failed (frames {}{more}; requeue them with `tessera retry {id}`): {first}",
+            failed.len(),
+            record.frames.len(),
+            listed.join(", ")
+        )
+    }
+
+    /// What the sequence's frame jobs cost so far, added up.
+    fn sequence_totals(&self, id: JobId) -> Totals {
+        let mut totals = Totals::default();
+        let Some(record) = self.sequences.get(&id) else {
+            return totals;
+        };
+        for state in [
+            FrameState::Done,
+            FrameState::Active,
+            FrameState::Failed,
+            FrameState::Cancelled,
+        ] {
+            for (_, job) in record.frames.frames_in(state) {
+                if let Some(r) = self.jobs.get(&job) {
+                    totals.rays += r.totals.rays;
+                    totals.samples += r.totals.samples;
+                    totals.error_sq_sum += r.totals.error_sq_sum;
+                    totals.error_pixels += r.totals.error_pixels;
+                }
+            }
+        }
+        totals
+    }
+
+    /// A client's view of a sequence: its frames, and its frame jobs added up.
+    pub(super) fn sequence_status(&self, id: JobId) -> Option<JobStatus> {
+        let record = self.sequences.get(&id).filter(|r| r.stored)?;
+        let state = record.frames.state();
+        let c = record.frames.counts();
+        let now = unix_ms();
+        let end = record
+            .times
+            .ended
+            .filter(|_| state.is_final())
+            .unwrap_or(now);
+        let submitted = record.times.submitted.unwrap_or(end);
+        let mut tiles_done = c.done * record.tiles_per_frame;
+        let mut started: Option<u64> = None;
+        for (_, job) in record.frames.active() {
+            if let Some(r) = self.jobs.get(&job) {
+                tiles_done += r.tiles_recorded;
+            }
+        }
+        for (_, job) in record.frames.done().take(1) {
+            started = self.jobs.get(&job).and_then(|r| r.times.started);
+        }
+        let totals = self.sequence_totals(id);
+        let frames = record.frames.len();
+        let eta_ms =
+            (state == JobState::Running && c.done > 0 && c.done < frames && !record.paused)
+                .then(|| {
+                    let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
+                    Some((per_frame * f64::from(frames - c.done)) as u64)
+                })
+                .flatten();
+        let failures = record
+            .frames
+            .failed()
+            .take(FAILED_FRAMES_LISTED)
+            .map(|(frame, job)| FrameFailure {
+                frame,
+                job,
+                error: self.frame_error(job).unwrap_or_default(),
+            })
+            .collect();
+        let error = (state == JobState::Failed).then(|| self.failure_summary(id));
+        let estimated_error = (totals.error_pixels > 0 && state == JobState::Done)
+            .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt());
+        Some(JobStatus {
+            id,
+            state,
+            settings: record.settings,
+            priority: record.priority,
+            tiles_done,
+            tiles_total: record.tiles_per_frame * frames,
+            rays: totals.rays,
+            elapsed_ms: end.saturating_sub(submitted),
+            eta_ms,
+            error,
+            samples: totals.samples,
+            estimated_error,
+            time_limit_ms: None,
+            stopped_on_time_limit: false,
+            paused: record.paused && !state.is_final(),
+            warning: (!state.is_final())
+                .then(|| self.no_worker_warning())
+                .flatten(),
+            name: record.label.name.clone(),
+            submitter: record.label.submitter.clone(),
+            submitted_from: record.label.submitted_from.clone(),
+            submitted_unix_ms: submitted,
+            queued_ms: started.map(|s| s.saturating_sub(submitted)),
+            frame: record.frames.first(),
+            frames: Some(FrameProgress {
+                first: record.frames.first(),
+                last: record.frames.last(),
+                done: c.done,
+                active: c.active,
+                pending: c.pending,
+                cancelled: c.cancelled,
+                done_prefix: record.frames.done_prefix(),
+                failed: c.failed,
+                failures,
+            }),
+            sequence: None,
+        })
+    }
+
+    /// An operator cancels a sequence: its frames not started never will, its frame
+    /// jobs are cancelled.
+    pub fn cancel_sequence(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        peer: std::net::IpAddr,
+    ) -> Result<(), String> {
+        let record = self
+            .sequences
+            .get_mut(&id)
+            .filter(|r| r.stored)
+            .ok_or_else(|| unknown(id))?;
+        let state = record.frames.state();
+        if state.is_final() {
+            return Err(format!(
+                "job {id} is {}: only a queued or running job can be cancelled",
+                state.as_str()
+            ));
+        }
+        let jobs = record.frames.cancel();
+        self.log(sh, id, "cancel", format!("asked from {peer}"));
+        for job in jobs {
+            self.life_event(sh, lifecycle::Event::Cancel { job });
+        }
+        self.settle(sh, id);
+        sh.changed();
+        Ok(())
+    }
+
+    /// An operator deletes an ended sequence: its frame jobs, then its row and folder.
+    /// `done` hears once it is gone.
+    pub fn delete_sequence(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        done: oneshot::Sender<()>,
+    ) -> Result<(), String> {
+        let record = self
+            .sequences
+            .get_mut(&id)
+            .filter(|r| r.stored && !r.deleting)
+            .ok_or_else(|| unknown(id))?;
+        let state = record.frames.state();
+        if !state.is_final() || record.recorded != Some(state) {
+            return Err(format!(
+                "job {id} is {}: cancel it first",
+                if state.is_final() {
+                    "still ending"
+                } else {
+                    state.as_str()
+                }
+            ));
+        }
+        record.deleting = true;
+        let jobs: Vec<JobId> = [FrameState::Done, FrameState::Failed, FrameState::Cancelled]
+            .into_iter()
+            .flat_map(|s| record.frames.frames_in(s).map(|(_, j)| j))
+            .filter(|&j| j != 0)
+            .collect();
+        for job in jobs {
+            self.life_event(sh, lifecycle::Event::Delete { job });
+        }
+        let shared = Arc::clone(sh);
+        // Queued after its frames' deletions: the folder goes last.
+        sh.persistence.write(Write::Delete {
+            job: id,
+            place: ImagePlace::Job(id),
+            then: Box::new(move |_| {
+                shared.lock().sequences.remove(&id);
+                info!(job = id, "sequence deleted");
+                shared.changed();
+                let _ = done.send(());
+            }),
+        });
+        Ok(())
+    }
+
+    /// An operator has a frame rendered again, alone; or, with `frame` `None`, every
+    /// failed and cancelled frame (`tessera retry`).
+    pub fn requeue_frames(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        frame: Option<u32>,
+        peer: std::net::IpAddr,
+    ) -> Result<JobStatus, String> {
+        let record = self
+            .sequences
+            .get_mut(&id)
+            .filter(|r| r.stored && !r.deleting)
+            .ok_or_else(|| unknown(id))?;
+        let frames: Vec<u32> = match frame {
+            Some(f) => vec![f],
+            None => {
+                let again: Vec<u32> = record
+                    .frames
+                    .failed()
+                    .chain(record.frames.frames_in(FrameState::Cancelled))
+                    .map(|(f, _)| f)
+                    .collect();
+                if again.is_empty() {
+                    return Err(format!(
+                        "job {id} has no failed or cancelled frame to render again"
+                    ));
+                }
+                again
+            }
+        };
+        let mut old_jobs = Vec::new();
+        for &f in &frames {
+            let old = record
+                .frames
+                .requeue(f)
+                .map_err(|e| format!("job {id}: {e}"))?;
+            old_jobs.extend(old);
+        }
+        // The frames' old jobs go: the new ones write their images in their place.
+        for job in old_jobs {
+            self.life_event(sh, lifecycle::Event::Delete { job });
+        }
+        let detail = match frame {
+            Some(f) => format!("frame {f}, from {peer}"),
+            None => format!("{} failed or cancelled frames, from {peer}", frames.len()),
+        };
+        info!(
+            job = id,
+            frames = frames.len(),
+            "frames requeued by an operator"
+        );
+        self.log(sh, id, "requeued", detail);
+        self.settle(sh, id);
+        self.fill(sh, id);
+        sh.changed();
+        self.sequence_status(id).ok_or_else(|| unknown(id))
+    }
+
+    /// An operator pauses or resumes a sequence: no frame starts while it is paused,
+    /// and its frame jobs are paused or resumed with it.
+    pub fn set_sequence_paused(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        paused: bool,
+    ) -> Result<Controls, String> {
+        let record = self.controllable(id, if paused { "paused" } else { "resumed" })?;
+        record.paused = paused;
+        record.frames.set_paused(paused);
+        let priority = record.priority;
+        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
+        for job in active {
+            // A frame job that has ended meanwhile cannot be paused: nothing to do.
+            let _ = self.set_paused(sh, job, paused);
+        }
+        if !paused {
+            self.fill(sh, id);
+        }
+        Ok(Controls {
+            job: id,
+            paused,
+            priority,
+        })
+    }
+
+    /// An operator gives a sequence a new priority: its frame jobs and those to come.
+    pub fn set_sequence_priority(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        priority: i32,
+    ) -> Result<Controls, String> {
+        let record = self.controllable(id, "given a new priority")?;
+        record.priority = priority;
+        let paused = record.paused;
+        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
+        for job in active {
+            let _ = self.set_priority(sh, job, priority);
+        }
+        Ok(Controls {
+            job: id,
+            paused,
+            priority,
+        })
+    }
+
+    fn controllable(&mut self, id: JobId, verb: &str) -> Result<&mut SequenceRecord, String> {
+        let record = self
+            .sequences
+            .get_mut(&id)
+            .filter(|r| r.stored && !r.deleting)
+            .ok_or_else(|| unknown(id))?;
+        let state = record.frames.state();
+        if state.is_final() {
+            return Err(format!(
+                "job {id} cannot be {verb}: it is {}, only a queued or running job can be",
+                state.as_str()
+            ));
+        }
+        Ok(record)
+    }
+
+    /// Where a done frame's image is, and its checksum.
+    pub fn frame_image(
+        &self,
+        id: JobId,
+        frame: u32,
+    ) -> Result<(ImagePlace, Option<[u8; 32]>), String> {
+        let record = self
+            .sequences
+            .get(&id)
+            .filter(|r| r.stored)
+            .ok_or_else(|| unknown(id))?;
+        let state = record.frames.frame(frame).ok_or_else(|| {
+            format!(
+                "job {id} has frames {} to {}: there is no frame {frame}",
+                record.frames.first(),
+                record.frames.last()
+            )
+        })?;
+        if state != FrameState::Done {
+            return Err(format!(
+                "frame {frame} of job {id} has no image: it is {}",
+                match state {
+                    FrameState::Pending | FrameState::Starting => "waiting",
+                    FrameState::Active => "rendering",
+                    FrameState::Failed => "failed",
+                    FrameState::Cancelled => "cancelled",
+                    FrameState::Done => "done",
+                }
+            ));
+        }
+        let job = record.frames.job(frame).ok_or_else(|| unknown(id))?;
+        let sha = self.jobs.get(&job).and_then(|r| r.image_sha256);
+        Ok((
+            ImagePlace::Frame {
+                sequence: id,
+                frame,
+                count: record.frame_count,
+            },
+            sha,
+        ))
+    }
+
+    /// Where a job's image is kept: its own folder, or its sequence's.
+    pub fn image_place(&self, job: JobId) -> ImagePlace {
+        match self
+            .jobs
+            .get(&job)
+            .and_then(|r| r.sequence.map(|s| (s, r.frame)))
+        {
+            Some((sequence, frame)) => ImagePlace::Frame {
+                sequence,
+                frame,
+                count: self
+                    .sequences
+                    .get(&sequence)
+                    .map_or(frame, |s| s.frame_count),
+            },
+            None => ImagePlace::Job(job),
+        }
+    }
+
+    /// Every job a listing shows: jobs of one frame and sequences, by id; frame jobs
+    /// are seen through their sequence.
+    pub fn list(&self) -> Vec<JobStatus> {
+        let mut list: Vec<JobStatus> = self
+            .lifecycle
+            .jobs()
+            .filter(|(id, _)| self.jobs.get(id).is_some_and(|r| r.sequence.is_none()))
+            .filter_map(|(id, _)| self.status(id))
+            .chain(
+                self.sequences
+                    .keys()
+                    .filter_map(|&id| self.sequence_status(id)),
+            )
+            .collect();
+        list.sort_by_key(|s| s.id);
+        list
+    }
+
+    /// Sequences whose retention has run out (ended that long ago): deleted.
+    pub(super) fn expire_sequences(&mut self, sh: &Arc<Shared>) {
+        let Some(keep) = self.lifecycle.limits().retention else {
+            return;
+        };
+        let now = unix_ms();
+        let expired: Vec<JobId> = self
+            .sequences
+            .iter()
+            .filter(|(_, r)| {
+                !r.deleting
+                    && r.recorded.is_some()
+                    && r.times.ended.is_some_and(|e| e.saturating_add(keep) <= now)
+            })
+            .map(|(&id, _)| id)
+            .collect();
+        for id in expired {
+            let (done, _) = oneshot::channel();
+            if self.delete_sequence(sh, id, done).is_ok() {
+                info!(job = id, "sequence expired: deleted");
+            }
+        }
+    }
+}
