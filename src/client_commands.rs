@@ -15,7 +15,10 @@ use render::RenderSettings;
 use serde_json::{json, Value};
 use transport::{DialError, Endpoint};
 
-use crate::output::{default_output, ImageOutput};
+use crate::output::{default_output, FramesDir, ImageOutput};
+use crate::sequence_commands::{
+    frames_summary, run_fetch_sequence, wait_sequence, FrameChoice,
+};
 use crate::render_command::sampling_summary;
 
 /// Reads a scene file for submission.
@@ -63,7 +66,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
         verification,
         time_limit_ms,
         label,
-        frame,
+        frames,
     } = job;
     let scene = read_scene(scene_path)?;
     let name = label.name.unwrap_or_else(|| {
@@ -80,8 +83,8 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
             time_limit_ms,
             name,
             submitter: label.submitter.unwrap_or_else(default_submitter),
-            frame,
-            frames: None,
+            frame: frames.frame,
+            frames: frames.frames,
         })
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
@@ -187,8 +190,14 @@ impl Session {
         }
     }
 
-    async fn watch(&mut self, job: JobId, after_tiles: u32) -> Result<JobStatus> {
+    pub(crate) async fn watch(&mut self, job: JobId, after_tiles: u32) -> Result<JobStatus> {
         self.retrying(async |client: &mut Client| client.watch(job, after_tiles).await)
+            .await
+    }
+
+    /// A done frame of a sequence, reconnecting if need be.
+    pub async fn fetch_frame(&mut self, job: JobId, frame: u32) -> Result<Vec<u8>> {
+        self.retrying(async |client: &mut Client| client.fetch_frame(job, frame).await)
             .await
     }
 
@@ -379,8 +388,8 @@ pub struct JobChoices {
     /// Milliseconds of rendering an adaptive job may take, if limited.
     pub time_limit_ms: Option<u64>,
     pub label: Label,
-    /// The frame of the scene, from 1.
-    pub frame: u32,
+    /// The frame of the scene, from 1, or a sequence of frames.
+    pub frames: FrameChoice,
 }
 
 /// `tessera submit`.
@@ -392,6 +401,9 @@ pub async fn run_submit(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
+    if job.frames.frames.is_some() {
+        return run_submit_sequence(coordinator, scene, job, wait_for_it, output, json_out).await;
+    }
     // The image's file is checked before the farm spends anything on it.
     let output = match wait_for_it {
         true => Some(ImageOutput::create(
@@ -420,6 +432,67 @@ pub async fn run_submit(
         eprintln!("{}", summary(&output_path, &status));
     }
     Ok(())
+}
+
+/// `tessera submit` of a sequence: with `--wait`, its frames are written into the
+/// directory `-o` [default: the scene's file name without .json] as they are done.
+async fn run_submit_sequence(
+    coordinator: &Endpoint,
+    scene: &Path,
+    job: JobChoices,
+    wait_for_it: bool,
+    output: Option<PathBuf>,
+    json_out: bool,
+) -> Result<()> {
+    let dir = match wait_for_it {
+        true => Some(FramesDir::create(
+            &output.unwrap_or_else(|| default_output(scene).with_extension("")),
+        )?),
+        false => None,
+    };
+    let mut session = Session::connect(coordinator).await?;
+    let job = submit(session.client(), scene, job).await?;
+    let Some(dir) = dir else {
+        if json_out {
+            println!("{}", json!({ "id": job, "state": "queued" }));
+        } else {
+            println!("{job}");
+        }
+        return Ok(());
+    };
+    eprintln!("submitted job {job}");
+    let status = wait_sequence(&mut session, job, Some(&dir))
+        .await
+        .map_err(|e| naming_job(job, e))?;
+    if json_out {
+        let mut v = status_json(&status);
+        v["output"] = json!(dir.path().display().to_string());
+        println!("{v}");
+    } else {
+        eprintln!("{}", sequence_summary(dir.path(), &status));
+    }
+    Ok(())
+}
+
+/// The one-line summary of a finished sequence.
+pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
+    let frames = status.frames.as_ref().map_or(0, |f| f.done);
+    let queued = status.queued_ms.unwrap_or(0).min(status.elapsed_ms);
+    let secs = (status.elapsed_ms - queued) as f64 / 1000.0;
+    format!(
+        "{}: {frames} frames of {}x{}, {}, rendered in {:.3} s ({:.2} frames/s), {:.1} M rays/s",
+        dir.display(),
+        status.settings.width,
+        status.settings.height,
+        sampling_summary(
+            &render_settings(&status.settings),
+            status.samples / u64::from(frames.max(1)),
+            status.estimated_error
+        ),
+        secs,
+        f64::from(frames) / secs.max(1e-9),
+        status.rays as f64 / secs.max(1e-9) / 1e6
+    )
 }
 
 /// What a refinement of a farm job asks for.
@@ -529,6 +602,7 @@ fn list_table(jobs: &[JobStatus]) -> String {
         "ID",
         "STATE",
         "TILES",
+        "FRAMES",
         "PRIORITY",
         "NAME",
         "SUBMITTER",
@@ -543,6 +617,10 @@ fn list_table(jobs: &[JobStatus]) -> String {
             s.id.to_string(),
             shown_state(s).to_string(),
             format!("{}/{}", s.tiles_done, s.tiles_total),
+            s.frames.as_ref().map_or_else(
+                || s.frame.to_string(),
+                |f| format!("{}/{}", f.done, f.last - f.first + 1),
+            ),
             s.priority.to_string(),
             if s.name.is_empty() {
                 "-".into()
@@ -556,7 +634,7 @@ fn list_table(jobs: &[JobStatus]) -> String {
             seconds(s.elapsed_ms),
         ]);
     }
-    let mut widths = [0usize; 10];
+    let mut widths = [0usize; 11];
     for row in &rows {
         for (w, cell) in widths.iter_mut().zip(row) {
             *w = (*w).max(cell.chars().count());
@@ -690,10 +768,25 @@ pub async fn run_events(coordinator: &Endpoint, job: JobId, json_out: bool) -> R
 }
 
 /// `tessera retry JOB`.
-pub async fn run_retry(coordinator: &Endpoint, job: JobId, json_out: bool) -> Result<()> {
-    let status = Client::connect(coordinator).await?.retry(job).await?;
+pub async fn run_retry(
+    coordinator: &Endpoint,
+    job: JobId,
+    frame: Option<u32>,
+    json_out: bool,
+) -> Result<()> {
+    let mut client = Client::connect(coordinator).await?;
+    let status = match frame {
+        Some(k) => client.requeue_frame(job, k).await?,
+        None => client.retry(job).await?,
+    };
     if json_out {
         println!("{}", status_json(&status));
+    } else if let Some(f) = &status.frames {
+        let again = match frame {
+            Some(k) => format!("frame {k} is"),
+            None => "its failed and cancelled frames are".into(),
+        };
+        println!("job {job}: {again} back in the queue ({})", frames_summary(f));
     } else {
         println!(
             "job {job} is back in the queue: {} of {} tiles kept, the others are rendered",
@@ -744,10 +837,14 @@ pub async fn run_fetch(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
+    let mut client = Client::connect(coordinator).await?;
+    let status = client.status(job).await?;
+    if status.frames.is_some() {
+        return run_fetch_sequence(&mut client, &status, output.as_deref(), json_out).await;
+    }
     let output =
         ImageOutput::create(&output.unwrap_or_else(|| PathBuf::from(format!("job-{job}.png"))))?;
     let path = output.path().to_path_buf();
-    let mut client = Client::connect(coordinator).await?;
     let bytes = fetch_to(&mut client, job, output).await?;
     if json_out {
         println!(
@@ -864,9 +961,10 @@ fn shown_state(s: &JobStatus) -> &'static str {
 
 fn status_line(s: &JobStatus) -> String {
     // Frame 1 (every job of a scene without animation) goes without saying.
-    let frame = match s.frame {
-        1 => String::new(),
-        k => format!("frame {k}, "),
+    let frame = match (&s.frames, s.frame) {
+        (Some(f), _) => format!("{}, ", frames_summary(f)),
+        (None, 1) => String::new(),
+        (None, k) => format!("frame {k}, "),
     };
     let mut line = format!(
         "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
@@ -936,6 +1034,28 @@ fn status_json(s: &JobStatus) -> Value {
         "submitted_from": s.submitted_from,
         "submitted_unix_ms": s.submitted_unix_ms,
         "queued_ms": s.queued_ms,
+        "sequence": s.sequence,
+        "frames": s.frames.as_ref().map(frames_json),
+    })
+}
+
+/// A sequence's frames as JSON.
+fn frames_json(f: &protocol::FrameProgress) -> Value {
+    let failures: Vec<Value> = f
+        .failures
+        .iter()
+        .map(|x| json!({ "frame": x.frame, "job": x.job, "error": x.error }))
+        .collect();
+    json!({
+        "first": f.first,
+        "last": f.last,
+        "done": f.done,
+        "active": f.active,
+        "pending": f.pending,
+        "cancelled": f.cancelled,
+        "failed": f.failed,
+        "done_prefix": f.done_prefix,
+        "failures": failures,
     })
 }
 

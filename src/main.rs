@@ -10,6 +10,7 @@ mod output;
 mod plot;
 mod render_command;
 mod render_state;
+mod sequence_commands;
 mod simulate_command;
 mod studio_command;
 mod up_command;
@@ -211,6 +212,10 @@ enum Command {
         /// The job's id (as `tessera submit` and `tessera list` show it).
         #[arg(value_parser = parse_job_id)]
         job: JobId,
+        /// For a sequence: render frame K again, alone (done, failed or cancelled).
+        /// Without it, a sequence's failed and cancelled frames are rendered again.
+        #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..))]
+        frame: Option<u32>,
         #[command(flatten)]
         common: ClientArgs,
     },
@@ -256,8 +261,9 @@ enum Command {
         /// The job's id (as `tessera submit` and `tessera list` show it).
         #[arg(value_parser = parse_job_id)]
         job: JobId,
-        /// Where to write the PNG [default: job-JOB.png].
-        #[arg(short, long, value_name = "OUT.png")]
+        /// Where to write the PNG [default: job-JOB.png]; for a sequence, the directory
+        /// its done frames go into, as frame_0001.png, ... [default: job-JOB/].
+        #[arg(short, long, value_name = "OUT.png|DIR")]
         output: Option<PathBuf>,
         #[command(flatten)]
         common: ClientArgs,
@@ -504,9 +510,14 @@ struct UpArgs {
     /// Rendering threads of each worker [default: cores / workers, at least 1].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads_per_worker: Option<u32>,
-    /// Where to write the PNG [default: the scene's file name with .png, here].
-    #[arg(short, long, value_name = "OUT.png")]
+    /// Where to write the PNG [default: the scene's file name with .png, here]; with
+    /// --frames, the directory of the frames [default: the scene's file name].
+    #[arg(short, long, value_name = "OUT.png|DIR")]
     output: Option<PathBuf>,
+    /// Render frames A to B of an animated scene (A-B, K or all) as one sequence job,
+    /// written into the directory -o as they are done.
+    #[arg(long, value_name = "RANGE", value_parser = render_command::parse_frame_range)]
+    frames: Option<render_command::FrameRange>,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m): the job stops at the
@@ -715,11 +726,17 @@ struct WorkerArgs {
 struct SubmitArgs {
     /// The scene file (JSON).
     scene: PathBuf,
-    /// Render frame K of an animated scene (frames are numbered from 1; a scene
+    /// Render frame K of an animated scene only (frames are numbered from 1; a scene
     /// without animation has frame 1 only): the image is `tessera render --frame K`'s.
-    #[arg(long, value_name = "K", default_value_t = 1,
-          value_parser = clap::value_parser!(u32).range(1..))]
-    frame: u32,
+    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..),
+          conflicts_with = "frames")]
+    frame: Option<u32>,
+    /// Render frames A to B of an animated scene as one sequence job (A-B, K or all)
+    /// [default: every frame of an animated scene]. With --wait, the frames are
+    /// written into the directory -o as they are done, as `tessera render --frames`
+    /// writes them.
+    #[arg(long, value_name = "RANGE", value_parser = render_command::parse_frame_range)]
+    frames: Option<render_command::FrameRange>,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m) of the farm's rendering:
@@ -741,8 +758,9 @@ struct SubmitArgs {
     /// Wait for the job, showing progress, and write its image.
     #[arg(long)]
     wait: bool,
-    /// With --wait: where to write the PNG [default: the scene's file name with .png].
-    #[arg(short, long, value_name = "OUT.png", requires = "wait")]
+    /// With --wait: where to write the PNG [default: the scene's file name with .png],
+    /// or for a sequence the directory of its frames [default: the scene's file name].
+    #[arg(short, long, value_name = "OUT.png|DIR", requires = "wait")]
     output: Option<PathBuf>,
     /// What listings call the job [default: the scene file's name without .json].
     #[arg(long, value_name = "NAME")]
@@ -1297,6 +1315,7 @@ fn run(command: Command) -> Result<()> {
                     workers,
                     threads_per_worker: threads_per_worker(workers, a.threads_per_worker),
                     output: a.output,
+                    frames: a.frames,
                     job: a.image.farm_job(a.tile, a.time_limit)?,
                 })
                 .await
@@ -1394,6 +1413,8 @@ fn run(command: Command) -> Result<()> {
                 .await
             }
             Command::Submit(a) => {
+                let text = client_commands::read_scene(&a.scene)?;
+                let frames = sequence_commands::choose_frames(&text, a.frame, a.frames)?;
                 client_commands::run_submit(
                     &a.common.target()?,
                     &a.scene,
@@ -1408,7 +1429,7 @@ fn run(command: Command) -> Result<()> {
                                 name: a.name,
                                 submitter: a.submitter,
                             },
-                            frame: a.frame,
+                            frames,
                         }
                     },
                     a.wait,
@@ -1440,8 +1461,8 @@ fn run(command: Command) -> Result<()> {
             Command::Events { job, common } => {
                 client_commands::run_events(&common.target()?, job, common.json).await
             }
-            Command::Retry { job, common } => {
-                client_commands::run_retry(&common.target()?, job, common.json).await
+            Command::Retry { job, frame, common } => {
+                client_commands::run_retry(&common.target()?, job, frame, common.json).await
             }
             Command::Requeue { job, tiles, common } => {
                 client_commands::run_requeue(&common.target()?, job, tiles, common.json).await

@@ -51,6 +51,52 @@ impl ImageOutput {
     }
 }
 
+/// A directory for the frames of a sequence (`tessera render --frames`, `tessera fetch`
+/// of a sequence job, `tessera submit --frames --wait`, `tessera up --frames`): checked
+/// and created before anything is rendered; each frame is written whole, atomically,
+/// under the name `tessera render --frames` gives it (`frame_0007.png`).
+pub struct FramesDir {
+    dir: PathBuf,
+}
+
+impl FramesDir {
+    pub fn create(dir: &Path) -> Result<FramesDir> {
+        if dir
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+        {
+            bail!(
+                "{}: a sequence is written one file per frame into a directory: give -o DIR/",
+                dir.display()
+            );
+        }
+        if dir.exists() && !dir.is_dir() {
+            bail!(
+                "{}: a sequence is written one file per frame into a directory, and this is a \
+                 file",
+                dir.display()
+            );
+        }
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create the directory {}", dir.display()))?;
+        Ok(FramesDir { dir: dir.into() })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Where frame `k` of a scene of `count` frames goes.
+    pub fn frame_path(&self, k: u64, count: u32) -> PathBuf {
+        self.dir.join(render::frame_file_name(k, count))
+    }
+
+    /// The output of frame `k`, checked.
+    pub fn frame(&self, k: u64, count: u32) -> Result<ImageOutput> {
+        ImageOutput::create(&self.frame_path(k, count))
+    }
+}
+
 /// A file still to be written (an image, a render's saved samples), through a temporary
 /// file beside it renamed into place: checked before the work that makes its bytes.
 ///

@@ -7,11 +7,11 @@
 //! rendered or written.
 
 use std::io::IsTerminal;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::output::{default_output, FileOutput, ImageOutput};
+use crate::output::{default_output, FileOutput, FramesDir, ImageOutput};
 use crate::render_state;
 use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -85,7 +85,6 @@ pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> 
     Ok(FrameRange::Span { first, last })
 }
 
-pub use render::frame_file_name;
 
 /// The progress bar appears only after this long, so quick renders stay quiet.
 const PROGRESS_DELAY: Duration = Duration::from_secs(1);
@@ -164,29 +163,14 @@ fn run_sequence(
     if let Err(e) = animated.frame(last) {
         bail!("{}: --frames {first}-{last}: {e}", scene_path.display());
     }
-    let dir = opts
-        .output
-        .clone()
-        .unwrap_or_else(|| default_output(scene_path).with_extension(""));
-    if dir
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
-    {
-        bail!(
-            "{}: --frames writes one file per frame into a directory: give -o DIR/",
-            dir.display()
-        );
-    }
-    if dir.exists() && !dir.is_dir() {
-        bail!(
-            "{}: --frames writes one file per frame into a directory, and this is a file",
-            dir.display()
-        );
-    }
-    std::fs::create_dir_all(&dir)
-        .with_context(|| format!("cannot create the directory {}", dir.display()))?;
+    let dir = FramesDir::create(
+        &opts
+            .output
+            .clone()
+            .unwrap_or_else(|| default_output(scene_path).with_extension("")),
+    )?;
     let outputs = (first..=last)
-        .map(|k| Ok((k, ImageOutput::create(&frame_path(&dir, k, count))?)))
+        .map(|k| Ok((k, dir.frame(k, count)?)))
         .collect::<Result<Vec<_>>>()?;
     for (k, output) in outputs {
         let scene = animated
@@ -205,11 +189,6 @@ fn run_sequence(
         job.run()?;
     }
     Ok(())
-}
-
-/// Where frame `k` of a sequence of `count` frames goes in `dir`.
-fn frame_path(dir: &Path, k: u64, count: u32) -> PathBuf {
-    dir.join(frame_file_name(k, count))
 }
 
 /// What `tessera refine` asked for.
@@ -554,10 +533,10 @@ mod tests {
 
     #[test]
     fn frame_files_have_at_least_four_digits() {
-        assert_eq!(frame_file_name(7, 1), "frame_0007.png");
-        assert_eq!(frame_file_name(120, 121), "frame_0120.png");
-        assert_eq!(frame_file_name(9999, 9999), "frame_9999.png");
-        assert_eq!(frame_file_name(7, 10_000), "frame_00007.png");
-        assert_eq!(frame_file_name(100_000, 100_000), "frame_100000.png");
+        assert_eq!(render::frame_file_name(7, 1), "frame_0007.png");
+        assert_eq!(render::frame_file_name(120, 121), "frame_0120.png");
+        assert_eq!(render::frame_file_name(9999, 9999), "frame_9999.png");
+        assert_eq!(render::frame_file_name(7, 10_000), "frame_00007.png");
+        assert_eq!(render::frame_file_name(100_000, 100_000), "frame_100000.png");
     }
 }

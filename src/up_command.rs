@@ -11,15 +11,19 @@ use anyhow::{Context, Result};
 use protocol::Overrides;
 use transport::Endpoint;
 
-use crate::client_commands::{submit, summary, wait, JobChoices, Session};
+use crate::client_commands::{sequence_summary, submit, summary, wait, JobChoices, Session};
+use crate::render_command::FrameRange;
+use crate::sequence_commands::{choose_frames, wait_sequence, FrameChoice};
 use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::output::{default_output, ImageOutput};
+use crate::output::{default_output, FramesDir, ImageOutput};
 
 pub struct Options {
     pub scene: PathBuf,
     pub workers: usize,
     pub threads_per_worker: usize,
     pub output: Option<PathBuf>,
+    /// `--frames`: a sequence of an animated scene, into the directory `output`.
+    pub frames: Option<FrameRange>,
     /// The image settings and the time limit (ms), if any.
     pub job: (Overrides, Option<u64>),
 }
@@ -29,13 +33,22 @@ pub async fn run(opts: Options) -> Result<()> {
     let mut stop = StopSignals::new()?;
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
-    crate::client_commands::read_scene(&opts.scene)?;
-    let output = ImageOutput::create(
-        &opts
-            .output
-            .clone()
-            .unwrap_or_else(|| default_output(&opts.scene)),
-    )?;
+    let text = crate::client_commands::read_scene(&opts.scene)?;
+    let frames = choose_frames(&text, opts.frames.is_none().then_some(1), opts.frames)?;
+    let output = match frames.frames {
+        None => Output::Image(ImageOutput::create(
+            &opts
+                .output
+                .clone()
+                .unwrap_or_else(|| default_output(&opts.scene)),
+        )?),
+        Some(_) => Output::Frames(FramesDir::create(
+            &opts
+                .output
+                .clone()
+                .unwrap_or_else(|| default_output(&opts.scene).with_extension("")),
+        )?),
+    };
     let specs = vec![
         WorkerSpec {
             threads: opts.threads_per_worker,
@@ -53,7 +66,7 @@ pub async fn run(opts: Options) -> Result<()> {
         signal = stop.next() => return Err(signal.into()),
     };
     let result = tokio::select! {
-        r = render_on(farm.address(), &opts, output) => r,
+        r = render_on(farm.address(), &opts, frames, output) => r,
         e = farm.first_exit() => Err(e),
         signal = stop.next() => Err(signal.into()),
     };
@@ -153,7 +166,18 @@ impl StopSignals {
     }
 }
 
-async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result<()> {
+/// Where `up` writes: an image, or a sequence's frames.
+enum Output {
+    Image(ImageOutput),
+    Frames(FramesDir),
+}
+
+async fn render_on(
+    address: &str,
+    opts: &Options,
+    frames: FrameChoice,
+    output: Output,
+) -> Result<()> {
     let mut session = Session::connect(&Endpoint::plain(address)).await?;
     let job = submit(
         session.client(),
@@ -164,7 +188,7 @@ async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result
             verification: protocol::Verification::default(),
             time_limit_ms: opts.job.1,
             label: Default::default(),
-            frame: 1,
+            frames,
         },
     )
     .await
@@ -175,6 +199,18 @@ async fn render_on(address: &str, opts: &Options, output: ImageOutput) -> Result
             format!("{e:#}").replace("this coordinator's limit", "the limit of `tessera up`")
         )
     })?;
+    let output = match output {
+        Output::Image(output) => output,
+        Output::Frames(dir) => {
+            let status = wait_sequence(&mut session, job, Some(&dir)).await?;
+            eprintln!(
+                "{} ({} workers)",
+                sequence_summary(dir.path(), &status),
+                opts.workers
+            );
+            return Ok(());
+        }
+    };
     let status = wait(&mut session, job).await?;
     let path = output.path().to_path_buf();
     // The farm and its copy of the image go with this command: no `tessera fetch`.

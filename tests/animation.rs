@@ -183,7 +183,7 @@ fn invalid_frame_choices_are_refused_before_anything_is_written() {
     let cases: [(&[&str], &str); 7] = [
         (
             &["render", &orbit, "--frames", "1-2", "-o", "orbit.png"],
-            "error: orbit.png: --frames writes one file per frame into a directory: give -o DIR/",
+            "error: orbit.png: a sequence is written one file per frame into a directory: give -o DIR/",
         ),
         (
             &["render", &orbit, "--frame", "122"],

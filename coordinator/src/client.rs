@@ -234,12 +234,32 @@ impl Client {
         }
     }
 
+    /// Renders a done, failed or cancelled frame of a sequence again, alone: the
+    /// sequence's status once it is queued.
+    pub async fn requeue_frame(&mut self, job: JobId, frame: u32) -> Result<JobStatus> {
+        match self.request(ClientRequest::RequeueFrame { job, frame }).await? {
+            ClientResponse::Job(status) if status.id == job => Ok(status),
+            other => Err(unexpected(&other)),
+        }
+    }
+
     /// The finished job's PNG, fetched in chunks.
     pub async fn fetch(&mut self, job: JobId) -> Result<Vec<u8>> {
+        self.fetch_chunks(|offset| ClientRequest::Fetch { job, offset })
+            .await
+    }
+
+    /// A done frame's PNG of a sequence job, fetched in chunks.
+    pub async fn fetch_frame(&mut self, job: JobId, frame: u32) -> Result<Vec<u8>> {
+        self.fetch_chunks(|offset| ClientRequest::FetchFrame { job, frame, offset })
+            .await
+    }
+
+    async fn fetch_chunks(&mut self, ask: impl Fn(u64) -> ClientRequest) -> Result<Vec<u8>> {
         let mut png = Vec::new();
         loop {
             let offset = png.len() as u64;
-            match self.request(ClientRequest::Fetch { job, offset }).await? {
+            match self.request(ask(offset)).await? {
                 ClientResponse::ImageChunk {
                     total,
                     offset: at,

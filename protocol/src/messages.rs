@@ -134,6 +134,9 @@ pub const MAX_ACTIVE_FRAMES: usize = 8;
 pub struct FrameProgress {
     pub first: u32,
     pub last: u32,
+    /// The scene's frame count: frames are named by it (`frame_0007.png`, as
+    /// `tessera render --frames` names them).
+    pub scene_frames: u32,
     pub done: u32,
     /// Frames queued or running now.
     pub active: u32,

@@ -156,7 +156,8 @@ prop_compose! {
 
 prop_compose! {
     fn frame_progress()(
-        first in any::<u32>(), last in any::<u32>(), done in any::<u32>(),
+        first in any::<u32>(), last in any::<u32>(), scene_frames in any::<u32>(),
+        done in any::<u32>(),
         active in any::<u32>(), pending in any::<u32>(), cancelled in any::<u32>(),
         done_prefix in any::<u32>(), failed in any::<u32>(),
         failures in prop::collection::vec(
@@ -166,7 +167,8 @@ prop_compose! {
         ),
     ) -> FrameProgress {
         FrameProgress {
-            first, last, done, active, pending, cancelled, done_prefix, failed, failures,
+            first, last, scene_frames, done, active, pending, cancelled, done_prefix, failed,
+            failures,
         }
     }
 }

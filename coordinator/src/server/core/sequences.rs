@@ -529,7 +529,9 @@ impl Core {
             })
             .collect();
         let error = (state == JobState::Failed).then(|| self.failure_summary(id));
-        let estimated_error = (totals.error_pixels > 0 && state == JobState::Done)
+        let estimated_error = (record.settings.aa >= 2
+            && totals.error_pixels > 0
+            && state == JobState::Done)
             .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt());
         Some(JobStatus {
             id,
@@ -559,6 +561,7 @@ impl Core {
             frames: Some(FrameProgress {
                 first: record.frames.first(),
                 last: record.frames.last(),
+                scene_frames: record.frame_count,
                 done: c.done,
                 active: c.active,
                 pending: c.pending,
