@@ -16,10 +16,8 @@ use serde_json::{json, Value};
 use transport::{DialError, Endpoint};
 
 use crate::output::{default_output, FramesDir, ImageOutput};
-use crate::sequence_commands::{
-    frames_summary, run_fetch_sequence, wait_sequence, FrameChoice,
-};
 use crate::render_command::sampling_summary;
+use crate::sequence_commands::{frames_summary, run_fetch_sequence, wait_sequence, FrameChoice};
 
 /// Reads a scene file for submission.
 pub fn read_scene(path: &Path) -> Result<String> {
@@ -445,9 +443,11 @@ async fn run_submit_sequence(
     json_out: bool,
 ) -> Result<()> {
     let dir = match wait_for_it {
-        true => Some(FramesDir::create(
-            &output.unwrap_or_else(|| default_output(scene).with_extension("")),
-        )?),
+        true => {
+            Some(FramesDir::create(&output.unwrap_or_else(|| {
+                default_output(scene).with_extension("")
+            }))?)
+        }
         false => None,
     };
     let mut session = Session::connect(coordinator).await?;
@@ -786,7 +786,10 @@ pub async fn run_retry(
             Some(k) => format!("frame {k} is"),
             None => "its failed and cancelled frames are".into(),
         };
-        println!("job {job}: {again} back in the queue ({})", frames_summary(f));
+        println!(
+            "job {job}: {again} back in the queue ({})",
+            frames_summary(f)
+        );
     } else {
         println!(
             "job {job} is back in the queue: {} of {} tiles kept, the others are rendered",

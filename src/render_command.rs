@@ -85,7 +85,6 @@ pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> 
     Ok(FrameRange::Span { first, last })
 }
 
-
 /// The progress bar appears only after this long, so quick renders stay quiet.
 const PROGRESS_DELAY: Duration = Duration::from_secs(1);
 
@@ -537,6 +536,9 @@ mod tests {
         assert_eq!(render::frame_file_name(120, 121), "frame_0120.png");
         assert_eq!(render::frame_file_name(9999, 9999), "frame_9999.png");
         assert_eq!(render::frame_file_name(7, 10_000), "frame_00007.png");
-        assert_eq!(render::frame_file_name(100_000, 100_000), "frame_100000.png");
+        assert_eq!(
+            render::frame_file_name(100_000, 100_000),
+            "frame_100000.png"
+        );
     }
 }

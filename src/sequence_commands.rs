@@ -76,8 +76,10 @@ pub async fn wait_sequence(
         ProgressBar::hidden()
     };
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} frames {msg}")
-            .expect("the template is valid"),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} frames {msg}",
+        )
+        .expect("the template is valid"),
     );
     let mut seen = 0;
     let mut written = 0u32;
@@ -185,7 +187,11 @@ pub async fn run_fetch_sequence(
         println!(
             "{}: {written} of {total} frames{}",
             dir.path().display(),
-            if written < total { " (the others are not done)" } else { "" }
+            if written < total {
+                " (the others are not done)"
+            } else {
+                ""
+            }
         );
     }
     Ok(())
@@ -216,10 +222,15 @@ mod tests {
     fn an_animated_scene_goes_whole_unless_a_frame_or_range_is_named() {
         let orbit = include_str!("../scenes/seed-orbit.json");
         let seed = include_str!("../scenes/seed.json");
-        let all = Some(protocol::FrameRange { first: 1, last: 121 });
+        let all = Some(protocol::FrameRange {
+            first: 1,
+            last: 121,
+        });
         assert_eq!(choose_frames(orbit, None, None).unwrap().frames, all);
         assert_eq!(
-            choose_frames(orbit, None, Some(FrameRange::All)).unwrap().frames,
+            choose_frames(orbit, None, Some(FrameRange::All))
+                .unwrap()
+                .frames,
             all
         );
         assert_eq!(

@@ -12,10 +12,10 @@ use protocol::Overrides;
 use transport::Endpoint;
 
 use crate::client_commands::{sequence_summary, submit, summary, wait, JobChoices, Session};
-use crate::render_command::FrameRange;
-use crate::sequence_commands::{choose_frames, wait_sequence, FrameChoice};
 use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::output::{default_output, FramesDir, ImageOutput};
+use crate::render_command::FrameRange;
+use crate::sequence_commands::{choose_frames, wait_sequence, FrameChoice};
 
 pub struct Options {
     pub scene: PathBuf,

@@ -237,7 +237,10 @@ impl Client {
     /// Renders a done, failed or cancelled frame of a sequence again, alone: the
     /// sequence's status once it is queued.
     pub async fn requeue_frame(&mut self, job: JobId, frame: u32) -> Result<JobStatus> {
-        match self.request(ClientRequest::RequeueFrame { job, frame }).await? {
+        match self
+            .request(ClientRequest::RequeueFrame { job, frame })
+            .await?
+        {
             ClientResponse::Job(status) if status.id == job => Ok(status),
             other => Err(unexpected(&other)),
         }

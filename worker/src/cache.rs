@@ -29,9 +29,9 @@ pub struct TracerKey {
 }
 
 /// The most tracers kept per scene: those of the frames (and settings) most recently
-/// used. Enough for a few frames of a sequence rendered at once; an older one is
-/// prepared again if a tile of it comes back (a retried tile), which changes no pixel.
-pub const TRACERS_PER_SCENE: usize = 4;
+/// used. As many as a sequence job renders frames at once; an older one is prepared
+/// again if a tile of it comes back (a retried tile), which changes no pixel.
+pub const TRACERS_PER_SCENE: usize = protocol::MAX_ACTIVE_FRAMES;
 
 #[derive(Default)]
 pub struct SceneCache {

@@ -529,10 +529,9 @@ impl Core {
             })
             .collect();
         let error = (state == JobState::Failed).then(|| self.failure_summary(id));
-        let estimated_error = (record.settings.aa >= 2
-            && totals.error_pixels > 0
-            && state == JobState::Done)
-            .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt());
+        let estimated_error =
+            (record.settings.aa >= 2 && totals.error_pixels > 0 && state == JobState::Done)
+                .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt());
         Some(JobStatus {
             id,
             state,

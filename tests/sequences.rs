@@ -1,0 +1,417 @@
+//! Sequence jobs (a frame range of an animated scene as one job) on a farm of real
+//! `tessera` processes on 127.0.0.1, compared byte for byte with `tessera render
+//! --frames` of the same range:
+//!
+//! - with one and with three workers (`submit --frames --wait -o DIR/`), the sequence
+//!   listed as one job, its frames shown by `tessera status`;
+//! - with workers killed (SIGKILL) mid-sequence and a new one joining;
+//! - cancelled mid-sequence (no frame starts after it), a done and a cancelled frame
+//!   each rendered again alone (`tessera retry JOB --frame K`), then every cancelled
+//!   frame (`tessera retry JOB`);
+//! - across a coordinator killed mid-sequence and started again on its data directory;
+//! - deleted: its folder and frames go;
+//! - ranges the scene does not have refused in one line, nothing made of them.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use common::{
+    client, free_port, ok, poll, scene_path, serial, start_coordinator, start_worker,
+    start_worker_with, submit, tessera, try_status, try_workers, Daemon,
+};
+use tempfile::TempDir;
+
+/// Small frames of a few dozen tiles each: every worker gets some of every frame.
+const JOB: &[&str] = &["--width", "96", "--height", "54", "--aa", "2"];
+const TILE: &[&str] = &["--tile", "16"];
+const TIMEOUT: Duration = Duration::from_secs(120);
+
+fn orbit() -> String {
+    scene_path("seed-orbit.json")
+}
+
+fn utf8(path: &Path) -> &str {
+    path.to_str().expect("test paths are UTF-8")
+}
+
+/// `tessera render seed-orbit.json --frames A-B -o DIR/` with [`JOB`]'s settings.
+fn reference(dir: &Path, range: &str) -> PathBuf {
+    let out = dir.join(format!("reference-{range}"));
+    let scene = orbit();
+    let mut args = vec![
+        "render",
+        scene.as_str(),
+        "--frames",
+        range,
+        "-o",
+        utf8(&out),
+    ];
+    args.extend(JOB);
+    ok(
+        tessera(dir, &args, Duration::from_secs(120)),
+        "tessera render --frames",
+    );
+    out
+}
+
+/// The frames of `dir`, by name.
+fn frames_in(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("cannot read {}: {e}", dir.display()))
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("frame_"))
+        .collect();
+    names.sort();
+    names
+}
+
+/// Every frame in `actual` is the reference's frame of that name, byte for byte, and
+/// `expected` frames are there.
+fn assert_same_frames(actual: &Path, reference: &Path, expected: usize, what: &str) {
+    let names = frames_in(actual);
+    assert_eq!(names.len(), expected, "{what}: frames written: {names:?}");
+    for name in names {
+        let a = std::fs::read(actual.join(&name)).unwrap();
+        let r = std::fs::read(reference.join(&name))
+            .unwrap_or_else(|e| panic!("{what}: the reference has no {name}: {e}"));
+        assert!(
+            a == r,
+            "{what}: {name} differs from tessera render --frames'"
+        );
+    }
+}
+
+fn wait_workers(dir: &Path, addr: &str, count: usize) {
+    poll(
+        &format!("{count} workers to join"),
+        Duration::from_secs(20),
+        || (try_workers(dir, addr)?.len() >= count).then_some(()),
+    );
+}
+
+fn frames_of(status: &serde_json::Value) -> &serde_json::Value {
+    &status["frames"]
+}
+
+fn count(status: &serde_json::Value, key: &str) -> u64 {
+    frames_of(status)[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no frames.{key} in {status}"))
+}
+
+/// Polls the sequence's status until `until` holds of it.
+fn wait_for(
+    dir: &Path,
+    addr: &str,
+    job: u64,
+    what: &str,
+    until: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    poll(&format!("job {job}: {what}"), TIMEOUT, || {
+        try_status(dir, addr, job).filter(|s| until(s))
+    })
+}
+
+fn submit_sequence(dir: &Path, addr: &str, range: &str) -> u64 {
+    let scene = orbit();
+    let mut args = vec![scene.as_str(), "--frames", range];
+    args.extend(JOB);
+    args.extend(TILE);
+    submit(dir, addr, &args)
+}
+
+fn fetch_frames(dir: &Path, addr: &str, job: u64, name: &str) -> PathBuf {
+    let out = dir.join(name);
+    ok(
+        client(dir, addr, &["fetch", &job.to_string(), "-o", utf8(&out)]),
+        "tessera fetch of a sequence",
+    );
+    out
+}
+
+#[test]
+fn a_sequence_on_one_and_on_three_workers_is_tessera_render_frames_byte_for_byte() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let reference = reference(dir.path(), "1-8");
+    for workers in [1usize, 3] {
+        let (_coordinator, addr) = start_coordinator(
+            dir.path(),
+            &dir.path().join(format!("data-{workers}")),
+            "127.0.0.1:0",
+            &[],
+            &format!("coordinator-{workers}.log"),
+        );
+        let _workers: Vec<Daemon> = (0..workers)
+            .map(|i| start_worker(dir.path(), &addr, &format!("w{i}")))
+            .collect();
+        wait_workers(dir.path(), &addr, workers);
+        let out = dir.path().join(format!("farm-{workers}"));
+        let scene = orbit();
+        let mut args = vec![
+            "submit",
+            scene.as_str(),
+            "--frames",
+            "1-8",
+            "--wait",
+            "-o",
+            utf8(&out),
+        ];
+        args.extend(JOB);
+        args.extend(TILE);
+        let run = ok(client(dir.path(), &addr, &args), "submit --frames --wait");
+        assert_same_frames(
+            &out,
+            &reference,
+            8,
+            &format!("{workers} workers, submit --wait"),
+        );
+        let id: u64 = run
+            .stderr
+            .lines()
+            .find_map(|l| l.strip_prefix("submitted job "))
+            .and_then(|n| n.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no job id in:\n{}", run.stderr));
+
+        // One job listed (its frame jobs are not), its frames shown.
+        let listed = client(dir.path(), &addr, &["list", "--json"]);
+        let jobs: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
+        assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
+        let status = try_status(dir.path(), &addr, id).unwrap();
+        assert_eq!(status["state"], "done", "{status}");
+        assert_eq!(count(&status, "done"), 8, "{status}");
+        assert_eq!(count(&status, "done_prefix"), 8, "{status}");
+        let line = client(dir.path(), &addr, &["status", &id.to_string()]);
+        assert!(
+            line.stdout.contains("frames 1-8: 8/8 done"),
+            "tessera status: {}",
+            line.stdout
+        );
+        // Fetched again, into another directory: the same frames.
+        let again = fetch_frames(dir.path(), &addr, id, &format!("fetched-{workers}"));
+        assert_same_frames(&again, &reference, 8, "tessera fetch -o DIR/");
+    }
+}
+
+#[test]
+fn workers_killed_mid_sequence_change_no_frame() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let reference = reference(dir.path(), "1-16");
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--heartbeat-timeout-ms", "1500"],
+        "coordinator.log",
+    );
+    let slow = ["--throttle", "150"];
+    let mut workers: Vec<Daemon> = (0..3)
+        .map(|i| start_worker_with(dir.path(), &addr, &format!("w{i}"), &slow))
+        .collect();
+    wait_workers(dir.path(), &addr, 3);
+    let job = submit_sequence(dir.path(), &addr, "1-16");
+    wait_for(dir.path(), &addr, job, "2 frames done", |s| {
+        count(s, "done") >= 2
+    });
+    workers[0].kill9();
+    let status = wait_for(dir.path(), &addr, job, "2 more frames done", |s| {
+        count(s, "done") >= 4
+    });
+    assert!(count(&status, "done") < 16, "the sequence ended too soon");
+    workers[1].kill9();
+    workers.push(start_worker(dir.path(), &addr, "w3"));
+    let status = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
+    assert_eq!(count(&status, "done"), 16, "{status}");
+    let out = fetch_frames(dir.path(), &addr, job, "farm");
+    assert_same_frames(&out, &reference, 16, "workers killed mid-sequence");
+}
+
+#[test]
+fn a_cancelled_sequence_stops_and_its_frames_are_rendered_again_on_request() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let reference = reference(dir.path(), "1-20");
+    let data = dir.path().join("data");
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let _worker = start_worker_with(dir.path(), &addr, "w1", &["--throttle", "100"]);
+    wait_workers(dir.path(), &addr, 1);
+    let job = submit_sequence(dir.path(), &addr, "1-20");
+    wait_for(dir.path(), &addr, job, "2 frames done", |s| {
+        count(s, "done") >= 2
+    });
+    ok(
+        client(dir.path(), &addr, &["cancel", &job.to_string()]),
+        "tessera cancel",
+    );
+    let status = wait_for(dir.path(), &addr, job, "cancelled", |s| {
+        s["state"] == "cancelled"
+    });
+    let done = count(&status, "done");
+    assert!((2..20).contains(&done), "{status}");
+    assert_eq!(count(&status, "active"), 0, "{status}");
+    assert_eq!(count(&status, "done") + count(&status, "cancelled"), 20);
+    // Nothing starts after a cancel.
+    std::thread::sleep(Duration::from_millis(1500));
+    let later = try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(count(&later, "done"), done, "a frame ran after the cancel");
+    let out = fetch_frames(dir.path(), &addr, job, "cancelled");
+    assert_same_frames(&out, &reference, done as usize, "a cancelled sequence");
+
+    // A cancelled frame rendered alone, then a done one: the others stay cancelled.
+    for frame in ["20", "1"] {
+        let run = ok(
+            client(
+                dir.path(),
+                &addr,
+                &["retry", &job.to_string(), "--frame", frame],
+            ),
+            "tessera retry --frame",
+        );
+        assert!(
+            run.stdout
+                .contains(&format!("frame {frame} is back in the queue")),
+            "{}",
+            run.stdout
+        );
+        let status = wait_for(dir.path(), &addr, job, "the frame rendered", |s| {
+            s["state"] == "cancelled"
+        });
+        assert_eq!(
+            count(&status, "done"),
+            done + 1,
+            "frame {frame} requeued: {status}"
+        );
+    }
+    let out = fetch_frames(dir.path(), &addr, job, "requeued");
+    assert_same_frames(&out, &reference, done as usize + 1, "requeued frames");
+    assert!(frames_in(&out).contains(&"frame_0020.png".to_string()));
+    // A frame still rendering cannot be requeued; one the sequence lacks is named.
+    let run = client(
+        dir.path(),
+        &addr,
+        &["retry", &job.to_string(), "--frame", "21"],
+    );
+    assert!(!run.status.success());
+    assert_eq!(
+        run.stderr.trim(),
+        format!("error: job {job}: the sequence has frames 1 to 20: there is no frame 21")
+    );
+
+    // Every cancelled frame again: the sequence is done, every frame the reference's.
+    ok(
+        client(dir.path(), &addr, &["retry", &job.to_string()]),
+        "tessera retry of a sequence",
+    );
+    let status = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
+    assert_eq!(count(&status, "done"), 20, "{status}");
+    let out = fetch_frames(dir.path(), &addr, job, "all");
+    assert_same_frames(&out, &reference, 20, "every frame after retry");
+
+    // Deleted: the folder and its frames go, and the job is unknown.
+    ok(
+        client(dir.path(), &addr, &["delete", &job.to_string()]),
+        "tessera delete of a sequence",
+    );
+    assert!(!data.join("jobs").join(job.to_string()).exists());
+    assert!(try_status(dir.path(), &addr, job).is_none());
+    let listed = client(dir.path(), &addr, &["list", "--json"]);
+    assert_eq!(
+        listed.stdout.trim(),
+        "[]",
+        "frame jobs left: {}",
+        listed.stdout
+    );
+}
+
+#[test]
+fn a_sequence_survives_a_coordinator_killed_mid_way() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let reference = reference(dir.path(), "1-16");
+    let listen = format!("127.0.0.1:{}", free_port());
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-1.log");
+    let slow = ["--throttle", "150"];
+    let _workers: Vec<Daemon> = (0..2)
+        .map(|i| start_worker_with(dir.path(), &addr, &format!("w{i}"), &slow))
+        .collect();
+    wait_workers(dir.path(), &addr, 2);
+    let job = submit_sequence(dir.path(), &addr, "1-16");
+    let before = wait_for(dir.path(), &addr, job, "3 frames done", |s| {
+        count(s, "done") >= 3
+    });
+    assert!(count(&before, "done") < 16, "the sequence ended too soon");
+    coordinator.kill9();
+
+    let (_coordinator, again) =
+        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-2.log");
+    assert_eq!(again, addr, "restarted on the same address");
+    let status = try_status(dir.path(), &addr, job).expect("the sequence after a restart");
+    assert!(
+        count(&status, "done") >= count(&before, "done"),
+        "frames done before the restart were lost: {status}"
+    );
+    let status = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
+    assert_eq!(count(&status, "done"), 16, "{status}");
+    let out = fetch_frames(dir.path(), &addr, job, "farm");
+    assert_same_frames(&out, &reference, 16, "a sequence across a restart");
+    let listed = client(dir.path(), &addr, &["list", "--json"]);
+    let jobs: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
+    assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
+}
+
+#[test]
+fn frame_ranges_the_scene_does_not_have_are_refused_in_one_line() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let orbit = orbit();
+    let seed = scene_path("seed.json");
+    for (scene, range, message) in [
+        (
+            orbit.as_str(),
+            "120-130",
+            format!("error: {orbit}: frame 130 is beyond the scene's 121 frames"),
+        ),
+        (
+            seed.as_str(),
+            "1-2",
+            format!("error: {seed}: frame 2: the scene has no animation, only frame 1"),
+        ),
+        (
+            orbit.as_str(),
+            "5-3",
+            "error: invalid value '5-3' for '--frames <RANGE>': the range ends (frame 3) \
+             before it starts (frame 5)"
+                .to_string(),
+        ),
+    ] {
+        let run = client(dir.path(), &addr, &["submit", scene, "--frames", range]);
+        assert!(!run.status.success(), "--frames {range} was accepted");
+        let first = run.stderr.lines().next().unwrap_or_default();
+        assert_eq!(first, message, "stderr: {}", run.stderr);
+        if !range.starts_with('5') {
+            assert_eq!(run.stderr.lines().count(), 1, "{}", run.stderr);
+        }
+    }
+    let listed = client(dir.path(), &addr, &["list", "--json"]);
+    assert_eq!(listed.stdout.trim(), "[]", "refusals made jobs");
+    // --frame and --frames together are refused by the command line.
+    let run = client(
+        dir.path(),
+        &addr,
+        &["submit", orbit.as_str(), "--frame", "2", "--frames", "1-3"],
+    );
+    assert!(!run.status.success());
+}
