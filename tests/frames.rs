@@ -3,7 +3,8 @@
 //!
 //! - `tessera submit seed-orbit.json --frame 17 --wait`, with two workers, writes the
 //!   same PNG bytes as `tessera render seed-orbit.json --frame 17` (and not frame 1's),
-//!   and `tessera status` shows the frame.
+//!   and `tessera status` shows the frame; without `--frame`, the submission is a
+//!   sequence of every frame (tests/sequences.rs follows sequences through).
 //! - A frame the scene does not have is refused at submission in one `error: ` line,
 //!   the loader's, and no job is made.
 //! - A coordinator killed with a job of frame 17 queued, and started again on its data
@@ -18,7 +19,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::{
-    assert_same_png, client, fetch, free_port, poll, render_reference, scene_path, serial,
+    assert_same_png, client, fetch, free_port, ok, poll, render_reference, scene_path, serial,
     start_coordinator, start_worker, submit, try_status, try_workers, wait_done, Daemon,
 };
 use tempfile::TempDir;
@@ -106,15 +107,31 @@ fn a_frame_submitted_to_two_workers_is_the_frame_tessera_render_gives() {
         line.stdout
     );
 
-    // Without --frame, frame 1, as `tessera render` without it.
-    let mut args = vec![scene.as_str()];
+    // `--frame 1` is frame 1, as `tessera render` without --frame.
+    let mut args = vec![scene.as_str(), "--frame", "1"];
     args.extend(JOB);
     args.extend(TILE);
     let job = submit(dir.path(), &addr, &args);
     let status = wait_done(dir.path(), &addr, job, JOB_TIMEOUT);
     assert_eq!(status["frame"], 1, "{status}");
+    assert!(
+        status["frames"].is_null(),
+        "one frame is no sequence: {status}"
+    );
     let image = fetch(dir.path(), &addr, job, "orbit-1.png");
-    assert_same_png(&image, &frame_1, "submit without --frame");
+    assert_same_png(&image, &frame_1, "submit --frame 1");
+
+    // Without --frame, every frame of the animated scene, as one sequence job.
+    let mut args = vec![scene.as_str()];
+    args.extend(JOB);
+    let job = submit(dir.path(), &addr, &args);
+    let status = try_status(dir.path(), &addr, job).expect("status of the sequence");
+    assert_eq!(status["frames"]["first"], 1, "{status}");
+    assert_eq!(status["frames"]["last"], 121, "{status}");
+    ok(
+        client(dir.path(), &addr, &["cancel", &job.to_string()]),
+        "cancel the sequence",
+    );
 }
 
 #[test]

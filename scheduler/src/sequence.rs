@@ -9,6 +9,8 @@
 //! coordinator holds the pixels of a few frames however long the sequence. Per frame it
 //! keeps a state and the id of the frame job that renders it: 16 bytes.
 
+use std::collections::BTreeSet;
+
 use protocol::{JobId, JobState};
 
 /// The most frames of one sequence rendering at once, whatever the tiles: what a
@@ -57,8 +59,12 @@ pub struct Sequence {
     /// No frame before this index is pending.
     next: usize,
     counts: Counts,
-    /// Frames `Starting` or `Active`.
-    running: usize,
+    /// The indices of the frames `Starting` or `Active` (at most
+    /// [`MAX_ACTIVE_FRAMES`], unless more were found active at a restart): what is
+    /// looked at on every tile handed out, without a walk of every frame.
+    running: BTreeSet<usize>,
+    /// The frames done one after another from the first.
+    prefix: usize,
     /// An operator cancelled it: a frame job admitted after is cancelled at once.
     cancelled: bool,
     paused: bool,
@@ -85,7 +91,8 @@ impl Sequence {
                 pending: n as u32,
                 ..Counts::default()
             },
-            running: 0,
+            running: BTreeSet::new(),
+            prefix: 0,
             cancelled: false,
             paused: false,
             started: false,
@@ -130,7 +137,19 @@ impl Sequence {
 
     /// The frame jobs queued or running, with their frames.
     pub fn active(&self) -> impl Iterator<Item = (u32, JobId)> + '_ {
-        self.frames_in(FrameState::Active)
+        self.running
+            .iter()
+            .map(|&i| (i, self.slots[i]))
+            .filter(|(_, s)| s.state == FrameState::Active)
+            .map(|(i, s)| (self.first + i as u32, s.job))
+    }
+
+    /// How many frames are being admitted (their jobs not yet stored).
+    pub fn starting(&self) -> usize {
+        self.running
+            .iter()
+            .filter(|&&i| self.slots[i].state == FrameState::Starting)
+            .count()
     }
 
     /// The frames in `state`, lowest first, with their jobs.
@@ -149,10 +168,7 @@ impl Sequence {
 
     /// The frames done one after another from the first: what a preview can play.
     pub fn done_prefix(&self) -> u32 {
-        self.slots
-            .iter()
-            .take_while(|s| s.state == FrameState::Done)
-            .count() as u32
+        self.prefix as u32
     }
 
     fn index(&self, frame: u32) -> Option<usize> {
@@ -167,17 +183,21 @@ impl Sequence {
         }
         *self.count_mut(old) -= 1;
         *self.count_mut(state) += 1;
-        let runs = |s| matches!(s, FrameState::Starting | FrameState::Active);
-        if runs(old) {
-            self.running -= 1;
-        }
-        if runs(state) {
-            self.running += 1;
+        if matches!(state, FrameState::Starting | FrameState::Active) {
+            self.running.insert(i);
+        } else {
+            self.running.remove(&i);
         }
         if state == FrameState::Pending {
             self.next = self.next.min(i);
         }
         self.slots[i].state = state;
+        if state != FrameState::Done {
+            self.prefix = self.prefix.min(i);
+        }
+        while self.prefix < self.slots.len() && self.slots[self.prefix].state == FrameState::Done {
+            self.prefix += 1;
+        }
     }
 
     fn count_mut(&mut self, state: FrameState) -> &mut u32 {
@@ -199,7 +219,9 @@ impl Sequence {
         if self.cancelled || self.paused {
             return start;
         }
-        while self.running < MAX_ACTIVE_FRAMES && (self.running == 0 || waiting < credit.max(1)) {
+        while self.running.len() < MAX_ACTIVE_FRAMES
+            && (self.running.is_empty() || waiting < credit.max(1))
+        {
             while self.next < self.slots.len() && self.slots[self.next].state != FrameState::Pending
             {
                 self.next += 1;
@@ -351,9 +373,13 @@ impl Sequence {
         }
     }
 
-    /// The frames that failed, lowest first, with their jobs.
+    /// The frames that failed, lowest first, with their jobs (no walk of the frames
+    /// when none has).
     pub fn failed(&self) -> impl Iterator<Item = (u32, JobId)> + '_ {
-        self.frames_in(FrameState::Failed)
+        (self.counts.failed > 0)
+            .then(|| self.frames_in(FrameState::Failed))
+            .into_iter()
+            .flatten()
     }
 }
 
@@ -506,5 +532,84 @@ mod tests {
     fn a_requeue_of_a_frame_not_rendered_yet_is_refused() {
         let mut s = Sequence::new(1, 3);
         assert!(s.requeue(2).unwrap_err().contains("not rendered yet"));
+    }
+
+    /// Counts, the prefix and the running set as a walk of the frames finds them.
+    fn check(s: &Sequence) {
+        let mut c = Counts::default();
+        let mut running = 0;
+        for slot in &s.slots {
+            match slot.state {
+                FrameState::Pending => c.pending += 1,
+                FrameState::Starting | FrameState::Active => {
+                    c.active += 1;
+                    running += 1
+                }
+                FrameState::Done => c.done += 1,
+                FrameState::Failed => c.failed += 1,
+                FrameState::Cancelled => c.cancelled += 1,
+            }
+        }
+        assert_eq!(s.counts(), c);
+        assert_eq!(s.running.len(), running);
+        let prefix = s
+            .slots
+            .iter()
+            .take_while(|x| x.state == FrameState::Done)
+            .count();
+        assert_eq!(s.done_prefix() as usize, prefix);
+        assert!(s.slots[..s.next.min(s.slots.len())]
+            .iter()
+            .all(|x| x.state != FrameState::Pending));
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn any_order_of_events_keeps_the_counts_and_the_order_of_starts(
+            ops in proptest::collection::vec((0u8..7, 0u32..12, 0u64..40), 1..200),
+        ) {
+            let mut s = Sequence::new(1, 10);
+            let mut next_job = 100;
+            for (op, frame, n) in ops {
+                match op {
+                    0 => {
+                        let before = s.running.len();
+                        let started = s.to_start(n, 20, 5);
+                        assert!(s.running.len() <= MAX_ACTIVE_FRAMES.max(before));
+                        // Lowest first: no pending frame is left below one started.
+                        if let Some(&last) = started.last() {
+                            assert!((1..last).all(|f| s.frame(f) != Some(FrameState::Pending)));
+                        }
+                    }
+                    1 => {
+                        if s.frame(frame) == Some(FrameState::Starting) {
+                            next_job += 1;
+                            s.started(frame, next_job);
+                        }
+                    }
+                    2 => s.start_failed(frame),
+                    3 => {
+                        if let Some(job) = s.job(frame) {
+                            let state = [JobState::Done, JobState::Failed, JobState::Cancelled]
+                                [(n % 3) as usize];
+                            s.ended(frame, job, state);
+                        }
+                    }
+                    4 => {
+                        let _ = s.requeue(frame);
+                    }
+                    5 => {
+                        if n % 5 == 0 {
+                            s.cancel();
+                        }
+                    }
+                    _ => s.set_paused(n % 2 == 0),
+                }
+                check(&s);
+                // Final only when nothing is pending or active.
+                let c = s.counts();
+                assert_eq!(s.state().is_final(), c.pending + c.active == 0);
+            }
+        }
     }
 }

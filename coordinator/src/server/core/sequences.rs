@@ -50,6 +50,9 @@ pub struct SequenceRecord {
     pub deleting: bool,
     /// Why the last frame could not be admitted, to log it once.
     last_refusal: Option<String>,
+    /// What the frame jobs that have ended cost, added up as they end: a status adds
+    /// only the active frames' to it, never walking every frame.
+    ended_totals: Totals,
 }
 
 impl Core {
@@ -115,6 +118,7 @@ impl Core {
                 recorded: None,
                 deleting: false,
                 last_refusal: None,
+                ended_totals: Totals::default(),
             },
         );
         self.submits.insert(id, reply);
@@ -202,6 +206,7 @@ impl Core {
                 recorded: stored.state.is_final().then_some(stored.state),
                 deleting: false,
                 last_refusal: None,
+                ended_totals: Totals::default(),
             },
         );
     }
@@ -211,9 +216,20 @@ impl Core {
     pub fn sequences_restored(&mut self, sh: &Arc<Shared>) {
         let ids: Vec<JobId> = self.sequences.keys().copied().collect();
         for id in ids {
+            let mut ended = Totals::default();
+            if let Some(record) = self.sequences.get(&id) {
+                for state in [FrameState::Done, FrameState::Failed, FrameState::Cancelled] {
+                    for (_, job) in record.frames.frames_in(state) {
+                        if let Some(r) = self.jobs.get(&job) {
+                            add_totals(&mut ended, &r.totals);
+                        }
+                    }
+                }
+            }
             let Some(record) = self.sequences.get_mut(&id) else {
                 continue;
             };
+            record.ended_totals = ended;
             if record.recorded == Some(JobState::Cancelled) {
                 record.frames.cancel();
             }
@@ -237,7 +253,7 @@ impl Core {
             return;
         }
         let tiles = u64::from(record.tiles_per_frame);
-        let starting = record.frames.frames_in(FrameState::Starting).count() as u64;
+        let starting = record.frames.starting() as u64;
         let waiting = record
             .frames
             .active()
@@ -290,7 +306,7 @@ impl Core {
             tiles: tiling::cut(&record.settings, record.tile_size),
             priority: record.priority,
             verification: record.verification,
-            request: record.request.clone(),
+            request: record.request,
             time_limit_ms: None,
             start: None,
             label: Label {
@@ -343,6 +359,15 @@ impl Core {
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
+        if record.times.started.is_none() {
+            // Its first frame is out: the sequence's time in the queue ends.
+            let at = unix_ms();
+            record.times.started = Some(at);
+            sh.persistence.write(Write::Started {
+                job: id,
+                at_unix_ms: at,
+            });
+        }
         if record.frames.started(frame, job) {
             // The sequence was cancelled while this frame was being stored.
             self.life_event(sh, lifecycle::Event::Cancel { job });
@@ -363,12 +388,14 @@ impl Core {
             _ => return,
         };
         let error = self.frame_error(job);
+        let cost = self.jobs.get(&job).map(|r| r.totals).unwrap_or_default();
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
         if !record.frames.ended(frame, job, state) {
             return;
         }
+        add_totals(&mut record.ended_totals, &cost);
         if state == JobState::Failed {
             let detail = format!(
                 "frame {frame} (job {job}): {}",
@@ -465,23 +492,13 @@ impl Core {
 
     /// What the sequence's frame jobs cost so far, added up.
     fn sequence_totals(&self, id: JobId) -> Totals {
-        let mut totals = Totals::default();
         let Some(record) = self.sequences.get(&id) else {
-            return totals;
+            return Totals::default();
         };
-        for state in [
-            FrameState::Done,
-            FrameState::Active,
-            FrameState::Failed,
-            FrameState::Cancelled,
-        ] {
-            for (_, job) in record.frames.frames_in(state) {
-                if let Some(r) = self.jobs.get(&job) {
-                    totals.rays += r.totals.rays;
-                    totals.samples += r.totals.samples;
-                    totals.error_sq_sum += r.totals.error_sq_sum;
-                    totals.error_pixels += r.totals.error_pixels;
-                }
+        let mut totals = record.ended_totals;
+        for (_, job) in record.frames.active() {
+            if let Some(r) = self.jobs.get(&job) {
+                add_totals(&mut totals, &r.totals);
             }
         }
         totals
@@ -500,14 +517,11 @@ impl Core {
             .unwrap_or(now);
         let submitted = record.times.submitted.unwrap_or(end);
         let mut tiles_done = c.done * record.tiles_per_frame;
-        let mut started: Option<u64> = None;
+        let started = record.times.started;
         for (_, job) in record.frames.active() {
             if let Some(r) = self.jobs.get(&job) {
                 tiles_done += r.tiles_recorded;
             }
-        }
-        for (_, job) in record.frames.done().take(1) {
-            started = self.jobs.get(&job).and_then(|r| r.times.started);
         }
         let totals = self.sequence_totals(id);
         let frames = record.frames.len();
@@ -691,6 +705,19 @@ impl Core {
             old_jobs.extend(old);
         }
         // The frames' old jobs go: the new ones write their images in their place.
+        let mut gone = Totals::default();
+        for job in &old_jobs {
+            if let Some(r) = self.jobs.get(job) {
+                add_totals(&mut gone, &r.totals);
+            }
+        }
+        if let Some(record) = self.sequences.get_mut(&id) {
+            let t = &mut record.ended_totals;
+            t.rays = t.rays.saturating_sub(gone.rays);
+            t.samples = t.samples.saturating_sub(gone.samples);
+            t.error_sq_sum = (t.error_sq_sum - gone.error_sq_sum).max(0.0);
+            t.error_pixels = t.error_pixels.saturating_sub(gone.error_pixels);
+        }
         for job in old_jobs {
             self.life_event(sh, lifecycle::Event::Delete { job });
         }
@@ -876,4 +903,11 @@ impl Core {
             }
         }
     }
+}
+
+fn add_totals(sum: &mut Totals, more: &Totals) {
+    sum.rays += more.rays;
+    sum.samples += more.samples;
+    sum.error_sq_sum += more.error_sq_sum;
+    sum.error_pixels += more.error_pixels;
 }
