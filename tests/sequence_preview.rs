@@ -107,9 +107,17 @@ fn state(addr: &str, job: JobId) -> JobState {
     })
 }
 
-/// The frames of a GIF: (width, height, delay in hundredths of a second, RGBA). The
-/// GIF decoder is the `image` crate's, whose `gif` feature the coordinator enables.
-fn gif_frames(gif: &[u8]) -> Vec<(u32, u32, u32, Vec<u8>)> {
+/// A frame of a GIF: its size, delay in hundredths of a second, and pixels.
+struct GifFrame {
+    width: u32,
+    height: u32,
+    delay_cs: u32,
+    rgba: Vec<u8>,
+}
+
+/// The frames of a GIF, by the `image` crate's decoder (its `gif` feature is the
+/// coordinator's).
+fn gif_frames(gif: &[u8]) -> Vec<GifFrame> {
     use image::AnimationDecoder;
     let decoder = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(gif)).unwrap();
     decoder
@@ -118,12 +126,12 @@ fn gif_frames(gif: &[u8]) -> Vec<(u32, u32, u32, Vec<u8>)> {
             let frame = frame.unwrap();
             let (numer, denom) = frame.delay().numer_denom_ms();
             let buffer = frame.into_buffer();
-            (
-                buffer.width(),
-                buffer.height(),
-                numer / denom / 10,
-                buffer.into_raw(),
-            )
+            GifFrame {
+                width: buffer.width(),
+                height: buffer.height(),
+                delay_cs: numer / denom / 10,
+                rgba: buffer.into_raw(),
+            }
         })
         .collect()
 }
@@ -189,10 +197,16 @@ fn a_sequence_has_an_animated_preview_its_frames_and_a_page_that_plays_it() {
     );
     let frames = gif_frames(&gif);
     assert_eq!(frames.len(), 3);
-    for (width, height, delay, _) in &frames {
-        assert_eq!((*width, *height, *delay), (WIDTH, HEIGHT, 4));
+    for frame in &frames {
+        assert_eq!(
+            (frame.width, frame.height, frame.delay_cs),
+            (WIDTH, HEIGHT, 4)
+        );
     }
-    assert_ne!(frames[0].3, frames[2].3, "the spheres move between frames");
+    assert_ne!(
+        frames[0].rgba, frames[2].rgba,
+        "the spheres move between frames"
+    );
     // A poll of the same frames: 304, nothing made again.
     let tag = header(&head, "etag").expect("an ETag").to_owned();
     let (code, again, body) = get(

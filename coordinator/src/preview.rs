@@ -121,10 +121,19 @@ pub fn encode_gif(
     Ok(out)
 }
 
-/// The frames of a GIF, for the tests: each one's size and delay in hundredths of a
-/// second, and its pixels as RGBA.
+/// A frame of a decoded GIF, for the tests.
 #[cfg(test)]
-pub fn decode_gif(gif: &[u8]) -> Result<Vec<(u32, u32, u32, Vec<u8>)>> {
+pub struct DecodedFrame {
+    pub width: u32,
+    pub height: u32,
+    /// In hundredths of a second.
+    pub delay_cs: u32,
+    pub rgba: Vec<u8>,
+}
+
+/// The frames of a GIF, for the tests.
+#[cfg(test)]
+pub fn decode_gif(gif: &[u8]) -> Result<Vec<DecodedFrame>> {
     use image::AnimationDecoder;
     let decoder = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(gif))?;
     decoder
@@ -133,12 +142,12 @@ pub fn decode_gif(gif: &[u8]) -> Result<Vec<(u32, u32, u32, Vec<u8>)>> {
             let frame = frame?;
             let (numer, denom) = frame.delay().numer_denom_ms();
             let buffer = frame.into_buffer();
-            Ok((
-                buffer.width(),
-                buffer.height(),
-                numer / denom.max(1) / 10,
-                buffer.into_raw(),
-            ))
+            Ok(DecodedFrame {
+                width: buffer.width(),
+                height: buffer.height(),
+                delay_cs: numer / denom.max(1) / 10,
+                rgba: buffer.into_raw(),
+            })
         })
         .collect()
 }
@@ -167,11 +176,14 @@ mod tests {
         assert_eq!(&gif[at + 11..at + 15], &[3, 1, 0, 0]);
         let decoded = decode_gif(&gif).unwrap();
         assert_eq!(decoded.len(), 3);
-        for ((width, height, delay, rgba), colour) in decoded.iter().zip(colours) {
-            assert_eq!((*width, *height), (32, 18));
-            assert_eq!(*delay, 4, "24 fps is 4 hundredths of a second a frame");
+        for (frame, colour) in decoded.iter().zip(colours) {
+            assert_eq!((frame.width, frame.height), (32, 18));
+            assert_eq!(
+                frame.delay_cs, 4,
+                "24 fps is 4 hundredths of a second a frame"
+            );
             // A single colour survives quantisation exactly.
-            assert_eq!(&rgba[..4], &[colour[0], colour[1], colour[2], 255]);
+            assert_eq!(&frame.rgba[..4], &[colour[0], colour[1], colour[2], 255]);
         }
     }
 
