@@ -6,6 +6,8 @@
 //! most [`SIDE`] pixels on its longer side; the frames are decoded, downscaled and
 //! encoded one at a time, so only one full-size frame is in memory at once.
 
+use std::borrow::Borrow;
+
 use anyhow::{Context, Result};
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbaImage};
@@ -85,8 +87,8 @@ pub fn downscale(image: &render::Image, side: u32) -> render::Image {
 /// Encodes `frames` (RGB images of one size, taken one at a time) as a GIF that loops
 /// forever, each frame shown `delay_cs` hundredths of a second. The first error of
 /// `frames` stops it.
-pub fn encode_gif(
-    frames: impl IntoIterator<Item = Result<render::Image>>,
+pub fn encode_gif<I: Borrow<render::Image>>(
+    frames: impl IntoIterator<Item = Result<I>>,
     delay_cs: u16,
 ) -> Result<Vec<u8>> {
     let mut out = Vec::new();
@@ -97,6 +99,7 @@ pub fn encode_gif(
         let mut size = None;
         for frame in frames {
             let frame = frame?;
+            let frame: &render::Image = frame.borrow();
             let this = (frame.width, frame.height);
             anyhow::ensure!(
                 *size.get_or_insert(this) == this,
@@ -191,7 +194,7 @@ mod tests {
     fn frames_of_another_size_or_none_are_refused() {
         let frames = [Ok(filled(4, 4, [1, 2, 3])), Ok(filled(5, 4, [1, 2, 3]))];
         assert!(encode_gif(frames, 4).is_err());
-        assert!(encode_gif(std::iter::empty(), 4).is_err());
+        assert!(encode_gif(std::iter::empty::<Result<render::Image>>(), 4).is_err());
         let failing = [Ok(filled(4, 4, [0; 3])), Err(anyhow::anyhow!("damaged"))];
         let error = encode_gif(failing, 4).unwrap_err();
         assert_eq!(error.to_string(), "damaged");

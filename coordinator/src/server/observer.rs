@@ -29,14 +29,30 @@ pub const ENDED_JOBS_SHOWN: usize = 50;
 /// make its preview again until more of its frames are done.
 const PREVIEWS_KEPT: usize = 4;
 
+/// The bytes of downscaled frames kept for the next previews (a preview of 240 frames
+/// of 320 × 180 is 41 MB), so that a preview made again with one more frame done
+/// reads and decodes that frame only.
+const PREVIEW_FRAME_BYTES_KEPT: usize = 64 << 20;
+
 /// Looks at a coordinator without changing it. Cheap to clone.
 #[derive(Clone)]
 pub struct Observer {
     pub(super) shared: Arc<Shared>,
-    /// The last previews made, by their tag; its lock is held while one is made, so
-    /// that one preview is made at a time.
-    pub(super) previews: Arc<tokio::sync::Mutex<VecDeque<(String, bytes::Bytes)>>>,
+    /// The last previews made and their frames; its lock is held while one is made,
+    /// so that one preview is made at a time.
+    pub(super) previews: Arc<tokio::sync::Mutex<Previews>>,
 }
+
+/// What is kept of the previews made: the last few, by their tag, and their frames
+/// downscaled, newest first.
+#[derive(Default)]
+pub struct Previews {
+    made: VecDeque<(String, bytes::Bytes)>,
+    frames: VecDeque<(FrameKey, Arc<render::Image>)>,
+}
+
+/// A downscaled frame kept: its sequence, frame and image's checksum.
+type FrameKey = (JobId, u32, [u8; 32]);
 
 /// A studio page's stream: what its view's jobs push, until it is dropped.
 pub struct StudioStream {
@@ -319,24 +335,25 @@ impl Observer {
     }
 
     /// The animated GIF of `plan`: made on the blocking pool, outside the
-    /// coordinator's lock, one preview at a time, or the one kept of the same frames.
+    /// coordinator's lock, one preview at a time (finished even if the asker goes
+    /// away), or the one kept of the same frames.
     pub async fn preview(&self, plan: PreviewPlan) -> Result<bytes::Bytes, Refusal> {
-        let mut kept = self.previews.lock().await;
-        if let Some((_, gif)) = kept.iter().find(|(tag, _)| *tag == plan.tag) {
+        let mut kept = Arc::clone(&self.previews).lock_owned().await;
+        if let Some((_, gif)) = kept.made.iter().find(|(tag, _)| *tag == plan.tag) {
             return Ok(gif.clone());
         }
-        let tag = plan.tag.clone();
         let job = plan.job;
         let store = Arc::clone(&self.shared.store);
-        let made = tokio::task::spawn_blocking(move || make_preview(&store, plan))
-            .await
-            .map_err(|_| Refusal::Failed(format!("the preview of job {job} could not be made")))?;
-        let gif = bytes::Bytes::from(made.map_err(|e| {
-            Refusal::Failed(format!("cannot make the preview of job {job}: {e:#}"))
-        })?);
-        kept.push_front((tag, gif.clone()));
-        kept.truncate(PREVIEWS_KEPT);
-        Ok(gif)
+        let made = tokio::task::spawn_blocking(move || {
+            let tag = plan.tag.clone();
+            let gif = bytes::Bytes::from(make_preview(&store, plan, &mut kept.frames)?);
+            kept.made.push_front((tag, gif.clone()));
+            kept.made.truncate(PREVIEWS_KEPT);
+            Ok::<_, anyhow::Error>(gif)
+        })
+        .await
+        .map_err(|_| Refusal::Failed(format!("the preview of job {job} could not be made")))?;
+        made.map_err(|e| Refusal::Failed(format!("cannot make the preview of job {job}: {e:#}")))
     }
 
     /// Frame `frame` of sequence `job`, once done: its stored PNG, checked against its
@@ -438,19 +455,48 @@ fn sequence(core: &Core, job: JobId) -> Result<&super::core::SequenceRecord, Ref
     }
 }
 
-/// Reads, checks, decodes and downscales the frames of `plan` one at a time, and
-/// encodes them as a looping GIF at the scene's frame rate.
-fn make_preview(store: &Store, plan: PreviewPlan) -> anyhow::Result<Vec<u8>> {
+/// Reads, checks, decodes and downscales the frames of `plan` one at a time (those
+/// not in `kept` already), and encodes them as a looping GIF at the scene's frame rate;
+/// `kept` then holds this preview's frames first, within
+/// [`PREVIEW_FRAME_BYTES_KEPT`].
+fn make_preview(
+    store: &Store,
+    plan: PreviewPlan,
+    kept: &mut VecDeque<(FrameKey, Arc<render::Image>)>,
+) -> anyhow::Result<Vec<u8>> {
     let fps = render::parse_animated(&plan.scene)
         .ok()
         .and_then(|scene| scene.animation.map(|a| a.fps))
         .unwrap_or(preview::DEFAULT_FPS);
-    let frames = plan.frames.iter().map(|(frame, place, sha)| {
-        let png = store.read_verified_image(*place, sha.as_ref())?;
-        let image = preview::decode_png(&png).with_context(|| format!("frame {frame}"))?;
-        Ok(preview::downscale(&image, preview::SIDE))
+    let job = plan.job;
+    let mut used = VecDeque::new();
+    let frames = plan.frames.iter().map(|&(frame, place, sha)| {
+        let key = sha.map(|sha| (job, frame, sha));
+        let found = key.and_then(|key| kept.iter().find(|(k, _)| *k == key));
+        let image = match found {
+            Some((_, image)) => Arc::clone(image),
+            None => {
+                let png = store.read_verified_image(place, sha.as_ref())?;
+                let image = preview::decode_png(&png).with_context(|| format!("frame {frame}"))?;
+                Arc::new(preview::downscale(&image, preview::SIDE))
+            }
+        };
+        if let Some(key) = key {
+            used.push_back((key, Arc::clone(&image)));
+        }
+        Ok(image)
     });
-    preview::encode_gif(frames, preview::delay_cs(fps, plan.step))
+    let gif = preview::encode_gif(frames, preview::delay_cs(fps, plan.step));
+    // This preview's frames first, then the others kept, within the bound.
+    kept.retain(|(key, _)| !used.iter().any(|(k, _)| k == key));
+    used.extend(kept.drain(..));
+    let mut bytes = 0;
+    used.retain(|(_, image)| {
+        bytes += image.rgb.len();
+        bytes <= PREVIEW_FRAME_BYTES_KEPT
+    });
+    *kept = used;
+    gif
 }
 
 fn hex(bytes: &[u8]) -> String {
@@ -518,5 +564,76 @@ mod tests {
             oldest_ended_shown((1..=10).map(|id| (id, JobState::Done))),
             0
         );
+    }
+
+    /// Frames 1..=`count` of sequence 7 of a scene of 48 frames, each of one colour,
+    /// stored as the coordinator stores them; their checksums.
+    fn stored_frames(root: &std::path::Path, count: u32) -> Vec<[u8; 32]> {
+        let folder = root.join("jobs/7");
+        std::fs::create_dir_all(&folder).unwrap();
+        (1..=count)
+            .map(|k| {
+                let mut image = render::Image::black(640, 360);
+                image.rgb.fill(k as u8 * 20);
+                let png = image.to_png();
+                std::fs::write(folder.join(render::frame_file_name(k.into(), 48)), &png).unwrap();
+                Sha256::digest(&png).into()
+            })
+            .collect()
+    }
+
+    fn plan(shas: &[[u8; 32]]) -> PreviewPlan {
+        let (shown, step) = preview::frames_shown(1, shas.len() as u32);
+        PreviewPlan {
+            job: 7,
+            frames: shown
+                .into_iter()
+                .map(|k| {
+                    let place = ImagePlace::Frame {
+                        sequence: 7,
+                        frame: k,
+                        count: 48,
+                    };
+                    (k, place, Some(shas[k as usize - 1]))
+                })
+                .collect(),
+            step,
+            // The scene at 10 frames per second.
+            scene: Arc::from(
+                include_str!("../../../scenes/moving-spheres.json")
+                    .replace("\"fps\": 24", "\"fps\": 10"),
+            ),
+            tag: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_preview_plays_the_frames_downscaled_and_reads_each_frame_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let shas = stored_frames(dir.path(), 4);
+        let mut kept = VecDeque::new();
+        let gif = make_preview(&store, plan(&shas[..3]), &mut kept).unwrap();
+        let frames = preview::decode_gif(&gif).unwrap();
+        assert_eq!(frames.len(), 3);
+        for (k, frame) in frames.iter().enumerate() {
+            // 640 × 360 to at most 320 on the longer side; the scene's 10 fps.
+            assert_eq!((frame.width, frame.height, frame.delay_cs), (320, 180, 10));
+            let level = (k as u8 + 1) * 20;
+            assert_eq!(&frame.rgba[..4], &[level, level, level, 255]);
+        }
+        assert_eq!(kept.len(), 3);
+
+        // Frames 1 to 3 are not read again: only frame 4, newly done.
+        std::fs::remove_file(dir.path().join("jobs/7/frame_0001.png")).unwrap();
+        let gif = make_preview(&store, plan(&shas), &mut kept).unwrap();
+        assert_eq!(preview::decode_gif(&gif).unwrap().len(), 4);
+        assert_eq!(kept.len(), 4);
+
+        // A frame read from disk is checked: a damaged one fails the preview.
+        let mut damaged = shas.clone();
+        damaged[1][0] ^= 1;
+        let error = make_preview(&store, plan(&damaged), &mut kept).unwrap_err();
+        assert!(format!("{error:#}").contains("is damaged"), "{error:#}");
     }
 }
