@@ -23,7 +23,7 @@ use protocol::{ClientRequest, ClientResponse, JobId};
 use sha2::{Digest, Sha256};
 use tokio::net::TcpListener;
 
-use crate::server::{Observer, Picture};
+use crate::server::{Observer, Picture, Refusal};
 
 /// The status page: one self-contained file, polling `/api/status`.
 const STATUS_PAGE: &str = include_str!("status.html");
@@ -41,6 +41,8 @@ pub fn coordinator_routes(observer: Observer) -> Router {
         .route("/api/studio/stream", get(studio_stream))
         .route("/api/jobs/{id}/{action}", post(job_control))
         .route("/api/jobs/{id}/events", get(job_events))
+        .route("/api/jobs/{id}/preview.gif", get(sequence_preview))
+        .route("/api/jobs/{id}/frames/{file}", get(sequence_frame))
         .route("/api/workers/{worker}/{action}", post(worker_control))
         .route("/jobs/{id}/image.png", get(picture))
         .route("/metrics", get(metrics))
@@ -378,6 +380,114 @@ async fn job_events(
         )
         .into_response(),
         other => answer(other),
+    }
+}
+
+/// A preview's or frame's refusal as HTTP: 404 for what does not exist, 409 for what
+/// is not done yet, 500 for images that cannot be read or are damaged.
+fn refused(why: Refusal) -> Response {
+    match why {
+        Refusal::NotFound(message) => refusal(StatusCode::NOT_FOUND, message),
+        Refusal::NotYet(message) => refusal(StatusCode::CONFLICT, message),
+        Refusal::Failed(message) => refusal(StatusCode::INTERNAL_SERVER_ERROR, message),
+    }
+}
+
+/// Whether the request's `If-None-Match` names `tag`: the page has it already.
+fn unchanged(headers: &HeaderMap, tag: &str) -> bool {
+    headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == tag || t.trim() == "*"))
+}
+
+/// An image answer: its bytes, type and `ETag`, to be checked again at each use
+/// (`no-cache`), or 304 when the asker has these very bytes.
+fn image_answer(
+    headers: &HeaderMap,
+    kind: &'static str,
+    tag: Option<&str>,
+    bytes: bytes::Bytes,
+) -> Response {
+    let mut response = match tag {
+        Some(tag) if unchanged(headers, tag) => StatusCode::NOT_MODIFIED.into_response(),
+        _ => ([(header::CONTENT_TYPE, kind)], bytes).into_response(),
+    };
+    let head = response.headers_mut();
+    head.insert(
+        header::CACHE_CONTROL,
+        header::HeaderValue::from_static("no-cache"),
+    );
+    if let Some(value) = tag.and_then(|t| header::HeaderValue::from_str(t).ok()) {
+        head.insert(header::ETAG, value);
+    }
+    response
+}
+
+/// `GET /api/jobs/ID/preview.gif`: a sequence job's animated preview, its frames done
+/// one after another from the first (`done_prefix`), downscaled, at the scene's frame
+/// rate, looping (at most `preview::MAX_FRAMES` frames: with more done, every k-th).
+/// 404 for a job that is not a sequence, 409 while its first frame is not done. Its
+/// `ETag` names the frames shown: a poll with `If-None-Match` gets 304 until more are.
+async fn sequence_preview(
+    State(observer): State<Observer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    let Ok(job) = id.parse::<JobId>() else {
+        return refusal(
+            StatusCode::NOT_FOUND,
+            format!("no job {id:?}: a job id is a number"),
+        );
+    };
+    let planner = observer.clone();
+    let plan = match tokio::task::spawn_blocking(move || planner.preview_plan(job)).await {
+        Ok(Ok(plan)) => plan,
+        Ok(Err(why)) => return refused(why),
+        Err(_) => return StatusCode::INTERNAL_SERVER_ERROR.into_response(),
+    };
+    let tag = plan.tag.clone();
+    if unchanged(&headers, &tag) {
+        return image_answer(&headers, "image/gif", Some(&tag), bytes::Bytes::new());
+    }
+    match observer.preview(plan).await {
+        Ok(gif) => image_answer(&headers, "image/gif", Some(&tag), gif),
+        Err(why) => refused(why),
+    }
+}
+
+/// `GET /api/jobs/ID/frames/K.png`: frame K of a sequence job, once done, as stored
+/// (checked against its checksum, which is its `ETag`). 404 for a job that is not a
+/// sequence or a frame it does not have, 409 for a frame not done.
+async fn sequence_frame(
+    State(observer): State<Observer>,
+    Path((id, file)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    let Ok(job) = id.parse::<JobId>() else {
+        return refusal(
+            StatusCode::NOT_FOUND,
+            format!("no job {id:?}: a job id is a number"),
+        );
+    };
+    let Some(frame) = file
+        .strip_suffix(".png")
+        .and_then(|k| k.parse::<u32>().ok())
+    else {
+        return refusal(
+            StatusCode::NOT_FOUND,
+            format!("no frame {file:?}: frames are K.png, K a frame number"),
+        );
+    };
+    match tokio::task::spawn_blocking(move || observer.frame_png(job, frame)).await {
+        Ok(Ok(frame)) => image_answer(
+            &headers,
+            "image/png",
+            frame.tag.as_deref(),
+            frame.png.into(),
+        ),
+        Ok(Err(why)) => refused(why),
+        Err(_) => StatusCode::INTERNAL_SERVER_ERROR.into_response(),
     }
 }
 

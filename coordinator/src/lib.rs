@@ -9,6 +9,7 @@ pub mod client;
 mod db;
 pub mod http;
 mod metrics;
+mod preview;
 pub mod server;
 mod store;
 pub mod studio;

@@ -49,7 +49,9 @@ mod worker_session;
 
 pub use verification::VerifyConfig;
 
-pub use observer::{FarmView, JobView, Observer, Picture, StudioStream, WorkerView};
+pub use observer::{
+    FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, Refusal, StudioStream, WorkerView,
+};
 
 use self::core::Core;
 use self::persistence::{Hooks, Persistence};
@@ -369,6 +371,7 @@ impl Server {
     pub fn observer(&self) -> Observer {
         Observer {
             shared: Arc::clone(&self.shared),
+            previews: Arc::default(),
         }
     }
 

@@ -215,6 +215,28 @@ impl Store {
         Ok((total, bytes))
     }
 
+    /// A finished job's whole image, checked against its checksum (when it has one):
+    /// the very bytes returned are the ones hashed, so an image rewritten meanwhile (a
+    /// frame rendered again) is never served unchecked.
+    pub fn read_verified_image(
+        &self,
+        place: ImagePlace,
+        sha256: Option<&[u8; 32]>,
+    ) -> Result<Vec<u8>> {
+        let path = self.image_path(place);
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        if let Some(sha256) = sha256 {
+            let actual: [u8; 32] = Sha256::digest(&bytes).into();
+            anyhow::ensure!(
+                &actual == sha256,
+                "{} is damaged: its SHA-256 does not match the one recorded",
+                path.display()
+            );
+        }
+        Ok(bytes)
+    }
+
     /// A finished job's scene, as stored beside its image.
     pub fn read_scene(&self, job: JobId) -> Result<String> {
         let path = self.job_dir(job).join("scene.json");
@@ -427,5 +449,33 @@ mod tests {
             assert!(TileStates::decode(&bad).is_err(), "byte {i}");
         }
         assert!(TileStates::decode(&bytes[..bytes.len() - 1]).is_err());
+    }
+
+    #[test]
+    fn a_verified_image_is_served_only_when_its_checksum_matches() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let place = ImagePlace::Frame {
+            sequence: 4,
+            frame: 2,
+            count: 10,
+        };
+        let path = store.image_path(place);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, b"frame two").unwrap();
+        assert!(path.ends_with("jobs/4/frame_0002.png"));
+        let sha: [u8; 32] = Sha256::digest(b"frame two").into();
+        assert_eq!(
+            store.read_verified_image(place, Some(&sha)).unwrap(),
+            b"frame two"
+        );
+        assert_eq!(
+            store.read_verified_image(place, None).unwrap(),
+            b"frame two"
+        );
+        std::fs::write(&path, b"frame 2wo").unwrap();
+        let error = store.read_verified_image(place, Some(&sha)).unwrap_err();
+        assert!(error.to_string().contains("is damaged"), "{error}");
+        assert!(store.read_verified_image(ImagePlace::Job(9), None).is_err());
     }
 }

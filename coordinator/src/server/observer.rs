@@ -3,15 +3,20 @@
 //! controls, the very requests clients make ([`Observer::control`]), once `crate::http`
 //! has checked who asks.
 
+use std::collections::VecDeque;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
-use protocol::{JobId, JobState};
+use anyhow::Context;
+use protocol::{FrameProgress, JobId, JobState};
 use serde::Serialize;
+use sha2::{Digest, Sha256};
 
 use super::core::Core;
 use super::Shared;
 use crate::metrics::Snapshot;
+use crate::preview;
+use crate::store::{ImagePlace, Store};
 
 /// Previews are at most this many pixels on their longer side.
 const PREVIEW_SIDE: u32 = 1024;
@@ -20,11 +25,34 @@ const PREVIEW_SIDE: u32 = 1024;
 /// that a coordinator that has run for months still answers a poll in microseconds.
 pub const ENDED_JOBS_SHOWN: usize = 50;
 
+/// Sequence previews kept, newest first, so that pages polling one sequence do not
+/// make its preview again until more of its frames are done.
+const PREVIEWS_KEPT: usize = 4;
+
+/// The bytes of downscaled frames kept for the next previews (a preview of 240 frames
+/// of 320 × 180 is 41 MB), so that a preview made again with one more frame done
+/// reads and decodes that frame only.
+const PREVIEW_FRAME_BYTES_KEPT: usize = 64 << 20;
+
 /// Looks at a coordinator without changing it. Cheap to clone.
 #[derive(Clone)]
 pub struct Observer {
     pub(super) shared: Arc<Shared>,
+    /// The last previews made and their frames; its lock is held while one is made,
+    /// so that one preview is made at a time.
+    pub(super) previews: Arc<tokio::sync::Mutex<Previews>>,
 }
+
+/// What is kept of the previews made: the last few, by their tag, and their frames
+/// downscaled, newest first.
+#[derive(Default)]
+pub struct Previews {
+    made: VecDeque<(String, bytes::Bytes)>,
+    frames: VecDeque<(FrameKey, Arc<render::Image>)>,
+}
+
+/// A downscaled frame kept: its sequence, frame and image's checksum.
+type FrameKey = (JobId, u32, [u8; 32]);
 
 /// A studio page's stream: what its view's jobs push, until it is dropped.
 pub struct StudioStream {
@@ -91,6 +119,9 @@ pub struct JobView {
     pub samples_per_pixel: Option<f64>,
     pub estimated_error: Option<f64>,
     pub error: Option<String>,
+    /// A sequence job's frames (done, active, failed and which, and `done_prefix`, the
+    /// frames its preview plays); `None` for a job of one frame.
+    pub frames: Option<FrameProgress>,
 }
 
 #[derive(Serialize)]
@@ -115,6 +146,38 @@ pub enum Picture {
     Preview(Vec<u8>),
 }
 
+/// Why a sequence's preview or frame is not served, in one line; the HTTP status
+/// follows the kind.
+#[derive(Debug)]
+pub enum Refusal {
+    /// No such job, not a sequence, or no such frame.
+    NotFound(String),
+    /// Not yet: no frame done, or the frame not done.
+    NotYet(String),
+    /// The images could not be read, or were damaged.
+    Failed(String),
+}
+
+/// What a sequence's preview is made of, taken under the coordinator's lock; the
+/// preview itself is made without it ([`Observer::preview`]).
+pub struct PreviewPlan {
+    job: JobId,
+    /// The frames shown, with where each one's image is and its checksum.
+    frames: Vec<(u32, ImagePlace, Option<[u8; 32]>)>,
+    /// One frame shown in `step` ([`preview::frames_shown`]).
+    step: u32,
+    scene: Arc<str>,
+    /// Names exactly the images shown (the frames, their jobs and checksums): the
+    /// preview's `ETag`, quoted.
+    pub tag: String,
+}
+
+/// A done frame's PNG, checked, and its `ETag` (its checksum), quoted.
+pub struct FramePng {
+    pub png: Vec<u8>,
+    pub tag: Option<String>,
+}
+
 impl Observer {
     /// Whether the coordinator takes new jobs.
     pub fn accepting(&self) -> bool {
@@ -136,13 +199,26 @@ impl Observer {
 
     pub fn farm(&self) -> FarmView {
         let core = self.shared.lock();
-        let oldest_ended_shown =
-            oldest_ended_shown(core.lifecycle.jobs().map(|(id, j)| (id, j.phase.visible())));
-        let jobs = core
+        // Jobs of one frame and sequences, by id: a sequence's frame jobs are seen
+        // through it.
+        let mut listed: Vec<(JobId, JobState)> = core
             .lifecycle
             .jobs()
-            .filter(|(id, j)| !j.phase.visible().is_final() || *id >= oldest_ended_shown)
-            .filter_map(|(id, _)| core.status(id))
+            .filter(|(id, _)| core.jobs.get(id).is_none_or(|r| r.sequence.is_none()))
+            .map(|(id, j)| (id, j.phase.visible()))
+            .chain(
+                core.sequences
+                    .iter()
+                    .filter(|(_, r)| r.stored)
+                    .map(|(&id, r)| (id, r.frames.state())),
+            )
+            .collect();
+        listed.sort_unstable_by_key(|&(id, _)| id);
+        let oldest_ended_shown = oldest_ended_shown(listed.iter().copied());
+        let jobs = listed
+            .iter()
+            .filter(|&&(id, state)| !state.is_final() || id >= oldest_ended_shown)
+            .filter_map(|&(id, _)| core.status(id))
             .map(|s| {
                 let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
                 JobView {
@@ -168,6 +244,7 @@ impl Observer {
                         .then(|| s.samples as f64 / pixels.max(1) as f64),
                     estimated_error: s.estimated_error,
                     error: s.error,
+                    frames: s.frames,
                 }
             })
             .collect();
@@ -219,9 +296,91 @@ impl Observer {
             return Some(Picture::Final(png));
         }
         let image = core.jobs.get(&job)?.image.as_ref()?;
-        let preview = downscale(image, PREVIEW_SIDE);
+        let preview = crate::preview::downscale(image, PREVIEW_SIDE);
         drop(core);
         Some(Picture::Preview(preview.to_png()))
+    }
+
+    /// What the animated preview of sequence `job` shows now: its frames done one
+    /// after another from the first, at most [`preview::MAX_FRAMES`] of them.
+    pub fn preview_plan(&self, job: JobId) -> Result<PreviewPlan, Refusal> {
+        let core = self.shared.lock();
+        let record = sequence(&core, job)?;
+        let done = record.frames.done_prefix();
+        let first = record.frames.first();
+        if done == 0 {
+            return Err(Refusal::NotYet(format!(
+                "job {job} has no preview yet: its first frame, {first}, is not done"
+            )));
+        }
+        let (shown, step) = preview::frames_shown(first, done);
+        let mut tag = Sha256::new();
+        tag.update(job.to_le_bytes());
+        tag.update(step.to_le_bytes());
+        let mut frames = Vec::with_capacity(shown.len());
+        for frame in shown {
+            let (place, sha) = core.frame_image(job, frame).map_err(Refusal::NotYet)?;
+            tag.update(frame.to_le_bytes());
+            tag.update(record.frames.job(frame).unwrap_or(0).to_le_bytes());
+            tag.update(sha.unwrap_or([0; 32]));
+            frames.push((frame, place, sha));
+        }
+        Ok(PreviewPlan {
+            job,
+            frames,
+            step,
+            scene: Arc::clone(&record.scene),
+            tag: format!("\"{}\"", hex(&tag.finalize()[..16])),
+        })
+    }
+
+    /// The animated GIF of `plan`: made on the blocking pool, outside the
+    /// coordinator's lock, one preview at a time (finished even if the asker goes
+    /// away), or the one kept of the same frames.
+    pub async fn preview(&self, plan: PreviewPlan) -> Result<bytes::Bytes, Refusal> {
+        let mut kept = Arc::clone(&self.previews).lock_owned().await;
+        if let Some((_, gif)) = kept.made.iter().find(|(tag, _)| *tag == plan.tag) {
+            return Ok(gif.clone());
+        }
+        let job = plan.job;
+        let store = Arc::clone(&self.shared.store);
+        let made = tokio::task::spawn_blocking(move || {
+            let tag = plan.tag.clone();
+            let gif = bytes::Bytes::from(make_preview(&store, plan, &mut kept.frames)?);
+            kept.made.push_front((tag, gif.clone()));
+            kept.made.truncate(PREVIEWS_KEPT);
+            Ok::<_, anyhow::Error>(gif)
+        })
+        .await
+        .map_err(|_| Refusal::Failed(format!("the preview of job {job} could not be made")))?;
+        made.map_err(|e| Refusal::Failed(format!("cannot make the preview of job {job}: {e:#}")))
+    }
+
+    /// Frame `frame` of sequence `job`, once done: its stored PNG, checked against its
+    /// checksum. Reads the disk: call it on the blocking pool.
+    pub fn frame_png(&self, job: JobId, frame: u32) -> Result<FramePng, Refusal> {
+        let (place, sha) = {
+            let core = self.shared.lock();
+            let record = sequence(&core, job)?;
+            let (first, last) = (record.frames.first(), record.frames.last());
+            if !(first..=last).contains(&frame) {
+                return Err(Refusal::NotFound(format!(
+                    "job {job} has frames {first} to {last}: there is no frame {frame}"
+                )));
+            }
+            core.frame_image(job, frame).map_err(Refusal::NotYet)?
+        };
+        let png = self
+            .shared
+            .store
+            .read_verified_image(place, sha.as_ref())
+            .map_err(|e| {
+                Refusal::Failed(format!("cannot serve frame {frame} of job {job}: {e:#}"))
+            })?;
+        Ok(FramePng {
+            png,
+            tag: sha.map(|sha| format!("\"{}\"", hex(&sha))),
+        })
     }
 
     /// A studio page's edit of its view: the new generation, or the loader's one-line
@@ -283,6 +442,67 @@ impl Observer {
     }
 }
 
+/// The stored sequence `job`, or why there is none.
+fn sequence(core: &Core, job: JobId) -> Result<&super::core::SequenceRecord, Refusal> {
+    match core.sequences.get(&job).filter(|r| r.stored && !r.deleting) {
+        Some(record) => Ok(record),
+        None if core.status(job).is_some() => Err(Refusal::NotFound(format!(
+            "job {job} is not a sequence: it has no frames"
+        ))),
+        None => Err(Refusal::NotFound(format!(
+            "no job {job} on this coordinator"
+        ))),
+    }
+}
+
+/// Reads, checks, decodes and downscales the frames of `plan` one at a time (those
+/// not in `kept` already), and encodes them as a looping GIF at the scene's frame rate;
+/// `kept` then holds this preview's frames first, within
+/// [`PREVIEW_FRAME_BYTES_KEPT`].
+fn make_preview(
+    store: &Store,
+    plan: PreviewPlan,
+    kept: &mut VecDeque<(FrameKey, Arc<render::Image>)>,
+) -> anyhow::Result<Vec<u8>> {
+    let fps = render::parse_animated(&plan.scene)
+        .ok()
+        .and_then(|scene| scene.animation.map(|a| a.fps))
+        .unwrap_or(preview::DEFAULT_FPS);
+    let job = plan.job;
+    let mut used = VecDeque::new();
+    let frames = plan.frames.iter().map(|&(frame, place, sha)| {
+        let key = sha.map(|sha| (job, frame, sha));
+        let found = key.and_then(|key| kept.iter().find(|(k, _)| *k == key));
+        let image = match found {
+            Some((_, image)) => Arc::clone(image),
+            None => {
+                let png = store.read_verified_image(place, sha.as_ref())?;
+                let image = preview::decode_png(&png).with_context(|| format!("frame {frame}"))?;
+                Arc::new(preview::downscale(&image, preview::SIDE))
+            }
+        };
+        if let Some(key) = key {
+            used.push_back((key, Arc::clone(&image)));
+        }
+        Ok(image)
+    });
+    let gif = preview::encode_gif(frames, preview::delay_cs(fps, plan.step));
+    // This preview's frames first, then the others kept, within the bound.
+    kept.retain(|(key, _)| !used.iter().any(|(k, _)| k == key));
+    used.extend(kept.drain(..));
+    let mut bytes = 0;
+    used.retain(|(_, image)| {
+        bytes += image.rgb.len();
+        bytes <= PREVIEW_FRAME_BYTES_KEPT
+    });
+    *kept = used;
+    gif
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// The lowest id of an ended job the page shows, from the jobs in id order: the
 /// [`ENDED_JOBS_SHOWN`] most recent ended jobs are at or above it.
 fn oldest_ended_shown(jobs: impl DoubleEndedIterator<Item = (JobId, JobState)>) -> JobId {
@@ -320,26 +540,6 @@ fn snapshot(core: &Core) -> Snapshot {
     }
 }
 
-/// A nearest-pixel copy of `image` whose longer side is at most `side`.
-fn downscale(image: &render::Image, side: u32) -> render::Image {
-    let longer = image.width.max(image.height);
-    if longer <= side {
-        return image.clone();
-    }
-    let w = (u64::from(image.width) * u64::from(side) / u64::from(longer)).max(1) as u32;
-    let h = (u64::from(image.height) * u64::from(side) / u64::from(longer)).max(1) as u32;
-    let mut out = render::Image::black(w, h);
-    for y in 0..h {
-        let sy = (u64::from(y) * u64::from(image.height) / u64::from(h)) as u32;
-        for x in 0..w {
-            let sx = (u64::from(x) * u64::from(image.width) / u64::from(w)) as u32;
-            let i = (y as usize * w as usize + x as usize) * 3;
-            out.rgb[i..i + 3].copy_from_slice(&image.pixel(sx, sy));
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -366,15 +566,74 @@ mod tests {
         );
     }
 
+    /// Frames 1..=`count` of sequence 7 of a scene of 48 frames, each of one colour,
+    /// stored as the coordinator stores them; their checksums.
+    fn stored_frames(root: &std::path::Path, count: u32) -> Vec<[u8; 32]> {
+        let folder = root.join("jobs/7");
+        std::fs::create_dir_all(&folder).unwrap();
+        (1..=count)
+            .map(|k| {
+                let mut image = render::Image::black(640, 360);
+                image.rgb.fill(k as u8 * 20);
+                let png = image.to_png();
+                std::fs::write(folder.join(render::frame_file_name(k.into(), 48)), &png).unwrap();
+                Sha256::digest(&png).into()
+            })
+            .collect()
+    }
+
+    fn plan(shas: &[[u8; 32]]) -> PreviewPlan {
+        let (shown, step) = preview::frames_shown(1, shas.len() as u32);
+        PreviewPlan {
+            job: 7,
+            frames: shown
+                .into_iter()
+                .map(|k| {
+                    let place = ImagePlace::Frame {
+                        sequence: 7,
+                        frame: k,
+                        count: 48,
+                    };
+                    (k, place, Some(shas[k as usize - 1]))
+                })
+                .collect(),
+            step,
+            // The scene at 10 frames per second.
+            scene: Arc::from(
+                include_str!("../../../scenes/moving-spheres.json")
+                    .replace("\"fps\": 24", "\"fps\": 10"),
+            ),
+            tag: String::new(),
+        }
+    }
+
     #[test]
-    fn previews_keep_the_aspect_and_sample_the_image() {
-        let mut image = render::Image::black(4000, 1000);
-        image.rgb[..3].copy_from_slice(&[9, 8, 7]);
-        let small = downscale(&image, 1024);
-        assert_eq!((small.width, small.height), (1024, 256));
-        assert_eq!(small.pixel(0, 0), [9, 8, 7]);
-        assert_eq!(small.pixel(1, 0), [0, 0, 0]);
-        let tiny = render::Image::black(10, 20);
-        assert_eq!(downscale(&tiny, 1024), tiny);
+    fn a_preview_plays_the_frames_downscaled_and_reads_each_frame_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let shas = stored_frames(dir.path(), 4);
+        let mut kept = VecDeque::new();
+        let gif = make_preview(&store, plan(&shas[..3]), &mut kept).unwrap();
+        let frames = preview::decode_gif(&gif).unwrap();
+        assert_eq!(frames.len(), 3);
+        for (k, frame) in frames.iter().enumerate() {
+            // 640 × 360 to at most 320 on the longer side; the scene's 10 fps.
+            assert_eq!((frame.width, frame.height, frame.delay_cs), (320, 180, 10));
+            let level = (k as u8 + 1) * 20;
+            assert_eq!(&frame.rgba[..4], &[level, level, level, 255]);
+        }
+        assert_eq!(kept.len(), 3);
+
+        // Frames 1 to 3 are not read again: only frame 4, newly done.
+        std::fs::remove_file(dir.path().join("jobs/7/frame_0001.png")).unwrap();
+        let gif = make_preview(&store, plan(&shas), &mut kept).unwrap();
+        assert_eq!(preview::decode_gif(&gif).unwrap().len(), 4);
+        assert_eq!(kept.len(), 4);
+
+        // A frame read from disk is checked: a damaged one fails the preview.
+        let mut damaged = shas.clone();
+        damaged[1][0] ^= 1;
+        let error = make_preview(&store, plan(&damaged), &mut kept).unwrap_err();
+        assert!(format!("{error:#}").contains("is damaged"), "{error:#}");
     }
 }
