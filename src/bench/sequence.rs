@@ -62,6 +62,8 @@ struct Comparison {
     farm: Vec<f64>,
     local: Vec<f64>,
     local_command: String,
+    /// CPU seconds of the coordinator and of the workers together in each farm run.
+    farm_cpu: Vec<(f64, f64)>,
 }
 
 impl Comparison {
@@ -143,10 +145,8 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
         )
     };
 
-    let farm = start_farm(WORKERS).await?;
-    let throughput = compare(&farm, &exe, &scene_path, work.path(), big, frames, runs).await?;
-    let overhead = compare(&farm, &exe, &scene_path, work.path(), tiny, frames, runs).await?;
-    drop(farm);
+    let throughput = compare(&exe, &scene_path, work.path(), big, frames, runs).await?;
+    let overhead = compare(&exe, &scene_path, work.path(), tiny, frames, runs).await?;
 
     let memory_size = Size {
         width: 32,
@@ -339,7 +339,6 @@ async fn check_frames(
 /// The farm against the local render on frames 1 to `frames` of the orbit at `size`,
 /// `runs` times each, alternating (local first, then farm first, ...).
 async fn compare(
-    farm: &LocalFarm,
     exe: &Path,
     scene: &Path,
     work: &Path,
@@ -347,7 +346,6 @@ async fn compare(
     frames: u32,
     runs: u32,
 ) -> Result<Comparison> {
-    let mut client = Client::connect(&Endpoint::plain(farm.address())).await?;
     let local_dir = work.join(format!("local-{}x{}", size.width, size.height));
     let mut result = Comparison {
         size,
@@ -356,19 +354,40 @@ async fn compare(
         farm: Vec::new(),
         local: Vec::new(),
         local_command: String::new(),
+        farm_cpu: Vec::new(),
     };
     // The first local run gives the reference frames; the farm is checked against them.
     let mut checked_against: Option<PathBuf> = None;
     for run in 0..runs {
         for farm_turn in [run % 2 == 1, run % 2 == 0] {
             if farm_turn {
+                // A fresh farm each time: every run starts from the same state (an
+                // empty data directory, nothing being deleted behind it).
+                let farm = start_farm(WORKERS).await?;
+                let mut client = Client::connect(&Endpoint::plain(farm.address())).await?;
+                let pids = farm.pids();
+                let cpu = |pids: &[u32]| -> Result<Vec<f64>> {
+                    pids.iter()
+                        .map(|&p| super::verification::cpu_seconds(p))
+                        .collect()
+                };
+                let before = cpu(&pids)?;
                 let (job, seconds, status) =
                     run_sequence(&mut client, ORBIT.to_owned(), size, frames).await?;
+                let used: Vec<f64> = cpu(&pids)?
+                    .iter()
+                    .zip(&before)
+                    .map(|(a, b)| a - b)
+                    .collect();
+                result
+                    .farm_cpu
+                    .push((used[0], used.iter().skip(1).sum::<f64>()));
                 let reference = checked_against
                     .as_deref()
                     .context("the local frames come first")?;
                 check_frames(&mut client, job, &status, frames, reference).await?;
-                client.delete(job).await?;
+                drop(client);
+                drop(farm);
                 eprintln!(
                     "sequence {}: farm run {}: {seconds:.3} s",
                     size.label(),
@@ -499,6 +518,13 @@ fn secs_list(xs: &[f64]) -> String {
         .join(", ")
 }
 
+fn cpu_list(xs: &[(f64, f64)]) -> String {
+    xs.iter()
+        .map(|(c, w)| format!("{c:.2} + {w:.2}"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 fn mib(kib: u64) -> f64 {
     kib as f64 / 1024.0
 }
@@ -526,8 +552,8 @@ fn markdown(
     let _ = writeln!(
         md,
         "Machine: {}. Farm: `tessera coordinator` and {WORKERS} `tessera worker --threads 1` \
-         on loopback (a local farm as `tessera up` starts it, started once before the \
-         timings); time from submission to the sequence job's `done`. Local: the whole \
+         on loopback (a local farm as `tessera up` starts it, a fresh one for each run, \
+         started before the timing); time from submission to the sequence job's `done`. Local: the whole \
          `tessera render --frames` process with {WORKERS} threads, writing the PNGs. Runs \
          alternate (local, farm, farm, local, ...); medians. Every farm frame was fetched \
          and checked byte for byte against the local render's file.\n",
@@ -564,6 +590,13 @@ fn markdown(
     );
     let _ = writeln!(
         md,
+        "CPU of each farm run (s, coordinator + workers, from /proc/PID/stat): orbit {}; \
+         tiny {}. The workers could use {WORKERS} × the wall time.\n",
+        cpu_list(&throughput.farm_cpu),
+        cpu_list(&overhead.farm_cpu)
+    );
+    let _ = writeln!(
+        md,
         "Goal: farm / local throughput ≥ 0.90 on the orbit: **{:.3}** ({}).\n",
         throughput.ratio(),
         if throughput.ratio() >= 0.90 {
@@ -592,8 +625,7 @@ fn markdown(
         "- farm: a `JobSpec` with `frames: 1-{}` and the same overrides through \
          `coordinator::client::Client`, as `tessera submit seed-orbit.json --frames 1-{}` \
          sends it\n",
-        throughput.frames,
-        throughput.frames
+        throughput.frames, throughput.frames
     );
 
     let _ = writeln!(
