@@ -41,7 +41,8 @@ pub enum Suite {
     /// Sequence jobs: a 120-frame orbit on a local farm of two one-thread workers
     /// against `tessera render --frames` with two threads (throughput, overhead per
     /// frame, byte-identical frames), and the coordinator's and workers' memory for a
-    /// 10,000-frame sequence. About 6 minutes, so not part of `all`.
+    /// 10,000-frame sequence. About 5 to 10 minutes on a busy 2-core machine, so not
+    /// part of `all`.
     Sequence,
     /// Error and scaling.
     All,

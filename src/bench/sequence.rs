@@ -103,6 +103,7 @@ struct Memory {
 
 /// Runs the suite and writes `sequence.md`.
 pub async fn run(opts: &Options, out: &Path) -> Result<()> {
+    let load_before = load_average();
     let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let work = tempfile::Builder::new()
         .prefix("tessera-bench-sequence-")
@@ -158,7 +159,8 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
         memory.push(measure_memory(n, memory_size).await?);
     }
 
-    let md = markdown(opts, &throughput, &overhead, &memory, memory_size);
+    let load = format!("{load_before} at the start, {} at the end", load_average());
+    let md = markdown(opts, &throughput, &overhead, &memory, memory_size, &load);
     std::fs::write(out.join("sequence.md"), &md)?;
     eprintln!("{}", summary(&throughput, &overhead, &memory));
     Ok(())
@@ -501,6 +503,18 @@ async fn measure_memory(frames: u32, size: Size) -> Result<Memory> {
     })
 }
 
+/// The machine's load averages over 1, 5 and 15 minutes, from /proc/loadavg.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|text| {
+            text.split_whitespace()
+                .take(3)
+                .collect::<Vec<_>>()
+                .join(" ")
+        })
+        .unwrap_or_else(|_| "unknown".into())
+}
+
 fn median(xs: &[f64]) -> f64 {
     let mut v = xs.to_vec();
     v.sort_by(f64::total_cmp);
@@ -540,6 +554,7 @@ fn markdown(
     overhead: &Comparison,
     memory: &[Memory],
     memory_size: Size,
+    load: &str,
 ) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "## Sequence jobs\n");
@@ -556,7 +571,8 @@ fn markdown(
          started before the timing); time from submission to the sequence job's `done`. Local: the whole \
          `tessera render --frames` process with {WORKERS} threads, writing the PNGs. Runs \
          alternate (local, farm, farm, local, ...); medians. Every farm frame was fetched \
-         and checked byte for byte against the local render's file.\n",
+         and checked byte for byte against the local render's file. Load average (1, 5, \
+         15 minutes): {load}.\n",
         super::latency::cpu_model()
     );
     let _ = writeln!(
