@@ -164,6 +164,11 @@ impl LocalFarm {
         children.iter().map(|(child, _)| child.id()).collect()
     }
 
+    /// The coordinator's data directory.
+    pub fn data_dir(&self) -> std::path::PathBuf {
+        self.dir.path().join("data")
+    }
+
     /// The coordinator's address.
     pub fn address(&self) -> &str {
         &self.address

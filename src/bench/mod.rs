@@ -10,6 +10,7 @@ mod relay;
 mod renderer;
 mod scaling;
 mod scenes;
+mod sequence;
 mod verification;
 
 use std::path::PathBuf;
@@ -37,6 +38,12 @@ pub enum Suite {
     /// cases, and time against pixels, objects, lights and mirror depth with log-log
     /// slopes. About 10 minutes with the defaults, so not part of `all`.
     Renderer,
+    /// Sequence jobs: a 120-frame orbit on a local farm of two one-thread workers
+    /// against `tessera render --frames` with two threads (throughput, overhead per
+    /// frame, byte-identical frames), and the coordinator's and workers' memory for a
+    /// 10,000-frame sequence. About 5 to 10 minutes on a busy 2-core machine, so not
+    /// part of `all`.
+    Sequence,
     /// Error and scaling.
     All,
 }
@@ -81,6 +88,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if opts.suite == Suite::Renderer {
         renderer::run(opts, &opts.out)?;
+    }
+    if opts.suite == Suite::Sequence {
+        sequence::run(opts, &opts.out).await?;
     }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;

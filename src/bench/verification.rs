@@ -170,7 +170,7 @@ fn median(v: &[f64]) -> f64 {
 const USER_HZ: f64 = 100.0;
 
 /// User plus system CPU seconds of a process so far, from `/proc/PID/stat`.
-fn cpu_seconds(pid: u32) -> Result<f64> {
+pub(super) fn cpu_seconds(pid: u32) -> Result<f64> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))
         .with_context(|| format!("cannot read /proc/{pid}/stat"))?;
     // The command name may hold spaces: the fields start after its closing parenthesis.
