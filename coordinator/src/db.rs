@@ -219,7 +219,16 @@ fn add_missing_columns(conn: &Connection) -> Result<()> {
 /// (reads): never shared behind the daemon's state lock.
 pub struct Db {
     conn: Connection,
+    /// When space was last given back: at most every [`GIVE_BACK_EVERY`].
+    gave_back: Option<std::time::Instant>,
+    /// Space was freed since, and not given back yet.
+    owed: bool,
 }
+
+/// How often a job's end or deletion gives freed space back to the filesystem: a
+/// checkpoint and vacuum at every end cost a sequence of small frames more than its
+/// frames' rendering. Freed pages are reused by the next writes meanwhile.
+const GIVE_BACK_EVERY: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// A stored row that cannot be used, with why.
 #[derive(Debug)]
@@ -288,7 +297,11 @@ impl Db {
         )
         .context("cannot create the job tables")?;
         add_missing_columns(&conn).context("cannot upgrade the job database")?;
-        Ok(Db { conn })
+        Ok(Db {
+            conn,
+            gave_back: None,
+            owed: false,
+        })
     }
 
     /// The largest job id stored.
@@ -638,8 +651,32 @@ impl Db {
     }
 
     /// Checkpoints the write-ahead log into the database (truncating it) and returns
-    /// freed pages to the filesystem. Failures only cost space: they are ignored.
-    fn give_back_space(&self) {
+    /// freed pages to the filesystem, at most every [`GIVE_BACK_EVERY`]. Failures
+    /// only cost space: they are ignored.
+    fn give_back_space(&mut self) {
+        if self.give_back_due().is_some() {
+            self.owed = true;
+            return;
+        }
+        self.give_back_now();
+    }
+
+    /// How long until freed space may be given back, if some is owed or would be now.
+    fn give_back_due(&self) -> Option<std::time::Duration> {
+        let since = self.gave_back?.elapsed();
+        GIVE_BACK_EVERY.checked_sub(since).filter(|d| !d.is_zero())
+    }
+
+    /// When the freed space owed is to be given back (the writer gives it back then,
+    /// if nothing else came first); `None` if none is owed.
+    pub fn owed_give_back(&self) -> Option<std::time::Duration> {
+        self.owed.then(|| self.give_back_due().unwrap_or_default())
+    }
+
+    /// Gives freed space back now.
+    pub fn give_back_now(&mut self) {
+        self.gave_back = Some(std::time::Instant::now());
+        self.owed = false;
         // Each step of `incremental_vacuum` frees pages: it must be run to its end.
         let _ = self
             .conn

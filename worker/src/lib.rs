@@ -479,10 +479,28 @@ fn advanced_result(
 /// zstd's gain on rendered tiles (docs/performance.md).
 const ZSTD_LEVEL: i32 = 1;
 
+thread_local! {
+    /// Each render thread's compression context, made once: a new one per tile cost
+    /// more than compressing a small tile.
+    static COMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Compressor<'static>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// `bytes` as one zstd frame at [`ZSTD_LEVEL`], with this thread's context.
+fn compress(bytes: &[u8]) -> std::io::Result<Vec<u8>> {
+    COMPRESSOR.with(|c| {
+        let mut c = c.borrow_mut();
+        if c.is_none() {
+            *c = Some(zstd::bulk::Compressor::new(ZSTD_LEVEL)?);
+        }
+        c.as_mut().expect("made above").compress(bytes)
+    })
+}
+
 /// A rendered tile's message: its pixels as one zstd frame.
 fn tile_result(job: JobId, tile: u32, image: render::TileImage, took: Duration) -> FromWorker {
     let render_us = took.as_micros() as u64;
-    match zstd::bulk::compress(&image.rgb, ZSTD_LEVEL) {
+    match compress(&image.rgb) {
         Ok(zstd) => FromWorker::TileDoneZstd {
             job,
             tile,

@@ -540,6 +540,7 @@ pub(super) fn prepare(
             ))
         }
         Some(t) => t,
+        None if spec.frames.is_some() => tiling::sequence_tile_size(&settings),
         None => tiling::default_tile_size(&settings),
     };
     if settings.sampling.target_error().is_some() {

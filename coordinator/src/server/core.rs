@@ -69,6 +69,24 @@ impl Held {
     }
 }
 
+thread_local! {
+    /// Each thread's decompression context, made once: a new one per tile cost more
+    /// than decompressing a small tile.
+    static DECOMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// One zstd frame of at most `capacity` bytes, with this thread's context.
+fn decompress(bytes: &[u8], capacity: usize) -> std::io::Result<Vec<u8>> {
+    DECOMPRESSOR.with(|d| {
+        let mut d = d.borrow_mut();
+        if d.is_none() {
+            *d = Some(zstd::bulk::Decompressor::new()?);
+        }
+        d.as_mut().expect("made above").decompress(bytes, capacity)
+    })
+}
+
 /// What the daemon keeps of a job beside its lifecycle.
 pub struct JobRecord {
     /// A pass of a studio view: nothing of it is stored or listed, its tiles go to
@@ -309,7 +327,7 @@ impl CheckPlan {
     /// large allocation.
     pub fn decompress(&self, zstd: &[u8]) -> Result<Vec<u8>, String> {
         let expected = self.rect.width as usize * self.rect.height as usize * 3;
-        match zstd::bulk::decompress(zstd, expected) {
+        match decompress(zstd, expected) {
             Ok(rgb) if rgb.len() == expected => Ok(rgb),
             Ok(rgb) => Err(format!(
                 "its compressed pixels hold {} bytes, not the tile's {expected}",

@@ -34,6 +34,13 @@ pub const RETRY: Duration = Duration::from_millis(500);
 pub const STALL: Duration = Duration::from_secs(2);
 
 /// Tiles written in one transaction at most.
+/// How long tile results and event log entries wait for others to share their
+/// transaction: a farm sends hundreds of tiles a second, and a sync each (the disk's
+/// slowest operation) cost the coordinator a core's tenth on two cores. A tile recorded
+/// this much later is at worst rendered again after a crash, which the results'
+/// idempotence makes harmless.
+const GROUP_COMMIT: Duration = Duration::from_millis(10);
+
 const TILE_BATCH: usize = 256;
 
 /// Event log entries written in one transaction at most (they are small).
@@ -301,17 +308,32 @@ impl Writer {
             let step = if probing {
                 Step::Probe
             } else {
-                let first = match next.take() {
-                    Some(w) => w,
-                    None => match rx.recv() {
+                let owed = self.db.as_ref().and_then(Db::owed_give_back);
+                let first = match (next.take(), owed) {
+                    (Some(w), _) => w,
+                    (None, None) => match rx.recv() {
                         Ok(w) => w,
                         Err(_) => return,
+                    },
+                    // Space freed by the last ends is given back once the writes pause.
+                    (None, Some(wait)) => match rx.recv_timeout(wait) {
+                        Ok(w) => w,
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                            if let Some(db) = self.db.as_mut() {
+                                db.give_back_now();
+                            }
+                            continue;
+                        }
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
                     },
                 };
                 match first {
                     first @ (Write::Tile(_) | Write::Event(_)) => {
                         let (mut tiles, mut events) = (Vec::new(), Vec::new());
                         let mut write = first;
+                        // Group commit: what comes within GROUP_COMMIT of the first
+                        // goes in the same transaction, one sync for all of it.
+                        let until = Instant::now() + GROUP_COMMIT;
                         loop {
                             match write {
                                 Write::Tile(t) => tiles.push(t),
@@ -324,7 +346,8 @@ impl Writer {
                             if tiles.len() >= TILE_BATCH || events.len() >= EVENT_BATCH {
                                 break;
                             }
-                            match rx.try_recv() {
+                            let left = until.saturating_duration_since(Instant::now());
+                            match rx.recv_timeout(left) {
                                 Ok(w) => write = w,
                                 Err(_) => break,
                             }
