@@ -717,13 +717,37 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
     if sh.closing.load(Ordering::SeqCst) {
         return Err("the coordinator is shutting down: retry when it is back".into());
     }
-    {
-        let core = sh.lock();
-        let status = core
-            .status(job)
-            .ok_or_else(|| format!("no job {job} on this coordinator"))?;
-        let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
-        core.lifecycle.check_retry(job, pixels)?;
+    // A job whose end is still being written (a retry right after its cancel) is
+    // retried once it is written: waited for a few seconds.
+    let mut changes = sh.changes.subscribe();
+    let patience = tokio::time::Instant::now() + Duration::from_secs(5);
+    loop {
+        let checked = {
+            let core = sh.lock();
+            let status = core
+                .status(job)
+                .ok_or_else(|| format!("no job {job} on this coordinator"))?;
+            let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
+            let ending = core.lifecycle.job(job).is_some_and(|j| {
+                matches!(
+                    j.phase,
+                    lifecycle::Phase::Ended {
+                        recorded: false,
+                        ..
+                    }
+                )
+            });
+            match core.lifecycle.check_retry(job, pixels) {
+                Err(_) if ending && tokio::time::Instant::now() < patience => None,
+                other => Some(other),
+            }
+        };
+        match checked {
+            Some(result) => break result?,
+            None => {
+                let _ = tokio::time::timeout_at(patience, changes.changed()).await;
+            }
+        }
     }
     let (done, reopened) = tokio::sync::oneshot::channel();
     let shared = Arc::clone(sh);
