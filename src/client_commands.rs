@@ -1025,8 +1025,11 @@ fn status_json(s: &JobStatus) -> Value {
         "target_error": s.settings.sampling.target_error(),
         "samples": s.samples,
         // The mean over the whole image, known once every tile is in.
+        // A sequence's samples are its frames': per pixel of a frame.
         "samples_per_pixel": (s.state == JobState::Done).then(|| {
-            s.samples as f64 / (u64::from(s.settings.width) * u64::from(s.settings.height)) as f64
+            let frames = s.frames.as_ref().map_or(1, |f| u64::from(f.last - f.first + 1));
+            s.samples as f64
+                / (u64::from(s.settings.width) * u64::from(s.settings.height) * frames) as f64
         }),
         "estimated_error": s.estimated_error,
         "time_limit_ms": s.time_limit_ms,

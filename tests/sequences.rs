@@ -9,10 +9,16 @@
 //!   each rendered again alone (`tessera retry JOB --frame K`), then every cancelled
 //!   frame (`tessera retry JOB`);
 //! - across a coordinator killed mid-sequence and started again on its data directory;
-//! - deleted: its folder and frames go;
+//! - a frame that fails (five machines report its first tile failed) fails alone: the
+//!   other frames are done, the sequence ends failed naming it, and `tessera retry JOB
+//!   --frame K` on a healthy worker renders it;
+//! - deleted: its folder and frames go, also by `--retention`;
 //! - ranges the scene does not have refused in one line, nothing made of them.
 
 mod common;
+#[path = "common/fake_worker.rs"]
+#[allow(dead_code)]
+mod fake_worker;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -61,7 +67,7 @@ fn frames_in(dir: &Path) -> Vec<String> {
     let mut names: Vec<String> = std::fs::read_dir(dir)
         .unwrap_or_else(|e| panic!("cannot read {}: {e}", dir.display()))
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with("frame_"))
+        .filter(|n| n.starts_with("frame_") && n.ends_with(".png"))
         .collect();
     names.sort();
     names
@@ -414,4 +420,106 @@ fn frame_ranges_the_scene_does_not_have_are_refused_in_one_line() {
         &["submit", orbit.as_str(), "--frame", "2", "--frames", "1-3"],
     );
     assert!(!run.status.success());
+}
+
+#[test]
+fn a_sequence_is_deleted_with_its_frames_once_its_retention_has_passed() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let data = dir.path().join("data");
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &data,
+        "127.0.0.1:0",
+        &["--retention", "2s"],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_workers(dir.path(), &addr, 1);
+    let job = submit_sequence(dir.path(), &addr, "1-3");
+    let done = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
+    let folder = data.join("jobs").join(job.to_string());
+    assert_eq!(frames_in(&folder).len(), 3, "{done}");
+    // Its frames do not expire before it: the sequence keeps every frame until it goes.
+    let ended = std::time::Instant::now();
+    poll(
+        &format!("job {job} to be deleted"),
+        Duration::from_secs(20),
+        || try_status(dir.path(), &addr, job).is_none().then_some(()),
+    );
+    assert!(
+        ended.elapsed() >= Duration::from_millis(1500),
+        "deleted {:?} after it ended, with a retention of 2 s",
+        ended.elapsed()
+    );
+    assert!(!folder.exists(), "its folder is left");
+    let listed = client(dir.path(), &addr, &["list", "--json"]);
+    assert_eq!(
+        listed.stdout.trim(),
+        "[]",
+        "frame jobs left: {}",
+        listed.stdout
+    );
+}
+
+#[test]
+fn a_failed_frame_fails_alone_and_is_rendered_again_alone() {
+    use fake_worker::{FakeWorker, Lie};
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let reference = reference(dir.path(), "1-4");
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    // Five machines (the attempts a tile gets) that cannot render frame 3's first tile.
+    let build = render::build_identity();
+    let fakes: Vec<FakeWorker> = (0..5)
+        .map(|i| FakeWorker::start(&addr, &format!("f{i}"), &build, Lie::FailFrame(3)))
+        .collect();
+    wait_workers(dir.path(), &addr, 5);
+    let job = submit_sequence(dir.path(), &addr, "1-4");
+    let status = wait_for(dir.path(), &addr, job, "failed", |s| s["state"] == "failed");
+    assert_eq!(
+        count(&status, "done"),
+        3,
+        "the other frames go on: {status}"
+    );
+    assert_eq!(count(&status, "failed"), 1, "{status}");
+    let failure = &frames_of(&status)["failures"][0];
+    assert_eq!(failure["frame"], 3, "{status}");
+    assert!(
+        failure["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("cannot render frame 3")),
+        "the frame's error: {status}"
+    );
+    let line = client(dir.path(), &addr, &["status", &job.to_string()]);
+    assert!(
+        line.stdout.contains("3/4 done, 1 failed (3)"),
+        "tessera status: {}",
+        line.stdout
+    );
+    // The frames done are fetched; the failed one is not there.
+    let out = fetch_frames(dir.path(), &addr, job, "partial");
+    assert_same_frames(&out, &reference, 3, "a sequence with a failed frame");
+
+    // On a healthy machine, frame 3 alone is rendered again.
+    drop(fakes);
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    ok(
+        client(
+            dir.path(),
+            &addr,
+            &["retry", &job.to_string(), "--frame", "3"],
+        ),
+        "tessera retry --frame 3",
+    );
+    let status = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
+    assert_eq!(count(&status, "failed"), 0, "{status}");
+    let out = fetch_frames(dir.path(), &addr, job, "all");
+    assert_same_frames(&out, &reference, 4, "the failed frame rendered again");
 }

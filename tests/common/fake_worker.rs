@@ -34,6 +34,9 @@ pub enum Lie {
     /// Renders frame 1 of the scene whatever frame it is asked for (what a worker
     /// that ignored the frame would return), honestly otherwise.
     FrameOne,
+    /// Reports the first tile of this frame failed (`TileFailed`), as a worker that
+    /// cannot render it would; honest with everything else.
+    FailFrame(u32),
 }
 
 /// What the fake worker saw and did, shared with its thread.
@@ -279,7 +282,7 @@ async fn serve(
                 let mut advanced =
                     verify::adaptive::advance(&tracer, footprints, rect, previous, rung)?;
                 let lied = match lie {
-                    Lie::Honest => false,
+                    Lie::Honest | Lie::FailFrame(_) => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in advanced.rgb.chunks_exact_mut(3) {
@@ -325,11 +328,23 @@ async fn serve(
                 let scene = scenes
                     .get(&scene)
                     .ok_or_else(|| format!("tile {tile} of job {job} before its scene"))?;
+                if lie == Lie::FailFrame(frame) && tile == 0 {
+                    send(
+                        &mut writer,
+                        &FromWorker::TileFailed {
+                            job,
+                            tile,
+                            message: format!("this machine cannot render frame {frame}"),
+                        },
+                    )
+                    .await?;
+                    continue;
+                }
                 let started = Instant::now();
                 let scene = frame_of(scene, frame, lie)?;
                 let mut image = render_tile(&scene, &settings, rect)?;
                 let lied = match lie {
-                    Lie::Honest => false,
+                    Lie::Honest | Lie::FailFrame(_) => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in image.rgb.chunks_exact_mut(3) {

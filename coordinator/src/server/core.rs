@@ -467,15 +467,15 @@ impl Core {
 
     /// The earliest deadline of either state machine.
     pub fn next_deadline(&self, now: Millis) -> Option<Millis> {
-        // Frames refused admission, and sequences whose retention runs out, are looked
-        // at again every second.
-        let sequences = (self.sequences_waiting()
-            || (self.lifecycle.limits().retention.is_some() && !self.sequences.is_empty()))
-        .then_some(now + 1_000);
+        // Frames refused admission are tried again every second; a sequence is deleted
+        // when its retention runs out.
+        let waiting = self.sequences_waiting().then_some(now + 1_000);
+        let expiry = self.next_sequence_expiry().map(|ms| now + ms);
         [
             self.tiles.next_deadline(),
             self.lifecycle.next_deadline(),
-            sequences,
+            waiting,
+            expiry,
         ]
         .into_iter()
         .flatten()

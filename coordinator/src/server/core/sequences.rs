@@ -880,6 +880,18 @@ impl Core {
         list
     }
 
+    /// Milliseconds until the next ended sequence's retention runs out, if any will.
+    pub fn next_sequence_expiry(&self) -> Option<u64> {
+        let keep = self.lifecycle.limits().retention?;
+        let now = unix_ms();
+        self.sequences
+            .values()
+            .filter(|r| !r.deleting && r.recorded.is_some())
+            .filter_map(|r| r.times.ended)
+            .map(|ended| ended.saturating_add(keep).saturating_sub(now))
+            .min()
+    }
+
     /// Sequences whose retention has run out (ended that long ago): deleted.
     pub(super) fn expire_sequences(&mut self, sh: &Arc<Shared>) {
         let Some(keep) = self.lifecycle.limits().retention else {
