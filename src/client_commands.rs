@@ -412,11 +412,7 @@ pub async fn run_submit(
     let mut session = Session::connect(coordinator).await?;
     let job = submit(session.client(), scene, job).await?;
     let Some(output) = output else {
-        if json_out {
-            println!("{}", json!({ "id": job, "state": "queued" }));
-        } else {
-            println!("{job}");
-        }
+        print_submitted(job, json_out);
         return Ok(());
     };
     eprintln!("submitted job {job}");
@@ -430,6 +426,15 @@ pub async fn run_submit(
         eprintln!("{}", summary(&output_path, &status));
     }
     Ok(())
+}
+
+/// What `tessera submit` without `--wait` prints: the job's id.
+fn print_submitted(job: JobId, json_out: bool) {
+    if json_out {
+        println!("{}", json!({ "id": job, "state": "queued" }));
+    } else {
+        println!("{job}");
+    }
 }
 
 /// `tessera submit` of a sequence: with `--wait`, its frames are written into the
@@ -453,11 +458,7 @@ async fn run_submit_sequence(
     let mut session = Session::connect(coordinator).await?;
     let job = submit(session.client(), scene, job).await?;
     let Some(dir) = dir else {
-        if json_out {
-            println!("{}", json!({ "id": job, "state": "queued" }));
-        } else {
-            println!("{job}");
-        }
+        print_submitted(job, json_out);
         return Ok(());
     };
     eprintln!("submitted job {job}");

@@ -5,6 +5,7 @@
 //! - with one and with three workers (`submit --frames --wait -o DIR/`), the sequence
 //!   listed as one job, its frames shown by `tessera status`;
 //! - with workers killed (SIGKILL) mid-sequence and a new one joining;
+//! - paused (nothing moves), reprioritised and resumed;
 //! - cancelled mid-sequence (no frame starts after it), a done and a cancelled frame
 //!   each rendered again alone (`tessera retry JOB --frame K`), then every cancelled
 //!   frame (`tessera retry JOB`);
@@ -246,9 +247,38 @@ fn a_cancelled_sequence_stops_and_its_frames_are_rendered_again_on_request() {
     let _worker = start_worker_with(dir.path(), &addr, "w1", &["--throttle", "100"]);
     wait_workers(dir.path(), &addr, 1);
     let job = submit_sequence(dir.path(), &addr, "1-20");
-    wait_for(dir.path(), &addr, job, "2 frames done", |s| {
-        count(s, "done") >= 2
+    wait_for(dir.path(), &addr, job, "1 frame done", |s| {
+        count(s, "done") >= 1
     });
+    // Paused: no frame starts, the frame rendering gets no new tile (those out finish).
+    ok(
+        client(dir.path(), &addr, &["pause", &job.to_string()]),
+        "tessera pause",
+    );
+    let paused = try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(paused["paused"], true, "{paused}");
+    std::thread::sleep(Duration::from_millis(1500));
+    let still = try_status(dir.path(), &addr, job).unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    let later = try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(
+        (count(&still, "done"), still["tiles_done"].clone()),
+        (count(&later, "done"), later["tiles_done"].clone()),
+        "a paused sequence went on"
+    );
+    ok(
+        client(dir.path(), &addr, &["priority", &job.to_string(), "5"]),
+        "tessera priority",
+    );
+    ok(
+        client(dir.path(), &addr, &["resume", &job.to_string()]),
+        "tessera resume",
+    );
+    let resumed = wait_for(dir.path(), &addr, job, "2 frames done", |s| {
+        count(s, "done") >= 2 && count(s, "done") > count(&later, "done")
+    });
+    assert_eq!(resumed["priority"], 5, "{resumed}");
+    assert_eq!(resumed["paused"], false, "{resumed}");
     ok(
         client(dir.path(), &addr, &["cancel", &job.to_string()]),
         "tessera cancel",

@@ -103,38 +103,6 @@ pub(crate) async fn respond(
                 },
             }
         }
-        ClientRequest::Pause { job } | ClientRequest::Resume { job }
-            if sh.lock().sequences.contains_key(&job) =>
-        {
-            let paused = matches!(request, ClientRequest::Pause { .. });
-            let controls = {
-                let mut core = sh.lock();
-                let controls = core.set_sequence_paused(sh, job, paused);
-                if controls.is_ok() {
-                    let kind = if paused { "paused" } else { "resumed" };
-                    core.log(sh, job, kind, format!("from {peer}"));
-                }
-                controls
-            };
-            store_controls(sh, job, controls).await
-        }
-        ClientRequest::SetPriority { job, priority } if sh.lock().sequences.contains_key(&job) => {
-            let controls = {
-                let mut core = sh.lock();
-                let before = core.sequences.get(&job).map(|r| r.priority);
-                let controls = core.set_sequence_priority(sh, job, priority);
-                if let (Ok(_), Some(before)) = (&controls, before) {
-                    core.log(
-                        sh,
-                        job,
-                        "priority",
-                        format!("{before} -> {priority}, from {peer}"),
-                    );
-                }
-                controls
-            };
-            store_controls(sh, job, controls).await
-        }
         ClientRequest::Retry { job } if sh.lock().sequences.contains_key(&job) => {
             match sh.lock().requeue_frames(sh, job, None, peer) {
                 Ok(status) => ClientResponse::Job(status),
@@ -233,7 +201,11 @@ pub(crate) async fn respond(
         ClientRequest::SetPriority { job, priority } => {
             let controls = {
                 let mut core = sh.lock();
-                let before = core.jobs.get(&job).map(|r| r.priority);
+                let before = core
+                    .jobs
+                    .get(&job)
+                    .map(|r| r.priority)
+                    .or_else(|| core.sequences.get(&job).map(|r| r.priority));
                 let controls = core.set_priority(sh, job, priority);
                 if let (Ok(_), Some(before)) = (&controls, before) {
                     core.log(

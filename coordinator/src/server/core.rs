@@ -2262,7 +2262,8 @@ impl Core {
         self.store(sh, job, write);
     }
 
-    /// An operator pauses (`true`) or resumes a job: its tiles stop going out at once
+    /// An operator pauses (`true`) or resumes a job (or a sequence: its frames, see
+    /// `set_sequence_paused`): its tiles stop going out at once
     /// (those out may finish), or go out again. Returns what to store before the
     /// change is acknowledged, or why the job cannot be paused or resumed. Pausing a
     /// paused job, or resuming one that is not, changes nothing and succeeds.
@@ -2272,6 +2273,9 @@ impl Core {
         id: JobId,
         paused: bool,
     ) -> Result<Controls, String> {
+        if self.sequences.contains_key(&id) {
+            return self.set_sequence_paused(sh, id, paused);
+        }
         let verb = if paused { "paused" } else { "resumed" };
         self.check_controllable(id, verb)?;
         let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
@@ -2302,6 +2306,9 @@ impl Core {
         id: JobId,
         priority: i32,
     ) -> Result<Controls, String> {
+        if self.sequences.contains_key(&id) {
+            return self.set_sequence_priority(sh, id, priority);
+        }
         self.check_controllable(id, "given a new priority")?;
         let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
         let changed = record.priority != priority;

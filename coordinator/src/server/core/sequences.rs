@@ -739,7 +739,7 @@ impl Core {
 
     /// An operator pauses or resumes a sequence: no frame starts while it is paused,
     /// and its frame jobs are paused or resumed with it.
-    pub fn set_sequence_paused(
+    pub(super) fn set_sequence_paused(
         &mut self,
         sh: &Arc<Shared>,
         id: JobId,
@@ -765,7 +765,7 @@ impl Core {
     }
 
     /// An operator gives a sequence a new priority: its frame jobs and those to come.
-    pub fn set_sequence_priority(
+    pub(super) fn set_sequence_priority(
         &mut self,
         sh: &Arc<Shared>,
         id: JobId,
