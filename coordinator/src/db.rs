@@ -4,7 +4,7 @@
 //! Why SQLite: a single file, transactions that survive `kill -9` and power loss once
 //! committed, decades of testing, and no server to run. A job is inserted (and the
 //! transaction committed) before the client is told its id; every accepted tile's
-//! pixels are stored, in batches, so that a restarted coordinator re-renders only the
+//! pixels are stored (compressed, as the worker sent them), in batches, so that a restarted coordinator re-renders only the
 //! tiles it had not recorded.
 //!
 //! Nothing read back is trusted: every tile's pixels carry a SHA-256 checked when they
@@ -96,6 +96,7 @@ pub struct Totals {
 }
 
 /// A finished tile as stored, its checksum verified.
+#[derive(Debug)]
 pub struct StoredTile {
     pub tile: u32,
     pub rgb: Vec<u8>,
@@ -122,7 +123,8 @@ pub struct EventWrite {
 pub struct TileWrite {
     pub job: JobId,
     pub tile: u32,
-    pub rgb: Vec<u8>,
+    /// Its pixels as one zstd frame (see [`TileEncoding`]).
+    pub zstd: Vec<u8>,
     pub rays: u64,
     pub worker: String,
     pub samples: u64,
@@ -162,7 +164,38 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "frame", "INTEGER NOT NULL DEFAULT 1"),
     ("jobs", "last_frame", "INTEGER"),
     ("jobs", "sequence", "INTEGER"),
+    ("tiles", "encoding", "TEXT NOT NULL DEFAULT 'raw'"),
 ];
+
+/// How a tile row's `rgb` column holds its pixels. Rows are written as `zstd`: the
+/// frame a worker sent, already checked to decompress to exactly the tile's pixels, so
+/// a tile costs the database a quarter of its raw size or less, and nothing is
+/// compressed twice. Rows of earlier versions are `raw`. The row's checksum is of the
+/// column's bytes as stored, whatever the encoding: an earlier version reading a
+/// `zstd` row finds the checksum right and the length wrong, and renders the tile
+/// again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TileEncoding {
+    Raw,
+    Zstd,
+}
+
+impl TileEncoding {
+    fn name(self) -> &'static str {
+        match self {
+            TileEncoding::Raw => "raw",
+            TileEncoding::Zstd => "zstd",
+        }
+    }
+
+    fn parse(name: &str) -> Option<TileEncoding> {
+        match name {
+            "raw" => Some(TileEncoding::Raw),
+            "zstd" => Some(TileEncoding::Zstd),
+            _ => None,
+        }
+    }
+}
 
 fn target_milli(sampling: Sampling) -> u32 {
     match sampling {
@@ -192,8 +225,9 @@ fn parse_state(name: &str) -> Option<JobState> {
 }
 
 /// The checksum stored beside every tile's pixels.
-pub fn tile_checksum(rgb: &[u8]) -> [u8; 32] {
-    Sha256::digest(rgb).into()
+/// The checksum of a tile row: of its pixels exactly as stored.
+pub fn tile_checksum(stored: &[u8]) -> [u8; 32] {
+    Sha256::digest(stored).into()
 }
 
 /// Adds the columns of [`ADDED_COLUMNS`] that `conn`'s tables lack.
@@ -219,6 +253,8 @@ fn add_missing_columns(conn: &Connection) -> Result<()> {
 /// (reads): never shared behind the daemon's state lock.
 pub struct Db {
     conn: Connection,
+    /// The durability the next commits get (`synchronous` as last set).
+    durability: Durability,
     /// When space was last given back: at most every [`GIVE_BACK_EVERY`].
     gave_back: Option<std::time::Instant>,
     /// Space was freed since, and not given back yet.
@@ -229,6 +265,25 @@ pub struct Db {
 /// checkpoint and vacuum at every end cost a sequence of small frames more than its
 /// frames' rendering. Freed pages are reused by the next writes meanwhile.
 const GIVE_BACK_EVERY: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// How a commit is made to last.
+///
+/// Every commit survives the coordinator's crash (`kill -9`) either way: the
+/// write-ahead log is in the operating system's hands once a commit returns. What
+/// differs is a power loss or a kernel crash. A `Synced` commit is on the disk before
+/// it returns (the log is synced: `synchronous = FULL`). An `Ordered` one is not
+/// (`NORMAL`): it is on the disk with the next synced commit or checkpoint, and the
+/// log being written in order, a power loss keeps a prefix of the commits, never a
+/// later one without the earlier. What someone was told is done (a job accepted, its
+/// end, a control, a deletion, revoked tiles) is `Synced`; what only saves work
+/// (finished tiles, event log entries, a start time, a sequence's frame job, whose
+/// loss means rendering it again) is `Ordered`, which spares a disk sync per tile batch
+/// and frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Durability {
+    Synced,
+    Ordered,
+}
 
 /// A stored row that cannot be used, with why.
 #[derive(Debug)]
@@ -299,6 +354,7 @@ impl Db {
         add_missing_columns(&conn).context("cannot upgrade the job database")?;
         Ok(Db {
             conn,
+            durability: Durability::Synced,
             gave_back: None,
             owed: false,
         })
@@ -353,26 +409,45 @@ impl Db {
         Ok(())
     }
 
-    /// Records finished tiles with their checksums, all in one transaction.
-    pub fn save_tiles(&mut self, tiles: &[TileWrite]) -> Result<()> {
+    /// Sets how the next commits are made to last.
+    pub fn set_durability(&mut self, durability: Durability) -> Result<()> {
+        if durability != self.durability {
+            let level = match durability {
+                Durability::Synced => "FULL",
+                Durability::Ordered => "NORMAL",
+            };
+            self.conn
+                .pragma_update(None, "synchronous", level)
+                .context("cannot set the database's durability")?;
+            self.durability = durability;
+        }
+        Ok(())
+    }
+
+    /// Records finished tiles (with their checksums) and event log entries, all in one
+    /// transaction. An entry replaces one of the same job and number (how the marker of
+    /// events not kept is updated; and a write retried after a failure changes nothing).
+    pub fn save_results(&mut self, tiles: &[TileWrite], events: &[EventWrite]) -> Result<()> {
         let tx = self.conn.transaction()?;
+        insert_events(&tx, events)?;
         {
             let mut insert = tx.prepare_cached(
                 "INSERT OR IGNORE INTO tiles (job, tile, rgb, rays, worker, samples, error_sq_sum,
-                                              sha256, done_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
+                                              sha256, done_ms, encoding)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
             )?;
             for t in tiles {
                 insert.execute(params![
                     t.job as i64,
                     t.tile,
-                    t.rgb,
+                    t.zstd,
                     t.rays as i64,
                     t.worker,
                     t.samples as i64,
                     t.error_sq_sum,
-                    &tile_checksum(&t.rgb)[..],
+                    &tile_checksum(&t.zstd)[..],
                     t.done_ms as i64,
+                    TileEncoding::Zstd.name(),
                 ])?;
             }
         }
@@ -529,30 +604,6 @@ impl Db {
         Ok(())
     }
 
-    /// Records entries of job event logs, all in one transaction. An entry replaces
-    /// one of the same job and number (how the marker of events not kept is updated;
-    /// and a write retried after a failure changes nothing).
-    pub fn save_events(&mut self, events: &[EventWrite]) -> Result<()> {
-        let tx = self.conn.transaction()?;
-        {
-            let mut insert = tx.prepare_cached(
-                "INSERT OR REPLACE INTO events (job, seq, unix_ms, kind, detail)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
-            )?;
-            for e in events {
-                insert.execute(params![
-                    e.job as i64,
-                    e.event.seq as i64,
-                    e.event.unix_ms as i64,
-                    e.event.kind,
-                    e.event.detail,
-                ])?;
-            }
-        }
-        tx.commit().context("cannot record job events")?;
-        Ok(())
-    }
-
     /// The job's events numbered above `after`, oldest first, at most `limit`.
     pub fn load_events(&self, job: JobId, after: u64, limit: usize) -> Result<Vec<JobEvent>> {
         let mut query = self.conn.prepare_cached(
@@ -704,16 +755,22 @@ impl Db {
         Ok(rows)
     }
 
-    /// The job's stored tiles whose checksum matches; the others are returned as
-    /// [`BadRow`]s with their tile number (when readable), to be deleted and rendered
-    /// again.
-    pub fn load_tiles(&self, job: JobId) -> Result<Vec<Result<StoredTile, BadRow>>> {
+    /// The job's stored tiles whose checksum matches, their pixels decoded;
+    /// `tile_bytes` gives the size of each tile's pixels (`None`: the job has no such
+    /// tile), so that a compressed row expands to that size at most. The other rows are
+    /// returned as [`BadRow`]s with their tile number (when readable), to be deleted and
+    /// rendered again.
+    pub fn load_tiles(
+        &self,
+        job: JobId,
+        tile_bytes: impl Fn(u32) -> Option<usize>,
+    ) -> Result<Vec<Result<StoredTile, BadRow>>> {
         let mut query = self.conn.prepare(
-            "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256, done_ms FROM tiles
-             WHERE job = ?1 ORDER BY tile",
+            "SELECT tile, rgb, rays, worker, samples, error_sq_sum, sha256, done_ms, encoding
+             FROM tiles WHERE job = ?1 ORDER BY tile",
         )?;
         let rows = query
-            .query_map(params![job as i64], |r| Ok(read_tile(r)))?
+            .query_map(params![job as i64], |r| Ok(read_tile(r, &tile_bytes)))?
             .map(|row| row.unwrap_or_else(|e| Err(bad(format!("unreadable tile row: {e}")))))
             .collect();
         Ok(rows)
@@ -737,6 +794,27 @@ const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_s
     total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
     time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame,
     last_frame, sequence";
+
+/// Inserts event log entries in `tx` (see [`Db::save_results`]).
+fn insert_events(tx: &rusqlite::Transaction<'_>, events: &[EventWrite]) -> Result<()> {
+    if events.is_empty() {
+        return Ok(());
+    }
+    let mut insert = tx.prepare_cached(
+        "INSERT OR REPLACE INTO events (job, seq, unix_ms, kind, detail)
+         VALUES (?1, ?2, ?3, ?4, ?5)",
+    )?;
+    for e in events {
+        insert.execute(params![
+            e.job as i64,
+            e.event.seq as i64,
+            e.event.unix_ms as i64,
+            e.event.kind,
+            e.event.detail,
+        ])?;
+    }
+    Ok(())
+}
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }
@@ -849,15 +927,18 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
     })
 }
 
-fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, BadRow> {
+fn read_tile(
+    r: &rusqlite::Row<'_>,
+    tile_bytes: impl Fn(u32) -> Option<usize>,
+) -> Result<StoredTile, BadRow> {
     let tile: i64 = r.get(0).map_err(|e| bad(format!("tile number: {e}")))?;
     let field = |e: rusqlite::Error| bad_tile(tile, format!("tile {tile}: {e}"));
-    let rgb: Vec<u8> = r.get(1).map_err(field)?;
+    let stored: Vec<u8> = r.get(1).map_err(field)?;
     let sha: Option<Vec<u8>> = r.get(6).map_err(field)?;
     // Tiles recorded by an earlier version carry no checksum; their length is still
     // checked against the tile's rectangle by the caller.
     if let Some(sha) = sha {
-        if sha.as_slice() != tile_checksum(&rgb) {
+        if sha.as_slice() != tile_checksum(&stored) {
             return Err(bad_tile(
                 tile,
                 format!("tile {tile}: its pixels do not match their checksum"),
@@ -866,6 +947,30 @@ fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, BadRow> {
     }
     let tile_number =
         u32::try_from(tile).map_err(|_| bad_tile(tile, format!("tile number {tile}")))?;
+    let encoding: String = r.get(8).map_err(field)?;
+    let rgb = match TileEncoding::parse(&encoding) {
+        Some(TileEncoding::Raw) => stored,
+        Some(TileEncoding::Zstd) => {
+            let Some(capacity) = tile_bytes(tile_number) else {
+                return Err(bad_tile(
+                    tile,
+                    format!("tile {tile}: the job has no such tile"),
+                ));
+            };
+            zstd::bulk::decompress(&stored, capacity).map_err(|e| {
+                bad_tile(
+                    tile,
+                    format!("tile {tile}: its compressed pixels do not decompress: {e}"),
+                )
+            })?
+        }
+        None => {
+            return Err(bad_tile(
+                tile,
+                format!("tile {tile}: unknown pixel encoding {encoding:?}"),
+            ))
+        }
+    };
     Ok(StoredTile {
         tile: tile_number,
         rgb,
@@ -884,7 +989,7 @@ fn read_tile(r: &rusqlite::Row<'_>) -> Result<StoredTile, BadRow> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// The tables as the first version created them, before sampling.
@@ -902,7 +1007,7 @@ mod tests {
         INSERT INTO jobs VALUES (3, '{}', zeroblob(32), 34, 17, 2, 10, 16, 0, 'running', NULL);
         INSERT INTO tiles VALUES (3, 0, x'010203', 12, 'w1');";
 
-    fn job(id: JobId, sampling: Sampling) -> StoredJob {
+    pub(crate) fn job(id: JobId, sampling: Sampling) -> StoredJob {
         StoredJob {
             id,
             scene: "{}".into(),
@@ -971,7 +1076,7 @@ mod tests {
         assert_eq!(loaded[0].frame, 1);
         // An event log of its own, from nothing.
         assert!(db.load_events(3, 0, 10).unwrap().is_empty());
-        let tiles = db.load_tiles(3).unwrap();
+        let tiles = db.load_tiles(3, |_| Some(3)).unwrap();
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!(tile.rgb, [1, 2, 3]);
         assert_eq!((tile.samples, tile.error_sq_sum), (None, None));
@@ -980,16 +1085,19 @@ mod tests {
         let adaptive = Sampling::Adaptive { target_milli: 500 };
         db.insert_job(&job(4, adaptive)).unwrap();
         db.insert_job(&job(5, Sampling::Jittered)).unwrap();
-        db.save_tiles(&[TileWrite {
-            job: 4,
-            tile: 0,
-            rgb: vec![0; 192],
-            rays: 300,
-            worker: "w2".into(),
-            samples: 272,
-            error_sq_sum: Some(12.5),
-            done_ms: 1_234,
-        }])
+        db.save_results(
+            &[TileWrite {
+                job: 4,
+                tile: 0,
+                zstd: zstd::bulk::compress(&[7; 192], 1).unwrap(),
+                rays: 300,
+                worker: "w2".into(),
+                samples: 272,
+                error_sq_sum: Some(12.5),
+                done_ms: 1_234,
+            }],
+            &[],
+        )
         .unwrap();
         let totals = Totals {
             rays: 1000,
@@ -1014,9 +1122,10 @@ mod tests {
         assert_eq!(loaded[2].state, JobState::Done);
         assert_eq!(loaded[2].times, times);
         assert_eq!(loaded[2].image_sha256, Some([9; 32]));
-        let tiles = db.load_tiles(4).unwrap();
+        let tiles = db.load_tiles(4, |_| Some(192)).unwrap();
         let tile = tiles[0].as_ref().ok().unwrap();
         assert_eq!((tile.samples, tile.error_sq_sum), (Some(272), Some(12.5)));
+        assert_eq!(tile.rgb, [7; 192]);
         assert_eq!(loaded[1].label, job(4, adaptive).label);
         let frames: Vec<u32> = loaded.iter().map(|j| j.frame).collect();
         assert_eq!(frames, [1, 4, 5]);
@@ -1038,20 +1147,23 @@ mod tests {
         let mut batch: Vec<EventWrite> = (1..=5).map(|s| entry(1, s, "a")).collect();
         batch.push(entry(2, 1, "other job"));
         batch.push(entry(1, 4, "replaced"));
-        db.save_events(&batch).unwrap();
+        db.save_results(&[], &batch).unwrap();
         let page = db.load_events(1, 2, 2).unwrap();
         let seqs: Vec<u64> = page.iter().map(|e| e.seq).collect();
         assert_eq!(seqs, [3, 4]);
         assert_eq!(page[1].detail, "replaced");
-        db.save_events(&[EventWrite {
-            job: 2,
-            event: JobEvent {
-                seq: 10_001,
-                unix_ms: 5,
-                kind: "not_kept".into(),
-                detail: "1234 further events not kept".into(),
-            },
-        }])
+        db.save_results(
+            &[],
+            &[EventWrite {
+                job: 2,
+                event: JobEvent {
+                    seq: 10_001,
+                    unix_ms: 5,
+                    kind: "not_kept".into(),
+                    detail: "1234 further events not kept".into(),
+                },
+            }],
+        )
         .unwrap();
         let positions = db.event_positions().unwrap();
         assert_eq!(positions.get(&1), Some(&(5, 0)));
@@ -1079,6 +1191,25 @@ mod tests {
     }
 
     #[test]
+    fn ordered_commits_skip_the_sync_and_synced_ones_make_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut db = Db::open(&dir.path().join("tessera.db"), true).unwrap();
+        let level = |db: &Db| -> i64 {
+            db.conn
+                .query_row("PRAGMA synchronous", [], |r| r.get(0))
+                .unwrap()
+        };
+        // FULL is 2, NORMAL 1.
+        assert_eq!(level(&db), 2);
+        db.set_durability(Durability::Ordered).unwrap();
+        assert_eq!(level(&db), 1);
+        db.set_durability(Durability::Ordered).unwrap();
+        assert_eq!(level(&db), 1);
+        db.set_durability(Durability::Synced).unwrap();
+        assert_eq!(level(&db), 2);
+    }
+
+    #[test]
     fn damaged_rows_are_reported_one_by_one_not_fatal() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tessera.db");
@@ -1088,28 +1219,51 @@ mod tests {
         let tile = |tile| TileWrite {
             job: 1,
             tile,
-            rgb: vec![tile as u8; 192],
+            zstd: zstd::bulk::compress(&[tile as u8; 192], 1).unwrap(),
             rays: 1,
             worker: "w".into(),
             samples: 64,
             error_sq_sum: None,
             done_ms: 1_234,
         };
-        db.save_tiles(&[tile(0), tile(1), tile(2)]).unwrap();
+        db.save_results(&[tile(0), tile(1), tile(2), tile(3), tile(4), tile(5)], &[])
+            .unwrap();
+        // A frame that expands beyond its tile, whose checksum is right: refused
+        // without being expanded.
+        let big = zstd::bulk::compress(&[5; 4096], 1).unwrap();
+        db.conn
+            .execute(
+                "UPDATE tiles SET rgb = ?1, sha256 = ?2 WHERE tile = 5",
+                params![big, &tile_checksum(&big)[..]],
+            )
+            .unwrap();
         db.conn
             .execute_batch(
                 "UPDATE tiles SET rgb = x'00' WHERE tile = 1;
                  UPDATE tiles SET rays = 'many' WHERE tile = 2;
+                 UPDATE tiles SET encoding = 'lz4' WHERE tile = 3;
+                 UPDATE tiles SET rgb = x'0102', sha256 = NULL WHERE tile = 4;
                  UPDATE jobs SET state = 'sideways' WHERE id = 2;",
             )
             .unwrap();
         let loaded = db.load_jobs().unwrap();
         assert!(loaded[0].is_ok());
         assert!(loaded[1].as_ref().unwrap_err().what.contains("sideways"));
-        let tiles = db.load_tiles(1).unwrap();
+        let tiles = db.load_tiles(1, |_| Some(192)).unwrap();
         assert_eq!(tiles[0].as_ref().ok().map(|t| t.tile), Some(0));
-        assert_eq!(tiles[1].as_ref().err().map(|b| b.tile), Some(Some(1)));
-        assert_eq!(tiles[2].as_ref().err().map(|b| b.tile), Some(Some(2)));
+        assert_eq!(
+            tiles[0].as_ref().ok().map(|t| &t.rgb[..]),
+            Some(&[0; 192][..])
+        );
+        let why = |i: usize| tiles[i].as_ref().err().map(|b| (b.tile, b.what.clone()));
+        assert_eq!(why(1).unwrap().0, Some(1));
+        assert_eq!(why(2).unwrap().0, Some(2));
+        assert!(why(3).unwrap().1.contains("unknown pixel encoding \"lz4\""));
+        assert!(why(4).unwrap().1.contains("do not decompress"));
+        assert!(why(5).unwrap().1.contains("do not decompress"));
+        // A tile the job does not have.
+        let tiles = db.load_tiles(1, |t| (t == 0).then_some(192)).unwrap();
+        assert!(tiles[5].as_ref().unwrap_err().what.contains("no such tile"));
     }
 
     #[test]

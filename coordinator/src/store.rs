@@ -1,5 +1,5 @@
 //! The data directory: one folder per finished job holding its image, its scene and a
-//! JSON metadata file, and `last-job-id`, the highest job id ever issued. Every file is
+//! JSON metadata file, and `last-job-id`, above the highest job id ever issued. Every file is
 //! written to a temporary name, synced and renamed, so a crash never leaves a
 //! half-written file under its real name; an image is read back and its SHA-256
 //! compared before it counts as stored, and compared again whenever it is served.
@@ -53,7 +53,22 @@ pub struct JobMetadata {
 
 pub struct Store {
     root: PathBuf,
+    /// What `last-job-id` holds (ids up to it may be issued without writing it), and the
+    /// highest id issued; `None` until the file is first read.
+    ids: std::sync::Mutex<Option<IdWatermark>>,
 }
+
+#[derive(Clone, Copy)]
+struct IdWatermark {
+    recorded: JobId,
+    issued: JobId,
+}
+
+/// How many ids `last-job-id` reserves at a time: a sequence starts a frame job (a new
+/// id) per frame, and two synced writes per id cost more than its frame's database
+/// rows. A clean stop gives the unused ones back; after a crash, ids continue above the
+/// reserved block.
+pub const ID_BLOCK: JobId = 64;
 
 /// Where a job's image is kept: a job of one frame in its own folder
 /// (`jobs/ID/image.png`, `job.json`, `scene.json`); a frame job of a sequence in the
@@ -102,6 +117,7 @@ impl Store {
             .with_context(|| format!("cannot create the data directory {}", root.display()))?;
         Ok(Store {
             root: root.to_path_buf(),
+            ids: std::sync::Mutex::new(None),
         })
     }
 
@@ -146,12 +162,48 @@ impl Store {
     }
 
     /// Records durably that ids up to `id` have been issued, so they are never issued
-    /// again, whatever happens to the database.
+    /// again, whatever happens to the database: the file is written only when `id` is
+    /// beyond it, and then reserves [`ID_BLOCK`] ids.
     pub fn record_last_id(&self, id: JobId) -> Result<()> {
-        if self.recorded_last_id().unwrap_or(0) >= id {
-            return Ok(());
+        let mut ids = self.ids.lock().expect("the id watermark's lock");
+        let known = match *ids {
+            Some(known) => known,
+            None => {
+                let recorded = self.recorded_last_id().unwrap_or(0);
+                IdWatermark {
+                    recorded,
+                    issued: recorded,
+                }
+            }
+        };
+        let mut next = IdWatermark {
+            issued: known.issued.max(id),
+            ..known
+        };
+        if known.recorded < id {
+            let reserved = id.saturating_add(ID_BLOCK - 1);
+            write_atomically(&self.last_id_path(), format!("{reserved}\n").as_bytes())?;
+            next.recorded = reserved;
         }
-        write_atomically(&self.last_id_path(), format!("{id}\n").as_bytes())
+        *ids = Some(next);
+        Ok(())
+    }
+
+    /// At a clean stop: gives back the reserved ids not issued, so that the next start
+    /// continues right after the last id issued.
+    pub fn release_reserved_ids(&self) -> Result<()> {
+        let mut ids = self.ids.lock().expect("the id watermark's lock");
+        if let Some(known) = *ids {
+            if known.recorded > known.issued {
+                let issued = known.issued;
+                write_atomically(&self.last_id_path(), format!("{issued}\n").as_bytes())?;
+                *ids = Some(IdWatermark {
+                    recorded: issued,
+                    issued,
+                });
+            }
+        }
+        Ok(())
     }
 
     fn job_dir(&self, job: JobId) -> PathBuf {
@@ -280,13 +332,15 @@ impl Store {
             .with_context(|| format!("cannot create {}", dir.display()))?;
         let scene_path = dir.join("scene.json");
         // A sequence keeps one copy of its scene, written with its first frame.
+        // The scene and the image are renamed into place unsynced: the metadata's
+        // rename, last, syncs the folder, which makes all three durable at once.
         if matches!(place, ImagePlace::Job(_)) || !scene_path.exists() {
-            write_atomically(&scene_path, scene.as_bytes())?;
+            replace_file(&scene_path, scene.as_bytes())?;
         }
         if let Some(states) = states {
             write_atomically(&self.states_path(meta.id), &states.encode())?;
         }
-        write_atomically(&self.image_path(place), png)?;
+        replace_file(&self.image_path(place), png)?;
         let sha: [u8; 32] = Sha256::digest(png).into();
         self.verify_image(place, &sha)?;
         let meta = JobMetadata {
@@ -412,7 +466,22 @@ impl TileStates {
     }
 }
 
+/// Writes `bytes` to `path` durably: through a synced temporary file renamed into
+/// place, then the folder synced.
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+    replace_file(path, bytes)?;
+    // The rename itself is durable only once the folder is synced.
+    let dir = path.parent().expect("stored files live in a folder");
+    std::fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .with_context(|| format!("cannot sync {}", dir.display()))?;
+    Ok(())
+}
+
+/// Writes `bytes` to a synced temporary file and renames it to `path`: a crash leaves
+/// the old file or the new one, never a part. The rename is durable once the folder is
+/// synced (by the caller).
+fn replace_file(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path.parent().expect("stored files live in a folder");
     let mut tmp = tempfile::NamedTempFile::new_in(dir)
         .with_context(|| format!("cannot write {}", path.display()))?;
@@ -422,10 +491,6 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     tmp.persist(path)
         .map_err(|e| e.error)
         .with_context(|| format!("cannot write {}", path.display()))?;
-    // The rename itself is durable only once the folder is synced.
-    std::fs::File::open(dir)
-        .and_then(|d| d.sync_all())
-        .with_context(|| format!("cannot sync {}", dir.display()))?;
     Ok(())
 }
 
@@ -449,6 +514,35 @@ mod tests {
             assert!(TileStates::decode(&bad).is_err(), "byte {i}");
         }
         assert!(TileStates::decode(&bytes[..bytes.len() - 1]).is_err());
+    }
+
+    #[test]
+    fn ids_are_reserved_in_blocks_and_the_unused_given_back_at_a_clean_stop() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("last-job-id");
+        let read = || std::fs::read_to_string(&file).unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        store.record_last_id(5).unwrap();
+        assert_eq!(read(), format!("{}\n", 5 + ID_BLOCK - 1));
+        // Ids inside the block are not written again (the file is not even read).
+        std::fs::write(&file, "garbage").unwrap();
+        store.record_last_id(6).unwrap();
+        store.record_last_id(5 + ID_BLOCK - 1).unwrap();
+        assert_eq!(read(), "garbage");
+        // Beyond it: a new block.
+        store.record_last_id(5 + ID_BLOCK).unwrap();
+        assert_eq!(read(), format!("{}\n", 5 + 2 * ID_BLOCK - 1));
+        // A crash keeps the block: the next start continues above it.
+        let crashed = Store::open(dir.path()).unwrap();
+        assert_eq!(crashed.highest_job_id().unwrap(), 5 + 2 * ID_BLOCK - 1);
+        // A clean stop gives back what was not issued.
+        store.release_reserved_ids().unwrap();
+        assert_eq!(read(), format!("{}\n", 5 + ID_BLOCK));
+        let restarted = Store::open(dir.path()).unwrap();
+        assert_eq!(restarted.highest_job_id().unwrap(), 5 + ID_BLOCK);
+        // Nothing issued by a store: nothing written.
+        restarted.release_reserved_ids().unwrap();
+        assert_eq!(read(), format!("{}\n", 5 + ID_BLOCK));
     }
 
     #[test]

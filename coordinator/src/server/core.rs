@@ -56,7 +56,7 @@ pub struct Core {
 pub struct Held {
     worker: WorkerId,
     machine: String,
-    rgb: Vec<u8>,
+    pixels: TilePixels,
     cost: Cost,
     /// An adaptive answer's state.
     answer: Option<Answer>,
@@ -65,7 +65,7 @@ pub struct Held {
 impl Held {
     /// Whether another result is the same: its pixels, and an adaptive answer's state.
     fn same(&self, rgb: &[u8], answer: Option<&Answer>) -> bool {
-        self.rgb == rgb && self.answer.as_ref().map(|a| a.sha) == answer.map(|a| a.sha)
+        self.pixels.rgb == rgb && self.answer.as_ref().map(|a| a.sha) == answer.map(|a| a.sha)
     }
 }
 
@@ -74,6 +74,40 @@ thread_local! {
     /// than decompressing a small tile.
     static DECOMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
         const { std::cell::RefCell::new(None) };
+}
+
+/// A result's pixels: decoded, and as the database stores them (one zstd frame that
+/// decompresses to exactly `rgb`), both made off the lock.
+pub struct TilePixels {
+    pub rgb: Vec<u8>,
+    pub zstd: Vec<u8>,
+}
+
+impl TilePixels {
+    /// Pixels that came compressed, `zstd` checked to decompress to `rgb`: stored as
+    /// they came, unless the frame is larger than any compressor makes it (padded, so
+    /// as to cost the database more), then compressed again.
+    pub fn received(rgb: Vec<u8>, zstd: Vec<u8>) -> TilePixels {
+        if zstd.len() > zstd::zstd_safe::compress_bound(rgb.len()) {
+            return TilePixels::raw(rgb);
+        }
+        TilePixels { rgb, zstd }
+    }
+
+    /// Pixels that came raw: compressed for the database.
+    pub fn raw(rgb: Vec<u8>) -> TilePixels {
+        let zstd = zstd::bulk::compress(&rgb, 1)
+            .expect("compressing into a buffer of the compression bound cannot fail");
+        TilePixels { rgb, zstd }
+    }
+
+    /// No pixels: a result that counts for nothing.
+    pub fn none() -> TilePixels {
+        TilePixels {
+            rgb: Vec::new(),
+            zstd: Vec::new(),
+        }
+    }
 }
 
 /// One zstd frame of at most `capacity` bytes, with this thread's context.
@@ -1080,7 +1114,7 @@ impl Core {
         worker: WorkerId,
         job: JobId,
         tile: u32,
-        rgb: Vec<u8>,
+        pixels: TilePixels,
         cost: Cost,
         verdict: Verdict,
     ) -> anyhow::Result<()> {
@@ -1110,7 +1144,7 @@ impl Core {
             return Ok(());
         }
         debug_assert_eq!(
-            rgb.len(),
+            pixels.rgb.len(),
             rect_pixels(self.jobs[&job].tiles[tile as usize]) as usize * 3
         );
         if let Some(w) = self.workers.get_mut(&worker) {
@@ -1125,7 +1159,7 @@ impl Core {
             .held
             .get(&(job, tile))
             .filter(|h| h.machine != machine)
-            .map(|h| (h.machine.clone(), h.same(&rgb, answer)));
+            .map(|h| (h.machine.clone(), h.same(&pixels.rgb, answer)));
         let event = match held_from {
             Some((_, true)) => Event::TileDone { worker, job, tile },
             Some((other, false)) => {
@@ -1148,7 +1182,8 @@ impl Core {
                         Arbitration { first, second }
                     }
                     (Some(tracer), None, _, _) => {
-                        let v = verify::spot::arbitrate(tracer, rect, &held.rgb, &rgb);
+                        let v =
+                            verify::spot::arbitrate(tracer, rect, &held.pixels.rgb, &pixels.rgb);
                         Arbitration {
                             first: v.first.map(|w| w.to_string()),
                             second: v.second.map(|w| w.to_string()),
@@ -1203,7 +1238,7 @@ impl Core {
             .and_then(|w| w.assigned.remove(&(job, tile)))
             .map(|at| at.elapsed());
         // A result is accepted (its pixels move on to the database), held, or a copy.
-        let mut rgb = Some(rgb);
+        let mut pixels = Some(pixels);
         for action in &actions {
             match *action {
                 Action::AcceptTile { job, tile } => {
@@ -1211,17 +1246,17 @@ impl Core {
                     if self.held.remove(&(job, tile)).is_some() {
                         sh.metrics.result_confirmed();
                     }
-                    if let Some(rgb) = rgb.take() {
+                    if let Some(pixels) = pixels.take() {
                         let answer = verdict.answer.clone();
-                        self.accept_tile(sh, worker, &machine, job, tile, rgb, &cost, answer);
+                        self.accept_tile(sh, worker, &machine, job, tile, pixels, &cost, answer);
                     }
                 }
                 Action::HoldResult { worker, job, tile } => {
-                    if let Some(rgb) = rgb.take() {
+                    if let Some(pixels) = pixels.take() {
                         let held = Held {
                             worker,
                             machine: machine.clone(),
-                            rgb,
+                            pixels,
                             cost,
                             answer: verdict.answer.clone(),
                         };
@@ -1229,8 +1264,8 @@ impl Core {
                     }
                 }
                 Action::DuplicateResult { job, tile } => {
-                    if let Some(rgb) = &rgb {
-                        self.settle_duplicate(sh, &machine, job, tile, rgb, &verdict);
+                    if let Some(pixels) = &pixels {
+                        self.settle_duplicate(sh, &machine, job, tile, &pixels.rgb, &verdict);
                     }
                 }
                 _ => {}
@@ -1769,7 +1804,7 @@ impl Core {
         machine: &str,
         job: JobId,
         tile: u32,
-        rgb: Vec<u8>,
+        pixels: TilePixels,
         cost: &Cost,
         answer: Option<Answer>,
     ) {
@@ -1794,6 +1829,7 @@ impl Core {
         let Some(&rect) = record.tiles.get(tile as usize) else {
             return;
         };
+        let TilePixels { rgb, zstd } = pixels;
         if let Some(ad) = record.adaptive.as_mut() {
             // The tile's new state is kept for the next pass; its pixels show the pass's
             // progress. Nothing is written: a restarted coordinator starts the passes
@@ -1851,7 +1887,7 @@ impl Core {
             Write::Tile(crate::db::TileWrite {
                 job,
                 tile,
-                rgb,
+                zstd,
                 rays: cost.rays,
                 worker: name,
                 samples: cost.samples,
@@ -1900,7 +1936,7 @@ impl Core {
                             &held.machine,
                             job,
                             tile,
-                            held.rgb,
+                            held.pixels,
                             &held.cost,
                             held.answer,
                         );

@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use protocol::{JobEvent, JobId, JobState, EVENTS_PER_PAGE};
 use tracing::{info, warn};
 
-use crate::db::{Db, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
+use crate::db::{Db, Durability, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
 use crate::store::{ImagePlace, JobMetadata, Store};
 
 /// How long after a failed write it is tried again.
@@ -219,6 +219,7 @@ impl Persistence {
             store,
             hooks,
             status: Arc::clone(&status),
+            durability: Durability::Synced,
         };
         let thread = std::thread::Builder::new()
             .name("persistence".into())
@@ -290,6 +291,8 @@ struct Writer {
     store: Arc<Store>,
     hooks: Arc<dyn Hooks>,
     status: Arc<Status>,
+    /// How the step being carried out is committed.
+    durability: Durability,
 }
 
 /// A write taken off the queue, with the tiles and event log entries batched.
@@ -298,6 +301,24 @@ enum Step {
     One(Write),
     /// Checks that the disk can be written again (after a failed insert).
     Probe,
+}
+
+impl Step {
+    /// How its commit is made to last: synced when someone is told it is done.
+    fn durability(&self) -> Durability {
+        match self {
+            Step::Tiles(..)
+            | Step::One(Write::Tile(_) | Write::Event(_) | Write::Started { .. }) => {
+                Durability::Ordered
+            }
+            // A sequence's frame job is started by the coordinator, not accepted from
+            // anyone: lost to a power cut, it is started again.
+            Step::One(Write::InsertJob { job, .. }) if job.sequence.is_some() => {
+                Durability::Ordered
+            }
+            _ => Durability::Synced,
+        }
+    }
 }
 
 impl Writer {
@@ -313,7 +334,7 @@ impl Writer {
                     (Some(w), _) => w,
                     (None, None) => match rx.recv() {
                         Ok(w) => w,
-                        Err(_) => return,
+                        Err(_) => return self.stop(),
                     },
                     // Space freed by the last ends is given back once the writes pause.
                     (None, Some(wait)) => match rx.recv_timeout(wait) {
@@ -324,7 +345,7 @@ impl Writer {
                             }
                             continue;
                         }
-                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return self.stop(),
                     },
                 };
                 match first {
@@ -361,9 +382,18 @@ impl Writer {
         }
     }
 
+    /// The queue is closed and every write carried out: the job ids reserved and not
+    /// issued are given back.
+    fn stop(&self) {
+        if let Err(e) = self.store.release_reserved_ids() {
+            warn!(error = %one_line(&e), "cannot give back the job ids reserved and not issued");
+        }
+    }
+
     /// Carries a step out, retrying until it succeeds (but a new job's insert, which is
     /// answered at once). Returns whether the disk must now be probed.
     fn carry_out(&mut self, step: Step) -> bool {
+        self.durability = step.durability();
         match step {
             Step::Probe => {
                 let store = Arc::clone(&self.store);
@@ -371,13 +401,10 @@ impl Writer {
                 false
             }
             Step::Tiles(batch, events) => {
-                if !events.is_empty() {
-                    self.until_done(|db| db.save_events(&events));
-                }
+                self.until_done(|db| db.save_results(&batch, &events));
                 if batch.is_empty() {
                     return false;
                 }
-                self.until_done(|db| db.save_tiles(&batch));
                 let done: Vec<(JobId, u32)> = batch.iter().map(|t| (t.job, t.tile)).collect();
                 self.hooks.tiles_recorded(&done);
                 false
@@ -515,6 +542,11 @@ impl Writer {
     fn attempt<T>(&mut self, f: impl FnOnce(&mut Db) -> anyhow::Result<T>) -> Result<T, String> {
         let since = self.status.started.elapsed().as_millis() as u64 + 1;
         self.status.busy_since.store(since, Ordering::SeqCst);
+        let durability = self.durability;
+        let f = |db: &mut Db| {
+            db.set_durability(durability)?;
+            f(db)
+        };
         let result = match self.db.as_mut() {
             Some(db) => f(db),
             None => Db::open(&self.db_path, false).and_then(|db| f(self.db.insert(db))),
@@ -540,4 +572,63 @@ impl Writer {
 /// An error and its causes on one line.
 fn one_line(e: &anyhow::Error) -> String {
     format!("{e:#}").replace('\n', " ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn event() -> EventWrite {
+        EventWrite {
+            job: 1,
+            event: JobEvent {
+                seq: 1,
+                unix_ms: 0,
+                kind: "k".into(),
+                detail: String::new(),
+            },
+        }
+    }
+
+    #[test]
+    fn only_what_saves_work_is_committed_without_a_sync() {
+        let job = |sequence| {
+            Step::One(Write::InsertJob {
+                job: Box::new(StoredJob {
+                    sequence,
+                    ..crate::db::tests::job(2, protocol::Sampling::Grid)
+                }),
+                then: Box::new(|_| {}),
+            })
+        };
+        let ordered = [
+            Step::Tiles(Vec::new(), vec![event()]),
+            Step::One(Write::Event(event())),
+            Step::One(Write::Started {
+                job: 1,
+                at_unix_ms: 0,
+            }),
+            job(Some(1)),
+        ];
+        for step in &ordered {
+            assert_eq!(step.durability(), Durability::Ordered);
+        }
+        let synced = [
+            job(None),
+            Step::One(Write::ForgetTiles {
+                job: 1,
+                tiles: vec![0],
+            }),
+            Step::One(Write::SequenceRunning { job: 1 }),
+            Step::One(Write::Delete {
+                job: 1,
+                place: ImagePlace::Job(1),
+                then: Box::new(|_| {}),
+            }),
+            Step::Probe,
+        ];
+        for step in &synced {
+            assert_eq!(step.durability(), Durability::Synced);
+        }
+    }
 }

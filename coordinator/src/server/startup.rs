@@ -203,7 +203,12 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
     }
     let rects = tiling::cut(&job.settings, job.tile_size);
     let mut tiles = Vec::new();
-    for row in db.load_tiles(id)? {
+    let tile_bytes = |t: u32| {
+        rects
+            .get(t as usize)
+            .map(|r| r.width as usize * r.height as usize * 3)
+    };
+    for row in db.load_tiles(id, tile_bytes)? {
         let (number, why) = match row {
             Ok(t) => match rects.get(t.tile as usize) {
                 Some(r) if t.rgb.len() == r.width as usize * r.height as usize * 3 => {

@@ -16,7 +16,7 @@ use tokio_util::codec::Framed;
 use tracing::{error, info};
 use transport::Stream;
 
-use super::core::{Cost, Verdict, WorkerRecord};
+use super::core::{Cost, TilePixels, Verdict, WorkerRecord};
 use super::Shared;
 
 type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
@@ -167,27 +167,27 @@ async fn result(
         Pixels::Zstd(_) => None,
     };
     let plan = sh.lock().check_plan(job, tile, raw_len)?;
-    let (rgb, verdict) = match plan {
+    let (pixels, verdict) = match plan {
         // Not an active job's tile: the pixels count for nothing, so are not decoded.
-        None => (Vec::new(), Verdict::unchecked()),
+        None => (TilePixels::none(), Verdict::unchecked()),
         Some(plan) => {
             let shared = Arc::clone(sh);
             tokio::task::spawn_blocking(move || {
-                let rgb = match pixels {
-                    Pixels::Raw(rgb) => rgb,
+                let pixels = match pixels {
+                    Pixels::Raw(rgb) => TilePixels::raw(rgb),
                     Pixels::Zstd(zstd) => match plan.decompress(&zstd) {
-                        Ok(rgb) => rgb,
-                        Err(reason) => return (Vec::new(), Verdict::wrong(reason)),
+                        Ok(rgb) => TilePixels::received(rgb, zstd),
+                        Err(reason) => return (TilePixels::none(), Verdict::wrong(reason)),
                     },
                 };
-                let verdict = plan.run(&shared.verifier, &rgb, None);
-                (rgb, verdict)
+                let verdict = plan.run(&shared.verifier, &pixels.rgb, None);
+                (pixels, verdict)
             })
             .await?
         }
     };
     sh.lock()
-        .tile_done(sh, worker, job, tile, rgb, cost, verdict)
+        .tile_done(sh, worker, job, tile, pixels, cost, verdict)
 }
 
 /// An adaptive tile's answer: checked against the state its pass started from, off the
@@ -210,18 +210,18 @@ async fn advanced(
         return Ok(());
     };
     let shared = Arc::clone(sh);
-    let (rgb, verdict) = tokio::task::spawn_blocking(move || {
-        let rgb = match plan.decompress(&zstd) {
-            Ok(rgb) => rgb,
-            Err(reason) => return (Vec::new(), Verdict::wrong(reason)),
+    let (pixels, verdict) = tokio::task::spawn_blocking(move || {
+        let pixels = match plan.decompress(&zstd) {
+            Ok(rgb) => TilePixels::received(rgb, zstd),
+            Err(reason) => return (TilePixels::none(), Verdict::wrong(reason)),
         };
-        let verdict = plan.run(&shared.verifier, &rgb, Some(state));
-        (rgb, verdict)
+        let verdict = plan.run(&shared.verifier, &pixels.rgb, Some(state));
+        (pixels, verdict)
     })
     .await?;
     cost.samples = verdict.samples();
     sh.lock()
-        .tile_done(sh, worker, job, tile, rgb, cost, verdict)
+        .tile_done(sh, worker, job, tile, pixels, cost, verdict)
 }
 
 async fn on_message(
