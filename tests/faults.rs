@@ -423,6 +423,10 @@ fn a_coordinator_terminated_mid_job_exits_cleanly_and_resumes_after_a_restart() 
             took.as_secs_f64(),
             lines[0]
         );
+        // The ids reserved ahead and not issued were given back at the clean stop.
+        let last_id = std::fs::read_to_string(dir.join("data").join("last-job-id"))
+            .expect("the coordinator keeps DATA/last-job-id");
+        assert_eq!(last_id.trim(), job.to_string(), "DATA/last-job-id");
 
         farm.restart_coordinator();
         let status = farm.status(job);
