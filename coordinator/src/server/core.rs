@@ -2814,6 +2814,36 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_workers_compressed_pixels_are_stored_as_sent_unless_padded() {
+        let rgb: Vec<u8> = (0..3 * 32 * 32).map(|i| (i % 7) as u8).collect();
+        let sent = zstd::bulk::compress(&rgb, 1).unwrap();
+        let kept = TilePixels::received(rgb.clone(), sent.clone());
+        assert_eq!(
+            (kept.rgb.as_slice(), kept.zstd.as_slice()),
+            (&rgb[..], &sent[..])
+        );
+
+        // The same frame followed by a skippable frame of padding decompresses to the
+        // same pixels, and would cost the database far more than the tile: it is
+        // compressed again.
+        let mut padded = sent.clone();
+        padded.extend_from_slice(&[0x50, 0x2a, 0x4d, 0x18]);
+        padded.extend_from_slice(&(1u32 << 20).to_le_bytes());
+        padded.resize(padded.len() + (1 << 20), 0);
+        assert_eq!(decompress(&padded, rgb.len()).unwrap(), rgb);
+        let stored = TilePixels::received(rgb.clone(), padded);
+        assert!(stored.zstd.len() <= zstd::zstd_safe::compress_bound(rgb.len()));
+        assert_eq!(
+            zstd::bulk::decompress(&stored.zstd, rgb.len()).unwrap(),
+            rgb
+        );
+
+        // Raw pixels are compressed for the database.
+        let raw = TilePixels::raw(rgb.clone());
+        assert_eq!(zstd::bulk::decompress(&raw.zstd, rgb.len()).unwrap(), rgb);
+    }
+
+    #[test]
     fn an_event_log_keeps_its_cap_then_counts_what_it_drops_and_keeps_the_end() {
         let mut log = EventLog::new();
         for seq in 1..=EVENT_LOG_CAP {
