@@ -222,6 +222,15 @@ impl AnimatedScene {
         })
     }
 
+    /// [`AnimatedScene::frame`], taking the scene: a static scene is given as it is,
+    /// not copied (a copy of a million objects costs more than reading them).
+    pub fn into_frame(self, k: u64) -> Result<Scene, FrameOutOfRange> {
+        match self.animation {
+            None if k == 1 => Ok(self.base),
+            _ => self.frame(k),
+        }
+    }
+
     /// Frame 1, which is what rendering an animated scene without naming a frame means.
     pub fn into_first_frame(self) -> Scene {
         match &self.animation {

@@ -412,11 +412,23 @@ impl Bvh {
         {
             return None;
         }
-        let mut prims: Vec<Prim> = spheres
-            .iter()
-            .enumerate()
-            .map(|(i, (_, s))| Box4::prim(i as u32, s))
-            .collect();
+        use rayon::prelude::*;
+        let parallel = rayon::current_num_threads() > 1;
+        // Per sphere, in order: mapped in parallel when large (the order, so the
+        // hierarchy, is the same).
+        let mut prims: Vec<Prim> = if parallel && spheres.len() >= PARALLEL_MIN {
+            spheres
+                .par_iter()
+                .enumerate()
+                .map(|(i, (_, s))| Box4::prim(i as u32, s))
+                .collect()
+        } else {
+            spheres
+                .iter()
+                .enumerate()
+                .map(|(i, (_, s))| Box4::prim(i as u32, s))
+                .collect()
+        };
         let (bounds, centres) = prims.iter().fold((Box4::EMPTY, Box4::EMPTY), |(b, c), p| {
             (b.union(&p.bounds()), c.grow(p.centre2()))
         });
@@ -427,12 +439,19 @@ impl Bvh {
             centres,
             depth: 0,
         };
-        let parallel = rayon::current_num_threads() > 1;
         let mut nodes = Vec::with_capacity(spheres.len() / 4 + 1);
         build_node(&mut prims, 0, whole, parallel, &mut nodes);
+        let spheres = if parallel && prims.len() >= PARALLEL_MIN {
+            prims
+                .par_iter()
+                .map(|p| spheres[p.index() as usize])
+                .collect()
+        } else {
+            prims.iter().map(|p| spheres[p.index() as usize]).collect()
+        };
         Some(Bvh {
             nodes,
-            spheres: prims.iter().map(|p| spheres[p.index() as usize]).collect(),
+            spheres,
             scale,
             isa,
         })

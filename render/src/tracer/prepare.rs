@@ -70,6 +70,9 @@ const BVH_MIN_SPHERES: usize = 48;
 /// [`BVH_MIN_SPHERES`] because the two differ once the hierarchy traces packets too.
 const BVH_MIN_SPHERES_PACKETS: usize = 48;
 
+/// Scenes from this many objects have their objects prepared in parallel.
+const PARALLEL_PREPARE_MIN: usize = 4096;
+
 /// The most entries of the tables of image-plane coordinates ((width + height) × groups
 /// of four samples): 2 MiB.
 pub(super) const PLANE_TABLE_MAX: usize = 1 << 16;
@@ -111,26 +114,31 @@ impl Tracer {
         settings: RenderSettings,
         force_bvh: Option<bool>,
     ) -> Self {
-        let surfaces: Vec<Surface> = scene
-            .objects
-            .iter()
-            .map(|o| Surface {
-                geometry: match o.shape {
-                    Shape::Sphere { center, radius } => {
-                        Geometry::Sphere(SphereGeom::new(center, radius))
-                    }
-                    Shape::Plane { normal, distance } => {
-                        Geometry::Plane(PlaneGeom::new(normal, distance))
-                    }
-                },
-                color: o.color,
-                material: o.material,
-                inverse_radius: match o.shape {
-                    Shape::Sphere { radius, .. } => Divisor::new(radius).reciprocal(),
-                    Shape::Plane { .. } => None,
-                },
-            })
-            .collect();
+        // Per object, in order: mapped in parallel on the current pool when the scene
+        // is large.
+        use rayon::prelude::*;
+        let surface = |o: &crate::scene::Object| Surface {
+            geometry: match o.shape {
+                Shape::Sphere { center, radius } => {
+                    Geometry::Sphere(SphereGeom::new(center, radius))
+                }
+                Shape::Plane { normal, distance } => {
+                    Geometry::Plane(PlaneGeom::new(normal, distance))
+                }
+            },
+            color: o.color,
+            material: o.material,
+            inverse_radius: match o.shape {
+                Shape::Sphere { radius, .. } => Divisor::new(radius).reciprocal(),
+                Shape::Plane { .. } => None,
+            },
+        };
+        let surfaces: Vec<Surface> =
+            if scene.objects.len() >= PARALLEL_PREPARE_MIN && rayon::current_num_threads() > 1 {
+                scene.objects.par_iter().map(surface).collect()
+            } else {
+                scene.objects.iter().map(surface).collect()
+            };
         let mut spheres = Vec::new();
         let mut planes = Vec::new();
         for (i, s) in surfaces.iter().enumerate() {
