@@ -260,6 +260,11 @@ pub async fn wait(session: &mut Session, job: JobId) -> Result<JobStatus> {
     };
     bar.finish_and_clear();
     session.bar = ProgressBar::hidden();
+    done_or_why(job, status)
+}
+
+/// A final status as the answer to waiting: done, or an error saying how it ended.
+pub fn done_or_why(job: JobId, status: JobStatus) -> Result<JobStatus> {
     match status.state {
         JobState::Done => Ok(status),
         JobState::Failed => Err(anyhow!(
@@ -390,7 +395,25 @@ pub struct JobChoices {
     pub frames: FrameChoice,
 }
 
-/// `tessera submit`.
+/// Where `tessera submit --wait` writes what it waits for: a job's image, or a
+/// sequence's frames into a directory as they are done.
+enum WaitOutput {
+    Image(ImageOutput),
+    Frames(FramesDir),
+}
+
+impl WaitOutput {
+    fn path(&self) -> &Path {
+        match self {
+            WaitOutput::Image(o) => o.path(),
+            WaitOutput::Frames(d) => d.path(),
+        }
+    }
+}
+
+/// `tessera submit`. With `--wait`, a job's image is written to `-o` [default: the
+/// scene's file name with .png]; a sequence's frames into the directory `-o` [default:
+/// the scene's file name without .json] as they are done.
 pub async fn run_submit(
     coordinator: &Endpoint,
     scene: &Path,
@@ -399,15 +422,15 @@ pub async fn run_submit(
     output: Option<PathBuf>,
     json_out: bool,
 ) -> Result<()> {
-    if job.frames.frames.is_some() {
-        return run_submit_sequence(coordinator, scene, job, wait_for_it, output, json_out).await;
-    }
-    // The image's file is checked before the farm spends anything on it.
-    let output = match wait_for_it {
-        true => Some(ImageOutput::create(
+    // The output is checked before the farm spends anything on it.
+    let output = match (wait_for_it, job.frames.frames.is_some()) {
+        (false, _) => None,
+        (true, false) => Some(WaitOutput::Image(ImageOutput::create(
             &output.unwrap_or_else(|| default_output(scene)),
-        )?),
-        false => None,
+        )?)),
+        (true, true) => Some(WaitOutput::Frames(FramesDir::create(
+            &output.unwrap_or_else(|| default_output(scene).with_extension("")),
+        )?)),
     };
     let mut session = Session::connect(coordinator).await?;
     let job = submit(session.client(), scene, job).await?;
@@ -417,11 +440,18 @@ pub async fn run_submit(
     };
     eprintln!("submitted job {job}");
     let output_path = output.path().to_path_buf();
-    let status = wait_and_fetch(&mut session, job, output).await?;
+    let status = match output {
+        WaitOutput::Image(image) => wait_and_fetch(&mut session, job, image).await?,
+        WaitOutput::Frames(dir) => wait_sequence(&mut session, job, Some(&dir))
+            .await
+            .map_err(|e| naming_job(job, e))?,
+    };
     if json_out {
         let mut v = status_json(&status);
         v["output"] = json!(output_path.display().to_string());
         println!("{v}");
+    } else if status.frames.is_some() {
+        eprintln!("{}", sequence_summary(&output_path, &status));
     } else {
         eprintln!("{}", summary(&output_path, &status));
     }
@@ -435,44 +465,6 @@ fn print_submitted(job: JobId, json_out: bool) {
     } else {
         println!("{job}");
     }
-}
-
-/// `tessera submit` of a sequence: with `--wait`, its frames are written into the
-/// directory `-o` [default: the scene's file name without .json] as they are done.
-async fn run_submit_sequence(
-    coordinator: &Endpoint,
-    scene: &Path,
-    job: JobChoices,
-    wait_for_it: bool,
-    output: Option<PathBuf>,
-    json_out: bool,
-) -> Result<()> {
-    let dir = match wait_for_it {
-        true => {
-            Some(FramesDir::create(&output.unwrap_or_else(|| {
-                default_output(scene).with_extension("")
-            }))?)
-        }
-        false => None,
-    };
-    let mut session = Session::connect(coordinator).await?;
-    let job = submit(session.client(), scene, job).await?;
-    let Some(dir) = dir else {
-        print_submitted(job, json_out);
-        return Ok(());
-    };
-    eprintln!("submitted job {job}");
-    let status = wait_sequence(&mut session, job, Some(&dir))
-        .await
-        .map_err(|e| naming_job(job, e))?;
-    if json_out {
-        let mut v = status_json(&status);
-        v["output"] = json!(dir.path().display().to_string());
-        println!("{v}");
-    } else {
-        eprintln!("{}", sequence_summary(dir.path(), &status));
-    }
-    Ok(())
 }
 
 /// The one-line summary of a finished sequence.

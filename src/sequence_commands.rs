@@ -111,14 +111,7 @@ pub async fn wait_sequence(
             fetch_frames(session.client(), job, &frames, dir).await?;
         }
     }
-    match status.state {
-        JobState::Done => Ok(status),
-        JobState::Failed => Err(anyhow!(
-            "job {job} failed: {}",
-            status.error.as_deref().unwrap_or("no reason given")
-        )),
-        other => Err(anyhow!("job {job} is {}", other.as_str())),
-    }
+    crate::client_commands::done_or_why(job, status)
 }
 
 /// Writes the frames done one after another from the first that are not written yet;

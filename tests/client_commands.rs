@@ -13,7 +13,8 @@ use std::time::{Duration, Instant};
 
 use common::{
     assert_same_png, client, fetch, ok, poll, render_reference, scene_path, serial,
-    start_coordinator, start_worker, submit, tessera, try_status, wait_done, Daemon, BIN,
+    start_coordinator, start_coordinator_in, start_worker, submit, tessera, try_status, wait_done,
+    Daemon, BIN,
 };
 
 /// A small frame of the seed scene: quick in a debug build, several tiles.
@@ -112,13 +113,7 @@ fn submitted_id(line: &str) -> u64 {
 fn submit_wait_names_the_job_on_stderr_before_anything_else() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let _worker = start_worker(dir.path(), &addr, "w1");
     let seed = small_seed();
     let mut args: Vec<&str> = vec!["submit"];
@@ -195,13 +190,7 @@ fn submit_wait_rides_through_a_coordinator_restart() {
 fn an_image_that_cannot_be_written_names_the_job_and_how_to_fetch_it() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     // The file can be written when the job is submitted (it is checked then); its
     // directory goes while the job waits for a worker.
     std::fs::create_dir(dir.path().join("out")).unwrap();

@@ -15,8 +15,8 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{
-    client, ok, poll, scene_path, serial, start_coordinator, start_worker, submit, tessera,
-    try_start_coordinator, wait_done, Daemon, BIN,
+    client, ok, poll, scene_path, serial, start_coordinator, start_coordinator_in, start_worker,
+    submit, tessera, try_start_coordinator, wait_done, Daemon, BIN,
 };
 
 #[test]
@@ -60,13 +60,7 @@ fn a_data_directory_in_use_is_refused_with_the_holders_address() {
 fn submit_wait_refuses_an_image_it_cannot_write_before_submitting() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let seed = scene_path("seed.json");
     for (out, says) in [
         ("no-such-dir/out.png", "cannot write no-such-dir/out.png"),
@@ -182,13 +176,7 @@ fn up_stopped_by_a_signal_removes_its_farm_and_exits_with_128_plus_the_signal() 
 fn cancelling_a_cancelled_job_succeeds_and_a_done_one_says_why_not() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let small = ["--width", "64", "--height", "48", "--aa", "1"];
     let mut args = vec![scene_path("seed.json")];
     args.extend(small.iter().map(|s| s.to_string()));
@@ -1168,13 +1156,7 @@ fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
 fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let seed = scene_path("seed.json");
     let settings = ["--width", "1600", "--height", "1200", "--aa", "2"];
     let mut args = vec![seed.as_str(), "--tile", "64"];

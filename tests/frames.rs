@@ -20,7 +20,8 @@ use std::time::Duration;
 
 use common::{
     assert_same_png, client, fetch, free_port, ok, poll, render_reference, scene_path, serial,
-    start_coordinator, start_worker, submit, try_status, try_workers, wait_done, Daemon,
+    start_coordinator, start_coordinator_in, start_worker, submit, try_status, try_workers,
+    wait_done, Daemon,
 };
 use tempfile::TempDir;
 
@@ -52,13 +53,7 @@ fn wait_listed(dir: &Path, addr: &str, count: usize) {
 fn a_frame_submitted_to_two_workers_is_the_frame_tessera_render_gives() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let _w1 = start_worker(dir.path(), &addr, "w1");
     let _w2 = start_worker(dir.path(), &addr, "w2");
     wait_listed(dir.path(), &addr, 2);
@@ -138,13 +133,7 @@ fn a_frame_submitted_to_two_workers_is_the_frame_tessera_render_gives() {
 fn a_frame_the_scene_does_not_have_is_refused_in_one_line() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let orbit = orbit();
     let seed = scene_path("seed.json");
     for (scene, frame, message) in [

@@ -25,8 +25,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::{
-    client, free_port, ok, poll, scene_path, serial, start_coordinator, start_worker,
-    start_worker_with, submit, tessera, try_status, try_workers, Daemon,
+    client, free_port, ok, poll, scene_path, serial, start_coordinator, start_coordinator_in,
+    start_worker, start_worker_with, submit, tessera, try_status, try_workers, Daemon,
 };
 use tempfile::TempDir;
 
@@ -354,13 +354,7 @@ fn a_cancelled_sequence_stops_and_its_frames_are_rendered_again_on_request() {
     );
     assert!(!data.join("jobs").join(job.to_string()).exists());
     assert!(try_status(dir.path(), &addr, job).is_none());
-    let listed = client(dir.path(), &addr, &["list", "--json"]);
-    assert_eq!(
-        listed.stdout.trim(),
-        "[]",
-        "frame jobs left: {}",
-        listed.stdout
-    );
+    assert_nothing_listed(dir.path(), &addr);
 }
 
 #[test]
@@ -401,17 +395,22 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
 }
 
+/// `tessera list` shows no job: a deleted sequence leaves no frame job behind.
+fn assert_nothing_listed(dir: &Path, addr: &str) {
+    let listed = client(dir, addr, &["list", "--json"]);
+    assert_eq!(
+        listed.stdout.trim(),
+        "[]",
+        "frame jobs left: {}",
+        listed.stdout
+    );
+}
+
 #[test]
 fn frame_ranges_the_scene_does_not_have_are_refused_in_one_line() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     let orbit = orbit();
     let seed = scene_path("seed.json");
     for (scene, range, message) in [
@@ -483,13 +482,7 @@ fn a_sequence_is_deleted_with_its_frames_once_its_retention_has_passed() {
         ended.elapsed()
     );
     assert!(!folder.exists(), "its folder is left");
-    let listed = client(dir.path(), &addr, &["list", "--json"]);
-    assert_eq!(
-        listed.stdout.trim(),
-        "[]",
-        "frame jobs left: {}",
-        listed.stdout
-    );
+    assert_nothing_listed(dir.path(), &addr);
 }
 
 #[test]
@@ -498,13 +491,7 @@ fn a_failed_frame_fails_alone_and_is_rendered_again_alone() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
     let reference = reference(dir.path(), "1-4");
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &[],
-        "coordinator.log",
-    );
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
     // Five machines (the attempts a tile gets) that cannot render frame 3's first tile.
     let build = render::build_identity();
     let fakes: Vec<FakeWorker> = (0..5)

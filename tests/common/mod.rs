@@ -185,6 +185,18 @@ pub fn start_coordinator(
     try_start_coordinator(dir, data, listen, extra, log_name).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// [`start_coordinator`] on a free port of 127.0.0.1 with `DIR/data`, logging to
+/// `DIR/coordinator.log`: how most tests start theirs.
+pub fn start_coordinator_in(dir: &Path) -> (Daemon, String) {
+    start_coordinator(
+        dir,
+        &dir.join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    )
+}
+
 /// Starts `tessera worker --coordinator ADDR --threads 1 --name NAME` (log in
 /// `DIR/worker-NAME.log`), without waiting for it to register.
 pub fn start_worker(dir: &Path, addr: &str, name: &str) -> Daemon {

@@ -883,7 +883,7 @@ impl Core {
             if let Some(s) = self.sequences.get_mut(&sequence) {
                 s.frames.restore(stored.frame, id, stored.state);
                 // The sequence's controls are its frames'.
-                record.paused = s.paused && !final_state;
+                record.paused = s.frames.paused() && !final_state;
                 record.priority = s.priority;
             }
         }

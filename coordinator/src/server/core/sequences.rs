@@ -35,7 +35,6 @@ pub struct SequenceRecord {
     pub tile_size: u32,
     pub tiles_per_frame: u32,
     pub priority: i32,
-    pub paused: bool,
     pub verification: Verification,
     /// What each frame job is admitted as.
     pub request: lifecycle::Request,
@@ -108,7 +107,6 @@ impl Core {
                 tile_size: prepared.tile_size,
                 tiles_per_frame: prepared.tiles.len() as u32,
                 priority: prepared.priority,
-                paused: false,
                 verification: prepared.verification,
                 request: prepared.request,
                 label: prepared.label,
@@ -196,7 +194,6 @@ impl Core {
                 tile_size: stored.tile_size,
                 tiles_per_frame,
                 priority: stored.priority,
-                paused: stored.paused,
                 verification: stored.verification,
                 request,
                 label: stored.label,
@@ -525,13 +522,15 @@ impl Core {
         }
         let totals = self.sequence_totals(id);
         let frames = record.frames.len();
-        let eta_ms =
-            (state == JobState::Running && c.done > 0 && c.done < frames && !record.paused)
-                .then(|| {
-                    let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
-                    Some((per_frame * f64::from(frames - c.done)) as u64)
-                })
-                .flatten();
+        let eta_ms = (state == JobState::Running
+            && c.done > 0
+            && c.done < frames
+            && !record.frames.paused())
+        .then(|| {
+            let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
+            Some((per_frame * f64::from(frames - c.done)) as u64)
+        })
+        .flatten();
         let failures = record
             .frames
             .failed()
@@ -561,7 +560,7 @@ impl Core {
             estimated_error,
             time_limit_ms: None,
             stopped_on_time_limit: false,
-            paused: record.paused && !state.is_final(),
+            paused: record.frames.paused() && !state.is_final(),
             warning: (!state.is_final())
                 .then(|| self.no_worker_warning())
                 .flatten(),
@@ -746,7 +745,6 @@ impl Core {
         paused: bool,
     ) -> Result<Controls, String> {
         let record = self.controllable(id, if paused { "paused" } else { "resumed" })?;
-        record.paused = paused;
         record.frames.set_paused(paused);
         let priority = record.priority;
         let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
@@ -773,7 +771,7 @@ impl Core {
     ) -> Result<Controls, String> {
         let record = self.controllable(id, "given a new priority")?;
         record.priority = priority;
-        let paused = record.paused;
+        let paused = record.frames.paused();
         let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
         for job in active {
             let _ = self.set_priority(sh, job, priority);
