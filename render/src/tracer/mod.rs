@@ -15,7 +15,7 @@ mod ray;
 mod shading;
 mod single;
 
-use self::prepare::{EyePlane, EyeSphere, LightSource, SampleGroup, Surface};
+use self::prepare::{EyePlane, EyeSphere, LightSource, SampleGroup, SphereCone, Surface};
 use self::ray::{Path, Ray, FROM_CAMERA};
 use crate::bvh::{Bvh, Stack};
 use crate::camera::Camera;
@@ -56,6 +56,10 @@ pub struct Tracer {
     /// Camera-ray constants (only without a hierarchy, which has its own).
     eye_spheres: Vec<EyeSphere>,
     eye_planes: Vec<EyePlane>,
+    /// Without a hierarchy, for each light the cone of each sphere (`[light][sphere]`,
+    /// flattened, spheres in the order of `spheres`): shadow rays skip a sphere all of
+    /// them pass by. Empty when there would be more than [`prepare::SHADOW_CONES_MAX`].
+    shadow_cones: Vec<SphereCone>,
     /// The instruction set the lane code runs with.
     isa: Isa,
     lights: Vec<LightSource>,
@@ -81,6 +85,18 @@ struct Ctx<'a> {
     /// end: one vector subtraction per packet instead of a count of its mask's bits.
     lane_rays: M4,
     stack: Option<&'a mut Stack>,
+}
+
+impl Tracer {
+    /// The cones of the spheres (in the order of `spheres`) from light `light`, or none
+    /// when the tracer has none.
+    #[inline(always)]
+    fn shadow_cones(&self, light: usize) -> &[SphereCone] {
+        let n = self.spheres.len();
+        self.shadow_cones
+            .get(light * n..(light + 1) * n)
+            .unwrap_or(&[])
+    }
 }
 
 impl Ctx<'_> {

@@ -99,6 +99,9 @@ impl Tracer {
         } else if from == FROM_CAMERA {
             // Camera rays: the per-object constants of the eye.
             for s in &self.eye_spheres {
+                if s.cone.misses(dir).all() {
+                    continue;
+                }
                 let (f, c, radius2) = (V4::splat(s.f), F4::splat(s.c), F4::splat(s.radius2));
                 let hits = sphere_hits(f, c, radius2, dir, M4::NONE);
                 consider_lanes(&mut t, &mut index, hits, s.index);
@@ -175,7 +178,7 @@ impl Tracer {
             acc = hit.select3(acc + c.scale(F4::splat(special)), acc);
         }
         // 5. Direct light, diffuse and highlight, where the light is not shadowed.
-        for light in &self.lights {
+        for (light_index, light) in self.lights.iter().enumerate() {
             let to_light = V4::splat(light.position) - p;
             let distance = to_light.dot(to_light).sqrt();
             let l = to_light.div(distance);
@@ -192,7 +195,7 @@ impl Tracer {
                 from: index,
                 active: lit,
             };
-            let unshadowed = lit.and_not(self.occluded_lanes(&shadow, distance, ctx));
+            let unshadowed = lit.and_not(self.occluded_lanes(&shadow, distance, light_index, ctx));
             let light_color = V4::splat(light.color);
             acc = unshadowed.select3(acc + base.hadamard(light_color).scale(cos), acc);
             if special > 0.0 {
@@ -265,9 +268,10 @@ impl Tracer {
     }
 
     /// [`Tracer::occluded`] for the shadow rays of the packet's active lanes, towards
-    /// lights at `distance`: the lanes that are blocked.
+    /// light `light` at `distance`: the lanes that are blocked. Without a hierarchy, a
+    /// sphere that every open lane passes by ([`super::prepare::SphereCone`]) is not tested.
     #[inline(always)]
-    fn occluded_lanes(&self, shadow: &Packet, distance: F4, ctx: &mut Ctx) -> M4 {
+    fn occluded_lanes(&self, shadow: &Packet, distance: F4, light: usize, ctx: &mut Ctx) -> M4 {
         let (p, l, from, lit) = (shadow.origin, shadow.dir, shadow.from, shadow.active);
         if self.bvh.is_some() {
             let rays: [Ray; LANES] = std::array::from_fn(|k| shadow.lane(k));
@@ -289,9 +293,16 @@ impl Tracer {
                 blocked = blocked.or(ahead.and(plane_hits(num, denom).lt(limit)));
             }
         }
-        for &(index, ref s) in &self.spheres {
-            if !lit.and_not(blocked).any() {
+        let cones = self.shadow_cones(light);
+        for (k, &(index, ref s)) in self.spheres.iter().enumerate() {
+            let open = lit.and_not(blocked);
+            if !open.any() {
                 break;
+            }
+            if let Some(cone) = cones.get(k) {
+                if index != from && !open.and_not(cone.passes_by(l, distance)).any() {
+                    continue;
+                }
             }
             let t = sphere_lane_hits(s, p, l, index == from);
             blocked = blocked.or(t.lt(limit));
