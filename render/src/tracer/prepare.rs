@@ -43,14 +43,14 @@ pub(super) struct LightSource {
 /// than the light, for a shadow ray), or an image would change. So the cone is widened:
 /// a direction counts as outside only if the cosine of its angle to the axis is below
 /// the cone's by [`CONE_MARGIN`]. Only spheres whose tangent cone has a half-angle under
-/// 30° have one (the others are always tested, as are rays leaving the sphere). Then
-/// either the ray's line passes the sphere by at least `CONE_MARGIN / 2 · |C − A|` (A the
-/// apex), or the sphere lies behind the eye, or beyond the light, where a hit is farther
-/// than the light by at least `|C − A| / 2`. The rounding of the ray's direction and of
-/// the sphere test moves the line, or the hit, by some 10 ε (|p − A| + |C − A|) (p the
-/// ray's origin): about 4 · 10⁻⁹ |C − A| for shadow rays from up to [`CONE_REACH`] times
-/// the sphere's distance from the light, a hundred times less than the margin. Shadow
-/// rays from farther away test the sphere.
+/// 30°, at a distance within 10^±100, have one (the others are always tested, as are
+/// rays leaving the sphere). Then either the ray's line passes the sphere by at least
+/// `CONE_MARGIN / 2 · |C − A|` (A the apex), or the sphere lies behind the eye, or beyond
+/// the light, where a hit is farther than the light by at least `|C − A| / 2`. The
+/// rounding of the ray's direction and of the sphere test moves the line, or the hit, by
+/// some 10 ε (|p − A| + |C − A|) (p the ray's origin): about 4 · 10⁻⁹ |C − A| for shadow
+/// rays from up to [`CONE_REACH`] times the sphere's distance from the light, a hundred
+/// times less than the margin. Shadow rays from farther away test the sphere.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct SphereCone {
     /// The unit direction from the apex to the sphere's centre.
@@ -79,8 +79,10 @@ impl SphereCone {
         let d2 = to_center.dot(to_center);
         let distance = d2.sqrt();
         // sin θ = r / |C − A| < ½: the apex is well outside, and cos θ = √(1 − sin²θ)
-        // is computed without cancellation.
-        let narrow = s.radius2 < 0.25 * d2 && distance.is_finite() && distance > 0.0;
+        // is computed without cancellation. And the distance within 10^±100, so that
+        // neither the cone nor the sphere test's products come near underflow or
+        // overflow, where rounding is no longer relative.
+        let narrow = s.radius2 < 0.25 * d2 && (1e-100..=1e100).contains(&distance);
         if !narrow {
             return SphereCone {
                 axis: Vec3::ZERO,
@@ -415,14 +417,17 @@ mod tests {
         );
     }
 
-    /// A sphere that holds the light, or whose cone is wider than 60°, has no cone: its
-    /// shadow rays always test it.
+    /// A sphere that holds the light, whose cone is wider than 60°, or that lies where
+    /// products underflow or overflow, has no cone: its shadow rays always test it.
     #[test]
     fn wide_spheres_are_always_tested() {
         let light = Vec3::new(0.0, 0.0, 0.0);
         for (center, radius) in [
             (Vec3::new(0.0, 0.0, 0.5), 1.0),
             (Vec3::new(2.0, 0.0, 0.0), 1.0),
+            (Vec3::new(1e-160, 0.0, 0.0), 1e-162),
+            (Vec3::new(1e160, 0.0, 0.0), 1e158),
+            (Vec3::new(0.0, 0.0, 0.0), 1.0),
         ] {
             let cone = SphereCone::new(light, &SphereGeom::new(center, radius));
             let away = V4::splat(Vec3::new(0.0, 1.0, 0.0));
