@@ -269,7 +269,8 @@ impl Tracer {
 
     /// [`Tracer::occluded`] for the shadow rays of the packet's active lanes, towards
     /// light `light` at `distance`: the lanes that are blocked. Without a hierarchy, a
-    /// sphere that every open lane passes by ([`super::prepare::SphereCone`]) is not tested.
+    /// sphere that every open lane passes by ([`super::prepare::SphereCone`]) is not
+    /// tested.
     #[inline(always)]
     fn occluded_lanes(&self, shadow: &Packet, distance: F4, light: usize, ctx: &mut Ctx) -> M4 {
         let (p, l, from, lit) = (shadow.origin, shadow.dir, shadow.from, shadow.active);

@@ -39,18 +39,18 @@ pub(super) struct LightSource {
 /// lies inside. Tested first (one dot product instead of the sphere test's dozen
 /// products), it lets a packet pass by a sphere that all its lanes miss.
 ///
-/// The test must never pass by a sphere that [`SphereGeom::hit`] would report (closer
-/// than the light, for a shadow ray), or an image would change. So the cone is widened:
-/// a direction counts as outside only if the cosine of its angle to the axis is below
-/// the cone's by [`CONE_MARGIN`]. Only spheres whose tangent cone has a half-angle under
-/// 30°, at a distance within 10^±100, have one (the others are always tested, as are
-/// rays leaving the sphere). Then either the ray's line passes the sphere by at least
+/// The test must never pass by a sphere that [`SphereGeom::hit`] would report (closer than
+/// the light, for a shadow ray), or an image would change. So the cone is widened: a
+/// direction counts as outside only if the cosine of its angle to the axis is below the
+/// cone's by [`CONE_MARGIN`]. Only spheres whose tangent cone has a half-angle under 30°,
+/// at a distance within 10^±100, have one (the others are always tested, as are rays
+/// leaving the sphere). Then either the ray's line passes the sphere by at least
 /// `CONE_MARGIN / 2 · |C − A|` (A the apex), or the sphere lies behind the eye, or beyond
-/// the light, where a hit is farther than the light by at least `|C − A| / 2`. The
-/// rounding of the ray's direction and of the sphere test moves the line, or the hit, by
-/// some 10 ε (|p − A| + |C − A|) (p the ray's origin): about 4 · 10⁻⁹ |C − A| for shadow
-/// rays from up to [`CONE_REACH`] times the sphere's distance from the light, a hundred
-/// times less than the margin. Shadow rays from farther away test the sphere.
+/// the light, where a hit is farther than the light by at least `|C − A| / 2`. The rounding
+/// of the ray's direction and of the sphere test moves the line, or the hit, by some 10 ε
+/// (|p − A| + |C − A|) (p the ray's origin): about 4 · 10⁻⁹ |C − A| for shadow rays from up
+/// to [`CONE_REACH`] times the sphere's distance from the light, a hundred times less than
+/// the margin. Shadow rays from farther away test the sphere.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct SphereCone {
     /// The unit direction from the apex to the sphere's centre.
@@ -345,9 +345,10 @@ mod tests {
     /// Whenever a cone says a shadow ray passes by its sphere, the sphere test (the
     /// tracer's own, from the same point, direction and limit) finds no hit closer than
     /// the light, and whenever it says a camera ray from its apex misses the sphere, the
-    /// sphere test finds no hit at all: on rays grazing the tangent cone from either side, before, inside and
-    /// beyond the sphere, at scales from 10⁻⁶ to 10⁶ and offsets up to 10⁹. And the
-    /// cone does pass by most rays that are clearly outside it.
+    /// sphere test finds no hit at all: on rays grazing the tangent cone from either
+    /// side, before, inside and beyond the sphere, at scales from 10⁻⁶ to 10⁶ and
+    /// offsets up to 10⁹. And the cone does pass by most rays that are clearly outside
+    /// it.
     #[test]
     fn a_cone_never_passes_by_a_sphere_its_ray_hits() {
         let mut rng = Mix(11);
