@@ -10,6 +10,7 @@
 //!   each rendered again alone (`tessera retry JOB --frame K`), then every cancelled
 //!   frame (`tessera retry JOB`);
 //! - across a coordinator killed mid-sequence and started again on its data directory;
+//!   started again with a lower `--max-objects`, its frames still to start wait;
 //! - a frame that fails (five machines report its first tile failed) fails alone: the
 //!   other frames are done, the sequence ends failed naming it, and `tessera retry JOB
 //!   --frame K` on a healthy worker renders it;
@@ -393,6 +394,52 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     let listed = client(dir.path(), &addr, &["list", "--json"]);
     let jobs: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
     assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
+}
+
+/// A sequence taken back after a restart is admitted under the coordinator's limits of
+/// now: with `--max-objects` lowered below its scene's 3 objects, the frames still to
+/// start wait, each refusal in the sequence's events, and none of them starts.
+#[test]
+fn a_limit_lowered_across_a_restart_holds_back_the_frames_still_to_start() {
+    let _serial = serial();
+    let dir = TempDir::new().expect("temporary directory");
+    let listen = format!("127.0.0.1:{}", free_port());
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-1.log");
+    // No worker: the frames beyond the first few stay pending.
+    let job = submit_sequence(dir.path(), &addr, "1-16");
+    wait_for(dir.path(), &addr, job, "stored", |s| {
+        count(s, "pending") > 0
+    });
+    coordinator.kill9();
+
+    let limited = ["--max-objects", "2"];
+    let (_coordinator, again) =
+        start_coordinator(dir.path(), &data, &listen, &limited, "coordinator-2.log");
+    assert_eq!(again, addr, "restarted on the same address");
+    // The frames stored as frame jobs before the kill were admitted then, and go on.
+    let restored = try_status(dir.path(), &addr, job).expect("the sequence after a restart");
+    let admitted = 16 - count(&restored, "pending");
+    let _worker = start_worker(dir.path(), &addr, "w0");
+    let refusal = "objects: 3 objects, more than this coordinator's limit of 2";
+    poll("the frames' refusal in the events", TIMEOUT, || {
+        let events = client(dir.path(), &addr, &["events", &job.to_string(), "--json"]);
+        let events: serde_json::Value = serde_json::from_str(events.stdout.trim()).ok()?;
+        events
+            .as_array()?
+            .iter()
+            .any(|e| {
+                e["event"] == "frame_waiting"
+                    && e["detail"].as_str().is_some_and(|d| d.contains(refusal))
+            })
+            .then_some(())
+    });
+    // The frames admitted before the restart are rendered; no other starts.
+    let status = wait_for(dir.path(), &addr, job, "the admitted frames done", |s| {
+        count(s, "active") == 0 && count(s, "done") == admitted
+    });
+    assert_eq!(count(&status, "pending"), 16 - admitted, "{status}");
 }
 
 /// `tessera list` shows no job: a deleted sequence leaves no frame job behind.

@@ -169,16 +169,19 @@ impl Core {
         let Some(last) = stored.last_frame else {
             return;
         };
-        let frame_count = render::parse_animated(&stored.scene)
-            .map(|a| a.frame_count())
-            .unwrap_or(last);
+        // The scene was checked when the sequence was accepted; parsing it again gives
+        // the frame count and the object count its frames are admitted under, so that
+        // a limit lowered across the restart applies to the frames still to start.
+        let (frame_count, objects) = render::parse_animated(&stored.scene)
+            .map(|a| (a.frame_count(), a.base.objects.len()))
+            .unwrap_or((last, 0));
         let tiles_per_frame = tiling::cut(&stored.settings, stored.tile_size).len() as u32;
         let mut frames = Sequence::new(stored.frame, last);
         frames.set_paused(stored.paused);
         let request = lifecycle::Request {
             client: stored.label.submitted_from.parse().ok(),
             scene_bytes: stored.scene.len(),
-            objects: 0,
+            objects,
             width: stored.settings.width,
             height: stored.settings.height,
             aa: stored.settings.aa,
