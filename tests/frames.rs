@@ -19,9 +19,9 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::{
-    assert_same_png, client, fetch, free_port, ok, poll, render_reference, scene_path, serial,
-    start_coordinator, start_coordinator_in, start_worker, submit, try_status, try_workers,
-    wait_done, Daemon,
+    assert_same_png, client, fetch, ok, poll, render_reference, restart_coordinator, scene_path,
+    serial, start_coordinator_in, start_restartable_coordinator, start_worker, submit, try_status,
+    try_workers, wait_done, Daemon,
 };
 use tempfile::TempDir;
 
@@ -180,10 +180,7 @@ fn a_frame_the_scene_does_not_have_is_refused_in_one_line() {
 fn a_restarted_coordinator_keeps_the_frame_of_a_queued_job() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
-    let listen = format!("127.0.0.1:{}", free_port());
-    let data = dir.path().join("data");
-    let (mut coordinator, addr) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-1.log");
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
     let scene = orbit();
     let mut args = vec![scene.as_str(), "--frame", "17"];
     args.extend(JOB);
@@ -195,9 +192,7 @@ fn a_restarted_coordinator_keeps_the_frame_of_a_queued_job() {
     assert_eq!(status["frame"], 17, "{status}");
     coordinator.kill9();
 
-    let (_coordinator, again) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-2.log");
-    assert_eq!(again, addr, "restarted on the same address");
+    let _coordinator = restart_coordinator(dir.path(), &addr, &[]);
     let status = try_status(dir.path(), &addr, job).expect("status after the restart");
     assert_eq!(status["frame"], 17, "{status}");
     let workers: Vec<Daemon> = ["w1", "w2"]

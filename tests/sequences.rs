@@ -26,8 +26,9 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::{
-    client, free_port, ok, poll, scene_path, serial, start_coordinator, start_coordinator_in,
-    start_worker, start_worker_with, submit, tessera, try_status, try_workers, Daemon,
+    client, ok, poll, restart_coordinator, scene_path, serial, start_coordinator,
+    start_coordinator_in, start_restartable_coordinator, start_worker, start_worker_with, submit,
+    tessera, try_status, try_workers, Daemon,
 };
 use tempfile::TempDir;
 
@@ -363,10 +364,7 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
     let reference = reference(dir.path(), "1-16");
-    let listen = format!("127.0.0.1:{}", free_port());
-    let data = dir.path().join("data");
-    let (mut coordinator, addr) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-1.log");
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
     let slow = ["--throttle", "150"];
     let _workers: Vec<Daemon> = (0..2)
         .map(|i| start_worker_with(dir.path(), &addr, &format!("w{i}"), &slow))
@@ -379,9 +377,7 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     assert!(count(&before, "done") < 16, "the sequence ended too soon");
     coordinator.kill9();
 
-    let (_coordinator, again) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-2.log");
-    assert_eq!(again, addr, "restarted on the same address");
+    let _coordinator = restart_coordinator(dir.path(), &addr, &[]);
     let status = try_status(dir.path(), &addr, job).expect("the sequence after a restart");
     assert!(
         count(&status, "done") >= count(&before, "done"),
@@ -403,10 +399,7 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
 fn a_limit_lowered_across_a_restart_holds_back_the_frames_still_to_start() {
     let _serial = serial();
     let dir = TempDir::new().expect("temporary directory");
-    let listen = format!("127.0.0.1:{}", free_port());
-    let data = dir.path().join("data");
-    let (mut coordinator, addr) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-1.log");
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
     // No worker: the frames beyond the first few stay pending.
     let job = submit_sequence(dir.path(), &addr, "1-16");
     wait_for(dir.path(), &addr, job, "stored", |s| {
@@ -415,9 +408,7 @@ fn a_limit_lowered_across_a_restart_holds_back_the_frames_still_to_start() {
     coordinator.kill9();
 
     let limited = ["--max-objects", "2"];
-    let (_coordinator, again) =
-        start_coordinator(dir.path(), &data, &listen, &limited, "coordinator-2.log");
-    assert_eq!(again, addr, "restarted on the same address");
+    let _coordinator = restart_coordinator(dir.path(), &addr, &limited);
     // The frames stored as frame jobs before the kill were admitted then, and go on.
     let restored = try_status(dir.path(), &addr, job).expect("the sequence after a restart");
     let admitted = 16 - count(&restored, "pending");

@@ -197,6 +197,23 @@ pub fn start_coordinator_in(dir: &Path) -> (Daemon, String) {
     )
 }
 
+/// [`start_coordinator`] on a free port of 127.0.0.1 chosen now, with `DIR/data`, logging
+/// to `DIR/coordinator-1.log`: for a test that kills it and starts it again on the same
+/// address and data with [`restart_coordinator`].
+pub fn start_restartable_coordinator(dir: &Path) -> (Daemon, String) {
+    let listen = format!("127.0.0.1:{}", free_port());
+    start_coordinator(dir, &dir.join("data"), &listen, &[], "coordinator-1.log")
+}
+
+/// Starts the coordinator of [`start_restartable_coordinator`] again on its address
+/// `addr` and its data, with `extra` flags, logging to `DIR/coordinator-2.log`.
+pub fn restart_coordinator(dir: &Path, addr: &str, extra: &[&str]) -> Daemon {
+    let (daemon, again) =
+        start_coordinator(dir, &dir.join("data"), addr, extra, "coordinator-2.log");
+    assert_eq!(again, addr, "restarted on the same address");
+    daemon
+}
+
 /// Starts `tessera worker --coordinator ADDR --threads 1 --name NAME` (log in
 /// `DIR/worker-NAME.log`), without waiting for it to register.
 pub fn start_worker(dir: &Path, addr: &str, name: &str) -> Daemon {
