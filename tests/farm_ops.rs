@@ -540,9 +540,7 @@ fn status_json(dir: &std::path::Path, addr: &str, job: u64) -> serde_json::Value
 fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained_worker_exits() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    let listen = format!("127.0.0.1:{}", common::free_port());
-    let (coordinator, addr) = start_coordinator(dir.path(), &data, &listen, &[], "coordinator.log");
+    let (coordinator, addr) = common::start_restartable_coordinator(dir.path());
 
     // Mistaken names are one line saying what to give.
     for action in ["drain", "disable", "enable"] {
@@ -611,9 +609,7 @@ fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained
 
     // The disable is stored: a restarted coordinator keeps the machine disabled.
     drop(coordinator);
-    let (coordinator, again) =
-        start_coordinator(dir.path(), &data, &listen, &[], "coordinator-2.log");
-    assert_eq!(again, addr);
+    let coordinator = common::restart_coordinator(dir.path(), &addr, &[]);
     let listed = poll("the worker to come back", Duration::from_secs(60), || {
         let listed = workers_json(dir.path(), &addr);
         worker_named(&listed, "box").is_some().then_some(listed)

@@ -607,10 +607,7 @@ fn a_damaged_stored_image_is_reported_not_served() {
     let dir = TempDir::new().expect("temporary directory");
     let d = dir.path();
     let data = d.join("data");
-    let port = common::free_port();
-    let listen = format!("127.0.0.1:{port}");
-    let (mut coordinator, addr) =
-        common::start_coordinator(d, &data, &listen, &[], "coordinator-1.log");
+    let (mut coordinator, addr) = common::start_restartable_coordinator(d);
     let _worker = common::start_worker(d, &addr, "w1");
     wait_for_workers(d, &addr, 1);
     let seed = common::scene_path("seed.json");
@@ -660,8 +657,7 @@ fn a_damaged_stored_image_is_reported_not_served() {
         check_damaged_fetch(d, &addr, &data, job, &reference, what, &mut findings);
     }
     stop(&mut coordinator);
-    let (_coordinator, addr) =
-        common::start_coordinator(d, &data, &listen, &[], "coordinator-2.log");
+    let _coordinator = common::restart_coordinator(d, &addr, &[]);
     for (job, what) in [
         (truncated, "a truncated image after a restart"),
         (altered, "an altered image after a restart"),
