@@ -23,6 +23,7 @@ use protocol::{ClientRequest, ClientResponse, JobId};
 use sha2::{Digest, Sha256};
 use tokio::net::TcpListener;
 
+use crate::metrics::Exposition;
 use crate::server::{Observer, Picture, Refusal};
 
 /// The status page: one self-contained file, polling `/api/status`.
@@ -135,14 +136,18 @@ async fn picture(State(observer): State<Observer>, Path(id): Path<JobId>) -> Res
         .into_response()
 }
 
-async fn metrics(State(observer): State<Observer>) -> Response {
-    let text = tokio::task::spawn_blocking(move || observer.metrics()).await;
+/// The metrics, in the format the scraper's `Accept` header asks for
+/// ([`Exposition::negotiate`]).
+async fn metrics(State(observer): State<Observer>, headers: HeaderMap) -> Response {
+    let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok());
+    let format = Exposition::negotiate(accept);
+    let text = tokio::task::spawn_blocking(move || observer.metrics(format)).await;
     match text {
         Ok(text) => (
-            [(
-                header::CONTENT_TYPE,
-                "application/openmetrics-text; version=1.0.0; charset=utf-8",
-            )],
+            [
+                (header::CONTENT_TYPE, format.content_type()),
+                (header::VARY, "Accept"),
+            ],
             text,
         )
             .into_response(),

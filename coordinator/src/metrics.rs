@@ -242,8 +242,8 @@ impl Metrics {
         }
     }
 
-    /// The metrics in the text exposition format, with the state of `snapshot`.
-    pub fn render(&self, snapshot: &Snapshot) -> String {
+    /// The metrics in `format`, with the state of `snapshot`.
+    pub fn render(&self, snapshot: &Snapshot, format: Exposition) -> String {
         for (state, n) in &snapshot.jobs {
             self.jobs
                 .get_or_create(&StateLabel {
@@ -269,8 +269,110 @@ impl Metrics {
         let mut out = String::new();
         prometheus_client::encoding::text::encode(&mut out, &self.registry)
             .expect("writing to a String cannot fail");
-        out
+        match format {
+            Exposition::OpenMetrics => out,
+            Exposition::Prometheus => openmetrics_to_prometheus(&out),
+        }
     }
+}
+
+/// The two text formats a scrape can ask for. The registry encodes OpenMetrics; the
+/// Prometheus text format (0.0.4) is what `promtool check metrics`, older scrapers and
+/// a plain `curl` expect, so it is also the answer when the request does not say.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Exposition {
+    /// `text/plain; version=0.0.4`.
+    Prometheus,
+    /// `application/openmetrics-text; version=1.0.0`.
+    OpenMetrics,
+}
+
+impl Exposition {
+    /// The format an `Accept` header asks for: OpenMetrics when it names
+    /// `application/openmetrics-text` (version 1.0.0 or none given) at least as
+    /// strongly as anything the text format matches (`text/plain`, `text/*`, `*/*`);
+    /// the text format otherwise, and when there is no header.
+    pub fn negotiate(accept: Option<&str>) -> Exposition {
+        let Some(accept) = accept else {
+            return Exposition::Prometheus;
+        };
+        let mut openmetrics: f32 = 0.0;
+        let mut text: f32 = 0.0;
+        for range in accept.split(',') {
+            let mut parts = range.split(';').map(str::trim);
+            let media = parts.next().unwrap_or("").to_ascii_lowercase();
+            let mut quality = 1.0_f32;
+            let mut version = None;
+            for param in parts {
+                let Some((key, value)) = param.split_once('=') else {
+                    continue;
+                };
+                let value = value.trim().trim_matches('"');
+                match key.trim().to_ascii_lowercase().as_str() {
+                    "q" => quality = value.parse().unwrap_or(0.0_f32).clamp(0.0, 1.0),
+                    "version" => version = Some(value.to_owned()),
+                    _ => {}
+                }
+            }
+            match media.as_str() {
+                "application/openmetrics-text"
+                    if version.as_deref().is_none_or(|v| v == "1.0.0") =>
+                {
+                    openmetrics = openmetrics.max(quality);
+                }
+                "text/plain" | "text/*" | "*/*" => text = text.max(quality),
+                _ => {}
+            }
+        }
+        if openmetrics > 0.0 && openmetrics >= text {
+            Exposition::OpenMetrics
+        } else {
+            Exposition::Prometheus
+        }
+    }
+
+    /// The `Content-Type` of an answer in this format.
+    pub fn content_type(self) -> &'static str {
+        match self {
+            Exposition::Prometheus => "text/plain; version=0.0.4; charset=utf-8",
+            Exposition::OpenMetrics => "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        }
+    }
+}
+
+/// The registry's OpenMetrics exposition in the Prometheus text format. The two differ,
+/// for the metric types this registry holds (counters, gauges, histograms), only in
+/// that a counter's `HELP` and `TYPE` name its samples' `_total` name, and that the
+/// text format has no `UNIT` lines and no `# EOF`; samples are written alike.
+fn openmetrics_to_prometheus(openmetrics: &str) -> String {
+    let counters: std::collections::HashSet<&str> = openmetrics
+        .lines()
+        .filter_map(|line| line.strip_prefix("# TYPE "))
+        .filter_map(|rest| rest.strip_suffix(" counter"))
+        .collect();
+    let mut out = String::with_capacity(openmetrics.len());
+    for line in openmetrics.lines() {
+        if line == "# EOF" || line.starts_with("# UNIT ") {
+            continue;
+        }
+        let descriptor = ["# HELP ", "# TYPE "]
+            .into_iter()
+            .find_map(|prefix| Some((prefix, line.strip_prefix(prefix)?)));
+        match descriptor {
+            Some((prefix, rest)) => {
+                let (name, tail) = rest.split_once(' ').unwrap_or((rest, ""));
+                let suffix = if counters.contains(name) {
+                    "_total"
+                } else {
+                    ""
+                };
+                out.push_str(&format!("{prefix}{name}{suffix} {tail}"));
+            }
+            None => out.push_str(line),
+        }
+        out.push('\n');
+    }
+    out
 }
 
 #[cfg(test)]
@@ -293,7 +395,7 @@ mod tests {
             storage_available: true,
         };
         m.storage_outage();
-        let text = m.render(&snapshot);
+        let text = m.render(&snapshot, Exposition::OpenMetrics);
         for line in [
             "tessera_jobs{state=\"running\"} 1",
             "tessera_jobs{state=\"done\"} 2",
@@ -313,13 +415,86 @@ mod tests {
         // Counters follow the scheduler's totals, not add them up again.
         snapshot.scheduler.leases_expired = 8;
         snapshot.storage_available = false;
-        let text = m.render(&snapshot);
+        let text = m.render(&snapshot, Exposition::OpenMetrics);
         assert!(text.contains("tessera_storage_available 0\n"), "{text}");
         assert!(text.contains("tessera_leases_expired_total 8\n"), "{text}");
         assert!(
             text.contains("tessera_tiles_reassigned_total 6\n"),
             "{text}"
         );
+    }
+
+    #[test]
+    fn the_text_format_names_counters_by_their_samples_and_has_no_eof() {
+        let m = Metrics::new();
+        m.tile_accepted(1000, Some(Duration::from_millis(20)));
+        let snapshot = Snapshot {
+            jobs: vec![(JobState::Running, 1)],
+            workers: 1,
+            tiles_in_flight: 0,
+            scheduler: Counters::default(),
+            storage_available: true,
+        };
+        let openmetrics = m.render(&snapshot, Exposition::OpenMetrics);
+        assert!(openmetrics.ends_with("# EOF\n"), "{openmetrics}");
+        assert!(openmetrics.contains("# TYPE tessera_rays counter\n"));
+        let text = m.render(&snapshot, Exposition::Prometheus);
+        for line in [
+            "# HELP tessera_rays_total Rays traced for accepted tiles.",
+            "# TYPE tessera_rays_total counter",
+            "tessera_rays_total 1000",
+            "# TYPE tessera_workers_connected gauge",
+            "# TYPE tessera_tile_latency_seconds histogram",
+            "tessera_tile_latency_seconds_count 1",
+        ] {
+            assert!(text.lines().any(|l| l == line), "{line} missing in\n{text}");
+        }
+        assert!(
+            !text.contains("# EOF") && !text.contains("# UNIT"),
+            "{text}"
+        );
+        // Every sample line is the same in both.
+        let samples = |t: &str| -> Vec<String> {
+            t.lines()
+                .filter(|l| !l.starts_with('#'))
+                .map(str::to_owned)
+                .collect()
+        };
+        assert_eq!(samples(&text), samples(&openmetrics));
+    }
+
+    #[test]
+    fn scrapes_get_the_format_they_ask_for() {
+        use Exposition::{OpenMetrics, Prometheus};
+        for (accept, want) in [
+            (None, Prometheus),
+            (Some("*/*"), Prometheus),
+            (Some("text/plain"), Prometheus),
+            (Some("text/plain;version=0.0.4"), Prometheus),
+            (Some("application/openmetrics-text"), OpenMetrics),
+            // What Prometheus 2 sends: OpenMetrics first.
+            (
+                Some(
+                    "application/openmetrics-text;version=1.0.0,application/openmetrics-text;\
+                     version=0.0.1;q=0.75,text/plain;version=0.0.4;q=0.5,*/*;q=0.1",
+                ),
+                OpenMetrics,
+            ),
+            // The text format preferred.
+            (
+                Some("text/plain;version=0.0.4;q=0.9, application/openmetrics-text;q=0.3"),
+                Prometheus,
+            ),
+            // A version this exposition is not.
+            (
+                Some("application/openmetrics-text; version=0.0.1"),
+                Prometheus,
+            ),
+            (Some("application/openmetrics-text; q=0"), Prometheus),
+            (Some("image/png"), Prometheus),
+        ] {
+            assert_eq!(Exposition::negotiate(accept), want, "{accept:?}");
+        }
     }
 
     #[test]

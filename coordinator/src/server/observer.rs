@@ -436,9 +436,9 @@ impl Observer {
         self.shared.client_secret.as_deref()
     }
 
-    pub fn metrics(&self) -> String {
+    pub fn metrics(&self, format: crate::metrics::Exposition) -> String {
         let snapshot = snapshot(&self.shared.lock());
-        self.shared.metrics.render(&snapshot)
+        self.shared.metrics.render(&snapshot, format)
     }
 }
 
