@@ -321,7 +321,10 @@ pub struct JobEvent {
 /// `Job` is the largest variant by far; it is not boxed because an answer is made once
 /// per request and moved straight into the codec: its size costs nothing measurable,
 /// and a box would only add an allocation.
-#[allow(clippy::large_enum_variant)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "an answer is made once per request and moved into the codec (above)"
+)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ClientResponse {
     Submitted {

@@ -841,7 +841,10 @@ impl Bvh {
     /// Tests the leaf's spheres for the rays of `lanes` (`origin` and `dir` in SIMD
     /// lanes: each sphere is tested against all four rays at once, with the same bits
     /// as [`SphereGeom::hit`]), updating their best hits and distance limits.
-    #[allow(clippy::too_many_arguments)]
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "four rays' lanes passed as registers, not packed in a struct"
+    )]
     #[inline(always)]
     fn leaf_lanes(
         &self,

@@ -86,7 +86,6 @@ const TANGENT_TOLERANCE: f64 = 1.0 - 1e-9;
 ///
 /// Blocks are `block` × `block` pixels aligned to the image's top-left corner; the last
 /// column and row of blocks may be partial.
-#[allow(dead_code)]
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Footprints {
     blocks_x: u32,
@@ -96,7 +95,6 @@ pub struct Footprints {
     mins: Vec<u32>,
 }
 
-#[allow(dead_code)]
 impl Footprints {
     /// The minima of the frame `tracer` renders, in blocks of `block` pixels. `cap` is
     /// the most samples a pixel may take; no minimum exceeds it.

@@ -1107,7 +1107,10 @@ impl Core {
     /// confirmation itself (every tile of a job in full verification, a random share of
     /// the others), or counts at once. The scheduler decides whether it is the first
     /// (kept) or a copy (compared).
-    #[allow(clippy::too_many_arguments)]
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "one tile result's parts, as the session received them"
+    )]
     pub fn tile_done(
         &mut self,
         sh: &Arc<Shared>,
@@ -1796,7 +1799,10 @@ impl Core {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "one tile result's parts, as the session received them"
+    )]
     fn accept_tile(
         &mut self,
         sh: &Shared,
