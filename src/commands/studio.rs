@@ -3,60 +3,76 @@
 //! everything stopped and removed again on Ctrl-C, SIGTERM or SIGHUP (docs/studio.md).
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
 
+use super::up::up_limits;
+use crate::args::threads_per_worker;
 use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::up_command::{up_limits, StopSignals};
+use crate::scene_file::read_checked_scene;
+use crate::signals::{Interrupted, StopSignals};
 
-pub struct Options {
-    /// The scene the page opens with; the page's own default (the seed scene) without.
-    pub scene: Option<PathBuf>,
-    pub workers: usize,
-    pub threads_per_worker: usize,
-    /// Where the page is served (loopback; port 0 takes a free one).
-    pub http: SocketAddr,
+/// Edit a scene and move its camera in the browser while a local farm renders it.
+#[derive(clap::Args)]
+#[command(
+    long_about = "Start a coordinator and worker processes on this machine (loopback \
+        only), serve the studio page and print its address: a scene editor whose \
+        every change the farm renders progressively. Ctrl-C stops the farm and removes \
+        its files.",
+    after_help = "Example:\n  tessera studio scenes/seed.json\n  \
+        (then open the printed http://127.0.0.1:PORT/studio)"
+)]
+pub struct Args {
+    /// The scene to open [default: the seed scene at 960 x 540, aa 2].
+    scene: Option<PathBuf>,
+    /// Worker processes to start.
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=64))]
+    workers: u32,
+    /// Rendering threads of each worker [default: cores / workers, at least 1].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads_per_worker: Option<u32>,
+    /// Where to serve the page: a loopback address; port 0 takes a free one.
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:0")]
+    http: SocketAddr,
 }
 
-/// Reads a scene file and checks it with the renderer's loader: its text, or the
-/// loader's one-line error prefixed with the file.
-pub fn read_checked_scene(path: &Path) -> Result<String> {
-    let text = crate::client_commands::read_scene(path)?;
-    render::parse_scene(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
-    Ok(text)
+pub fn run(args: Args) -> Result<()> {
+    super::block_on(studio(args))
 }
 
-pub async fn run(opts: Options) -> Result<()> {
+async fn studio(args: Args) -> Result<()> {
+    let workers = args.workers as usize;
+    let threads = threads_per_worker(workers, args.threads_per_worker);
     let mut stop = StopSignals::new()?;
-    if !opts.http.ip().is_loopback() {
+    if !args.http.ip().is_loopback() {
         // The farm has no secret: its controls (and so the studio) trust this machine
         // only. A farm of many machines is a coordinator with --http and a secret.
         anyhow::bail!(
             "--http {}: the studio's local farm listens on loopback only (127.0.0.1 or ::1)",
-            opts.http
+            args.http
         );
     }
-    if let Some(scene) = &opts.scene {
+    if let Some(scene) = &args.scene {
         read_checked_scene(scene)?;
     }
     let specs = vec![
         WorkerSpec {
-            threads: opts.threads_per_worker,
+            threads,
             throttle: None,
         };
-        opts.workers
+        workers
     ];
-    let mut args = up_limits();
-    args.extend(["--http".to_owned(), opts.http.to_string()]);
-    if let Some(scene) = &opts.scene {
+    let mut coordinator_args = up_limits();
+    coordinator_args.extend(["--http".to_owned(), args.http.to_string()]);
+    if let Some(scene) = &args.scene {
         let absolute = std::path::absolute(scene)
             .with_context(|| format!("cannot resolve {}", scene.display()))?;
-        args.extend(["--studio-scene".to_owned(), absolute.display().to_string()]);
+        coordinator_args.extend(["--studio-scene".to_owned(), absolute.display().to_string()]);
     }
     let starting = tokio::task::spawn_blocking(move || {
-        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let args: Vec<&str> = coordinator_args.iter().map(String::as_str).collect();
         LocalFarm::start_with(&specs, &args)
     });
     let farm = tokio::select! {
@@ -64,7 +80,7 @@ pub async fn run(opts: Options) -> Result<()> {
         signal = stop.next() => return Err(signal.into()),
     };
     let ready = tokio::select! {
-        r = farm.wait_for_workers(opts.workers, Duration::from_secs(30)) => r,
+        r = farm.wait_for_workers(workers, Duration::from_secs(30)) => r,
         e = farm.first_exit() => Err(e),
         signal = stop.next() => Err(signal.into()),
     };
@@ -76,7 +92,7 @@ pub async fn run(opts: Options) -> Result<()> {
     println!(
         "farm: coordinator {} with {} workers; status page http://{http}/; Ctrl-C stops it",
         farm.address(),
-        opts.workers
+        workers
     );
     let result = tokio::select! {
         e = farm.first_exit() => Err(e),
@@ -85,7 +101,7 @@ pub async fn run(opts: Options) -> Result<()> {
     drop(farm);
     match result {
         // Stopping the studio is how it ends: not an error, but the farm is gone.
-        Err(e) if e.downcast_ref::<crate::up_command::Interrupted>().is_some() => {
+        Err(e) if e.downcast_ref::<Interrupted>().is_some() => {
             eprintln!("studio stopped: the local farm is stopped and its files removed");
             Ok(())
         }

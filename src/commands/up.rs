@@ -5,56 +5,87 @@
 //! The children are the real `tessera coordinator` and `tessera worker` processes of a
 //! [`LocalFarm`], stopped when `up` ends for any reason.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::{Context, Result};
-use protocol::Overrides;
 use transport::Endpoint;
 
-use crate::client_commands::{sequence_summary, submit, summary, wait, JobChoices, Session};
+use crate::args::{parse_frame_range, threads_per_worker, FrameRange, ImageArgs};
+use crate::config;
 use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::output::{default_output, FramesDir, ImageOutput};
-use crate::render_command::FrameRange;
-use crate::sequence_commands::{choose_frames, wait_sequence, FrameChoice};
+use crate::output::JobOutput;
+use crate::report::{sequence_summary, summary};
+use crate::scene_file::read_scene;
+use crate::sequences::wait_sequence;
+use crate::session::{wait, Session};
+use crate::signals::StopSignals;
+use crate::submission::{choose_frames, submit, JobChoices};
 
-pub struct Options {
-    pub scene: PathBuf,
-    pub workers: usize,
-    pub threads_per_worker: usize,
-    pub output: Option<PathBuf>,
-    /// `--frames`: a sequence of an animated scene, into the directory `output`.
-    pub frames: Option<FrameRange>,
-    /// The image settings and the time limit (ms), if any.
-    pub job: (Overrides, Option<u64>),
+/// Render a scene on a farm started on this machine for the occasion.
+#[derive(clap::Args)]
+#[command(
+    long_about = "Start a coordinator and worker processes on this machine (loopback \
+        only), render the scene on them, write the image and stop them all again.",
+    after_help = "Example:\n  tessera up scenes/seed.json --workers 3 -o seed.png"
+)]
+pub struct Args {
+    /// The scene file (JSON).
+    scene: PathBuf,
+    /// Worker processes to start.
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=64))]
+    workers: u32,
+    /// Rendering threads of each worker [default: cores / workers, at least 1].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads_per_worker: Option<u32>,
+    /// Where to write the PNG [default: the scene's file name with .png, here]; with
+    /// --frames, the directory of the frames [default: the scene's file name].
+    #[arg(short, long, value_name = "OUT.png|DIR")]
+    output: Option<PathBuf>,
+    /// Render frames A to B of an animated scene (A-B, K or all) as one sequence job,
+    /// written into the directory -o as they are done.
+    #[arg(long, value_name = "RANGE", value_parser = parse_frame_range)]
+    frames: Option<FrameRange>,
+    #[command(flatten)]
+    image: ImageArgs,
+    /// Adaptive sampling for about this long (500ms, 30s, 2m): the job stops at the
+    /// end of the pass that reaches it. Implies --sampler adaptive.
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
+    time_limit: Option<Duration>,
+    /// Tile side in pixels [default: chosen from the image size and aa].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
+    tile: Option<u32>,
 }
 
-pub async fn run(opts: Options) -> Result<()> {
+pub fn run(args: Args) -> Result<()> {
+    super::block_on(up(args))
+}
+
+async fn up(args: Args) -> Result<()> {
+    let workers = args.workers as usize;
+    let threads = threads_per_worker(workers, args.threads_per_worker);
+    let (overrides, time_limit_ms) = args.image.farm_job(args.tile, args.time_limit)?;
     // Caught from now on, so that the farm and its temporary directory always go.
     let mut stop = StopSignals::new()?;
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
-    let text = crate::client_commands::read_scene(&opts.scene)?;
-    let frames = choose_frames(&text, opts.frames.is_none().then_some(1), opts.frames)?;
-    let output = match frames.frames {
-        None => Output::Image(ImageOutput::create(
-            &opts
-                .output
-                .clone()
-                .unwrap_or_else(|| default_output(&opts.scene)),
-        )?),
-        Some(_) => Output::Frames(FramesDir::create(
-            &opts
-                .output
-                .clone()
-                .unwrap_or_else(|| default_output(&opts.scene).with_extension("")),
-        )?),
+    let text = read_scene(&args.scene)?;
+    let frames = choose_frames(&text, args.frames.is_none().then_some(1), args.frames)?;
+    let output = JobOutput::create(frames.frames.is_some(), args.output, &args.scene)?;
+    let job = JobChoices {
+        overrides,
+        priority: 0,
+        verification: protocol::Verification::default(),
+        time_limit_ms,
+        label: Default::default(),
+        frames,
     };
     let specs = vec![
         WorkerSpec {
-            threads: opts.threads_per_worker,
+            threads,
             throttle: None,
         };
-        opts.workers
+        workers
     ];
     let starting = tokio::task::spawn_blocking(move || {
         let limits = up_limits();
@@ -66,7 +97,7 @@ pub async fn run(opts: Options) -> Result<()> {
         signal = stop.next() => return Err(signal.into()),
     };
     let result = tokio::select! {
-        r = render_on(farm.address(), &opts, frames, output) => r,
+        r = render_on(farm.address(), &args.scene, job, output, workers) => r,
         e = farm.first_exit() => Err(e),
         signal = stop.next() => Err(signal.into()),
     };
@@ -88,125 +119,33 @@ pub fn up_limits() -> Vec<String> {
     ]
 }
 
-/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
-/// shell reports a command killed by it, once the farm is stopped and its temporary
-/// directory removed.
-#[derive(Debug)]
-pub struct Interrupted {
-    pub name: &'static str,
-    /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
-    pub exit_code: u8,
-}
-
-impl std::fmt::Display for Interrupted {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "interrupted by {}: the local farm is stopped, no image written",
-            self.name
-        )
-    }
-}
-
-impl std::error::Error for Interrupted {}
-
-/// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
-pub struct StopSignals {
-    #[cfg(unix)]
-    signals: [(tokio::signal::unix::Signal, Interrupted); 3],
-}
-
-impl StopSignals {
-    pub fn new() -> Result<StopSignals> {
-        #[cfg(unix)]
-        {
-            use tokio::signal::unix::{signal, SignalKind};
-            let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
-                Ok((
-                    signal(kind).with_context(|| format!("cannot catch {name}"))?,
-                    Interrupted { name, exit_code },
-                ))
-            };
-            Ok(StopSignals {
-                signals: [
-                    catch(SignalKind::interrupt(), "SIGINT", 130)?,
-                    catch(SignalKind::terminate(), "SIGTERM", 143)?,
-                    catch(SignalKind::hangup(), "SIGHUP", 129)?,
-                ],
-            })
-        }
-        #[cfg(not(unix))]
-        Ok(StopSignals {})
-    }
-
-    /// The next signal caught.
-    pub async fn next(&mut self) -> Interrupted {
-        #[cfg(unix)]
-        {
-            let [(int, _), (term, _), (hup, _)] = &mut self.signals;
-            let i = tokio::select! {
-                _ = int.recv() => 0,
-                _ = term.recv() => 1,
-                _ = hup.recv() => 2,
-            };
-            let (_, what) = &self.signals[i];
-            Interrupted {
-                name: what.name,
-                exit_code: what.exit_code,
-            }
-        }
-        #[cfg(not(unix))]
-        {
-            let _ = tokio::signal::ctrl_c().await;
-            Interrupted {
-                name: "Ctrl-C",
-                exit_code: 130,
-            }
-        }
-    }
-}
-
-/// Where `up` writes: an image, or a sequence's frames.
-enum Output {
-    Image(ImageOutput),
-    Frames(FramesDir),
-}
-
+/// Submits the job to the farm at `address`, follows it and writes its result; the
+/// summary line says how many `workers` rendered it.
 async fn render_on(
     address: &str,
-    opts: &Options,
-    frames: FrameChoice,
-    output: Output,
+    scene: &Path,
+    job: JobChoices,
+    output: JobOutput,
+    workers: usize,
 ) -> Result<()> {
     let mut session = Session::connect(&Endpoint::plain(address)).await?;
-    let job = submit(
-        session.client(),
-        &opts.scene,
-        JobChoices {
-            overrides: opts.job.0,
-            priority: 0,
-            verification: protocol::Verification::default(),
-            time_limit_ms: opts.job.1,
-            label: Default::default(),
-            frames,
-        },
-    )
-    .await
-    // The one limit left (the scene's size) is not of a coordinator the user started.
-    .map_err(|e| {
-        anyhow::anyhow!(
-            "{}",
-            format!("{e:#}").replace("this coordinator's limit", "the limit of `tessera up`")
-        )
-    })?;
+    let job = submit(session.client(), scene, job)
+        .await
+        // The one limit left (the scene's size) is not of a coordinator the user started.
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "{}",
+                format!("{e:#}").replace("this coordinator's limit", "the limit of `tessera up`")
+            )
+        })?;
     let output = match output {
-        Output::Image(output) => output,
-        Output::Frames(dir) => {
+        JobOutput::Image(output) => output,
+        JobOutput::Frames(dir) => {
             let status = wait_sequence(&mut session, job, Some(&dir)).await?;
             eprintln!(
                 "{} ({} workers)",
                 sequence_summary(dir.path(), &status),
-                opts.workers
+                workers
             );
             return Ok(());
         }
@@ -216,6 +155,6 @@ async fn render_on(
     // The farm and its copy of the image go with this command: no `tessera fetch`.
     let png = session.fetch(job).await?;
     output.write(&png)?;
-    eprintln!("{} ({} workers)", summary(&path, &status), opts.workers);
+    eprintln!("{} ({} workers)", summary(&path, &status), workers);
     Ok(())
 }
