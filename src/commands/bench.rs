@@ -1,4 +1,5 @@
-//! `tessera bench`: its arguments, turned into the options of [`crate::bench`].
+//! `tessera bench`: its arguments, turned into the options of [`crate::bench`]. No
+//! other command depends on this module or on the benchmarks.
 
 use std::path::PathBuf;
 use std::time::Duration;

@@ -237,6 +237,7 @@ async fn coordinator(a: Args) -> Result<()> {
         http: a.daemon.http,
         retention: a.retention,
         reset_database: a.reset_database,
+        // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
     };
     config.check_security(a.insecure)?;

@@ -1,6 +1,6 @@
 //! The commands about one job on a coordinator, or all of them: `status`, `list`,
 //! `cancel`, `pause`, `resume`, `priority`, `events`, `retry`, `requeue`, `delete` and
-//! `fetch`. Each connects, asks once and prints the answer: a line for people, or with
+//! `fetch`. Each connects, asks and prints the answer: a line for people, or with
 //! `--json` an object for scripts.
 
 use std::path::{Path, PathBuf};
@@ -178,6 +178,7 @@ pub enum Command {
 }
 
 impl Command {
+    /// Asks the coordinator of the command's `--coordinator` (and its TLS and token).
     pub fn run(self) -> Result<()> {
         super::block_on(async move {
             match self {
