@@ -97,6 +97,37 @@ impl FramesDir {
     }
 }
 
+/// Where a farm job's result goes (`tessera submit --wait`, `tessera up`): a job's
+/// image, or a sequence's frames into a directory as they are done.
+pub enum JobOutput {
+    Image(ImageOutput),
+    Frames(FramesDir),
+}
+
+impl JobOutput {
+    /// Checks the output of a job of `scene` before the farm spends anything on it:
+    /// `output`, or by default the scene's file name with .png for an image, without
+    /// .json for the directory of a `sequence`'s frames.
+    pub fn create(sequence: bool, output: Option<PathBuf>, scene: &Path) -> Result<JobOutput> {
+        Ok(if sequence {
+            JobOutput::Frames(FramesDir::create(
+                &output.unwrap_or_else(|| default_output(scene).with_extension("")),
+            )?)
+        } else {
+            JobOutput::Image(ImageOutput::create(
+                &output.unwrap_or_else(|| default_output(scene)),
+            )?)
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        match self {
+            JobOutput::Image(image) => image.path(),
+            JobOutput::Frames(dir) => dir.path(),
+        }
+    }
+}
+
 /// A file still to be written (an image, a render's saved samples), through a temporary
 /// file beside it renamed into place: checked before the work that makes its bytes.
 ///
@@ -187,5 +218,17 @@ mod tests {
         drop(ImageOutput::create(&dir.path().join("never.png")).unwrap());
         let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(left.len(), 2, "{left:?}");
+    }
+
+    #[test]
+    fn frame_files_have_at_least_four_digits() {
+        assert_eq!(render::frame_file_name(7, 1), "frame_0007.png");
+        assert_eq!(render::frame_file_name(120, 121), "frame_0120.png");
+        assert_eq!(render::frame_file_name(9999, 9999), "frame_9999.png");
+        assert_eq!(render::frame_file_name(7, 10_000), "frame_00007.png");
+        assert_eq!(
+            render::frame_file_name(100_000, 100_000),
+            "frame_100000.png"
+        );
     }
 }

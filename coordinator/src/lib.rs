@@ -3,13 +3,15 @@
 //!
 //! [`scheduler`] makes every decision as a pure state machine; [`server`] is the daemon
 //! that feeds it events from the network and carries out its actions; [`client`] is the
-//! library side of the command-line client.
+//! library side of the command-line client; [`security`] holds the rules a coordinator's
+//! settings must follow before it accepts anyone.
 
 pub mod client;
 mod db;
 pub mod http;
 mod metrics;
 mod preview;
+pub mod security;
 pub mod server;
 mod store;
 pub mod studio;

@@ -36,7 +36,8 @@ pub use crate::error::SceneError;
 pub use crate::image::Image;
 pub use crate::parse::{parse_animated, parse_scene, validate_settings, MAX_TRACKS};
 pub use crate::sampling::{
-    sample_offsets, InvalidTarget, Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI,
+    sample_offsets, InvalidTarget, Sampler, Sampling, SamplingChoiceError, MAX_TARGET_MILLI,
+    MIN_TARGET_MILLI,
 };
 pub use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
 pub use crate::tile::{

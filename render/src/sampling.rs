@@ -39,6 +39,10 @@ use thiserror::Error;
 use crate::tracer::{to_byte, GridSink, Tracer};
 use crate::vec3::{Divisor, Vec3, F4, M4, V4};
 
+mod choice;
+
+pub use choice::{Sampler, SamplingChoiceError};
+
 /// How the samples of a pixel are placed. The budget is the settings' `aa` = n for all
 /// of them: at most n × n samples per pixel.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]

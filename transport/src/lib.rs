@@ -5,6 +5,11 @@
 //! A coordinator's certificate comes from PEM files, or is made here once and kept in
 //! its data directory ([`ServerTls::auto`]); peers trust it through a CA file, or by
 //! pinning its SHA-256 fingerprint ([`ClientTls::pinned`]), which needs no file at all.
+//!
+//! The settings that say how to reach a coordinator are read here as well, so that the
+//! daemons and the clients read them alike: its address ([`parse_address`]), which TLS
+//! to serve or speak ([`ServerTls::from_settings`], [`ClientTls::from_settings`]) and the
+//! token of a peer's role ([`load_secret`]).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -23,6 +28,12 @@ use sha2::{Digest, Sha256};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
+
+mod address;
+mod secret;
+
+pub use address::{parse_address, AddressError, DEFAULT_ADDRESS, DEFAULT_PORT};
+pub use secret::{load_secret, SecretError};
 
 /// Anything the protocol can run over.
 pub trait Io: AsyncRead + AsyncWrite + Unpin + Send {}
@@ -76,6 +87,16 @@ pub fn parse_fingerprint(text: &str) -> Result<[u8; 32], String> {
     Ok(out)
 }
 
+/// Reads a pin as a peer's settings give it: a fingerprint ([`parse_fingerprint`]), or
+/// none when the value is empty, so that a container environment can set the variable
+/// to nothing rather than leave it out.
+pub fn parse_pin(text: &str) -> Result<Option<[u8; 32]>, String> {
+    if text.trim().is_empty() {
+        return Ok(None);
+    }
+    parse_fingerprint(text).map(Some)
+}
+
 /// Where [`ServerTls::auto`] keeps the certificate and its key, under the data
 /// directory.
 pub const AUTO_TLS_DIR: &str = "tls";
@@ -87,6 +108,21 @@ impl std::fmt::Debug for ServerTls {
 }
 
 impl ServerTls {
+    /// The TLS a coordinator's settings ask for: the PEM files `pem` (certificate chain,
+    /// private key) if given, else with `auto` the certificate kept under the data
+    /// directory `data` ([`ServerTls::auto`] in [`AUTO_TLS_DIR`]), else none: plain TCP.
+    pub fn from_settings(
+        pem: Option<(&Path, &Path)>,
+        auto: bool,
+        data: &Path,
+    ) -> Result<Option<ServerTls>> {
+        match pem {
+            Some((cert, key)) => ServerTls::from_pem_files(cert, key).map(Some),
+            None if auto => ServerTls::auto(&data.join(AUTO_TLS_DIR)).map(Some),
+            None => Ok(None),
+        }
+    }
+
     /// Reads a PEM certificate chain (leaf first) and a PEM private key.
     pub fn from_pem_files(cert: &Path, key: &Path) -> Result<ServerTls> {
         let chain = read_certificates(cert)?;
@@ -305,6 +341,21 @@ impl std::fmt::Debug for ClientTls {
 }
 
 impl ClientTls {
+    /// The TLS a peer's settings ask for: trust in the certificates of the CA file `ca`
+    /// (checked against `server_name`, if given), else in the certificate pinned by its
+    /// fingerprint `pin`, else none: plain TCP. A CA file wins over a pin.
+    pub fn from_settings(
+        ca: Option<&Path>,
+        server_name: Option<&str>,
+        pin: Option<[u8; 32]>,
+    ) -> Result<Option<ClientTls>> {
+        match (ca, pin) {
+            (Some(ca), _) => ClientTls::from_ca_file(ca, server_name).map(Some),
+            (None, Some(pin)) => ClientTls::pinned(pin).map(Some),
+            (None, None) => Ok(None),
+        }
+    }
+
     /// Trusts the certificates of the PEM file `ca` (a CA, or the coordinator's own
     /// self-signed certificate). `server_name` overrides the name checked against the
     /// coordinator's certificate, which is otherwise the host of the address dialled.
@@ -540,6 +591,65 @@ mod tests {
         assert!(parse_fingerprint(&format!("{}zz", &hex[..62]))
             .unwrap_err()
             .contains("64 hex digits"));
+    }
+
+    #[test]
+    fn an_empty_pin_is_none() {
+        let hex = "ab".repeat(32);
+        assert_eq!(parse_pin(&hex), Ok(Some([0xab; 32])));
+        assert_eq!(parse_pin(""), Ok(None));
+        assert_eq!(parse_pin("  "), Ok(None));
+        assert!(parse_pin("abc").unwrap_err().contains("64 hex digits"));
+    }
+
+    #[test]
+    fn a_coordinator_serves_the_tls_its_settings_choose() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        assert!(ServerTls::from_settings(None, false, &data)
+            .unwrap()
+            .is_none());
+        assert!(!data.exists(), "plain TCP makes no certificate");
+        let auto = ServerTls::from_settings(None, true, &data)
+            .unwrap()
+            .expect("--tls-auto serves TLS");
+        let kept = data.join(AUTO_TLS_DIR);
+        assert_eq!(
+            ServerTls::auto(&kept).unwrap().fingerprint(),
+            auto.fingerprint()
+        );
+        // Files given win over the automatic certificate.
+        let other = dir.path().join("other");
+        let files = ServerTls::auto(&other).unwrap();
+        let (cert, key) = (other.join("cert.pem"), other.join("key.pem"));
+        let chosen = ServerTls::from_settings(Some((&cert, &key)), true, &data)
+            .unwrap()
+            .expect("files serve TLS");
+        assert_eq!(chosen.fingerprint(), files.fingerprint());
+        assert_ne!(chosen.fingerprint(), auto.fingerprint());
+    }
+
+    #[test]
+    fn a_peer_speaks_the_tls_its_settings_choose() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(ClientTls::from_settings(None, None, None)
+            .unwrap()
+            .is_none());
+        let pinned = ClientTls::from_settings(None, None, Some([7; 32]))
+            .unwrap()
+            .expect("a pin speaks TLS");
+        assert!(pinned.server_name.is_none());
+        ServerTls::auto(dir.path()).unwrap();
+        let ca = dir.path().join("cert.pem");
+        let trusted = ClientTls::from_settings(Some(&ca), Some("farm.example"), Some([7; 32]))
+            .unwrap()
+            .expect("a CA file speaks TLS");
+        assert_eq!(
+            trusted.server_name,
+            Some(ServerName::try_from("farm.example").unwrap())
+        );
+        let missing = dir.path().join("missing.pem");
+        assert!(ClientTls::from_settings(Some(&missing), None, None).is_err());
     }
 
     #[cfg(unix)]

@@ -1,0 +1,207 @@
+//! `tessera refine`: go on from an adaptive render to a lower error target or a larger
+//! cap, taking only the samples it lacks. From a state file saved by `tessera render
+//! --state`, on this machine; from a finished adaptive job, as a new job of the
+//! coordinator that kept the job's tile states.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{anyhow, Result};
+use protocol::JobId;
+use render::limits::MAX_AA;
+use render::{parse_scene, validate_settings, RenderSettings, Sampling, SamplingChoiceError};
+use serde_json::json;
+
+use crate::args::{limit_ms, ClientArgs};
+use crate::config;
+use crate::local_render::{thread_pool, Job};
+use crate::output::{FileOutput, ImageOutput};
+use crate::render_state;
+use crate::report::{status_json, summary};
+use crate::session::{naming_job, wait_and_fetch, Session};
+
+/// Go on from a saved adaptive render to a lower error or a larger cap.
+#[derive(clap::Args)]
+#[command(
+    long_about = "Go on from a render saved with `tessera render --state FILE` to a lower \
+        error target or a larger --aa, taking only the samples it lacks. The image is \
+        byte for byte the one a direct render with the final settings gives. The state \
+        file is updated in place, so refining can go on again. Given the id of a \
+        finished adaptive job instead, a coordinator starts a new job from the tile \
+        states it kept for that job, with the same bytes a direct job would give.",
+    after_help = "Examples:\n  \
+        tessera render scenes/seed.json --sampler adaptive --target-error 4 --state seed.state\n  \
+        tessera refine seed.state --target-error 1 -o seed.png\n  \
+        tessera refine 12 --target-error 0.5 --aa 16 --wait -o seed.png"
+)]
+pub struct Args {
+    /// A render state saved by `tessera render --state FILE`, or the id of a finished
+    /// adaptive job on a coordinator (a new job goes on from its stored samples).
+    state: PathBuf,
+    /// The new error target, in 8-bit levels [default: the saved one].
+    #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
+    target_error: Option<f64>,
+    /// A new cap: at most the largest power of two not above N x N samples per pixel
+    /// [default: the saved one].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
+    aa: Option<u32>,
+    /// Refine for about this long, at most.
+    #[arg(long, value_name = "TIME", value_parser = config::parse_duration)]
+    time_limit: Option<Duration>,
+    /// Where to write the PNG [default: the state's file name with .png].
+    #[arg(short, long, value_name = "OUT.png")]
+    output: Option<PathBuf>,
+    /// Rendering threads [default: one per core].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+    /// For a job id: wait for the new job, showing progress, and write its image.
+    #[arg(long)]
+    wait: bool,
+    #[command(flatten)]
+    common: ClientArgs,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    match refines_a_job(&args.state)? {
+        None => refine_file(args),
+        Some(job) => super::block_on(refine_job(job, args)),
+    }
+}
+
+/// What `tessera refine X` refines: the job X on a coordinator if X is all digits and
+/// names no file, else a saved render state (whose reading reports a missing file).
+fn refines_a_job(state: &Path) -> Result<Option<JobId>> {
+    let text = state.to_string_lossy();
+    if state.exists() || text.is_empty() || !text.bytes().all(|b| b.is_ascii_digit()) {
+        return Ok(None);
+    }
+    let job = text
+        .parse()
+        .map_err(|_| anyhow!("refine: job id {text} is too large"))?;
+    Ok(Some(job))
+}
+
+/// `tessera refine FILE`: the image is the one a direct render with the final settings
+/// gives, byte for byte; the state file is updated in place.
+fn refine_file(args: Args) -> Result<()> {
+    let saved = render_state::load(&args.state)?;
+    let pool = thread_pool(args.threads)?;
+    let scene = pool
+        .install(|| parse_scene(&saved.scene))
+        .map_err(|e| anyhow!("{}: the saved scene: {e}", args.state.display()))?;
+    let target = match args.target_error {
+        Some(levels) => Sampling::adaptive(levels).map_err(SamplingChoiceError::Target)?,
+        None => Sampling::Adaptive {
+            target_milli: saved.target_milli,
+        },
+    };
+    let settings = RenderSettings {
+        width: saved.width,
+        height: saved.height,
+        aa: args.aa.unwrap_or(saved.aa),
+        max_depth: saved.max_depth,
+        sampling: target,
+    };
+    validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
+    let output = ImageOutput::create(&args.output.clone().unwrap_or_else(|| {
+        let mut p = args.state.clone();
+        p.set_extension("png");
+        p
+    }))?;
+    let job = Job {
+        scene: &scene,
+        text: Some(&saved.scene),
+        settings,
+        output,
+        pool: &pool,
+        time_limit: args.time_limit,
+        state: Some(FileOutput::create(&args.state)?),
+        resume: Some((args.state.clone(), saved.blocks)),
+    };
+    job.run()
+}
+
+/// `tessera refine JOB`: a new job going on from a finished adaptive job's samples;
+/// prints its id, or with `--wait`, follows it and writes its image.
+async fn refine_job(old: JobId, args: Args) -> Result<()> {
+    let target_milli = match args.target_error.map(Sampling::adaptive).transpose()? {
+        Some(Sampling::Adaptive { target_milli }) => Some(target_milli),
+        _ => None,
+    };
+    let coordinator = args.common.target()?;
+    let json_out = args.common.json;
+    // A file named is checked before the farm spends anything on it.
+    let checked = match (args.wait, &args.output) {
+        (true, Some(path)) => Some(ImageOutput::create(path)?),
+        _ => None,
+    };
+    let mut session = Session::connect(&coordinator).await?;
+    let target_milli = match target_milli {
+        Some(t) => t,
+        None => saved_target(&mut session, old).await?,
+    };
+    let job = session
+        .client()
+        .refine(old, target_milli, args.aa, args.time_limit.map(limit_ms))
+        .await?;
+    if !args.wait {
+        if json_out {
+            println!(
+                "{}",
+                json!({ "id": job, "state": "queued", "refines": old })
+            );
+        } else {
+            println!("{job}");
+        }
+        return Ok(());
+    }
+    eprintln!("refining job {old} as job {job}");
+    let output = match checked {
+        Some(output) => output,
+        None => ImageOutput::create(&PathBuf::from(format!("job-{job}.png")))
+            .map_err(|e| naming_job(job, e))?,
+    };
+    let output_path = output.path().to_path_buf();
+    let status = wait_and_fetch(&mut session, job, output).await?;
+    if json_out {
+        let mut v = status_json(&status);
+        v["output"] = json!(output_path.display().to_string());
+        v["refines"] = json!(old);
+        println!("{v}");
+    } else {
+        eprintln!("{}", summary(&output_path, &status));
+    }
+    Ok(())
+}
+
+/// The target a finished job was rendered to: what a refinement without a new one
+/// keeps. Only adaptive jobs keep the tile states a refinement goes on from.
+async fn saved_target(session: &mut Session, old: JobId) -> Result<u32> {
+    match session.client().status(old).await?.settings.sampling {
+        protocol::Sampling::Adaptive { target_milli } => Ok(target_milli),
+        other => anyhow::bail!(
+            "cannot refine job {old}: it was rendered with {} sampling: only adaptive \
+             jobs keep their tile states",
+            other.name()
+        ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn digits_that_name_no_file_are_a_job() {
+        assert_eq!(refines_a_job(Path::new("12")).unwrap(), Some(12));
+        for state in ["seed.state", "", "-1", "1.5", "/tmp/12"] {
+            assert_eq!(refines_a_job(Path::new(state)).unwrap(), None, "{state:?}");
+        }
+        assert_eq!(
+            refines_a_job(Path::new("99999999999999999999999"))
+                .unwrap_err()
+                .to_string(),
+            "refine: job id 99999999999999999999999 is too large"
+        );
+    }
+}

@@ -1,0 +1,86 @@
+//! `tessera worker`: the daemon that renders tiles for a coordinator, with an optional
+//! HTTP port for health checks.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use tracing::info;
+
+use crate::args::{DaemonArgs, PeerArgs};
+use crate::signals::shutdown_signal;
+
+/// Run a worker: render tiles for a coordinator.
+#[derive(clap::Args)]
+#[command(after_help = "Example:\n  tessera worker --coordinator 127.0.0.1:7878 --threads 8")]
+pub struct Args {
+    #[command(flatten)]
+    daemon: DaemonArgs,
+    #[command(flatten)]
+    peer: PeerArgs,
+    /// Rendering threads [default: one per core].
+    #[arg(long, env = "TESSERA_THREADS", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+    /// Name shown by `tessera workers`, under which the coordinator counts this worker's
+    /// failed tiles: keep it stable across restarts (the host name) [default: HOST-PID].
+    #[arg(long, env = "TESSERA_NAME")]
+    name: Option<String>,
+    /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
+    #[arg(long, hide = true, value_name = "FACTOR")]
+    throttle: Option<f64>,
+    /// Exit when standard input closes (used by `tessera up` for its children).
+    #[arg(long, hide = true)]
+    exit_on_stdin_eof: bool,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    args.daemon.init_logging();
+    super::block_on(work(args))
+}
+
+/// Serves health on `--http` (ready while connected and taking tiles, for supervisors)
+/// and renders until a signal, a drain, or with `--exit-on-stdin-eof` its parent gone.
+async fn work(a: Args) -> Result<()> {
+    let coordinator = a.peer.endpoint()?;
+    let threads = a.threads.map_or_else(
+        || std::thread::available_parallelism().map_or(1, |n| n.get()),
+        |n| n as usize,
+    );
+    let name = a.name.unwrap_or_else(default_worker_name);
+    let ready = Arc::new(AtomicBool::new(false));
+    let _health = match a.daemon.http {
+        Some(addr) => {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("cannot listen for HTTP on {addr}"))?;
+            info!(http = %listener.local_addr()?, "health on /healthz and /readyz");
+            let flag = Arc::clone(&ready);
+            let routes =
+                coordinator::http::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
+            Some(coordinator::http::spawn(listener, routes))
+        }
+        None => None,
+    };
+    worker::run(
+        worker::Config {
+            coordinator,
+            threads,
+            name,
+            throttle: a.throttle,
+            ready,
+        },
+        shutdown_signal(a.exit_on_stdin_eof),
+    )
+    .await
+    .context("worker stopped")
+}
+
+/// `host-pid`, unique enough to tell workers apart in listings.
+fn default_worker_name() -> String {
+    let host = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "worker".into());
+    format!("{host}-{}", std::process::id())
+}

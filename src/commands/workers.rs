@@ -1,0 +1,170 @@
+//! `tessera workers`: the workers connected to a coordinator, with their throughput;
+//! and `tessera workers drain|disable|enable WORKER`.
+
+use anyhow::Result;
+use coordinator::client::Client;
+use protocol::{ClientRequest, WorkerStatus};
+use serde_json::{json, Value};
+use transport::Endpoint;
+
+use crate::args::ClientArgs;
+
+/// List the workers connected to the coordinator, with their throughput; or drain,
+/// disable or enable one.
+#[derive(clap::Args)]
+#[command(
+    args_conflicts_with_subcommands = true,
+    after_help = "Examples:\n  \
+        tessera workers                      lists them (id, name, state)\n  \
+        tessera workers drain render-07      finishes its tiles, then it exits\n  \
+        tessera workers disable render-07    no new tiles, even after a restart\n  \
+        tessera workers enable render-07"
+)]
+pub struct Args {
+    #[command(subcommand)]
+    action: Option<WorkerAction>,
+    #[command(flatten)]
+    common: ClientArgs,
+}
+
+/// `tessera workers drain|disable|enable WORKER`.
+#[derive(clap::Subcommand)]
+enum WorkerAction {
+    /// The worker finishes the tiles it holds, then exits (status 0) without
+    /// reconnecting, as on SIGTERM on its machine.
+    Drain {
+        /// A worker's id or name, as `tessera workers` shows them (a name drains every
+        /// worker connected under it).
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+    /// The worker's machine gets no new tiles (those it holds finish); it stays
+    /// connected. Kept by machine name and stored: it holds across reconnects and
+    /// coordinator restarts until `tessera workers enable`.
+    Disable {
+        /// A worker's id or name, as `tessera workers` shows them.
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+    /// The disabled machine takes tiles again.
+    Enable {
+        /// A connected worker's id or name, or the name of a disabled machine.
+        worker: String,
+        #[command(flatten)]
+        common: ClientArgs,
+    },
+}
+
+pub fn run(args: Args) -> Result<()> {
+    super::block_on(async move {
+        match args.action {
+            None => list(&args.common.target()?, args.common.json).await,
+            Some(action) => control(action).await,
+        }
+    })
+}
+
+async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
+    let workers = Client::connect(coordinator).await?.workers().await?;
+    if json_out {
+        println!(
+            "{}",
+            Value::Array(workers.iter().map(worker_json).collect())
+        );
+    } else if workers.is_empty() {
+        println!("no workers");
+    } else {
+        for w in &workers {
+            let rtt = w.rtt_us.map_or(String::new(), |us| {
+                format!(", rtt {:.1} ms", us as f64 / 1000.0)
+            });
+            let mut state = w
+                .quarantined
+                .as_ref()
+                .map_or(String::new(), |why| format!(", QUARANTINED: {why}"));
+            if w.disabled {
+                state.push_str(", DISABLED");
+            }
+            if w.draining {
+                state.push_str(", DRAINING");
+            }
+            println!(
+                "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{state}",
+                w.id,
+                w.name,
+                w.threads,
+                w.tiles_in_flight,
+                w.credit,
+                w.tiles_done,
+                w.rays_per_second / 1e6,
+                w.build,
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Drains, disables or enables a worker; answers once the change is made (stored, for
+/// a disable or an enable).
+async fn control(action: WorkerAction) -> Result<()> {
+    let (request, done, common) = match action {
+        WorkerAction::Drain { worker, common } => (
+            ClientRequest::DrainWorker {
+                worker: worker.clone(),
+            },
+            format!("worker {worker} draining: it finishes the tiles it holds, then exits"),
+            common,
+        ),
+        WorkerAction::Disable { worker, common } => (
+            ClientRequest::DisableWorker {
+                worker: worker.clone(),
+            },
+            format!(
+                "worker {worker} disabled: its machine gets no new tiles until \
+                 `tessera workers enable {worker}`"
+            ),
+            common,
+        ),
+        WorkerAction::Enable { worker, common } => (
+            ClientRequest::EnableWorker {
+                worker: worker.clone(),
+            },
+            format!("worker {worker} enabled: it takes tiles again"),
+            common,
+        ),
+    };
+    let workers = Client::connect(&common.target()?)
+        .await?
+        .control_worker(request)
+        .await?;
+    if common.json {
+        println!(
+            "{}",
+            Value::Array(workers.iter().map(worker_json).collect())
+        );
+    } else {
+        println!("{done}");
+    }
+    Ok(())
+}
+
+fn worker_json(w: &WorkerStatus) -> Value {
+    json!({
+        "id": w.id,
+        "name": w.name,
+        "threads": w.threads,
+        "tiles_in_flight": w.tiles_in_flight,
+        "tiles_done": w.tiles_done,
+        "rays": w.rays,
+        "connected_ms": w.connected_ms,
+        "rays_per_second": w.rays_per_second,
+        "build": w.build,
+        "quarantined": w.quarantined,
+        "rtt_us": w.rtt_us,
+        "credit": w.credit,
+        "draining": w.draining,
+        "disabled": w.disabled,
+    })
+}

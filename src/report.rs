@@ -1,0 +1,230 @@
+//! How commands show renders and jobs: the one-line summaries of a finished render,
+//! job or sequence, a job's state and frames, and the JSON objects of `--json`.
+
+use std::path::Path;
+
+use protocol::{FrameProgress, JobState, JobStatus, Sampling, Settings};
+use render::RenderSettings;
+use serde_json::{json, Value};
+
+/// What a render spent and how wrong it may be, for the summary lines of `render`,
+/// `up` and `submit --wait`: `4 samples/pixel (grid 2x2, 96000 in all), estimated
+/// error 0.842 levels`. The mean is exact for the grid and jittered samplers, a
+/// fraction of the budget for adaptive sampling.
+pub fn sampling_summary(settings: &RenderSettings, samples: u64, error: Option<f64>) -> String {
+    let n = settings.aa;
+    let pixels = settings.pixel_count().max(1);
+    let mean = if samples.is_multiple_of(pixels) {
+        (samples / pixels).to_string()
+    } else {
+        format!("{:.2}", samples as f64 / pixels as f64)
+    };
+    let pattern = match settings.sampling {
+        render::Sampling::Adaptive { .. } if settings.sampling.time_decides() => {
+            format!("adaptive up to {n}x{n}, no target")
+        }
+        render::Sampling::Adaptive { .. } => format!(
+            "adaptive up to {n}x{n}, target {} levels",
+            settings.sampling.target_error().unwrap_or_default()
+        ),
+        other => format!("{} {n}x{n}", other.name()),
+    };
+    let error = match error {
+        Some(e) => format!("estimated error {e:.3} levels"),
+        None if n == 1 => "no error estimate from 1 sample/pixel".to_string(),
+        None => "no error estimate".to_string(),
+    };
+    format!("{mean} samples/pixel ({pattern}, {samples} in all), {error}")
+}
+
+/// The one-line summary of a finished job: size, samples spent, estimated error, tiles,
+/// time.
+pub fn summary(output: &Path, status: &JobStatus) -> String {
+    // The time rendering took: the queue's wait is not the farm's speed.
+    let queued = status.queued_ms.unwrap_or(0).min(status.elapsed_ms);
+    let secs = (status.elapsed_ms - queued) as f64 / 1000.0;
+    let wait = if queued > 0 {
+        format!(" after {:.1} s in the queue", queued as f64 / 1000.0)
+    } else {
+        String::new()
+    };
+    let settings = render_settings(&status.settings);
+    // As `tessera render` says it: whether the time limit, not the target, ended it.
+    let note = match (
+        status.stopped_on_time_limit,
+        settings.sampling.time_decides(),
+    ) {
+        (false, _) => "",
+        (true, false) => "; stopped by the time limit before the target",
+        (true, true) => "; as far as the time limit allowed",
+    };
+    format!(
+        "{}: {}x{}, {}{note}, {} tiles, rendered in {:.3} s{wait}, {:.1} M rays/s",
+        output.display(),
+        status.settings.width,
+        status.settings.height,
+        sampling_summary(&settings, status.samples, status.estimated_error),
+        status.tiles_total,
+        secs,
+        status.rays as f64 / secs.max(1e-9) / 1e6
+    )
+}
+
+/// The one-line summary of a finished sequence.
+pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
+    let frames = status.frames.as_ref().map_or(0, |f| f.done);
+    let queued = status.queued_ms.unwrap_or(0).min(status.elapsed_ms);
+    let secs = (status.elapsed_ms - queued) as f64 / 1000.0;
+    format!(
+        "{}: {frames} frames of {}x{}, {}, rendered in {:.3} s ({:.2} frames/s), {:.1} M rays/s",
+        dir.display(),
+        status.settings.width,
+        status.settings.height,
+        sampling_summary(
+            &render_settings(&status.settings),
+            status.samples / u64::from(frames.max(1)),
+            status.estimated_error
+        ),
+        secs,
+        f64::from(frames) / secs.max(1e-9),
+        status.rays as f64 / secs.max(1e-9) / 1e6
+    )
+}
+
+/// The renderer's view of a job's settings, for the summary.
+fn render_settings(s: &Settings) -> RenderSettings {
+    RenderSettings {
+        width: s.width,
+        height: s.height,
+        aa: s.aa,
+        max_depth: s.max_depth,
+        sampling: match s.sampling {
+            Sampling::Grid => render::Sampling::Grid,
+            Sampling::Jittered => render::Sampling::Jittered,
+            Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
+        },
+    }
+}
+
+/// The state shown for a job: its lifecycle state, or "paused".
+pub fn shown_state(s: &JobStatus) -> &'static str {
+    if s.paused && !s.state.is_final() {
+        "paused"
+    } else {
+        s.state.as_str()
+    }
+}
+
+/// The frames line of `tessera status` for a sequence.
+pub fn frames_summary(f: &FrameProgress) -> String {
+    let total = f.last - f.first + 1;
+    let mut line = format!("frames {}-{}: {}/{total} done", f.first, f.last, f.done);
+    if f.active > 0 {
+        line.push_str(&format!(", {} rendering", f.active));
+    }
+    if f.cancelled > 0 {
+        line.push_str(&format!(", {} cancelled", f.cancelled));
+    }
+    if f.failed > 0 {
+        let listed: Vec<String> = f.failures.iter().map(|x| x.frame.to_string()).collect();
+        line.push_str(&format!(", {} failed ({})", f.failed, listed.join(", ")));
+    }
+    line
+}
+
+/// A job's status as the `--json` output of the job commands gives it.
+pub fn status_json(s: &JobStatus) -> Value {
+    json!({
+        "id": s.id,
+        "state": shown_state(s),
+        "paused": s.paused,
+        "frame": s.frame,
+        "width": s.settings.width,
+        "height": s.settings.height,
+        "aa": s.settings.aa,
+        "max_depth": s.settings.max_depth,
+        "priority": s.priority,
+        "tiles_done": s.tiles_done,
+        "tiles_total": s.tiles_total,
+        "rays": s.rays,
+        "elapsed_ms": s.elapsed_ms,
+        "eta_ms": s.eta_ms,
+        "error": s.error,
+        "sampler": s.settings.sampling.name(),
+        "target_error": s.settings.sampling.target_error(),
+        "samples": s.samples,
+        // The mean over the whole image, known once every tile is in.
+        // A sequence's samples are its frames': per pixel of a frame.
+        "samples_per_pixel": (s.state == JobState::Done).then(|| {
+            let frames = s.frames.as_ref().map_or(1, |f| u64::from(f.last - f.first + 1));
+            s.samples as f64
+                / (u64::from(s.settings.width) * u64::from(s.settings.height) * frames) as f64
+        }),
+        "estimated_error": s.estimated_error,
+        "time_limit_ms": s.time_limit_ms,
+        "stopped_on_time_limit": s.stopped_on_time_limit,
+        "warning": s.warning,
+        "name": s.name,
+        "submitter": s.submitter,
+        "submitted_from": s.submitted_from,
+        "submitted_unix_ms": s.submitted_unix_ms,
+        "queued_ms": s.queued_ms,
+        "sequence": s.sequence,
+        "frames": s.frames.as_ref().map(frames_json),
+    })
+}
+
+/// A sequence's frames as JSON.
+fn frames_json(f: &FrameProgress) -> Value {
+    let failures: Vec<Value> = f
+        .failures
+        .iter()
+        .map(|x| json!({ "frame": x.frame, "job": x.job, "error": x.error }))
+        .collect();
+    json!({
+        "first": f.first,
+        "last": f.last,
+        "done": f.done,
+        "active": f.active,
+        "pending": f.pending,
+        "cancelled": f.cancelled,
+        "failed": f.failed,
+        "done_prefix": f.done_prefix,
+        "failures": failures,
+    })
+}
+
+/// A Unix time in milliseconds as `YYYY-MM-DD HH:MM:SS` UTC (the civil calendar from
+/// days since the epoch; no time zone database needed).
+pub fn utc(unix_ms: u64) -> String {
+    let secs = unix_ms / 1000;
+    let (days, rest) = ((secs / 86_400) as i64, secs % 86_400);
+    // Howard Hinnant's days-to-civil algorithm.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02}",
+        rest / 3600,
+        rest % 3600 / 60,
+        rest % 60
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn utc_times_are_the_calendar() {
+        assert_eq!(utc(0), "1970-01-01 00:00:00");
+        assert_eq!(utc(951_782_400_000), "2000-02-29 00:00:00");
+        assert_eq!(utc(1_795_000_000_123), "2026-11-18 11:06:40");
+    }
+}

@@ -1,0 +1,90 @@
+//! Reading scene files: whole, for a job a coordinator will check; checked here by the
+//! renderer's loader, for a scene a local farm will serve; or in parallel parts, for a
+//! render on this machine.
+
+use std::path::Path;
+
+use anyhow::{anyhow, Context, Result};
+
+/// A scene file's text, for submission: the coordinator checks it.
+pub fn read_scene(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read scene file {}", path.display()))
+}
+
+/// A scene file's text, checked by the renderer's loader: its error is one line
+/// prefixed with the file.
+pub fn read_checked_scene(path: &Path) -> Result<String> {
+    let text = read_scene(path)?;
+    render::parse_scene(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    Ok(text)
+}
+
+/// Files from this size are read in parallel parts, one per thread of the pool.
+const PARALLEL_READ_MIN: u64 = 16 << 20;
+
+/// The scene file's text. A large file is read in as many parts as the current rayon
+/// pool has threads, each copied from the page cache by its own thread: one thread
+/// copying a 186 MB scene of a million spheres took as long as rendering it.
+pub fn read_in_parallel(path: &Path) -> std::io::Result<String> {
+    use std::os::unix::fs::FileExt;
+    let file = std::fs::File::open(path)?;
+    let len = file.metadata()?.len();
+    let threads = rayon::current_num_threads();
+    if len < PARALLEL_READ_MIN || threads < 2 {
+        return std::fs::read_to_string(path);
+    }
+    let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::OutOfMemory)?;
+    let mut bytes = vec![0u8; len];
+    let part = len.div_ceil(threads);
+    let mut parts: Vec<(usize, &mut [u8])> = bytes
+        .chunks_mut(part)
+        .enumerate()
+        .map(|(i, chunk)| (i * part, chunk))
+        .collect();
+    use rayon::prelude::*;
+    parts
+        .par_iter_mut()
+        .try_for_each(|(offset, chunk)| file.read_exact_at(chunk, *offset as u64))?;
+    // Worded as `read_to_string` words it for a smaller file.
+    String::from_utf8(bytes).map_err(|_| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            "stream did not contain valid UTF-8",
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pool(threads: usize) -> rayon::ThreadPool {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+    }
+
+    #[test]
+    fn a_large_scene_file_read_in_parts_is_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("large.json");
+        // Not a multiple of the part size, with multi-byte characters across the parts.
+        let line = "{\"type\": \"sphere\", \"name\": \"é€\"}\n";
+        let text = line.repeat((PARALLEL_READ_MIN as usize) / line.len() + 1234);
+        std::fs::write(&path, &text).unwrap();
+        for threads in [1, 2, 3] {
+            let read = pool(threads).install(|| read_in_parallel(&path)).unwrap();
+            assert!(read == text, "{threads} threads");
+        }
+        // A byte that is not UTF-8 is the same one-line error as for a small file.
+        let mut bytes = text.into_bytes();
+        bytes.push(0xff);
+        std::fs::write(&path, &bytes).unwrap();
+        let error = pool(2).install(|| read_in_parallel(&path)).unwrap_err();
+        std::fs::write(&path, b"{}\xff").unwrap();
+        let small = std::fs::read_to_string(&path).unwrap_err();
+        assert_eq!(error.to_string(), small.to_string());
+    }
+}

@@ -1,0 +1,116 @@
+//! The signals that end a command: Ctrl-C, SIGTERM and SIGHUP for the commands that
+//! run a farm on this machine (`up`, `studio`), which must stop it and remove its
+//! files before they exit; and for the daemons, the same or their parent gone.
+
+use anyhow::{Context, Result};
+use tracing::info;
+
+/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
+/// shell reports a command killed by it, once the farm is stopped and its temporary
+/// directory removed.
+#[derive(Debug)]
+pub struct Interrupted {
+    pub name: &'static str,
+    /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
+    pub exit_code: u8,
+}
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "interrupted by {}: the local farm is stopped, no image written",
+            self.name
+        )
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
+pub struct StopSignals {
+    #[cfg(unix)]
+    signals: [(tokio::signal::unix::Signal, Interrupted); 3],
+}
+
+impl StopSignals {
+    pub fn new() -> Result<StopSignals> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
+                Ok((
+                    signal(kind).with_context(|| format!("cannot catch {name}"))?,
+                    Interrupted { name, exit_code },
+                ))
+            };
+            Ok(StopSignals {
+                signals: [
+                    catch(SignalKind::interrupt(), "SIGINT", 130)?,
+                    catch(SignalKind::terminate(), "SIGTERM", 143)?,
+                    catch(SignalKind::hangup(), "SIGHUP", 129)?,
+                ],
+            })
+        }
+        #[cfg(not(unix))]
+        Ok(StopSignals {})
+    }
+
+    /// The next signal caught.
+    pub async fn next(&mut self) -> Interrupted {
+        #[cfg(unix)]
+        {
+            let [(int, _), (term, _), (hup, _)] = &mut self.signals;
+            let i = tokio::select! {
+                _ = int.recv() => 0,
+                _ = term.recv() => 1,
+                _ = hup.recv() => 2,
+            };
+            let (_, what) = &self.signals[i];
+            Interrupted {
+                name: what.name,
+                exit_code: what.exit_code,
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = tokio::signal::ctrl_c().await;
+            Interrupted {
+                name: "Ctrl-C",
+                exit_code: 130,
+            }
+        }
+    }
+}
+
+/// Completes on Ctrl-C, on SIGTERM, or (for processes started by `tessera up`) when
+/// standard input reaches its end because the parent is gone.
+pub async fn shutdown_signal(exit_on_stdin_eof: bool) {
+    let stdin_closed = async {
+        if exit_on_stdin_eof {
+            let _ = tokio::task::spawn_blocking(|| {
+                let mut sink = Vec::new();
+                let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut sink);
+            })
+            .await;
+        } else {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => info!("interrupted"),
+        () = terminate => info!("terminated"),
+        () = stdin_closed => info!("parent gone"),
+    }
+}

@@ -1,0 +1,90 @@
+//! A peer's secret (the token of its role) as an operator hands it over: a file, or an
+//! environment variable holding the token itself. Files keep secrets out of process
+//! listings and shell histories; the variable suits container platforms that inject
+//! secrets that way.
+
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+/// A token that cannot be used: its file is unreadable, or it is empty, which would
+/// otherwise turn authentication off without a word.
+#[derive(Debug, Error)]
+pub enum SecretError {
+    #[error("cannot read the token file {}: {error}", path.display())]
+    Unreadable {
+        path: PathBuf,
+        error: std::io::Error,
+    },
+    /// `source_name` says where the empty token came from: the file, or the variable.
+    #[error("the token is empty ({source_name})")]
+    Empty { source_name: String },
+}
+
+/// The token in `file`, else in the environment variable `variable` (the token itself,
+/// not a path), else none. Whitespace at both ends is trimmed (a file's final newline,
+/// a pasted space); the rest is used as bytes.
+pub fn load_secret(file: Option<&Path>, variable: &str) -> Result<Option<Vec<u8>>, SecretError> {
+    let (secret, source_name) = match file {
+        Some(path) => (
+            std::fs::read_to_string(path).map_err(|error| SecretError::Unreadable {
+                path: path.to_owned(),
+                error,
+            })?,
+            format!("the token file {}", path.display()),
+        ),
+        None => match std::env::var(variable) {
+            Ok(token) => (token, variable.to_owned()),
+            Err(_) => return Ok(None),
+        },
+    };
+    let secret = secret.trim();
+    if secret.is_empty() {
+        return Err(SecretError::Empty { source_name });
+    }
+    Ok(Some(secret.as_bytes().to_vec()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A variable no other test sets, so that tests running in parallel cannot race.
+    const UNSET: &str = "TESSERA_TRANSPORT_TEST_TOKEN_NEVER_SET";
+
+    #[test]
+    fn a_token_file_is_read_and_trimmed() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("token");
+        std::fs::write(&path, "  s3cret\n").unwrap();
+        assert_eq!(
+            load_secret(Some(&path), UNSET).unwrap(),
+            Some(b"s3cret".to_vec())
+        );
+    }
+
+    #[test]
+    fn no_file_and_no_variable_is_no_secret() {
+        assert_eq!(load_secret(None, UNSET).unwrap(), None);
+    }
+
+    #[test]
+    fn an_unreadable_or_empty_token_is_refused_with_its_source() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing");
+        let error = load_secret(Some(&missing), UNSET).unwrap_err().to_string();
+        assert!(
+            error.starts_with(&format!(
+                "cannot read the token file {}: ",
+                missing.display()
+            )),
+            "{error}"
+        );
+        let blank = dir.path().join("blank");
+        std::fs::write(&blank, " \n\t\n").unwrap();
+        assert_eq!(
+            load_secret(Some(&blank), UNSET).unwrap_err().to_string(),
+            format!("the token is empty (the token file {})", blank.display())
+        );
+    }
+}
