@@ -286,17 +286,27 @@ impl DaemonArgs {
     /// Logs of the daemons go to stderr, filtered by `RUST_LOG` (default `info`):
     /// readable text, or one JSON object a line whose fields (`job`, `tile`, `worker`,
     /// ...) are top-level keys, for log collectors.
+    ///
+    /// `RUST_LOG` takes a default level and levels by target (`debug`,
+    /// `coordinator=debug,info`), read by `Targets`, which needs no regular
+    /// expressions; an empty or unreadable value means `info`.
     pub fn init_logging(&self) {
-        let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-            .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-        let logs = tracing_subscriber::fmt()
-            .with_env_filter(filter)
-            .with_writer(std::io::stderr);
+        use tracing_subscriber::filter::{LevelFilter, Targets};
+        use tracing_subscriber::layer::SubscriberExt;
+        use tracing_subscriber::util::SubscriberInitExt;
+        let filter = std::env::var("RUST_LOG")
+            .ok()
+            .filter(|text| !text.trim().is_empty())
+            .and_then(|text| text.parse::<Targets>().ok())
+            .unwrap_or_else(|| Targets::new().with_default(LevelFilter::INFO));
+        let logs = tracing_subscriber::fmt().with_writer(std::io::stderr);
         match self.log_format {
             LogFormat::Text => logs
                 .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+                .finish()
+                .with(filter)
                 .init(),
-            LogFormat::Json => logs.json().flatten_event(true).init(),
+            LogFormat::Json => logs.json().flatten_event(true).finish().with(filter).init(),
         }
     }
 }
