@@ -8,8 +8,9 @@ use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
 
-use crate::local_farm::{LocalFarm, WorkerSpec};
-use crate::up_command::{up_limits, StopSignals};
+use localfarm::{up_limits, LocalFarm, WorkerSpec};
+
+use crate::up_command::StopSignals;
 
 pub struct Options {
     /// The scene the page opens with; the page's own default (the seed scene) without.
@@ -44,7 +45,6 @@ pub async fn run(opts: Options) -> Result<()> {
     let specs = vec![
         WorkerSpec {
             threads: opts.threads_per_worker,
-            throttle: None,
         };
         opts.workers
     ];
@@ -55,17 +55,18 @@ pub async fn run(opts: Options) -> Result<()> {
             .with_context(|| format!("cannot resolve {}", scene.display()))?;
         args.extend(["--studio-scene".to_owned(), absolute.display().to_string()]);
     }
+    let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let starting = tokio::task::spawn_blocking(move || {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        LocalFarm::start_with(&specs, &args)
+        LocalFarm::start_with(&exe, &specs, &args)
     });
     let farm = tokio::select! {
         farm = starting => farm.context("starting the local farm")??,
         signal = stop.next() => return Err(signal.into()),
     };
-    let ready = tokio::select! {
-        r = farm.wait_for_workers(opts.workers, Duration::from_secs(30)) => r,
-        e = farm.first_exit() => Err(e),
+    let ready: Result<()> = tokio::select! {
+        r = farm.wait_for_workers(opts.workers, Duration::from_secs(30)) => r.map_err(Into::into),
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     ready?;
@@ -78,8 +79,8 @@ pub async fn run(opts: Options) -> Result<()> {
         farm.address(),
         opts.workers
     );
-    let result = tokio::select! {
-        e = farm.first_exit() => Err(e),
+    let result: Result<()> = tokio::select! {
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     drop(farm);

@@ -8,11 +8,11 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
+use localfarm::{up_limits, LocalFarm, WorkerSpec};
 use protocol::Overrides;
 use transport::Endpoint;
 
 use crate::client_commands::{sequence_summary, submit, summary, wait, JobChoices, Session};
-use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::output::{default_output, FramesDir, ImageOutput};
 use crate::render_command::FrameRange;
 use crate::sequence_commands::{choose_frames, wait_sequence, FrameChoice};
@@ -52,14 +52,14 @@ pub async fn run(opts: Options) -> Result<()> {
     let specs = vec![
         WorkerSpec {
             threads: opts.threads_per_worker,
-            throttle: None,
         };
         opts.workers
     ];
+    let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let starting = tokio::task::spawn_blocking(move || {
         let limits = up_limits();
         let args: Vec<&str> = limits.iter().map(String::as_str).collect();
-        LocalFarm::start_with(&specs, &args)
+        LocalFarm::start_with(&exe, &specs, &args)
     });
     let farm = tokio::select! {
         farm = starting => farm.context("starting the local farm")??,
@@ -67,25 +67,11 @@ pub async fn run(opts: Options) -> Result<()> {
     };
     let result = tokio::select! {
         r = render_on(farm.address(), &opts, frames, output) => r,
-        e = farm.first_exit() => Err(e),
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     drop(farm);
     result
-}
-
-/// The limits of the coordinator `up` starts: whatever `tessera render` renders (its
-/// size and antialiasing), not the defaults that guard a shared farm.
-pub fn up_limits() -> Vec<String> {
-    use render::limits::{MAX_AA, MAX_SIDE};
-    vec![
-        "--max-aa".into(),
-        MAX_AA.to_string(),
-        "--max-pixels".into(),
-        (u64::from(MAX_SIDE) * u64::from(MAX_SIDE)).to_string(),
-        "--max-objects".into(),
-        u64::MAX.to_string(),
-    ]
 }
 
 /// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
