@@ -7,9 +7,17 @@
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
 use localfarm::{unprivileged, CpuLimit};
+
+/// One test at a time: each looks for limits of this process left behind, and must not
+/// find the other's, still in use.
+fn serial() -> MutexGuard<'static, ()> {
+    static LOCK: Mutex<()> = Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// A child process, killed and reaped however the test ends.
 struct Process(Child);
@@ -61,6 +69,7 @@ fn cpu_time(pid: u32) -> Duration {
 #[test]
 fn a_limited_process_is_in_a_cgroup_with_its_quota_until_the_limit_is_dropped() {
     let test = "a_limited_process_is_in_a_cgroup_with_its_quota_until_the_limit_is_dropped";
+    let _serial = serial();
     let process = Process::start("sleep", &["60"]);
     let pid = process.pid();
     let before = read(format!("/proc/{pid}/cgroup"));
@@ -108,6 +117,7 @@ fn a_limited_process_is_in_a_cgroup_with_its_quota_until_the_limit_is_dropped() 
 #[test]
 fn a_limited_busy_process_gets_no_more_than_its_share_of_a_core() {
     let test = "a_limited_busy_process_gets_no_more_than_its_share_of_a_core";
+    let _serial = serial();
     let process = Process::start("sh", &["-c", "while :; do :; done"]);
     let limit = match CpuLimit::apply(process.pid(), 0.1) {
         Ok(limit) => limit,
