@@ -44,9 +44,9 @@ use render::limits::MAX_AA;
         renderer-scaling.md/.csv/.png). The farm runs on the tessera executable beside \
         this one (--tessera to give another). The static split (scaling, and so all) \
         slows one worker through a cgroup, which needs root. Build with --release.",
-    after_help = "Examples:\n  \
-        cargo build --release && target/release/tessera-bench --out bench-results\n  \
-        cargo build --release && target/release/tessera-bench --suite error --quick --out /tmp/check\n  \
+    after_help = "Examples (`cargo build --release` builds the tessera executable it runs):\n  \
+        cargo build --release && cargo run --release -p tessera-bench -- --out bench-results\n  \
+        cargo run --release -p tessera-bench -- --suite error --quick --out /tmp/check\n  \
         target/release/tessera-bench --suite renderer --anchor ./ew --limit-bench ./limit_bench \\\n      \
         --seed-cpp ./seed_structured --out docs/perf"
 )]
