@@ -641,7 +641,7 @@ struct WorkerArgs {
     /// failed tiles: keep it stable across restarts (the host name) [default: HOST-PID].
     #[arg(long, env = "TESSERA_NAME")]
     name: Option<String>,
-    /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
+    /// Take FACTOR times as long per tile, to stand for a slower machine (tests).
     #[arg(long, hide = true, value_name = "FACTOR")]
     throttle: Option<f64>,
     /// Exit when standard input closes (used by `tessera up` for its children).

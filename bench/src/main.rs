@@ -57,8 +57,8 @@ struct Args {
     /// Directory for the tables and plots.
     #[arg(long, value_name = "DIR", default_value = "bench-results")]
     out: PathBuf,
-    /// The tessera executable the farm and the renderer suite run [default: the one
-    /// beside tessera-bench].
+    /// The tessera executable the farm and the renderer suite run (every suite but
+    /// error) [default: the one beside tessera-bench].
     #[arg(long, value_name = "PATH")]
     tessera: Option<PathBuf>,
     /// Frame width of the error suite.
@@ -119,15 +119,16 @@ fn main() -> ExitCode {
     }
 }
 
-/// The options of a run, with the tessera executable found and checked: a missing one
-/// is said at once, not after minutes of the suites that do not need it.
+/// The options of a run, with the tessera executable found and, for every suite but
+/// `error` (which renders in this process), checked: a missing one is said at once, not
+/// after minutes of the suites that do not need it.
 fn options(a: Args) -> Result<Options> {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let tessera = match a.tessera {
         Some(path) => path,
         None => beside_this_executable()?,
     };
-    if !tessera.is_file() {
+    if a.suite != Suite::Error && !tessera.is_file() {
         bail!(
             "no tessera executable at {}: build it with `cargo build --release` (or give \
              one with --tessera PATH)",

@@ -693,7 +693,8 @@ fn comparison_markdown(
     let _ = writeln!(
         md,
         "# The renderer against other programs\n\n\
-         Regenerate (from the repository root, after `cargo build --release`):\n\n\
+         Regenerate (from the repository root, after `cargo build --release --workspace`, \
+         which builds tessera-bench and the tessera it runs):\n\n\
          ```\n{}\n```\n\n\
          The external programs are built with\n\n\
          ```\n\

@@ -231,7 +231,7 @@ fn a_missing_tessera_executable_is_one_line_naming_it_and_how_to_build_it() {
         dir.path(),
         &[
             "--suite",
-            "error",
+            "renderer",
             "--quick",
             "--tessera",
             missing.to_str().unwrap(),
