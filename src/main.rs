@@ -3,13 +3,10 @@
 //! what went wrong: one line on stderr, or with `--json` an object on stdout.
 
 mod args;
-mod bench;
 mod commands;
 mod config;
-mod local_farm;
 mod local_render;
 mod output;
-mod plot;
 mod render_state;
 mod report;
 mod scene_file;
@@ -23,9 +20,6 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
-
-/// `src/bench` starts its local farms with the limits of `tessera up` under this name.
-use commands::up as up_command;
 
 /// Tessera renders ray-traced images of JSON scenes (spheres, planes, point lights,
 /// mirrors and checkerboards), on this machine or on a farm of workers.
@@ -55,7 +49,6 @@ enum Command {
     #[command(flatten)]
     Job(commands::jobs::Command),
     Workers(commands::workers::Args),
-    Bench(commands::bench::Args),
     Simulate(commands::simulate::Args),
 }
 
@@ -70,7 +63,6 @@ fn run(command: Command) -> Result<()> {
         Command::Submit(args) => commands::submit::run(args),
         Command::Job(command) => command.run(),
         Command::Workers(args) => commands::workers::run(args),
-        Command::Bench(args) => commands::bench::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
     }
 }

@@ -13,11 +13,6 @@ pub fn default_output(scene: &Path) -> PathBuf {
     PathBuf::from(format!("{stem}.png"))
 }
 
-/// Writes to a temporary file beside `path` and renames it into place.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    FileOutput { path: path.into() }.write(bytes)
-}
-
 /// An image still to be written: checked before any rendering, so that a render is
 /// never thrown away for a file name that cannot be written.
 ///

@@ -553,7 +553,17 @@ fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained
         );
     }
 
-    let mut worker = common::start_worker_with(dir.path(), &addr, "box", &["--throttle", "20"]);
+    let mut worker = common::start_worker_with(dir.path(), &addr, "box", &[]);
+    // A slow machine: 5 % of a core, as an operator would limit it (needs root).
+    let _slow = match localfarm::CpuLimit::apply(worker.pid(), 0.05) {
+        Ok(limit) => limit,
+        Err(e) => {
+            return localfarm::unprivileged(
+                "a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained_worker_exits",
+                &e,
+            )
+        }
+    };
     poll("the worker to join", Duration::from_secs(30), || {
         worker_named(&workers_json(dir.path(), &addr), "box").map(drop)
     });

@@ -48,6 +48,8 @@ fn note(size: usize) {
     let _ = LARGEST.try_with(|largest| largest.set(largest.get().max(size)));
 }
 
+// SAFETY: every method forwards to the system allocator with the same arguments; the
+// tracking only reads the sizes, into a thread-local `Cell` that never allocates.
 unsafe impl GlobalAlloc for Tracking {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         note(layout.size());

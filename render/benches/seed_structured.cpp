@@ -1,5 +1,5 @@
 // seed_structured.cpp: the seed program's structure in C++, the baseline of
-// `tessera bench --suite renderer` (the "seed-structured C++" column).
+// `tessera-bench --suite renderer` (the "seed-structured C++" column).
 //
 // A line-by-line transcription of `seed_structured.rs` next to it, which is itself a
 // transcription of the structure of the seed program (the C++ ray tracer of the seed

@@ -28,7 +28,7 @@
 //! such pixels add nothing to a tile's [`error_sq_sum`](crate::TileImage::error_sq_sum).
 //! The estimate measures noise as if the samples were independent: for these
 //! stratified patterns it is an upper bound (1.1 to 4.4 times the measured error in
-//! `tessera bench`), and a feature smaller than the spacing of the samples that none of
+//! `tessera-bench`), and a feature smaller than the spacing of the samples that none of
 //! them hit leaves no trace in it. Adaptive sampling's calibrated estimate is in
 //! [`crate::progressive`].
 

@@ -1,7 +1,6 @@
 //! One module per subcommand: each holds its clap `Args` (the subcommand's description,
 //! flags and help) and its `run`, which turns the arguments into library calls.
 
-pub mod bench;
 pub mod coordinator;
 pub mod jobs;
 pub mod refine;

@@ -7,10 +7,9 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
+use localfarm::{up_limits, LocalFarm, WorkerSpec};
 
-use super::up::up_limits;
 use crate::args::threads_per_worker;
-use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::scene_file::read_checked_scene;
 use crate::signals::{Interrupted, StopSignals};
 
@@ -57,13 +56,7 @@ async fn studio(args: Args) -> Result<()> {
     if let Some(scene) = &args.scene {
         read_checked_scene(scene)?;
     }
-    let specs = vec![
-        WorkerSpec {
-            threads,
-            throttle: None,
-        };
-        workers
-    ];
+    let specs = vec![WorkerSpec { threads }; workers];
     let mut coordinator_args = up_limits();
     coordinator_args.extend(["--http".to_owned(), args.http.to_string()]);
     if let Some(scene) = &args.scene {
@@ -71,17 +64,18 @@ async fn studio(args: Args) -> Result<()> {
             .with_context(|| format!("cannot resolve {}", scene.display()))?;
         coordinator_args.extend(["--studio-scene".to_owned(), absolute.display().to_string()]);
     }
+    let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let starting = tokio::task::spawn_blocking(move || {
         let args: Vec<&str> = coordinator_args.iter().map(String::as_str).collect();
-        LocalFarm::start_with(&specs, &args)
+        LocalFarm::start_with(&exe, &specs, &args)
     });
     let farm = tokio::select! {
         farm = starting => farm.context("starting the local farm")??,
         signal = stop.next() => return Err(signal.into()),
     };
-    let ready = tokio::select! {
-        r = farm.wait_for_workers(workers, Duration::from_secs(30)) => r,
-        e = farm.first_exit() => Err(e),
+    let ready: Result<()> = tokio::select! {
+        r = farm.wait_for_workers(workers, Duration::from_secs(30)) => r.map_err(Into::into),
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     ready?;
@@ -94,8 +88,8 @@ async fn studio(args: Args) -> Result<()> {
         farm.address(),
         workers
     );
-    let result = tokio::select! {
-        e = farm.first_exit() => Err(e),
+    let result: Result<()> = tokio::select! {
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     drop(farm);

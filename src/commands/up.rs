@@ -9,11 +9,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
+use localfarm::{up_limits, LocalFarm, WorkerSpec};
 use transport::Endpoint;
 
 use crate::args::{parse_frame_range, threads_per_worker, FrameRange, ImageArgs};
 use crate::config;
-use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, summary};
 use crate::scene_file::read_scene;
@@ -80,17 +80,12 @@ async fn up(args: Args) -> Result<()> {
         label: Default::default(),
         frames,
     };
-    let specs = vec![
-        WorkerSpec {
-            threads,
-            throttle: None,
-        };
-        workers
-    ];
+    let specs = vec![WorkerSpec { threads }; workers];
+    let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let starting = tokio::task::spawn_blocking(move || {
         let limits = up_limits();
         let args: Vec<&str> = limits.iter().map(String::as_str).collect();
-        LocalFarm::start_with(&specs, &args)
+        LocalFarm::start_with(&exe, &specs, &args)
     });
     let farm = tokio::select! {
         farm = starting => farm.context("starting the local farm")??,
@@ -98,25 +93,11 @@ async fn up(args: Args) -> Result<()> {
     };
     let result = tokio::select! {
         r = render_on(farm.address(), &args.scene, job, output, workers) => r,
-        e = farm.first_exit() => Err(e),
+        e = farm.first_exit() => Err(e.into()),
         signal = stop.next() => Err(signal.into()),
     };
     drop(farm);
     result
-}
-
-/// The limits of the coordinator `up` starts: whatever `tessera render` renders (its
-/// size and antialiasing), not the defaults that guard a shared farm.
-pub fn up_limits() -> Vec<String> {
-    use render::limits::{MAX_AA, MAX_SIDE};
-    vec![
-        "--max-aa".into(),
-        MAX_AA.to_string(),
-        "--max-pixels".into(),
-        (u64::from(MAX_SIDE) * u64::from(MAX_SIDE)).to_string(),
-        "--max-objects".into(),
-        u64::MAX.to_string(),
-    ]
 }
 
 /// Submits the job to the farm at `address`, follows it and writes its result; the

@@ -42,7 +42,8 @@ pub struct Config {
     /// The name the coordinator shows for this worker.
     pub name: String,
     /// Makes every tile take this many times its rendering time (the thread waits out
-    /// the difference), to stand for a slower machine in benchmarks of uneven farms.
+    /// the difference), to stand for a slower machine in the end-to-end tests that need
+    /// one (the benchmarks slow a worker from outside instead, with a CPU limit).
     /// `None` or 1 renders at full speed; the pixels are the same either way.
     pub throttle: Option<f64>,
     /// Set while the worker is connected to a coordinator and taking tiles (its

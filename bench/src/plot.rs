@@ -66,8 +66,9 @@ pub fn write_png(
         root.present().map_err(draw_error)?;
     }
     let png = render::Image { width, height, rgb }.to_png();
-    crate::output::write_atomically(path, &png)
-        .with_context(|| format!("cannot write {}", path.display()))
+    // Written as the tables beside it are: the benchmark's own results, which a failed
+    // run simply writes again.
+    std::fs::write(path, &png).with_context(|| format!("cannot write {}", path.display()))
 }
 
 fn register_font() {

@@ -1,36 +1,104 @@
 //! A farm of real `tessera coordinator` and `tessera worker` child processes on this
-//! machine, on loopback, with a temporary data directory: what `tessera up` and the
-//! farm benchmarks run on.
+//! machine, on loopback, with a temporary data directory: what `tessera up`, `tessera
+//! studio` and the farm benchmarks (`tessera-bench`) run on.
+//!
+//! The executable is given, not taken to be the running one: `tessera` passes its own,
+//! the benchmark the `tessera` beside it, which is what lets the benchmarks live outside
+//! the shipped binary.
 //!
 //! The children are stopped when the farm is dropped; should this process be killed,
 //! they notice that their standard input (a pipe from it) has closed and exit, so no
 //! process is ever left behind.
+//!
+//! A farm of unequal machines is made the way an operator would slow a machine, from
+//! outside the worker: [`CpuLimit`] puts one of its processes in a cgroup limited to a
+//! share of a core.
+
+mod cpu_limit;
+mod privileged;
 
 use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Child, ChildStdin, Command, Stdio};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, ExitStatus, Stdio};
 use std::sync::Mutex;
 use std::time::Duration;
 
-use anyhow::{anyhow, bail, Context, Result};
 use coordinator::client::Client;
 use transport::Endpoint;
+
+pub use cpu_limit::CpuLimit;
+pub use privileged::{privileges_required, unprivileged};
+
+/// What can go wrong starting, watching or limiting a local farm's processes.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("cannot create a temporary directory")]
+    TempDir(#[source] std::io::Error),
+    #[error("cannot start {}", exe.display())]
+    Spawn {
+        exe: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the local coordinator did not start: {0}")]
+    CoordinatorDidNotStart(String),
+    #[error("the local coordinator did not serve HTTP: {0}")]
+    NoHttp(String),
+    /// A process exited on its own, which the farm cannot finish without.
+    #[error("the local {name} stopped ({status}): {log}")]
+    Stopped {
+        name: String,
+        status: ExitStatus,
+        /// The last line of its log.
+        log: String,
+    },
+    #[error("{count} local workers did not register within {timeout:?}")]
+    WorkersLate { count: usize, timeout: Duration },
+    /// Talking to the local coordinator failed.
+    #[error(transparent)]
+    Coordinator(anyhow::Error),
+    /// Reading a child's output or writing its log.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// The one line [`CpuLimit`] gives: what could not be done, and that it takes root
+    /// where that is the reason.
+    #[error("cannot limit a process's CPU: {0}")]
+    CpuLimit(String),
+}
 
 /// One worker process of a local farm.
 #[derive(Clone, Debug)]
 pub struct WorkerSpec {
     pub threads: usize,
-    /// Makes the worker this many times slower (benchmarks of uneven farms).
-    pub throttle: Option<f64>,
 }
 
 impl Default for WorkerSpec {
     fn default() -> Self {
-        WorkerSpec {
-            threads: 1,
-            throttle: None,
-        }
+        WorkerSpec { threads: 1 }
     }
+}
+
+/// The limits of the coordinator `tessera up` starts: whatever `tessera render` renders
+/// (its size and antialiasing), not the defaults that guard a shared farm.
+pub fn up_limits() -> Vec<String> {
+    use render::limits::{MAX_AA, MAX_SIDE};
+    vec![
+        "--max-aa".into(),
+        MAX_AA.to_string(),
+        "--max-pixels".into(),
+        (u64::from(MAX_SIDE) * u64::from(MAX_SIDE)).to_string(),
+        "--max-objects".into(),
+        u64::MAX.to_string(),
+    ]
+}
+
+/// The `TESSERA_*` variables of this process's environment: settings meant for other
+/// daemons (a config file, an HTTP port), which a process the farm or a benchmark
+/// starts must not inherit.
+pub fn tessera_variables() -> impl Iterator<Item = std::ffi::OsString> {
+    std::env::vars_os()
+        .map(|(key, _)| key)
+        .filter(|key| key.to_string_lossy().starts_with("TESSERA_"))
 }
 
 /// The child processes of a local farm; dropping it stops them all.
@@ -46,7 +114,7 @@ impl LocalFarm {
     /// Completes when the farm can no longer finish: the coordinator or every worker
     /// has exited on its own. (One worker lost is survivable: its tiles go to the
     /// others.) The error names the process, with the last line of its log.
-    pub async fn first_exit(&self) -> anyhow::Error {
+    pub async fn first_exit(&self) -> Error {
         loop {
             tokio::time::sleep(std::time::Duration::from_millis(200)).await;
             let mut children = self.children.lock().expect("children lock");
@@ -69,24 +137,28 @@ impl LocalFarm {
                     format!("local-{i}")
                 };
                 let log = last_line(&self.dir.path().join(format!("{name}.log")));
-                return anyhow!("the local {name} stopped ({status}): {log}");
+                return Error::Stopped { name, status, log };
             }
         }
     }
 
-    /// Starts the coordinator, waits for its address, then starts the workers.
-    pub fn start(workers: &[WorkerSpec]) -> Result<LocalFarm> {
-        Self::start_with(workers, &[])
+    /// Starts the coordinator (`exe coordinator ...`, `exe` being a `tessera`
+    /// executable), waits for its address, then starts the workers.
+    pub fn start(exe: &Path, workers: &[WorkerSpec]) -> Result<LocalFarm, Error> {
+        Self::start_with(exe, workers, &[])
     }
 
     /// [`LocalFarm::start`] with more arguments for the coordinator (benchmarks of its
     /// settings).
-    pub fn start_with(workers: &[WorkerSpec], coordinator_args: &[&str]) -> Result<LocalFarm> {
-        let exe = std::env::current_exe().context("cannot find the tessera executable")?;
+    pub fn start_with(
+        exe: &Path,
+        workers: &[WorkerSpec],
+        coordinator_args: &[&str],
+    ) -> Result<LocalFarm, Error> {
         let dir = tempfile::Builder::new()
             .prefix("tessera-up-")
             .tempdir()
-            .context("cannot create a temporary directory")?;
+            .map_err(Error::TempDir)?;
         let mut farm = LocalFarm {
             address: String::new(),
             http: None,
@@ -102,7 +174,7 @@ impl LocalFarm {
             data.as_os_str(),
         ];
         args.extend(coordinator_args.iter().map(std::ffi::OsStr::new));
-        let mut coordinator = farm.spawn(&exe, "coordinator", &args, true)?;
+        let mut coordinator = farm.spawn(exe, "coordinator", &args, true)?;
         let stdout = coordinator.stdout.take().expect("stdout is piped");
         let stdin = coordinator.stdin.take();
         farm.children
@@ -114,10 +186,11 @@ impl LocalFarm {
         stdout.read_line(&mut line)?;
         farm.address = match line.trim().strip_prefix("listening on ") {
             Some(addr) => addr.to_string(),
-            None => bail!(
-                "the local coordinator did not start: {}",
-                last_line(&farm.dir.path().join("coordinator.log"))
-            ),
+            None => {
+                return Err(Error::CoordinatorDidNotStart(last_line(
+                    &farm.dir.path().join("coordinator.log"),
+                )))
+            }
         };
         // With --http, its address is the next line.
         if coordinator_args.contains(&"--http") {
@@ -125,16 +198,17 @@ impl LocalFarm {
             stdout.read_line(&mut line)?;
             farm.http = match line.trim().strip_prefix("http on ") {
                 Some(addr) => Some(addr.to_string()),
-                None => bail!(
-                    "the local coordinator did not serve HTTP: {}",
-                    last_line(&farm.dir.path().join("coordinator.log"))
-                ),
+                None => {
+                    return Err(Error::NoHttp(last_line(
+                        &farm.dir.path().join("coordinator.log"),
+                    )))
+                }
             };
         }
         for (i, spec) in workers.iter().enumerate() {
             let name = format!("local-{}", i + 1);
             let threads = spec.threads.to_string();
-            let mut args: Vec<&std::ffi::OsStr> = vec![
+            let args: Vec<&std::ffi::OsStr> = vec![
                 "worker".as_ref(),
                 "--coordinator".as_ref(),
                 farm.address.as_ref(),
@@ -143,12 +217,7 @@ impl LocalFarm {
                 "--name".as_ref(),
                 name.as_ref(),
             ];
-            let throttle = spec.throttle.map(|t| t.to_string());
-            if let Some(throttle) = &throttle {
-                args.push("--throttle".as_ref());
-                args.push(throttle.as_ref());
-            }
-            let mut child = farm.spawn(&exe, &name, &args, false)?;
+            let mut child = farm.spawn(exe, &name, &args, false)?;
             let stdin = child.stdin.take();
             farm.children
                 .get_mut()
@@ -180,16 +249,19 @@ impl LocalFarm {
     }
 
     /// Waits until `n` workers have registered with the coordinator.
-    pub async fn wait_for_workers(&self, n: usize, timeout: Duration) -> Result<()> {
+    pub async fn wait_for_workers(&self, n: usize, timeout: Duration) -> Result<(), Error> {
         let deadline = tokio::time::Instant::now() + timeout;
         let endpoint = Endpoint::plain(self.address.clone());
         loop {
-            let mut client = Client::connect(&endpoint).await?;
-            if client.workers().await?.len() >= n {
+            let mut client = Client::connect(&endpoint)
+                .await
+                .map_err(Error::Coordinator)?;
+            let workers = client.workers().await.map_err(Error::Coordinator)?;
+            if workers.len() >= n {
                 return Ok(());
             }
             if tokio::time::Instant::now() >= deadline {
-                bail!("{n} local workers did not register within {timeout:?}");
+                return Err(Error::WorkersLate { count: n, timeout });
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
@@ -201,16 +273,14 @@ impl LocalFarm {
         log: &str,
         args: &[&std::ffi::OsStr],
         stdout: bool,
-    ) -> Result<Child> {
+    ) -> Result<Child, Error> {
         let log_path = self.dir.path().join(format!("{log}.log"));
         let log_file = std::fs::File::create(&log_path)?;
         let mut command = Command::new(exe);
         // The farm is this command's own: settings meant for other daemons (a config
         // file, an HTTP port) must not reach its processes.
-        for (key, _) in std::env::vars_os() {
-            if key.to_string_lossy().starts_with("TESSERA_") {
-                command.env_remove(key);
-            }
+        for key in tessera_variables() {
+            command.env_remove(key);
         }
         command
             .args(args)
@@ -223,7 +293,10 @@ impl LocalFarm {
             })
             .stderr(log_file)
             .spawn()
-            .with_context(|| format!("cannot start {}", exe.display()))
+            .map_err(|source| Error::Spawn {
+                exe: exe.to_path_buf(),
+                source,
+            })
     }
 }
 

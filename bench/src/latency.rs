@@ -21,7 +21,7 @@ use super::compression;
 use super::relay::{self, Direction, Link, Relay, Traffic, DOWN_KINDS, HANDSHAKE, OTHER, UP_KINDS};
 use super::scenes;
 use super::Options;
-use crate::local_farm::LocalFarm;
+use localfarm::LocalFarm;
 
 /// One-thread workers of each farm.
 const WORKERS: usize = 2;
@@ -146,17 +146,14 @@ struct Workers {
 }
 
 impl Workers {
-    fn start(addresses: &[String], log_dir: &Path) -> Result<Workers> {
-        let exe = std::env::current_exe().context("cannot find the tessera executable")?;
+    fn start(exe: &Path, addresses: &[String], log_dir: &Path) -> Result<Workers> {
         let mut children = Vec::new();
         for (i, address) in addresses.iter().enumerate() {
             let name = format!("latency-{}", i + 1);
             let log = std::fs::File::create(log_dir.join(format!("{name}.log")))?;
-            let mut command = Command::new(&exe);
-            for (key, _) in std::env::vars_os() {
-                if key.to_string_lossy().starts_with("TESSERA_") {
-                    command.env_remove(key);
-                }
+            let mut command = Command::new(exe);
+            for key in localfarm::tessera_variables() {
+                command.env_remove(key);
             }
             let mut child = command
                 .args(["worker", "--coordinator", address, "--threads", "1"])
@@ -192,8 +189,9 @@ struct Farm {
 }
 
 impl Farm {
-    async fn start(network: Network) -> Result<Farm> {
-        let coordinator = tokio::task::spawn_blocking(|| LocalFarm::start(&[]))
+    async fn start(exe: &Path, network: Network) -> Result<Farm> {
+        let tessera = exe.to_path_buf();
+        let coordinator = tokio::task::spawn_blocking(move || LocalFarm::start(&tessera, &[]))
             .await
             .context("starting a coordinator")??;
         let target: SocketAddr = coordinator
@@ -221,7 +219,7 @@ impl Farm {
         let logs = tempfile::Builder::new()
             .prefix("tessera-latency-")
             .tempdir()?;
-        let workers = Workers::start(&addresses, logs.path())?;
+        let workers = Workers::start(exe, &addresses, logs.path())?;
         coordinator
             .wait_for_workers(WORKERS, Duration::from_secs(20))
             .await?;
@@ -262,7 +260,7 @@ fn job_spec(job: JobSize) -> Result<JobSpec> {
         "priority": 0,
         "verification": "Sampled",
         "name": "bench",
-        "submitter": "tessera bench",
+        "submitter": "tessera-bench",
         "frame": 1,
     });
     serde_json::from_value(spec).context("building the job's spec")
@@ -327,7 +325,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
     let most = plan.jobs.iter().map(|j| j.repetitions).max().unwrap_or(0);
     for repetition in 0..most {
         for (n, network) in plan.networks.iter().enumerate() {
-            let farm = Farm::start(*network).await?;
+            let farm = Farm::start(&opts.tessera, *network).await?;
             for (j, job) in plan.jobs.iter().enumerate() {
                 if repetition >= job.repetitions {
                     continue;

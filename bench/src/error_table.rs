@@ -1,4 +1,4 @@
-//! `tessera bench`'s speed-against-error table: every benchmark scene rendered with each
+//! `tessera-bench`'s speed-against-error table: every benchmark scene rendered with each
 //! sampling setting, timed, and compared with a converged reference render.
 //!
 //! The grid and jittered rows are rendered by [`render::render_frame`]; the adaptive

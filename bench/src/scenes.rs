@@ -120,7 +120,7 @@ pub fn thin_features() -> BenchScene {
     }
 }
 
-/// The scenes of `tessera bench`'s speed-against-error table.
+/// The scenes of `tessera-bench`'s speed-against-error table.
 pub fn error_suite() -> Vec<BenchScene> {
     vec![seed(), spheres(1000), checker_horizon(), thin_features()]
 }

@@ -1,4 +1,4 @@
-//! `tessera bench --suite sequence`: what a sequence job costs on the farm.
+//! `tessera-bench --suite sequence`: what a sequence job costs on the farm.
 //!
 //! 1. Throughput: an orbit of the seed scene on a local farm of two one-thread workers
 //!    against `tessera render --frames` with two threads, alternated, medians; the
@@ -21,7 +21,7 @@ use protocol::{FrameRange, JobId, JobSpec, JobState, JobStatus, Overrides};
 use transport::Endpoint;
 
 use super::Options;
-use crate::local_farm::{LocalFarm, WorkerSpec};
+use localfarm::{LocalFarm, WorkerSpec};
 
 /// The orbit every part renders, rescaled to other frame counts.
 const ORBIT: &str = include_str!("../../scenes/seed-orbit.json");
@@ -104,7 +104,7 @@ struct Memory {
 /// Runs the suite and writes `sequence.md`.
 pub async fn run(opts: &Options, out: &Path) -> Result<()> {
     let load_before = load_average();
-    let exe = std::env::current_exe().context("cannot find the tessera executable")?;
+    let exe = &opts.tessera;
     let work = tempfile::Builder::new()
         .prefix("tessera-bench-sequence-")
         .tempdir()
@@ -146,8 +146,8 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
         )
     };
 
-    let throughput = compare(&exe, &scene_path, work.path(), big, frames, runs).await?;
-    let overhead = compare(&exe, &scene_path, work.path(), tiny, frames, runs).await?;
+    let throughput = compare(exe, &scene_path, work.path(), big, frames, runs).await?;
+    let overhead = compare(exe, &scene_path, work.path(), tiny, frames, runs).await?;
 
     let memory_size = Size {
         width: 32,
@@ -156,7 +156,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
     };
     let mut memory = Vec::new();
     for n in memory_frames {
-        memory.push(measure_memory(n, memory_size).await?);
+        memory.push(measure_memory(exe, n, memory_size).await?);
     }
 
     let load = format!("{load_before} at the start, {} at the end", load_average());
@@ -167,12 +167,13 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
 }
 
 /// A local farm of `workers` one-thread workers, with `tessera up`'s limits.
-async fn start_farm(workers: usize) -> Result<LocalFarm> {
+async fn start_farm(exe: &Path, workers: usize) -> Result<LocalFarm> {
     let specs = vec![WorkerSpec::default(); workers];
+    let exe = exe.to_path_buf();
     let farm = tokio::task::spawn_blocking(move || {
-        let limits = crate::up_command::up_limits();
+        let limits = localfarm::up_limits();
         let args: Vec<&str> = limits.iter().map(String::as_str).collect();
-        LocalFarm::start_with(&specs, &args)
+        LocalFarm::start_with(&exe, &specs, &args)
     })
     .await
     .context("starting a local farm")??;
@@ -222,7 +223,7 @@ async fn run_sequence(
             verification: protocol::Verification::default(),
             time_limit_ms: None,
             name: "bench-sequence".into(),
-            submitter: "tessera bench".into(),
+            submitter: "tessera-bench".into(),
             frame: 1,
             frames: Some(FrameRange {
                 first: 1,
@@ -279,10 +280,8 @@ async fn run_local(
         dir.display().to_string(),
     ];
     let mut command = tokio::process::Command::new(exe);
-    for (key, _) in std::env::vars_os() {
-        if key.to_string_lossy().starts_with("TESSERA_") {
-            command.env_remove(key);
-        }
+    for key in localfarm::tessera_variables() {
+        command.env_remove(key);
     }
     command
         .args(&args)
@@ -365,7 +364,7 @@ async fn compare(
             if farm_turn {
                 // A fresh farm each time: every run starts from the same state (an
                 // empty data directory, nothing being deleted behind it).
-                let farm = start_farm(WORKERS).await?;
+                let farm = start_farm(exe, WORKERS).await?;
                 let mut client = Client::connect(&Endpoint::plain(farm.address())).await?;
                 let pids = farm.pids();
                 let cpu = |pids: &[u32]| -> Result<Vec<f64>> {
@@ -452,8 +451,8 @@ fn dir_size(dir: &Path) -> (u64, u64) {
 }
 
 /// A fresh farm renders a sequence of `frames` tiny frames; its processes' memory.
-async fn measure_memory(frames: u32, size: Size) -> Result<Memory> {
-    let farm = start_farm(WORKERS).await?;
+async fn measure_memory(exe: &Path, frames: u32, size: Size) -> Result<Memory> {
+    let farm = start_farm(exe, WORKERS).await?;
     let pids = farm.pids();
     let idle_kib: Vec<u64> = pids
         .iter()

@@ -1,4 +1,4 @@
-//! `tessera bench --suite renderer`: the whole `tessera render` process against other
+//! `tessera-bench --suite renderer`: the whole `tessera render` process against other
 //! programs given by path, side by side in one run, and how the renderer's time scales.
 //!
 //! - **Anchor** (`--anchor`): an Embree-based tracer of the same model, run on the same
@@ -150,7 +150,7 @@ impl Floor {
 /// Runs the suite: `renderer.md`, `renderer.csv`, `renderer-scaling.{md,csv,png}`.
 pub fn run(opts: &Options, out: &Path) -> Result<()> {
     let load = load_average();
-    let tessera = std::env::current_exe().context("cannot find the tessera executable")?;
+    let tessera = &opts.tessera;
     let dir = tempfile::tempdir().context("cannot make a temporary directory")?;
     let cases = write_cases(opts, dir.path())?;
     let floor = match &opts.external.limit_bench {
@@ -159,7 +159,7 @@ pub fn run(opts: &Options, out: &Path) -> Result<()> {
     };
     let mut results = Vec::new();
     for case in cases {
-        results.push(run_case(opts, &tessera, case, dir.path())?);
+        results.push(run_case(opts, tessera, case, dir.path())?);
     }
     let md = comparison_markdown(opts, &results, floor, &load);
     std::fs::write(out.join("renderer.md"), md)?;
@@ -693,7 +693,8 @@ fn comparison_markdown(
     let _ = writeln!(
         md,
         "# The renderer against other programs\n\n\
-         Regenerate (from the repository root, after `cargo build --release`):\n\n\
+         Regenerate (from the repository root, after `cargo build --release --workspace`, \
+         which builds tessera-bench and the tessera it runs):\n\n\
          ```\n{}\n```\n\n\
          The external programs are built with\n\n\
          ```\n\

@@ -14,7 +14,7 @@ use protocol::{JobSpec, Overrides, Verification};
 
 use super::scenes;
 use super::Options;
-use crate::local_farm::{LocalFarm, WorkerSpec};
+use localfarm::{LocalFarm, WorkerSpec};
 
 /// One way of checking results.
 struct Setting {
@@ -56,8 +56,9 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
     for round in 0..rounds {
         for (s, setting) in SETTINGS.iter().enumerate() {
             let args = setting.coordinator_args;
+            let exe = opts.tessera.clone();
             let farm = tokio::task::spawn_blocking(move || {
-                LocalFarm::start_with(&[WorkerSpec::default(), WorkerSpec::default()], args)
+                LocalFarm::start_with(&exe, &[WorkerSpec::default(), WorkerSpec::default()], args)
             })
             .await
             .context("starting a farm")??;
@@ -80,7 +81,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
                     verification: setting.verification,
                     time_limit_ms: None,
                     name: "bench".into(),
-                    submitter: "tessera bench".into(),
+                    submitter: "tessera-bench".into(),
                     frame: 1,
                     frames: None,
                 };

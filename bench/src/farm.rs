@@ -13,8 +13,8 @@ use transport::Endpoint;
 use super::measure;
 use super::scenes::{self, BenchScene};
 use super::Options;
-use crate::local_farm::{LocalFarm, WorkerSpec};
 use crate::plot::{Panel, Series};
+use localfarm::{CpuLimit, LocalFarm, WorkerSpec};
 
 /// The seed report's table 1: MPI processes, seconds, speed-up (600 × 400, aa 2, on a
 /// 6-core, 12-thread machine, static split of the pixels).
@@ -49,7 +49,7 @@ async fn run_job(
             verification: protocol::Verification::default(),
             time_limit_ms: None,
             name: "bench".into(),
-            submitter: "tessera bench".into(),
+            submitter: "tessera-bench".into(),
             frame: 1,
             frames: None,
         })
@@ -99,7 +99,8 @@ pub async fn speedup(opts: &Options, max_workers: usize) -> Result<Vec<FarmPoint
     let mut first_png: Option<Vec<u8>> = None;
     for workers in 1..=max_workers {
         let specs = vec![WorkerSpec::default(); workers];
-        let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&specs))
+        let exe = opts.tessera.clone();
+        let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&exe, &specs))
             .await
             .context("starting a local farm")??;
         farm.wait_for_workers(workers, Duration::from_secs(20))
@@ -208,9 +209,10 @@ pub fn concentrated() -> BenchScene {
 
 /// The pull scheduler against a static split.
 pub struct SplitResult {
-    pub throttle: f64,
+    /// How many times slower the slow worker is: its process has 1/`slowdown` of a core.
+    pub slowdown: f64,
     pub pull_seconds: f64,
-    /// Seconds each half of the frame takes on one unthrottled thread (top, bottom).
+    /// Seconds each half of the frame takes on one thread at full speed (top, bottom).
     pub band_seconds: [f64; 2],
 }
 
@@ -223,14 +225,15 @@ impl SplitResult {
         } else {
             (bottom, top)
         };
-        (slow * self.throttle).max(fast)
+        (slow * self.slowdown).max(fast)
     }
 }
 
-/// Two one-thread workers, one slowed `throttle` times: the real farm's makespan, and
-/// that of the seed's static split (the frame cut into two equal bands of rows, one per
-/// process), computed from each band's measured time.
-pub async fn split(opts: &Options, throttle: f64) -> Result<SplitResult> {
+/// Two one-thread workers, one slowed `slowdown` times (its process limited to
+/// 1/`slowdown` of a core by a cgroup, so this needs root): the real farm's makespan,
+/// and that of the seed's static split (the frame cut into two equal bands of rows, one
+/// per process), computed from each band's measured time.
+pub async fn split(opts: &Options, slowdown: f64) -> Result<SplitResult> {
     let bench = concentrated();
     let scene = render::parse_scene(&bench.json).context("the concentrated scene")?;
     let (width, height, aa) = if opts.quick {
@@ -268,16 +271,17 @@ pub async fn split(opts: &Options, throttle: f64) -> Result<SplitResult> {
             .context("a band of the frame")?;
         band_seconds[band] = started.elapsed().as_secs_f64();
     }
-    let specs = vec![
-        WorkerSpec::default(),
-        WorkerSpec {
-            throttle: Some(throttle),
-            ..WorkerSpec::default()
-        },
-    ];
-    let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&specs))
+    let specs = vec![WorkerSpec::default(); 2];
+    let exe = opts.tessera.clone();
+    let farm = tokio::task::spawn_blocking(move || LocalFarm::start(&exe, &specs))
         .await
         .context("starting a local farm")??;
+    // The second worker stands for a slower machine: the kernel gives its process a
+    // share of one core, as an operator would limit it (this takes root). Declared
+    // after the farm, so the limit goes first.
+    let slow_pid = farm.pids()[2];
+    let _slow = CpuLimit::apply(slow_pid, 1.0 / slowdown)
+        .context("slowing a worker for the static split")?;
     farm.wait_for_workers(2, Duration::from_secs(20)).await?;
     let overrides = Overrides {
         width: Some(width),
@@ -291,7 +295,7 @@ pub async fn split(opts: &Options, throttle: f64) -> Result<SplitResult> {
         pull_seconds, band_seconds[0], band_seconds[1]
     );
     Ok(SplitResult {
-        throttle,
+        slowdown,
         pull_seconds,
         band_seconds,
     })
@@ -304,14 +308,15 @@ pub fn split_markdown(r: &SplitResult) -> String {
     format!(
         "### Pull scheduler against a static split\n\n\
          Scene `concentrated` (20 mirror spheres in the top half, a floor below); two \
-         one-thread workers, one slowed {:.0}× (each tile takes it {:.0} times as long). \
+         one-thread workers, one slowed {:.0}× (a cgroup gives its process 1/{:.0} of a \
+         core). \
          One thread renders the top half in {:.3} s and the bottom half in {:.3} s.\n\n\
          | split | makespan (s) | vs pull |\n|---|---:|---:|\n\
          | pull (Tessera's scheduler, measured on the farm) | {:.3} | 1.00 |\n\
          | static, equal bands, slow worker on the cheap half | {:.3} | {:.2} |\n\
          | static, equal bands, slow worker on the costly half | {:.3} | {:.2} |\n",
-        r.throttle,
-        r.throttle,
+        r.slowdown,
+        r.slowdown,
         r.band_seconds[0],
         r.band_seconds[1],
         r.pull_seconds,
