@@ -25,9 +25,6 @@ pub struct Args {
     /// failed tiles: keep it stable across restarts (the host name) [default: HOST-PID].
     #[arg(long, env = "TESSERA_NAME")]
     name: Option<String>,
-    /// Take FACTOR times as long per tile, to stand for a slower machine (benchmarks).
-    #[arg(long, hide = true, value_name = "FACTOR")]
-    throttle: Option<f64>,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -66,7 +63,6 @@ async fn work(a: Args) -> Result<()> {
             coordinator,
             threads,
             name,
-            throttle: a.throttle,
             ready,
         },
         shutdown_signal(a.exit_on_stdin_eof),

@@ -41,11 +41,6 @@ pub struct Config {
     pub threads: usize,
     /// The name the coordinator shows for this worker.
     pub name: String,
-    /// Makes every tile take this many times its rendering time (the thread waits out
-    /// the difference), to stand for a slower machine in the end-to-end tests that need
-    /// one (the benchmarks slow a worker from outside instead, with a CPU limit).
-    /// `None` or 1 renders at full speed; the pixels are the same either way.
-    pub throttle: Option<f64>,
     /// Set while the worker is connected to a coordinator and taking tiles (its
     /// readiness, for supervisors); cleared while it reconnects or drains.
     pub ready: Arc<AtomicBool>,
@@ -81,7 +76,6 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     footprints_back: None,
                     alive: Arc::new(AtomicBool::new(true)),
                     in_flight: 0,
-                    throttle: config.throttle,
                     pongs: Vec::new(),
                     drain_asked: false,
                 };
@@ -176,7 +170,6 @@ struct Session {
     /// Cleared when the session ends: tiles of a lost connection are not rendered.
     alive: Arc<AtomicBool>,
     in_flight: usize,
-    throttle: Option<f64>,
     /// Pings read and not yet answered.
     pongs: Vec<u64>,
     /// The coordinator asked it to drain ([`ToWorker::Drain`]).
@@ -374,8 +367,8 @@ impl Session {
 
     /// Counts a tile in flight and returns what starts it on the pool: `None` (and
     /// nothing to send) when the session is gone or a `Cancel` of its job came after
-    /// it, else its start, timed from then (the throttle and `render_us` count the
-    /// rendering, not the wait in the queue), which sends the result.
+    /// it, else its start, timed from then (`render_us` counts the rendering, not the
+    /// wait in the queue), which sends the result.
     fn start_tile(
         &mut self,
         job: JobId,
@@ -387,7 +380,6 @@ impl Session {
         let cancelled = Arc::clone(&self.cancelled);
         let alive = Arc::clone(&self.alive);
         let done = done.clone();
-        let throttle = self.throttle;
         move || {
             let cancelled = cancelled
                 .lock()
@@ -400,7 +392,6 @@ impl Session {
             }
             Some(Started {
                 at: Instant::now(),
-                throttle,
                 done,
             })
         }
@@ -436,15 +427,11 @@ type FootprintsBack = (
 /// A tile being rendered: when it started, and where its result goes.
 struct Started {
     at: Instant,
-    throttle: Option<f64>,
     done: mpsc::UnboundedSender<Rendered>,
 }
 
 impl Started {
     fn elapsed(&self) -> Duration {
-        if let Some(factor) = self.throttle.filter(|f| *f > 1.0) {
-            std::thread::sleep(self.at.elapsed().mul_f64(factor - 1.0));
-        }
         self.at.elapsed()
     }
 
