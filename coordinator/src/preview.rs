@@ -5,12 +5,14 @@
 //! shown k times as long, so the preview still plays at the scene's speed), each at
 //! most [`SIDE`] pixels on its longer side; the frames are decoded, downscaled and
 //! encoded one at a time, so only one full-size frame is in memory at once.
+//!
+//! The png and gif crates directly, with the settings the `image` crate gave them (the
+//! bytes are the same, the tests compare them): `image` would bring colour management
+//! the farm never uses into every build.
 
 use std::borrow::Borrow;
 
 use anyhow::{Context, Result};
-use image::codecs::gif::{GifEncoder, Repeat};
-use image::{Delay, Frame, RgbaImage};
 
 /// The most frames a preview holds.
 pub const MAX_FRAMES: u32 = 240;
@@ -51,16 +53,74 @@ pub fn delay_cs(fps: f64, step: u32) -> u16 {
         .clamp(2.0, f64::from(u16::MAX)) as u16
 }
 
-/// Decodes a stored frame's PNG.
+/// The most bytes a decoded PNG may take before its conversion to RGB: 512 MiB, the
+/// `image` crate's default allocation limit, which this decoder keeps.
+const MAX_DECODED_BYTES: usize = 512 * 1024 * 1024;
+
+/// Decodes a stored frame's PNG. Any PNG decodes, to 8-bit RGB as the `image` crate's
+/// `load_from_memory(..).into_rgb8()` made it: palettes and depths below 8 expanded, 16
+/// bits rounded to 8, grey copied to red, green and blue, alpha dropped.
 pub fn decode_png(png: &[u8]) -> Result<render::Image> {
-    let decoded = image::load_from_memory_with_format(png, image::ImageFormat::Png)
-        .context("not a PNG image")?
-        .into_rgb8();
-    Ok(render::Image {
-        width: decoded.width(),
-        height: decoded.height(),
-        rgb: decoded.into_raw(),
-    })
+    decode_png_rgb8(png).context("not a PNG image")
+}
+
+fn decode_png_rgb8(png: &[u8]) -> Result<render::Image> {
+    let mut decoder = png::Decoder::new_with_limits(
+        std::io::Cursor::new(png),
+        png::Limits {
+            bytes: MAX_DECODED_BYTES,
+        },
+    );
+    // Palettes and depths below 8 expand to 8 bits; 16 bits stay, to be rounded below
+    // (the png crate's STRIP_16 would truncate them).
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let mut reader = decoder.read_info()?;
+    let (width, height) = reader.info().size();
+    let size = reader
+        .output_buffer_size()
+        .filter(|&size| size <= MAX_DECODED_BYTES)
+        .with_context(|| format!("a {width}×{height} image would take more than 512 MiB"))?;
+    let mut pixels = vec![0; size];
+    reader.next_frame(&mut pixels)?;
+    let rgb = match reader.output_color_type() {
+        (png::ColorType::Rgb, png::BitDepth::Eight) => pixels,
+        (colour, png::BitDepth::Eight) => to_rgb(&pixels, colour, 1, |sample| sample[0])?,
+        (colour, png::BitDepth::Sixteen) => to_rgb(&pixels, colour, 2, |sample| {
+            // `image`'s rounding of 16 bits to 8: round(v × 255 / 65535).
+            ((u32::from(u16::from_be_bytes([sample[0], sample[1]])) + 128) / 257) as u8
+        })?,
+        (colour, depth) => anyhow::bail!("{colour:?} samples of {depth:?} bits after expansion"),
+    };
+    Ok(render::Image { width, height, rgb })
+}
+
+/// The 8-bit RGB of `pixels`, of `colour` with samples `sample_bytes` wide that `eight`
+/// turns into 8 bits.
+fn to_rgb(
+    pixels: &[u8],
+    colour: png::ColorType,
+    sample_bytes: usize,
+    eight: impl Fn(&[u8]) -> u8,
+) -> Result<Vec<u8>> {
+    let channels = match colour {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::GrayscaleAlpha => 2,
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        png::ColorType::Indexed => anyhow::bail!("a palette left after expansion"),
+    };
+    let pixel_bytes = channels * sample_bytes;
+    let mut rgb = Vec::with_capacity(pixels.len() / pixel_bytes * 3);
+    for pixel in pixels.chunks_exact(pixel_bytes) {
+        let sample = |channel: usize| eight(&pixel[channel * sample_bytes..]);
+        if channels < 3 {
+            let grey = sample(0);
+            rgb.extend([grey; 3]);
+        } else {
+            rgb.extend([sample(0), sample(1), sample(2)]);
+        }
+    }
+    Ok(rgb)
 }
 
 /// A nearest-pixel copy of `image` whose longer side is at most `side`, its aspect
@@ -87,41 +147,62 @@ pub fn downscale(image: &render::Image, side: u32) -> render::Image {
 /// Encodes `frames` (RGB images of one size, taken one at a time) as a GIF that loops
 /// forever, each frame shown `delay_cs` hundredths of a second. The first error of
 /// `frames` stops it.
+///
+/// The bytes are those the `image` crate's `GifEncoder` wrote at this speed: no global
+/// palette, the looping extension before the first frame, each frame quantised from
+/// opaque RGBA by `gif::Frame::from_rgba_speed` and disposed to the background.
 pub fn encode_gif<I: Borrow<render::Image>>(
     frames: impl IntoIterator<Item = Result<I>>,
     delay_cs: u16,
 ) -> Result<Vec<u8>> {
-    let mut out = Vec::new();
-    {
-        let mut encoder = GifEncoder::new_with_speed(&mut out, QUANTISATION_SPEED);
-        encoder.set_repeat(Repeat::Infinite)?;
-        let delay = Delay::from_numer_denom_ms(u32::from(delay_cs) * 10, 1);
-        let mut size = None;
-        for frame in frames {
-            let frame = frame?;
-            let frame: &render::Image = frame.borrow();
-            let this = (frame.width, frame.height);
-            anyhow::ensure!(
-                *size.get_or_insert(this) == this,
-                "a frame of {}×{} among frames of {}×{}",
-                this.0,
-                this.1,
-                size.map_or(0, |s| s.0),
-                size.map_or(0, |s| s.1)
+    let mut encoder: Option<gif::Encoder<Vec<u8>>> = None;
+    let mut size = None;
+    for frame in frames {
+        let frame = frame?;
+        let frame: &render::Image = frame.borrow();
+        let this = (frame.width, frame.height);
+        anyhow::ensure!(
+            *size.get_or_insert(this) == this,
+            "a frame of {}×{} among frames of {}×{}",
+            this.0,
+            this.1,
+            size.map_or(0, |s| s.0),
+            size.map_or(0, |s| s.1)
+        );
+        let (Ok(width), Ok(height)) = (u16::try_from(frame.width), u16::try_from(frame.height))
+        else {
+            anyhow::bail!(
+                "a frame of {}×{} is larger than a GIF holds",
+                frame.width,
+                frame.height
             );
-            let rgba: Vec<u8> = frame
-                .rgb
-                .chunks_exact(3)
-                .flat_map(|p| [p[0], p[1], p[2], 255])
-                .collect();
-            let buffer = RgbaImage::from_raw(frame.width, frame.height, rgba)
-                .context("a frame's pixels do not fill its size")?;
-            encoder.encode_frame(Frame::from_parts(buffer, 0, 0, delay))?;
-        }
-        anyhow::ensure!(size.is_some(), "no frame to encode");
-        // Dropping the encoder writes the GIF's trailer.
+        };
+        anyhow::ensure!(
+            frame.rgb.len() == usize::from(width) * usize::from(height) * 3,
+            "a frame's pixels do not fill its size"
+        );
+        let mut rgba: Vec<u8> = frame
+            .rgb
+            .chunks_exact(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect();
+        let mut gif_frame =
+            gif::Frame::from_rgba_speed(width, height, &mut rgba, QUANTISATION_SPEED);
+        gif_frame.delay = delay_cs;
+        gif_frame.dispose = gif::DisposalMethod::Background;
+        let encoder = match &mut encoder {
+            Some(encoder) => encoder,
+            None => {
+                let mut new = gif::Encoder::new(Vec::new(), width, height, &[])?;
+                new.set_repeat(gif::Repeat::Infinite)?;
+                encoder.insert(new)
+            }
+        };
+        encoder.write_frame(&gif_frame)?;
     }
-    Ok(out)
+    let encoder = encoder.context("no frame to encode")?;
+    // Writes the GIF's trailer.
+    Ok(encoder.into_inner()?)
 }
 
 /// A frame of a decoded GIF, for the tests.
@@ -232,6 +313,262 @@ mod tests {
         let image = filled(7, 3, [9, 8, 7]);
         assert_eq!(decode_png(&image.to_png()).unwrap(), image);
         assert!(decode_png(b"not a png").is_err());
+    }
+
+    /// What `encode_gif` replaced: `image`'s GIF encoder, as the preview used it.
+    fn gif_by_image(frames: &[render::Image], delay_cs: u16) -> Vec<u8> {
+        use image::codecs::gif::{GifEncoder, Repeat};
+        use image::{Delay, Frame, RgbaImage};
+        let mut out = Vec::new();
+        {
+            let mut encoder = GifEncoder::new_with_speed(&mut out, QUANTISATION_SPEED);
+            encoder.set_repeat(Repeat::Infinite).unwrap();
+            let delay = Delay::from_numer_denom_ms(u32::from(delay_cs) * 10, 1);
+            for frame in frames {
+                let rgba = frame
+                    .rgb
+                    .chunks_exact(3)
+                    .flat_map(|p| [p[0], p[1], p[2], 255])
+                    .collect();
+                let buffer = RgbaImage::from_raw(frame.width, frame.height, rgba).unwrap();
+                encoder
+                    .encode_frame(Frame::from_parts(buffer, 0, 0, delay))
+                    .unwrap();
+            }
+        }
+        out
+    }
+
+    /// A pseudo-random byte stream (xorshift), the same on every run.
+    fn noise(seed: u32) -> impl FnMut() -> u8 {
+        let mut state = seed | 1;
+        move || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            (state >> 11) as u8
+        }
+    }
+
+    fn from_fn(width: u32, height: u32, f: impl Fn(u32, u32) -> [u8; 3]) -> render::Image {
+        let mut image = render::Image::black(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                let i = (y as usize * width as usize + x as usize) * 3;
+                image.rgb[i..i + 3].copy_from_slice(&f(x, y));
+            }
+        }
+        image
+    }
+
+    /// Frames of the seed scene orbited, as a sequence's preview shows them.
+    fn rendered(frames: usize, width: u32, height: u32) -> Vec<render::Image> {
+        let scene =
+            render::parse_scene(include_str!("../../scenes/seed.json")).expect("the seed scene");
+        let settings = render::RenderSettings {
+            width,
+            height,
+            ..Default::default()
+        };
+        (0..frames)
+            .map(|i| {
+                let mut scene = scene.clone();
+                scene.camera.position.x += i as f64 * 0.3;
+                let tracer = render::Tracer::new(&scene, settings);
+                render::render_frame(&tracer, 16, &|_| {}).image
+            })
+            .collect()
+    }
+
+    #[test]
+    fn gif_bytes_are_those_of_the_image_crate() {
+        let mut byte = noise(7);
+        let mut noisy = render::Image::black(41, 29);
+        noisy.rgb.iter_mut().for_each(|b| *b = byte());
+        let gradient = |shift: u32| {
+            from_fn(37, 23, move |x, y| {
+                [(x * 7 + shift) as u8, (y * 11) as u8, (x * y + shift) as u8]
+            })
+        };
+        let cases: Vec<(Vec<render::Image>, u16)> = vec![
+            (vec![filled(1, 1, [200, 100, 50])], 4),
+            (
+                [[255, 0, 0], [0, 255, 0], [0, 0, 255]]
+                    .iter()
+                    .map(|&c| filled(32, 18, c))
+                    .collect(),
+                delay_cs(24.0, 1),
+            ),
+            // Under 256 colours: an exact palette; over: NeuQuant.
+            (
+                vec![from_fn(16, 15, |x, y| [x as u8 * 16, y as u8 * 17, 9])],
+                2,
+            ),
+            (vec![gradient(0), gradient(40), gradient(80)], 13),
+            (vec![noisy.clone(), noisy], u16::MAX),
+            (rendered(3, 80, 53), delay_cs(30.0, 2)),
+            (vec![downscale(&rendered(1, 331, 97)[0], 64)], 10),
+        ];
+        for (frames, delay) in &cases {
+            let gif = encode_gif(frames.iter().map(Ok), *delay).unwrap();
+            let (width, height) = (frames[0].width, frames[0].height);
+            assert_eq!(
+                gif,
+                gif_by_image(frames, *delay),
+                "{} frames of {width}×{height}",
+                frames.len()
+            );
+            let decoded = decode_gif(&gif).unwrap();
+            assert_eq!(decoded.len(), frames.len());
+            assert!(decoded.iter().all(|f| f.delay_cs == u32::from(*delay)));
+        }
+    }
+
+    /// A PNG of the png crate's `colour` and `depth` with `pixels` as they are stored.
+    fn png_of(
+        (width, height): (u32, u32),
+        colour: png::ColorType,
+        depth: png::BitDepth,
+        chunks: &dyn Fn(&mut png::Encoder<&mut Vec<u8>>),
+        pixels: &[u8],
+    ) -> Vec<u8> {
+        let mut out = Vec::new();
+        let mut encoder = png::Encoder::new(&mut out, width, height);
+        encoder.set_color(colour);
+        encoder.set_depth(depth);
+        chunks(&mut encoder);
+        let mut writer = encoder.write_header().unwrap();
+        writer.write_image_data(pixels).unwrap();
+        writer.finish().unwrap();
+        out
+    }
+
+    #[test]
+    fn pngs_of_every_colour_type_and_depth_decode_as_the_image_crate_decoded() {
+        use png::{BitDepth as D, ColorType as C};
+        let mut byte = noise(11);
+        let mut random = |len: usize| (0..len).map(|_| byte()).collect::<Vec<u8>>();
+        let none: &dyn Fn(&mut png::Encoder<&mut Vec<u8>>) = &|_| {};
+        let mut pngs = Vec::new();
+        // Every colour type at every depth it allows, at an odd size (rows of a partial
+        // byte at depths below 8).
+        let (w, h) = (13, 7);
+        for (colour, depths, channels) in [
+            (
+                C::Grayscale,
+                &[D::One, D::Two, D::Four, D::Eight, D::Sixteen][..],
+                1,
+            ),
+            (C::GrayscaleAlpha, &[D::Eight, D::Sixteen][..], 2),
+            (C::Rgb, &[D::Eight, D::Sixteen][..], 3),
+            (C::Rgba, &[D::Eight, D::Sixteen][..], 4),
+        ] {
+            for &depth in depths {
+                let row = (w as usize * channels * depth as usize).div_ceil(8);
+                pngs.push(png_of(
+                    (w, h),
+                    colour,
+                    depth,
+                    none,
+                    &random(row * h as usize),
+                ));
+            }
+        }
+        // Palettes, with and without transparency, and transparent colours.
+        for depth in [D::One, D::Two, D::Four, D::Eight] {
+            let row = (w as usize * depth as usize).div_ceil(8);
+            let entries = 1usize << (depth as usize).min(8);
+            let palette = random(entries * 3);
+            let pixels = random(row * h as usize);
+            let trns = random(entries / 2);
+            let plain = |e: &mut png::Encoder<&mut Vec<u8>>| e.set_palette(palette.clone());
+            pngs.push(png_of((w, h), C::Indexed, depth, &plain, &pixels));
+            let transparent = |e: &mut png::Encoder<&mut Vec<u8>>| {
+                e.set_palette(palette.clone());
+                e.set_trns(trns.clone());
+            };
+            pngs.push(png_of((w, h), C::Indexed, depth, &transparent, &pixels));
+        }
+        let grey_key = |e: &mut png::Encoder<&mut Vec<u8>>| e.set_trns(vec![0, 7]);
+        let grey = random(w as usize * h as usize);
+        pngs.push(png_of((w, h), C::Grayscale, D::Eight, &grey_key, &grey));
+        let rgb_key = |e: &mut png::Encoder<&mut Vec<u8>>| e.set_trns(vec![0, 1, 0, 2, 0, 3]);
+        let rgb = random(w as usize * h as usize * 3);
+        pngs.push(png_of((w, h), C::Rgb, D::Eight, &rgb_key, &rgb));
+        // Colour space chunks, which neither applies.
+        let srgb = |e: &mut png::Encoder<&mut Vec<u8>>| {
+            e.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+            e.set_source_gamma(png::ScaledFloat::new(1.0 / 2.2));
+        };
+        pngs.push(png_of((w, h), C::Rgb, D::Eight, &srgb, &rgb));
+        // Every grey value, at 8 and 16 bits: the rounding to 8 bits.
+        let all8: Vec<u8> = (0..=255).collect();
+        pngs.push(png_of((16, 16), C::Grayscale, D::Eight, none, &all8));
+        let all16: Vec<u8> = (0..=u16::MAX).flat_map(u16::to_be_bytes).collect();
+        pngs.push(png_of((256, 256), C::Grayscale, D::Sixteen, none, &all16));
+        pngs.push(png_of(
+            (85, 257),
+            C::Rgb,
+            D::Sixteen,
+            none,
+            &all16[..85 * 257 * 6],
+        ));
+        // An animated PNG: its first frame.
+        let mut apng = Vec::new();
+        {
+            let mut encoder = png::Encoder::new(&mut apng, 5, 4);
+            encoder.set_color(C::Rgb);
+            encoder.set_animated(2, 0).unwrap();
+            let mut writer = encoder.write_header().unwrap();
+            writer.write_image_data(&random(60)).unwrap();
+            writer.write_image_data(&random(60)).unwrap();
+            writer.finish().unwrap();
+        }
+        pngs.push(apng);
+        // What the farm stores.
+        pngs.push(rendered(1, 61, 37)[0].to_png());
+        pngs.push(filled(1, 1, [1, 2, 3]).to_png());
+
+        for (i, png) in pngs.iter().enumerate() {
+            let ours = decode_png(png).unwrap_or_else(|e| panic!("PNG {i}: {e:#}"));
+            let theirs = image::load_from_memory_with_format(png, image::ImageFormat::Png)
+                .unwrap()
+                .into_rgb8();
+            assert_eq!((ours.width, ours.height), theirs.dimensions(), "PNG {i}");
+            assert!(ours.rgb == theirs.into_raw(), "PNG {i}: other pixels");
+        }
+    }
+
+    #[test]
+    fn what_is_not_a_png_is_refused_as_before() {
+        let good = filled(9, 4, [1, 2, 3]).to_png();
+        let mut bad_crc = good.clone();
+        bad_crc[20] ^= 1; // in IHDR
+        let mut bad_data = good.clone();
+        let idat = good.windows(4).position(|w| w == b"IDAT").unwrap();
+        bad_data[idat + 6] ^= 0x55;
+        let cases: [&[u8]; 6] = [
+            b"",
+            b"not a png",
+            b"GIF89a",
+            &good[..8],
+            &good[..good.len() / 2],
+            &bad_crc,
+        ];
+        for (i, bytes) in cases.iter().enumerate() {
+            let error = decode_png(bytes).expect_err(&format!("case {i}"));
+            assert_eq!(error.to_string(), "not a PNG image", "case {i}");
+            assert!(
+                image::load_from_memory_with_format(bytes, image::ImageFormat::Png).is_err(),
+                "case {i}"
+            );
+        }
+        // A damaged image stream: refused by both or decoded alike.
+        let ours = decode_png(&bad_data).ok();
+        let theirs = image::load_from_memory_with_format(&bad_data, image::ImageFormat::Png)
+            .ok()
+            .map(|i| i.into_rgb8().into_raw());
+        assert_eq!(ours.map(|i| i.rgb), theirs);
     }
 
     #[test]

@@ -44,18 +44,131 @@ impl Image {
         [self.rgb[i], self.rgb[i + 1], self.rgb[i + 2]]
     }
 
-    /// Encodes the image as PNG.
+    /// Encodes the image as PNG: 8-bit RGB, no ancillary chunk, fast deflate and the
+    /// adaptive filter, byte for byte what the `image` crate's default `PngEncoder` wrote
+    /// (stored frames and golden files are compared as bytes).
+    ///
+    /// The png crate directly: `image` would bring colour management the farm never uses
+    /// into every build.
+    ///
+    /// # Panics
+    ///
+    /// If `rgb` does not hold `width × height` pixels or a side is 0: an `Image` so
+    /// broken is a bug of its maker, and writing to memory has no other way to fail.
     pub fn to_png(&self) -> Vec<u8> {
-        use image::ImageEncoder;
         let mut out = Vec::new();
-        image::codecs::png::PngEncoder::new(&mut out)
-            .write_image(
-                &self.rgb,
+        write_png(&mut out, self).unwrap_or_else(|e| {
+            panic!(
+                "encoding a {}×{} image of {} bytes as PNG: {e}",
                 self.width,
                 self.height,
-                image::ExtendedColorType::Rgb8,
+                self.rgb.len()
             )
-            .expect("encoding an in-memory RGB8 buffer of the right size cannot fail");
+        });
         out
+    }
+}
+
+/// Writes `image` as PNG with the settings of `image` 0.25's `PngEncoder::new`: its
+/// default `CompressionType::Fast` is `png::Compression::Fast`, its default
+/// `FilterType::Adaptive` is set after the compression (which picks a filter of its own),
+/// and nothing but the size, colour type and depth goes into the header's `Info`.
+fn write_png(out: &mut Vec<u8>, image: &Image) -> Result<(), png::EncodingError> {
+    let mut encoder =
+        png::Encoder::with_info(out, png::Info::with_size(image.width, image.height))?;
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Fast);
+    encoder.set_filter(png::Filter::Adaptive);
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(&image.rgb)?;
+    writer.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What `to_png` replaced: `image`'s default PNG encoder.
+    fn png_by_image(image: &Image) -> Vec<u8> {
+        use ::image::ImageEncoder;
+        let mut out = Vec::new();
+        ::image::codecs::png::PngEncoder::new(&mut out)
+            .write_image(
+                &image.rgb,
+                image.width,
+                image.height,
+                ::image::ExtendedColorType::Rgb8,
+            )
+            .unwrap();
+        out
+    }
+
+    fn from_fn(width: u32, height: u32, f: impl Fn(u32, u32) -> [u8; 3]) -> Image {
+        let mut image = Image::black(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                let i = (y as usize * width as usize + x as usize) * 3;
+                image.rgb[i..i + 3].copy_from_slice(&f(x, y));
+            }
+        }
+        image
+    }
+
+    /// A small frame of the seed scene, as the farm renders them.
+    fn rendered(width: u32, height: u32) -> Image {
+        let scene = crate::parse_scene(include_str!("../../scenes/seed.json")).unwrap();
+        let settings = crate::RenderSettings {
+            width,
+            height,
+            ..Default::default()
+        };
+        let tracer = crate::Tracer::new(&scene, settings);
+        crate::render_frame(&tracer, 16, &|_| {}).image
+    }
+
+    #[test]
+    fn png_bytes_are_those_of_the_image_crate() {
+        // A pseudo-random noise that neither filter nor deflate can do much with.
+        let mut state = 0x2545_f491_u32;
+        let mut noise = Image::black(97, 61);
+        for byte in &mut noise.rgb {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            *byte = state as u8;
+        }
+        let images = [
+            Image::black(1, 1),
+            from_fn(1, 1, |_, _| [255, 128, 7]),
+            Image::black(600, 400),
+            from_fn(3, 5, |x, y| [x as u8 * 80, y as u8 * 50, 200]),
+            from_fn(1, 257, |_, y| [y as u8, 0, 255 - y as u8]),
+            from_fn(257, 1, |x, _| [x as u8; 3]),
+            // A smooth gradient with a sharp edge, like a sky over a floor.
+            from_fn(333, 211, |x, y| {
+                if y > 120 {
+                    [(x / 3) as u8, 90, 40]
+                } else {
+                    [(x * 255 / 332) as u8, (y * 255 / 120) as u8, 180]
+                }
+            }),
+            noise,
+            rendered(64, 48),
+            rendered(131, 77),
+        ];
+        for image in &images {
+            let png = image.to_png();
+            assert_eq!(
+                png,
+                png_by_image(image),
+                "{}×{} image",
+                image.width,
+                image.height
+            );
+            let decoded = ::image::load_from_memory(&png).unwrap().into_rgb8();
+            assert_eq!(decoded.dimensions(), (image.width, image.height));
+            assert_eq!(decoded.into_raw(), image.rgb);
+        }
     }
 }
