@@ -7,7 +7,7 @@
 
 use render::{parse_scene, render_tile, Rect, Tracer, Vec3};
 
-const SEED: &str = include_str!("../../scenes/seed.json");
+use crate::support::SEED;
 
 fn seed_pixel(x: u32, y: u32) -> [u8; 3] {
     let scene = parse_scene(SEED).unwrap();

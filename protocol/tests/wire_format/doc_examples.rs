@@ -10,7 +10,9 @@ use protocol::{
 };
 use serde::Serialize;
 
-const DOC: &str = include_str!("../../docs/protocol.md");
+use crate::frame;
+
+const DOC: &str = include_str!("../../../docs/protocol.md");
 const SCENE: &str = r#"{"lights": [], "objects": []}"#;
 
 /// The job of the examples: 34 × 17 pixels, adaptive sampling with a 4 × 4 budget and a
@@ -42,11 +44,8 @@ fn peer_nonce() -> [u8; 32] {
 const SECRET: &[u8] = b"s3cret";
 
 /// A message as a frame: big-endian length, then the body.
-fn frame<T: Serialize>(message: &T) -> Vec<u8> {
-    let body = wire::encode(message);
-    let mut out = (body.len() as u32).to_be_bytes().to_vec();
-    out.extend(body);
-    out
+fn message_frame<T: Serialize>(message: &T) -> Vec<u8> {
+    frame(&wire::encode(message)).to_vec()
 }
 
 /// The examples, in the order the document gives them.
@@ -54,7 +53,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
     vec![
         (
             "worker Hello",
-            frame(&Hello {
+            message_frame(&Hello {
                 magic: MAGIC,
                 version: PROTOCOL_VERSION,
                 role: Role::Worker {
@@ -67,17 +66,17 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "client Hello",
-            frame(&Hello::with_nonce(Role::Client, peer_nonce())),
+            message_frame(&Hello::with_nonce(Role::Client, peer_nonce())),
         ),
         (
             "Welcome::Accepted",
-            frame(&Welcome::Accepted {
+            message_frame(&Welcome::Accepted {
                 version: PROTOCOL_VERSION,
             }),
         ),
         (
             "Submit",
-            frame(&ClientRequest::Submit(JobSpec {
+            message_frame(&ClientRequest::Submit(JobSpec {
                 scene: SCENE.into(),
                 overrides: Overrides {
                     width: Some(34),
@@ -96,10 +95,10 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 frames: None,
             })),
         ),
-        ("Status", frame(&ClientRequest::Status { job: 7 })),
+        ("Status", message_frame(&ClientRequest::Status { job: 7 })),
         (
             "Job",
-            frame(&ClientResponse::Job(JobStatus {
+            message_frame(&ClientResponse::Job(JobStatus {
                 id: 7,
                 state: JobState::Running,
                 settings: SETTINGS,
@@ -128,14 +127,14 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "Scene",
-            frame(&ToWorker::Scene {
+            message_frame(&ToWorker::Scene {
                 hash: scene_hash(),
                 scene: SCENE.into(),
             }),
         ),
         (
             "Advance",
-            frame(&ToWorker::Advance {
+            message_frame(&ToWorker::Advance {
                 job: 7,
                 tile: 5,
                 scene: scene_hash(),
@@ -154,7 +153,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "Render",
-            frame(&ToWorker::Render {
+            message_frame(&ToWorker::Render {
                 job: 8,
                 tile: 5,
                 scene: scene_hash(),
@@ -173,7 +172,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "TileDone",
-            frame(&FromWorker::TileDone {
+            message_frame(&FromWorker::TileDone {
                 job: 8,
                 tile: 5,
                 rgb: vec![0xff, 0x80, 0x00, 0x10, 0x20, 0x30],
@@ -185,7 +184,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "Welcome::Challenge",
-            frame(&Welcome::Challenge {
+            message_frame(&Welcome::Challenge {
                 nonce: nonce(),
                 proof: protocol::coordinator_proof(
                     SECRET,
@@ -197,7 +196,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
         ),
         (
             "AuthProof",
-            frame(&protocol::peer_proof(
+            message_frame(&protocol::peer_proof(
                 SECRET,
                 AuthRole::Client,
                 &peer_nonce(),
@@ -265,7 +264,7 @@ fn the_worked_examples_are_the_encoders_bytes() {
 #[test]
 fn the_client_hello_of_the_checklist_is_the_encoders() {
     // The checklist shows the bytes before the nonce, which is the peer's own.
-    let bytes = frame(&Hello::new(Role::Client));
+    let bytes = message_frame(&Hello::new(Role::Client));
     let spaced = bytes[..bytes.len() - 32]
         .iter()
         .map(|b| format!("{b:02x}"))

@@ -9,7 +9,7 @@
 use proptest::prelude::*;
 use render::{parse_scene, render_tile, Rect, RenderSettings, Tracer};
 
-const SEED: &str = include_str!("../../scenes/seed.json");
+use crate::support::SEED;
 
 /// Inputs that once crashed or misbehaved; each must load or fail cleanly.
 const REGRESSIONS: &[&str] = &[

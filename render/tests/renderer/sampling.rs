@@ -6,48 +6,26 @@
 use proptest::prelude::*;
 use render::progressive::{sample_cap, BlockState, Level, Region, BLOCK, LAST_RUNG};
 use render::{
-    metrics, parse_scene, render_frame, render_tile, sample_offsets, validate_settings, Frame,
-    Image, Rect, RenderSettings, Sampling, Scene, TileError, Tracer,
+    metrics, parse_scene, render_tile, sample_offsets, validate_settings, Image, Rect,
+    RenderSettings, Sampling, TileError, Tracer,
 };
 
-const SEED: &str = include_str!("../../scenes/seed.json");
+use crate::support::{frame, seed, tracer, SEED};
 
 /// Every scene of `scenes/`, by name.
 const SCENES: [(&str, &str); 5] = [
     ("seed", SEED),
-    ("reflections", include_str!("../../scenes/reflections.json")),
-    ("tilted", include_str!("../../scenes/tilted.json")),
-    ("lights", include_str!("../../scenes/lights.json")),
+    (
+        "reflections",
+        include_str!("../../../scenes/reflections.json"),
+    ),
+    ("tilted", include_str!("../../../scenes/tilted.json")),
+    ("lights", include_str!("../../../scenes/lights.json")),
     (
         "hall-of-mirrors",
-        include_str!("../../scenes/hall-of-mirrors.json"),
+        include_str!("../../../scenes/hall-of-mirrors.json"),
     ),
 ];
-
-fn seed() -> Scene {
-    parse_scene(SEED).unwrap()
-}
-
-fn tracer(scene: &Scene, width: u32, height: u32, aa: u32, sampling: Sampling) -> Tracer {
-    Tracer::new(
-        scene,
-        RenderSettings {
-            width,
-            height,
-            aa,
-            sampling,
-            ..scene.settings
-        },
-    )
-}
-
-fn frame(tracer: &Tracer, tile: u32, threads: usize) -> Frame {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| render_frame(tracer, tile, &|_| {}))
-}
 
 fn adaptive(levels: f64) -> Sampling {
     Sampling::adaptive(levels).unwrap()

@@ -18,16 +18,15 @@
 //! (docs/numerics.md, "no ε anywhere").
 //!
 //! Each test prints what it checked, the figures docs/numerics.md quotes:
-//! `cargo test --release -p render --test hierarchy_precision -- --nocapture --test-threads 1`.
+//! `cargo test --release -p render --test renderer -- --nocapture --test-threads 1
+//! hierarchy_precision::`.
 
 use render::{
     render_tile, CameraSpec, Light, Material, Object, Rect, RenderSettings, Scene, Shape,
     TileImage, Tracer, Vec3,
 };
 
-mod common;
-
-use common::Mix;
+use crate::support::{both, sphere, v, Mix};
 
 /// What these tests draw beyond the shared generator's values.
 impl Mix {
@@ -54,18 +53,6 @@ impl Mix {
             1 => Material::Reflective(1.0),
             _ => Material::Matte,
         }
-    }
-}
-
-fn v(x: f64, y: f64, z: f64) -> Vec3 {
-    Vec3::new(x, y, z)
-}
-
-fn sphere(center: Vec3, radius: f64, material: Material) -> Object {
-    Object {
-        shape: Shape::Sphere { center, radius },
-        color: v(0.8, 0.5, 0.3),
-        material,
     }
 }
 
@@ -117,17 +104,6 @@ fn spheres(scene: &Scene) -> Vec<(Vec3, f64)> {
             Shape::Plane { .. } => None,
         })
         .collect()
-}
-
-/// The two tracers of a scene: through the hierarchy, and testing every sphere.
-fn both(scene: &Scene) -> (Tracer, Tracer) {
-    let bvh = Tracer::with_bvh(scene, scene.settings, true);
-    let brute = Tracer::with_bvh(scene, scene.settings, false);
-    assert!(
-        bvh.uses_bvh() && !brute.uses_bvh(),
-        "the hierarchy is forced on and off"
-    );
-    (bvh, brute)
 }
 
 fn frame(tracer: &Tracer) -> TileImage {

@@ -13,19 +13,7 @@ use render::{
     Shape, Tracer, Vec3,
 };
 
-mod common;
-
-use common::Mix;
-
-const SEED: &str = include_str!("../../scenes/seed.json");
-
-fn sphere(center: Vec3, radius: f64, material: Material) -> Object {
-    Object {
-        shape: Shape::Sphere { center, radius },
-        color: Vec3::new(0.8, 0.5, 0.3),
-        material,
-    }
-}
+use crate::support::{both, sphere, Mix, SEED};
 
 /// A soup of `n` spheres at `scale`, with the hard cases mixed in, sometimes on a plane.
 fn soup(rng: &mut Mix, n: usize, scale: f64, with_plane: bool) -> Scene {
@@ -109,14 +97,6 @@ fn soup(rng: &mut Mix, n: usize, scale: f64, with_plane: bool) -> Scene {
         },
         ambient: 0.2,
     }
-}
-
-/// The two tracers of a scene: through the hierarchy, and testing every sphere.
-fn both(scene: &Scene) -> (Tracer, Tracer) {
-    let bvh = Tracer::with_bvh(scene, scene.settings, true);
-    let brute = Tracer::with_bvh(scene, scene.settings, false);
-    assert!(bvh.uses_bvh() && !brute.uses_bvh());
-    (bvh, brute)
 }
 
 /// A ray that means trouble for the soup: at a box corner or face along an axis, at a

@@ -2,28 +2,9 @@
 //! threads, or one tile rendered on its own, gives the same bytes.
 
 use proptest::prelude::*;
-use render::{parse_scene, render_frame, render_tile, Image, Rect, RenderSettings, Tracer};
+use render::{render_tile, Image, Rect, Sampling, Tracer};
 
-const SEED: &str = include_str!("../../scenes/seed.json");
-
-fn tracer(width: u32, height: u32, aa: u32) -> Tracer {
-    let scene = parse_scene(SEED).unwrap();
-    let settings = RenderSettings {
-        width,
-        height,
-        aa,
-        ..scene.settings
-    };
-    Tracer::new(&scene, settings)
-}
-
-fn frame(tracer: &Tracer, tile: u32, threads: usize) -> Image {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| render_frame(tracer, tile, &|_| {})).image
-}
+use crate::support::{frame, seed, tracer};
 
 /// The reference: every pixel rendered as its own 1×1 tile, on this thread.
 fn pixel_by_pixel(tracer: &Tracer) -> Image {
@@ -45,11 +26,11 @@ fn pixel_by_pixel(tracer: &Tracer) -> Image {
 
 #[test]
 fn frames_equal_pixel_by_pixel_rendering() {
-    let t = tracer(96, 64, 2);
+    let t = tracer(&seed(), 96, 64, 2, Sampling::Grid);
     let reference = pixel_by_pixel(&t);
     for (tile, threads) in [(1, 1), (7, 2), (32, 3), (1000, 1), (16, 8)] {
         assert!(
-            frame(&t, tile, threads) == reference,
+            frame(&t, tile, threads).image == reference,
             "tile {tile}, {threads} threads"
         );
     }
@@ -65,9 +46,9 @@ proptest! {
         threads in 1usize..6,
         aa in 1u32..4,
     ) {
-        let t = tracer(90, 60, aa);
-        let reference = frame(&t, 90, 1);
-        prop_assert!(frame(&t, tile, threads) == reference);
+        let t = tracer(&seed(), 90, 60, aa, Sampling::Grid);
+        let reference = frame(&t, 90, 1).image;
+        prop_assert!(frame(&t, tile, threads).image == reference);
     }
 
     /// Any rectangle rendered alone equals the same pixels of the full frame.
@@ -75,8 +56,8 @@ proptest! {
     fn a_tile_equals_its_pixels_in_the_full_frame(
         x in 0u32..120, y in 0u32..80, w in 1u32..60, h in 1u32..60,
     ) {
-        let t = tracer(120, 80, 2);
-        let full = frame(&t, 16, 2);
+        let t = tracer(&seed(), 120, 80, 2, Sampling::Grid);
+        let full = frame(&t, 16, 2).image;
         let rect = Rect { x, y, width: w.min(120 - x), height: h.min(80 - y) };
         let tile = render_tile(&t, rect).unwrap();
         for row in 0..rect.height {
@@ -90,7 +71,7 @@ proptest! {
 
 #[test]
 fn tiles_outside_the_frame_are_refused() {
-    let t = tracer(40, 30, 1);
+    let t = tracer(&seed(), 40, 30, 1, Sampling::Grid);
     for rect in [
         Rect {
             x: 0,

@@ -10,7 +10,7 @@
 //! from the ignored `scaling_table`:
 //!
 //! ```sh
-//! cargo test --release -p scheduler --test sim -- --ignored --nocapture scaling_table
+//! cargo test --release -p scheduler --test scheduling -- --ignored --nocapture scaling_table
 //! ```
 
 use scheduler::sim::{self, CountingAlloc, MachineClass, SimConfig, SimReport};

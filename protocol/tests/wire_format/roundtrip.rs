@@ -22,7 +22,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::fmt::Debug;
 
-use bytes::{BufMut, BytesMut};
+use bytes::BytesMut;
 use proptest::prelude::*;
 use protocol::{
     wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FrameFailure, FrameProgress,
@@ -32,6 +32,8 @@ use protocol::{
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
+
+use crate::frame;
 
 // ---------------------------------------------------------------------------------------
 // A tracking allocator: the largest single allocation made by the current thread, so that
@@ -532,14 +534,6 @@ where
     prop_assert_eq!(decoded.as_slice(), messages);
     prop_assert!(received.is_empty(), "{} bytes left over", received.len());
     Ok(())
-}
-
-/// A frame around `body`, as the length-delimited codec writes it.
-fn frame(body: &[u8]) -> BytesMut {
-    let mut bytes = BytesMut::with_capacity(4 + body.len());
-    bytes.put_u32(u32::try_from(body.len()).expect("test frames are small"));
-    bytes.put_slice(body);
-    bytes
 }
 
 /// A complete frame of arbitrary bytes gives a message or an error, never a panic and

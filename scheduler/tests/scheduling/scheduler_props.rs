@@ -107,8 +107,7 @@ use scheduler::{Action, Event, Millis, Policy, Scheduler};
 /// The scheduler's decisions written without indexes: the oracle of the equivalence
 /// properties (section "The indexed scheduler against the reference").
 #[allow(dead_code)]
-#[path = "reference/scheduler.rs"]
-mod reference;
+use crate::reference;
 
 const SCENE_A: SceneHash = [1; 32];
 const SCENE_B: SceneHash = [2; 32];

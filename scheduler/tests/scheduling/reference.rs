@@ -399,11 +399,6 @@ pub struct Scheduler {
 }
 
 impl Scheduler {
-    /// A scheduler with the default policy.
-    pub fn new() -> Self {
-        Self::default()
-    }
-
     pub fn with_policy(policy: Policy) -> Self {
         Scheduler {
             policy,

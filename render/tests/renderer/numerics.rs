@@ -7,6 +7,8 @@
 
 use render::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape, Tracer, Vec3};
 
+use crate::support::{v, Mix};
+
 /// The textbook sphere and plane tests with a fixed epsilon, as most tutorials write
 /// them (the seed program included).
 mod textbook {
@@ -94,25 +96,7 @@ fn scene(objects: Vec<Object>, lights: Vec<Light>, camera: CameraSpec) -> Scene 
     }
 }
 
-fn v(x: f64, y: f64, z: f64) -> Vec3 {
-    Vec3::new(x, y, z)
-}
-
 const GREY: Vec3 = Vec3::new(0.5, 0.5, 0.5);
-
-/// A small deterministic generator for sweeping many rays.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next_f64(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
 
 /// How one hard case went: whether Tessera's answers were all right (the case's own
 /// test asserts them in detail) and, for each textbook ε, how many of the case's rays
@@ -449,12 +433,12 @@ fn grazing_plane() -> Outcome {
     );
     let tracer = Tracer::new(&s, RenderSettings::default());
     let light = s.lights[0].position;
-    let mut rng = SplitMix(7);
+    let mut rng = Mix(7);
     let mut tb_wrong = [0; 3];
     let mut probes = 0;
     for _ in 0..2000 {
-        let angle = 0.5e-4 + 1.2e-4 * rng.next_f64();
-        let x = 1e3 * (rng.next_f64() - 0.5);
+        let angle = 0.5e-4 + 1.2e-4 * rng.unit();
+        let x = 1e3 * (rng.unit() - 0.5);
         let (sin, cos) = angle.sin_cos();
         let o = v(x, 1.0, -1e4);
         let d = v(0.0, -sin, cos);
