@@ -34,7 +34,7 @@ use tempfile::TempDir;
 use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::flip_relay::FlipRelay;
 use crate::support::{
-    assert_same_png, fetch, free_port, http_get_within, metric_value, orbit, poll, render_args,
+    assert_same_png, fetch, free_port, http_get_text, metric_value, orbit, poll, render_args,
     render_reference, scene_path, shared, start_coordinator, start_worker, submit, tessera_within,
     try_status, try_workers, wait_done, Daemon,
 };
@@ -166,10 +166,7 @@ impl Farm {
 
     /// The coordinator's /metrics.
     fn metrics(&self) -> String {
-        let (status, body) = http_get_within(&self.http, "/metrics", Duration::from_secs(10))
-            .expect("no answer from /metrics");
-        assert_eq!(status, 200, "GET /metrics");
-        String::from_utf8(body).expect("metrics are text")
+        http_get_text(&self.http, "/metrics")
     }
 
     fn metric(&self, name: &str) -> f64 {

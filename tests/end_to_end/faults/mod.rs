@@ -23,8 +23,9 @@ use serde_json::Value;
 use tempfile::TempDir;
 
 use crate::support::{
-    assert_not_ended_badly, assert_same_png, fetch, free_port, poll, render_args, render_reference,
-    start_coordinator, start_worker, submit, tiles_done, try_status, try_workers, Daemon, POLL,
+    assert_job_image, assert_not_ended_badly, assert_same_png, fetch, free_port, poll,
+    start_coordinator, start_worker, submit_scene, tiles_done, try_status, try_workers,
+    wait_for_tiles, Daemon, POLL,
 };
 
 /// Longest a job of these tests may take once the faults have stopped.
@@ -145,9 +146,7 @@ impl Farm {
     }
 
     fn submit(&self, scene: &str, args: &[&str]) -> u64 {
-        let mut all = vec![scene];
-        all.extend(args);
-        submit(self.dir(), &self.addr, &all)
+        submit_scene(self.dir(), &self.addr, scene, args)
     }
 
     fn try_status(&self, job: u64) -> Option<Value> {
@@ -162,16 +161,7 @@ impl Farm {
     /// Waits until the job has at least `tiles` tiles done, and checks that it is
     /// still running then.
     fn wait_for_tiles(&self, job: u64, tiles: u64) -> Value {
-        let status = poll(&format!("{tiles} tiles of job {job}"), JOB_TIMEOUT, || {
-            let status = self.status(job);
-            assert_not_ended_badly(job, &status);
-            (tiles_done(&status) >= tiles).then_some(status)
-        });
-        assert_eq!(
-            status["state"], "running",
-            "the job should still run (make it longer): {status}"
-        );
-        status
+        wait_for_tiles(job, tiles, JOB_TIMEOUT, || self.status(job))
     }
 
     /// Polls `status` until the job is `done` (within [`JOB_TIMEOUT`]), tolerating a
@@ -256,13 +246,7 @@ impl Farm {
 
     /// The job's fetched image is `tessera render`'s for `scene` and `args`.
     fn assert_job_image(&self, job: u64, scene: &str, args: &[&str], what: &str) {
-        let reference = render_reference(
-            self.dir(),
-            scene,
-            &format!("reference-{job}.png"),
-            &render_args(args),
-        );
-        self.assert_job_image_is(job, &reference, what);
+        assert_job_image(self.dir(), &self.addr, job, scene, args, what);
     }
 
     /// Every coordinator log of this farm, concatenated.

@@ -5,8 +5,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use crate::support::{
-    assert_same_png, fetch, free_port, http_get, metric_value, ok, poll, render_reference,
-    scene_path, shared, start_coordinator, start_worker_with, submit, tessera, wait_done, Daemon,
+    assert_same_png, fetch, free_port, http_get, http_get_text, metric_value, ok, poll,
+    render_reference, scene_path, shared, start_coordinator, start_worker_with, submit, tessera,
+    wait_done, Daemon,
 };
 
 /// A coordinator serving HTTP on its own free port, with JSON logs.
@@ -19,25 +20,19 @@ fn observed_coordinator(dir: &Path, extra: &[&str]) -> (Daemon, String, String) 
     (daemon, addr, http)
 }
 
-fn get_ok(http: &str, path: &str) -> String {
-    let (status, body) = http_get(http, path).unwrap_or_else(|| panic!("no answer on {path}"));
-    assert_eq!(status, 200, "{path}: {}", String::from_utf8_lossy(&body));
-    String::from_utf8(body).expect("a text answer")
-}
-
 #[test]
 fn health_readiness_metrics_and_json_logs_follow_a_job() {
     let _turn = shared();
     let dir = tempfile::tempdir().unwrap();
     let (mut coordinator, addr, http) = observed_coordinator(dir.path(), &[]);
-    assert_eq!(get_ok(&http, "/healthz"), "ok\n");
-    assert!(get_ok(&http, "/readyz").starts_with("ready"));
+    assert_eq!(http_get_text(&http, "/healthz"), "ok\n");
+    assert!(http_get_text(&http, "/readyz").starts_with("ready"));
     let worker_http = format!("127.0.0.1:{}", free_port());
     let _worker = start_worker_with(dir.path(), &addr, "w1", &["--http", &worker_http]);
     poll("the worker to be ready", Duration::from_secs(20), || {
         http_get(&worker_http, "/readyz").filter(|(s, _)| *s == 200)
     });
-    assert_eq!(get_ok(&worker_http, "/healthz"), "ok\n");
+    assert_eq!(http_get_text(&worker_http, "/healthz"), "ok\n");
 
     let seed = scene_path("seed.json");
     let settings = [
@@ -50,7 +45,7 @@ fn health_readiness_metrics_and_json_logs_follow_a_job() {
     let tiles = status["tiles_total"].as_u64().unwrap();
     assert_eq!(tiles, 15);
 
-    let text = get_ok(&http, "/metrics");
+    let text = http_get_text(&http, "/metrics");
     assert_eq!(
         metric_value(&text, "tessera_jobs{state=\"done\"}"),
         Some(1.0),
@@ -85,7 +80,8 @@ fn health_readiness_metrics_and_json_logs_follow_a_job() {
     }
 
     // The page's view and image agree with the client's.
-    let farm: serde_json::Value = serde_json::from_str(&get_ok(&http, "/api/status")).unwrap();
+    let farm: serde_json::Value =
+        serde_json::from_str(&http_get_text(&http, "/api/status")).unwrap();
     assert_eq!(farm["jobs"][0]["state"], "done");
     assert_eq!(farm["workers"][0]["name"], "w1");
     let (status, png) = http_get(&http, &format!("/jobs/{job}/image.png")).unwrap();
@@ -120,7 +116,7 @@ fn health_readiness_metrics_and_json_logs_follow_a_job() {
     poll("the worker to be unready", Duration::from_secs(30), || {
         http_get(&worker_http, "/readyz").filter(|(s, _)| *s == 503)
     });
-    assert_eq!(get_ok(&worker_http, "/healthz"), "ok\n");
+    assert_eq!(http_get_text(&worker_http, "/healthz"), "ok\n");
 }
 
 #[test]
@@ -140,7 +136,7 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
         "the slow worker to hold tiles",
         Duration::from_secs(20),
         || {
-            let text = get_ok(&http, "/metrics");
+            let text = http_get_text(&http, "/metrics");
             (metric_value(&text, "tessera_tiles_in_flight")? > 0.0).then_some(())
         },
     );
@@ -156,7 +152,7 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
         &["--width", "128", "--height", "64"],
     );
     assert_same_png(&fetched, &reference, "after a worker was killed");
-    let text = get_ok(&http, "/metrics");
+    let text = http_get_text(&http, "/metrics");
     assert!(
         metric_value(&text, "tessera_tiles_reassigned_total").unwrap() >= 1.0,
         "{text}"

@@ -31,7 +31,9 @@ use rusqlite::{params, Connection};
 use serde_json::Value;
 use tempfile::TempDir;
 
-use crate::support::{self, path_str, render_args, wait_for_workers, Daemon, Findings, SplitMix};
+use crate::support::{
+    self, assert_job_image, path_str, submit_scene, wait_for_workers, Daemon, Findings, SplitMix,
+};
 
 /// Longest a job of these tests may take.
 const JOB_TIMEOUT: Duration = Duration::from_secs(60);
@@ -41,24 +43,6 @@ const SMALL: &[&str] = &["--width", "160", "--height", "120"];
 const JOB: &[&str] = &[
     "--width", "1600", "--height", "1200", "--aa", "5", "--tile", "32",
 ];
-
-fn submit_scene(dir: &Path, addr: &str, scene: &str, args: &[&str]) -> u64 {
-    let mut all = vec![scene];
-    all.extend(args);
-    support::submit(dir, addr, &all)
-}
-
-/// The job's fetched image is `tessera render`'s for `scene` and `args`.
-fn assert_job_image(dir: &Path, addr: &str, job: u64, scene: &str, args: &[&str], what: &str) {
-    let reference = support::render_reference(
-        dir,
-        scene,
-        &format!("reference-{job}.png"),
-        &render_args(args),
-    );
-    let out = support::fetch(dir, addr, job, &format!("job-{job}.png"));
-    support::assert_same_png(&out, &reference, what);
-}
 
 /// Stops a coordinator with SIGTERM and waits for it to exit.
 fn stop(coordinator: &mut Daemon) {

@@ -45,7 +45,7 @@ use serde_json::Value;
 use tempfile::TempDir;
 
 use crate::support::{
-    self, assert_not_ended_badly, path_str, render_args, tiles_done, tiles_total, Daemon, Findings,
+    self, assert_not_ended_badly, path_str, tiles_done, tiles_total, Daemon, Findings,
 };
 
 /// Some 3.6 CPU-seconds in 1,900 tiles of 32 pixels (6 MB of tile blobs).
@@ -531,9 +531,7 @@ impl<'a> Farm<'a> {
     }
 
     fn submit(&self, scene: &str, args: &[&str]) -> u64 {
-        let mut all = vec![scene];
-        all.extend(args);
-        support::submit(self.dir, &self.addr, &all)
+        support::submit_scene(self.dir, &self.addr, scene, args)
     }
 
     /// `tessera submit ARGS`, at most `timeout`; `None` if it was still running.
@@ -545,16 +543,7 @@ impl<'a> Farm<'a> {
     }
 
     fn wait_for_tiles(&self, job: u64, tiles: u64) -> Value {
-        let status = support::poll(&format!("{tiles} tiles of job {job}"), JOB_TIMEOUT, || {
-            let status = self.status(job);
-            assert_not_ended_badly(job, &status);
-            (tiles_done(&status) >= tiles).then_some(status)
-        });
-        assert_eq!(
-            status["state"], "running",
-            "the job should still run (make it longer): {status}"
-        );
-        status
+        support::wait_for_tiles(job, tiles, JOB_TIMEOUT, || self.status(job))
     }
 
     fn wait_done(&self, job: u64) -> Value {
@@ -563,14 +552,7 @@ impl<'a> Farm<'a> {
 
     /// The job's fetched image is `tessera render`'s for `scene` and `args`.
     fn assert_job_image(&self, job: u64, scene: &str, args: &[&str], what: &str) {
-        let reference = support::render_reference(
-            self.dir,
-            scene,
-            &format!("reference-{job}.png"),
-            &render_args(args),
-        );
-        let out = support::fetch(self.dir, &self.addr, job, &format!("job-{job}.png"));
-        support::assert_same_png(&out, &reference, what);
+        support::assert_job_image(self.dir, &self.addr, job, scene, args, what);
     }
 
     fn log(&self) -> String {

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use super::{ok, poll, tessera, tessera_within, Run, BIN};
+use super::{assert_same_png, ok, poll, tessera, tessera_within, Run, BIN};
 
 /// `tessera ARGS --coordinator ADDR` in `dir`, at most 60 s.
 pub fn client(dir: &Path, addr: &str, args: &[&str]) -> Run {
@@ -54,6 +54,13 @@ pub fn submit(dir: &Path, addr: &str, args: &[&str]) -> u64 {
         .unwrap_or_else(|e| panic!("submit printed {:?}, not a job id: {e}", run.stdout))
 }
 
+/// `tessera submit SCENE ARGS` (without `--wait`): the job id it printed.
+pub fn submit_scene(dir: &Path, addr: &str, scene: &str, args: &[&str]) -> u64 {
+    let mut all = vec![scene];
+    all.extend(args);
+    submit(dir, addr, &all)
+}
+
 /// `tessera status JOB --json`, parsed; `None` if the command failed (for example
 /// while the coordinator is down).
 pub fn try_status(dir: &Path, addr: &str, job: u64) -> Option<Value> {
@@ -84,6 +91,26 @@ pub fn wait_done(dir: &Path, addr: &str, job: u64, timeout: Duration) -> Value {
         assert_not_ended_badly(job, &status);
         (status["state"] == "done").then_some(status)
     })
+}
+
+/// Polls `status` (at most `timeout`) until job `job` has at least `tiles` tiles done,
+/// failing at once if it ends failed or cancelled, and checks that it still runs then.
+pub fn wait_for_tiles(
+    job: u64,
+    tiles: u64,
+    timeout: Duration,
+    status: impl Fn() -> Value,
+) -> Value {
+    let status = poll(&format!("{tiles} tiles of job {job}"), timeout, || {
+        let status = status();
+        assert_not_ended_badly(job, &status);
+        (tiles_done(&status) >= tiles).then_some(status)
+    });
+    assert_eq!(
+        status["state"], "running",
+        "the job should still run (make it longer): {status}"
+    );
+    status
 }
 
 /// A job that failed or was cancelled fails the test at once.
@@ -195,6 +222,19 @@ pub fn tiles_of(events: &[(String, String)], kind: &str) -> Vec<u32> {
         .filter(|(k, _)| k == kind)
         .filter_map(|(_, d)| d.strip_prefix("tile ")?.split(' ').next()?.parse().ok())
         .collect()
+}
+
+/// Job `job`'s fetched image (`DIR/job-JOB.png`) is `tessera render`'s for `scene` and
+/// the job's `args` (`DIR/reference-JOB.png`).
+pub fn assert_job_image(dir: &Path, addr: &str, job: u64, scene: &str, args: &[&str], what: &str) {
+    let reference = render_reference(
+        dir,
+        scene,
+        &format!("reference-{job}.png"),
+        &render_args(args),
+    );
+    let out = fetch(dir, addr, job, &format!("job-{job}.png"));
+    assert_same_png(&out, &reference, what);
 }
 
 /// `tessera render SCENE -o DIR/NAME ARGS...`: the reference image.

@@ -55,6 +55,19 @@ pub fn http_get_within(addr: &str, path: &str, timeout: Duration) -> Option<(u16
     http_request(addr, path, "", timeout).map(|answer| (answer.status, answer.body))
 }
 
+/// `GET PATH`, which must answer 200 with text (at most 10 s): the text.
+pub fn http_get_text(addr: &str, path: &str) -> String {
+    let (status, body) =
+        http_get(addr, path).unwrap_or_else(|| panic!("no answer to GET {path} from {addr}"));
+    assert_eq!(
+        status,
+        200,
+        "GET {path}: {}",
+        String::from_utf8_lossy(&body)
+    );
+    String::from_utf8(body).unwrap_or_else(|e| panic!("GET {path}: not text: {e}"))
+}
+
 /// `POST PATH` with `headers` and `body` over HTTP/1.0: the status code and the body.
 pub fn http_post(addr: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
     let mut stream = std::net::TcpStream::connect(addr).unwrap();
