@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 use image::{Rgb, RgbImage};
 use tempfile::TempDir;
 
-use crate::support::{all_scenes, repo, shared, tessera};
+use crate::support::{all_scenes, decode_rgb8, repo, shared, tessera};
 
 /// Far longer than any committed scene takes even in a debug build; a render this long
 /// means the binary hangs.
@@ -134,12 +134,6 @@ fn render(scene: &Path, out: &Path) {
     );
 }
 
-fn decode(path: &Path) -> RgbImage {
-    image::open(path)
-        .unwrap_or_else(|e| panic!("cannot decode {}: {e}", path.display()))
-        .into_rgb8()
-}
-
 fn blessing() -> bool {
     std::env::var_os("TESSERA_BLESS").is_some_and(|v| v == "1")
 }
@@ -181,9 +175,9 @@ fn scenes_match_their_golden_images() {
             continue;
         }
 
-        let actual = decode(&rendered);
+        let actual = decode_rgb8(&rendered);
         let verdict = if golden_path.exists() {
-            compare(&decode(&golden_path), &actual).map_err(|m| m.to_string())
+            compare(&decode_rgb8(&golden_path), &actual).map_err(|m| m.to_string())
         } else {
             Err(format!(
                 "no golden image {}: run `TESSERA_BLESS=1 cargo test --release --test \

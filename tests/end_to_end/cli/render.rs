@@ -10,11 +10,10 @@
 use std::path::Path;
 use std::time::Duration;
 
-use image::{ColorType, RgbImage};
 use render::limits::{MAX_AA, MAX_SIDE};
 use tempfile::TempDir;
 
-use crate::support::{entries, scene_path, shared, tessera, Daemon, Run, BIN};
+use crate::support::{decode_rgb8, entries, scene_path, shared, tessera, Daemon, Run, BIN};
 
 /// Every render here is tiny; a run this long means the binary hangs.
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -27,19 +26,6 @@ fn dir_with_scene(text: &str) -> TempDir {
     let dir = TempDir::new().expect("cannot create a temporary directory");
     std::fs::write(dir.path().join(SCENE), text).expect("cannot write the scene");
     dir
-}
-
-/// Decodes a PNG the binary wrote, insisting on the format's 8-bit RGB.
-fn decode(path: &Path) -> RgbImage {
-    let img = image::open(path)
-        .unwrap_or_else(|e| panic!("{} is not a readable PNG: {e}", path.display()));
-    assert_eq!(
-        img.color(),
-        ColorType::Rgb8,
-        "{} is not 8-bit RGB",
-        path.display()
-    );
-    img.into_rgb8()
 }
 
 /// The run succeeded and printed one summary line with the size and samples per pixel.
@@ -104,7 +90,7 @@ fn renders_seed_to_default_path_in_current_dir() {
     assert_eq!(run.stdout, "", "render prints nothing on stdout");
     // Only the image: the temporary file it was written through has been renamed.
     assert_eq!(entries(dir.path()), ["seed.png"]);
-    let img = decode(&dir.path().join("seed.png"));
+    let img = decode_rgb8(&dir.path().join("seed.png"));
     assert_eq!(img.dimensions(), (60, 40));
     assert!(
         img.pixels().any(|p| p.0 != [0, 0, 0]),
@@ -144,7 +130,7 @@ fn output_flag_writes_where_asked() {
     );
     assert_eq!(entries(&dir.path().join("out")), ["small.png"]);
     assert_eq!(
-        decode(&dir.path().join("out/small.png")).dimensions(),
+        decode_rgb8(&dir.path().join("out/small.png")).dimensions(),
         (60, 40)
     );
 }
@@ -157,7 +143,10 @@ fn flags_override_the_scene_image_settings() {
     // The scene's own settings first: 8x6, aa 1.
     let run = tessera(dir.path(), &["render", SCENE, "-o", "own.png"], TIMEOUT);
     assert_rendered(&run, 8, 6, 1);
-    assert_eq!(decode(&dir.path().join("own.png")).dimensions(), (8, 6));
+    assert_eq!(
+        decode_rgb8(&dir.path().join("own.png")).dimensions(),
+        (8, 6)
+    );
 
     let run = tessera(
         dir.path(),
@@ -178,7 +167,10 @@ fn flags_override_the_scene_image_settings() {
         TIMEOUT,
     );
     assert_rendered(&run, 32, 24, 9);
-    assert_eq!(decode(&dir.path().join("flags.png")).dimensions(), (32, 24));
+    assert_eq!(
+        decode_rgb8(&dir.path().join("flags.png")).dimensions(),
+        (32, 24)
+    );
 }
 
 /// The format requires the image not to depend on the number of threads: bit-identical.
@@ -206,7 +198,7 @@ fn thread_count_does_not_change_the_image() {
         ];
         let run = tessera(dir.path(), &args, TIMEOUT);
         assert_rendered(&run, 90, 70, 4);
-        images.push((threads, decode(&dir.path().join(out))));
+        images.push((threads, decode_rgb8(&dir.path().join(out))));
     }
     for (threads, img) in &images[1..] {
         assert!(
@@ -224,7 +216,7 @@ fn exact_seed_scene_renders() {
     let run = tessera(dir.path(), &["render", &scene_path("seed.json")], TIMEOUT);
     assert_rendered(&run, 600, 400, 1);
     assert_eq!(
-        decode(&dir.path().join("seed.png")).dimensions(),
+        decode_rgb8(&dir.path().join("seed.png")).dimensions(),
         (600, 400)
     );
 }

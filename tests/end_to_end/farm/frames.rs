@@ -21,7 +21,7 @@ use tempfile::TempDir;
 use crate::support::{
     assert_same_png, client, fetch, ok, orbit, render_reference, restart_coordinator, scene_path,
     shared, start_coordinator_in, start_restartable_coordinator, start_worker, submit, try_status,
-    try_workers, wait_done, wait_for_workers, Daemon,
+    try_workers, wait_done, wait_for_workers, Daemon, REGISTER_TIMEOUT,
 };
 
 /// Small, with a few dozen tiles: every worker gets some.
@@ -44,7 +44,7 @@ fn a_frame_submitted_to_two_workers_is_the_frame_tessera_render_gives() {
     let (_coordinator, addr) = start_coordinator_in(dir.path());
     let _w1 = start_worker(dir.path(), &addr, "w1");
     let _w2 = start_worker(dir.path(), &addr, "w2");
-    wait_for_workers(dir.path(), &addr, 2);
+    wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);
 
     let out = dir.path().join("orbit-17.png");
     let scene = orbit();

@@ -32,7 +32,7 @@ use crate::support::wire::{read_frame, send_frame};
 use crate::support::{
     assert_same_png, client, cpu_ticks, fetch, ok, one_error_line, path_str, poll,
     render_reference, scene_path, shared, start_coordinator_in, start_worker, status_json, submit,
-    tessera, workers_json, Daemon, Run, BIN,
+    tessera, wait_for_workers, workers_json, Daemon, Run, BIN,
 };
 
 /// Longest any single client command may take (they are all small).
@@ -89,9 +89,7 @@ impl Farm {
     }
 
     fn wait_for_workers(&self, n: usize) {
-        poll(&format!("{n} workers to register"), STARTUP_TIMEOUT, || {
-            (self.workers().len() == n).then_some(())
-        });
+        wait_for_workers(self.dir(), &self.addr, n, STARTUP_TIMEOUT);
     }
 
     fn worker_pids(&self) -> Vec<u32> {

@@ -26,7 +26,7 @@ use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::{
     client, exclusive, ok, orbit, path_str, poll, restart_coordinator, scene_path, shared,
     start_coordinator, start_coordinator_in, start_restartable_coordinator, start_worker,
-    start_worker_with, submit, tessera, try_status, wait_for_workers, Daemon,
+    start_worker_with, submit, tessera, try_status, wait_for_workers, Daemon, REGISTER_TIMEOUT,
 };
 
 /// Small frames of a few dozen tiles each: every worker gets some of every frame.
@@ -141,7 +141,7 @@ fn a_sequence_on_one_and_on_three_workers_is_tessera_render_frames_byte_for_byte
         let _workers: Vec<Daemon> = (0..workers)
             .map(|i| start_worker(dir.path(), &addr, &format!("w{i}")))
             .collect();
-        wait_for_workers(dir.path(), &addr, workers);
+        wait_for_workers(dir.path(), &addr, workers, REGISTER_TIMEOUT);
         let out = dir.path().join(format!("farm-{workers}"));
         let scene = orbit();
         let mut args = vec![
@@ -205,7 +205,7 @@ fn workers_killed_mid_sequence_change_no_frame() {
     let mut workers: Vec<Daemon> = (0..3)
         .map(|i| start_worker_with(dir.path(), &addr, &format!("w{i}"), &slow))
         .collect();
-    wait_for_workers(dir.path(), &addr, 3);
+    wait_for_workers(dir.path(), &addr, 3, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-16");
     wait_for(dir.path(), &addr, job, "2 frames done", |s| {
         count(s, "done") >= 2
@@ -232,7 +232,7 @@ fn a_cancelled_sequence_stops_and_its_frames_are_rendered_again_on_request() {
     let (_coordinator, addr) =
         start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
     let _worker = start_worker_with(dir.path(), &addr, "w1", &["--throttle", "100"]);
-    wait_for_workers(dir.path(), &addr, 1);
+    wait_for_workers(dir.path(), &addr, 1, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-20");
     wait_for(dir.path(), &addr, job, "1 frame done", |s| {
         count(s, "done") >= 1
@@ -354,7 +354,7 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     let _workers: Vec<Daemon> = (0..2)
         .map(|i| start_worker_with(dir.path(), &addr, &format!("w{i}"), &slow))
         .collect();
-    wait_for_workers(dir.path(), &addr, 2);
+    wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-16");
     let before = wait_for(dir.path(), &addr, job, "3 frames done", |s| {
         count(s, "done") >= 3
@@ -487,7 +487,7 @@ fn a_sequence_is_deleted_with_its_frames_once_its_retention_has_passed() {
         "coordinator.log",
     );
     let _worker = start_worker(dir.path(), &addr, "w1");
-    wait_for_workers(dir.path(), &addr, 1);
+    wait_for_workers(dir.path(), &addr, 1, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-3");
     let done = wait_for(dir.path(), &addr, job, "done", |s| s["state"] == "done");
     let folder = data.join("jobs").join(job.to_string());
@@ -519,7 +519,7 @@ fn a_failed_frame_fails_alone_and_is_rendered_again_alone() {
     let fakes: Vec<FakeWorker> = (0..5)
         .map(|i| FakeWorker::start(&addr, &format!("f{i}"), &build, Lie::FailFrame(3)))
         .collect();
-    wait_for_workers(dir.path(), &addr, 5);
+    wait_for_workers(dir.path(), &addr, 5, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-4");
     let status = wait_for(dir.path(), &addr, job, "failed", |s| s["state"] == "failed");
     assert_eq!(

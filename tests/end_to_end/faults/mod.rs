@@ -25,15 +25,13 @@ use tempfile::TempDir;
 use crate::support::{
     assert_job_image, assert_not_ended_badly, assert_same_png, fetch, free_port, poll,
     start_coordinator, start_worker, submit_scene, tiles_done, try_status, try_workers,
-    wait_for_tiles, Daemon, POLL,
+    wait_for_tiles, Daemon, POLL, REGISTER_TIMEOUT,
 };
 
 /// Longest a job of these tests may take once the faults have stopped.
 const JOB_TIMEOUT: Duration = Duration::from_secs(40);
 /// Longest a running job may go without a new tile while workers are connected.
 const STALL: Duration = Duration::from_secs(15);
-/// Longest a worker may take to register, also after a reconnection backoff.
-const REGISTER_TIMEOUT: Duration = Duration::from_secs(20);
 
 // CPU-seconds of `lights.json` at each size, measured on the project's 2-core AMD EPYC
 // machines. The renderer gets faster over time: a test that needs its job to last

@@ -16,10 +16,10 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use super::{Farm, MEDIUM, REGISTER_TIMEOUT, STALL};
+use super::{Farm, MEDIUM, STALL};
 use crate::support::{
     assert_not_ended_badly, exclusive, poll, render_reference, scene_path, start_worker,
-    tiles_done, tiles_total, worker_named, SplitMix, POLL,
+    tiles_done, tiles_total, worker_named, SplitMix, POLL, REGISTER_TIMEOUT,
 };
 
 /// Some 7 CPU-seconds in 4,275 tiles (with `--tile 32`): over 3 s on three workers

@@ -21,7 +21,8 @@ use transport::Endpoint;
 
 use crate::support::browser::{browser_or_skip, dump_dom};
 use crate::support::{
-    free_port, header, http_request, poll, scene_path, shared, start_coordinator, start_worker,
+    free_port, header, http_request, json_error, poll, scene_path, shared, start_coordinator,
+    start_worker,
 };
 
 const WIDTH: u32 = 64;
@@ -34,14 +35,6 @@ fn get(addr: &str, path: &str, headers: &str) -> (u16, String, Vec<u8>) {
     let answer = http_request(addr, path, headers, Duration::from_secs(30))
         .unwrap_or_else(|| panic!("no answer from the HTTP listener to GET {path}"));
     (answer.status, answer.head, answer.body)
-}
-
-/// The one-line `{"error": ...}` of a refusal.
-fn error(body: &[u8]) -> String {
-    let json: serde_json::Value = serde_json::from_slice(body).expect("a JSON refusal");
-    let message = json["error"].as_str().expect("an error").to_owned();
-    assert!(!message.contains('\n'), "{message:?}");
-    message
 }
 
 fn runtime() -> tokio::runtime::Runtime {
@@ -130,16 +123,28 @@ fn a_sequence_has_an_animated_preview_its_frames_and_a_page_that_plays_it() {
     let sequence = submit(&addr, Some(FrameRange { first: 1, last: 3 }));
     let single = submit(&addr, None);
     let (code, _, body) = get(&http, &format!("/api/jobs/{sequence}/preview.gif"), "");
-    assert_eq!(code, 409, "{}", error(&body));
-    assert!(error(&body).contains("no preview yet"), "{}", error(&body));
+    assert_eq!(code, 409, "{}", json_error(&body));
+    assert!(
+        json_error(&body).contains("no preview yet"),
+        "{}",
+        json_error(&body)
+    );
     let (code, _, body) = get(&http, &format!("/api/jobs/{sequence}/frames/1.png"), "");
-    assert_eq!(code, 409, "{}", error(&body));
+    assert_eq!(code, 409, "{}", json_error(&body));
     let (code, _, body) = get(&http, &format!("/api/jobs/{single}/preview.gif"), "");
     assert_eq!(code, 404);
-    assert!(error(&body).contains("not a sequence"), "{}", error(&body));
+    assert!(
+        json_error(&body).contains("not a sequence"),
+        "{}",
+        json_error(&body)
+    );
     let (code, _, body) = get(&http, "/api/jobs/999/preview.gif", "");
     assert_eq!(code, 404);
-    assert!(error(&body).starts_with("no job 999"), "{}", error(&body));
+    assert!(
+        json_error(&body).starts_with("no job 999"),
+        "{}",
+        json_error(&body)
+    );
     for path in [
         "frames/4.png",
         "frames/0.png",
@@ -147,7 +152,7 @@ fn a_sequence_has_an_animated_preview_its_frames_and_a_page_that_plays_it() {
         "frames/1.gif",
     ] {
         let (code, _, body) = get(&http, &format!("/api/jobs/{sequence}/{path}"), "");
-        assert_eq!(code, 404, "{path}: {}", error(&body));
+        assert_eq!(code, 404, "{path}: {}", json_error(&body));
     }
 
     let _workers = [
@@ -237,7 +242,11 @@ fn a_sequence_has_an_animated_preview_its_frames_and_a_page_that_plays_it() {
     std::fs::write(&stored, bytes).unwrap();
     let (code, _, body) = get(&http, &format!("/api/jobs/{sequence}/frames/2.png"), "");
     assert_eq!(code, 500);
-    assert!(error(&body).contains("damaged"), "{}", error(&body));
+    assert!(
+        json_error(&body).contains("damaged"),
+        "{}",
+        json_error(&body)
+    );
 }
 
 /// The status page of `job`, in headless Chromium if there is one: "frames 3 / 3" and

@@ -15,8 +15,8 @@ use std::time::Duration;
 
 use crate::support::browser::{browser_or_skip, dump_dom, DevTools};
 use crate::support::{
-    client, free_port, http_get, http_post, ok, poll, render_reference, scene_path, shared,
-    start_coordinator, start_worker_with, status_json, submit, tessera, wait_done,
+    client, free_port, http_get, http_post, json_error, ok, poll, render_reference, scene_path,
+    shared, start_coordinator, start_worker_with, status_json, submit, tessera, wait_done,
 };
 
 /// The page's DOM, as a browser that loaded it and let it run for 2 s shows it.
@@ -330,12 +330,7 @@ fn the_page_controls_follow_the_client_secret() {
     let job: u64 = ok(run, "submit").stdout.trim().parse().unwrap();
     let pause = format!("/api/jobs/{job}/pause");
     let json = ("Content-Type", "application/json");
-    let one_line_error = |body: &str| {
-        let v: serde_json::Value = serde_json::from_str(body).expect("a JSON error");
-        let e = v["error"].as_str().expect("an error field").to_owned();
-        assert!(!e.contains('\n'), "{e}");
-        e
-    };
+    let one_line_error = |body: &str| json_error(body.as_bytes());
 
     let (code, body) = http_post(&http, &pause, &[json], "{}");
     assert_eq!(code, 401, "{body}");

@@ -246,7 +246,7 @@ fn silent_peer(addr: &str) -> String {
 }
 
 /// A browser's request: an HTTP 400 in plain text.
-fn http_request(addr: &str) -> String {
+fn browser_request(addr: &str) -> String {
     let mut stream = connect(addr);
     stream
         .write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -547,7 +547,7 @@ fn hostile_peers_neither_crash_the_coordinator_nor_disturb_a_running_job() {
             Box::new(|| wrong_state(addr, "a second Hello from a client", &second_hello)),
             Box::new(|| oversize_request(addr)),
             Box::new(|| silent_peer(addr)),
-            Box::new(|| http_request(addr)),
+            Box::new(|| browser_request(addr)),
             Box::new(|| lying_worker(addr)),
             Box::new(|| oversized_scene(dir, addr)),
         ];

@@ -33,6 +33,7 @@ use tempfile::TempDir;
 
 use crate::support::{
     self, assert_job_image, path_str, submit_scene, wait_for_workers, Daemon, Findings, SplitMix,
+    REGISTER_TIMEOUT,
 };
 
 /// Longest a job of these tests may take.
@@ -65,13 +66,13 @@ fn data_dir_that_held_jobs(dir: &Path) -> (PathBuf, u64) {
     let (mut coordinator, addr) =
         support::start_coordinator(dir, &data, "127.0.0.1:0", &[], "coordinator-1.log");
     let mut worker = support::start_worker(dir, &addr, "w1");
-    wait_for_workers(dir, &addr, 1);
+    wait_for_workers(dir, &addr, 1, REGISTER_TIMEOUT);
     for _ in 0..2 {
         let job = submit_scene(dir, &addr, &seed, SMALL);
         support::wait_done(dir, &addr, job, JOB_TIMEOUT);
     }
     worker.kill9();
-    wait_for_workers(dir, &addr, 0);
+    wait_for_workers(dir, &addr, 0, REGISTER_TIMEOUT);
     let last = submit_scene(dir, &addr, &seed, SMALL);
     assert_eq!(last, 3, "the third job's id");
     stop(&mut coordinator);
@@ -275,7 +276,7 @@ impl Interrupted {
             support::start_worker(d, &addr, "w1"),
             support::start_worker(d, &addr, "w2"),
         ];
-        wait_for_workers(d, &addr, 2);
+        wait_for_workers(d, &addr, 2, REGISTER_TIMEOUT);
         let lights = support::scene_path("lights.json");
         let job = submit_scene(d, &addr, &lights, JOB);
         let status = support::poll("a third of the tiles", JOB_TIMEOUT, || {
@@ -580,7 +581,7 @@ fn a_damaged_stored_image_is_reported_not_served() {
     let data = d.join("data");
     let (mut coordinator, addr) = support::start_restartable_coordinator(d);
     let _worker = support::start_worker(d, &addr, "w1");
-    wait_for_workers(d, &addr, 1);
+    wait_for_workers(d, &addr, 1, REGISTER_TIMEOUT);
     let seed = support::scene_path("seed.json");
     let size = ["--width", "320", "--height", "240"];
     let truncated = submit_scene(d, &addr, &seed, &size);

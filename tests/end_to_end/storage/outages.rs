@@ -481,7 +481,7 @@ impl<'a> Farm<'a> {
         for name in workers {
             farm.add_worker(name);
         }
-        support::wait_for_workers(dir, &farm.addr, workers.len());
+        support::wait_for_workers(dir, &farm.addr, workers.len(), support::REGISTER_TIMEOUT);
         farm
     }
 

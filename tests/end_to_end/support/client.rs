@@ -172,13 +172,14 @@ pub fn worker_named<'a>(workers: &'a [Value], name: &str) -> Option<&'a Value> {
     workers.iter().find(|w| w["name"] == name)
 }
 
-/// Waits (at most 20 s) until exactly `n` workers are connected.
-pub fn wait_for_workers(dir: &Path, addr: &str, n: usize) {
-    poll(
-        &format!("{n} workers to register"),
-        Duration::from_secs(20),
-        || try_workers(dir, addr).filter(|w| w.len() == n),
-    );
+/// Longest a worker may take to register, also after a reconnection backoff.
+pub const REGISTER_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// Waits (at most `timeout`) until exactly `n` workers are connected.
+pub fn wait_for_workers(dir: &Path, addr: &str, n: usize, timeout: Duration) {
+    poll(&format!("{n} workers to register"), timeout, || {
+        try_workers(dir, addr).filter(|w| w.len() == n)
+    });
 }
 
 /// `tessera fetch JOB -o DIR/NAME`.

@@ -92,6 +92,14 @@ pub fn http_post(addr: &str, path: &str, headers: &[(&str, &str)], body: &str) -
     (code, body.to_owned())
 }
 
+/// The message of a refusal's body, `{"error": MESSAGE}`, which is one line.
+pub fn json_error(body: &[u8]) -> String {
+    let json: serde_json::Value = serde_json::from_slice(body).expect("a JSON refusal");
+    let message = json["error"].as_str().expect("an error field").to_owned();
+    assert!(!message.contains('\n'), "{message:?}");
+    message
+}
+
 /// The value of the sample `NAME VALUE` in a Prometheus exposition (`NAME` with its
 /// labels, if it has any), if present; a value that is not a number fails the test.
 pub fn metric_value(exposition: &str, name: &str) -> Option<f64> {

@@ -2,6 +2,21 @@
 
 use std::path::Path;
 
+use image::{ColorType, RgbImage};
+
+/// Decodes a PNG, insisting on the 8-bit RGB the binary writes.
+pub fn decode_rgb8(path: &Path) -> RgbImage {
+    let img = image::open(path)
+        .unwrap_or_else(|e| panic!("{} is not a readable PNG: {e}", path.display()));
+    assert_eq!(
+        img.color(),
+        ColorType::Rgb8,
+        "{} is not 8-bit RGB",
+        path.display()
+    );
+    img.into_rgb8()
+}
+
 /// The two PNG files are the same image (size and every pixel) and the same bytes; on
 /// a mismatch, says how many pixels differ and where the first is.
 pub fn assert_same_png(actual: &Path, reference: &Path, what: &str) {
