@@ -1,0 +1,15 @@
+//! The render crate's tests, through its public interface: exact answers on hard
+//! numerical cases and hand-derived pixels, the hierarchy that changes speed and never
+//! answers, tiles and samplers that give the same bytes in any tiling, the adaptive
+//! sampler's error knob, the portable code path, and scene loading under fuzzing.
+
+mod bvh;
+mod calibration;
+mod fuzz_scene;
+mod hierarchy_precision;
+mod numerics;
+mod portable;
+mod sampling;
+mod seed_pixels;
+mod support;
+mod tiles;

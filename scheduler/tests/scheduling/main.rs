@@ -1,0 +1,8 @@
+//! The scheduler crate's tests: its tile scheduler against a model of the daemon and
+//! against a plain reference implementation, its job lifecycle against random histories,
+//! and both driven by the farm simulation at scale.
+
+mod lifecycle_props;
+mod reference;
+mod scheduler_props;
+mod sim;

@@ -1,0 +1,8 @@
+//! `tessera render` on one machine: the command's contract (images, summaries, one-line
+//! refusals), animated scenes and their frames, the committed golden images of every
+//! example scene, and adaptive renders saved and refined.
+
+mod animation;
+mod golden;
+mod refine;
+mod render;

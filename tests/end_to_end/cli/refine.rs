@@ -1,0 +1,184 @@
+//! `tessera render --state` and `tessera refine`: a saved adaptive render goes on to a
+//! lower error or a larger cap and gives, byte for byte, the image of a direct render
+//! with the final settings; `--time-limit` stops at the best image reached; a damaged
+//! state file is refused with one line and writes nothing.
+
+use std::path::Path;
+use std::time::Duration;
+
+use crate::support::{ok, one_error_line, scene_path, shared, tessera};
+
+const LIMIT: Duration = Duration::from_secs(120);
+
+/// Runs `tessera ARGS` in `dir`, which must succeed: what it printed on stderr.
+fn succeeds(dir: &Path, args: &[&str]) -> String {
+    ok(tessera(dir, args, LIMIT), &format!("tessera {args:?}")).stderr
+}
+
+/// Runs `tessera ARGS` in `dir`, which must fail with one `error: ` line: that line.
+fn one_error(dir: &Path, args: &[&str]) -> String {
+    one_error_line(&tessera(dir, args, LIMIT), &format!("tessera {args:?}"))
+}
+
+fn bytes(dir: &Path, name: &str) -> Vec<u8> {
+    std::fs::read(dir.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+const SIZE: [&str; 4] = ["--width", "240", "--height", "160"];
+
+#[test]
+fn a_refined_render_is_the_direct_render_byte_for_byte() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = scene_path("seed.json");
+    let render = |extra: &[&str]| {
+        let mut args = vec!["render", scene.as_str(), "--sampler", "adaptive"];
+        args.extend_from_slice(&SIZE);
+        args.extend_from_slice(extra);
+        succeeds(d, &args)
+    };
+    render(&[
+        "--aa",
+        "8",
+        "--target-error",
+        "4",
+        "--state",
+        "s.state",
+        "-o",
+        "coarse.png",
+    ]);
+    // A lower target, then a larger cap, each from the state the previous step left.
+    succeeds(
+        d,
+        &[
+            "refine",
+            "s.state",
+            "--target-error",
+            "1.5",
+            "-o",
+            "fine.png",
+        ],
+    );
+    render(&[
+        "--aa",
+        "8",
+        "--target-error",
+        "1.5",
+        "-o",
+        "direct-fine.png",
+    ]);
+    assert_eq!(bytes(d, "fine.png"), bytes(d, "direct-fine.png"));
+    assert_ne!(bytes(d, "fine.png"), bytes(d, "coarse.png"));
+    let line = succeeds(
+        d,
+        &["refine", "s.state", "--aa", "16", "--target-error", "0.8"],
+    );
+    assert!(
+        line.contains("adaptive up to 16x16, target 0.8 levels"),
+        "{line}"
+    );
+    render(&[
+        "--aa",
+        "16",
+        "--target-error",
+        "0.8",
+        "-o",
+        "direct-finer.png",
+    ]);
+    assert_eq!(bytes(d, "s.png"), bytes(d, "direct-finer.png"));
+}
+
+#[test]
+fn a_time_limit_gives_the_image_reached_and_says_so() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = scene_path("seed.json");
+    let mut args = vec![
+        "render",
+        scene.as_str(),
+        "--aa",
+        "16",
+        "--time-limit",
+        "300ms",
+    ];
+    args.extend_from_slice(&SIZE);
+    args.extend_from_slice(&["-o", "limited.png"]);
+    let line = succeeds(d, &args);
+    assert!(line.contains("no target"), "{line}");
+    assert!(
+        line.contains("as far as the time limit allowed") || line.contains("at its cap"),
+        "{line}"
+    );
+    assert!(bytes(d, "limited.png").starts_with(b"\x89PNG"));
+    // A time limit is for adaptive sampling only; bad durations are one line.
+    let e = one_error(
+        d,
+        &["render", &scene, "--time-limit", "1s", "--sampler", "grid"],
+    );
+    assert!(
+        e.contains("--time-limit applies only to --sampler adaptive"),
+        "{e}"
+    );
+    let e = one_error(d, &["render", &scene, "--time-limit=-2s"]);
+    assert!(e.contains("--time-limit"), "{e}");
+    let e = one_error(d, &["render", &scene, "--time-limit", "3parsecs"]);
+    assert!(e.contains("--time-limit"), "{e}");
+}
+
+#[test]
+fn damaged_or_foreign_states_are_refused_and_nothing_is_written() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = scene_path("seed.json");
+    let mut args = vec![
+        "render",
+        scene.as_str(),
+        "--sampler",
+        "adaptive",
+        "--aa",
+        "4",
+        "--target-error",
+        "3",
+        "--state",
+        "good.state",
+        "-o",
+        "good.png",
+    ];
+    args.extend_from_slice(&SIZE);
+    succeeds(d, &args);
+    let good = bytes(d, "good.state");
+    let mut flipped = good.clone();
+    let middle = flipped.len() / 2;
+    flipped[middle] ^= 1;
+    std::fs::write(d.join("flipped.state"), &flipped).unwrap();
+    std::fs::write(d.join("short.state"), &good[..good.len() / 3]).unwrap();
+    std::fs::write(d.join("scene.state"), std::fs::read(&scene).unwrap()).unwrap();
+    for (file, says) in [
+        ("flipped.state", "damaged"),
+        ("short.state", "damaged"),
+        ("scene.state", "not a render state"),
+        ("missing.state", "cannot read render state"),
+    ] {
+        let e = one_error(d, &["refine", file, "--target-error", "1", "-o", "out.png"]);
+        assert!(e.contains(file) && e.contains(says), "{file}: {e}");
+        assert!(!d.join("out.png").exists(), "{file}: an image was written");
+    }
+    // The good state still refines, and --state needs adaptive sampling.
+    succeeds(
+        d,
+        &[
+            "refine",
+            "good.state",
+            "--target-error",
+            "2",
+            "-o",
+            "out.png",
+        ],
+    );
+    let e = one_error(d, &["render", &scene, "--state", "x.state"]);
+    assert!(e.contains("--state"), "{e}");
+    assert!(!d.join("x.state").exists());
+}

@@ -1,0 +1,376 @@
+//! What a job shows of itself, through the clients and the status page's JSON, on a
+//! farm of real `tessera` processes on 127.0.0.1: a job that did not finish shows no
+//! error estimate, and both JSONs agree; jobs carry a name, a submitter and their queue
+//! wait, which the rate leaves out; a job's events tell what happened, survive a
+//! restart and go with it; a tile past its lease is among them.
+
+use std::time::Duration;
+
+use crate::support::{
+    assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, poll,
+    render_reference, scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
+    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, try_status,
+    wait_done,
+};
+
+#[test]
+fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let page_job = |job: u64| -> serde_json::Value {
+        let (code, body) = http_get(&http, "/api/status").expect("the status page");
+        assert_eq!(code, 200);
+        let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        farm["jobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == job)
+            .cloned()
+            .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"))
+    };
+    let seed = scene_path("seed.json");
+    // Long enough to be cancelled with some of its tiles in.
+    let job = submit(dir.path(), &addr, &[&seed, "--aa", "8", "--tile", "16"]);
+    poll("a tile of the job", Duration::from_secs(60), || {
+        let status = try_status(dir.path(), &addr, job)?;
+        (tiles_done(&status) > 0).then_some(())
+    });
+    ok(
+        client(dir.path(), &addr, &["cancel", &job.to_string()]),
+        "cancel",
+    );
+    let status = try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["state"], "cancelled");
+    assert!(tiles_done(&status) > 0, "{status}");
+    assert!(status["estimated_error"].is_null(), "{status}");
+    assert!(status["samples_per_pixel"].is_null(), "{status}");
+    let page = page_job(job);
+    assert!(page["estimated_error"].is_null(), "{page}");
+    assert!(page["samples_per_pixel"].is_null(), "{page}");
+    let line = ok(
+        client(dir.path(), &addr, &["status", &job.to_string()]),
+        "status",
+    );
+    assert!(!line.stdout.contains("estimated error"), "{}", line.stdout);
+
+    // A finished job: the same figures both ways.
+    let done = submit(
+        dir.path(),
+        &addr,
+        &[&seed, "--width", "64", "--height", "48", "--aa", "2"],
+    );
+    let status = wait_done(dir.path(), &addr, done, Duration::from_secs(60));
+    let page = page_job(done);
+    for key in ["samples_per_pixel", "estimated_error"] {
+        assert!(status[key].is_number(), "{key}: {status}");
+        assert_eq!(status[key], page[key], "{key}");
+    }
+}
+
+#[test]
+fn names_submitters_and_the_queue_wait_are_shown_and_the_rate_leaves_the_wait_out() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let seed = scene_path("seed.json");
+    let small = ["--width", "64", "--height", "48", "--aa", "2"];
+    let before = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
+    let mut args = vec![seed.as_str()];
+    args.extend(small);
+    args.extend(["--name", "night shot", "--submitter", "ann@studio"]);
+    let named = submit(dir.path(), &addr, &args);
+    let mut args = vec![seed.as_str()];
+    args.extend(small);
+    let plain = submit(dir.path(), &addr, &args);
+
+    // No worker yet: both wait in the queue.
+    let listed = ok(
+        client(dir.path(), &addr, &["list", "--json"]),
+        "list --json",
+    );
+    let jobs: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
+    let job = |id: u64| {
+        jobs.as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == id)
+            .unwrap()
+            .clone()
+    };
+    let first = job(named);
+    assert_eq!(first["name"], "night shot", "{first}");
+    assert_eq!(first["submitter"], "ann@studio", "{first}");
+    assert_eq!(first["submitted_from"], "127.0.0.1", "{first}");
+    assert!(first["queued_ms"].is_null(), "{first}");
+    let at = first["submitted_unix_ms"].as_u64().unwrap();
+    assert!(at >= before && at < before + 60_000, "{at} vs {before}");
+    let second = job(plain);
+    assert_eq!(
+        second["name"], "seed",
+        "the scene's stem by default: {second}"
+    );
+    assert!(
+        second["submitter"].as_str().unwrap().contains('@'),
+        "$USER@hostname by default: {second}"
+    );
+    let table = ok(client(dir.path(), &addr, &["list"]), "list");
+    let lines: Vec<&str> = table.stdout.lines().collect();
+    assert_eq!(lines.len(), 3, "{}", table.stdout);
+    for column in [
+        "ID",
+        "STATE",
+        "NAME",
+        "SUBMITTER",
+        "FROM",
+        "SUBMITTED (UTC)",
+        "QUEUED",
+    ] {
+        assert!(lines[0].contains(column), "{column}: {}", lines[0]);
+    }
+    assert!(
+        lines[1].contains("night shot") && lines[1].contains("ann@studio"),
+        "{}",
+        lines[1]
+    );
+    assert!(lines[1].contains("127.0.0.1"), "{}", lines[1]);
+
+    // `submit --wait` of a job that waits: its summary leaves the wait out of the rate.
+    let mut wait_args = vec!["submit", seed.as_str(), "--wait", "-o", "waited.png"];
+    wait_args.extend(small);
+    wait_args.extend(["--coordinator", addr.as_str()]);
+    let mut waiting = spawn_tessera(dir.path(), &wait_args, "wait.log");
+    std::thread::sleep(Duration::from_secs(3));
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let exit = waiting
+        .wait_exit(Duration::from_secs(60))
+        .expect("submit --wait did not end");
+    let said = waiting.log_text();
+    assert!(exit.success(), "{said}");
+    let summary = said.lines().last().unwrap_or_default();
+    let queued: f64 = summary
+        .split(" after ")
+        .nth(1)
+        .and_then(|rest| rest.split(" s in the queue").next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no queue wait in {summary:?}"));
+    assert!(queued >= 2.5, "{summary}");
+    let rendered: f64 = summary
+        .split("rendered in ")
+        .nth(1)
+        .and_then(|rest| rest.split(" s").next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no render time in {summary:?}"));
+    assert!(rendered < queued, "{summary}");
+
+    let done = wait_done(dir.path(), &addr, named, Duration::from_secs(60));
+    let queued_ms = done["queued_ms"].as_u64().expect("queued_ms once started");
+    assert!(queued_ms >= 2_500, "{done}");
+    assert!(done["elapsed_ms"].as_u64().unwrap() >= queued_ms, "{done}");
+    let line = ok(
+        client(dir.path(), &addr, &["status", &named.to_string()]),
+        "status",
+    );
+    assert!(line.stdout.contains("in the queue"), "{}", line.stdout);
+    assert!(
+        line.stdout.contains("\"night shot\" by ann@studio"),
+        "{}",
+        line.stdout
+    );
+    // job.json's rate counts rendering time only.
+    let meta: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(data.join(format!("jobs/{named}/job.json"))).unwrap(),
+    )
+    .unwrap();
+    let rays = meta["rays"].as_f64().unwrap();
+    let wall = meta["wall_time_ms"].as_f64().unwrap() / 1000.0;
+    let rate = meta["rays_per_second"].as_f64().unwrap();
+    assert!(rate > 2.0 * rays / wall, "{meta}");
+}
+
+#[test]
+fn a_jobs_events_tell_what_happened_and_survive_a_restart() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "first.log");
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "64", "--height", "48", "--aa", "1", "--tile", "16", "--name", "ev",
+        ],
+    );
+    let id = job.to_string();
+    ok(client(dir.path(), &addr, &["pause", &id]), "pause");
+    ok(
+        client(dir.path(), &addr, &["priority", &id, "3"]),
+        "priority",
+    );
+    ok(client(dir.path(), &addr, &["resume", &id]), "resume");
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    let seen = events(dir.path(), &addr, job);
+    let kinds: Vec<&str> = seen.iter().map(|(k, _)| k.as_str()).collect();
+    assert_eq!(
+        kinds[..4],
+        ["submitted", "paused", "priority", "resumed"],
+        "{seen:?}"
+    );
+    assert_eq!(kinds[4], "started", "{seen:?}");
+    assert_eq!(kinds.last(), Some(&"done"), "{seen:?}");
+    assert!(
+        seen[0].1.contains("\"ev\"") && seen[0].1.contains("127.0.0.1"),
+        "{seen:?}"
+    );
+    assert!(
+        seen[2].1.contains("0 -> 3") && seen[2].1.contains("127.0.0.1"),
+        "{seen:?}"
+    );
+    let mut done = tiles_of(&seen, "tile_done");
+    done.sort_unstable();
+    assert_eq!(done, (0..12).collect::<Vec<u32>>(), "{seen:?}");
+    assert!(
+        seen.iter()
+            .filter(|(k, _)| k == "tile_done")
+            .all(|(_, d)| d.contains("by w1")),
+        "{seen:?}"
+    );
+    assert!(tiles_of(&seen, "tile_assigned").len() >= 12, "{seen:?}");
+
+    // Stored: a coordinator killed and restarted has the same log.
+    coordinator.kill9();
+    let (_coordinator, addr) =
+        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "second.log");
+    assert_eq!(events(dir.path(), &addr, job), seen);
+    let status = try_status(dir.path(), &addr, job).unwrap();
+    assert_eq!(status["name"], "ev", "{status}");
+    assert_eq!(status["submitted_from"], "127.0.0.1", "{status}");
+    let text = ok(client(dir.path(), &addr, &["events", &id]), "events");
+    assert_eq!(text.stdout.lines().count(), seen.len(), "{}", text.stdout);
+    assert!(
+        text.stdout.lines().all(|l| l.starts_with("20")),
+        "{}",
+        text.stdout
+    );
+    let missing = client(dir.path(), &addr, &["events", "999"]);
+    assert_eq!(missing.status.code(), Some(1));
+    assert_eq!(
+        missing.stderr.trim(),
+        "error: no job 999 on this coordinator"
+    );
+
+    // An adaptive job's passes are in its log.
+    let adaptive = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed,
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--aa",
+            "4",
+            "--sampler",
+            "adaptive",
+            "--target-error",
+            "2",
+        ],
+    );
+    let _again = start_worker(dir.path(), &addr, "w2");
+    wait_done(dir.path(), &addr, adaptive, Duration::from_secs(60));
+    let passes = events(dir.path(), &addr, adaptive);
+    assert!(
+        passes
+            .iter()
+            .any(|(k, d)| k == "adaptive_pass" && d.contains("estimated error")),
+        "{passes:?}"
+    );
+    assert_eq!(
+        passes.last().map(|(k, _)| k.as_str()),
+        Some("done"),
+        "{passes:?}"
+    );
+
+    // Deleted with its job.
+    ok(client(dir.path(), &addr, &["delete", &id]), "delete");
+    let db = rusqlite::Connection::open(data.join("tessera.db")).unwrap();
+    let left: i64 = db
+        .query_row(
+            "SELECT count(*) FROM events WHERE job = ?1",
+            [job as i64],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(left, 0);
+}
+
+#[test]
+fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let seed = scene_path("seed.json");
+    let settings = ["--width", "1600", "--height", "1200", "--aa", "2"];
+    let mut args = vec![seed.as_str(), "--tile", "64"];
+    args.extend(settings);
+    let job = submit(dir.path(), &addr, &args);
+    // A fast worker first: its tiles set the job's lease to about a second...
+    let _fast = start_worker_with(dir.path(), &addr, "fast", &["--threads", "1"]);
+    poll("the first tiles", Duration::from_secs(30), || {
+        let status = try_status(dir.path(), &addr, job)?;
+        (status["tiles_done"].as_u64()? >= 20).then_some(())
+    });
+    // ...which a worker on the least share of a core the kernel gives (1/1000: seconds
+    // a tile) runs past.
+    let Some(_slow) = start_slow_worker(
+        "a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged",
+        dir.path(),
+        &addr,
+        "slow",
+        0.001,
+        &["--threads", "1"],
+    ) else {
+        return;
+    };
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let log = events(dir.path(), &addr, job);
+    let expired: Vec<&String> = log
+        .iter()
+        .filter(|(kind, _)| kind == "tile_lease_expired")
+        .map(|(_, detail)| detail)
+        .collect();
+    let kinds: std::collections::BTreeSet<&str> = log.iter().map(|(k, _)| k.as_str()).collect();
+    assert!(
+        !expired.is_empty() && expired.iter().all(|d| d.contains(" on slow for ")),
+        "expiries {expired:?} among {} events of kinds {kinds:?}",
+        log.len()
+    );
+    // Each expiry once, though the lease stays expired over many timeouts.
+    let mut tiles: Vec<u32> = tiles_of(&log, "tile_lease_expired");
+    let count = tiles.len();
+    tiles.sort_unstable();
+    tiles.dedup();
+    assert_eq!(tiles.len(), count, "{expired:?}");
+
+    let image = fetch(dir.path(), &addr, job, "farm.png");
+    let reference = render_reference(dir.path(), &seed, "reference.png", &settings);
+    assert_same_png(&image, &reference, "the job with an expired lease");
+}

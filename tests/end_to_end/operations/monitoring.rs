@@ -1,0 +1,177 @@
+//! Watching the daemons: health, readiness and metrics over HTTP, and JSON logs,
+//! following a job and a worker killed mid-job. Real binaries on 127.0.0.1.
+
+use std::path::Path;
+use std::time::Duration;
+
+use crate::support::{
+    assert_same_png, fetch, free_port, http_get, http_get_text, metric_value, ok, poll,
+    render_reference, scene_path, shared, start_coordinator, start_slow_worker, start_worker_with,
+    submit, tessera, wait_done, Daemon,
+};
+
+/// A coordinator serving HTTP on its own free port, with JSON logs.
+fn observed_coordinator(dir: &Path, extra: &[&str]) -> (Daemon, String, String) {
+    let http = format!("127.0.0.1:{}", free_port());
+    let mut args = vec!["--http", &http, "--log-format", "json"];
+    args.extend(extra);
+    let data = dir.join("data");
+    let (daemon, addr) = start_coordinator(dir, &data, "127.0.0.1:0", &args, "coordinator.log");
+    (daemon, addr, http)
+}
+
+#[test]
+fn health_readiness_metrics_and_json_logs_follow_a_job() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut coordinator, addr, http) = observed_coordinator(dir.path(), &[]);
+    assert_eq!(http_get_text(&http, "/healthz"), "ok\n");
+    assert!(http_get_text(&http, "/readyz").starts_with("ready"));
+    let worker_http = format!("127.0.0.1:{}", free_port());
+    let _worker = start_worker_with(dir.path(), &addr, "w1", &["--http", &worker_http]);
+    poll("the worker to be ready", Duration::from_secs(20), || {
+        http_get(&worker_http, "/readyz").filter(|(s, _)| *s == 200)
+    });
+    assert_eq!(http_get_text(&worker_http, "/healthz"), "ok\n");
+
+    let seed = scene_path("seed.json");
+    let settings = [
+        "--width", "160", "--height", "96", "--aa", "2", "--tile", "32",
+    ];
+    let mut args = vec![seed.as_str()];
+    args.extend(settings);
+    let job = submit(dir.path(), &addr, &args);
+    let status = wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    let tiles = status["tiles_total"].as_u64().unwrap();
+    assert_eq!(tiles, 15);
+
+    let text = http_get_text(&http, "/metrics");
+    assert_eq!(
+        metric_value(&text, "tessera_jobs{state=\"done\"}"),
+        Some(1.0),
+        "{text}"
+    );
+    assert_eq!(
+        metric_value(&text, "tessera_jobs{state=\"running\"}"),
+        Some(0.0)
+    );
+    assert_eq!(metric_value(&text, "tessera_workers_connected"), Some(1.0));
+    assert_eq!(
+        metric_value(&text, "tessera_tiles_rendered_total"),
+        Some(tiles as f64)
+    );
+    assert_eq!(
+        metric_value(&text, "tessera_tile_latency_seconds_count"),
+        Some(tiles as f64)
+    );
+    assert_eq!(
+        metric_value(&text, "tessera_rays_total"),
+        Some(status["rays"].as_u64().unwrap() as f64)
+    );
+    for name in [
+        "tessera_leases_expired_total",
+        "tessera_tiles_reassigned_total",
+        "tessera_rays_per_second",
+    ] {
+        assert!(
+            metric_value(&text, name).is_some(),
+            "{name} missing:\n{text}"
+        );
+    }
+
+    // The page's view and image agree with the client's.
+    let farm: serde_json::Value =
+        serde_json::from_str(&http_get_text(&http, "/api/status")).unwrap();
+    assert_eq!(farm["jobs"][0]["state"], "done");
+    assert_eq!(farm["workers"][0]["name"], "w1");
+    let (status, png) = http_get(&http, &format!("/jobs/{job}/image.png")).unwrap();
+    assert_eq!(status, 200);
+    std::fs::write(dir.path().join("page.png"), png).unwrap();
+    let fetched = fetch(dir.path(), &addr, job, "fetched.png");
+    let reference = render_reference(dir.path(), &seed, "reference.png", &settings[..6]);
+    assert_same_png(&fetched, &reference, "fetched");
+    assert_same_png(&dir.path().join("page.png"), &reference, "served over HTTP");
+    assert_eq!(http_get(&http, "/jobs/99/image.png").unwrap().0, 404);
+
+    // JSON logs: one object a line, the ids as fields.
+    coordinator.signal("TERM");
+    coordinator
+        .wait_exit(Duration::from_secs(20))
+        .expect("the coordinator exits");
+    let log = coordinator.log_text();
+    let events: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+        .collect();
+    let accepted = events
+        .iter()
+        .find(|e| e["message"] == "job accepted")
+        .expect("a job accepted event");
+    assert_eq!(accepted["job"], job);
+    assert_eq!(accepted["level"], "INFO");
+    assert!(events
+        .iter()
+        .any(|e| e["message"] == "job done" && e["job"] == job));
+    // The worker notices and is no longer ready, but stays alive to reconnect.
+    poll("the worker to be unready", Duration::from_secs(30), || {
+        http_get(&worker_http, "/readyz").filter(|(s, _)| *s == 503)
+    });
+    assert_eq!(http_get_text(&worker_http, "/healthz"), "ok\n");
+}
+
+#[test]
+fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr, http) = observed_coordinator(dir.path(), &[]);
+    // A slow worker takes tiles and dies holding them; a fast one finishes the job.
+    let Some((mut slow, _limit)) = start_slow_worker(
+        "reassigned_tiles_are_counted_when_a_worker_is_killed",
+        dir.path(),
+        &addr,
+        "slow",
+        1.0 / 400.0,
+        &[],
+    ) else {
+        return;
+    };
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[&seed, "--width", "128", "--height", "64", "--tile", "32"],
+    );
+    poll(
+        "the slow worker to hold tiles",
+        Duration::from_secs(20),
+        || {
+            let text = http_get_text(&http, "/metrics");
+            (metric_value(&text, "tessera_tiles_in_flight")? > 0.0).then_some(())
+        },
+    );
+    slow.kill9();
+    let _fast = start_worker_with(dir.path(), &addr, "fast", &[]);
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    // The tiles rendered again give the same image.
+    let fetched = fetch(dir.path(), &addr, job, "fetched.png");
+    let reference = render_reference(
+        dir.path(),
+        &seed,
+        "reference.png",
+        &["--width", "128", "--height", "64"],
+    );
+    assert_same_png(&fetched, &reference, "after a worker was killed");
+    let text = http_get_text(&http, "/metrics");
+    assert!(
+        metric_value(&text, "tessera_tiles_reassigned_total").unwrap() >= 1.0,
+        "{text}"
+    );
+    ok(
+        tessera(
+            dir.path(),
+            &["list", "--coordinator", &addr],
+            Duration::from_secs(20),
+        ),
+        "list",
+    );
+}

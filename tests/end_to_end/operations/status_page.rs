@@ -1,0 +1,587 @@
+//! The coordinator's status page in a real headless browser (Chromium): it loads, shows
+//! a running job progressing with a live preview, and shows the finished image, the
+//! same pixels as `tessera render`'s. Its controls, clicked with the mouse through the
+//! DevTools protocol, pause, resume and delete jobs and disable and enable workers, as
+//! `tessera status` and `tessera workers` then show; it warns when no worker can take
+//! tiles, and asks for the farm's client token once. The controls' rules of access
+//! (token, content type, origin) are checked over plain HTTP.
+//!
+//! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
+//! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
+//! browser fails it.
+
+use std::path::Path;
+use std::time::Duration;
+
+use crate::support::browser::{browser_or_skip, dump_dom, DevTools};
+use crate::support::{
+    client, free_port, http_get, http_post, json_error, ok, poll, render_reference, scene_path,
+    shared, start_coordinator, start_slow_worker, status_json, submit, tessera, wait_done,
+};
+
+/// The page's DOM, as a browser that loaded it and let it run for 2 s shows it.
+fn page_dom(browser: &Path, profile: &Path, url: &str) -> String {
+    let out = dump_dom(browser, profile, url, 2000);
+    assert!(
+        out.status.success(),
+        "the browser failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The attributes of the first element that starts with `prefix` (e.g. `<img id="picture"`).
+fn element<'a>(html: &'a str, prefix: &str) -> Option<&'a str> {
+    let start = html.find(prefix)?;
+    let end = html[start..].find('>')?;
+    Some(&html[start..start + end])
+}
+
+fn attribute<'a>(element: &'a str, name: &str) -> Option<&'a str> {
+    let key = format!(" {name}=\"");
+    let start = element.find(&key)? + key.len();
+    let end = element[start..].find('"')?;
+    Some(&element[start..start + end])
+}
+
+/// What the page shows of job `job`: (state, tiles done, tiles total) from its row,
+/// and (tiles shown, final, rgb sum) from the picture, if loaded.
+struct Seen {
+    state: String,
+    done: u32,
+    total: u32,
+    shown_tiles: Option<u32>,
+    final_picture: bool,
+    rgb_sum: Option<u64>,
+}
+
+fn seen(html: &str, job: u64) -> Option<Seen> {
+    let row = element(html, &format!("<tr data-job=\"{job}\""))?;
+    fn number<T: std::str::FromStr>(e: &str, name: &str) -> Option<T> {
+        attribute(e, name).and_then(|v| v.parse().ok())
+    }
+    let picture = element(html, "<img id=\"picture\"")
+        .filter(|img| attribute(img, "data-job") == Some(&job.to_string()));
+    Some(Seen {
+        state: attribute(row, "data-state")?.to_owned(),
+        done: number(row, "data-tiles-done")?,
+        total: number(row, "data-tiles-total")?,
+        shown_tiles: picture.and_then(|img| number(img, "data-shown-tiles")),
+        final_picture: picture.and_then(|img| attribute(img, "data-final")) == Some("true"),
+        rgb_sum: picture.and_then(|img| number(img, "data-rgb-sum")),
+    })
+}
+
+#[test]
+fn the_status_page_shows_a_job_progressing_and_its_finished_image() {
+    let _turn = shared();
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let profile = dir.path().join("browser-profile");
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    // A slowed worker, so that the job runs long enough to be watched.
+    let Some(_worker) = start_slow_worker(
+        "the_status_page_shows_a_job_progressing_and_its_finished_image",
+        dir.path(),
+        &addr,
+        "slow",
+        1.0 / 150.0,
+        &[],
+    ) else {
+        return;
+    };
+    let seed = scene_path("seed.json");
+    let settings = ["--width", "240", "--height", "160", "--aa", "3"];
+    let mut args = vec![seed.as_str(), "--tile", "16"];
+    args.extend(settings);
+    let job = submit(dir.path(), &addr, &args);
+    let page = format!("http://{http}/?job={job}");
+
+    // Running, with a preview of the tiles so far.
+    let first = poll(
+        "the page to show the job running",
+        Duration::from_secs(60),
+        || {
+            let s = seen(&page_dom(&browser, &profile, &page), job)?;
+            assert_ne!(s.state, "done", "the job ended before the page saw it run");
+            (s.state == "running" && s.done > 0 && s.shown_tiles.is_some()).then_some(s)
+        },
+    );
+    assert!(first.done < first.total);
+    assert!(!first.final_picture);
+    // Progressing: later, more tiles in and a newer preview.
+    let later = poll("the page to show progress", Duration::from_secs(60), || {
+        let s = seen(&page_dom(&browser, &profile, &page), job)?;
+        (s.done > first.done && s.shown_tiles > first.shown_tiles).then_some(s)
+    });
+    assert!(later.done <= later.total);
+
+    // Finished: the stored image, the same pixels as `tessera render`'s.
+    let done = poll(
+        "the page to show the finished image",
+        Duration::from_secs(120),
+        || {
+            let s = seen(&page_dom(&browser, &profile, &page), job)?;
+            (s.state == "done" && s.final_picture).then_some(s)
+        },
+    );
+    assert_eq!(done.done, done.total);
+    let reference = render_reference(dir.path(), &seed, "reference.png", &settings);
+    let expected: u64 = image::open(&reference)
+        .unwrap()
+        .to_rgb8()
+        .as_raw()
+        .iter()
+        .map(|&b| u64::from(b))
+        .sum();
+    assert_eq!(done.rgb_sum, Some(expected), "the page shows other pixels");
+}
+
+/// Clicks `selector` until `done` holds: a click can miss when the page lays itself out
+/// again between finding the button and pressing it (a row above it added or removed
+/// by a refresh), so one click proves nothing until its effect is seen.
+fn click_until(page: &mut DevTools, what: &str, selector: &str, mut done: impl FnMut() -> bool) {
+    poll(what, Duration::from_secs(30), || {
+        if done() {
+            return Some(());
+        }
+        page.click(selector);
+        let until = std::time::Instant::now() + Duration::from_millis(1500);
+        while std::time::Instant::now() < until {
+            if done() {
+                return Some(());
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        None
+    });
+}
+
+#[test]
+fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_warns() {
+    let _turn = shared();
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    // No worker yet: the job waits, and the page says why.
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "160", "--height", "120", "--aa", "2", "--tile", "16",
+        ],
+    );
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/?job={job}"),
+        &dir.path().join("chromium.log"),
+    );
+    let banner = poll("the no-worker banner", Duration::from_secs(30), || {
+        let text = page.eval(
+            "(() => { const w = document.getElementById('warning'); return w && !w.hidden ? w.textContent : null; })()",
+        );
+        text.as_str().map(str::to_owned)
+    });
+    assert!(banner.contains("no worker is connected"), "{banner}");
+
+    // Paused by a click, as `tessera status` shows.
+    click_until(
+        &mut page,
+        "the job paused by its button",
+        &format!("button[data-action=\"pause\"][data-job=\"{job}\"]"),
+        || status_json(dir.path(), &addr, job)["state"] == "paused",
+    );
+    // The page shows it without a reload.
+    poll(
+        "the page to show the pause",
+        Duration::from_secs(20),
+        || {
+            (page.eval(&format!(
+                "document.querySelector('tr[data-job=\"{job}\"]').dataset.state"
+            )) == "paused")
+                .then_some(())
+        },
+    );
+
+    // And in the job's events, under the image.
+    poll(
+        "the pause among the job's events",
+        Duration::from_secs(20),
+        || {
+            (page.eval("document.querySelectorAll('#events tr[data-event=\"paused\"]').length")
+                == 1)
+                .then_some(())
+        },
+    );
+
+    // A worker joins; it gets nothing of the paused job; the banner goes.
+    let Some((mut worker, _slow)) = start_slow_worker(
+        "the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_warns",
+        dir.path(),
+        &addr,
+        "clicky",
+        1.0 / 50.0,
+        &[],
+    ) else {
+        return;
+    };
+    poll("the banner to go", Duration::from_secs(30), || {
+        (page.eval("document.getElementById('warning').hidden") == true).then_some(())
+    });
+    std::thread::sleep(Duration::from_millis(1000));
+    assert_eq!(status_json(dir.path(), &addr, job)["tiles_done"], 0);
+
+    // Disabled from the page: the worker row says so, and `tessera workers` too.
+    let worker_field = |field: &str| {
+        let run = client(dir.path(), &addr, &["workers", "--json"]);
+        serde_json::from_str::<serde_json::Value>(run.stdout.trim())
+            .map(|workers| workers[0][field].clone())
+            .unwrap_or_default()
+    };
+    click_until(
+        &mut page,
+        "the worker disabled by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"disable\"]",
+        || worker_field("disabled") == true,
+    );
+    poll(
+        "the banner for a disabled farm",
+        Duration::from_secs(20),
+        || {
+            let text = page.eval("document.getElementById('warning').textContent");
+            text.as_str()
+                .filter(|t| t.contains("disabled, draining or quarantined"))
+                .map(drop)
+        },
+    );
+
+    // Enabled and resumed from the page: the job renders to the end.
+    click_until(
+        &mut page,
+        "the worker enabled by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"enable\"]",
+        || worker_field("disabled") == false,
+    );
+    click_until(
+        &mut page,
+        "the job resumed by its button",
+        &format!("button[data-action=\"resume\"][data-job=\"{job}\"]"),
+        || status_json(dir.path(), &addr, job)["state"] != "paused",
+    );
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    // An ended job offers delete; a click removes it.
+    click_until(
+        &mut page,
+        "the job deleted by its button",
+        &format!("button[data-action=\"delete\"][data-job=\"{job}\"]"),
+        || {
+            let run = client(dir.path(), &addr, &["status", &job.to_string()]);
+            !run.status.success() && run.stderr.contains(&format!("no job {job}"))
+        },
+    );
+    // Drained from the page: the worker exits 0 and the page says no worker is left.
+    click_until(
+        &mut page,
+        "the worker drained by its button",
+        "tr[data-worker=\"clicky\"] button[data-action=\"drain\"]",
+        // Draining, or already gone.
+        || worker_field("draining") != false,
+    );
+    let exit = worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the drained worker did not exit");
+    assert!(exit.success(), "the drained worker exited with {exit}");
+    poll("the worker row to go", Duration::from_secs(20), || {
+        (page.eval("document.querySelectorAll('tr[data-worker]').length") == 0).then_some(())
+    });
+}
+
+#[test]
+fn the_page_controls_follow_the_client_secret() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    std::fs::write(dir.path().join("client.token"), "page-secret\n").unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--client-token-file", "client.token"],
+        "coordinator.log",
+    );
+    let run = tessera(
+        dir.path(),
+        &[
+            "submit",
+            &scene_path("seed.json"),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--coordinator",
+            &addr,
+            "--token-file",
+            "client.token",
+        ],
+        Duration::from_secs(60),
+    );
+    let job: u64 = ok(run, "submit").stdout.trim().parse().unwrap();
+    let pause = format!("/api/jobs/{job}/pause");
+    let json = ("Content-Type", "application/json");
+    let one_line_error = |body: &str| json_error(body.as_bytes());
+
+    let (code, body) = http_post(&http, &pause, &[json], "{}");
+    assert_eq!(code, 401, "{body}");
+    assert!(one_line_error(&body).contains("Authorization: Bearer"));
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[json, ("Authorization", "Bearer nope")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    assert_eq!(one_line_error(&body), "wrong client token");
+    // A cross-site form, even with the token, is refused.
+    let good = ("Authorization", "Bearer page-secret");
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[("Content-Type", "application/x-www-form-urlencoded"), good],
+        "a=1",
+    );
+    assert_eq!(code, 415, "{body}");
+    let (code, body) = http_post(
+        &http,
+        &pause,
+        &[json, good, ("Origin", "http://elsewhere.example")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    // Nothing changed so far.
+    let status = |dir: &Path| {
+        let run = tessera(
+            dir,
+            &[
+                "status",
+                &job.to_string(),
+                "--json",
+                "--coordinator",
+                &addr,
+                "--token-file",
+                "client.token",
+            ],
+            Duration::from_secs(60),
+        );
+        let v: serde_json::Value = serde_json::from_str(ok(run, "status").stdout.trim()).unwrap();
+        v
+    };
+    assert_eq!(status(dir.path())["state"], "queued");
+
+    let origin = format!("http://{http}");
+    let (code, body) = http_post(&http, &pause, &[json, good, ("Origin", &origin)], "{}");
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "paused");
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/priority"),
+        &[json, good],
+        r#"{"priority": 7}"#,
+    );
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["priority"], 7);
+    // The studio's controls follow the same secret: a view is opened, and a scene
+    // submitted, only with it.
+    let (code, body) = http_post(&http, "/api/studio/open", &[json], "{}");
+    assert_eq!(code, 401, "{body}");
+    let (code, body) = http_post(
+        &http,
+        "/api/studio/open",
+        &[json, ("Authorization", "Bearer nope")],
+        "{}",
+    );
+    assert_eq!(code, 403, "{body}");
+    let (code, body) = http_post(&http, "/api/studio/open", &[json, good], "{}");
+    assert_eq!(code, 200, "{body}");
+    let session = serde_json::from_str::<serde_json::Value>(&body).unwrap()["session"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert_eq!(session.len(), 32, "128 random bits in hex: {session}");
+    let scene = std::fs::read_to_string(scene_path("seed.json")).unwrap();
+    let edit = format!(r#"{{"session": "{session}", "scene": {scene}}}"#);
+    let (code, body) = http_post(&http, "/api/studio/view", &[json], &edit);
+    assert_eq!(code, 401, "{body}");
+    let (code, body) = http_post(&http, "/api/studio/view", &[json, good], &edit);
+    assert_eq!(code, 200, "{body}");
+    let job_body = format!(r#"{{"scene": {scene}, "settings": {{"sampler": "wobbly"}}}}"#);
+    let (code, body) = http_post(&http, "/api/studio/submit", &[json, good], &job_body);
+    assert_eq!(code, 422, "{body}");
+    assert_eq!(
+        one_line_error(&body),
+        "job.sampler: \"wobbly\" is not a sampler: grid, jittered or adaptive"
+    );
+    let (code, body) = http_post(&http, "/api/studio/submit", &[json], &job_body);
+    assert_eq!(code, 401, "{body}");
+
+    // Mistakes are one-line JSON errors.
+    let (code, body) = http_post(&http, "/api/jobs/999/pause", &[json, good], "{}");
+    assert_eq!(code, 404, "{body}");
+    assert_eq!(one_line_error(&body), "no job 999 on this coordinator");
+    let (code, body) = http_post(&http, "/api/workers/ghost/drain", &[json, good], "{}");
+    assert_eq!(code, 404, "{body}");
+    assert!(one_line_error(&body).starts_with("no worker \"ghost\""));
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/delete"),
+        &[json, good],
+        "{}",
+    );
+    assert_eq!(code, 409, "{body}");
+    assert!(one_line_error(&body).contains("cancel"), "{body}");
+    let (code, body) = http_post(
+        &http,
+        &format!("/api/jobs/{job}/cancel"),
+        &[json, good],
+        "{}",
+    );
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "cancelled");
+    // Retried from the page: back in the queue, still paused no more.
+    let retry = format!("/api/jobs/{job}/retry");
+    let (code, body) = http_post(&http, &retry, &[json], "{}");
+    assert_eq!(code, 401, "a retry without the token: {body}");
+    let (code, body) = http_post(&http, &retry, &[json, good], "{}");
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(status(dir.path())["state"], "queued");
+    let (code, body) = http_post(&http, &retry, &[json, good], "{}");
+    assert_eq!(code, 409, "a queued job retried: {body}");
+    assert!(
+        one_line_error(&body).contains("cannot be retried"),
+        "{body}"
+    );
+
+    // The job's events, as the page shows them, say who did what, in order.
+    let (code, body) =
+        http_get(&http, &format!("/api/jobs/{job}/events")).expect("the coordinator answers");
+    assert_eq!(code, 200);
+    let events: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let kinds: Vec<&str> = events
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["event"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        kinds,
+        [
+            "submitted",
+            "paused",
+            "priority",
+            "cancel",
+            "cancelled",
+            "retried"
+        ],
+        "{events}"
+    );
+    let first = events[0]["seq"].as_u64().unwrap();
+    let (_, body) = http_get(&http, &format!("/api/jobs/{job}/events?after={first}"))
+        .expect("the coordinator answers");
+    let rest: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(rest.as_array().unwrap().len(), kinds.len() - 1, "{rest}");
+    let (code, _) = http_get(&http, "/api/jobs/999/events").unwrap();
+    assert_eq!(code, 404);
+}
+
+#[test]
+fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
+    let _turn = shared();
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    std::fs::write(dir.path().join("client.token"), "tab-secret\n").unwrap();
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--client-token-file", "client.token"],
+        "coordinator.log",
+    );
+    let with_token = |args: &[&str]| {
+        let mut all: Vec<&str> = args.to_vec();
+        all.extend(["--coordinator", &addr, "--token-file", "client.token"]);
+        tessera(dir.path(), &all, Duration::from_secs(60))
+    };
+    let seed = scene_path("seed.json");
+    let run = with_token(&["submit", &seed, "--width", "32", "--height", "32"]);
+    let job: u64 = ok(run, "submit").stdout.trim().parse().unwrap();
+    let state = || {
+        let run = with_token(&["status", &job.to_string(), "--json"]);
+        let v: serde_json::Value = serde_json::from_str(ok(run, "status").stdout.trim()).unwrap();
+        v["state"].as_str().unwrap_or_default().to_owned()
+    };
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/?job={job}"),
+        &dir.path().join("chromium.log"),
+    );
+    let pause = format!("button[data-action=\"pause\"][data-job=\"{job}\"]");
+    poll("the pause button", Duration::from_secs(30), || {
+        page.click(&pause).then_some(())
+    });
+    // Refused for want of the token: the page asks for it, and nothing changed.
+    poll("the token form", Duration::from_secs(20), || {
+        (page.eval("document.getElementById('token-form').hidden") == false).then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('control-note').dataset.status"),
+        "401"
+    );
+    assert_eq!(state(), "queued");
+    // Given, the waiting control goes through, and the token stays for the tab.
+    page.eval("document.getElementById('token').value = 'tab-secret'");
+    assert!(page.click("#token-form button[type=\"submit\"]"));
+    poll("the job to be paused", Duration::from_secs(20), || {
+        (state() == "paused").then_some(())
+    });
+    assert_eq!(
+        page.eval("sessionStorage.getItem('tessera-token')"),
+        "tab-secret"
+    );
+    poll("the resume button", Duration::from_secs(30), || {
+        page.click(&format!(
+            "button[data-action=\"resume\"][data-job=\"{job}\"]"
+        ))
+        .then_some(())
+    });
+    poll("the job to be resumed", Duration::from_secs(20), || {
+        (state() == "queued").then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('token-form').hidden"),
+        true,
+        "the page asked again"
+    );
+}

@@ -1,0 +1,281 @@
+//! A headless Chromium for the browser tests: where it is, how it is run, and a small
+//! DevTools protocol client to drive a page as a user does.
+//!
+//! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it a test
+//! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
+//! browser fails it.
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::Duration;
+
+use super::{free_port, poll, Daemon};
+
+/// The browser: `TESSERA_CHROMIUM`, or Chromium where Debian puts it.
+pub fn chromium() -> Option<PathBuf> {
+    if let Some(path) = std::env::var_os("TESSERA_CHROMIUM") {
+        return Some(PathBuf::from(path));
+    }
+    [
+        "/usr/bin/chromium",
+        "/usr/bin/chromium-browser",
+        "/usr/bin/google-chrome",
+    ]
+    .iter()
+    .map(PathBuf::from)
+    .find(|p| p.exists())
+}
+
+/// How every test here runs the browser: headless, quiet, nothing fetched from outside.
+const BROWSER_FLAGS: [&str; 8] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+];
+
+/// Loads `url` in a fresh headless browser (at most 60 s), lets the page run for
+/// `virtual_ms` of virtual time, and dumps its DOM on stdout.
+pub fn dump_dom(browser: &Path, profile: &Path, url: &str, virtual_ms: u32) -> Output {
+    Command::new("timeout")
+        .arg("60")
+        .arg(browser)
+        .args(BROWSER_FLAGS)
+        .arg(format!("--virtual-time-budget={virtual_ms}"))
+        .arg("--dump-dom")
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(url)
+        .output()
+        .expect("cannot start the browser")
+}
+
+/// `GET PATH` over HTTP/1.1 (the DevTools listener takes nothing older and keeps the
+/// connection open: the body is read by its length): the status code and the body.
+fn http11_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
+    let mut stream = std::net::TcpStream::connect(addr).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        stream.read_exact(&mut byte).ok()?;
+        head.push(byte[0]);
+    }
+    let head = String::from_utf8_lossy(&head).to_ascii_lowercase();
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    let length: usize = head
+        .lines()
+        .find_map(|l| l.strip_prefix("content-length:"))?
+        .trim()
+        .parse()
+        .ok()?;
+    let mut body = vec![0u8; length];
+    stream.read_exact(&mut body).ok()?;
+    Some((status, body))
+}
+
+/// A headless Chromium driven over the DevTools protocol: a WebSocket to its page,
+/// spoken by hand (a few dozen lines, text frames only) so that the tests need no
+/// client library. Killed when dropped.
+pub struct DevTools {
+    browser: Daemon,
+    socket: std::net::TcpStream,
+    next_id: u64,
+}
+
+impl DevTools {
+    /// Starts the browser on `url` and connects to its page.
+    pub fn open(browser: &Path, profile: &Path, url: &str, log: &Path) -> DevTools {
+        let port = free_port();
+        let child = Command::new(browser)
+            .args(BROWSER_FLAGS)
+            .args([
+                "--remote-debugging-address=127.0.0.1",
+                "--window-size=1400,1000",
+            ])
+            .arg(format!("--remote-debugging-port={port}"))
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .arg(url)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .expect("cannot start the browser");
+        let browser = Daemon {
+            name: "chromium".into(),
+            child,
+            log: Some(log.to_path_buf()),
+        };
+        let devtools = format!("127.0.0.1:{port}");
+        let target = poll("the browser's page", Duration::from_secs(30), || {
+            let (code, body) = http11_get(&devtools, "/json/list")?;
+            let targets: serde_json::Value = serde_json::from_slice(&body).ok()?;
+            (code == 200).then_some(())?;
+            targets.as_array()?.iter().find_map(|t| {
+                (t["type"] == "page")
+                    .then(|| t["webSocketDebuggerUrl"].as_str().map(str::to_owned))
+                    .flatten()
+            })
+        });
+        let path = target
+            .strip_prefix(&format!("ws://{devtools}"))
+            .unwrap_or_else(|| panic!("a page target elsewhere: {target}"))
+            .to_owned();
+        let mut socket = std::net::TcpStream::connect(&devtools).unwrap();
+        socket
+            .set_read_timeout(Some(Duration::from_secs(20)))
+            .unwrap();
+        write!(
+            socket,
+            "GET {path} HTTP/1.1\r\nHost: {devtools}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+             Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        .unwrap();
+        let mut head = Vec::new();
+        let mut byte = [0u8; 1];
+        while !head.ends_with(b"\r\n\r\n") {
+            socket
+                .read_exact(&mut byte)
+                .expect("no WebSocket handshake");
+            head.push(byte[0]);
+        }
+        let head = String::from_utf8_lossy(&head);
+        assert!(
+            head.starts_with("HTTP/1.1 101"),
+            "WebSocket refused: {head}"
+        );
+        DevTools {
+            browser,
+            socket,
+            next_id: 1,
+        }
+    }
+
+    fn send_frame(&mut self, text: &str) {
+        let payload = text.as_bytes();
+        let mut frame = vec![0x81u8];
+        let mask = [0x5a, 0x17, 0xc3, 0x2e];
+        match payload.len() {
+            n if n < 126 => frame.push(0x80 | n as u8),
+            n if n < 65536 => {
+                frame.push(0x80 | 126);
+                frame.extend((n as u16).to_be_bytes());
+            }
+            n => {
+                frame.push(0x80 | 127);
+                frame.extend((n as u64).to_be_bytes());
+            }
+        }
+        frame.extend(mask);
+        frame.extend(payload.iter().enumerate().map(|(i, b)| b ^ mask[i % 4]));
+        self.socket.write_all(&frame).unwrap();
+    }
+
+    /// The next whole text message.
+    fn read_message(&mut self) -> String {
+        let mut message = Vec::new();
+        loop {
+            let mut head = [0u8; 2];
+            self.socket
+                .read_exact(&mut head)
+                .expect("the browser went silent");
+            let len = match head[1] & 0x7f {
+                126 => {
+                    let mut n = [0u8; 2];
+                    self.socket.read_exact(&mut n).unwrap();
+                    u64::from(u16::from_be_bytes(n))
+                }
+                127 => {
+                    let mut n = [0u8; 8];
+                    self.socket.read_exact(&mut n).unwrap();
+                    u64::from_be_bytes(n)
+                }
+                n => u64::from(n),
+            };
+            let mut payload = vec![0u8; len as usize];
+            self.socket.read_exact(&mut payload).unwrap();
+            match head[0] & 0x0f {
+                0x0 | 0x1 => message.extend(payload),
+                0x8 => panic!("the browser closed the DevTools connection"),
+                _ => continue,
+            }
+            if head[0] & 0x80 != 0 {
+                return String::from_utf8(message).expect("DevTools speaks UTF-8");
+            }
+        }
+    }
+
+    /// Calls a DevTools method and returns its result.
+    pub fn call(&mut self, method: &str, params: serde_json::Value) -> serde_json::Value {
+        let id = self.next_id;
+        self.next_id += 1;
+        let request = serde_json::json!({ "id": id, "method": method, "params": params });
+        self.send_frame(&request.to_string());
+        loop {
+            let answer: serde_json::Value = serde_json::from_str(&self.read_message()).unwrap();
+            if answer["id"] == id {
+                assert!(answer["error"].is_null(), "{method}: {answer}");
+                return answer["result"].clone();
+            }
+        }
+    }
+
+    /// Evaluates `expression` in the page: its value.
+    pub fn eval(&mut self, expression: &str) -> serde_json::Value {
+        let result = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": expression, "returnByValue": true }),
+        );
+        result["result"]["value"].clone()
+    }
+
+    /// Clicks the element `selector` as a user does: a mouse press and release at its
+    /// centre. False if it is not on the page.
+    pub fn click(&mut self, selector: &str) -> bool {
+        let expression = format!(
+            "(() => {{ const e = document.querySelector({selector:?}); if (!e) return null; \
+             e.scrollIntoView(); const r = e.getBoundingClientRect(); \
+             return [r.x + r.width / 2, r.y + r.height / 2]; }})()"
+        );
+        let at = self.eval(&expression);
+        let (Some(x), Some(y)) = (at[0].as_f64(), at[1].as_f64()) else {
+            return false;
+        };
+        for kind in ["mousePressed", "mouseReleased"] {
+            self.call(
+                "Input.dispatchMouseEvent",
+                serde_json::json!({ "type": kind, "x": x, "y": y, "button": "left", "clickCount": 1 }),
+            );
+        }
+        true
+    }
+}
+
+impl Drop for DevTools {
+    fn drop(&mut self) {
+        self.browser.kill9();
+    }
+}
+
+/// Chromium, or `None` (the test then passes, saying it skipped) when there is none and
+/// `TESSERA_REQUIRE_BROWSER` is not 1; with it set (CI), a missing browser fails.
+pub fn browser_or_skip() -> Option<PathBuf> {
+    let browser = chromium();
+    if browser.is_none() {
+        assert!(
+            std::env::var("TESSERA_REQUIRE_BROWSER").as_deref() != Ok("1"),
+            "TESSERA_REQUIRE_BROWSER=1 but no Chromium found (install chromium or set TESSERA_CHROMIUM)"
+        );
+        eprintln!("skipped: no Chromium on this machine (set TESSERA_CHROMIUM)");
+    }
+    browser
+}
