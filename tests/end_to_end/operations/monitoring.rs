@@ -5,9 +5,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use crate::support::{
-    assert_same_png, fetch, free_port, http_get, http_get_text, metric_value, ok, poll,
-    render_reference, scene_path, shared, start_coordinator, start_slow_worker, start_worker_with,
-    submit, tessera, wait_done, Daemon,
+    assert_same_png, fetch, free_port, header, http_get, http_get_text, http_request, metric_value,
+    ok, poll, render_reference, scene_path, shared, start_coordinator, start_slow_worker,
+    start_worker_with, submit, tessera, wait_done, Daemon,
 };
 
 /// A coordinator serving HTTP on its own free port, with JSON logs.
@@ -46,6 +46,7 @@ fn health_readiness_metrics_and_json_logs_follow_a_job() {
     assert_eq!(tiles, 15);
 
     let text = http_get_text(&http, "/metrics");
+    metrics_in_both_formats(&http, &text);
     assert_eq!(
         metric_value(&text, "tessera_jobs{state=\"done\"}"),
         Some(1.0),
@@ -173,5 +174,89 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
             Duration::from_secs(20),
         ),
         "list",
+    );
+}
+
+/// `/metrics` in the format a scrape asks for: the Prometheus text format without an
+/// `Accept` header (`text`, as fetched) and for `text/plain`, which `promtool check
+/// metrics` finds clean; OpenMetrics for the `Accept` header Prometheus sends, with the
+/// same samples. promtool must be installed where `TESSERA_REQUIRE_PROMTOOL=1` (CI);
+/// elsewhere its check is skipped with a line saying so.
+fn metrics_in_both_formats(http: &str, text: &str) {
+    let get = |accept: &str| {
+        let answer = http_request(http, "/metrics", accept, Duration::from_secs(10))
+            .expect("no answer from /metrics");
+        assert_eq!(answer.status, 200, "{}", answer.head);
+        let body = String::from_utf8(answer.body).expect("metrics are text");
+        (
+            header(&answer.head, "content-type").map(str::to_owned),
+            body,
+        )
+    };
+    let plain = "text/plain; version=0.0.4; charset=utf-8";
+    let (kind, asked_text) = get("Accept: text/plain;version=0.0.4\r\n");
+    assert_eq!(kind.as_deref(), Some(plain));
+    assert_eq!(
+        get("").0.as_deref(),
+        Some(plain),
+        "without an Accept header"
+    );
+    assert!(!text.contains("# EOF"), "{text}");
+    assert!(
+        text.contains("# TYPE tessera_rays_total counter\n"),
+        "{text}"
+    );
+    let (kind, openmetrics) = get(
+        "Accept: application/openmetrics-text;version=1.0.0,application/openmetrics-text;\
+         version=0.0.1;q=0.75,text/plain;version=0.0.4;q=0.5,*/*;q=0.1\r\n",
+    );
+    assert_eq!(
+        kind.as_deref(),
+        Some("application/openmetrics-text; version=1.0.0; charset=utf-8")
+    );
+    assert!(openmetrics.ends_with("# EOF\n"), "{openmetrics}");
+    assert!(openmetrics.contains("# TYPE tessera_rays counter\n"));
+    let samples = |t: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| !l.starts_with('#') && !l.starts_with("tessera_rays_per_second"))
+            .map(str::to_owned)
+            .collect()
+    };
+    assert_eq!(samples(&asked_text), samples(&openmetrics));
+
+    let promtool = std::process::Command::new("promtool")
+        .args(["check", "metrics"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn();
+    let mut promtool = match promtool {
+        Ok(child) => child,
+        Err(e) => {
+            assert!(
+                std::env::var("TESSERA_REQUIRE_PROMTOOL").as_deref() != Ok("1"),
+                "TESSERA_REQUIRE_PROMTOOL=1 but promtool cannot run: {e}"
+            );
+            eprintln!("skipped: promtool check metrics: promtool cannot run: {e}");
+            return;
+        }
+    };
+    use std::io::Write as _;
+    promtool
+        .stdin
+        .take()
+        .expect("promtool's stdin")
+        .write_all(text.as_bytes())
+        .expect("writing to promtool");
+    let checked = promtool.wait_with_output().expect("promtool ran");
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&checked.stdout),
+        String::from_utf8_lossy(&checked.stderr)
+    );
+    assert!(
+        checked.status.success() && said.trim().is_empty(),
+        "promtool check metrics: {}: {said}\n{text}",
+        checked.status
     );
 }
