@@ -286,7 +286,7 @@ async fn serve(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<(
 /// then serves the next ones from its heap, which keeps the memory of past frames:
 /// a coordinator's resident memory would follow the largest frames it ever finished,
 /// not the frames it is assembling now. A fixed threshold keeps it to the active jobs
-/// (measured in `tests/coordinator_faults.rs`, and in docs/reliability.md).
+/// (measured in `tests/end_to_end/faults/coordinator.rs`, and in docs/reliability.md).
 fn return_large_blocks_to_the_system() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
