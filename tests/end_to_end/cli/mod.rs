@@ -1,8 +1,9 @@
 //! `tessera render` on one machine: the command's contract (images, summaries, one-line
 //! refusals), animated scenes and their frames, the committed golden images of every
-//! example scene, and adaptive renders saved and refined.
+//! example scene, adaptive renders saved and refined, and the scheduler's simulator.
 
 mod animation;
 mod golden;
 mod refine;
 mod render;
+mod simulate;

@@ -367,9 +367,11 @@ fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained
     drop(coordinator);
 }
 
-/// The settings of the seed job the retry and requeue tests stop half way: 24 tiles.
+/// The settings of the seed job the retry and requeue tests stop half way: 24 tiles of
+/// a few milliseconds of one core each, well above what a CPU limit's accounting can
+/// let slip through at once.
 const SMALL_JOB: [&str; 8] = [
-    "--width", "96", "--height", "64", "--aa", "3", "--tile", "16",
+    "--width", "96", "--height", "64", "--aa", "16", "--tile", "16",
 ];
 
 /// A worker slow enough (1/400 of a core) that a job of [`SMALL_JOB`] is stopped half

@@ -328,7 +328,9 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     let dir = tempfile::tempdir().unwrap();
     let (_coordinator, addr) = start_coordinator_in(dir.path());
     let seed = scene_path("seed.json");
-    let settings = ["--width", "1600", "--height", "1200", "--aa", "2"];
+    // About 10 ms of one core a tile, 5 s in all on one thread: long enough for a slow
+    // worker to join while it runs.
+    let settings = ["--width", "1600", "--height", "1200", "--aa", "8"];
     let mut args = vec![seed.as_str(), "--tile", "64"];
     args.extend(settings);
     let job = submit(dir.path(), &addr, &args);
@@ -338,14 +340,13 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
         let status = try_status(dir.path(), &addr, job)?;
         (status["tiles_done"].as_u64()? >= 20).then_some(())
     });
-    // ...which a worker on the least share of a core the kernel gives (1/1000: seconds
-    // a tile) runs past.
+    // ...which a worker on 1/200 of a core (seconds a tile) runs past.
     let Some(_slow) = start_slow_worker(
         "a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged",
         dir.path(),
         &addr,
         "slow",
-        0.001,
+        1.0 / 200.0,
         &["--threads", "1"],
     ) else {
         return;

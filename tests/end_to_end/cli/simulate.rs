@@ -2,17 +2,17 @@
 //! made of, and refuses bad input with one line. (The benchmarks, `tessera-bench`, are
 //! tested in bench/tests/.)
 
-mod common;
-
 use std::time::Duration;
 
-use common::{ok, tessera};
 use tempfile::TempDir;
+
+use crate::support::{ok, shared, tessera};
 
 const TIMEOUT: Duration = Duration::from_secs(300);
 
 #[test]
 fn simulate_reports_a_run_and_refuses_a_farm_without_jobs() {
+    let _turn = shared();
     let dir = TempDir::new().unwrap();
     let args = [
         "simulate",
