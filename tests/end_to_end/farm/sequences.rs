@@ -26,7 +26,8 @@ use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::{
     client, exclusive, ok, orbit, path_str, poll, restart_coordinator, scene_path, shared,
     start_coordinator, start_coordinator_in, start_restartable_coordinator, start_slow_worker,
-    start_worker, submit, tessera, try_status, wait_for_workers, Daemon, REGISTER_TIMEOUT,
+    start_slow_workers, start_worker, submit, tessera, try_status, wait_for_workers, Daemon,
+    REGISTER_TIMEOUT,
 };
 
 /// Small frames of a few dozen tiles each: every worker gets some of every frame.
@@ -202,19 +203,13 @@ fn workers_killed_mid_sequence_change_no_frame() {
         "coordinator.log",
     );
     // Slow machines (1/150 of a core each), so that frames are still to come.
-    let Some(mut workers): Option<Vec<_>> = (0..3)
-        .map(|i| {
-            start_slow_worker(
-                "workers_killed_mid_sequence_change_no_frame",
-                dir.path(),
-                &addr,
-                &format!("w{i}"),
-                1.0 / 150.0,
-                &[],
-            )
-        })
-        .collect()
-    else {
+    let Some(mut workers) = start_slow_workers(
+        "workers_killed_mid_sequence_change_no_frame",
+        dir.path(),
+        &addr,
+        3,
+        1.0 / 150.0,
+    ) else {
         return;
     };
     wait_for_workers(dir.path(), &addr, 3, REGISTER_TIMEOUT);
@@ -371,19 +366,13 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     let dir = TempDir::new().expect("temporary directory");
     let reference = reference(dir.path(), "1-16");
     let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
-    let Some(_workers): Option<Vec<_>> = (0..2)
-        .map(|i| {
-            start_slow_worker(
-                "a_sequence_survives_a_coordinator_killed_mid_way",
-                dir.path(),
-                &addr,
-                &format!("w{i}"),
-                1.0 / 150.0,
-                &[],
-            )
-        })
-        .collect()
-    else {
+    let Some(_workers) = start_slow_workers(
+        "a_sequence_survives_a_coordinator_killed_mid_way",
+        dir.path(),
+        &addr,
+        2,
+        1.0 / 150.0,
+    ) else {
         return;
     };
     wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);

@@ -296,3 +296,16 @@ pub fn start_slow_worker(
         .unwrap_or_else(|e| panic!("{test}: limiting worker {name}: {e}"));
     Some((worker, limit))
 }
+
+/// `n` workers `w0`, `w1`, ... each on `share` of one core ([`start_slow_worker`]).
+pub fn start_slow_workers(
+    test: &str,
+    dir: &Path,
+    addr: &str,
+    n: usize,
+    share: f64,
+) -> Option<Vec<(Daemon, localfarm::CpuLimit)>> {
+    (0..n)
+        .map(|i| start_slow_worker(test, dir, addr, &format!("w{i}"), share, &[]))
+        .collect()
+}
