@@ -74,29 +74,13 @@ const SUBMIT_LIMIT: Duration = Duration::from_secs(5);
 // Privileged set-up: mounts, loop devices, freezes, under guards.
 // ---------------------------------------------------------------------------------
 
-/// Whether a missing privilege fails the test instead of skipping it (CI sets it).
-fn privileges_required() -> bool {
-    std::env::var("TESSERA_REQUIRE_PRIVILEGED").is_ok_and(|v| !v.is_empty() && v != "0")
-}
-
 /// Runs `setup`, a privileged step: if it fails, the test fails when privileges are
-/// required, and is otherwise skipped with a line on stderr saying why.
+/// required, and is otherwise skipped with a line on stderr saying why (the rule of
+/// [`localfarm::unprivileged`], which the CPU-limited workers follow too).
 fn privileged<T>(test: &str, setup: impl FnOnce() -> Result<T, String>) -> Option<T> {
-    match setup() {
-        Ok(value) => Some(value),
-        Err(reason) if privileges_required() => {
-            panic!("{test}: TESSERA_REQUIRE_PRIVILEGED is set, but {reason}")
-        }
-        Err(reason) => {
-            // Straight to the process's stderr, past the test harness's capture, so that
-            // a skip shows in every run.
-            let _ = writeln!(
-                std::io::stderr(),
-                "skipped: {test}: {reason} (with TESSERA_REQUIRE_PRIVILEGED=1 this fails)"
-            );
-            None
-        }
-    }
+    setup()
+        .inspect_err(|reason| localfarm::unprivileged(test, reason))
+        .ok()
 }
 
 /// The effective user id of this process.
