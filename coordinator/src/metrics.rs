@@ -492,6 +492,11 @@ mod tests {
             ),
             (Some("application/openmetrics-text; q=0"), Prometheus),
             (Some("image/png"), Prometheus),
+            // Garbage is the default, never an error.
+            (Some("application/openmetrics-text;q=NaN"), Prometheus),
+            (Some("application/openmetrics-text;q=-5"), Prometheus),
+            (Some(",,,;;;=="), Prometheus),
+            (Some("q=abc"), Prometheus),
         ] {
             assert_eq!(Exposition::negotiate(accept), want, "{accept:?}");
         }
