@@ -6,8 +6,8 @@ use std::time::Duration;
 
 use crate::support::{
     assert_same_png, fetch, free_port, header, http_get, http_get_text, http_request, metric_value,
-    ok, poll, render_reference, scene_path, shared, start_coordinator, start_slow_worker,
-    start_worker_with, submit, tessera, wait_done, Daemon,
+    ok, poll, render_reference, scene_path, shared, start_coordinator, start_worker_with, submit,
+    tessera, wait_done, wait_for_workers, Daemon,
 };
 
 /// A coordinator serving HTTP on its own free port, with JSON logs.
@@ -125,17 +125,12 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
     let _turn = shared();
     let dir = tempfile::tempdir().unwrap();
     let (_coordinator, addr, http) = observed_coordinator(dir.path(), &[]);
-    // A slow worker takes tiles and dies holding them; a fast one finishes the job.
-    let Some((mut slow, _limit)) = start_slow_worker(
-        "reassigned_tiles_are_counted_when_a_worker_is_killed",
-        dir.path(),
-        &addr,
-        "slow",
-        1.0 / 400.0,
-        &[],
-    ) else {
-        return;
-    };
+    // A worker takes tiles and dies holding them; a fast one finishes the job. It is
+    // frozen (SIGSTOP) once it has joined, so that it holds the tiles it is sent
+    // however fast this machine renders them.
+    let mut doomed = start_worker_with(dir.path(), &addr, "doomed", &[]);
+    wait_for_workers(dir.path(), &addr, 1, Duration::from_secs(30));
+    doomed.signal("STOP");
     let seed = scene_path("seed.json");
     let job = submit(
         dir.path(),
@@ -143,14 +138,14 @@ fn reassigned_tiles_are_counted_when_a_worker_is_killed() {
         &[&seed, "--width", "128", "--height", "64", "--tile", "32"],
     );
     poll(
-        "the slow worker to hold tiles",
+        "the frozen worker to hold tiles",
         Duration::from_secs(20),
         || {
             let text = http_get_text(&http, "/metrics");
             (metric_value(&text, "tessera_tiles_in_flight")? > 0.0).then_some(())
         },
     );
-    slow.kill9();
+    doomed.kill9();
     let _fast = start_worker_with(dir.path(), &addr, "fast", &[]);
     wait_done(dir.path(), &addr, job, Duration::from_secs(60));
     // The tiles rendered again give the same image.

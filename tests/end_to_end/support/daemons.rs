@@ -279,6 +279,11 @@ pub fn free_port() -> u16 {
 /// so that it never renders a tile at full speed. Needs root: where cgroups cannot be
 /// written, `None` after a line saying the test is skipped, or a failure where
 /// `TESSERA_REQUIRE_PRIVILEGED=1` says it must run (CI).
+///
+/// The kernel checks the quota at its scheduler tick (4 ms at 250 Hz), so a process may
+/// run a tick past its quota each period: work of a few milliseconds can finish at
+/// full speed. A test that needs the worker still busy gives it a job of many ticks,
+/// or freezes it (`SIGSTOP`) instead.
 pub fn start_slow_worker(
     test: &str,
     dir: &Path,
