@@ -217,10 +217,12 @@ prop_compose! {
         connected_ms in any::<u64>(), rays_per_second in rate(), build in text(),
         quarantined in prop::option::of(text()), rtt_us in any::<Option<u64>>(),
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
+        unresponsive in any::<bool>(),
     ) -> WorkerStatus {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
+            unresponsive,
         }
     }
 }
@@ -1012,6 +1014,7 @@ fn nan_rates_keep_their_bits() {
         credit: 2,
         draining: false,
         disabled: false,
+        unresponsive: false,
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {
