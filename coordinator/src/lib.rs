@@ -9,6 +9,7 @@
 pub mod client;
 mod db;
 pub mod http;
+pub mod keyring;
 mod metrics;
 mod preview;
 pub mod security;
