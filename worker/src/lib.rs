@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use futures_util::{SinkExt, StreamExt};
-use protocol::{FromWorker, JobId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
+use protocol::{FromWorker, JobId, KeyId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
 use tracing::{info, warn};
@@ -49,9 +49,10 @@ pub struct Config {
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
 /// Works for the coordinator until `shutdown` completes or the coordinator drains it
-/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is retried with exponential backoff
-/// and jitter; a coordinator that refuses the worker (another protocol version) is an
-/// error.
+/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is
+/// retried with exponential backoff and jitter. A coordinator that refuses the worker's
+/// handshake (a wrong token, another protocol version) is an error, once the token file
+/// read again has been tried too ([`after_refusal`]).
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
     let pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
@@ -62,11 +63,16 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
     );
     tokio::pin!(shutdown);
     let mut backoff = Backoff::default();
+    // The key id of the token of the last refused handshake, while refusals last.
+    let mut refused: Option<Option<KeyId>> = None;
     loop {
-        match connect(&config).await {
+        let (key, connected) = connect(&config).await;
+        match connected {
             Ok(conn) => {
-                info!(coordinator = %config.coordinator.address, threads = config.threads, "connected");
+                let key = key.map_or_else(|| "none".to_owned(), |k| k.to_string());
+                info!(coordinator = %config.coordinator.address, threads = config.threads, %key, "connected");
                 backoff.reset();
+                refused = None;
                 let session = Session {
                     conn,
                     pool: Arc::clone(&pool),
@@ -88,7 +94,16 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
             }
-            Err(DialError::Refused(e)) => return Err(e),
+            Err(DialError::Refused(e)) => match after_refusal(refused, key) {
+                AfterRefusal::GiveUp => return Err(e),
+                AfterRefusal::Retry => {
+                    warn!(
+                        error = %format!("{e:#}"),
+                        "refused by the coordinator: trying again with the token file read again"
+                    );
+                    refused = Some(key);
+                }
+            },
             Err(DialError::Unreachable(e)) => {
                 warn!(error = %format!("{e:#}"), "cannot reach the coordinator")
             }
@@ -138,14 +153,47 @@ fn jitter() -> f64 {
     (h.finish() >> 11) as f64 / (1u64 << 53) as f64
 }
 
-async fn connect(config: &Config) -> Result<Conn, DialError> {
+/// What a worker does when the coordinator refuses its handshake.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum AfterRefusal {
+    /// Connect again, with the token its file holds by then.
+    Retry,
+    /// Exit with the refusal.
+    GiveUp,
+}
+
+/// A refusal may only mean that the farm's token was rotated and this worker's file
+/// replaced since it last read it (or is about to be): the worker tries again with the
+/// file read again. Refused twice in a row with the same token (`last_refused` is the
+/// key id of the previous refused handshake, `refused_with` this one's), the refusal is
+/// real (a wrong token, another protocol version) and the worker gives up: reconnecting
+/// cannot help until an operator changes something.
+fn after_refusal(last_refused: Option<Option<KeyId>>, refused_with: Option<KeyId>) -> AfterRefusal {
+    if last_refused == Some(refused_with) {
+        AfterRefusal::GiveUp
+    } else {
+        AfterRefusal::Retry
+    }
+}
+
+/// Reads the token as its file holds it now and handshakes with it: the key id of the
+/// token used (if any), and the connection. A token file that cannot be read counts as
+/// a coordinator not reachable now: it is read again at the next try.
+async fn connect(config: &Config) -> (Option<KeyId>, Result<Conn, DialError>) {
+    let secret = match config.coordinator.secret.load() {
+        Ok(secret) => secret,
+        Err(e) => return (None, Err(DialError::Unreachable(e.into()))),
+    };
+    let key = secret.as_deref().map(KeyId::of);
     let role = Role::Worker {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
         build: render::build_identity(),
     };
-    let raw = transport::dial(&config.coordinator, role).await?;
-    Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))
+    let conn = transport::dial_with(&config.coordinator, role, secret)
+        .await
+        .map(|raw| raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)));
+    (key, conn)
 }
 
 /// A rendered tile (or a skipped one) on its way back from the pool.
@@ -523,3 +571,22 @@ impl std::fmt::Display for Refused {
 }
 
 impl std::error::Error for Refused {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refused_worker_retries_with_its_file_and_gives_up_when_refused_with_it_again() {
+        let (old, new) = (Some(KeyId::of(b"old")), Some(KeyId::of(b"new")));
+        // The first refusal: try again with the file read again.
+        assert_eq!(after_refusal(None, old), AfterRefusal::Retry);
+        // The file held a new token: another try with it.
+        assert_eq!(after_refusal(Some(old), new), AfterRefusal::Retry);
+        // Refused again with the same token: a real refusal.
+        assert_eq!(after_refusal(Some(new), new), AfterRefusal::GiveUp);
+        assert_eq!(after_refusal(Some(None), None), AfterRefusal::GiveUp);
+        // A token given since the last refusal is tried.
+        assert_eq!(after_refusal(Some(None), new), AfterRefusal::Retry);
+    }
+}
