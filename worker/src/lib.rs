@@ -63,8 +63,6 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
     );
     tokio::pin!(shutdown);
     let mut backoff = Backoff::default();
-    // The key id of the token of the last refused handshake, while refusals last.
-    let mut refused: Option<Option<KeyId>> = None;
     loop {
         let (key, connected) = connect(&config).await;
         match connected {
@@ -72,7 +70,6 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                 let key = key.map_or_else(|| "none".to_owned(), |k| k.to_string());
                 info!(coordinator = %config.coordinator.address, threads = config.threads, %key, "connected");
                 backoff.reset();
-                refused = None;
                 let session = Session {
                     conn,
                     pool: Arc::clone(&pool),
@@ -94,16 +91,17 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
             }
-            Err(DialError::Refused(e)) => match after_refusal(refused, key) {
-                AfterRefusal::GiveUp => return Err(e),
-                AfterRefusal::Retry => {
-                    warn!(
+            Err(DialError::Refused(e)) => {
+                let holding = config.coordinator.secret.load().ok();
+                match after_refusal(key, holding.as_ref().map(|s| s.as_deref().map(KeyId::of))) {
+                    AfterRefusal::GiveUp => return Err(e),
+                    AfterRefusal::Retry => warn!(
                         error = %format!("{e:#}"),
-                        "refused by the coordinator: trying again with the token file read again"
-                    );
-                    refused = Some(key);
+                        "refused by the coordinator, but the token file has changed since: \
+                         trying again with it"
+                    ),
                 }
-            },
+            }
             Err(DialError::Unreachable(e)) => {
                 warn!(error = %format!("{e:#}"), "cannot reach the coordinator")
             }
@@ -163,16 +161,16 @@ enum AfterRefusal {
 }
 
 /// A refusal may only mean that the farm's token was rotated and this worker's file
-/// replaced since it last read it (or is about to be): the worker tries again with the
-/// file read again. Refused twice in a row with the same token (`last_refused` is the
-/// key id of the previous refused handshake, `refused_with` this one's), the refusal is
-/// real (a wrong token, another protocol version) and the worker gives up: reconnecting
+/// replaced since it read it: the file is read again when the refusal comes (`holding`
+/// is the key id of the token it holds now, `None` if it cannot be read just now, as
+/// while it is being rewritten), and a token other than the refused one (`refused_with`)
+/// is tried. Refused with the token its file still holds, the refusal is real (a wrong
+/// token, another protocol version, an impostor) and the worker gives up: reconnecting
 /// cannot help until an operator changes something.
-fn after_refusal(last_refused: Option<Option<KeyId>>, refused_with: Option<KeyId>) -> AfterRefusal {
-    if last_refused == Some(refused_with) {
-        AfterRefusal::GiveUp
-    } else {
-        AfterRefusal::Retry
+fn after_refusal(refused_with: Option<KeyId>, holding: Option<Option<KeyId>>) -> AfterRefusal {
+    match holding {
+        Some(holding) if holding == refused_with => AfterRefusal::GiveUp,
+        _ => AfterRefusal::Retry,
     }
 }
 
@@ -577,16 +575,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_refused_worker_retries_with_its_file_and_gives_up_when_refused_with_it_again() {
+    fn a_refused_worker_retries_only_with_a_token_its_file_holds_since() {
         let (old, new) = (Some(KeyId::of(b"old")), Some(KeyId::of(b"new")));
-        // The first refusal: try again with the file read again.
-        assert_eq!(after_refusal(None, old), AfterRefusal::Retry);
-        // The file held a new token: another try with it.
-        assert_eq!(after_refusal(Some(old), new), AfterRefusal::Retry);
-        // Refused again with the same token: a real refusal.
-        assert_eq!(after_refusal(Some(new), new), AfterRefusal::GiveUp);
-        assert_eq!(after_refusal(Some(None), None), AfterRefusal::GiveUp);
-        // A token given since the last refusal is tried.
-        assert_eq!(after_refusal(Some(None), new), AfterRefusal::Retry);
+        // Refused with the old token while the file holds a new one: try it.
+        assert_eq!(after_refusal(old, Some(new)), AfterRefusal::Retry);
+        // Refused with the token the file still holds: a real refusal.
+        assert_eq!(after_refusal(new, Some(new)), AfterRefusal::GiveUp);
+        assert_eq!(after_refusal(None, Some(None)), AfterRefusal::GiveUp);
+        // A token given since a refusal without one, or a file unreadable just now (being
+        // rewritten): another try, which reads it again.
+        assert_eq!(after_refusal(None, Some(new)), AfterRefusal::Retry);
+        assert_eq!(after_refusal(old, Some(None)), AfterRefusal::Retry);
+        assert_eq!(after_refusal(old, None), AfterRefusal::Retry);
     }
 }
