@@ -51,8 +51,8 @@ type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 /// Works for the coordinator until `shutdown` completes or the coordinator drains it
 /// (a clean exit after draining, in both cases). A lost or unreachable coordinator is
 /// retried with exponential backoff and jitter. A coordinator that refuses the worker's
-/// handshake (a wrong token, another protocol version) is an error, once the token file
-/// read again has been tried too ([`after_refusal`]).
+/// handshake (a wrong token, another protocol version) is an error, unless the token
+/// file, read again, holds another token since ([`after_refusal`]).
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
     let pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
