@@ -17,6 +17,7 @@ use tracing::{error, info, warn};
 use transport::Stream;
 
 use super::core::{Cost, TilePixels, Verdict, WorkerRecord};
+use super::keys::{self, KeyHold};
 use super::Shared;
 
 type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
@@ -35,6 +36,7 @@ pub(super) async fn serve(
     name: String,
     threads: u32,
     build: String,
+    mut hold: Option<KeyHold>,
 ) -> Result<()> {
     match canary(&shared, &mut conn, &build).await {
         Ok(()) => {}
@@ -54,9 +56,13 @@ pub(super) async fn serve(
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
     let dropped = Arc::new(tokio::sync::Notify::new());
-    let record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
+    let mut record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
+    record.key = hold.clone();
     let worker = shared.lock().join(&shared, record);
-    info!(worker, %name, threads, "worker joined");
+    let key = hold
+        .as_ref()
+        .map_or_else(|| "none".to_owned(), KeyHold::describe);
+    info!(worker, %name, threads, %key, "worker joined");
     let clock = shared.clock;
     let writer = tokio::spawn(async move {
         let mut ping = tokio::time::interval(PING_EVERY);
@@ -85,6 +91,10 @@ pub(super) async fn serve(
             let message = tokio::select! {
                 message = stream.next() => message,
                 () = dropped.notified() => anyhow::bail!("no heartbeat in time: dropped"),
+                // It reconnects, and proves the secret its token file holds by then.
+                () = keys::retired(&mut hold) => anyhow::bail!(
+                    "its worker token was retired by a token rotation: disconnected"
+                ),
             };
             let Some(message) = message else {
                 return Ok(());
