@@ -237,11 +237,15 @@ mod tests {
         let mut outbox = Outbox::new();
         outbox.push(0, tile(1, 0, 0, 10, 0), "coarse").unwrap();
         outbox.push(0, tile(1, 1, 0, 10, 0), "one sample").unwrap();
-        outbox.push(0, tile(1, 1, 64, 10, 0), "one sample, next").unwrap();
+        outbox
+            .push(0, tile(1, 1, 64, 10, 0), "one sample, next")
+            .unwrap();
         outbox.push(0, pass_event(1, 1), "pass 1 done").unwrap();
         outbox.push(0, tile(1, 2, 0, 10, 0), "final").unwrap();
         // An earlier pass's tile after a later one's is kept: the page paints in order.
-        outbox.push(0, tile(1, 1, 0, 10, 0), "one sample, late").unwrap();
+        outbox
+            .push(0, tile(1, 1, 0, 10, 0), "one sample, late")
+            .unwrap();
         assert_eq!(
             drain(&mut outbox, 0),
             [
@@ -259,13 +263,17 @@ mod tests {
         let mut outbox = Outbox::new();
         outbox.push(0, tile(1, 0, 0, 10, 0), "coarse").unwrap();
         outbox.push(0, tile(1, 1, 0, 10, 200), "fine").unwrap();
-        outbox.push(0, tile(1, 0, 64, 10, 0), "coarse, late").unwrap();
+        outbox
+            .push(0, tile(1, 0, 64, 10, 0), "coarse, late")
+            .unwrap();
         assert_eq!(drain(&mut outbox, 10), ["coarse"]);
         assert_eq!(outbox.next(10), Next::Wait(Some(200)));
         // Superseded while held: never sent.
         outbox.push(150, tile(2, 0, 0, 10, 0), "next").unwrap();
         assert_eq!(drain(&mut outbox, 150), ["next"]);
-        outbox.push(150, tile(2, 1, 0, 10, 350), "next, fine").unwrap();
+        outbox
+            .push(150, tile(2, 1, 0, 10, 350), "next, fine")
+            .unwrap();
         assert_eq!(outbox.next(349), Next::Wait(Some(350)));
         assert_eq!(drain(&mut outbox, 350), ["next, fine"]);
     }

@@ -109,9 +109,7 @@ pub const SETTLE_MS: Millis = 200;
 /// to render.
 pub fn hold_until(edited_at: Millis, previous: Option<Millis>) -> Millis {
     match previous {
-        Some(previous) if edited_at.saturating_sub(previous) < SETTLE_MS => {
-            edited_at + SETTLE_MS
-        }
+        Some(previous) if edited_at.saturating_sub(previous) < SETTLE_MS => edited_at + SETTLE_MS,
         _ => edited_at,
     }
 }
