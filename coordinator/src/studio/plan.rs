@@ -95,7 +95,7 @@ pub fn passes(full: Settings) -> Vec<Pass> {
 /// An edit that comes less than this after the view's previous one is part of a
 /// drag: its passes after the first are sent to the page only once it has lasted this
 /// long ([`hold_until`]).
-pub const SETTLE_MS: Millis = 200;
+pub const SETTLE_MS: Millis = 150;
 
 /// Until when the passes after the first of an edit made at `edited_at` are held back
 /// from the page, the view's previous edit having been made at `previous`.

@@ -612,6 +612,10 @@ fn a_page_behind_a_20_mbit_link_keeps_up_with_a_camera_orbit() {
         std::thread::sleep(at.saturating_duration_since(Instant::now()));
         let sent = Instant::now();
         last = (edit(n), sent);
+        assert!(
+            !reader.is_finished() || seen.lock().unwrap().ended.is_some(),
+            "the reader failed at edit {n}"
+        );
         if let Some((when, why)) = &seen.lock().unwrap().ended {
             panic!(
                 "the reader was dropped {:?} into the orbit, at edit {n}: {why}",
@@ -623,6 +627,10 @@ fn a_page_behind_a_20_mbit_link_keeps_up_with_a_camera_orbit() {
     let (generation, sent) = last;
     let (final_at, picture) = poll("the last edit's final picture", TIMEOUT, || {
         let seen = seen.lock().unwrap();
+        assert!(
+            !reader.is_finished() || seen.ended.is_some(),
+            "the reader failed"
+        );
         if let Some((when, why)) = &seen.ended {
             panic!(
                 "the reader was dropped {:?} after the orbit: {why}",
@@ -684,6 +692,10 @@ fn a_page_behind_a_20_mbit_link_keeps_up_with_a_camera_orbit() {
         queued.starts_with(b"HTTP/1.0 200"),
         "{:?}",
         &queued[..queued.len().min(100)]
+    );
+    eprintln!(
+        "the page that stopped reading was dropped, having been sent {} bytes",
+        queued.len()
     );
     drop(link);
     reader.join().unwrap();
