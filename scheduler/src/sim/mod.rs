@@ -2217,34 +2217,37 @@ impl<'a> Sim<'a> {
         self.out.hangs += 1;
         if !m.renders_hung {
             // (A render hang already took its capacity and froze its renders.)
-            self.capacity.push((now, -m.capacity()));
-            for r in &mut m.running {
-                r.remaining = r.end - now;
-            }
+            self.pause_renders(machine);
         }
-        let span = self
-            .failures_rng
-            .range(self.cfg.hang_min_ms as f64, self.cfg.hang_max_ms as f64);
-        self.agenda.push(
-            now + (span * MS as f64).round() as Micros,
-            Ev::Thaw { machine },
-        );
+        let at = now + self.failure_span(self.cfg.hang_min_ms, self.cfg.hang_max_ms);
+        self.agenda.push(at, Ev::Thaw { machine });
     }
 
-    fn thaw(&mut self, machine: usize) {
+    /// A duration uniform in [min, max) ms, in µs, from the failures' generator.
+    fn failure_span(&mut self, min_ms: u64, max_ms: u64) -> Micros {
+        let span = self.failures_rng.range(min_ms as f64, max_ms as f64);
+        (span * MS as f64).round() as Micros
+    }
+
+    /// The machine's renders stop where they are (a hang of the process or of its render
+    /// threads), and its capacity leaves the farm's.
+    fn pause_renders(&mut self, machine: usize) {
         let now = self.now;
         let m = &mut self.machines[machine];
-        if m.life != Life::Frozen {
-            return;
+        self.capacity.push((now, -m.capacity()));
+        for r in &mut m.running {
+            r.remaining = r.end - now;
         }
-        m.life = Life::Running;
-        m.epoch += 1;
+    }
+
+    /// The machine's paused renders go on from where they stopped, and its capacity
+    /// comes back.
+    fn resume_renders(&mut self, machine: usize) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
         let epoch = m.epoch;
-        let renders_hung = m.renders_hung;
-        if !renders_hung {
-            self.capacity.push((now, m.capacity()));
-        }
-        for r in m.running.iter_mut().filter(|_| !renders_hung) {
+        self.capacity.push((now, m.capacity()));
+        for r in &mut m.running {
             // The pause shifts the render; its start moves with it, so that work done
             // counts only time running.
             r.started += now - (r.end - r.remaining);
@@ -2258,6 +2261,21 @@ impl<'a> Sim<'a> {
                 },
             );
         }
+    }
+
+    fn thaw(&mut self, machine: usize) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if m.life != Life::Frozen {
+            return;
+        }
+        m.life = Life::Running;
+        m.epoch += 1;
+        let epoch = m.epoch;
+        if !m.renders_hung {
+            self.resume_renders(machine);
+        }
+        let m = &mut self.machines[machine];
         let inbox = std::mem::take(&mut m.inbox);
         let reconnect = std::mem::replace(&mut m.reconnect_on_thaw, false);
         // The heartbeat resumes at once on a session already accepted; one accepted
@@ -2292,24 +2310,14 @@ impl<'a> Sim<'a> {
         }
         m.renders_hung = true;
         self.out.render_hangs += 1;
-        self.capacity.push((now, -m.capacity()));
-        for r in &mut m.running {
-            r.remaining = r.end - now;
-        }
-        let span = self.failures_rng.range(
-            self.cfg.render_hang_min_ms as f64,
-            self.cfg.render_hang_max_ms as f64,
-        );
-        self.agenda.push(
-            now + (span * MS as f64).round() as Micros,
-            Ev::RenderThaw { machine },
-        );
+        self.pause_renders(machine);
+        let at = now + self.failure_span(self.cfg.render_hang_min_ms, self.cfg.render_hang_max_ms);
+        self.agenda.push(at, Ev::RenderThaw { machine });
     }
 
     /// The render threads run again (if the process is running; a stopped one resumes
     /// them when it is thawed).
     fn render_thaw(&mut self, machine: usize) {
-        let now = self.now;
         let m = &mut self.machines[machine];
         if !m.renders_hung || m.life == Life::Dead {
             return;
@@ -2319,20 +2327,7 @@ impl<'a> Sim<'a> {
             // Stopped meanwhile: its thaw restarts the renders (and the capacity).
             return;
         }
-        let epoch = m.epoch;
-        self.capacity.push((now, m.capacity()));
-        for r in &mut m.running {
-            r.started += now - (r.end - r.remaining);
-            r.end = now + r.remaining;
-            self.agenda.push(
-                r.end,
-                Ev::RenderDone {
-                    machine,
-                    epoch,
-                    render: r.id,
-                },
-            );
-        }
+        self.resume_renders(machine);
         self.arm_render_hang(machine);
         self.start_renders(machine);
     }
