@@ -69,7 +69,10 @@
 //!   hangs (the whole process stops, as with `SIGSTOP`, for a random time: its renders
 //!   pause, messages wait in its socket, no heartbeats; if the coordinator dropped it
 //!   meanwhile it finds the connection closed when it wakes, and reconnects), each a
-//!   Poisson process per machine; new machines join as a Poisson process for the farm.
+//!   Poisson process per machine; and render hangs (only the render threads stop, for
+//!   a random time: renders pause and none starts, while heartbeats, messages and the
+//!   queue go on, so that only the scheduler's progress check can tell), a Poisson
+//!   process per machine too; new machines join as a Poisson process for the farm.
 //! - **Work**: a tile's cost is its area times a per-frame cost map (smooth hot regions,
 //!   like a glass object, up to `hotspot_factor` times the base cost, and a per-tile
 //!   random factor); a worker renders it in cost / speed of one of its threads.
