@@ -50,6 +50,7 @@ pub struct Metrics {
     leases_expired: Counter,
     tiles_reassigned: Counter,
     workers_dropped: Counter,
+    workers_unresponsive: Counter,
     rays_per_second: Gauge<f64, AtomicU64>,
     storage_available: Gauge,
     storage_outages: Counter,
@@ -120,6 +121,13 @@ impl Metrics {
             "Workers dropped for missing their heartbeats",
             workers_dropped.clone(),
         );
+        let workers_unresponsive = Counter::default();
+        registry.register(
+            "workers_unresponsive",
+            "Times a worker was marked unresponsive: its leases ran out and it returned no \
+             result for longer than its progress allowance (it still sent heartbeats)",
+            workers_unresponsive.clone(),
+        );
         let rays_per_second = Gauge::<f64, AtomicU64>::default();
         registry.register(
             "rays_per_second",
@@ -181,6 +189,7 @@ impl Metrics {
             leases_expired,
             tiles_reassigned,
             workers_dropped,
+            workers_unresponsive,
             rays_per_second,
             synced: Mutex::new(Counters::default()),
             rate: Mutex::new(VecDeque::new()),
@@ -264,6 +273,10 @@ impl Metrics {
                 .inc_by(now.tiles_requeued.saturating_sub(synced.tiles_requeued));
             self.workers_dropped
                 .inc_by(now.workers_dropped.saturating_sub(synced.workers_dropped));
+            self.workers_unresponsive.inc_by(
+                now.workers_unresponsive
+                    .saturating_sub(synced.workers_unresponsive),
+            );
             *synced = now;
         }
         let mut out = String::new();
@@ -391,6 +404,7 @@ mod tests {
                 leases_expired: 5,
                 tiles_requeued: 6,
                 workers_dropped: 7,
+                workers_unresponsive: 9,
             },
             storage_available: true,
         };
@@ -407,6 +421,7 @@ mod tests {
             "tessera_leases_expired_total 5",
             "tessera_tiles_reassigned_total 6",
             "tessera_workers_dropped_total 7",
+            "tessera_workers_unresponsive_total 9",
             "tessera_storage_available 1",
             "tessera_storage_outages_total 1",
         ] {

@@ -472,6 +472,10 @@ pub struct WorkerStatus {
     pub draining: bool,
     /// An operator disabled its machine: it gets no new tile until enabled.
     pub disabled: bool,
+    /// It holds tiles whose leases ran out and has returned no result for longer than
+    /// its progress allowance (its heartbeats still come): it gets no new tile, and its
+    /// tiles are rendered elsewhere, until it returns a result.
+    pub unresponsive: bool,
 }
 
 /// One render of the canary: the settings and the rectangle of the canary scene.

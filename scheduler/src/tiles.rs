@@ -37,6 +37,21 @@
 //!   runs out goes back to the queue; its first holder may still deliver it.
 //! - **Liveness from heartbeats.** A worker not heard from within the heartbeat
 //!   timeout is dropped and its tiles go back to the queue.
+//! - **Trust from results.** A heartbeat proves a connection, not progress: a worker
+//!   whose render threads hang keeps talking. So a worker that holds a tile late (its
+//!   lease ran out, or another worker's copy was accepted first) and has returned no
+//!   result (nor reported a failure) for longer than its allowance is marked
+//!   **unresponsive** ([`Action::WorkerUnresponsive`]): it gets no tile, its live
+//!   leases run out at once (its tiles go to others; its results still count if they
+//!   come first), and it no longer counts as a machine that may take or confirm work,
+//!   so held results it was the only other machine for are accepted and stalls are
+//!   seen. Its first result makes it responsive again ([`Action::WorkerResponsive`]).
+//!   The allowance is the greater of [`Policy::progress_timeout`] and
+//!   [`Policy::progress_factor`] times its pace: the longest it took for one result
+//!   once free to work on it, or the slowest measured tile of the jobs it holds. A slow
+//!   worker is slow in its own results too, so it is given the time it needs; only
+//!   silence far past its own pace marks it. It stays connected: a render thread that
+//!   comes back needs no reconnection, and a worker that is only slow loses nothing.
 //! - **Stragglers.** When a job has no tile left waiting, a worker with free credit is
 //!   also given a tile still in flight elsewhere (the one out longest, at most two
 //!   holders per tile). The first result wins; a later copy is checked equal.
@@ -144,6 +159,12 @@ pub struct Policy {
     pub pause_threshold: Millis,
     /// The longest the daemon may wait between two calls while a worker is connected.
     pub wake_interval: Millis,
+    /// The least time a worker holding a tile whose lease ran out may go without
+    /// returning any result before it is marked unresponsive (see the module doc).
+    pub progress_timeout: Millis,
+    /// ... or this many times its pace (its slowest time per result, or the slowest
+    /// measured tile of the jobs it holds), when that is longer.
+    pub progress_factor: u64,
 }
 
 impl Default for Policy {
@@ -161,6 +182,8 @@ impl Default for Policy {
             max_credit_per_thread: 256,
             pause_threshold: 2_000,
             wake_interval: 1_000,
+            progress_timeout: 20_000,
+            progress_factor: 16,
         }
     }
 }
@@ -345,6 +368,17 @@ pub enum Action {
     },
     /// The worker missed its heartbeats: close its connection.
     DropWorker {
+        worker: WorkerId,
+    },
+    /// The worker holds tiles whose leases ran out and has returned nothing for
+    /// `silent` ms: it is marked unresponsive (it stays connected; its tiles are
+    /// rendered elsewhere).
+    WorkerUnresponsive {
+        worker: WorkerId,
+        silent: Millis,
+    },
+    /// An unresponsive worker returned a result: it takes tiles again.
+    WorkerResponsive {
         worker: WorkerId,
     },
     /// Every tile is done: assemble and store the image.
@@ -563,7 +597,13 @@ impl Job {
     /// (in increasing tile order, each at the head) the tiles left with no live lease.
     /// Marks the leases due by `now` expired and requeues the tiles all of whose leases
     /// ran out; counts both.
-    fn expire_leases(&mut self, now: Millis, counters: &mut Counters) {
+    /// The workers whose leases ran out join `overdue`.
+    fn expire_leases(
+        &mut self,
+        now: Millis,
+        counters: &mut Counters,
+        overdue: &mut BTreeSet<WorkerId>,
+    ) {
         let mut due = Vec::new();
         while let Some(&(deadline, tile, _)) = self.deadlines.first() {
             if deadline > now {
@@ -586,6 +626,7 @@ impl Job {
             {
                 lease.expired = true;
                 counters.leases_expired += 1;
+                overdue.insert(lease.worker);
             }
             let all_expired = leases.iter().all(|l| l.expired);
             let after = straggler_key(leases);
@@ -593,6 +634,28 @@ impl Job {
             if all_expired && self.requeue(tile) {
                 counters.tiles_requeued += 1;
             }
+        }
+    }
+
+    /// Ends the worker's live lease on the tile now, if it has one, and puts the tile
+    /// back in the queue if no live lease is left; counts both.
+    fn expire_lease_of(&mut self, tile: u32, worker: WorkerId, counters: &mut Counters) {
+        let Some(leases) = self.in_flight.get_mut(&tile) else {
+            return;
+        };
+        let before = straggler_key(leases);
+        let Some(lease) = leases.iter_mut().find(|l| l.worker == worker && !l.expired) else {
+            return;
+        };
+        lease.expired = true;
+        let deadline = lease.deadline;
+        counters.leases_expired += 1;
+        let all_expired = leases.iter().all(|l| l.expired);
+        let after = straggler_key(leases);
+        self.deadlines.remove(&(deadline, tile, worker));
+        self.restraggle(tile, before, after);
+        if all_expired && self.state[tile as usize] != TileState::Done && self.requeue(tile) {
+            counters.tiles_requeued += 1;
         }
     }
 
@@ -780,12 +843,22 @@ struct Worker {
     /// Its machine is disabled by an operator: like draining, but undone by an enable.
     disabled: bool,
     last_seen: Millis,
+    /// It holds tiles whose leases ran out and returned nothing for longer than its
+    /// progress allowance: its heartbeats prove a connection, not that it renders. It
+    /// gets no tile and counts for no one (see the module doc) until a result comes.
+    unresponsive: bool,
+    /// Since when a result is due from it: its last result, or when it was last given
+    /// a tile while holding none.
+    progress_since: Millis,
+    /// The longest it took to return a result once it was free to work on it (since
+    /// the tile's lease began or its previous result, whichever is later): its pace.
+    slowest_result: Millis,
 }
 
 impl Worker {
     /// Whether it may be given new tiles.
     fn takes_tiles(&self) -> bool {
-        !self.draining && !self.disabled
+        !self.draining && !self.disabled && !self.unresponsive
     }
 }
 
@@ -828,6 +901,12 @@ pub struct Scheduler {
     quarantined: BTreeSet<Machine>,
     /// Machines an operator disabled: they get no new tile until enabled.
     disabled: BTreeSet<Machine>,
+    /// Every worker that holds a tile late (under a lease that ran out, or a copy of a
+    /// tile accepted from another worker since), and perhaps some that no longer do:
+    /// those whose progress a timeout checks. A worker joins when one of its leases
+    /// runs out or its copy becomes late, and leaves when a timeout finds it holds
+    /// nothing late.
+    overdue: BTreeSet<WorkerId>,
     counters: Counters,
 }
 
@@ -841,6 +920,8 @@ pub struct Counters {
     pub tiles_requeued: u64,
     /// Workers dropped for missing their heartbeats.
     pub workers_dropped: u64,
+    /// Times a worker was marked unresponsive: leases ran out and no result came.
+    pub workers_unresponsive: u64,
 }
 
 impl Scheduler {
@@ -866,6 +947,7 @@ impl Scheduler {
                 self.last_timeout = self.now;
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.check_progress(&mut actions);
                 self.give_up_confirmations(&mut actions);
                 self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
@@ -885,6 +967,9 @@ impl Scheduler {
                     draining: false,
                     disabled: self.disabled.contains(&machine),
                     last_seen: self.now,
+                    unresponsive: false,
+                    progress_since: self.now,
+                    slowest_result: 0,
                 };
                 let quarantined = self.quarantined.contains(&machine);
                 // A quarantined machine's worker is kept like a draining one: connected
@@ -941,6 +1026,7 @@ impl Scheduler {
             }
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 let requeued = self.counters.tiles_requeued;
                 self.tile_done(worker, job, tile, &mut actions);
                 if self.counters.tiles_requeued != requeued {
@@ -960,6 +1046,7 @@ impl Scheduler {
                 required,
             } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 self.tile_to_confirm(worker, job, tile, required, &mut actions);
                 self.fill_all(&mut actions);
             }
@@ -999,6 +1086,7 @@ impl Scheduler {
                 message,
             } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 // Like a result, a failure counts only from a holder of the tile. A
                 // failed copy of a tile already accepted only frees the worker's slot.
                 if self.release(worker, job, tile).is_some() {
@@ -1233,6 +1321,12 @@ impl Scheduler {
         !self.ready.is_empty()
     }
 
+    /// Whether the worker is marked unresponsive: it holds tiles whose leases ran out
+    /// and has returned nothing for longer than its allowance.
+    pub fn is_unresponsive(&self, worker: WorkerId) -> bool {
+        self.workers.get(&worker).is_some_and(|w| w.unresponsive)
+    }
+
     /// Whether an operator disabled the machine.
     pub fn is_disabled(&self, machine: &str) -> bool {
         self.disabled.contains(&Machine::Named(machine.to_string()))
@@ -1363,7 +1457,115 @@ impl Scheduler {
     fn check_leases(&mut self) {
         let now = self.now;
         for job in self.jobs.values_mut() {
-            job.expire_leases(now, &mut self.counters);
+            job.expire_leases(now, &mut self.counters, &mut self.overdue);
+        }
+    }
+
+    /// Marks unresponsive, in id order, the workers that hold a tile late (under a lease
+    /// that ran out, or a copy of a tile accepted from another worker since) and have
+    /// returned no result for longer than their allowance: the greater of [`Policy::progress_timeout`] and
+    /// [`Policy::progress_factor`] times their pace, the slowest of their own results
+    /// and of the measured tiles of the jobs they hold. A slow worker's pace is slow,
+    /// so it is given the time its own results show it needs; a worker that never
+    /// returned anything is judged by the jobs' tiles, sixteen times over.
+    fn check_progress(&mut self, actions: &mut Vec<Action>) {
+        let now = self.now;
+        let overdue: Vec<WorkerId> = self.overdue.iter().copied().collect();
+        for id in overdue {
+            let Some(w) = self.workers.get(&id) else {
+                self.overdue.remove(&id);
+                continue;
+            };
+            let mut late = false;
+            let mut pace = w.slowest_result;
+            for (job_id, tile) in &w.holding {
+                let Some(job) = self.jobs.get(job_id) else {
+                    continue;
+                };
+                pace = pace.max(job.slowest);
+                late |= job.late_copies.contains(&(*tile, id))
+                    || job
+                        .in_flight
+                        .get(tile)
+                        .is_some_and(|ls| ls.iter().any(|l| l.worker == id && l.expired));
+            }
+            if !late {
+                self.overdue.remove(&id);
+                continue;
+            }
+            if w.unresponsive {
+                // Marked already; it stays here, so that once a result makes it
+                // responsive again, what it still holds late is watched again.
+                continue;
+            }
+            let allowance = self
+                .policy
+                .progress_timeout
+                .max(pace.saturating_mul(self.policy.progress_factor));
+            let silent = now.saturating_sub(w.progress_since);
+            if silent > allowance {
+                self.set_unresponsive(id, true);
+                self.counters.workers_unresponsive += 1;
+                actions.push(Action::WorkerUnresponsive { worker: id, silent });
+            }
+        }
+    }
+
+    /// A result (or a reported failure) from the worker for a tile: it makes progress.
+    /// Its pace is measured from the tile's lease, if it held one, and it takes tiles
+    /// again if it was unresponsive.
+    fn progressed(&mut self, worker: WorkerId, job: JobId, tile: u32, actions: &mut Vec<Action>) {
+        let started = self
+            .jobs
+            .get(&job)
+            .and_then(|j| j.in_flight.get(&tile))
+            .and_then(|ls| ls.iter().find(|l| l.worker == worker))
+            .map(|l| l.started);
+        let now = self.now;
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return;
+        };
+        if let Some(started) = started {
+            let took = now.saturating_sub(started.max(w.progress_since));
+            w.slowest_result = w.slowest_result.max(took);
+        }
+        w.progress_since = now;
+        if w.unresponsive {
+            self.set_unresponsive(worker, false);
+            actions.push(Action::WorkerResponsive { worker });
+        }
+    }
+
+    /// Marks the worker unresponsive or not; the ready count follows. An unresponsive
+    /// worker's live leases run out at once: it is trusted with no work, so its tiles
+    /// go back to the queue now rather than at their deadlines (its results still
+    /// count if they come first).
+    fn set_unresponsive(&mut self, worker: WorkerId, unresponsive: bool) {
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return;
+        };
+        if w.unresponsive == unresponsive {
+            return;
+        }
+        let was_ready = w.takes_tiles();
+        w.unresponsive = unresponsive;
+        let is_ready = w.takes_tiles();
+        let machine = w.machine.clone();
+        let holding: Vec<(JobId, u32)> = w.holding.iter().copied().collect();
+        if was_ready && !is_ready {
+            self.unready(&machine);
+        } else if is_ready && !was_ready {
+            *self.ready.entry(machine).or_default() += 1;
+        }
+        if unresponsive {
+            self.hungry.remove(&worker);
+            for (job_id, tile) in holding {
+                if let Some(job) = self.jobs.get_mut(&job_id) {
+                    job.expire_lease_of(tile, worker, &mut self.counters);
+                }
+            }
+        } else {
+            self.hungry.insert(worker);
         }
     }
 
@@ -1440,6 +1642,7 @@ impl Scheduler {
         if let Some(others) = job.take_leases(tile) {
             for other in others {
                 job.late_copies.insert((tile, other.worker));
+                self.overdue.insert(other.worker);
             }
         }
         let finished = job.remaining == 0;
@@ -1673,6 +1876,7 @@ impl Scheduler {
                 // Holders under leases that ran out: their copies are still to come.
                 for other in job.take_leases(tile).into_iter().flatten() {
                     job.late_copies.insert((tile, other.worker));
+                    self.overdue.insert(other.worker);
                 }
                 job.state[tile as usize] = TileState::Done;
                 job.remaining -= 1;
@@ -1840,6 +2044,10 @@ impl Scheduler {
                     worker: worker_id,
                     job: job_id,
                 });
+            }
+            if worker.holding.is_empty() {
+                // Idle until now: a result is due from now on, not since its last one.
+                worker.progress_since = now;
             }
             worker.holding.insert((job_id, tile));
             actions.push(Action::Assign {
@@ -2837,10 +3045,20 @@ mod tests {
             }
         }
         assert_eq!(assigns(&expired), vec![(2, 1, 0)]);
+        // Heart-beating, but 60 s without a result while holding a tile whose lease ran
+        // out: worker 1 is marked unresponsive at the same timeout.
+        assert!(
+            expired.contains(&Action::WorkerUnresponsive {
+                worker: 1,
+                silent: policy.initial_lease
+            }),
+            "{expired:?}"
+        );
         let counted = Counters {
             leases_expired: 1,
             tiles_requeued: 1,
             workers_dropped: 0,
+            workers_unresponsive: 1,
         };
         assert_eq!(s.counters(), counted);
         // The expired lease is listed (worker 1 may still deliver), the fresh one not.

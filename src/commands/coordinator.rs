@@ -101,6 +101,14 @@ pub struct Args {
     #[arg(long, env = "TESSERA_HEARTBEAT_TIMEOUT_MS", value_name = "MS", default_value_t = scheduler::Policy::default().heartbeat_timeout,
           value_parser = clap::value_parser!(u64).range(500..=3_600_000))]
     heartbeat_timeout_ms: u64,
+    /// Milliseconds a worker holding a tile whose lease ran out may go without
+    /// returning any result before it is marked unresponsive (its heartbeats prove a
+    /// connection, not progress): it then gets no tile and its tiles go to others until
+    /// it returns one. A slow worker is given more: sixteen times its own slowest
+    /// result, when that is longer (docs/reliability.md, "Liveness").
+    #[arg(long, env = "TESSERA_PROGRESS_TIMEOUT_MS", value_name = "MS", default_value_t = scheduler::Policy::default().progress_timeout,
+          value_parser = clap::value_parser!(u64).range(1_000..=86_400_000))]
+    progress_timeout_ms: u64,
     /// Pixels of every tile result the coordinator renders again to check it, chosen at
     /// random once the result has arrived (at most one in 128 of the tile's pixels; 0
     /// turns spot checks off).
@@ -221,6 +229,7 @@ async fn coordinator(a: Args) -> Result<()> {
         tls,
         policy: scheduler::Policy {
             heartbeat_timeout: a.heartbeat_timeout_ms,
+            progress_timeout: a.progress_timeout_ms,
             ..Default::default()
         },
         verify: coordinator::VerifyConfig {

@@ -90,6 +90,9 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             if w.draining {
                 state.push_str(", DRAINING");
             }
+            if w.unresponsive {
+                state.push_str(", UNRESPONSIVE");
+            }
             println!(
                 "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{state}",
                 w.id,
@@ -166,5 +169,6 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "credit": w.credit,
         "draining": w.draining,
         "disabled": w.disabled,
+        "unresponsive": w.unresponsive,
     })
 }

@@ -1948,6 +1948,22 @@ impl Core {
                         );
                     }
                 }
+                Action::WorkerUnresponsive { worker, silent } => {
+                    if let Some(w) = self.workers.get(&worker) {
+                        warn!(
+                            worker,
+                            name = %w.name,
+                            silent_ms = silent,
+                            "worker unresponsive: its leases ran out and no result came; its \
+                             tiles go to other workers until it returns one"
+                        );
+                    }
+                }
+                Action::WorkerResponsive { worker } => {
+                    if let Some(w) = self.workers.get(&worker) {
+                        info!(worker, name = %w.name, "worker responsive again");
+                    }
+                }
                 Action::DropWorker { worker } => {
                     if let Some(w) = self.workers.get(&worker) {
                         warn!(worker, name = %w.name, "no heartbeat in time: dropping the worker");
@@ -2499,6 +2515,7 @@ impl Core {
             .map(|(&id, w)| {
                 let mut status = w.status(id, self.tiles.held_by(id), self.tiles.credit_of(id));
                 status.disabled = self.tiles.is_disabled(&w.name);
+                status.unresponsive = self.tiles.is_unresponsive(id);
                 status
             })
             .collect()
@@ -2807,6 +2824,7 @@ impl WorkerRecord {
             credit: credit as u32,
             draining: self.draining,
             disabled: false,
+            unresponsive: false,
         }
     }
 }

@@ -136,6 +136,7 @@ pub struct WorkerView {
     pub draining: bool,
     pub disabled: bool,
     pub quarantined: bool,
+    pub unresponsive: bool,
 }
 
 /// An image for the page.
@@ -262,6 +263,7 @@ impl Observer {
                 draining: s.draining,
                 disabled: s.disabled,
                 quarantined: s.quarantined.is_some(),
+                unresponsive: s.unresponsive,
             })
             .collect();
         let active = core

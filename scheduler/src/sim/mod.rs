@@ -152,6 +152,13 @@ pub struct SimConfig {
     /// workers come back in time and some are dropped.
     pub hang_min_ms: u64,
     pub hang_max_ms: u64,
+    /// Render hangs per machine per hour of farm time (Poisson): the worker's render
+    /// threads stop (a deadlock, a driver hang) while its runtime keeps heart-beating
+    /// and reading, for a time uniform in [min, max). Only the scheduler's progress
+    /// check ([`Policy::progress_timeout`]) tells such a worker from a working one.
+    pub render_hangs_per_worker_hour: f64,
+    pub render_hang_min_ms: u64,
+    pub render_hang_max_ms: u64,
     /// New machines per minute (Poisson), while jobs remain.
     pub joins_per_minute: f64,
     /// One-way network latency: base plus a jitter uniform in [0, jitter).
@@ -243,6 +250,9 @@ impl Default for SimConfig {
             hangs_per_worker_hour: 1.0,
             hang_min_ms: 1_000,
             hang_max_ms: 20_000,
+            render_hangs_per_worker_hour: 0.5,
+            render_hang_min_ms: 10_000,
+            render_hang_max_ms: 600_000,
             joins_per_minute: 10.0,
             latency_ms: 0.5,
             latency_jitter_ms: 0.5,
@@ -293,6 +303,7 @@ impl SimConfig {
         SimConfig {
             crashes_per_worker_hour: 0.0,
             hangs_per_worker_hour: 0.0,
+            render_hangs_per_worker_hour: 0.0,
             joins_per_minute: 0.0,
             coordinator_pauses_per_hour: 0.0,
             cuts_per_worker_hour: 0.0,
@@ -351,6 +362,7 @@ impl SimConfig {
         if ![
             self.crashes_per_worker_hour,
             self.hangs_per_worker_hour,
+            self.render_hangs_per_worker_hour,
             self.joins_per_minute,
             self.coordinator_pauses_per_hour,
             self.cuts_per_worker_hour,
@@ -367,6 +379,7 @@ impl SimConfig {
             return Err("rates, latencies and write times must be finite and not negative".into());
         }
         if self.hang_min_ms > self.hang_max_ms
+            || self.render_hang_min_ms > self.render_hang_max_ms
             || self.coordinator_pause_min_ms > self.coordinator_pause_max_ms
             || self.cut_min_ms > self.cut_max_ms
             || self.storage_outage_min_ms > self.storage_outage_max_ms
@@ -569,6 +582,14 @@ enum Ev {
     Thaw {
         machine: usize,
     },
+    /// The machine's render threads stop; its runtime goes on.
+    RenderHang {
+        machine: usize,
+        epoch: u32,
+    },
+    RenderThaw {
+        machine: usize,
+    },
     /// A crashed machine's supervisor starts its worker again.
     Restart {
         machine: usize,
@@ -686,6 +707,9 @@ struct Machine {
     running: Vec<Render>,
     /// Messages that arrived while the process was stopped.
     inbox: Vec<(usize, Down)>,
+    /// Its render threads are stopped (a render hang): renders neither progress nor
+    /// start, while heartbeats and messages go on.
+    renders_hung: bool,
     reconnect_on_thaw: bool,
     /// Nothing crosses the network to or from it before this time.
     cut_until: Micros,
@@ -1045,6 +1069,20 @@ impl LeaseModel {
         }
     }
 
+    /// The scheduler marked the worker unresponsive: its live leases run out now.
+    fn expire_worker(&mut self, worker: WorkerId) -> u64 {
+        let mut expired = 0;
+        for key in self.by_worker.get(&worker).into_iter().flatten() {
+            for lease in self.leases.get_mut(key).into_iter().flatten() {
+                if lease.worker == worker && !lease.expired {
+                    lease.expired = true;
+                    expired += 1;
+                }
+            }
+        }
+        expired
+    }
+
     fn remove_worker(&mut self, worker: WorkerId) {
         for key in self.by_worker.remove(&worker).unwrap_or_default() {
             if let Some(leases) = self.leases.get_mut(&key) {
@@ -1227,6 +1265,7 @@ impl<'a> Sim<'a> {
             queue: VecDeque::new(),
             running: Vec::new(),
             inbox: Vec::new(),
+            renders_hung: false,
             reconnect_on_thaw: false,
             cut_until: 0,
         });
@@ -1468,6 +1507,8 @@ impl<'a> Sim<'a> {
             Ev::Crash { machine, epoch } => self.crash(machine, epoch),
             Ev::Hang { machine, epoch } => self.hang(machine, epoch),
             Ev::Thaw { machine } => self.thaw(machine),
+            Ev::RenderHang { machine, epoch } => self.render_hang(machine, epoch),
+            Ev::RenderThaw { machine } => self.render_thaw(machine),
         }
     }
 
@@ -1614,6 +1655,15 @@ impl<'a> Sim<'a> {
                     }
                 }
                 Action::ForgetScene { .. } => self.out.scenes_forgotten += 1,
+                Action::WorkerUnresponsive { worker, .. } => {
+                    // The timeout's expiries first, as the scheduler made them.
+                    if let Some(now) = timeout.take() {
+                        self.out.leases_expired += self.model.expire(now);
+                    }
+                    self.out.unresponsive += 1;
+                    self.out.leases_expired += self.model.expire_worker(worker);
+                }
+                Action::WorkerResponsive { .. } => self.out.responsive_again += 1,
                 Action::DropWorker { worker } => {
                     self.out.drops += 1;
                     self.model.remove_worker(worker);
@@ -1977,7 +2027,7 @@ impl<'a> Sim<'a> {
 
     fn start_renders(&mut self, machine: usize) {
         let m = &mut self.machines[machine];
-        while m.running.len() < m.threads as usize {
+        while !m.renders_hung && m.running.len() < m.threads as usize {
             let Some(task) = m.queue.pop_front() else {
                 break;
             };
@@ -2018,7 +2068,15 @@ impl<'a> Sim<'a> {
         if m.epoch != epoch || m.life != Life::Running {
             return;
         }
-        let Some(pos) = m.running.iter().position(|r| r.id == render) else {
+        if m.renders_hung {
+            return;
+        }
+        // A render moved by a render hang has a later end: its first event is stale.
+        let Some(pos) = m
+            .running
+            .iter()
+            .position(|r| r.id == render && r.end == self.now)
+        else {
             return;
         };
         let r = m.running.swap_remove(pos);
@@ -2061,6 +2119,25 @@ impl<'a> Sim<'a> {
                 Ev::Hang { machine, epoch },
             );
         }
+        if !self.machines[machine].renders_hung {
+            // (A machine whose renders hang arms its next render hang when they run.)
+            self.arm_render_hang(machine);
+        }
+    }
+
+    /// The machine's next render hang (Poisson).
+    fn arm_render_hang(&mut self, machine: usize) {
+        if self.cfg.render_hangs_per_worker_hour > 0.0 {
+            let hour = 3_600_000.0 * MS as f64;
+            let epoch = self.machines[machine].epoch;
+            let after = self
+                .failures_rng
+                .exponential(hour / self.cfg.render_hangs_per_worker_hour);
+            self.agenda.push(
+                self.now + after.round() as Micros,
+                Ev::RenderHang { machine, epoch },
+            );
+        }
     }
 
     fn crash(&mut self, machine: usize, epoch: u32) {
@@ -2072,7 +2149,10 @@ impl<'a> Sim<'a> {
         m.life = Life::Dead;
         m.epoch += 1;
         self.out.crashes += 1;
-        self.capacity.push((now, -m.capacity()));
+        if !std::mem::replace(&mut m.renders_hung, false) {
+            // (A render hang already took its capacity.)
+            self.capacity.push((now, -m.capacity()));
+        }
         for r in m.running.drain(..) {
             self.out.renders_interrupted += 1;
             self.out.work_spent_ms += (now - r.started) as f64 * m.speed / MS as f64;
@@ -2119,9 +2199,12 @@ impl<'a> Sim<'a> {
         m.life = Life::Frozen;
         m.epoch += 1;
         self.out.hangs += 1;
-        self.capacity.push((now, -m.capacity()));
-        for r in &mut m.running {
-            r.remaining = r.end - now;
+        if !m.renders_hung {
+            // (A render hang already took its capacity and froze its renders.)
+            self.capacity.push((now, -m.capacity()));
+            for r in &mut m.running {
+                r.remaining = r.end - now;
+            }
         }
         let span = self
             .failures_rng
@@ -2141,8 +2224,11 @@ impl<'a> Sim<'a> {
         m.life = Life::Running;
         m.epoch += 1;
         let epoch = m.epoch;
-        self.capacity.push((now, m.capacity()));
-        for r in &mut m.running {
+        let renders_hung = m.renders_hung;
+        if !renders_hung {
+            self.capacity.push((now, m.capacity()));
+        }
+        for r in m.running.iter_mut().filter(|_| !renders_hung) {
             // The pause shifts the render; its start moves with it, so that work done
             // counts only time running.
             r.started += now - (r.end - r.remaining);
@@ -2177,6 +2263,61 @@ impl<'a> Sim<'a> {
             self.connect(machine);
         }
         self.arm_failures(machine);
+        self.start_renders(machine);
+    }
+
+    /// The machine's render threads stop: what they render stays where it is, nothing
+    /// new starts; heartbeats, messages and the queue go on.
+    fn render_hang(&mut self, machine: usize, epoch: u32) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if m.epoch != epoch || m.life != Life::Running || m.renders_hung {
+            return;
+        }
+        m.renders_hung = true;
+        self.out.render_hangs += 1;
+        self.capacity.push((now, -m.capacity()));
+        for r in &mut m.running {
+            r.remaining = r.end - now;
+        }
+        let span = self.failures_rng.range(
+            self.cfg.render_hang_min_ms as f64,
+            self.cfg.render_hang_max_ms as f64,
+        );
+        self.agenda.push(
+            now + (span * MS as f64).round() as Micros,
+            Ev::RenderThaw { machine },
+        );
+    }
+
+    /// The render threads run again (if the process is running; a stopped one resumes
+    /// them when it is thawed).
+    fn render_thaw(&mut self, machine: usize) {
+        let now = self.now;
+        let m = &mut self.machines[machine];
+        if !m.renders_hung || m.life == Life::Dead {
+            return;
+        }
+        m.renders_hung = false;
+        if m.life != Life::Running {
+            // Stopped meanwhile: its thaw restarts the renders (and the capacity).
+            return;
+        }
+        let epoch = m.epoch;
+        self.capacity.push((now, m.capacity()));
+        for r in &mut m.running {
+            r.started += now - (r.end - r.remaining);
+            r.end = now + r.remaining;
+            self.agenda.push(
+                r.end,
+                Ev::RenderDone {
+                    machine,
+                    epoch,
+                    render: r.id,
+                },
+            );
+        }
+        self.arm_render_hang(machine);
         self.start_renders(machine);
     }
 

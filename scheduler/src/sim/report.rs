@@ -16,6 +16,12 @@ pub struct Outcome {
     pub workers_at_end: usize,
     pub crashes: u64,
     pub hangs: u64,
+    /// Render hangs: a machine's render threads stopped while it kept heart-beating.
+    pub render_hangs: u64,
+    /// Times the scheduler marked a worker unresponsive (leases run out, no result),
+    /// and times one came back with a result.
+    pub unresponsive: u64,
+    pub responsive_again: u64,
     /// Workers the coordinator dropped for silence (hangs longer than the timeout).
     pub drops: u64,
     /// Sessions a worker ended because the coordinator closed them, then reconnected.
@@ -364,11 +370,15 @@ impl fmt::Display for SimReport {
         )?;
         writeln!(
             f,
-            "- {} crashes ({} restarted under their name), {} hangs, {} network cuts, {} \
+            "- {} crashes ({} restarted under their name), {} hangs, {} render hangs ({} \
+             workers marked unresponsive, {} responsive again), {} network cuts, {} \
              workers dropped for silence, {} reconnections; {} coordinator pauses",
             o.crashes,
             o.restarts,
             o.hangs,
+            o.render_hangs,
+            o.unresponsive,
+            o.responsive_again,
             o.network_cuts,
             o.drops,
             o.reconnects,

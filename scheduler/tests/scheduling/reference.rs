@@ -48,6 +48,10 @@ pub struct Policy {
     pub pause_threshold: Millis,
     /// The longest gap between calls the daemon is told to leave.
     pub wake_interval: Millis,
+    /// A worker holding a tile late and silent (no result) for longer than this, or
+    /// than `progress_factor` times its pace, is unresponsive.
+    pub progress_timeout: Millis,
+    pub progress_factor: u64,
 }
 
 impl Default for Policy {
@@ -65,6 +69,8 @@ impl Default for Policy {
             max_credit_per_thread: 64,
             pause_threshold: 2_000,
             wake_interval: 1_000,
+            progress_timeout: 20_000,
+            progress_factor: 16,
         }
     }
 }
@@ -192,6 +198,15 @@ pub enum Action {
     },
     /// The worker missed its heartbeats: close its connection.
     DropWorker {
+        worker: WorkerId,
+    },
+    /// The worker holds a tile late and returned nothing for `silent` ms.
+    WorkerUnresponsive {
+        worker: WorkerId,
+        silent: Millis,
+    },
+    /// An unresponsive worker returned a result.
+    WorkerResponsive {
         worker: WorkerId,
     },
     /// Every tile is done: assemble and store the image.
@@ -378,6 +393,13 @@ struct Worker {
     scenes: BTreeSet<SceneHash>,
     draining: bool,
     last_seen: Millis,
+    /// Holds a tile late and was silent too long; until its next result.
+    unresponsive: bool,
+    /// Its last result, or when it was last given a tile while holding none.
+    progress_since: Millis,
+    /// The longest from its lease's start (or its previous result, if later) to a
+    /// result.
+    slowest_result: Millis,
 }
 
 /// The scheduler's whole state.
@@ -415,6 +437,7 @@ impl Scheduler {
                 self.last_timeout = self.now;
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
+                self.check_progress(&mut actions);
                 self.give_up_confirmations(&mut actions);
                 self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
@@ -438,6 +461,9 @@ impl Scheduler {
                         scenes: BTreeSet::new(),
                         draining,
                         last_seen: self.now,
+                        unresponsive: false,
+                        progress_since: self.now,
+                        slowest_result: 0,
                     },
                 );
                 self.end_stalls_without_workers();
@@ -474,6 +500,7 @@ impl Scheduler {
             }
             Event::TileDone { worker, job, tile } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 if self.tile_done(worker, job, tile, &mut actions) {
                     // A copy from the machine whose result the tile holds put it back
                     // in the queue: everyone may take it.
@@ -491,6 +518,7 @@ impl Scheduler {
                 required,
             } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 self.tile_to_confirm(worker, job, tile, required, &mut actions);
                 self.fill_all(&mut actions);
             }
@@ -518,6 +546,7 @@ impl Scheduler {
                 message,
             } => {
                 self.seen(worker);
+                self.progressed(worker, job, tile, &mut actions);
                 // Like a result, a failure counts only from a holder of the tile. A
                 // failed copy of a tile already accepted only frees the worker's slot.
                 if self.release(worker, job, tile).is_some() {
@@ -597,11 +626,11 @@ impl Scheduler {
         }
     }
 
-    /// The machines of the live workers that are not draining.
+    /// The machines of the live workers that are neither draining nor unresponsive.
     fn ready(&self) -> BTreeSet<Machine> {
         self.workers
             .values()
-            .filter(|w| !w.draining)
+            .filter(|w| !w.draining && !w.unresponsive)
             .map(|w| w.machine.clone())
             .collect()
     }
@@ -827,6 +856,85 @@ impl Scheduler {
                     job.waiting.push_front(tile);
                 }
             }
+        }
+    }
+
+    /// Every worker (in id order) not unresponsive that holds a tile late (a lease that
+    /// ran out, or a copy of a tile accepted since) and returned nothing for longer
+    /// than max(progress_timeout, progress_factor × its pace) is marked unresponsive:
+    /// its live leases run out at once (each tile left without one waits again, at the
+    /// head), and it counts as ready no more.
+    fn check_progress(&mut self, actions: &mut Vec<Action>) {
+        let ids: Vec<WorkerId> = self.workers.keys().copied().collect();
+        for id in ids {
+            let w = &self.workers[&id];
+            if w.unresponsive {
+                continue;
+            }
+            let mut late = false;
+            let mut pace = w.slowest_result;
+            for &(job_id, tile) in &w.holding {
+                let Some(job) = self.jobs.get(&job_id) else {
+                    continue;
+                };
+                pace = pace.max(job.slowest);
+                let expired = job
+                    .in_flight
+                    .get(&tile)
+                    .is_some_and(|ls| ls.iter().any(|l| l.worker == id && l.expired));
+                late |= expired || job.late_copies.contains(&(tile, id));
+            }
+            let allowance = self
+                .policy
+                .progress_timeout
+                .max(pace.saturating_mul(self.policy.progress_factor));
+            let silent = self.now.saturating_sub(w.progress_since);
+            if !late || silent <= allowance {
+                continue;
+            }
+            let holding: Vec<(JobId, u32)> = w.holding.iter().copied().collect();
+            self.workers.get_mut(&id).expect("listed").unresponsive = true;
+            for (job_id, tile) in holding {
+                let Some(job) = self.jobs.get_mut(&job_id) else {
+                    continue;
+                };
+                let Some(leases) = job.in_flight.get_mut(&tile) else {
+                    continue;
+                };
+                for l in leases.iter_mut().filter(|l| l.worker == id) {
+                    l.expired = true;
+                }
+                if !job.done[tile as usize] {
+                    job.requeue(tile);
+                }
+            }
+            actions.push(Action::WorkerUnresponsive { worker: id, silent });
+            self.end_stalls_without_workers();
+        }
+    }
+
+    /// A result or a failure from the worker: its pace (from its lease on the tile, if
+    /// it holds one) and its progress; an unresponsive worker is responsive again.
+    fn progressed(&mut self, worker: WorkerId, job: JobId, tile: u32, actions: &mut Vec<Action>) {
+        let started = self
+            .jobs
+            .get(&job)
+            .and_then(|j| j.in_flight.get(&tile))
+            .and_then(|ls| ls.iter().find(|l| l.worker == worker))
+            .map(|l| l.started);
+        let now = self.now;
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return;
+        };
+        if let Some(started) = started {
+            w.slowest_result = w
+                .slowest_result
+                .max(now.saturating_sub(started.max(w.progress_since)));
+        }
+        w.progress_since = now;
+        if w.unresponsive {
+            w.unresponsive = false;
+            actions.push(Action::WorkerResponsive { worker });
         }
     }
 
@@ -1130,7 +1238,7 @@ impl Scheduler {
             let Some(worker) = self.workers.get(&worker_id) else {
                 return;
             };
-            if worker.draining || worker.holding.len() >= worker.credit {
+            if worker.draining || worker.unresponsive || worker.holding.len() >= worker.credit {
                 return;
             }
             let Some((job_id, tile)) = self.next_tile(worker_id) else {
@@ -1151,6 +1259,9 @@ impl Scheduler {
             });
             let scene = job.scene;
             let worker = self.workers.get_mut(&worker_id).expect("checked above");
+            if worker.holding.is_empty() {
+                worker.progress_since = now;
+            }
             if worker.scenes.insert(scene) {
                 actions.push(Action::SendScene {
                     worker: worker_id,

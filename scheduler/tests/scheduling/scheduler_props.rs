@@ -447,6 +447,13 @@ impl Farm {
     }
 
     fn with_policy(policy: Policy, strict: bool) -> Self {
+        // The model does not follow workers' progress: its histories turn the check
+        // for unresponsive workers off. The reference's equivalence (random policies
+        // with short progress timeouts) and the liveness tests cover it.
+        let policy = Policy {
+            progress_timeout: Millis::MAX,
+            ..policy
+        };
         Farm {
             scheduler: Scheduler::with_policy(policy),
             reference: None,
@@ -1259,6 +1266,12 @@ impl Farm {
                         context()
                     );
                     forgotten.push(scene);
+                }
+                Action::WorkerUnresponsive { .. } | Action::WorkerResponsive { .. } => {
+                    panic!(
+                        "the model's histories turn the progress check off {}",
+                        context()
+                    )
                 }
                 Action::DropWorker { worker } => {
                     assert!(
@@ -3359,6 +3372,8 @@ fn reference_policy(p: &Policy) -> reference::Policy {
         max_credit_per_thread: p.max_credit_per_thread,
         pause_threshold: p.pause_threshold,
         wake_interval: p.wake_interval,
+        progress_timeout: p.progress_timeout,
+        progress_factor: p.progress_factor,
     }
 }
 
@@ -3441,6 +3456,8 @@ fn from_reference(action: reference::Action) -> Action {
         R::CancelOnWorker { worker, job } => Action::CancelOnWorker { worker, job },
         R::ForgetScene { worker, scene } => Action::ForgetScene { worker, scene },
         R::DropWorker { worker } => Action::DropWorker { worker },
+        R::WorkerUnresponsive { worker, silent } => Action::WorkerUnresponsive { worker, silent },
+        R::WorkerResponsive { worker } => Action::WorkerResponsive { worker },
         R::JobDone { job } => Action::JobDone { job },
         R::JobFailed { job, message } => Action::JobFailed { job, message },
     }
@@ -3728,6 +3745,10 @@ fn any_policy() -> impl Strategy<Value = Policy> {
             0..3_000 as Millis,
             prop_oneof![0..12u32, Just(64), Just(u32::MAX)],
         ),
+        (
+            prop_oneof![1..12_000 as Millis, Just(Millis::MAX)],
+            prop_oneof![0..20u64, Just(u64::MAX)],
+        ),
     )
         .prop_map(
             |(
@@ -3741,6 +3762,7 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                     speculate,
                 ),
                 (max_losses, stall_timeout, pause_threshold, wake_interval, max_credit_per_thread),
+                (progress_timeout, progress_factor),
             )| Policy {
                 heartbeat_timeout,
                 initial_lease,
@@ -3754,6 +3776,8 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                 max_credit_per_thread,
                 pause_threshold,
                 wake_interval,
+                progress_timeout,
+                progress_factor,
             },
         )
 }
@@ -3782,6 +3806,9 @@ struct RawStats {
     confirmed: usize,
     from_holding_machine: usize,
     given_up: usize,
+    /// Workers marked unresponsive (leases run out, no result), and back with a result.
+    unresponsive: usize,
+    responsive_again: usize,
     /// Quarantines, and the done tiles of active jobs they revoked.
     quarantines: usize,
     revoked: usize,
@@ -3916,6 +3943,8 @@ impl Pair {
                     self.forget(worker);
                     self.stats.drops += 1;
                 }
+                Action::WorkerUnresponsive { .. } => self.stats.unresponsive += 1,
+                Action::WorkerResponsive { .. } => self.stats.responsive_again += 1,
                 Action::DuplicateResult { .. } => self.stats.duplicates += 1,
                 Action::HoldResult { worker, job, tile } => {
                     self.stats.holds += 1;
@@ -4246,7 +4275,7 @@ proptest! {
     ) {
         let policy = Policy { speculate, ..tight(clocked_policy()) };
         let mut farm = Farm::with_policy(policy, true);
-        farm.reference = Some(Twin::new(&policy));
+        farm.reference = Some(Twin::new(&farm.policy));
         for op in &ops {
             farm.apply(op);
         }
@@ -4276,6 +4305,8 @@ fn the_raw_histories_exercise_every_feature() {
         stats.accepted_from_earlier += s.accepted_from_earlier;
         stats.duplicates += s.duplicates;
         stats.drops += s.drops;
+        stats.unresponsive += s.unresponsive;
+        stats.responsive_again += s.responsive_again;
         stats.cancels += s.cancels;
         stats.jobs_done += s.jobs_done;
         stats.jobs_failed += s.jobs_failed;
@@ -4298,6 +4329,8 @@ fn the_raw_histories_exercise_every_feature() {
         accepted_from_earlier,
         duplicates,
         drops,
+        unresponsive,
+        responsive_again,
         cancels,
         jobs_done,
         jobs_failed,
@@ -4319,6 +4352,8 @@ fn the_raw_histories_exercise_every_feature() {
         ("accepted_from_earlier", accepted_from_earlier),
         ("duplicates", duplicates),
         ("drops", drops),
+        ("unresponsive", unresponsive),
+        ("responsive_again", responsive_again),
         ("cancels", cancels),
         ("jobs_done", jobs_done),
         ("jobs_failed", jobs_failed),

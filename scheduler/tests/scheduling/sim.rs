@@ -95,6 +95,48 @@ fn every_tile_is_accepted_exactly_once_despite_crashes_hangs_and_joins() {
     }
 }
 
+/// Render hangs at scale: a farm whose machines' render threads stop about every
+/// thirty seconds for 25 to 60 s while their runtimes keep heart-beating (no process
+/// stops, no connection drops). Every job is done: the scheduler marks the hung
+/// workers unresponsive once their leases ran out with no result, their tiles go to
+/// others, and they take tiles again after their first result once they run. Every
+/// further assignment still has a reason.
+#[test]
+fn every_job_is_done_when_render_threads_hang_behind_live_heartbeats() {
+    let (mut marked, mut back) = (0, 0);
+    for seed in 1..=3 {
+        let config = SimConfig {
+            seed,
+            workers: 20,
+            jobs: 20,
+            width: 1920,
+            height: 1080,
+            tile_ms: 200.0,
+            crashes_per_worker_hour: 0.0,
+            hangs_per_worker_hour: 0.0,
+            render_hangs_per_worker_hour: 120.0,
+            render_hang_min_ms: 25_000,
+            render_hang_max_ms: 60_000,
+            joins_per_minute: 0.0,
+            ..SimConfig::default()
+        };
+        let report = sim::run(&config);
+        check(&report);
+        let o = &report.outcome;
+        assert_eq!(o.jobs_done, o.jobs, "seed {seed}:\n{report}");
+        assert!(o.render_hangs > 0, "seed {seed}:\n{report}");
+        // Nobody is dropped: the hung workers keep their connections.
+        assert_eq!(o.drops, 0, "seed {seed}:\n{report}");
+        marked += o.unresponsive;
+        back += o.responsive_again;
+        if seed == 1 {
+            println!("{report}");
+        }
+    }
+    // Some hangs outlasted the allowance and were marked, and some of those came back.
+    assert!(marked > 0 && back > 0, "{marked} marked, {back} back");
+}
+
 #[test]
 fn the_same_seed_gives_the_same_run() {
     let a = sim::run(&troubled(7));
