@@ -271,7 +271,7 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
         }
         if marked.is_none() {
             let workers = client.workers().await?;
-            if workers.iter().any(|w| w.name == victim && unresponsive(w)) {
+            if workers.iter().any(|w| w.name == victim && w.unresponsive) {
                 marked = Some(froze.elapsed().as_secs_f64());
             }
         }
@@ -310,14 +310,6 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
         job: job_seconds,
         tiles_done_at_freeze: status.tiles_done,
     })
-}
-
-/// Whether the coordinator lists the worker as unresponsive.
-fn unresponsive(worker: &protocol::WorkerStatus) -> bool {
-    serde_json::to_value(worker)
-        .ok()
-        .and_then(|w| w.get("unresponsive")?.as_bool())
-        .unwrap_or(false)
 }
 
 /// Every event of the job, in order.
