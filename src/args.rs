@@ -220,7 +220,11 @@ impl PeerArgs {
                 self.tls_server_name.as_deref(),
                 self.tls_fingerprint.and_then(|Pin(pin)| pin),
             )?,
-            secret: transport::load_secret(self.secret.token_file.as_deref(), "TESSERA_TOKEN")?,
+            // Checked now, and read again at every connection.
+            secret: transport::TokenSource::from_settings(
+                self.secret.token_file.as_deref(),
+                "TESSERA_TOKEN",
+            )?,
         })
     }
 }

@@ -1,6 +1,8 @@
 //! The signals that end a command: Ctrl-C, SIGTERM and SIGHUP for the commands that
 //! run a farm on this machine (`up`, `studio`), which must stop it and remove its
-//! files before they exit; and for the daemons, the same or their parent gone.
+//! files before they exit; and for the daemons, the same or their parent gone. The
+//! coordinator takes SIGHUP as the daemons' usual request to reload ([`Hangups`]): its
+//! token files.
 
 use anyhow::{Context, Result};
 use tracing::info;
@@ -79,6 +81,44 @@ impl StopSignals {
                 name: "Ctrl-C",
                 exit_code: 130,
             }
+        }
+    }
+}
+
+/// The SIGHUPs a daemon receives, caught from their creation on (so that one no
+/// longer ends the process).
+pub struct Hangups {
+    #[cfg(unix)]
+    signal: tokio::signal::unix::Signal,
+}
+
+impl Hangups {
+    pub fn new() -> Result<Hangups> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            Ok(Hangups {
+                signal: signal(SignalKind::hangup()).context("cannot catch SIGHUP")?,
+            })
+        }
+        #[cfg(not(unix))]
+        Ok(Hangups {})
+    }
+
+    /// Waits for the next SIGHUP; `false` if none can come any more.
+    pub async fn next(&mut self) -> bool {
+        #[cfg(unix)]
+        {
+            let received = self.signal.recv().await.is_some();
+            if received {
+                info!("SIGHUP: reloading the token files");
+            }
+            received
+        }
+        #[cfg(not(unix))]
+        {
+            std::future::pending::<()>().await;
+            false
         }
     }
 }

@@ -183,10 +183,14 @@ pub struct Asking<'a> {
 ///   that without the browser asking first, and nothing here answers that question.
 ///   An `Origin`, when sent, must name the host the request was sent to.
 /// - With a client secret, it must carry `Authorization: Bearer SECRET`, compared in
-///   constant time: missing is 401, wrong is 403.
+///   constant time: missing is 401, wrong is 403. `secrets` are those accepted now:
+///   the current one, and after a rotation the previous one until its window closes.
 /// - Without one, only a loopback peer may: the secretless farm trusts its own machine
 ///   only, as its protocol listener does.
-pub fn authorize(secret: Option<&[u8]>, asking: Asking<'_>) -> Result<(), (StatusCode, String)> {
+pub fn authorize(
+    secrets: Option<&[Vec<u8>]>,
+    asking: Asking<'_>,
+) -> Result<(), (StatusCode, String)> {
     let json = asking.content_type.is_some_and(|t| {
         t.split(';')
             .next()
@@ -210,8 +214,8 @@ pub fn authorize(secret: Option<&[u8]>, asking: Asking<'_>) -> Result<(), (Statu
             ));
         }
     }
-    match secret {
-        Some(secret) => {
+    match secrets {
+        Some(secrets) => {
             let token = asking
                 .authorization
                 .and_then(|v| v.strip_prefix("Bearer "))
@@ -221,7 +225,14 @@ pub fn authorize(secret: Option<&[u8]>, asking: Asking<'_>) -> Result<(), (Statu
                     StatusCode::UNAUTHORIZED,
                     "this farm has a client secret: send it as Authorization: Bearer TOKEN".into(),
                 )),
-                Some(token) if same_secret(token.as_bytes(), secret) => Ok(()),
+                // Every secret is compared, so that the time taken does not tell which.
+                Some(token)
+                    if secrets
+                        .iter()
+                        .fold(false, |any, s| same_secret(token.as_bytes(), s) | any) =>
+                {
+                    Ok(())
+                }
                 Some(_) => Err((StatusCode::FORBIDDEN, "wrong client token".into())),
             }
         }
@@ -266,7 +277,7 @@ fn authorized(
         origin: text(header::ORIGIN),
         host: text(header::HOST),
     };
-    authorize(observer.client_secret(), asking)
+    authorize(observer.client_secrets().as_deref(), asking)
 }
 
 /// The answer to a control: the job or the workers as the protocol gives them, or
@@ -748,8 +759,14 @@ mod tests {
 
     #[test]
     fn with_a_secret_the_token_decides_wherever_the_peer_is() {
-        let secret = Some(&b"s3cret"[..]);
+        let secrets = [b"s3cret".to_vec(), b"previous".to_vec()];
+        let secret = Some(&secrets[..]);
         for peer in [LOOPBACK, REMOTE] {
+            // Within a rotation's window, the previous secret passes too.
+            assert_eq!(
+                code(authorize(secret, asking(peer, Some("Bearer previous")))),
+                None
+            );
             assert_eq!(
                 code(authorize(secret, asking(peer, None))),
                 Some(StatusCode::UNAUTHORIZED)

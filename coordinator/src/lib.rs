@@ -4,11 +4,13 @@
 //! [`scheduler`] makes every decision as a pure state machine; [`server`] is the daemon
 //! that feeds it events from the network and carries out its actions; [`client`] is the
 //! library side of the command-line client; [`security`] holds the rules a coordinator's
-//! settings must follow before it accepts anyone.
+//! settings must follow before it accepts anyone, and [`keyring`] which token a peer
+//! proves as tokens are rotated.
 
 pub mod client;
 mod db;
 pub mod http;
+pub mod keyring;
 mod metrics;
 mod preview;
 pub mod security;

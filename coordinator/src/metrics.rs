@@ -58,6 +58,7 @@ pub struct Metrics {
     results_confirmed: Counter,
     workers_quarantined: Counter,
     workers_refused: Counter,
+    canaries_interrupted: Counter,
     /// What the scheduler's counters were at the last scrape.
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
@@ -172,8 +173,16 @@ impl Metrics {
             "Workers refused because their canary render differs from the coordinator's",
             workers_refused.clone(),
         );
+        let canaries_interrupted = Counter::default();
+        registry.register(
+            "worker_canaries_interrupted",
+            "Worker connections lost during their canary (a connection error, closed or \
+             silent): not refusals, the worker reconnects",
+            canaries_interrupted.clone(),
+        );
         Metrics {
             registry,
+            canaries_interrupted,
             results_rejected,
             results_confirmed,
             workers_quarantined,
@@ -218,6 +227,11 @@ impl Metrics {
     /// Counts a machine quarantined.
     pub fn worker_quarantined(&self) {
         self.workers_quarantined.inc();
+    }
+
+    /// Counts a worker connection lost during its canary.
+    pub fn canary_interrupted(&self) {
+        self.canaries_interrupted.inc();
     }
 
     /// Counts a worker refused at its canary.

@@ -40,6 +40,7 @@ mod client_session;
 mod core;
 mod data_lock;
 mod handshake;
+mod keys;
 mod observer;
 mod persistence;
 mod startup;
@@ -47,6 +48,7 @@ mod studio_session;
 mod verification;
 mod worker_session;
 
+pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
 
 pub use observer::{
@@ -99,6 +101,12 @@ pub const DEFAULT_MAX_CONNECTIONS: usize = 256;
 /// The default time a peer has to complete its handshake.
 pub const DEFAULT_HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// How long a replaced token stays accepted after a reload by default: long enough to
+/// give a farm's machines their new token files one by one (by hand or by a
+/// configuration run), short enough that a token rotated out because it leaked does
+/// not stay good for long.
+pub const DEFAULT_TOKEN_OVERLAP: Duration = Duration::from_secs(10 * 60);
+
 /// How the daemon is set up.
 #[derive(Clone, Debug)]
 pub struct Config {
@@ -115,6 +123,9 @@ pub struct Config {
     /// The secret clients must prove, and that the coordinator proves to them, if any.
     /// Distinct from the workers' so that a client's credential cannot render tiles.
     pub client_secret: Option<Vec<u8>>,
+    /// After a reload of the token files ([`TokenReloader`]), the secret a role had
+    /// before stays accepted this long beside the new one.
+    pub token_overlap: Duration,
     /// Serve TLS with this certificate, if set; plain TCP otherwise.
     pub tls: Option<ServerTls>,
     /// Heartbeat timeout, leases, retries and speculation.
@@ -145,6 +156,7 @@ impl Config {
             handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
             worker_secret: None,
             client_secret: None,
+            token_overlap: DEFAULT_TOKEN_OVERLAP,
             tls: None,
             policy: Policy::default(),
             verify: VerifyConfig::default(),
@@ -180,8 +192,9 @@ struct Shared {
     clock: Instant,
     runtime: tokio::runtime::Handle,
     handshake_timeout: Duration,
-    worker_secret: Option<Vec<u8>>,
-    client_secret: Option<Vec<u8>>,
+    /// The secrets of both roles, current and previous: replaced on a reload, watched by
+    /// the connections that proved one, which end when theirs is retired.
+    keys: tokio::sync::watch::Sender<crate::keyring::Keyring>,
     tls: Option<ServerTls>,
     limits: lifecycle::Limits,
     /// Set on shutdown: new jobs are refused.
@@ -315,8 +328,12 @@ impl Server {
             closing: AtomicBool::new(false),
             max_frame: config.max_frame,
             handshake_timeout: config.handshake_timeout,
-            worker_secret: config.worker_secret.clone(),
-            client_secret: config.client_secret.clone(),
+            keys: tokio::sync::watch::channel(crate::keyring::Keyring::new(
+                config.worker_secret.clone(),
+                config.client_secret.clone(),
+                config.token_overlap.as_millis() as Millis,
+            ))
+            .0,
             tls: config.tls.clone(),
             limits,
             changes: tokio::sync::watch::channel(0).0,
@@ -367,6 +384,11 @@ impl Server {
             .transpose()?)
     }
 
+    /// What reloads the token files into this coordinator (on SIGHUP, in the binary).
+    pub fn token_reloader(&self) -> TokenReloader {
+        TokenReloader::new(Arc::clone(&self.shared))
+    }
+
     /// A read-only view of the coordinator, for its HTTP endpoints.
     pub fn observer(&self) -> Observer {
         Observer {
@@ -380,6 +402,7 @@ impl Server {
         tokio::pin!(shutdown);
         let _timer = AbortOnDrop(tokio::spawn(timer(Arc::clone(&self.shared))));
         let _watchdog = AbortOnDrop(tokio::spawn(watchdog(Arc::clone(&self.shared))));
+        let _retire = AbortOnDrop(tokio::spawn(keys::retire(Arc::clone(&self.shared))));
         // The HTTP side stays up through the graceful shutdown (readiness says so).
         let _stop_http = self.http.take().map(|listener| {
             crate::http::spawn(listener, crate::http::coordinator_routes(self.observer()))

@@ -11,7 +11,7 @@ use crate::wire;
 pub const MAGIC: [u8; 4] = *b"TSRA";
 
 /// Bumped whenever any message changes shape.
-pub const PROTOCOL_VERSION: u16 = 8;
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// The peer's first frame.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -23,6 +23,43 @@ pub struct Hello {
     /// [`Welcome::Challenge`]) is made for this connection and cannot be replayed from
     /// an earlier one. A peer without a secret checks nothing and may send zeros.
     pub nonce: [u8; 32],
+    /// Which secret the peer holds ([`KeyId::of`] it), if it holds one. The coordinator
+    /// proves its secret first, so it must know which one to prove: while a rotated
+    /// token's overlap window is open it holds two per role.
+    pub key: Option<KeyId>,
+}
+
+/// A short name for a secret that reveals nothing of it: the first 4 bytes of
+/// SHA-256 over a fixed label and the secret. Peers send it in their [`Hello`] so that
+/// the coordinator knows which of its secrets to prove; logs and listings show it (as 8
+/// hex digits) to say which secret a peer used, and operators compare it between
+/// machines without copying tokens around.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct KeyId(pub [u8; 4]);
+
+/// The label hashed before the secret, so that a key id is no plain SHA-256 of the
+/// token that could be looked up elsewhere.
+const KEY_ID_LABEL: &[u8] = b"tessera key id v1\0";
+
+impl KeyId {
+    /// The key id of `secret`.
+    pub fn of(secret: &[u8]) -> KeyId {
+        use sha2::{Digest, Sha256};
+        let digest = Sha256::new()
+            .chain_update(KEY_ID_LABEL)
+            .chain_update(secret)
+            .finalize();
+        KeyId([digest[0], digest[1], digest[2], digest[3]])
+    }
+}
+
+impl std::fmt::Display for KeyId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for b in self.0 {
+            write!(f, "{b:02x}")?;
+        }
+        Ok(())
+    }
 }
 
 /// What the peer is.
@@ -237,9 +274,13 @@ impl PeerHandshake {
         }
     }
 
-    /// The first frame body to send.
+    /// The first frame body to send: it names the secret held by its key id.
     pub fn hello(&self) -> Vec<u8> {
-        Hello::with_nonce(self.role.clone(), self.nonce).to_frame()
+        Hello {
+            key: self.secret.as_deref().map(KeyId::of),
+            ..Hello::with_nonce(self.role.clone(), self.nonce)
+        }
+        .to_frame()
     }
 
     /// Reads one `Welcome` frame.
@@ -349,13 +390,15 @@ impl Hello {
         Hello::with_nonce(role, [0; 32])
     }
 
-    /// This version's hello for `role`, with the peer's fresh `nonce`.
+    /// This version's hello for `role`, with the peer's fresh `nonce` and no key id
+    /// (see [`PeerHandshake::hello`] for a peer with a secret).
     pub fn with_nonce(role: Role, nonce: [u8; 32]) -> Self {
         Hello {
             magic: MAGIC,
             version: PROTOCOL_VERSION,
             role,
             nonce,
+            key: None,
         }
     }
 
@@ -560,6 +603,34 @@ mod tests {
             anonymous.on_frame(b"\x07\x00\x00\x00"),
             Err(PeerHandshakeError::NotACoordinator(_))
         ));
+    }
+
+    #[test]
+    fn a_key_id_names_a_secret_without_being_a_plain_hash_of_it() {
+        // The example of docs/protocol.md.
+        assert_eq!(KeyId::of(b"s3cret"), KeyId([0x97, 0x22, 0x1d, 0xf8]));
+        assert_eq!(KeyId::of(b"s3cret").to_string(), "97221df8");
+        assert_ne!(KeyId::of(b"s3cret"), KeyId::of(b"s3cret "));
+        use sha2::{Digest, Sha256};
+        assert_ne!(KeyId::of(b"s3cret").0, Sha256::digest(b"s3cret")[..4]);
+        // A peer names its secret's key id in its hello; without one, none.
+        let peer = PeerHandshake::new(worker(), Some(b"k".to_vec()), PEER_NONCE);
+        let hello = Hello::from_frame(&peer.hello()).unwrap();
+        assert_eq!(hello.key, Some(KeyId::of(b"k")));
+        let anonymous = PeerHandshake::new(Role::Client, None, PEER_NONCE);
+        assert_eq!(Hello::from_frame(&anonymous.hello()).unwrap().key, None);
+    }
+
+    #[test]
+    fn a_hello_of_the_previous_version_is_refused_naming_both() {
+        let mut frame = Hello::new(Role::Client).to_frame();
+        frame[4..6].copy_from_slice(&8u16.to_le_bytes());
+        let error = Hello::from_frame(&frame).unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "protocol version mismatch: this coordinator speaks version 9, the peer speaks \
+             version 8"
+        );
     }
 
     #[test]

@@ -17,7 +17,7 @@ pub mod wire;
 pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
 pub use crate::handshake::{
     auth_label, coordinator_proof, peer_proof, AuthFailure, AuthProof, AuthRole,
-    CoordinatorChallenge, Hello, HelloError, PeerHandshake, PeerHandshakeError, PeerStep, Role,
-    Welcome, MAGIC, PROTOCOL_VERSION,
+    CoordinatorChallenge, Hello, HelloError, KeyId, PeerHandshake, PeerHandshakeError, PeerStep,
+    Role, Welcome, MAGIC, PROTOCOL_VERSION,
 };
 pub use crate::messages::*;

@@ -476,6 +476,43 @@ pub struct WorkerStatus {
     /// its progress allowance (its heartbeats still come): it gets no new tile, and its
     /// tiles are rendered elsewhere, until it returns a result.
     pub unresponsive: bool,
+    /// The worker secret it proved, if the coordinator asks workers for one.
+    pub key: Option<PeerKey>,
+}
+
+/// Which of the coordinator's secrets a peer proved: after a rotation, a peer still on
+/// the previous secret is the one whose token file has yet to be replaced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PeerKey {
+    pub id: crate::KeyId,
+    pub standing: KeyStanding,
+}
+
+/// Where a secret stands on the coordinator.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum KeyStanding {
+    /// The secret its token file holds now.
+    Current,
+    /// The one it held before the last reload, accepted until the overlap window
+    /// closes (then the peers still using it are disconnected).
+    Previous,
+}
+
+impl KeyStanding {
+    /// "current" or "previous", as listings and logs name it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            KeyStanding::Current => "current",
+            KeyStanding::Previous => "previous",
+        }
+    }
+}
+
+impl std::fmt::Display for PeerKey {
+    /// `3f2a91c0 (current)`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} ({})", self.id, self.standing.as_str())
+    }
 }
 
 /// One render of the canary: the settings and the rectangle of the canary scene.

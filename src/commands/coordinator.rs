@@ -8,13 +8,13 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
 use render::limits::MAX_AA;
-use tracing::info;
+use tracing::{error, info};
 use transport::ServerTls;
 
 use crate::args::DaemonArgs;
 use crate::config;
 use crate::scene_file::read_checked_scene;
-use crate::signals::shutdown_signal;
+use crate::signals::{shutdown_signal, Hangups};
 
 /// Run a coordinator: accept jobs, hand tiles to workers, store images.
 #[derive(clap::Args)]
@@ -71,6 +71,12 @@ pub struct Args {
     max_jobs_per_client: u64,
     #[command(flatten)]
     secrets: CoordinatorSecretArgs,
+    /// After SIGHUP reloads the token files, how long a replaced token stays accepted
+    /// beside the new one (then the peers still using it are disconnected and must
+    /// reconnect with the new one): a whole number and a unit, ms, s, m, h or d.
+    #[arg(long, env = "TESSERA_TOKEN_OVERLAP", value_name = "DURATION", default_value = "10m",
+          value_parser = config::parse_duration)]
+    token_overlap: Duration,
     /// Serve TLS with a self-signed certificate made on first start and kept under
     /// --data (tls/cert.pem, tls/key.pem, mode 0600); its SHA-256 fingerprint is printed
     /// at startup for peers to pin with --tls-fingerprint.
@@ -226,6 +232,7 @@ async fn coordinator(a: Args) -> Result<()> {
         handshake_timeout: Duration::from_millis(a.handshake_timeout_ms),
         worker_secret,
         client_secret,
+        token_overlap: a.token_overlap,
         tls,
         policy: scheduler::Policy {
             heartbeat_timeout: a.heartbeat_timeout_ms,
@@ -255,13 +262,21 @@ async fn coordinator(a: Args) -> Result<()> {
         .as_deref()
         .map(read_checked_scene)
         .transpose()?;
-    serve(config, a.exit_on_stdin_eof).await
+    serve(config, a.exit_on_stdin_eof, a.secrets).await
 }
 
 /// Binds, prints where it listens (and its certificate's fingerprint) and serves until
-/// a signal, or with `exit_on_stdin_eof` until its parent is gone.
-async fn serve(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<()> {
+/// a signal, or with `exit_on_stdin_eof` until its parent is gone. SIGHUP reloads the
+/// token files from `secrets`.
+async fn serve(
+    config: coordinator::Config,
+    exit_on_stdin_eof: bool,
+    secrets: CoordinatorSecretArgs,
+) -> Result<()> {
     return_large_blocks_to_the_system();
+    // Caught before anything is bound, so that a SIGHUP sent as soon as the address is
+    // printed never ends the daemon.
+    let hangups = Hangups::new()?;
     let fingerprint = config
         .tls
         .as_ref()
@@ -270,11 +285,27 @@ async fn serve(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<(
         config.worker_secret.is_some(),
         config.client_secret.is_some(),
     );
+    let worker_key = config.worker_secret.as_deref().map(protocol::KeyId::of);
+    let client_key = config.client_secret.as_deref().map(protocol::KeyId::of);
     let server = coordinator::server::Server::bind(config).await?;
+    let _reloads = AbortOnDrop(tokio::spawn(reload_on_hangup(
+        hangups,
+        secrets,
+        server.token_reloader(),
+    )));
     let addr = server.local_addr()?;
     // The first line on stdout is the address, for scripts and `tessera up`.
     println!("listening on {addr}");
     info!(%addr, workers_prove, clients_prove, "coordinator listening");
+    if worker_key.is_some() || client_key.is_some() {
+        let key =
+            |k: Option<protocol::KeyId>| k.map_or_else(|| "none".to_owned(), |k| k.to_string());
+        info!(
+            worker_key = %key(worker_key),
+            client_key = %key(client_key),
+            "tokens loaded (SIGHUP reloads them)"
+        );
+    }
     if let Some(http) = server.http_addr()? {
         println!("http on {http}");
         info!(%http, "status page, metrics and health on http://{http}/");
@@ -286,6 +317,36 @@ async fn serve(config: coordinator::Config, exit_on_stdin_eof: bool) -> Result<(
         info!(%fingerprint, "TLS certificate's SHA-256 fingerprint: pin it with --tls-fingerprint");
     }
     server.run(shutdown_signal(exit_on_stdin_eof)).await
+}
+
+/// Reloads the token files at every SIGHUP. A reload that fails (a file unreadable or
+/// empty, the two tokens equal) changes nothing: one error line, and the daemon goes on
+/// with the tokens it had.
+async fn reload_on_hangup(
+    mut hangups: Hangups,
+    secrets: CoordinatorSecretArgs,
+    reloader: coordinator::server::TokenReloader,
+) {
+    while hangups.next().await {
+        let reloaded = secrets
+            .load()
+            .and_then(|(worker, client)| Ok(reloader.reload(worker, client)?));
+        if let Err(e) = reloaded {
+            error!(
+                error = %format!("{e:#}"),
+                "SIGHUP: cannot reload the token files: the tokens in use stay in use"
+            );
+        }
+    }
+}
+
+/// Aborts a task when dropped: the reload task ends with the daemon.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
 }
 
 /// Has the C allocator give every large block (a frame being assembled, an encoded

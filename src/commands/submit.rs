@@ -52,9 +52,13 @@ pub struct Args {
     /// Priority: higher runs first; equal priorities share the farm.
     #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
     priority: i32,
-    /// How results are checked: `sampled` (spot checks and a random share of tiles
-    /// rendered twice) or `full` (every tile rendered by two different machines, which
-    /// must agree byte for byte; needs two workers).
+    /// How results are checked. `sampled`: 16 pixels of every tile rendered again by
+    /// the coordinator, and 1 % of the tiles by a second machine; it catches a tile
+    /// that is wrong in many pixels (noise, a broken build) almost surely, but lets a
+    /// few subtly altered pixels through: a tile with one pixel off by one level
+    /// survives with probability 0.99. `full`: every tile rendered by two different
+    /// machines, which must agree byte for byte (twice the rendering; needs two
+    /// workers): nothing altered survives unless both machines lie alike.
     #[arg(long, value_enum, default_value_t = VerifyArg::Sampled, value_name = "MODE")]
     verify: VerifyArg,
     /// Wait for the job, showing progress, and write its image.

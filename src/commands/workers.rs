@@ -93,8 +93,11 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             if w.unresponsive {
                 state.push_str(", UNRESPONSIVE");
             }
+            // Which worker token it proved: after a rotation, "previous" marks the
+            // workers whose token file is still to be replaced.
+            let key = w.key.map_or(String::new(), |k| format!(", key {k}"));
             println!(
-                "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{state}",
+                "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{key}{state}",
                 w.id,
                 w.name,
                 w.threads,
@@ -170,5 +173,6 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "draining": w.draining,
         "disabled": w.disabled,
         "unresponsive": w.unresponsive,
+        "key": w.key.map(|k| json!({ "id": k.id.to_string(), "standing": k.standing.as_str() })),
     })
 }

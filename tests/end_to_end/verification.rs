@@ -15,7 +15,9 @@
 //!   the first by its pixels disagreeing with its state, the second by advancing a
 //!   block of its answer again (`--spot-pixels 1024` checks a block of every answer).
 //! - A worker whose renderer differs (one pixel of every output, the canary included):
-//!   refused at the canary with both builds named, it never gets a tile.
+//!   refused at the canary with both builds named, it never gets a tile. Workers whose
+//!   connections end during the canary are lost connections, not refusals: counted
+//!   apart and logged as warnings.
 //! - A worker rendering frame 1 of an animated scene for a job of frame 17: caught by
 //!   the spot checks, which render the job's frame, and the job done with
 //!   `tessera render --frame 17`'s image.
@@ -417,6 +419,51 @@ fn a_relay_flipping_bytes_of_tile_results_gets_the_relayed_machine_quarantined()
         relay.tile_frames()
     );
     farm.assert_quarantined("relayed", &["direct-1", "direct-2"]);
+}
+
+/// A worker whose connection ends during its canary (it gave up waiting, as workers
+/// reconnecting to a paused coordinator do) is a lost connection: counted apart, logged
+/// as a warning, never as a refusal that operators alert on.
+#[test]
+fn a_connection_lost_during_the_canary_is_not_a_refusal() {
+    let _turn = shared();
+    let farm = Farm::start(&[]);
+    let build = render::build_identity();
+    for i in 0..3 {
+        let gone = FakeWorker::start(
+            &farm.addr,
+            &format!("gone-{i}"),
+            &build,
+            Lie::HangsUpAtCanary,
+        );
+        assert!(
+            gone.wait_closed(Duration::from_secs(20)),
+            "the worker is still connected"
+        );
+        assert!(gone.refusal().is_none(), "{:?}", gone.refusal());
+    }
+    poll(
+        "the lost canaries to be counted",
+        Duration::from_secs(10),
+        || (farm.metric("tessera_worker_canaries_interrupted_total") == 3.0).then_some(()),
+    );
+    assert_eq!(farm.metric("tessera_workers_refused_total"), 0.0);
+    let log = farm.coordinator.log_text();
+    assert!(
+        !log.lines().any(|l| l.contains("refused")),
+        "a lost connection logged as a refusal:\n{log}"
+    );
+    assert_eq!(
+        log.lines()
+            .filter(|l| l.contains("WARN") && l.contains("connection lost during the canary"))
+            .count(),
+        3,
+        "{log}"
+    );
+    // The farm still renders right.
+    let id = farm.submit(&[]);
+    let _w1 = farm.worker("w1");
+    farm.finish(id);
 }
 
 #[test]

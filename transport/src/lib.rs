@@ -33,7 +33,7 @@ mod address;
 mod secret;
 
 pub use address::{parse_address, AddressError, DEFAULT_ADDRESS, DEFAULT_PORT};
-pub use secret::{load_secret, SecretError};
+pub use secret::{load_secret, SecretError, TokenSource};
 
 /// Anything the protocol can run over.
 pub trait Io: AsyncRead + AsyncWrite + Unpin + Send {}
@@ -447,14 +447,15 @@ fn read_certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>> {
     Ok(chain)
 }
 
-/// How to reach a coordinator: its address, whether to speak TLS to it, and the secret
-/// of this peer's role (a worker's or a client's token): the coordinator must prove it
-/// knows it before the peer proves it in turn.
+/// How to reach a coordinator: its address, whether to speak TLS to it, and where the
+/// secret of this peer's role (a worker's or a client's token) comes from: the
+/// coordinator must prove it knows it before the peer proves it in turn.
 #[derive(Clone, Debug)]
 pub struct Endpoint {
     pub address: String,
     pub tls: Option<ClientTls>,
-    pub secret: Option<Vec<u8>>,
+    /// Read at every [`dial`], so that a rotated token file is picked up.
+    pub secret: TokenSource,
 }
 
 impl Endpoint {
@@ -463,7 +464,7 @@ impl Endpoint {
         Endpoint {
             address: address.into(),
             tls: None,
-            secret: None,
+            secret: TokenSource::None,
         }
     }
 }
@@ -493,12 +494,27 @@ pub type Handshaken = Framed<Stream, LengthDelimitedCodec>;
 /// coordinator counts as unreachable.
 pub const DIAL_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// Connects, sets up TLS if configured, says hello as `role` with a fresh nonce, checks
-/// the coordinator's proof of the secret (a peer with a secret refuses a coordinator that
-/// does not prove it) and answers its challenge until it accepts or refuses, all within
-/// [`DIAL_TIMEOUT`].
+/// Reads the endpoint's token as its source holds it now, then [`dial_with`] it. A
+/// token that cannot be read (a file being rewritten, say) counts as a coordinator
+/// not reachable now: trying again later may help.
 pub async fn dial(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialError> {
-    tokio::time::timeout(DIAL_TIMEOUT, dial_now(endpoint, role))
+    let secret = endpoint
+        .secret
+        .load()
+        .map_err(|e| DialError::Unreachable(e.into()))?;
+    dial_with(endpoint, role, secret).await
+}
+
+/// Connects, sets up TLS if configured, says hello as `role` with a fresh nonce and the
+/// key id of `secret`, checks the coordinator's proof of the secret (a peer with a
+/// secret refuses a coordinator that does not prove it) and answers its challenge until
+/// it accepts or refuses, all within [`DIAL_TIMEOUT`].
+pub async fn dial_with(
+    endpoint: &Endpoint,
+    role: Role,
+    secret: Option<Vec<u8>>,
+) -> Result<Handshaken, DialError> {
+    tokio::time::timeout(DIAL_TIMEOUT, dial_now(endpoint, role, secret))
         .await
         .unwrap_or_else(|_| {
             Err(DialError::Unreachable(anyhow!(
@@ -509,7 +525,11 @@ pub async fn dial(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialErr
         })
 }
 
-async fn dial_now(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialError> {
+async fn dial_now(
+    endpoint: &Endpoint,
+    role: Role,
+    secret: Option<Vec<u8>>,
+) -> Result<Handshaken, DialError> {
     let address = &endpoint.address;
     let unreachable = |e: anyhow::Error| DialError::Unreachable(e);
     let talk = |e: std::io::Error| {
@@ -530,7 +550,7 @@ async fn dial_now(endpoint: &Endpoint, role: Role) -> Result<Handshaken, DialErr
     let mut nonce = [0u8; 32];
     getrandom::fill(&mut nonce)
         .map_err(|e| DialError::Unreachable(anyhow!("no randomness for a nonce: {e}")))?;
-    let mut handshake = PeerHandshake::new(role, endpoint.secret.clone(), nonce);
+    let mut handshake = PeerHandshake::new(role, secret, nonce);
     raw.send(Bytes::from(handshake.hello()))
         .await
         .map_err(talk)?;

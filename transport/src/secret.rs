@@ -2,6 +2,10 @@
 //! environment variable holding the token itself. Files keep secrets out of process
 //! listings and shell histories; the variable suits container platforms that inject
 //! secrets that way.
+//!
+//! A peer keeps where its token comes from ([`TokenSource`]), not the token, and reads
+//! it again at every connection: a token file replaced during a rotation is picked up
+//! at the next reconnection, without a restart.
 
 use std::path::{Path, PathBuf};
 
@@ -45,9 +49,83 @@ pub fn load_secret(file: Option<&Path>, variable: &str) -> Result<Option<Vec<u8>
     Ok(Some(secret.as_bytes().to_vec()))
 }
 
+/// Where a peer's token comes from, read at every connection ([`TokenSource::load`]).
+#[derive(Clone, Default)]
+pub enum TokenSource {
+    /// No token: the peer proves nothing.
+    #[default]
+    None,
+    /// The token itself, from an environment variable: a running process's
+    /// environment does not change, so it is read once.
+    Token(Vec<u8>),
+    /// A token file, read again at every connection.
+    File(PathBuf),
+}
+
+impl TokenSource {
+    /// The token in `file`, else in the environment variable `variable`, else none,
+    /// as [`load_secret`] reads them; the file is read once now, so that a bad one is
+    /// reported at start, and again at every connection.
+    pub fn from_settings(file: Option<&Path>, variable: &str) -> Result<TokenSource, SecretError> {
+        let secret = load_secret(file, variable)?;
+        Ok(match (file, secret) {
+            (Some(path), _) => TokenSource::File(path.to_owned()),
+            (None, Some(token)) => TokenSource::Token(token),
+            (None, None) => TokenSource::None,
+        })
+    }
+
+    /// The token as its source holds it now.
+    pub fn load(&self) -> Result<Option<Vec<u8>>, SecretError> {
+        match self {
+            TokenSource::None => Ok(None),
+            TokenSource::Token(token) => Ok(Some(token.clone())),
+            TokenSource::File(path) => load_secret(Some(path), ""),
+        }
+    }
+}
+
+/// Never shows the token itself.
+impl std::fmt::Debug for TokenSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TokenSource::None => f.write_str("None"),
+            TokenSource::Token(_) => f.write_str("Token(..)"),
+            TokenSource::File(path) => f.debug_tuple("File").field(path).finish(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_token_file_is_read_again_at_every_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("token");
+        std::fs::write(&path, "first\n").unwrap();
+        let source = TokenSource::from_settings(Some(&path), UNSET).unwrap();
+        assert_eq!(source.load().unwrap(), Some(b"first".to_vec()));
+        std::fs::write(&path, "second\n").unwrap();
+        assert_eq!(source.load().unwrap(), Some(b"second".to_vec()));
+        assert_eq!(format!("{source:?}"), format!("File({path:?})"));
+        // A file emptied (or being rewritten) is an error at that load, not a token.
+        std::fs::write(&path, "").unwrap();
+        assert!(source.load().is_err());
+        // A bad file is refused at once.
+        assert!(TokenSource::from_settings(Some(&dir.path().join("none")), UNSET).is_err());
+        let fixed = TokenSource::Token(b"s3cret".to_vec());
+        assert_eq!(fixed.load().unwrap(), Some(b"s3cret".to_vec()));
+        assert_eq!(format!("{fixed:?}"), "Token(..)");
+        assert_eq!(
+            TokenSource::from_settings(None, UNSET)
+                .unwrap()
+                .load()
+                .unwrap(),
+            None
+        );
+    }
 
     /// A variable no other test sets, so that tests running in parallel cannot race.
     const UNSET: &str = "TESSERA_TRANSPORT_TEST_TOKEN_NEVER_SET";

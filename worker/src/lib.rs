@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use futures_util::{SinkExt, StreamExt};
-use protocol::{FromWorker, JobId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
+use protocol::{FromWorker, JobId, KeyId, MessageCodec, Role, ToWorker, DEFAULT_MAX_FRAME};
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
 use tracing::{info, warn};
@@ -49,9 +49,10 @@ pub struct Config {
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
 /// Works for the coordinator until `shutdown` completes or the coordinator drains it
-/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is retried with exponential backoff
-/// and jitter; a coordinator that refuses the worker (another protocol version) is an
-/// error.
+/// (a clean exit after draining, in both cases). A lost or unreachable coordinator is
+/// retried with exponential backoff and jitter. A coordinator that refuses the worker's
+/// handshake (a wrong token, another protocol version) is an error, unless the token
+/// file, read again, holds another token since ([`after_refusal`]).
 pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
     let pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
@@ -63,9 +64,11 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
     tokio::pin!(shutdown);
     let mut backoff = Backoff::default();
     loop {
-        match connect(&config).await {
+        let (key, connected) = connect(&config).await;
+        match connected {
             Ok(conn) => {
-                info!(coordinator = %config.coordinator.address, threads = config.threads, "connected");
+                let key = key.map_or_else(|| "none".to_owned(), |k| k.to_string());
+                info!(coordinator = %config.coordinator.address, threads = config.threads, %key, "connected");
                 backoff.reset();
                 let session = Session {
                     conn,
@@ -88,7 +91,17 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     Err(e) => warn!(error = %format!("{e:#}"), "lost the coordinator"),
                 }
             }
-            Err(DialError::Refused(e)) => return Err(e),
+            Err(DialError::Refused(e)) => {
+                let holding = config.coordinator.secret.load().ok();
+                match after_refusal(key, holding.as_ref().map(|s| s.as_deref().map(KeyId::of))) {
+                    AfterRefusal::GiveUp => return Err(e),
+                    AfterRefusal::Retry => warn!(
+                        error = %format!("{e:#}"),
+                        "refused by the coordinator, but the token file has changed since: \
+                         trying again with it"
+                    ),
+                }
+            }
             Err(DialError::Unreachable(e)) => {
                 warn!(error = %format!("{e:#}"), "cannot reach the coordinator")
             }
@@ -138,14 +151,47 @@ fn jitter() -> f64 {
     (h.finish() >> 11) as f64 / (1u64 << 53) as f64
 }
 
-async fn connect(config: &Config) -> Result<Conn, DialError> {
+/// What a worker does when the coordinator refuses its handshake.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum AfterRefusal {
+    /// Connect again, with the token its file holds by then.
+    Retry,
+    /// Exit with the refusal.
+    GiveUp,
+}
+
+/// A refusal may only mean that the farm's token was rotated and this worker's file
+/// replaced since it read it: the file is read again when the refusal comes (`holding`
+/// is the key id of the token it holds now, `None` if it cannot be read just now, as
+/// while it is being rewritten), and a token other than the refused one (`refused_with`)
+/// is tried. Refused with the token its file still holds, the refusal is real (a wrong
+/// token, another protocol version, an impostor) and the worker gives up: reconnecting
+/// cannot help until an operator changes something.
+fn after_refusal(refused_with: Option<KeyId>, holding: Option<Option<KeyId>>) -> AfterRefusal {
+    match holding {
+        Some(holding) if holding == refused_with => AfterRefusal::GiveUp,
+        _ => AfterRefusal::Retry,
+    }
+}
+
+/// Reads the token as its file holds it now and handshakes with it: the key id of the
+/// token used (if any), and the connection. A token file that cannot be read counts as
+/// a coordinator not reachable now: it is read again at the next try.
+async fn connect(config: &Config) -> (Option<KeyId>, Result<Conn, DialError>) {
+    let secret = match config.coordinator.secret.load() {
+        Ok(secret) => secret,
+        Err(e) => return (None, Err(DialError::Unreachable(e.into()))),
+    };
+    let key = secret.as_deref().map(KeyId::of);
     let role = Role::Worker {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
         build: render::build_identity(),
     };
-    let raw = transport::dial(&config.coordinator, role).await?;
-    Ok(raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)))
+    let conn = transport::dial_with(&config.coordinator, role, secret)
+        .await
+        .map(|raw| raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)));
+    (key, conn)
 }
 
 /// A rendered tile (or a skipped one) on its way back from the pool.
@@ -523,3 +569,23 @@ impl std::fmt::Display for Refused {
 }
 
 impl std::error::Error for Refused {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refused_worker_retries_only_with_a_token_its_file_holds_since() {
+        let (old, new) = (Some(KeyId::of(b"old")), Some(KeyId::of(b"new")));
+        // Refused with the old token while the file holds a new one: try it.
+        assert_eq!(after_refusal(old, Some(new)), AfterRefusal::Retry);
+        // Refused with the token the file still holds: a real refusal.
+        assert_eq!(after_refusal(new, Some(new)), AfterRefusal::GiveUp);
+        assert_eq!(after_refusal(None, Some(None)), AfterRefusal::GiveUp);
+        // A token given since a refusal without one, or a file unreadable just now (being
+        // rewritten): another try, which reads it again.
+        assert_eq!(after_refusal(None, Some(new)), AfterRefusal::Retry);
+        assert_eq!(after_refusal(old, Some(None)), AfterRefusal::Retry);
+        assert_eq!(after_refusal(old, None), AfterRefusal::Retry);
+    }
+}

@@ -19,9 +19,11 @@ use protocol::{
 use scheduler::lifecycle::{self, Reply};
 use sha2::{Digest, Sha256};
 use tokio_util::codec::Framed;
+use tracing::info;
 use transport::Stream;
 
 use super::core::{Controls, Prepared};
+use super::keys::{self, KeyHold};
 use super::persistence::Write;
 use super::Shared;
 use crate::db::Label;
@@ -37,8 +39,25 @@ const WATCH_MIN_INTERVAL: Duration = Duration::from_millis(50);
 /// ...and answers after this long even without progress.
 const WATCH_TIMEOUT: Duration = Duration::from_secs(1);
 
-pub(super) async fn serve(shared: Arc<Shared>, mut conn: ClientConn, peer: IpAddr) -> Result<()> {
-    while let Some(request) = conn.next().await {
+/// Serves a client's requests until it leaves, or until the secret it proved (`hold`)
+/// is retired by a token rotation: then the connection ends between two requests.
+pub(super) async fn serve(
+    shared: Arc<Shared>,
+    mut conn: ClientConn,
+    peer: IpAddr,
+    mut hold: Option<KeyHold>,
+) -> Result<()> {
+    loop {
+        let request = tokio::select! {
+            request = conn.next() => request,
+            () = keys::retired(&mut hold) => {
+                info!(%peer, "the client's token was retired: disconnected");
+                return Ok(());
+            }
+        };
+        let Some(request) = request else {
+            break;
+        };
         let response = match request {
             Ok(request) => respond(&shared, request, peer).await,
             Err(e) => {

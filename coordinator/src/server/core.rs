@@ -279,6 +279,8 @@ pub struct WorkerRecord {
     tile_us: Option<f64>,
     /// The pace last given to the scheduler: (rtt, tile time) in ms.
     pace: Option<(Millis, Millis)>,
+    /// The worker secret it proved, if workers prove one: listings say which.
+    pub key: Option<super::keys::KeyHold>,
 }
 
 /// A worker's rays per second are those of its results of this last while.
@@ -312,6 +314,7 @@ impl WorkerRecord {
             recent: VecDeque::new(),
             tile_us: None,
             pace: None,
+            key: None,
         }
     }
 
@@ -2825,6 +2828,7 @@ impl WorkerRecord {
             draining: self.draining,
             disabled: false,
             unresponsive: false,
+            key: self.key.as_ref().and_then(super::keys::KeyHold::peer_key),
         }
     }
 }

@@ -8,12 +8,15 @@ use std::time::Duration;
 use anyhow::Result;
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use protocol::{AuthRole, CoordinatorChallenge, Hello, MessageCodec, Role, Welcome};
+use protocol::{CoordinatorChallenge, Hello, MessageCodec, Role, Welcome};
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
+use tracing::info;
 use transport::{Stream, TLS_HANDSHAKE_RECORD};
 
+use super::keys::KeyHold;
 use super::{client_session, worker_session, Shared};
+use crate::keyring::Choice;
 
 /// Sends a refusal the peer can read, then closes.
 pub(super) async fn refuse(stream: Stream, reason: String) {
@@ -164,13 +167,27 @@ pub(super) async fn handle_connection(
             return Err(e.into());
         }
     };
-    let secret = match hello.role.auth_role() {
-        AuthRole::Worker => &shared.worker_secret,
-        AuthRole::Client => &shared.client_secret,
+    // The hello names the secret the peer holds by its key id: the coordinator proves
+    // that one (the current secret, or the previous within an overlap window).
+    let choice = shared
+        .keys
+        .borrow()
+        .choose(hello.role.auth_role(), hello.key, shared.now());
+    let hold = match choice {
+        Choice::Open => None,
+        Choice::Prove { secret, held } => {
+            authenticate(&mut framed, &hello, &secret, shared.handshake_timeout).await?;
+            Some(KeyHold::new(&shared, held))
+        }
+        Choice::Refuse(refusal) => {
+            let reason = refusal.to_string();
+            let refusal = protocol::wire::encode(&Welcome::Refused {
+                reason: reason.clone(),
+            });
+            let _ = framed.send(Bytes::from(refusal)).await;
+            anyhow::bail!(reason);
+        }
     };
-    if let Some(secret) = secret {
-        authenticate(&mut framed, &hello, secret, shared.handshake_timeout).await?;
-    }
     let accepted = protocol::wire::encode(&Welcome::Accepted {
         version: protocol::PROTOCOL_VERSION,
     });
@@ -178,8 +195,11 @@ pub(super) async fn handle_connection(
     let max_frame = shared.max_frame;
     match hello.role {
         Role::Client => {
+            if let Some(hold) = &hold {
+                info!(%peer, key = %hold.describe(), "client authenticated");
+            }
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            client_session::serve(shared, framed, peer).await
+            client_session::serve(shared, framed, peer, hold).await
         }
         Role::Worker {
             name,
@@ -187,7 +207,7 @@ pub(super) async fn handle_connection(
             build,
         } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            worker_session::serve(shared, framed, name, threads, build).await
+            worker_session::serve(shared, framed, name, threads, build, hold).await
         }
     }
 }

@@ -432,10 +432,18 @@ impl Observer {
         super::client_session::respond(&self.shared, request, peer).await
     }
 
-    /// The secret clients must prove, if the coordinator has one: the page's controls
-    /// ask for it too.
-    pub fn client_secret(&self) -> Option<&[u8]> {
-        self.shared.client_secret.as_deref()
+    /// The secrets a client may prove now, if the coordinator has a client token (the
+    /// current one, and the previous one within an overlap window): the page's
+    /// controls ask for one too.
+    pub fn client_secrets(&self) -> Option<Vec<Vec<u8>>> {
+        let keys = self.shared.keys.borrow();
+        keys.current(protocol::AuthRole::Client)?;
+        Some(
+            keys.accepted(protocol::AuthRole::Client, self.shared.now())
+                .into_iter()
+                .map(<[u8]>::to_vec)
+                .collect(),
+        )
     }
 
     pub fn metrics(&self, format: crate::metrics::Exposition) -> String {

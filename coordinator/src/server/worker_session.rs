@@ -13,10 +13,11 @@ use protocol::{FromWorker, MessageCodec, ToWorker};
 use scheduler::Event;
 use tokio::sync::mpsc;
 use tokio_util::codec::Framed;
-use tracing::{error, info};
+use tracing::{error, info, warn};
 use transport::Stream;
 
 use super::core::{Cost, TilePixels, Verdict, WorkerRecord};
+use super::keys::{self, KeyHold};
 use super::Shared;
 
 type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
@@ -35,19 +36,33 @@ pub(super) async fn serve(
     name: String,
     threads: u32,
     build: String,
+    mut hold: Option<KeyHold>,
 ) -> Result<()> {
-    if let Err(reason) = canary(&shared, &mut conn, &build).await {
-        error!(%name, %build, %reason, "worker refused");
-        shared.metrics.worker_refused();
-        let _ = conn.send(ToWorker::Refuse { reason }).await;
-        return Ok(());
+    match canary(&shared, &mut conn, &build).await {
+        Ok(()) => {}
+        Err(CanaryFailure::Refused(reason)) => {
+            error!(%name, %build, %reason, "worker refused");
+            shared.metrics.worker_refused();
+            let _ = conn.send(ToWorker::Refuse { reason }).await;
+            return Ok(());
+        }
+        Err(CanaryFailure::Lost(reason)) => {
+            // Not a verdict on the worker: it reconnects, and its canary is run again.
+            warn!(%name, %build, %reason, "worker connection lost during the canary");
+            shared.metrics.canary_interrupted();
+            return Ok(());
+        }
     }
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
     let dropped = Arc::new(tokio::sync::Notify::new());
-    let record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
+    let mut record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
+    record.key = hold.clone();
     let worker = shared.lock().join(&shared, record);
-    info!(worker, %name, threads, "worker joined");
+    let key = hold
+        .as_ref()
+        .map_or_else(|| "none".to_owned(), KeyHold::describe);
+    info!(worker, %name, threads, %key, "worker joined");
     let clock = shared.clock;
     let writer = tokio::spawn(async move {
         let mut ping = tokio::time::interval(PING_EVERY);
@@ -76,6 +91,10 @@ pub(super) async fn serve(
             let message = tokio::select! {
                 message = stream.next() => message,
                 () = dropped.notified() => anyhow::bail!("no heartbeat in time: dropped"),
+                // It reconnects, and proves the secret its token file holds by then.
+                () = keys::retired(&mut hold) => anyhow::bail!(
+                    "its worker token was retired by a token rotation: disconnected"
+                ),
             };
             let Some(message) = message else {
                 return Ok(());
@@ -94,9 +113,32 @@ pub(super) async fn serve(
     result
 }
 
+/// Why the canary did not admit a worker, with the one-line reason.
+enum CanaryFailure {
+    /// Its renderer's bytes, or its answer, are wrong: it is refused (told so, and not
+    /// to reconnect), and counted among the refusals operators alert on.
+    Refused(String),
+    /// The connection failed, closed or fell silent before an answer: a lost
+    /// connection proves nothing about the worker (a coordinator paused for a minute
+    /// finds its workers' queued reconnections abandoned). Counted apart; the worker
+    /// reconnects.
+    Lost(String),
+}
+
+/// Whether a frame error is the connection's (lost) or the peer's (a frame above the
+/// limit, or bytes that are no message: refused).
+fn frame_failure(e: &protocol::FrameError, what: &str) -> CanaryFailure {
+    let reason = format!("{what}: {e}");
+    match e {
+        protocol::FrameError::Io(io) if io.kind() != std::io::ErrorKind::InvalidData => {
+            CanaryFailure::Lost(reason)
+        }
+        _ => CanaryFailure::Refused(reason),
+    }
+}
+
 /// Has the worker render the canary and compares its bytes with the coordinator's.
-/// `Err` is the one-line reason the worker is refused.
-async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(), String> {
+async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(), CanaryFailure> {
     let reference = &shared.verifier.canary;
     let ours = render::build_identity();
     conn.send(ToWorker::Canary {
@@ -104,32 +146,44 @@ async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(
         renders: reference.renders.clone(),
     })
     .await
-    .map_err(|e| format!("cannot send the canary: {e}"))?;
+    .map_err(|e| frame_failure(&e, "cannot send the canary"))?;
     let answer = tokio::time::timeout(CANARY_TIMEOUT, async {
         loop {
             match conn.next().await {
                 Some(Ok(FromWorker::CanaryDone { images })) => return Ok(images),
                 Some(Ok(FromWorker::Heartbeat | FromWorker::Pong { .. })) => {}
                 Some(Ok(other)) => {
-                    return Err(format!(
+                    return Err(CanaryFailure::Refused(format!(
                         "the worker answered the canary with {}",
                         message_name(&other)
+                    )))
+                }
+                Some(Err(e)) => return Err(frame_failure(&e, "unreadable canary answer")),
+                None => {
+                    return Err(CanaryFailure::Lost(
+                        "the worker closed the connection during the canary".into(),
                     ))
                 }
-                Some(Err(e)) => return Err(format!("unreadable canary answer: {e}")),
-                None => return Err("the worker closed the connection during the canary".into()),
             }
         }
     })
     .await
-    .map_err(|_| format!("no canary render within {} s", CANARY_TIMEOUT.as_secs()))??;
-    let images =
-        answer.map_err(|e| format!("the worker (build {build}) cannot render the canary: {e}"))?;
+    .map_err(|_| {
+        CanaryFailure::Lost(format!(
+            "no canary render within {} s",
+            CANARY_TIMEOUT.as_secs()
+        ))
+    })??;
+    let images = answer.map_err(|e| {
+        CanaryFailure::Refused(format!(
+            "the worker (build {build}) cannot render the canary: {e}"
+        ))
+    })?;
     verify::canary::compare(&reference.renders, &reference.images, &images).map_err(|e| {
-        format!(
+        CanaryFailure::Refused(format!(
             "the worker's renderer (build {build}) renders the canary differently from \
              this coordinator's (build {ours}): {e}"
-        )
+        ))
     })
 }
 

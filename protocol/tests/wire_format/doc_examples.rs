@@ -5,7 +5,7 @@
 
 use protocol::{
     wire, AuthRole, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
-    Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome, MAGIC,
+    KeyId, Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome, MAGIC,
     PROTOCOL_VERSION,
 };
 use serde::Serialize;
@@ -62,11 +62,15 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     build: "b".into(),
                 },
                 nonce: peer_nonce(),
+                key: None,
             }),
         ),
         (
             "client Hello",
-            message_frame(&Hello::with_nonce(Role::Client, peer_nonce())),
+            message_frame(&Hello {
+                key: Some(KeyId::of(SECRET)),
+                ..Hello::with_nonce(Role::Client, peer_nonce())
+            }),
         ),
         (
             "Welcome::Accepted",
@@ -263,9 +267,11 @@ fn the_worked_examples_are_the_encoders_bytes() {
 
 #[test]
 fn the_client_hello_of_the_checklist_is_the_encoders() {
-    // The checklist shows the bytes before the nonce, which is the peer's own.
+    // The checklist shows the bytes before the nonce, which is the peer's own, and
+    // the key that follows it: none (00), for a client without a token.
     let bytes = message_frame(&Hello::new(Role::Client));
-    let spaced = bytes[..bytes.len() - 32]
+    assert_eq!(bytes.last(), Some(&0), "no key");
+    let spaced = bytes[..bytes.len() - 33]
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect::<Vec<_>>()

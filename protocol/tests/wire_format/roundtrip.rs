@@ -26,9 +26,10 @@ use bytes::BytesMut;
 use proptest::prelude::*;
 use protocol::{
     wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FrameFailure, FrameProgress,
-    FrameRange, FromWorker, Hello, HelloError, JobEvent, JobSpec, JobState, JobStatus,
-    MessageCodec, Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome,
-    WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT, PROTOCOL_VERSION,
+    FrameRange, FromWorker, Hello, HelloError, JobEvent, JobSpec, JobState, JobStatus, KeyId,
+    KeyStanding, MessageCodec, Overrides, PeerKey, Role, Sampling, Settings, TileRect, ToWorker,
+    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
+    PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -217,10 +218,17 @@ prop_compose! {
         connected_ms in any::<u64>(), rays_per_second in rate(), build in text(),
         quarantined in prop::option::of(text()), rtt_us in any::<Option<u64>>(),
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
+        unresponsive in any::<bool>(),
+        key in prop::option::of((any::<[u8; 4]>(), any::<bool>())),
     ) -> WorkerStatus {
+        let key = key.map(|(id, current)| PeerKey {
+            id: KeyId(id),
+            standing: if current { KeyStanding::Current } else { KeyStanding::Previous },
+        });
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
+            unresponsive, key,
         }
     }
 }
@@ -454,8 +462,9 @@ prop_compose! {
         version in any::<u16>(),
         role in role(),
         nonce in any::<[u8; 32]>(),
+        key in prop::option::of(any::<[u8; 4]>()),
     ) -> Hello {
-        Hello { magic, version, role, nonce }
+        Hello { magic, version, role, nonce, key: key.map(KeyId) }
     }
 }
 
@@ -721,7 +730,7 @@ proptest! {
         theirs in any::<u16>().prop_filter("another version", |v| *v != PROTOCOL_VERSION),
         role in role(),
     ) {
-        let frame = Hello { magic: MAGIC, version: theirs, role, nonce: [0; 32] }.to_frame();
+        let frame = Hello { magic: MAGIC, version: theirs, role, nonce: [0; 32], key: None }.to_frame();
         let error = Hello::from_frame(&frame).unwrap_err();
         prop_assert_eq!(&error, &HelloError::VersionMismatch { ours: PROTOCOL_VERSION, theirs });
         let text = error.to_string();
@@ -1012,6 +1021,8 @@ fn nan_rates_keep_their_bits() {
         credit: 2,
         draining: false,
         disabled: false,
+        unresponsive: false,
+        key: None,
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {

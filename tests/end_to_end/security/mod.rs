@@ -4,6 +4,7 @@
 
 mod authentication;
 mod hostile_peers;
+mod rotation;
 mod tls;
 
 use std::path::{Path, PathBuf};

@@ -37,6 +37,10 @@ pub enum Lie {
     /// Reports the first tile of this frame failed (`TileFailed`), as a worker that
     /// cannot render it would; honest with everything else.
     FailFrame(u32),
+    /// Closes its connection when the canary comes, as a worker that gave up on a
+    /// paused coordinator does (its connection was queued unanswered past its connect
+    /// limit): a lost connection, not a wrong renderer.
+    HangsUpAtCanary,
 }
 
 /// What the fake worker saw and did, shared with its thread.
@@ -228,6 +232,10 @@ async fn serve(
         let message: ToWorker = protocol::wire::decode(&body)
             .map_err(|e| format!("unreadable message from the coordinator: {e}"))?;
         let answer = match message {
+            ToWorker::Canary { .. } if lie == Lie::HangsUpAtCanary => {
+                let _ = writer.shutdown().await;
+                return Ok(());
+            }
             ToWorker::Canary { scene, renders } => {
                 state.canaries.fetch_add(1, Ordering::SeqCst);
                 let images = render_canary(&scene, &renders).map(|mut images| {
@@ -282,7 +290,7 @@ async fn serve(
                 let mut advanced =
                     verify::adaptive::advance(&tracer, footprints, rect, previous, rung)?;
                 let lied = match lie {
-                    Lie::Honest | Lie::FailFrame(_) => false,
+                    Lie::Honest | Lie::FailFrame(_) | Lie::HangsUpAtCanary => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in advanced.rgb.chunks_exact_mut(3) {
@@ -344,7 +352,7 @@ async fn serve(
                 let scene = frame_of(scene, frame, lie)?;
                 let mut image = render_tile(&scene, &settings, rect)?;
                 let lied = match lie {
-                    Lie::Honest | Lie::FailFrame(_) => false,
+                    Lie::Honest | Lie::FailFrame(_) | Lie::HangsUpAtCanary => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in image.rgb.chunks_exact_mut(3) {
