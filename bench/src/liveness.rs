@@ -19,7 +19,7 @@
 //! job of that size is done in under a second on two workers, before any freeze.
 //! Freezing threads takes ptrace of another process: root or `CAP_SYS_PTRACE`.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -256,9 +256,24 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
     let froze = Instant::now();
     let froze_unix_ms = unix_ms();
     let frozen_at = (froze - submitted).as_secs_f64();
+    // What it holds now: its render threads stopped, it returns nothing more.
+    let in_flight = client
+        .workers()
+        .await?
+        .iter()
+        .find(|w| w.name == victim)
+        .map_or(0, |w| w.tiles_in_flight as usize);
+    let listed_unix_ms = unix_ms();
 
     let mut marked = None;
     let done = loop {
+        // The listing first: the mark and the job's end can come at the same timeout.
+        if marked.is_none() {
+            let workers = client.workers().await?;
+            if workers.iter().any(|w| w.name == victim && w.unresponsive) {
+                marked = Some(froze.elapsed().as_secs_f64());
+            }
+        }
         let status = client.status(job).await?;
         match status.state {
             JobState::Done => break froze.elapsed().as_secs_f64(),
@@ -268,12 +283,6 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
                 status.error
             ),
             _ => {}
-        }
-        if marked.is_none() {
-            let workers = client.workers().await?;
-            if workers.iter().any(|w| w.name == victim && w.unresponsive) {
-                marked = Some(froze.elapsed().as_secs_f64());
-            }
         }
         if submitted.elapsed() > BOUND {
             bail!(
@@ -299,7 +308,7 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
         );
     }
     let events = all_events(&mut client, job).await?;
-    let timeline = Timeline::of(&events, &victim, froze_unix_ms);
+    let timeline = Timeline::of(&events, &victim, in_flight, listed_unix_ms, froze_unix_ms);
     Ok(Figures {
         frozen_at,
         marked,
@@ -335,8 +344,19 @@ struct Timeline {
 impl Timeline {
     /// From the events `tile_assigned` (`tile N to NAME`), `tile_done` (`tile N by NAME
     /// in ...`) and `tile_lease_expired` (`tile N on NAME for ...`), in seconds from
-    /// `froze_unix_ms`.
-    fn of(events: &[JobEvent], victim: &str, froze_unix_ms: u64) -> Timeline {
+    /// `froze_unix_ms`. The tiles the frozen worker held are the last `in_flight`
+    /// assigned to it before `listed_unix_ms`, when it was listed with that many: a
+    /// worker renders its tiles in the order it gets them, so those it holds are the
+    /// latest. (Its tiles without a `tile_done` of its own would not do: under full
+    /// verification the log names the machine that confirmed a result, not the one
+    /// that rendered it first.)
+    fn of(
+        events: &[JobEvent],
+        victim: &str,
+        in_flight: usize,
+        listed_unix_ms: u64,
+        froze_unix_ms: u64,
+    ) -> Timeline {
         let since = |ms: u64| (ms as f64 - froze_unix_ms as f64) / 1000.0;
         let parse = |detail: &str, word: &str| -> Option<(u32, String)> {
             let rest = detail.strip_prefix("tile ")?;
@@ -345,21 +365,23 @@ impl Timeline {
             let name = name.split(' ').next()?;
             Some((tile.parse().ok()?, name.to_owned()))
         };
-        let mut assigned = BTreeSet::new();
-        let mut done_by: BTreeMap<u32, Vec<(String, u64)>> = BTreeMap::new();
+        let mut assigned: Vec<u32> = Vec::new();
+        let mut done_at: BTreeMap<u32, u64> = BTreeMap::new();
         let mut first_lease_expired = None;
         for event in events {
             match event.kind.as_str() {
-                "tile_assigned" => {
+                "tile_assigned" if event.unix_ms <= listed_unix_ms => {
                     if let Some((tile, name)) = parse(&event.detail, "to") {
                         if name == victim {
-                            assigned.insert(tile);
+                            assigned.retain(|&t| t != tile);
+                            assigned.push(tile);
                         }
                     }
                 }
                 "tile_done" => {
-                    if let Some((tile, name)) = parse(&event.detail, "by") {
-                        done_by.entry(tile).or_default().push((name, event.unix_ms));
+                    if let Some((tile, _)) = parse(&event.detail, "by") {
+                        let at = done_at.entry(tile).or_default();
+                        *at = (*at).max(event.unix_ms);
                     }
                 }
                 "tile_lease_expired"
@@ -371,19 +393,12 @@ impl Timeline {
                 _ => {}
             }
         }
-        // The tiles it was given and never returned: done by others.
-        let held: Vec<u32> = assigned
-            .into_iter()
-            .filter(|t| {
-                done_by
-                    .get(t)
-                    .is_none_or(|d| d.iter().all(|(name, _)| name != victim))
-            })
-            .collect();
+        let held = &assigned[assigned.len().saturating_sub(in_flight)..];
         let taken_over = held
             .iter()
-            .filter_map(|t| done_by.get(t)?.iter().map(|(_, ms)| *ms).max())
-            .max()
+            .map(|t| done_at.get(t).copied())
+            .collect::<Option<Vec<u64>>>()
+            .and_then(|at| at.into_iter().max())
             .map(since);
         Timeline {
             first_lease_expired,
