@@ -197,7 +197,7 @@ pub enum Suite {
     /// hall-of-mirrors job (2000 × 1500, aa 4) on two workers, then with `--verify
     /// full` on three, one worker's render threads frozen (ptrace, so as root) two
     /// seconds in; when it is found unresponsive, when its tiles are done elsewhere
-    /// and when the job ends. About 3 to 5 minutes, so not part of `all`.
+    /// and when the job ends. About 2 minutes, so not part of `all`.
     Liveness,
     /// Error and scaling (so as root, for the static split).
     All,
