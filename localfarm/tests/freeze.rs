@@ -180,7 +180,8 @@ fn the_named_threads_stop_while_the_others_run_and_resume_when_thawed() {
             "thread {tid} is in its tracing stop"
         );
     }
-    // Frozen: not one tick; the other thread has a core to itself (of two).
+    // Frozen: not one tick, while the other thread runs (a share of a core on a machine
+    // shared with other work: some ticks, never none).
     let used = ticks_over(
         pid,
         &[render.clone(), vec![other]].concat(),
@@ -192,7 +193,7 @@ fn the_named_threads_stop_while_the_others_run_and_resume_when_thawed() {
         "CPU ticks of the frozen threads in 1 s"
     );
     assert!(
-        used[3] >= 30,
+        used[3] >= 5,
         "the other thread got only {} ticks in 1 s",
         used[3]
     );
@@ -203,7 +204,7 @@ fn the_named_threads_stop_while_the_others_run_and_resume_when_thawed() {
     }
     let used = ticks_over(pid, &render, Duration::from_secs(1));
     assert!(
-        used.iter().all(|&t| t >= 10),
+        used.iter().all(|&t| t >= 3),
         "CPU ticks of the thawed threads in 1 s: {used:?}"
     );
 }
@@ -232,7 +233,7 @@ fn dropping_the_guard_thaws_the_threads() {
         "still stopped after the drop"
     );
     let used = ticks_over(busy.pid(), &[tid], Duration::from_millis(500));
-    assert!(used[0] >= 5, "{used:?} ticks in 0.5 s after the drop");
+    assert!(used[0] >= 2, "{used:?} ticks in 0.5 s after the drop");
 }
 
 #[test]
