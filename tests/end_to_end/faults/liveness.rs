@@ -26,8 +26,8 @@ use serde_json::Value;
 
 use super::{Farm, STALL};
 use crate::support::{
-    assert_not_ended_badly, exclusive, poll, render_reference, scene_path, start_slow_worker,
-    tiles_done, worker_named, Daemon,
+    assert_not_ended_badly, client, exclusive, ok, poll, render_reference, scene_path,
+    start_slow_worker, tiles_done, worker_named, Daemon,
 };
 
 /// The coordinator's allowance for a worker's progress: a worker holding a tile past its
@@ -210,6 +210,19 @@ fn frozen_worker_is_worked_around(
         thread::sleep(Duration::from_millis(100));
     }
     let (marked, done) = (marked.expect("marked"), done.expect("done"));
+    // Still frozen, so still marked: the text listing says so on its line alone.
+    let text = ok(
+        client(farm.dir(), &farm.addr, &["workers"]),
+        "tessera workers",
+    )
+    .stdout;
+    for line in text.lines() {
+        assert_eq!(
+            line.contains(", UNRESPONSIVE"),
+            line.contains(&format!(" {victim}: ")),
+            "tessera workers, {victim} frozen:\n{text}"
+        );
+    }
     let status = farm.status(job);
     assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
     let log = farm.coordinator_logs();
