@@ -671,9 +671,10 @@ async fn studio_submit(
     }
 }
 
-/// `GET /api/studio/stream?session=VIEW`: the view's tiles and passes as server-sent
-/// events (`tile`, `pass`), pushed as the coordinator accepts them. Only an opened view
-/// has a stream: its random name is the page's proof.
+/// `GET /api/studio/stream?session=VIEW`: the view's tiles (as PNG) and passes as
+/// server-sent events (`tile`, `pass`), pushed as the coordinator accepts them, less
+/// what the page could no longer use (docs/studio.md, "The event stream"). Only an
+/// opened view has a stream: its random name is the page's proof.
 async fn studio_stream(
     State(observer): State<Observer>,
     Query(query): Query<StreamQuery>,

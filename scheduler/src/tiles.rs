@@ -33,8 +33,10 @@
 //!   two jobs of equal priority split it evenly, so a small job behind a huge one
 //!   finishes in about twice its solo time instead of waiting for the huge one.
 //! - **Leases.** Every assignment has a deadline: a few times the job's measured tile
-//!   time (a generous default before the first tile is measured). A tile whose lease
-//!   runs out goes back to the queue; its first holder may still deliver it.
+//!   time (a generous default before the first tile is measured; when the first is,
+//!   the leases given under the default end no later than their start plus the
+//!   measured lease). A tile whose lease runs out goes back to the queue; its first
+//!   holder may still deliver it.
 //! - **Liveness from heartbeats.** A worker not heard from within the heartbeat
 //!   timeout is dropped and its tiles go back to the queue.
 //! - **Trust from results.** A heartbeat proves a connection, not progress: a worker
@@ -543,6 +545,25 @@ impl Job {
         (self.slowest * policy.lease_factor)
             .max(mean * 4)
             .max(policy.min_lease)
+    }
+
+    /// Brings every live lease's deadline down to its start plus `length`, where that
+    /// is sooner: done once, when the job's first tile is measured, so that the tiles
+    /// handed out under the initial lease (a guess, 60 s by default) are held no longer
+    /// than the job's measured pace allows. A worker that hung on its first tiles is
+    /// then found out as soon as one on a working machine is. Walks the tiles in
+    /// flight, once per job.
+    fn shorten_leases(&mut self, length: Millis) {
+        for (&tile, leases) in &mut self.in_flight {
+            for lease in leases.iter_mut().filter(|l| !l.expired) {
+                let deadline = lease.started.saturating_add(length);
+                if deadline < lease.deadline {
+                    self.deadlines.remove(&(lease.deadline, tile, lease.worker));
+                    lease.deadline = deadline;
+                    self.deadlines.insert((deadline, tile, lease.worker));
+                }
+            }
+        }
     }
 
     /// Moves the tile between straggler candidates after its leases changed.
@@ -1631,6 +1652,10 @@ impl Scheduler {
         job.measured += 1;
         job.total_time += took;
         job.slowest = job.slowest.max(took);
+        if job.measured == 1 {
+            let length = job.lease_length(&self.policy);
+            job.shorten_leases(length);
+        }
         // Still queued if its lease ran out: its entry there is now stale.
         if job.state[tile as usize] == TileState::Waiting {
             job.queued -= 1;
@@ -2603,10 +2628,13 @@ mod tests {
         assert!(assigns(&s.handle(1_000, Event::Timeout)).is_empty());
         // No straggler copies either.
         assert_eq!((s.held_by(1), s.held_by(2)), (1, 0));
+        // Tile 1's lease, given under the initial lease, ended at its start plus the
+        // lease measured with tile 0 (the least, 1 s): it ran out at the timeout and
+        // waits at the head of job 1's queue.
         let back = s.handle(1_500, Event::StorageAvailable);
         assert_eq!(
             assigns(&back),
-            vec![(1, 2, 0), (2, 1, 2), (2, 2, 1)],
+            vec![(1, 2, 0), (2, 1, 1), (2, 1, 2)],
             "{back:?}"
         );
     }

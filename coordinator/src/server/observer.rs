@@ -56,24 +56,25 @@ type FrameKey = (JobId, u32, [u8; 32]);
 
 /// A studio page's stream: what its view's jobs push, until it is dropped.
 pub struct StudioStream {
-    rx: tokio::sync::mpsc::Receiver<super::studio_session::Push>,
+    rx: super::studio_session::PageStream,
     view: String,
     shared: Arc<Shared>,
 }
 
 impl StudioStream {
     /// The next push, as a server-sent event's name and JSON data; `None` once the
-    /// coordinator forgets the view.
+    /// coordinator forgets the view or drops the page.
     pub async fn next(&mut self) -> Option<(&'static str, String)> {
-        let push = self.rx.recv().await?;
-        let data = serde_json::to_string(&push).expect("a push serializes");
-        Some((push.name(), data))
+        let push = self.rx.next(&self.shared.studio).await?;
+        Some((push.name(), push.data()))
     }
 }
 
 impl Drop for StudioStream {
     fn drop(&mut self) {
-        self.shared.studio.disconnect(self.shared.now(), &self.view);
+        self.shared
+            .studio
+            .disconnect(self.shared.now(), &self.view, &self.rx);
     }
 }
 

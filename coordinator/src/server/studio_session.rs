@@ -8,27 +8,24 @@
 
 use std::collections::{HashMap, HashSet};
 use std::net::IpAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use base64::Engine;
 use protocol::{ClientResponse, JobId, JobSpec, Overrides, Settings, TileRect, Verification};
 use scheduler::lifecycle;
 use serde::Serialize;
-use tokio::sync::mpsc;
+use tokio::sync::Notify;
 
 use super::client_session::{admit, prepare};
 use super::Shared;
+use crate::studio::outbox::{Meta, Next, Outbox, Spot};
 use crate::studio::plan::{self, Pass};
-use crate::studio::views::{Action, Event, Owner, Refused, ViewId, Views};
-
-/// Pushes a page may leave unread before it is dropped: several whole passes of a 960 ×
-/// 540 view (135 tiles each), and at most about 17 MB of base64, every pass being cut
-/// in 64-pixel tiles ([`plan::PREVIEW_TILE`]).
-pub const PAGE_BACKLOG: usize = 1024;
+use crate::studio::views::{Action, Event, Millis, Owner, Refused, ViewId, Views};
 
 /// What a view's pages are sent, as server-sent events (`tile` and `pass`).
-#[derive(Clone, Debug, Serialize)]
-#[serde(untagged)]
+#[derive(Clone, Debug)]
 pub enum Push {
     Tile(TilePush),
     Pass(PassPush),
@@ -47,11 +44,22 @@ pub struct TilePush {
     pub height: u32,
     pub frame_width: u32,
     pub frame_height: u32,
-    /// RGB8, rows top to bottom, in base64.
-    pub rgb: String,
+    /// RGB8, rows top to bottom, as the worker rendered it: encoded only when sent
+    /// ([`Push::data`]), so that what is dropped unsent costs no encoding.
+    #[serde(skip)]
+    pub rgb: Arc<[u8]>,
     /// The first tile of its generation on the page: where the page measures how long
     /// an edit takes to show.
     pub first: bool,
+}
+
+/// A tile as the page receives it: [`TilePush`] with its pixels as a PNG, in base64
+/// (an event stream carries text).
+#[derive(Serialize)]
+struct TileEvent<'a> {
+    #[serde(flatten)]
+    tile: &'a TilePush,
+    png: String,
 }
 
 /// A pass started or ended.
@@ -74,18 +82,172 @@ impl Push {
             Push::Pass(_) => "pass",
         }
     }
+
+    /// The server-sent event's data, JSON. A tile's pixels go as a PNG: browsers
+    /// decode it natively, losslessly, and a rendered tile is about a tenth of its raw
+    /// size (docs/performance.md, "The studio's event stream").
+    pub fn data(&self) -> String {
+        match self {
+            Push::Tile(tile) => {
+                let png = tile_png(tile.width, tile.height, &tile.rgb);
+                let event = TileEvent {
+                    tile,
+                    png: base64::engine::general_purpose::STANDARD.encode(png),
+                };
+                serde_json::to_string(&event).expect("a tile serializes")
+            }
+            Push::Pass(pass) => serde_json::to_string(pass).expect("a pass serializes"),
+        }
+    }
+
+    /// What a page's queue needs to know of it.
+    fn meta(&self, not_before: Millis) -> Meta {
+        match self {
+            Push::Tile(t) => Meta {
+                generation: t.generation,
+                pass: t.pass,
+                spot: Some(Spot {
+                    scale: t.scale,
+                    x: t.x,
+                    y: t.y,
+                    width: t.width,
+                    height: t.height,
+                }),
+                bytes: t.rgb.len() + std::mem::size_of::<Push>(),
+                not_before,
+            },
+            Push::Pass(p) => Meta {
+                generation: p.generation,
+                pass: p.pass,
+                spot: None,
+                bytes: p.description.len() + std::mem::size_of::<Push>(),
+                not_before,
+            },
+        }
+    }
+}
+
+/// How hard a tile is compressed: zlib level 3 makes a rendered frame's tiles half the
+/// size of the fastest setting's (fdeflate) for about 18 ms of CPU per million pixels
+/// (docs/performance.md, "The studio's event stream"). A page's link is slower than
+/// that: 2.5 MB/s takes 70 ms to carry what the level saves on a 960 × 540 pass.
+const TILE_COMPRESSION: png::DeflateCompression = png::DeflateCompression::Level(3);
+
+/// A tile's RGB8 pixels as a PNG with adaptive filters: what a browser decodes into the
+/// very bytes rendered.
+fn tile_png(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rgb.len() / 4);
+    let mut encoder = png::Encoder::new(&mut out, width, height);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_filter(png::Filter::Adaptive);
+    encoder.set_deflate_compression(TILE_COMPRESSION);
+    let written = encoder
+        .write_header()
+        .and_then(|mut writer| writer.write_image_data(rgb).and_then(|()| writer.finish()));
+    if let Err(e) = written {
+        // Only a tile whose pixels do not match its size can fail: the core checked it.
+        panic!(
+            "encoding a {width}×{height} tile of {} bytes as PNG: {e}",
+            rgb.len()
+        );
+    }
+    out
+}
+
+/// One page following a view: what waits to be sent to it.
+#[derive(Default)]
+struct Page {
+    outbox: Mutex<Outbox<Push>>,
+    /// Rung on every push, and when the page is dropped.
+    wake: Notify,
+    /// Dropped (its stream ends) or gone.
+    closed: AtomicBool,
+}
+
+impl Page {
+    /// Ends the page's stream and frees what it had queued.
+    fn close(&self) {
+        self.closed.store(true, Ordering::SeqCst);
+        *locked(&self.outbox) = Outbox::new();
+        self.wake.notify_one();
+    }
+}
+
+/// The receiving end of a page's queue.
+pub struct PageStream {
+    page: Arc<Page>,
+}
+
+impl PageStream {
+    /// The next push to send, as soon as there is one and it is due; `None` once the
+    /// page is dropped.
+    pub async fn next(&self, studio: &Studio) -> Option<Push> {
+        loop {
+            if self.page.closed.load(Ordering::SeqCst) {
+                return None;
+            }
+            let now = studio.now();
+            let next = locked(&self.page.outbox).next(now);
+            match next {
+                Next::Send(push) => return Some(push),
+                Next::Wait(None) => self.page.wake.notified().await,
+                Next::Wait(Some(at)) => {
+                    let wait = Duration::from_millis(at.saturating_sub(now));
+                    tokio::select! {
+                        () = tokio::time::sleep(wait) => {}
+                        () = self.page.wake.notified() => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A view's current generation: its plan, and until when its finer passes are held
+/// back from its pages ([`plan::hold_until`]).
+struct Generation {
+    generation: u64,
+    plan: Vec<Pass>,
+    edited_at: Millis,
+    hold_until: Millis,
+}
+
+impl Generation {
+    /// Until when a push of `pass` waits.
+    fn not_before(&self, pass: u32) -> Millis {
+        if pass == 0 {
+            0
+        } else {
+            self.hold_until
+        }
+    }
 }
 
 /// The studio's state in a coordinator.
-#[derive(Default)]
 pub struct Studio {
     views: Mutex<Views>,
     /// Each view's pages, by view.
-    pages: Mutex<HashMap<ViewId, Vec<mpsc::Sender<Push>>>>,
-    /// Each view's plan for its current generation.
-    plans: Mutex<HashMap<ViewId, (u64, Vec<Pass>)>>,
+    pages: Mutex<HashMap<ViewId, Vec<Arc<Page>>>>,
+    /// Each view's current generation.
+    plans: Mutex<HashMap<ViewId, Generation>>,
     /// Generations whose first tile went out.
     shown: Mutex<HashSet<(ViewId, u64)>>,
+    /// The pages' clock: what is held back until when, and how long a page has taken
+    /// nothing. Its own, since tiles arrive where the coordinator's is not at hand.
+    epoch: Instant,
+}
+
+impl Default for Studio {
+    fn default() -> Studio {
+        Studio {
+            views: Mutex::default(),
+            pages: Mutex::default(),
+            plans: Mutex::default(),
+            shown: Mutex::default(),
+            epoch: Instant::now(),
+        }
+    }
 }
 
 fn locked<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -93,6 +255,11 @@ fn locked<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Studio {
+    /// Milliseconds on the pages' clock.
+    fn now(&self) -> Millis {
+        self.epoch.elapsed().as_millis() as Millis
+    }
+
     /// Opens a view for an authorised page: its name, 128 random bits in hex, is what
     /// lets the page follow the view's stream.
     pub fn open(&self, now: u64) -> Result<ViewId, String> {
@@ -106,35 +273,56 @@ impl Studio {
     }
 
     /// A page connects to its view's stream.
-    pub fn connect(&self, now: u64, view: &str) -> Result<mpsc::Receiver<Push>, Refused> {
+    pub fn connect(&self, now: u64, view: &str) -> Result<PageStream, Refused> {
         locked(&self.views).handle(now, Event::Connected { view: view.into() })?;
-        let (tx, rx) = mpsc::channel(PAGE_BACKLOG);
-        locked(&self.pages).entry(view.into()).or_default().push(tx);
-        Ok(rx)
+        let page = Arc::new(Page::default());
+        locked(&self.pages)
+            .entry(view.into())
+            .or_default()
+            .push(Arc::clone(&page));
+        Ok(PageStream { page })
     }
 
     /// A page's stream closed.
-    pub fn disconnect(&self, now: u64, view: &str) {
+    pub fn disconnect(&self, now: u64, view: &str, stream: &PageStream) {
         let _ = locked(&self.views).handle(now, Event::Disconnected { view: view.into() });
+        stream.page.close();
         if let Some(list) = locked(&self.pages).get_mut(view) {
-            list.retain(|tx| !tx.is_closed());
+            list.retain(|page| !Arc::ptr_eq(page, &stream.page));
         }
+    }
+
+    /// A view's edit at `now` made `generation` with `plan`.
+    fn planned(&self, view: &str, generation: u64, plan: Vec<Pass>) {
+        let now = self.now();
+        let mut plans = locked(&self.plans);
+        let previous = plans.get(view).map(|g| g.edited_at);
+        plans.insert(
+            view.to_owned(),
+            Generation {
+                generation,
+                plan,
+                edited_at: now,
+                hold_until: plan::hold_until(now, previous),
+            },
+        );
     }
 
     /// A tile of a view's pass was accepted (called under the coordinator's lock): to
     /// the view's pages, if its generation is still the view's.
     pub fn tile(&self, owner: &Owner, rect: TileRect, rgb: &[u8]) {
         let plans = locked(&self.plans);
-        let Some((generation, plan)) = plans.get(&owner.view) else {
+        let Some(current) = plans.get(&owner.view) else {
             return;
         };
-        if *generation != owner.generation {
+        if current.generation != owner.generation {
             return;
         }
-        let Some(pass) = plan.get(owner.pass as usize) else {
+        let Some(pass) = current.plan.get(owner.pass as usize) else {
             return;
         };
-        let last = plan.last().expect("a plan has a pass").settings;
+        let last = current.plan.last().expect("a plan has a pass").settings;
+        let not_before = current.not_before(owner.pass);
         let first = locked(&self.shown).insert((owner.view.clone(), owner.generation));
         let push = Push::Tile(TilePush {
             generation: owner.generation,
@@ -146,10 +334,11 @@ impl Studio {
             height: rect.height,
             frame_width: last.width,
             frame_height: last.height,
-            rgb: base64::engine::general_purpose::STANDARD.encode(rgb),
+            rgb: Arc::from(rgb),
             first,
         });
-        self.send(&owner.view, push);
+        drop(plans);
+        self.send(&owner.view, push, not_before);
     }
 
     /// A job ended (called under the coordinator's lock).
@@ -160,25 +349,30 @@ impl Studio {
             return;
         };
         let plans = locked(&self.plans);
-        let Some((_, plan)) = plans.get(&owner.view) else {
+        let Some(current) = plans
+            .get(&owner.view)
+            .filter(|g| g.generation == owner.generation)
+        else {
             return;
         };
-        let Some(pass) = plan.get(owner.pass as usize) else {
+        let Some(pass) = current.plan.get(owner.pass as usize) else {
             return;
         };
         let push = Push::Pass(PassPush {
             generation: owner.generation,
             pass: owner.pass,
-            passes: plan.len() as u32,
+            passes: current.plan.len() as u32,
             description: pass.description(),
             done,
             last: pass.last && done,
         });
+        let not_before = current.not_before(owner.pass);
         drop(plans);
-        self.send(&owner.view, push);
+        self.send(&owner.view, push, not_before);
     }
 
-    /// Views left without a page long enough: their jobs to cancel.
+    /// Views left without a page long enough: their jobs to cancel. Pages that stopped
+    /// reading are dropped.
     pub fn tick(&self, now: u64) -> Vec<JobId> {
         let actions = locked(&self.views)
             .handle(now, Event::Tick)
@@ -186,10 +380,23 @@ impl Studio {
         let open: HashSet<ViewId> = locked(&self.pages).keys().cloned().collect();
         for view in open {
             if locked(&self.views).generation(&view).is_none() {
-                locked(&self.pages).remove(&view);
+                if let Some(pages) = locked(&self.pages).remove(&view) {
+                    pages.iter().for_each(|page| page.close());
+                }
                 locked(&self.plans).remove(&view);
                 locked(&self.shown).retain(|(v, _)| *v != view);
             }
+        }
+        let at = self.now();
+        for (view, list) in locked(&self.pages).iter_mut() {
+            list.retain(|page| {
+                let stalled = locked(&page.outbox).stalled(at);
+                if stalled {
+                    tracing::info!(view, "studio page dropped: it took nothing for a while");
+                    page.close();
+                }
+                !stalled
+            });
         }
         actions
             .into_iter()
@@ -200,13 +407,29 @@ impl Studio {
             .collect()
     }
 
-    /// To every page of the view. A page that has not read [`PAGE_BACKLOG`] pushes is
-    /// dropped (its stream ends): a tab that stopped reading must not make the
+    /// To every page of the view, through its queue, which drops what the page can no
+    /// longer use ([`Outbox`]). A page that leaves too much unread, or takes nothing for
+    /// long, is dropped (its stream ends): a tab that stopped reading must not make the
     /// coordinator keep every tile since. Its browser reconnects and the page sends its
     /// scene again, which renders it afresh.
-    fn send(&self, view: &str, push: Push) {
+    fn send(&self, view: &str, push: Push, not_before: Millis) {
+        let now = self.now();
+        let meta = push.meta(not_before);
         if let Some(list) = locked(&self.pages).get_mut(view) {
-            list.retain(|tx| tx.try_send(push.clone()).is_ok());
+            list.retain(|page| {
+                let pushed = locked(&page.outbox).push(now, meta, push.clone());
+                match pushed {
+                    Ok(()) => {
+                        page.wake.notify_one();
+                        true
+                    }
+                    Err(why) => {
+                        tracing::info!(view, "studio page dropped: {why}");
+                        page.close();
+                        false
+                    }
+                }
+            });
         }
     }
 }
@@ -249,7 +472,7 @@ pub async fn edit(
         }
     }
     let plan = plan::passes(full);
-    locked(&sh.studio.plans).insert(view.clone(), (generation, plan.clone()));
+    sh.studio.planned(&view, generation, plan.clone());
     let shared = Arc::clone(sh);
     tokio::spawn(async move { submit_passes(&shared, view, generation, scene, plan, peer).await });
     Ok(generation)
@@ -333,49 +556,130 @@ fn cancel(sh: &Arc<Shared>, job: JobId) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::studio::outbox::PAGE_BACKLOG_BYTES;
+
+    const FULL: Settings = Settings {
+        width: 960,
+        height: 540,
+        aa: 2,
+        max_depth: 10,
+        sampling: protocol::Sampling::Grid,
+    };
+
+    /// A view with `pages` pages and a first generation planned.
+    fn view_with_pages(studio: &Studio, pages: usize) -> (ViewId, Vec<PageStream>) {
+        let view = studio.open(0).unwrap();
+        let streams = (0..pages)
+            .map(|_| studio.connect(0, &view).unwrap())
+            .collect();
+        studio.planned(&view, 1, plan::passes(FULL));
+        (view, streams)
+    }
+
+    fn owner(view: &str, generation: u64, pass: u32) -> Owner {
+        Owner {
+            view: view.into(),
+            generation,
+            pass,
+        }
+    }
+
+    fn rect(x: u32) -> TileRect {
+        TileRect {
+            x,
+            y: 0,
+            width: 64,
+            height: 64,
+        }
+    }
+
+    /// What the page may be sent now, without waiting.
+    fn ready(studio: &Studio, stream: &PageStream) -> Vec<Push> {
+        let mut out = Vec::new();
+        while let Next::Send(push) = locked(&stream.page.outbox).next(studio.now()) {
+            out.push(push);
+        }
+        out
+    }
 
     #[tokio::test]
     async fn a_page_that_stops_reading_is_dropped_not_buffered() {
         let studio = Studio::default();
-        let view = studio.open(0).unwrap();
-        let mut stalled = studio.connect(0, &view).unwrap();
-        let mut reading = studio.connect(0, &view).unwrap();
-        let full = Settings {
-            width: 960,
-            height: 540,
-            aa: 2,
-            max_depth: 10,
-            sampling: protocol::Sampling::Grid,
-        };
-        locked(&studio.plans).insert(view.clone(), (1, plan::passes(full)));
-        let owner = Owner {
-            view: view.clone(),
-            generation: 1,
-            pass: 0,
-        };
-        let rect = TileRect {
-            x: 0,
-            y: 0,
-            width: 1,
-            height: 1,
-        };
+        let (view, streams) = view_with_pages(&studio, 2);
+        let (stalled, reading) = (&streams[0], &streams[1]);
+        let rgb = vec![7u8; 64 * 64 * 3];
+        let tiles = PAGE_BACKLOG_BYTES / rgb.len() + 10;
         let mut read = 0;
-        for _ in 0..PAGE_BACKLOG + 10 {
-            studio.tile(&owner, rect, &[1, 2, 3]);
-            while reading.try_recv().is_ok() {
-                read += 1;
-            }
+        for i in 0..tiles {
+            studio.tile(&owner(&view, 1, 0), rect(i as u32 * 64), &rgb);
+            read += ready(&studio, reading).len();
         }
-        assert_eq!(read, PAGE_BACKLOG + 10, "a page that reads gets every tile");
+        assert_eq!(read, tiles, "a page that reads gets every tile");
         assert_eq!(
             locked(&studio.pages)[&view].len(),
             1,
             "the stalled page is gone"
         );
-        let mut queued = 0;
-        while stalled.recv().await.is_some() {
-            queued += 1;
-        }
-        assert_eq!(queued, PAGE_BACKLOG, "then its stream ends");
+        assert_eq!(locked(&stalled.page.outbox).bytes(), 0, "its tiles freed");
+        assert!(stalled.next(&studio).await.is_none(), "its stream ends");
+    }
+
+    #[test]
+    fn a_tile_goes_as_a_png_of_its_very_pixels() {
+        let studio = Studio::default();
+        let (view, streams) = view_with_pages(&studio, 1);
+        let rgb: Vec<u8> = (0..64 * 64 * 3).map(|i| (i * 7 % 251) as u8).collect();
+        studio.tile(&owner(&view, 1, 0), rect(128), &rgb);
+        let pushes = ready(&studio, &streams[0]);
+        assert_eq!(pushes.len(), 1);
+        assert_eq!(pushes[0].name(), "tile");
+        let data: serde_json::Value = serde_json::from_str(&pushes[0].data()).unwrap();
+        assert_eq!(
+            (
+                &data["generation"],
+                &data["pass"],
+                &data["scale"],
+                &data["x"]
+            ),
+            (&1.into(), &0.into(), &4.into(), &128.into())
+        );
+        assert_eq!(
+            (&data["frame_width"], &data["first"]),
+            (&960.into(), &true.into())
+        );
+        assert!(data.get("rgb").is_none(), "{data}");
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(data["png"].as_str().unwrap())
+            .unwrap();
+        let decoded = image::load_from_memory_with_format(&png, image::ImageFormat::Png)
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(decoded.dimensions(), (64, 64));
+        assert_eq!(decoded.into_raw(), rgb);
+    }
+
+    #[test]
+    fn a_page_is_sent_only_the_newest_generation() {
+        let studio = Studio::default();
+        let (view, streams) = view_with_pages(&studio, 1);
+        let rgb = vec![1u8; 64 * 64 * 3];
+        studio.tile(&owner(&view, 1, 0), rect(0), &rgb);
+        studio.tile(&owner(&view, 1, 1), rect(0), &rgb);
+        // The next edit, made at once: its finer passes are held, its coarse one not.
+        studio.planned(&view, 2, plan::passes(FULL));
+        studio.tile(&owner(&view, 1, 2), rect(64), &rgb);
+        studio.tile(&owner(&view, 2, 0), rect(0), &rgb);
+        studio.tile(&owner(&view, 2, 1), rect(0), &rgb);
+        let sent: Vec<(u64, u32)> = ready(&studio, &streams[0])
+            .iter()
+            .map(|p| match p {
+                Push::Tile(t) => (t.generation, t.pass),
+                Push::Pass(p) => (p.generation, p.pass),
+            })
+            .collect();
+        assert_eq!(sent, [(2, 0)]);
+        let held = locked(&studio.plans)[&view].hold_until;
+        assert!(held >= plan::SETTLE_MS, "{held}");
+        assert_eq!(locked(&streams[0].page.outbox).len(), 1, "the held tile");
     }
 }

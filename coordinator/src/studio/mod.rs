@@ -2,7 +2,9 @@
 //! each change progressively (docs/studio.md).
 //!
 //! [`plan`] says which passes a view renders; [`views`] decides, as a pure state
-//! machine, which interactive jobs are still wanted.
+//! machine, which interactive jobs are still wanted; [`outbox`] decides what of their
+//! tiles is still worth sending to a page.
 
+pub mod outbox;
 pub mod plan;
 pub mod views;

@@ -9,6 +9,8 @@
 
 use protocol::{Sampling, Settings};
 
+use super::views::Millis;
+
 /// The coarse pass has at most this many pixels: 240 × 135 for a 960 × 540 view, a few
 /// milliseconds of rendering for a simple scene.
 pub const COARSE_PIXELS: u64 = 32_768;
@@ -90,9 +92,39 @@ pub fn passes(full: Settings) -> Vec<Pass> {
         .collect()
 }
 
+/// An edit that comes less than this after the view's previous one is part of a
+/// drag: its passes after the first are sent to the page only once it has lasted this
+/// long ([`hold_until`]).
+pub const SETTLE_MS: Millis = 150;
+
+/// Until when the passes after the first of an edit made at `edited_at` are held back
+/// from the page, the view's previous edit having been made at `previous`.
+///
+/// While the camera moves, each edit is replaced by the next within a frame or two:
+/// its coarse pass shows it, and its full-resolution passes (about 30 times the coarse
+/// pass's pixels for a 960 × 540 view) would reach a page on an ordinary link only
+/// after the next edit made them useless, queued in the network ahead of that edit's
+/// tiles. An edit after a pause is not held: it is the one whose picture is wanted.
+/// The last edit of a drag waits [`SETTLE_MS`] at most, less than its final pass takes
+/// to render.
+pub fn hold_until(edited_at: Millis, previous: Option<Millis>) -> Millis {
+    match previous {
+        Some(previous) if edited_at.saturating_sub(previous) < SETTLE_MS => edited_at + SETTLE_MS,
+        _ => edited_at,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn only_the_edits_of_a_drag_are_held() {
+        assert_eq!(hold_until(1_000, None), 1_000);
+        assert_eq!(hold_until(1_000, Some(1_000 - SETTLE_MS)), 1_000);
+        assert_eq!(hold_until(1_000, Some(900)), 1_000 + SETTLE_MS);
+        assert_eq!(hold_until(1_000, Some(1_000)), 1_000 + SETTLE_MS);
+    }
 
     fn settings(width: u32, height: u32, aa: u32, sampling: Sampling) -> Settings {
         Settings {

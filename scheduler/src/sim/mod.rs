@@ -1067,6 +1067,22 @@ impl LeaseModel {
                 m.2 = m.2.max(took);
             }
         }
+        // The job's first measured tile: the leases given under the initial lease end
+        // no later than their start plus the lease now measured (their old entries in
+        // `deadlines` no longer match, and are skipped).
+        if self.measured.get(&job).is_some_and(|m| m.0 == 1) {
+            let length = self.lease_length(job);
+            for (&(j, tile), leases) in self.leases.range_mut((job, 0)..=(job, u32::MAX)) {
+                for lease in leases.iter_mut().filter(|l| !l.expired) {
+                    let deadline = lease.deadline.min(lease.started + length);
+                    if deadline < lease.deadline {
+                        lease.deadline = deadline;
+                        self.deadlines
+                            .push(Reverse((deadline, j, tile, lease.worker)));
+                    }
+                }
+            }
+        }
     }
 
     /// The scheduler marked the worker unresponsive: its live leases run out now.

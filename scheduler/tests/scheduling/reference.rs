@@ -995,6 +995,16 @@ impl Scheduler {
         job.measured += 1;
         job.total_time += took;
         job.slowest = job.slowest.max(took);
+        // The first measured tile: leases given under the initial lease end no later
+        // than their start plus the measured lease.
+        if job.measured == 1 {
+            let length = job.lease_length(&self.policy);
+            for lease in job.in_flight.values_mut().flatten() {
+                if !lease.expired {
+                    lease.deadline = lease.deadline.min(lease.started + length);
+                }
+            }
+        }
         job.done[tile as usize] = true;
         job.remaining -= 1;
         job.waiting.retain(|t| *t != tile);

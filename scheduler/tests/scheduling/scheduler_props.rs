@@ -822,6 +822,18 @@ impl Farm {
             expect.done.insert(job);
             expect.ended.insert(job);
         }
+        // The job's first measured tile: the leases given under the initial lease end
+        // no later than their start plus the lease now measured.
+        if j.measured == 1 {
+            let length = j.lease_length(&self.policy);
+            for w in self.workers.values_mut() {
+                for (_, held) in w.holding.iter_mut().filter(|((j, _), _)| *j == job) {
+                    if !held.expired {
+                        held.deadline = held.deadline.min(held.started + length);
+                    }
+                }
+            }
+        }
         false
     }
 
@@ -3223,10 +3235,12 @@ fn a_storage_outage_assigns_nothing_then_fills_everyone() {
     let (w2, joined) = farm.join(1);
     assert!(joined.is_empty());
     assert!(assigns(&farm.tick(1_000, &[w1, w2])).is_empty());
+    // Tile 1's lease ended at its start plus the lease measured with tile 0 (the least,
+    // 1 s): it ran out at the tick and waits first.
     let back = farm.step(Event::StorageAvailable);
     assert_eq!(
         assigns(&back),
-        vec![(w1, job, 2), (w2, job, 3), (w2, job, 4)]
+        vec![(w1, job, 2), (w2, job, 1), (w2, job, 3)]
     );
 }
 

@@ -8,12 +8,23 @@
 //! of camera drags (docs/performance.md) are measured and printed, never asserted: the
 //! machine is shared.
 //!
-//! Needs Chromium: see `support/browser.rs` (`TESSERA_REQUIRE_BROWSER=1` in CI).
+//! Then, without a browser, the event stream through a 20 Mbit/s link
+//! ([`ThrottleRelay`]) while the camera orbits ten edits a second: the reader decodes
+//! every tile as the page does, is never dropped, and has the last edit's final
+//! picture, `tessera render`'s very pixels, within a second; a reader that stops
+//! reading is dropped meanwhile.
+//!
+//! The browser test needs Chromium: see `support/browser.rs`
+//! (`TESSERA_REQUIRE_BROWSER=1` in CI).
 
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
 use std::path::Path;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::support::browser::{browser_or_skip, DevTools};
+use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
     assert_same_png, exclusive, http_get, http_post, ok, poll, shared, spawn_tessera, tessera,
     wait_done, Daemon,
@@ -379,4 +390,313 @@ fn a_studio_of_an_invalid_scene_or_address_stops_before_starting_anything() {
         "{}",
         run.stderr
     );
+}
+
+/// The link of the throughput test: 20 Mbit/s each way.
+const LINK_BYTES_PER_SECOND: u64 = 2_500_000;
+/// The orbit: ten camera edits a second for 30 s, once around the scene.
+const ORBIT_EDITS: u32 = 300;
+const ORBIT_TICK: Duration = Duration::from_millis(100);
+/// From the last edit sent to its final picture decoded at the far end of the link, on
+/// a quiet farm.
+const FINAL_WITHIN: Duration = Duration::from_secs(1);
+
+/// The seed scene with the camera `n` steps of [`ORBIT_EDITS`] around the scene.
+fn orbit_scene(n: u32) -> String {
+    let angle = std::f64::consts::TAU * f64::from(n) / f64::from(ORBIT_EDITS);
+    let (x, z) = (5.0 * angle.sin(), -5.0 * angle.cos());
+    SCENE.replace(
+        r#""position": "3 1.5 -4""#,
+        &format!(r#""position": "{x:.6} 1.5 {z:.6}""#),
+    )
+}
+
+/// Standard base64, as the stream carries a tile's PNG.
+fn base64(text: &str) -> Vec<u8> {
+    let value = |c: u8| -> u32 {
+        match c {
+            b'A'..=b'Z' => u32::from(c - b'A'),
+            b'a'..=b'z' => u32::from(c - b'a') + 26,
+            b'0'..=b'9' => u32::from(c - b'0') + 52,
+            b'+' => 62,
+            b'/' => 63,
+            _ => panic!("{c:?} is not base64"),
+        }
+    };
+    let text = text.trim_end_matches('=').as_bytes();
+    let mut out = Vec::with_capacity(text.len() * 3 / 4);
+    for chunk in text.chunks(4) {
+        let bits = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |acc, (i, &c)| acc | value(c) << (18 - 6 * i));
+        out.extend_from_slice(&bits.to_be_bytes()[1..chunk.len()]);
+    }
+    out
+}
+
+/// What a reader of the event stream has seen, painted as the page paints it.
+#[derive(Default)]
+struct Seen {
+    /// The picture, RGB8 of the frame, and the generation on it.
+    canvas: Vec<u8>,
+    frame: (u32, u32),
+    generation: u64,
+    /// The newest final picture: its generation, when it was complete, its pixels.
+    last_final: Option<(u64, Instant, Vec<u8>)>,
+    tiles: u64,
+    /// When the stream ended (the coordinator dropped the reader), and why.
+    ended: Option<(Instant, String)>,
+}
+
+impl Seen {
+    /// A tile event: its PNG decoded and painted unless it is of an older generation.
+    fn tile(&mut self, event: &serde_json::Value) {
+        let field = |k: &str| {
+            event[k]
+                .as_u64()
+                .unwrap_or_else(|| panic!("tile {k}: {event}")) as u32
+        };
+        let generation = u64::from(field("generation"));
+        if generation < self.generation {
+            return;
+        }
+        self.generation = generation;
+        self.tiles += 1;
+        let (w, h, scale) = (field("width"), field("height"), field("scale"));
+        let frame = (field("frame_width"), field("frame_height"));
+        if self.frame != frame {
+            self.frame = frame;
+            self.canvas = vec![0; frame.0 as usize * frame.1 as usize * 3];
+        }
+        let png = base64(event["png"].as_str().expect("a tile's png"));
+        let pixels = image::load_from_memory_with_format(&png, image::ImageFormat::Png)
+            .expect("a tile's PNG")
+            .to_rgb8();
+        assert_eq!(pixels.dimensions(), (w, h), "{event}");
+        let (x0, y0) = (field("x") * scale, field("y") * scale);
+        for (px, py, rgb) in pixels.enumerate_pixels() {
+            for dy in 0..scale {
+                for dx in 0..scale {
+                    let (x, y) = (x0 + px * scale + dx, y0 + py * scale + dy);
+                    if x < frame.0 && y < frame.1 {
+                        let at = (y as usize * frame.0 as usize + x as usize) * 3;
+                        self.canvas[at..at + 3].copy_from_slice(&rgb.0);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A pass event: the final picture of the generation on the canvas is complete.
+    fn pass(&mut self, event: &serde_json::Value) {
+        let generation = event["generation"].as_u64().expect("a pass's generation");
+        if event["last"] == true && generation == self.generation {
+            self.last_final = Some((generation, Instant::now(), self.canvas.clone()));
+        }
+    }
+}
+
+/// Follows the event stream of `session` at `addr` (HTTP/1.0: the body ends when the
+/// coordinator ends the stream) into `seen` until it ends.
+fn follow(addr: &str, session: &str, seen: &Mutex<Seen>) {
+    let mut stream = TcpStream::connect(addr).expect("cannot reach the studio");
+    write!(
+        stream,
+        "GET /api/studio/stream?session={session} HTTP/1.0\r\nHost: {addr}\r\n\r\n"
+    )
+    .unwrap();
+    let mut reader = BufReader::new(stream);
+    let mut line = String::new();
+    let mut status = None;
+    let why = loop {
+        line.clear();
+        match reader.read_line(&mut line) {
+            Ok(0) => break "end of stream".to_owned(),
+            Ok(_) => {}
+            Err(e) => break e.to_string(),
+        }
+        if status.is_none() {
+            status = Some(line.clone());
+            assert!(line.contains(" 200 "), "the stream answered {line}");
+        }
+        if line == "\r\n" {
+            break String::new();
+        }
+    };
+    assert!(why.is_empty(), "the stream's head: {why}");
+    let mut name = String::new();
+    let why = loop {
+        line.clear();
+        match reader.read_line(&mut line) {
+            Ok(0) => break "end of stream".to_owned(),
+            Ok(_) => {}
+            Err(e) => break e.to_string(),
+        }
+        let text = line.trim_end_matches(['\r', '\n']);
+        if let Some(value) = text.strip_prefix("event:") {
+            name = value.trim().to_owned();
+        } else if let Some(data) = text.strip_prefix("data:") {
+            let event: serde_json::Value =
+                serde_json::from_str(data.trim()).expect("an event's JSON");
+            let mut seen = seen.lock().unwrap();
+            match name.as_str() {
+                "tile" => seen.tile(&event),
+                "pass" => seen.pass(&event),
+                other => panic!("an event {other:?}: {event}"),
+            }
+        }
+    };
+    seen.lock().unwrap().ended = Some((Instant::now(), why));
+}
+
+#[test]
+fn a_page_behind_a_20_mbit_link_keeps_up_with_a_camera_orbit() {
+    let _turn = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    std::fs::write(dir.join("start.json"), SCENE).unwrap();
+    let _studio: Daemon = spawn_tessera(
+        dir,
+        &[
+            "studio",
+            "start.json",
+            "--workers",
+            "2",
+            "--threads-per-worker",
+            "1",
+        ],
+        "studio.log",
+    );
+    let url = printed(dir, "studio on ");
+    let http = url
+        .trim_start_matches("http://")
+        .trim_end_matches("/studio")
+        .to_owned();
+    let link = ThrottleRelay::start(&http, LINK_BYTES_PER_SECOND);
+    let remote = link.address().to_owned();
+    let json = ("Content-Type", "application/json");
+    let (code, body) = http_post(&remote, "/api/studio/open", &[json], "{}");
+    assert_eq!(code, 200, "{body}");
+    let answer: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let session = answer["session"].as_str().unwrap().to_owned();
+
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let reader = {
+        let (remote, session, seen) = (remote.clone(), session.clone(), Arc::clone(&seen));
+        std::thread::spawn(move || follow(&remote, &session, &seen))
+    };
+    // A second page of the view that stops reading at once, on the farm's own host.
+    let mut stopped = TcpStream::connect(&http).unwrap();
+    write!(
+        stopped,
+        "GET /api/studio/stream?session={session} HTTP/1.0\r\nHost: {http}\r\n\r\n"
+    )
+    .unwrap();
+
+    let edit = |n: u32| {
+        let (code, body) = http_post(
+            &remote,
+            "/api/studio/view",
+            &[json],
+            &format!(r#"{{"session": "{session}", "scene": {}}}"#, orbit_scene(n)),
+        );
+        assert_eq!(code, 200, "edit {n}: {body}");
+        let answer: serde_json::Value = serde_json::from_str(&body).unwrap();
+        answer["generation"].as_u64().unwrap()
+    };
+    let start = Instant::now();
+    let mut last = (0, start);
+    for n in 0..ORBIT_EDITS {
+        let at = start + ORBIT_TICK * n;
+        std::thread::sleep(at.saturating_duration_since(Instant::now()));
+        let sent = Instant::now();
+        last = (edit(n), sent);
+        assert!(
+            !reader.is_finished() || seen.lock().unwrap().ended.is_some(),
+            "the reader failed at edit {n}"
+        );
+        if let Some((when, why)) = &seen.lock().unwrap().ended {
+            panic!(
+                "the reader was dropped {:?} into the orbit, at edit {n}: {why}",
+                when.duration_since(start)
+            );
+        }
+    }
+    let orbit = start.elapsed();
+    let (generation, sent) = last;
+    let (final_at, picture) = poll("the last edit's final picture", TIMEOUT, || {
+        let seen = seen.lock().unwrap();
+        assert!(
+            !reader.is_finished() || seen.ended.is_some(),
+            "the reader failed"
+        );
+        if let Some((when, why)) = &seen.ended {
+            panic!(
+                "the reader was dropped {:?} after the orbit: {why}",
+                when.duration_since(start + orbit)
+            );
+        }
+        let (g, at, picture) = seen.last_final.as_ref()?;
+        (*g == generation).then(|| (*at, picture.clone()))
+    });
+    let latency = final_at.duration_since(sent);
+    let bytes = link.downstream_bytes();
+    let tiles = seen.lock().unwrap().tiles;
+    eprintln!(
+        "studio stream through a 20 Mbit/s link, 960x540 aa 2, 2 local workers: {ORBIT_EDITS} \
+         edits in {:.1} s, {bytes} bytes down ({:.1} kB per edit, {:.2} MB/s), {tiles} tiles \
+         painted; the last edit's final picture {:.0} ms after it was sent",
+        orbit.as_secs_f64(),
+        bytes as f64 / f64::from(ORBIT_EDITS) / 1e3,
+        bytes as f64 / orbit.as_secs_f64() / 1e6,
+        latency.as_secs_f64() * 1e3
+    );
+    assert!(
+        latency <= FINAL_WITHIN,
+        "the last edit's final picture came {latency:?} after it was sent"
+    );
+
+    // The picture is `tessera render`'s of the same scene, byte for byte.
+    std::fs::write(dir.join("last.json"), orbit_scene(ORBIT_EDITS - 1)).unwrap();
+    ok(
+        tessera(dir, &["render", "last.json", "-o", "last.png"], TIMEOUT),
+        "tessera render of the last edit",
+    );
+    let rendered = image::open(dir.join("last.png")).unwrap().to_rgb8();
+    assert_eq!(rendered.dimensions(), (960, 540));
+    let differing = rendered
+        .as_raw()
+        .chunks(3)
+        .zip(picture.chunks(3))
+        .filter(|(a, b)| a != b)
+        .count();
+    assert_eq!(
+        differing, 0,
+        "pixels of the streamed final picture that differ from `tessera render`'s"
+    );
+
+    // The page that stopped reading was dropped: what the kernel took for it before it
+    // stopped, then the end of its stream.
+    stopped
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut queued = Vec::new();
+    let end = stopped.read_to_end(&mut queued);
+    assert!(
+        end.is_ok(),
+        "a page that stopped reading still has its stream after {} bytes: {end:?}",
+        queued.len()
+    );
+    assert!(
+        queued.starts_with(b"HTTP/1.0 200"),
+        "{:?}",
+        &queued[..queued.len().min(100)]
+    );
+    eprintln!(
+        "the page that stopped reading was dropped, having been sent {} bytes",
+        queued.len()
+    );
+    drop(link);
+    reader.join().unwrap();
 }

@@ -11,6 +11,7 @@ pub mod flip_relay;
 mod http;
 mod images;
 mod run;
+pub mod throttle_relay;
 mod turns;
 pub mod wire;
 
