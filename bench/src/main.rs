@@ -11,6 +11,7 @@ mod compression;
 mod error_table;
 mod farm;
 mod latency;
+mod liveness;
 mod measure;
 mod plot;
 mod relay;
@@ -43,7 +44,9 @@ use render::limits::MAX_AA;
         pixels, objects, lights and mirror depth (renderer.md, renderer.csv, \
         renderer-scaling.md/.csv/.png). The farm runs on the tessera executable beside \
         this one (--tessera to give another). The static split (scaling, and so all) \
-        slows one worker through a cgroup, which needs root. Build with --release.",
+        slows one worker through a cgroup, which needs root; the liveness suite freezes \
+        a worker's render threads with ptrace (liveness.md, liveness.csv), which needs \
+        root too. Build with --release.",
     after_help = "Examples (`cargo build --release` builds the tessera executable it runs):\n  \
         cargo build --release && cargo run --release -p tessera-bench -- --out bench-results\n  \
         cargo run --release -p tessera-bench -- --suite error --quick --out /tmp/check\n  \
@@ -190,6 +193,12 @@ pub enum Suite {
     /// 10,000-frame sequence. About 5 to 10 minutes on a busy 2-core machine, so not
     /// part of `all`.
     Sequence,
+    /// A worker whose render threads hang while its heartbeats go on: the 768-tile
+    /// hall-of-mirrors job (2000 × 1500, aa 4) on two workers, then with `--verify
+    /// full` on three, one worker's render threads frozen (ptrace, so as root) two
+    /// seconds in; when it is found unresponsive, when its tiles are done elsewhere
+    /// and when the job ends. About 2 minutes, so not part of `all`.
+    Liveness,
     /// Error and scaling (so as root, for the static split).
     All,
 }
@@ -247,6 +256,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;
+    }
+    if opts.suite == Suite::Liveness {
+        liveness::run(opts, &opts.out).await?;
     }
     eprintln!("results in {}", opts.out.display());
     Ok(())

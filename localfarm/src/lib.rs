@@ -12,9 +12,11 @@
 //!
 //! A farm of unequal machines is made the way an operator would slow a machine, from
 //! outside the worker: [`CpuLimit`] puts one of its processes in a cgroup limited to a
-//! share of a core.
+//! share of a core. A worker whose rendering hangs while the rest of it runs is made the
+//! same way: [`FrozenThreads`] stops its render threads alone, with ptrace.
 
 mod cpu_limit;
+mod freeze;
 mod privileged;
 
 use std::io::{BufRead, BufReader};
@@ -27,6 +29,7 @@ use coordinator::client::Client;
 use transport::Endpoint;
 
 pub use cpu_limit::CpuLimit;
+pub use freeze::FrozenThreads;
 pub use privileged::{privileges_required, unprivileged};
 
 /// What can go wrong starting, watching or limiting a local farm's processes.
@@ -64,6 +67,13 @@ pub enum Error {
     /// where that is the reason.
     #[error("cannot limit a process's CPU: {0}")]
     CpuLimit(String),
+    /// [`FrozenThreads`] found no thread to stop.
+    #[error("process {pid} has no thread named {prefix}*")]
+    NoSuchThreads { pid: u32, prefix: String },
+    /// [`FrozenThreads`] could not stop or resume threads: what failed, and that it
+    /// takes root where that is the reason.
+    #[error("cannot freeze threads of process {pid}: {reason}")]
+    Freeze { pid: u32, reason: String },
 }
 
 /// One worker process of a local farm.

@@ -12,6 +12,7 @@
 //! other tests.
 
 mod coordinator;
+mod liveness;
 mod network;
 mod workers;
 
@@ -59,12 +60,17 @@ impl Farm {
     /// A coordinator listening on `listen` and one-thread workers named `workers`,
     /// exactly those registered before this returns.
     fn start(listen: &str, workers: &[&str]) -> Farm {
+        Farm::start_with(listen, workers, &[])
+    }
+
+    /// [`Farm::start`] with more arguments for the coordinator.
+    fn start_with(listen: &str, workers: &[&str], coordinator_args: &[&str]) -> Farm {
         let dir = TempDir::new().expect("cannot create a temporary directory");
         let (coordinator, addr) = start_coordinator(
             dir.path(),
             &dir.path().join("data"),
             listen,
-            &[],
+            coordinator_args,
             "coordinator-1.log",
         );
         let mut farm = Farm {
