@@ -1611,10 +1611,33 @@ impl Scheduler {
                 }
             }
         }
+        let unresponsive = self.unresponsive_note();
         for (job, message) in failed {
             self.end_job(job, actions);
+            let message = format!("{message}{unresponsive}");
             actions.push(Action::JobFailed { job, message });
         }
+    }
+
+    /// What a stall's message adds about the machines whose workers are connected but
+    /// unresponsive (and none of whose workers is ready): they are not counted among
+    /// those that may take tiles, and the operator should know why. Empty without any.
+    /// Walks the workers: called only when a job fails.
+    fn unresponsive_note(&self) -> String {
+        let machines: BTreeSet<&Machine> = self
+            .workers
+            .values()
+            .filter(|w| w.unresponsive && !self.ready.contains_key(&w.machine))
+            .map(|w| &w.machine)
+            .collect();
+        if machines.is_empty() {
+            return String::new();
+        }
+        let machines: Vec<&Machine> = machines.into_iter().collect();
+        format!(
+            "; not counted, unresponsive (leases ran out without a result): {}",
+            name_list(&machines)
+        )
     }
 
     /// Ends the worker's lease on the tile if it holds one for an active job, and

@@ -387,3 +387,92 @@ fn a_hung_worker_is_marked_and_responsive_again_with_its_first_late_result() {
     );
     assert!(!s.is_unresponsive(2));
 }
+
+/// Full verification with two machines, one of them hung: no machine may confirm the
+/// working one's results, so the job fails after the stall timeout, and its message
+/// names the hung machine apart, as unresponsive, rather than saying no other machine
+/// is connected.
+#[test]
+fn a_job_only_an_unresponsive_machine_could_confirm_fails_naming_it() {
+    let mut s = Scheduler::with_policy(Policy {
+        speculate: false,
+        ..policy(5_000)
+    });
+    let mut given: Vec<(WorkerId, u32)> = Vec::new();
+    let take = |actions: Vec<Action>, given: &mut Vec<(WorkerId, u32)>| -> Vec<Action> {
+        let mut rest = Vec::new();
+        for a in actions {
+            match a {
+                Action::Assign { worker, tile, .. } => given.push((worker, tile)),
+                a => rest.push(a),
+            }
+        }
+        rest
+    };
+    take(
+        s.handle(
+            0,
+            Event::JobSubmitted {
+                job: JOB,
+                priority: 0,
+                scene: SCENE,
+                tiles: 4,
+            },
+        ),
+        &mut given,
+    );
+    for worker in [2, 1] {
+        take(
+            s.handle(
+                0,
+                Event::WorkerJoined {
+                    worker,
+                    threads: 1,
+                    machine: Some(format!("m{worker}")),
+                },
+            ),
+            &mut given,
+        );
+    }
+    let mut failed = None;
+    let mut now = 0;
+    while failed.is_none() && now < 200_000 {
+        now += 100;
+        let mut actions = Vec::new();
+        // Worker 1 returns what it is given at once, each result to be confirmed.
+        for (worker, tile) in std::mem::take(&mut given) {
+            if worker == 1 {
+                actions.extend(s.handle(
+                    now,
+                    Event::TileToConfirm {
+                        worker,
+                        job: JOB,
+                        tile,
+                        required: true,
+                    },
+                ));
+            }
+        }
+        if now % 1_000 == 0 {
+            actions.extend(s.handle(now, Event::Heartbeat { worker: 1 }));
+            actions.extend(s.handle(now, Event::Heartbeat { worker: 2 }));
+        }
+        actions.extend(s.handle(now, Event::Timeout));
+        for a in take(actions, &mut given) {
+            if let Action::JobFailed { message, .. } = a {
+                failed = Some((now, message));
+            }
+        }
+    }
+    let (at, message) = failed.expect("the job failed");
+    assert!(s.is_unresponsive(2));
+    assert!(
+        message.contains("awaits confirmation by another machine")
+            && message
+                .ends_with("; not counted, unresponsive (leases ran out without a result): m2"),
+        "{message}"
+    );
+    // Its leases ran out at 60 s (no tile measured: every result is held), it was
+    // marked then, and the stall ran its 30 s.
+    assert!((90_000..=92_000).contains(&at), "failed at {at}");
+}

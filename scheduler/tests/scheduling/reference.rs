@@ -716,6 +716,26 @@ impl Scheduler {
                 failed.push((id, message));
             }
         }
+        // Machines with a connected worker, all of them unresponsive: named apart.
+        let unresponsive: BTreeSet<&Machine> = self
+            .workers
+            .values()
+            .filter(|w| w.unresponsive && !ready.contains(&w.machine))
+            .map(|w| &w.machine)
+            .collect();
+        let note = if unresponsive.is_empty() {
+            String::new()
+        } else {
+            let list: Vec<&Machine> = unresponsive.into_iter().collect();
+            format!(
+                "; not counted, unresponsive (leases ran out without a result): {}",
+                name_list(&list)
+            )
+        };
+        let failed: Vec<(JobId, String)> = failed
+            .into_iter()
+            .map(|(id, message)| (id, format!("{message}{note}")))
+            .collect();
         for (job, message) in failed {
             self.end_job(job, actions);
             actions.push(Action::JobFailed { job, message });
