@@ -2506,8 +2506,8 @@ impl Core {
             "no worker is connected: queued and running jobs wait until one connects".into()
         } else {
             format!(
-                "no worker can take tiles: all {connected} connected are disabled, draining or \
-                 quarantined (see tessera workers)"
+                "no worker can take tiles: all {connected} connected are disabled, draining, \
+                 quarantined or unresponsive (see tessera workers)"
             )
         })
     }

@@ -270,7 +270,7 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
         || {
             let text = page.eval("document.getElementById('warning').textContent");
             text.as_str()
-                .filter(|t| t.contains("disabled, draining or quarantined"))
+                .filter(|t| t.contains("disabled, draining, quarantined or unresponsive"))
                 .map(drop)
         },
     );

@@ -85,12 +85,42 @@ pub fn status_json(dir: &Path, addr: &str, job: u64) -> Value {
 
 /// Polls `status` until the job is `done` (within `timeout`), tolerating a coordinator
 /// that is briefly unreachable; panics if the job ends in another state.
+///
+/// A job that is not done in time fails the test with what the farm looked like then:
+/// the job's last status, the workers, and the job's last events, so that a failure
+/// seen once on a loaded machine can be understood from its log.
 pub fn wait_done(dir: &Path, addr: &str, job: u64, timeout: Duration) -> Value {
-    poll(&format!("job {job} to be done"), timeout, || {
-        let status = try_status(dir, addr, job)?;
-        assert_not_ended_badly(job, &status);
-        (status["state"] == "done").then_some(status)
-    })
+    let deadline = Instant::now() + timeout;
+    let mut last = None;
+    loop {
+        if let Some(status) = try_status(dir, addr, job) {
+            assert_not_ended_badly(job, &status);
+            if status["state"] == "done" {
+                return status;
+            }
+            last = Some(status);
+        }
+        if Instant::now() >= deadline {
+            let look = |args: &[&str]| {
+                let mut all = args.to_vec();
+                all.extend(["--coordinator", addr]);
+                tessera_within(dir, &all, Duration::from_secs(10))
+                    .map_or_else(|| "(no answer in 10 s)".to_owned(), |run| run.stdout)
+            };
+            let workers = look(&["workers", "--json"]);
+            let events = look(&["events", &job.to_string()]);
+            let tail: Vec<&str> = events.lines().rev().take(40).collect();
+            let tail: Vec<&str> = tail.into_iter().rev().collect();
+            panic!(
+                "timed out after {timeout:?} waiting for job {job} to be done\n\
+                 last status: {}\nworkers: {}\nlast events:\n{}",
+                last.map_or_else(|| "none".to_owned(), |s| s.to_string()),
+                workers.trim(),
+                tail.join("\n")
+            );
+        }
+        std::thread::sleep(super::POLL);
+    }
 }
 
 /// Polls `status` (at most `timeout`) until job `job` has at least `tiles` tiles done,
