@@ -266,7 +266,8 @@ pub struct DaemonArgs {
     #[arg(long)]
     print_config: bool,
     /// Serve HTTP on this address: /healthz and /readyz, and on a coordinator also
-    /// /metrics (Prometheus) and the status page at /.
+    /// /metrics (Prometheus), the status page at / and the studio. A coordinator with
+    /// TLS serves HTTPS there with the same certificate.
     #[arg(long, value_name = "ADDR", env = "TESSERA_HTTP")]
     pub http: Option<SocketAddr>,
     /// How logs on stderr look: text (coloured on a terminal) or json (one object a line).

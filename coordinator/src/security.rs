@@ -1,6 +1,7 @@
-//! The rules a coordinator's settings must follow before it accepts anyone: the two
-//! roles' secrets must differ, and a coordinator that other machines can reach must
-//! ask both roles for proof, unless its operator says otherwise.
+//! The rules a coordinator's settings must follow before it accepts anyone: the
+//! secrets must differ, a coordinator that other machines can reach must ask both
+//! roles for proof, and an HTTP side that other machines can reach must ask for the
+//! client secret over TLS, unless its operator says otherwise in so many words.
 
 use std::fmt;
 use std::net::SocketAddr;
@@ -30,6 +31,28 @@ pub enum Unsafe {
         listen: SocketAddr,
         missing: MissingTokens,
     },
+    /// The scrape token opens the metrics only; equal to a role's secret it would
+    /// hand that role's rights to the monitoring system.
+    #[error(
+        "the scrape token is the same secret as the {role} token: give the metrics a \
+         secret of their own (e.g. from `openssl rand -hex 32`)"
+    )]
+    ScrapeIsRoleSecret { role: &'static str },
+    /// Anyone who can reach the HTTP address could read every job and image.
+    #[error(
+        "refusing to serve HTTP on {http} without a client token: anyone who can reach it \
+         could see every job, image and worker. Give --client-token-file FILE, bind --http \
+         to 127.0.0.1 (or pass --insecure)"
+    )]
+    OpenHttp { http: SocketAddr },
+    /// The client secret, scenes and images would cross the network in clear.
+    #[error(
+        "refusing to serve HTTP on {http} without TLS: the client secret, scenes and images \
+         would cross the network in clear. Give --tls-auto (or --tls-cert and --tls-key): \
+         the HTTP side then serves HTTPS with the same certificate; or bind --http to \
+         127.0.0.1 (or pass --http-insecure)"
+    )]
+    PlainHttp { http: SocketAddr },
 }
 
 /// Which roles' tokens a coordinator lacks.
@@ -51,14 +74,30 @@ impl fmt::Display for MissingTokens {
 }
 
 impl Config {
-    /// Checks the secrets against each other and against the address listened on.
+    /// Checks the secrets against each other and against the addresses listened on.
     /// On a loopback address only this machine's users can connect, so no token is
     /// needed there; elsewhere both roles need one, unless `insecure` accepts the
-    /// roles without a token as they are.
-    pub fn check_security(&self, insecure: bool) -> Result<(), Unsafe> {
+    /// roles without a token as they are. An HTTP address elsewhere needs the client
+    /// token (or `insecure`) and TLS (or `http_insecure`).
+    pub fn check_security(&self, insecure: bool, http_insecure: bool) -> Result<(), Unsafe> {
         let (worker, client) = (&self.worker_secret, &self.client_secret);
         if worker.is_some() && worker == client {
             return Err(Unsafe::SameSecret);
+        }
+        if let Some(scrape) = &self.metrics_secret {
+            for (role, secret) in [("worker", worker), ("client", client)] {
+                if secret.as_ref() == Some(scrape) {
+                    return Err(Unsafe::ScrapeIsRoleSecret { role });
+                }
+            }
+        }
+        if let Some(http) = self.http.filter(|h| !h.ip().is_loopback()) {
+            if client.is_none() && !insecure {
+                return Err(Unsafe::OpenHttp { http });
+            }
+            if self.tls.is_none() && !http_insecure {
+                return Err(Unsafe::PlainHttp { http });
+            }
         }
         let missing = match (worker.is_some(), client.is_some()) {
             (true, true) => return Ok(()),
@@ -90,9 +129,12 @@ mod tests {
     #[test]
     fn loopback_needs_no_token() {
         for listen in ["127.0.0.1:7878", "[::1]:0"] {
-            assert_eq!(config(listen, None, None).check_security(false), Ok(()));
             assert_eq!(
-                config(listen, Some("w"), None).check_security(false),
+                config(listen, None, None).check_security(false, false),
+                Ok(())
+            );
+            assert_eq!(
+                config(listen, Some("w"), None).check_security(false, false),
                 Ok(())
             );
         }
@@ -102,7 +144,7 @@ mod tests {
     fn another_address_needs_both_tokens_or_insecure() {
         let error = |worker, client| {
             config("0.0.0.0:7878", worker, client)
-                .check_security(false)
+                .check_security(false, false)
                 .unwrap_err()
                 .to_string()
         };
@@ -116,16 +158,55 @@ mod tests {
         assert!(error(None, Some("c")).contains(" without a token for workers: "));
         assert!(error(Some("w"), None).contains(" without a token for clients: "));
         let both = config("10.1.2.3:7878", Some("w"), Some("c"));
-        assert_eq!(both.check_security(false), Ok(()));
+        assert_eq!(both.check_security(false, false), Ok(()));
         let open = config("0.0.0.0:7878", None, Some("c"));
-        assert_eq!(open.check_security(true), Ok(()));
+        assert_eq!(open.check_security(true, false), Ok(()));
+    }
+
+    #[test]
+    fn an_http_side_others_reach_needs_the_client_token_and_tls() {
+        let mut farm = config("10.1.2.3:7878", Some("w"), Some("c"));
+        farm.http = Some("127.0.0.1:9090".parse().unwrap());
+        assert_eq!(farm.check_security(false, false), Ok(()));
+        let http: SocketAddr = "0.0.0.0:9090".parse().unwrap();
+        farm.http = Some(http);
+        assert_eq!(
+            farm.check_security(false, false),
+            Err(Unsafe::PlainHttp { http })
+        );
+        assert_eq!(farm.check_security(false, true), Ok(()));
+        assert!(Unsafe::PlainHttp { http }
+            .to_string()
+            .starts_with("refusing to serve HTTP on 0.0.0.0:9090 without TLS: "));
+        let mut open = config("127.0.0.1:7878", None, None);
+        open.http = Some(http);
+        assert_eq!(
+            open.check_security(false, true),
+            Err(Unsafe::OpenHttp { http })
+        );
+        assert_eq!(open.check_security(true, true), Ok(()));
+    }
+
+    #[test]
+    fn the_scrape_token_is_a_secret_of_its_own() {
+        let mut farm = config("127.0.0.1:7878", Some("w"), Some("c"));
+        farm.metrics_secret = Some(b"m".to_vec());
+        assert_eq!(farm.check_security(false, false), Ok(()));
+        farm.metrics_secret = Some(b"c".to_vec());
+        assert_eq!(
+            farm.check_security(false, false),
+            Err(Unsafe::ScrapeIsRoleSecret { role: "client" })
+        );
     }
 
     #[test]
     fn the_roles_secrets_must_differ_on_any_address() {
         for (listen, insecure) in [("127.0.0.1:7878", false), ("0.0.0.0:7878", true)] {
             let same = config(listen, Some("s"), Some("s"));
-            assert_eq!(same.check_security(insecure), Err(Unsafe::SameSecret));
+            assert_eq!(
+                same.check_security(insecure, false),
+                Err(Unsafe::SameSecret)
+            );
         }
         assert_eq!(
             Unsafe::SameSecret.to_string(),

@@ -123,6 +123,9 @@ pub struct Config {
     /// The secret clients must prove, and that the coordinator proves to them, if any.
     /// Distinct from the workers' so that a client's credential cannot render tiles.
     pub client_secret: Option<Vec<u8>>,
+    /// The token Prometheus may scrape `/metrics` with (`--metrics-token-file`), if
+    /// any: a credential that shows the farm's counters and nothing else.
+    pub metrics_secret: Option<Vec<u8>>,
     /// After a reload of the token files ([`TokenReloader`]), the secret a role had
     /// before stays accepted this long beside the new one.
     pub token_overlap: Duration,
@@ -144,6 +147,9 @@ pub struct Config {
     /// The scene the studio page opens with (already checked by the loader); the
     /// page's own default without one.
     pub studio_scene: Option<String>,
+    /// The file name of `studio_scene` (without its directory), which the studio's
+    /// Save offers.
+    pub studio_scene_file: Option<String>,
 }
 
 impl Config {
@@ -156,6 +162,7 @@ impl Config {
             handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
             worker_secret: None,
             client_secret: None,
+            metrics_secret: None,
             token_overlap: DEFAULT_TOKEN_OVERLAP,
             tls: None,
             policy: Policy::default(),
@@ -165,6 +172,7 @@ impl Config {
             retention: None,
             reset_database: false,
             studio_scene: None,
+            studio_scene_file: None,
         }
     }
 
@@ -211,6 +219,10 @@ struct Shared {
     studio: studio_session::Studio,
     /// The scene the studio page opens with, if one was given.
     studio_scene: Option<String>,
+    studio_scene_file: Option<String>,
+    /// The scrape token of `/metrics` ([`Config::metrics_secret`]), replaced by a
+    /// reload of the token files.
+    scrape: std::sync::RwLock<Option<Vec<u8>>>,
     /// This coordinator's hold on its data directory, for as long as it lives.
     _data_lock: data_lock::DataLock,
 }
@@ -342,6 +354,8 @@ impl Server {
             verifier,
             studio: studio_session::Studio::default(),
             studio_scene: config.studio_scene.clone(),
+            studio_scene_file: config.studio_scene_file.clone(),
+            scrape: std::sync::RwLock::new(config.metrics_secret.clone()),
             _data_lock: data_lock,
         });
         {
@@ -405,7 +419,11 @@ impl Server {
         let _retire = AbortOnDrop(tokio::spawn(keys::retire(Arc::clone(&self.shared))));
         // The HTTP side stays up through the graceful shutdown (readiness says so).
         let _stop_http = self.http.take().map(|listener| {
-            crate::http::spawn(listener, crate::http::coordinator_routes(self.observer()))
+            crate::http::spawn(
+                listener,
+                self.shared.tls.clone(),
+                crate::http::coordinator_routes(self.observer()),
+            )
         });
         loop {
             tokio::select! {

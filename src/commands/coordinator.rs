@@ -3,7 +3,7 @@
 //! library's rules ([`coordinator::Config::check_security`]) before it binds.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
@@ -130,6 +130,10 @@ pub struct Args {
     /// token are accepted without proof.
     #[arg(long, env = "TESSERA_INSECURE")]
     insecure: bool,
+    /// Serve --http on a non-loopback address without TLS: the client secret, scenes
+    /// and images then cross the network in clear.
+    #[arg(long, env = "TESSERA_HTTP_INSECURE")]
+    http_insecure: bool,
     /// Milliseconds a peer has to complete its handshake.
     #[arg(long, env = "TESSERA_HANDSHAKE_TIMEOUT_MS", value_name = "MS", default_value_t = coordinator::server::DEFAULT_HANDSHAKE_TIMEOUT.as_millis() as u64,
           value_parser = clap::value_parser!(u64).range(100..=600_000))]
@@ -166,6 +170,12 @@ struct CoordinatorSecretArgs {
     /// token itself].
     #[arg(long, env = "TESSERA_CLIENT_TOKEN_FILE", value_name = "FILE")]
     client_token_file: Option<PathBuf>,
+    /// File holding the token Prometheus scrapes /metrics with (`Authorization: Bearer
+    /// TOKEN`), a secret of its own that shows the counters and nothing else; without
+    /// it /metrics takes the client token [or set TESSERA_METRICS_TOKEN to the token
+    /// itself].
+    #[arg(long, env = "TESSERA_METRICS_TOKEN_FILE", value_name = "FILE")]
+    metrics_token_file: Option<PathBuf>,
     /// No longer a coordinator setting: refused with an explanation.
     #[arg(long, hide = true, value_name = "FILE")]
     token_file: Option<PathBuf>,
@@ -200,6 +210,14 @@ impl CoordinatorSecretArgs {
             transport::load_secret(self.client_token_file.as_deref(), "TESSERA_CLIENT_TOKEN")?;
         Ok((worker, client))
     }
+
+    /// The scrape token of `/metrics`, if set.
+    fn load_scrape(&self) -> Result<Option<Vec<u8>>> {
+        Ok(transport::load_secret(
+            self.metrics_token_file.as_deref(),
+            "TESSERA_METRICS_TOKEN",
+        )?)
+    }
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -232,6 +250,7 @@ async fn coordinator(a: Args) -> Result<()> {
         handshake_timeout: Duration::from_millis(a.handshake_timeout_ms),
         worker_secret,
         client_secret,
+        metrics_secret: a.secrets.load_scrape()?,
         token_overlap: a.token_overlap,
         tls,
         policy: scheduler::Policy {
@@ -255,13 +274,19 @@ async fn coordinator(a: Args) -> Result<()> {
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
+        studio_scene_file: None,
     };
-    config.check_security(a.insecure)?;
+    config.check_security(a.insecure, a.http_insecure)?;
     config.studio_scene = a
         .studio_scene
         .as_deref()
         .map(read_checked_scene)
         .transpose()?;
+    config.studio_scene_file = a
+        .studio_scene
+        .as_deref()
+        .and_then(Path::file_name)
+        .map(|name| name.to_string_lossy().into_owned());
     serve(config, a.exit_on_stdin_eof, a.secrets).await
 }
 
@@ -308,7 +333,12 @@ async fn serve(
     }
     if let Some(http) = server.http_addr()? {
         println!("http on {http}");
-        info!(%http, "status page, metrics and health on http://{http}/");
+        let scheme = if fingerprint.is_some() {
+            "https"
+        } else {
+            "http"
+        };
+        info!(%http, "status page, metrics and health on {scheme}://{http}/");
     }
     if let Some(fingerprint) = fingerprint {
         // Peers pin this (`--tls-fingerprint`) instead of needing a copy of the
@@ -331,6 +361,10 @@ async fn reload_on_hangup(
         let reloaded = secrets
             .load()
             .and_then(|(worker, client)| Ok(reloader.reload(worker, client)?));
+        let reloaded = reloaded.and_then(|()| {
+            reloader.reload_scrape(secrets.load_scrape()?);
+            Ok(())
+        });
         if let Err(e) = reloaded {
             error!(
                 error = %format!("{e:#}"),

@@ -54,7 +54,7 @@ async fn work(a: Args) -> Result<()> {
             let flag = Arc::clone(&ready);
             let routes =
                 coordinator::http::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
-            Some(coordinator::http::spawn(listener, routes))
+            Some(coordinator::http::spawn(listener, None, routes))
         }
         None => None,
     };

@@ -55,6 +55,34 @@ impl TokenReloader {
     }
 }
 
+impl TokenReloader {
+    /// Makes `scrape` the token `/metrics` takes from now on (no overlap: Prometheus
+    /// reads its credentials file at every scrape, so both change together).
+    pub fn reload_scrape(&self, scrape: Option<Vec<u8>>) {
+        let changed = *self
+            .shared
+            .scrape
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            != scrape;
+        if changed {
+            info!(
+                scrape = if scrape.is_some() {
+                    "replaced"
+                } else {
+                    "removed"
+                },
+                "reloaded the scrape token"
+            );
+        }
+        *self
+            .shared
+            .scrape
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = scrape;
+    }
+}
+
 /// A role's change as the reload's log line says it.
 fn describe(change: Change, now: scheduler::Millis) -> String {
     match change {

@@ -408,6 +408,26 @@ impl Observer {
         self.shared.studio_scene.as_deref()
     }
 
+    /// The file name of the studio's scene, if it came from a file.
+    pub fn studio_scene_file(&self) -> Option<&str> {
+        self.shared.studio_scene_file.as_deref()
+    }
+
+    /// The scrape token of `/metrics`, if the coordinator has one.
+    pub fn scrape_secret(&self) -> Option<Vec<u8>> {
+        self.shared
+            .scrape
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Whether the coordinator serves TLS (and its HTTP side with it): the session
+    /// cookie is then `Secure`.
+    pub fn serves_tls(&self) -> bool {
+        self.shared.tls.is_some()
+    }
+
     /// A studio page's stream of its view's tiles; [`StudioStream`]'s drop tells the
     /// view the page went away.
     pub fn studio_stream(&self, view: String) -> Result<StudioStream, String> {

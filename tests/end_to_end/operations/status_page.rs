@@ -3,8 +3,9 @@
 //! same pixels as `tessera render`'s. Its controls, clicked with the mouse through the
 //! DevTools protocol, pause, resume and delete jobs and disable and enable workers, as
 //! `tessera status` and `tessera workers` then show; it warns when no worker can take
-//! tiles, and asks for the farm's client token once. The controls' rules of access
-//! (token, content type, origin) are checked over plain HTTP.
+//! tiles, and on a farm with a client secret logs in with a form, over HTTPS with the
+//! coordinator's own certificate. The controls' rules of access (token, content type,
+//! origin) are checked over plain HTTP.
 //!
 //! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
 //! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
@@ -13,10 +14,11 @@
 use std::path::Path;
 use std::time::Duration;
 
-use crate::support::browser::{browser_or_skip, dump_dom, DevTools};
+use crate::support::browser::{browser_or_skip, dump_dom, trust_key, DevTools};
 use crate::support::{
-    client, free_port, http_get, http_post, json_error, ok, poll, render_reference, scene_path,
-    shared, start_coordinator, start_slow_worker, status_json, submit, tessera, wait_done,
+    client, free_port, http_get, http_post, http_request, json_error, ok, poll, render_reference,
+    scene_path, shared, start_coordinator, start_slow_worker, status_json, submit, tessera,
+    wait_done,
 };
 
 /// The page's DOM, as a browser that loaded it and let it run for 2 s shows it.
@@ -481,8 +483,20 @@ fn the_page_controls_follow_the_client_secret() {
     );
 
     // The job's events, as the page shows them, say who did what, in order.
-    let (code, body) =
-        http_get(&http, &format!("/api/jobs/{job}/events")).expect("the coordinator answers");
+    // Read with the secret, as every read of a farm that has one.
+    let read = |path: &str| {
+        let answer = http_request(
+            &http,
+            path,
+            "Authorization: Bearer page-secret\r\n",
+            Duration::from_secs(10),
+        )
+        .expect("the coordinator answers");
+        (answer.status, answer.body)
+    };
+    let (code, _) = http_get(&http, &format!("/api/jobs/{job}/events")).unwrap();
+    assert_eq!(code, 401, "the events without the secret");
+    let (code, body) = read(&format!("/api/jobs/{job}/events"));
     assert_eq!(code, 200);
     let events: serde_json::Value = serde_json::from_slice(&body).unwrap();
     let kinds: Vec<&str> = events
@@ -504,16 +518,15 @@ fn the_page_controls_follow_the_client_secret() {
         "{events}"
     );
     let first = events[0]["seq"].as_u64().unwrap();
-    let (_, body) = http_get(&http, &format!("/api/jobs/{job}/events?after={first}"))
-        .expect("the coordinator answers");
+    let (_, body) = read(&format!("/api/jobs/{job}/events?after={first}"));
     let rest: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(rest.as_array().unwrap().len(), kinds.len() - 1, "{rest}");
-    let (code, _) = http_get(&http, "/api/jobs/999/events").unwrap();
+    let (code, _) = read("/api/jobs/999/events");
     assert_eq!(code, 404);
 }
 
 #[test]
-fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
+fn the_page_logs_in_with_a_form_over_tls_and_leaves_no_secret_to_scripts() {
     let _turn = shared();
     let Some(browser) = browser_or_skip() else {
         return;
@@ -521,16 +534,38 @@ fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
     let dir = tempfile::tempdir().unwrap();
     let http = format!("127.0.0.1:{}", free_port());
     std::fs::write(dir.path().join("client.token"), "tab-secret\n").unwrap();
+    let data = dir.path().join("data");
     let (_coordinator, addr) = start_coordinator(
         dir.path(),
-        &dir.path().join("data"),
+        &data,
         "127.0.0.1:0",
-        &["--http", &http, "--client-token-file", "client.token"],
+        &[
+            "--http",
+            &http,
+            "--client-token-file",
+            "client.token",
+            "--tls-auto",
+        ],
         "coordinator.log",
     );
+    let fingerprint = tessera(
+        dir.path(),
+        &[
+            "coordinator",
+            "--data",
+            "data",
+            "--tls-auto",
+            "--print-fingerprint",
+        ],
+        Duration::from_secs(30),
+    )
+    .stdout
+    .trim()
+    .to_owned();
     let with_token = |args: &[&str]| {
         let mut all: Vec<&str> = args.to_vec();
         all.extend(["--coordinator", &addr, "--token-file", "client.token"]);
+        all.extend(["--tls-fingerprint", &fingerprint]);
         tessera(dir.path(), &all, Duration::from_secs(60))
     };
     let seed = scene_path("seed.json");
@@ -541,46 +576,63 @@ fn the_page_asks_for_the_client_token_once_and_keeps_it_for_the_tab() {
         let v: serde_json::Value = serde_json::from_str(ok(run, "status").stdout.trim()).unwrap();
         v["state"].as_str().unwrap_or_default().to_owned()
     };
-    let mut page = DevTools::open(
+    // The browser trusts the coordinator's own key, as a user who checked its
+    // fingerprint would: the page is served over HTTPS with the protocol's certificate.
+    let mut page = DevTools::open_with(
         &browser,
         &dir.path().join("profile"),
-        &format!("http://{http}/?job={job}"),
+        &format!("https://{http}/?job={job}"),
         &dir.path().join("chromium.log"),
+        &[trust_key(&data.join("tls").join("key.pem"))],
     );
+    // Nothing of the farm without the secret: the form, and no job.
+    poll("the login form", Duration::from_secs(30), || {
+        (page.eval("document.getElementById('login-form').hidden") == false).then_some(())
+    });
+    assert_eq!(page.eval("location.protocol"), "https:");
+    assert_eq!(page.eval("document.querySelectorAll('#jobs tr').length"), 0);
+    // A wrong token is said so, and the form stays.
+    page.eval("document.getElementById('token').value = 'not-it'");
+    assert!(page.click("#login-form button[type=\"submit\"]"));
+    poll("the refusal", Duration::from_secs(20), || {
+        (page.eval("document.getElementById('control-note').textContent") == "wrong client token")
+            .then_some(())
+    });
+    assert_eq!(
+        page.eval("document.getElementById('login-form').hidden"),
+        false
+    );
+    // The right one: the jobs appear, and the controls work.
+    page.eval("document.getElementById('token').value = 'tab-secret'");
+    assert!(page.click("#login-form button[type=\"submit\"]"));
     let pause = format!("button[data-action=\"pause\"][data-job=\"{job}\"]");
     poll("the pause button", Duration::from_secs(30), || {
         page.click(&pause).then_some(())
     });
-    // Refused for want of the token: the page asks for it, and nothing changed.
-    poll("the token form", Duration::from_secs(20), || {
-        (page.eval("document.getElementById('token-form').hidden") == false).then_some(())
-    });
-    assert_eq!(
-        page.eval("document.getElementById('control-note').dataset.status"),
-        "401"
-    );
-    assert_eq!(state(), "queued");
-    // Given, the waiting control goes through, and the token stays for the tab.
-    page.eval("document.getElementById('token').value = 'tab-secret'");
-    assert!(page.click("#token-form button[type=\"submit\"]"));
     poll("the job to be paused", Duration::from_secs(20), || {
         (state() == "paused").then_some(())
     });
-    assert_eq!(
-        page.eval("sessionStorage.getItem('tessera-token')"),
-        "tab-secret"
-    );
-    poll("the resume button", Duration::from_secs(30), || {
-        page.click(&format!(
-            "button[data-action=\"resume\"][data-job=\"{job}\"]"
-        ))
-        .then_some(())
+    // The session is a cookie no script can read, and the secret is kept nowhere.
+    assert_eq!(page.eval("document.cookie"), "");
+    assert_eq!(page.eval("sessionStorage.length + localStorage.length"), 0);
+    assert_eq!(page.eval("document.getElementById('token').value"), "");
+    // A reload keeps the session: no form, the job is there.
+    let resume = format!("button[data-action=\"resume\"][data-job=\"{job}\"]");
+    // The old document is marked, so that only the reloaded one's button is clicked.
+    page.eval("window.beforeReload = true; location.reload()");
+    poll("the job after a reload", Duration::from_secs(30), || {
+        let shown = format!(
+            "window.beforeReload === undefined && document.querySelector('{}') !== null",
+            resume.replace('\'', "\\'")
+        );
+        (page.eval(&shown) == true).then_some(())
     });
+    assert!(page.click(&resume));
     poll("the job to be resumed", Duration::from_secs(20), || {
         (state() == "queued").then_some(())
     });
     assert_eq!(
-        page.eval("document.getElementById('token-form').hidden"),
+        page.eval("document.getElementById('login-form').hidden"),
         true,
         "the page asked again"
     );

@@ -187,9 +187,11 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
         &url,
         &dir.join("chromium.log"),
     );
+    let downloads = dir.join("downloads");
+    std::fs::create_dir_all(&downloads).unwrap();
     page.call(
         "Browser.setDownloadBehavior",
-        serde_json::json!({ "behavior": "allow", "downloadPath": dir.to_str().unwrap() }),
+        serde_json::json!({ "behavior": "allow", "downloadPath": downloads.to_str().unwrap() }),
     );
     let first = wait_final(&mut page, 0, "the first final picture");
     // The page opened the scene it was given (960 × 540), not its own default.
@@ -287,13 +289,18 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
 
     // Saved, then rendered by `tessera render`: the studio's very pixels.
     assert!(page.click("#save"), "no Save button");
-    let saved = dir.join("scene.json");
+    // Under the name of the file the studio opened.
+    let saved = downloads.join("start.json");
     poll("the saved scene", TIMEOUT, || {
         let text = std::fs::read_to_string(&saved).ok()?;
         serde_json::from_str::<serde_json::Value>(&text).ok()
     });
     ok(
-        tessera(dir, &["render", "scene.json", "-o", "render.png"], TIMEOUT),
+        tessera(
+            dir,
+            &["render", "downloads/start.json", "-o", "render.png"],
+            TIMEOUT,
+        ),
         "tessera render of the saved scene",
     );
     let rendered = image::open(dir.join("render.png")).unwrap().to_rgb8();

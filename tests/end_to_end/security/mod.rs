@@ -4,6 +4,7 @@
 
 mod authentication;
 mod hostile_peers;
+mod http_side;
 mod rotation;
 mod tls;
 

@@ -54,6 +54,22 @@ pub fn dump_dom(browser: &Path, profile: &Path, url: &str, virtual_ms: u32) -> O
         .expect("cannot start the browser")
 }
 
+/// The flag that has the browser trust a certificate of the key in the PEM file `key`
+/// (a coordinator's `--tls-auto` key): the base64 SHA-256 of its public key, as a user
+/// who pinned the farm's fingerprint would accept its certificate, and nothing else.
+pub fn trust_key(key: &Path) -> String {
+    use base64::Engine;
+    use rcgen::PublicKeyData;
+    use sha2::Digest;
+    let pem = std::fs::read_to_string(key).unwrap_or_else(|e| panic!("{}: {e}", key.display()));
+    let pair = rcgen::KeyPair::from_pem(&pem).expect("a PEM key");
+    let digest = sha2::Sha256::digest(pair.subject_public_key_info());
+    format!(
+        "--ignore-certificate-errors-spki-list={}",
+        base64::engine::general_purpose::STANDARD.encode(digest)
+    )
+}
+
 /// `GET PATH` over HTTP/1.1 (the DevTools listener takes nothing older and keeps the
 /// connection open: the body is read by its length): the status code and the body.
 fn http11_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
@@ -95,9 +111,22 @@ pub struct DevTools {
 impl DevTools {
     /// Starts the browser on `url` and connects to its page.
     pub fn open(browser: &Path, profile: &Path, url: &str, log: &Path) -> DevTools {
+        DevTools::open_with(browser, profile, url, log, &[])
+    }
+
+    /// [`DevTools::open`] with more command-line flags for the browser (such as
+    /// [`trust_key`]'s).
+    pub fn open_with(
+        browser: &Path,
+        profile: &Path,
+        url: &str,
+        log: &Path,
+        flags: &[String],
+    ) -> DevTools {
         let port = free_port();
         let child = Command::new(browser)
             .args(BROWSER_FLAGS)
+            .args(flags)
             .args([
                 "--remote-debugging-address=127.0.0.1",
                 "--window-size=1400,1000",

@@ -1,8 +1,109 @@
-//! Plain HTTP/1.0 to the daemons' HTTP listeners (status page, API, health, metrics):
-//! the server closes the connection when done, so an answer is read to its end.
+//! HTTP/1.0 to the daemons' HTTP listeners (status page, API, health, metrics), plain
+//! or over TLS: the server closes the connection when done, so an answer is read to
+//! its end.
 
 use std::io::{Read, Write};
+use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
+
+/// How to reach an HTTP listener: its address, and over TLS the trust to check its
+/// certificate with.
+#[derive(Clone)]
+pub struct Site {
+    pub addr: String,
+    pub tls: Option<Arc<rustls::ClientConfig>>,
+}
+
+impl Site {
+    /// Plain HTTP at `addr`.
+    pub fn plain(addr: &str) -> Site {
+        Site {
+            addr: addr.to_owned(),
+            tls: None,
+        }
+    }
+
+    /// HTTPS at `addr`, trusting only the certificate in the PEM file `cert` (a
+    /// coordinator's `--tls-auto` one names 127.0.0.1).
+    pub fn https(addr: &str, cert: &Path) -> Site {
+        use rustls::pki_types::pem::PemObject;
+        let mut roots = rustls::RootCertStore::empty();
+        for certificate in rustls::pki_types::CertificateDer::pem_file_iter(cert)
+            .unwrap_or_else(|e| panic!("{}: {e}", cert.display()))
+        {
+            roots.add(certificate.unwrap()).unwrap();
+        }
+        let config = rustls::ClientConfig::builder_with_provider(Arc::new(
+            rustls::crypto::ring::default_provider(),
+        ))
+        .with_safe_default_protocol_versions()
+        .unwrap()
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+        Site {
+            addr: addr.to_owned(),
+            tls: Some(Arc::new(config)),
+        }
+    }
+
+    /// `METHOD PATH` with `headers` and `body`, at most `timeout` to connect and for each
+    /// read: the answer, or `None` if nothing answers (or TLS fails).
+    pub fn request(
+        &self,
+        method: &str,
+        path: &str,
+        headers: &[(&str, &str)],
+        body: &[u8],
+        timeout: Duration,
+    ) -> Option<Answer> {
+        let socket: std::net::SocketAddr = self.addr.parse().ok()?;
+        let tcp = std::net::TcpStream::connect_timeout(&socket, timeout).ok()?;
+        tcp.set_read_timeout(Some(timeout)).ok()?;
+        tcp.set_write_timeout(Some(timeout)).ok()?;
+        let mut request = format!("{method} {path} HTTP/1.0\r\nHost: {}\r\n", self.addr);
+        if !body.is_empty() || method == "POST" {
+            request.push_str(&format!("Content-Length: {}\r\n", body.len()));
+        }
+        for (name, value) in headers {
+            request.push_str(&format!("{name}: {value}\r\n"));
+        }
+        request.push_str("\r\n");
+        let mut request = request.into_bytes();
+        request.extend_from_slice(body);
+        let response = match &self.tls {
+            None => exchange(tcp, &request)?,
+            Some(config) => {
+                let name = rustls::pki_types::ServerName::from(socket.ip());
+                let connection = rustls::ClientConnection::new(Arc::clone(config), name).ok()?;
+                exchange(rustls::StreamOwned::new(connection, tcp), &request)?
+            }
+        };
+        let head_end = response.windows(4).position(|w| w == b"\r\n\r\n")?;
+        let head = String::from_utf8_lossy(&response[..head_end]).to_ascii_lowercase();
+        let status = head.split_whitespace().nth(1)?.parse().ok()?;
+        Some(Answer {
+            status,
+            head,
+            body: response[head_end + 4..].to_vec(),
+        })
+    }
+}
+
+/// Sends `request` and reads the answer to its end (a TLS peer that closes without
+/// close_notify still gives what it sent).
+fn exchange(mut stream: impl Read + Write, request: &[u8]) -> Option<Vec<u8>> {
+    stream.write_all(request).ok()?;
+    stream.flush().ok()?;
+    let mut response = Vec::new();
+    match stream.read_to_end(&mut response) {
+        Ok(_) => Some(response),
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !response.is_empty() => {
+            Some(response)
+        }
+        Err(_) => None,
+    }
+}
 
 /// What an HTTP server answered.
 pub struct Answer {
@@ -23,25 +124,12 @@ pub fn header<'a>(head: &'a str, name: &str) -> Option<&'a str> {
 /// `addr`, with `timeout` on connecting, sending and each read. `None` if nothing
 /// answers.
 pub fn http_request(addr: &str, path: &str, headers: &str, timeout: Duration) -> Option<Answer> {
-    let socket: std::net::SocketAddr = addr.parse().ok()?;
-    let mut stream = std::net::TcpStream::connect_timeout(&socket, timeout).ok()?;
-    stream.set_read_timeout(Some(timeout)).ok()?;
-    stream.set_write_timeout(Some(timeout)).ok()?;
-    write!(
-        stream,
-        "GET {path} HTTP/1.0\r\nHost: {addr}\r\n{headers}\r\n"
-    )
-    .ok()?;
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response).ok()?;
-    let head_end = response.windows(4).position(|w| w == b"\r\n\r\n")?;
-    let head = String::from_utf8_lossy(&response[..head_end]).to_ascii_lowercase();
-    let status = head.split_whitespace().nth(1)?.parse().ok()?;
-    Some(Answer {
-        status,
-        head,
-        body: response[head_end + 4..].to_vec(),
-    })
+    let headers: Vec<(&str, &str)> = headers
+        .split("\r\n")
+        .filter_map(|line| line.split_once(':'))
+        .map(|(name, value)| (name, value.trim()))
+        .collect();
+    Site::plain(addr).request("GET", path, &headers, b"", timeout)
 }
 
 /// [`http_get_within`] 10 s.

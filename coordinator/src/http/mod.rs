@@ -1,55 +1,191 @@
 //! The HTTP side of the daemons (`--http ADDR`): health for supervisors, Prometheus
-//! metrics, and the coordinator's status page with live previews and controls.
+//! metrics, and the coordinator's status page and studio with live previews and
+//! controls.
 //!
-//! Reading needs no authentication beyond where it listens (loopback unless told
-//! otherwise). The controls (`POST /api/jobs/ID/ACTION`, `POST
-//! /api/workers/WORKER/ACTION`) change the farm, so they follow the farm's client
-//! secret, as `tessera pause` and the rest do ([`authorize`]): with a secret, a request
-//! must carry it as `Authorization: Bearer TOKEN`; without one, only loopback peers may
-//! use them (the coordinator itself listens on loopback only without secrets). Every
-//! control must also come as JSON from the page's own origin, which a cross-site form
-//! or image cannot do. They run the very requests of the client protocol
-//! ([`Observer::control`]): one implementation of every operation.
+//! Every route is one row of [`table`]: its method, its path and who may call it
+//! ([`Access`]), and the router is built from that table only, each handler behind
+//! the [`access::decide`] of its row. A route cannot be added without that decision,
+//! and the route test walks the table (docs/reliability.md, "The HTTP side").
+//!
+//! The listener serves TLS whenever the coordinator does, with the same certificate
+//! ([`listener::HttpListener`]), so the fingerprint peers pin is the page's too. The
+//! controls run the very requests of the client protocol ([`Observer::control`]): one
+//! implementation of every operation.
 
-use std::net::{IpAddr, SocketAddr};
+mod access;
+mod listener;
+
 use std::sync::Arc;
 
-use axum::extract::{ConnectInfo, Path, Query, State};
-use axum::http::{header, HeaderMap, StatusCode};
+use axum::extract::{ConnectInfo, Path, Query, Request, State};
+use axum::http::{header, HeaderMap, Method, StatusCode};
+use axum::middleware::Next;
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{get, post, MethodRouter};
 use axum::{Json, Router};
 use protocol::{ClientRequest, ClientResponse, JobId};
-use sha2::{Digest, Sha256};
 use tokio::net::TcpListener;
+use transport::ServerTls;
+
+pub use access::{decide, Access, Asking, Secrets};
+pub use listener::{HttpListener, Peer};
 
 use crate::metrics::Exposition;
 use crate::server::{Observer, Picture, Refusal};
 
 /// The status page: one self-contained file, polling `/api/status`.
-const STATUS_PAGE: &str = include_str!("status.html");
-const STUDIO_PAGE: &str = include_str!("studio.html");
+const STATUS_PAGE: &str = include_str!("../status.html");
+const STUDIO_PAGE: &str = include_str!("../studio.html");
 
-/// The coordinator's endpoints.
+/// One route of the coordinator's HTTP side, as the table gives it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Route {
+    pub method: Method,
+    /// The path as the router matches it (`{id}` a path parameter).
+    pub path: &'static str,
+    pub access: Access,
+}
+
+/// Every route of the coordinator, with who may call it and its handler: the only
+/// place a route is added.
+fn table() -> Vec<(Route, MethodRouter<Observer>)> {
+    use Access::{Control, Login, Open, Page, Read, Scrape};
+    let row = |method: Method, path, access, handler| {
+        (
+            Route {
+                method,
+                path,
+                access,
+            },
+            handler,
+        )
+    };
+    vec![
+        row(Method::GET, "/healthz", Open, get(|| async { "ok\n" })),
+        row(Method::GET, "/readyz", Open, get(coordinator_ready)),
+        row(Method::GET, "/", Page, get(|| async { Html(STATUS_PAGE) })),
+        row(
+            Method::GET,
+            "/studio",
+            Page,
+            get(|| async { Html(STUDIO_PAGE) }),
+        ),
+        row(Method::POST, "/api/login", Login, post(login)),
+        row(Method::POST, "/api/logout", Login, post(logout)),
+        row(Method::GET, "/metrics", Scrape, get(metrics)),
+        row(Method::GET, "/api/status", Read, get(status)),
+        row(Method::GET, "/jobs/{id}/image.png", Read, get(picture)),
+        row(Method::GET, "/api/jobs/{id}/events", Read, get(job_events)),
+        row(
+            Method::GET,
+            "/api/jobs/{id}/preview.gif",
+            Read,
+            get(sequence_preview),
+        ),
+        row(
+            Method::GET,
+            "/api/jobs/{id}/frames/{file}",
+            Read,
+            get(sequence_frame),
+        ),
+        row(Method::GET, "/api/studio/scene", Read, get(studio_scene)),
+        row(Method::GET, "/api/studio/stream", Read, get(studio_stream)),
+        row(
+            Method::POST,
+            "/api/jobs/{id}/{action}",
+            Control,
+            post(job_control),
+        ),
+        row(
+            Method::POST,
+            "/api/workers/{worker}/{action}",
+            Control,
+            post(worker_control),
+        ),
+        row(Method::POST, "/api/studio/open", Control, post(studio_open)),
+        row(Method::POST, "/api/studio/view", Control, post(studio_view)),
+        row(
+            Method::POST,
+            "/api/studio/submit",
+            Control,
+            post(studio_submit),
+        ),
+    ]
+}
+
+/// The coordinator's routes and who may call each: what [`coordinator_routes`] serves.
+pub fn routes() -> Vec<Route> {
+    table().into_iter().map(|(route, _)| route).collect()
+}
+
+/// The coordinator's endpoints, each behind the decision of its row of [`table`].
 pub fn coordinator_routes(observer: Observer) -> Router {
-    Router::new()
-        .route("/", get(|| async { Html(STATUS_PAGE) }))
-        .route("/api/status", get(status))
-        .route("/studio", get(studio_page))
-        .route("/api/studio/open", post(studio_open))
-        .route("/api/studio/view", post(studio_view))
-        .route("/api/studio/submit", post(studio_submit))
-        .route("/api/studio/stream", get(studio_stream))
-        .route("/api/jobs/{id}/{action}", post(job_control))
-        .route("/api/jobs/{id}/events", get(job_events))
-        .route("/api/jobs/{id}/preview.gif", get(sequence_preview))
-        .route("/api/jobs/{id}/frames/{file}", get(sequence_frame))
-        .route("/api/workers/{worker}/{action}", post(worker_control))
-        .route("/jobs/{id}/image.png", get(picture))
-        .route("/metrics", get(metrics))
-        .route("/healthz", get(|| async { "ok\n" }))
-        .route("/readyz", get(coordinator_ready))
-        .with_state(observer)
+    let mut router = Router::new();
+    for (route, handler) in table() {
+        let guard = axum::middleware::from_fn_with_state((observer.clone(), route.access), guard);
+        router = router.route(route.path, handler.route_layer(guard));
+    }
+    router.with_state(observer)
+}
+
+/// Runs [`access::decide`] for a request before its handler: the refusal, as one line
+/// of JSON, or the handler's answer.
+async fn guard(
+    State((observer, access)): State<(Observer, Access)>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let headers = request.headers();
+    let text = |name: header::HeaderName| headers.get(name).and_then(|v| v.to_str().ok());
+    let host = text(header::HOST);
+    let cookies = headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .collect::<Vec<_>>()
+        .join("; ");
+    let name = access::cookie_name(host);
+    // Without the connection's address (never, as served) the peer is no one's loopback.
+    let connection = request.extensions().get::<ConnectInfo<Peer>>().map(|c| c.0);
+    let peer = connection.map_or(std::net::Ipv4Addr::UNSPECIFIED.into(), |c| c.addr.ip());
+    // Plain HTTP on the TLS port: health for supervisors that cannot speak TLS, and
+    // for everything else the way to the right URL.
+    if observer.serves_tls() && !connection.is_some_and(|c| c.tls) && access != Access::Open {
+        return refusal(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "this port speaks HTTPS: use https://{}{}",
+                host.unwrap_or("HOST:PORT"),
+                request.uri().path()
+            ),
+        );
+    }
+    let asking = Asking {
+        peer,
+        authorization: text(header::AUTHORIZATION),
+        session: access::session_cookie(&cookies, &name),
+        content_type: text(header::CONTENT_TYPE),
+        origin: text(header::ORIGIN),
+        host,
+        now: unix_now(),
+    };
+    let client = observer.client_secrets();
+    let scrape = observer.scrape_secret();
+    let secrets = Secrets {
+        client: client.as_deref(),
+        scrape: scrape.as_deref(),
+    };
+    match decide(access, secrets, &asking) {
+        Ok(()) => next.run(request).await,
+        Err((code, message)) => refusal(code, message),
+    }
+}
+
+/// Seconds since the Unix epoch (0 for a clock before it, which no session passes).
+fn unix_now() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
 }
 
 /// A worker's endpoints: alive, and ready while `ready` says it is connected.
@@ -68,12 +204,15 @@ pub fn worker_routes(ready: Arc<dyn Fn() -> bool + Send + Sync>) -> Router {
         )
 }
 
-/// Serves `routes` on `listener` in the background until the returned guard is
-/// dropped.
-pub fn spawn(listener: TcpListener, routes: Router) -> Serving {
+/// Serves `routes` on `listener` in the background, with TLS when `tls` is given, until
+/// the returned guard is dropped.
+pub fn spawn(listener: TcpListener, tls: Option<ServerTls>, routes: Router) -> Serving {
     Serving(tokio::spawn(async move {
-        // The peer's address decides who may use the controls without a secret.
-        let service = routes.into_make_service_with_connect_info::<SocketAddr>();
+        use axum::serve::ListenerExt;
+        // The peer's address decides who may use the controls without a secret; the
+        // (empty) tap gives the listener axum's connection info of its address type.
+        let service = routes.into_make_service_with_connect_info::<Peer>();
+        let listener = HttpListener::new(listener, tls).tap_io(|_| {});
         if let Err(e) = axum::serve(listener, service).await {
             tracing::error!(error = %e, "the HTTP listener failed");
         }
@@ -162,122 +301,49 @@ fn refusal(code: StatusCode, message: impl Into<String>) -> Response {
     (code, Json(serde_json::json!({ "error": message }))).into_response()
 }
 
-/// What a control request shows of itself, for [`authorize`].
-#[derive(Clone, Copy, Debug)]
-pub struct Asking<'a> {
-    pub peer: IpAddr,
-    /// The `Authorization` header, if any.
-    pub authorization: Option<&'a str>,
-    /// The `Content-Type` header, if any.
-    pub content_type: Option<&'a str>,
-    /// The `Origin` header, if any (browsers send it with every cross-site POST).
-    pub origin: Option<&'a str>,
-    /// The `Host` header, if any.
-    pub host: Option<&'a str>,
-}
-
-/// Whether a control request may change the farm: `Err` is the HTTP status and the
-/// one-line reason.
-///
-/// - It must be JSON (`Content-Type: application/json`): a cross-site form cannot send
-///   that without the browser asking first, and nothing here answers that question.
-///   An `Origin`, when sent, must name the host the request was sent to.
-/// - With a client secret, it must carry `Authorization: Bearer SECRET`, compared in
-///   constant time: missing is 401, wrong is 403. `secrets` are those accepted now:
-///   the current one, and after a rotation the previous one until its window closes.
-/// - Without one, only a loopback peer may: the secretless farm trusts its own machine
-///   only, as its protocol listener does.
-pub fn authorize(
-    secrets: Option<&[Vec<u8>]>,
-    asking: Asking<'_>,
-) -> Result<(), (StatusCode, String)> {
-    let json = asking.content_type.is_some_and(|t| {
-        t.split(';')
-            .next()
-            .is_some_and(|m| m.trim().eq_ignore_ascii_case("application/json"))
-    });
-    if !json {
-        return Err((
-            StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "controls take Content-Type: application/json".into(),
-        ));
-    }
-    if let Some(origin) = asking.origin {
-        let origin_host = origin
-            .split_once("://")
-            .map_or(origin, |(_, rest)| rest)
-            .trim_end_matches('/');
-        if asking.host != Some(origin_host) {
-            return Err((
-                StatusCode::FORBIDDEN,
-                format!("a control from another site ({origin}) is refused"),
-            ));
-        }
-    }
-    match secrets {
-        Some(secrets) => {
-            let token = asking
-                .authorization
-                .and_then(|v| v.strip_prefix("Bearer "))
-                .map(str::trim);
-            match token {
-                None => Err((
-                    StatusCode::UNAUTHORIZED,
-                    "this farm has a client secret: send it as Authorization: Bearer TOKEN".into(),
-                )),
-                // Every secret is compared, so that the time taken does not tell which.
-                Some(token)
-                    if secrets
-                        .iter()
-                        .fold(false, |any, s| same_secret(token.as_bytes(), s) | any) =>
-                {
-                    Ok(())
-                }
-                Some(_) => Err((StatusCode::FORBIDDEN, "wrong client token".into())),
-            }
-        }
-        None if asking.peer.is_loopback() => Ok(()),
-        None => Err((
-            StatusCode::FORBIDDEN,
-            "without a client secret only this machine may use the controls: give the \
-             coordinator a client token to use them from elsewhere"
-                .into(),
-        )),
-    }
-}
-
-/// Compares two secrets in time independent of where they differ (and of their
-/// lengths): their SHA-256 digests, every byte looked at.
-fn same_secret(given: &[u8], secret: &[u8]) -> bool {
-    let (a, b) = (Sha256::digest(given), Sha256::digest(secret));
-    a.iter()
-        .zip(b.iter())
-        .fold(0u8, |acc, (x, y)| acc | (x ^ y))
-        == 0
-}
-
-/// Checks a control request against [`authorize`]: the refusal to answer, if any.
-fn check(observer: &Observer, peer: SocketAddr, headers: &HeaderMap) -> Option<Response> {
-    authorized(observer, peer, headers)
-        .err()
-        .map(|(code, message)| refusal(code, message))
-}
-
-/// [`authorize`] of a request with these headers from `peer`.
-fn authorized(
-    observer: &Observer,
-    peer: SocketAddr,
-    headers: &HeaderMap,
-) -> Result<(), (StatusCode, String)> {
-    let text = |name: header::HeaderName| headers.get(name).and_then(|v| v.to_str().ok());
-    let asking = Asking {
-        peer: peer.ip(),
-        authorization: text(header::AUTHORIZATION),
-        content_type: text(header::CONTENT_TYPE),
-        origin: text(header::ORIGIN),
-        host: text(header::HOST),
+/// `POST /api/login` with `{"secret": TOKEN}`: the page's login. The right client
+/// secret sets the session cookie ([`access::Session`], made with the current secret)
+/// and answers 204; a wrong one is 403, and a farm without a client secret has nothing
+/// to log in to (409).
+async fn login(
+    State(observer): State<Observer>,
+    headers: HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    let Some(secrets) = observer.client_secrets() else {
+        return refusal(
+            StatusCode::CONFLICT,
+            "this farm has no client secret: there is nothing to log in to",
+        );
     };
-    authorize(observer.client_secrets().as_deref(), asking)
+    let given = serde_json::from_slice::<serde_json::Value>(&body)
+        .ok()
+        .and_then(|v| v.get("secret")?.as_str().map(|s| s.trim().to_owned()));
+    let Some(given) = given else {
+        return refusal(StatusCode::BAD_REQUEST, "a login is {\"secret\": TOKEN}");
+    };
+    // Every secret is compared, so that the time taken does not tell which.
+    let right = secrets.iter().fold(false, |any, s| {
+        access::same_secret(given.as_bytes(), s) | any
+    });
+    if !right {
+        return refusal(StatusCode::FORBIDDEN, "wrong client token");
+    }
+    let host = headers.get(header::HOST).and_then(|v| v.to_str().ok());
+    let session = access::Session::issue(&secrets[0], unix_now());
+    let cookie = access::set_cookie(
+        &access::cookie_name(host),
+        Some(&session),
+        observer.serves_tls(),
+    );
+    (StatusCode::NO_CONTENT, [(header::SET_COOKIE, cookie)]).into_response()
+}
+
+/// `POST /api/logout`: forgets the page's session (the cookie, emptied and expired).
+async fn logout(State(observer): State<Observer>, headers: HeaderMap) -> Response {
+    let host = headers.get(header::HOST).and_then(|v| v.to_str().ok());
+    let cookie = access::set_cookie(&access::cookie_name(host), None, observer.serves_tls());
+    (StatusCode::NO_CONTENT, [(header::SET_COOKIE, cookie)]).into_response()
 }
 
 /// The answer to a control: the job or the workers as the protocol gives them, or
@@ -321,14 +387,10 @@ fn answer(response: ClientResponse) -> Response {
 /// `{"priority": N}`).
 async fn job_control(
     State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    ConnectInfo(Peer { addr: peer, .. }): ConnectInfo<Peer>,
     Path((id, action)): Path<(String, String)>,
-    headers: HeaderMap,
     body: axum::body::Bytes,
 ) -> Response {
-    if let Some(refused) = check(&observer, peer, &headers) {
-        return refused;
-    }
     let Ok(job) = id.parse::<JobId>() else {
         return refusal(
             StatusCode::NOT_FOUND,
@@ -373,7 +435,7 @@ async fn job_control(
 /// it. Reading, like the rest of the page: no token.
 async fn job_events(
     State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    ConnectInfo(Peer { addr: peer, .. }): ConnectInfo<Peer>,
     Path(id): Path<String>,
     Query(query): Query<EventsQuery>,
 ) -> Response {
@@ -513,36 +575,22 @@ struct EventsQuery {
     after: Option<u64>,
 }
 
-/// `GET /studio`: the studio page, opening the coordinator's `--studio-scene` if it has
-/// one (written into the page as a script value, `<` escaped so that no text of the
-/// scene can end the script).
-async fn studio_page(State(observer): State<Observer>) -> Response {
-    let Some(scene) = observer.studio_scene() else {
-        return Html(STUDIO_PAGE).into_response();
-    };
-    let json = match serde_json::from_str::<serde_json::Value>(scene) {
-        Ok(value) => value.to_string().replace('<', "\\u003c"),
-        Err(_) => return Html(STUDIO_PAGE).into_response(),
-    };
-    let page = STUDIO_PAGE.replacen(
-        "/*STUDIO_SCENE*/",
-        &format!("window.STUDIO_SCENE = {json};"),
-        1,
-    );
-    Html(page).into_response()
+/// `GET /api/studio/scene`: the scene the studio opens with, `{"scene": SCENE,
+/// "file": NAME}`: the coordinator's `--studio-scene` and its file name, or `null`s
+/// for the page's own default. A read like the others: the page fetches it once
+/// logged in, so that no scene is in the page itself.
+async fn studio_scene(State(observer): State<Observer>) -> Response {
+    let scene = observer
+        .studio_scene()
+        .and_then(|scene| serde_json::from_str::<serde_json::Value>(scene).ok());
+    Json(serde_json::json!({ "scene": scene, "file": observer.studio_scene_file() }))
+        .into_response()
 }
 
-/// `POST /api/studio/open`: a new view for this page, a control like the others
-/// ([`authorize`]). Answers `{"session": VIEW}`: the view's random name, which is all a
-/// page needs to follow its stream (an `EventSource` cannot send a token).
-async fn studio_open(
-    State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
-    headers: HeaderMap,
-) -> Response {
-    if let Some(refused) = check(&observer, peer, &headers) {
-        return refused;
-    }
+/// `POST /api/studio/open`: a new view for this page, a control like the others.
+/// Answers `{"session": VIEW}`: the view's random name, which its stream then names
+/// (the stream also needs the page's session: a view's name alone shows nothing).
+async fn studio_open(State(observer): State<Observer>) -> Response {
     match observer.studio_open() {
         Ok(session) => Json(serde_json::json!({ "session": session })).into_response(),
         Err(message) => refusal(StatusCode::SERVICE_UNAVAILABLE, message),
@@ -587,16 +635,12 @@ struct StudioRequest {
     settings: Option<serde_json::Value>,
 }
 
-/// A studio control's body and its sampler, once [`authorize`]d, or the status and one
-/// line saying what is wrong with it.
+/// A studio control's body and its sampler, or the status and one line saying what
+/// is wrong with it.
 fn studio_request(
-    observer: &Observer,
-    peer: SocketAddr,
-    headers: &HeaderMap,
     body: &[u8],
     what: &str,
 ) -> Result<(StudioRequest, protocol::Sampling), (StatusCode, String)> {
-    authorized(observer, peer, headers)?;
     let request: StudioRequest = serde_json::from_slice(body).map_err(|e| {
         (
             StatusCode::BAD_REQUEST,
@@ -609,16 +653,15 @@ fn studio_request(
 }
 
 /// `POST /api/studio/view` with `{"session": VIEW, "scene": SCENE, "settings": ...}`:
-/// an edit of an opened studio view, a control like the others ([`authorize`]).
+/// an edit of an opened studio view, a control like the others.
 /// Answers `{"generation": N}`, or 422 with the loader's one-line error for a scene that
 /// is not valid.
 async fn studio_view(
     State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
-    headers: HeaderMap,
+    ConnectInfo(Peer { addr: peer, .. }): ConnectInfo<Peer>,
     body: axum::body::Bytes,
 ) -> Response {
-    let (edit, sampling) = match studio_request(&observer, peer, &headers, &body, "edit") {
+    let (edit, sampling) = match studio_request(&body, "edit") {
         Ok(request) => request,
         Err((code, message)) => return refusal(code, message),
     };
@@ -637,11 +680,10 @@ async fn studio_view(
 /// does. Answers `{"job": ID}`.
 async fn studio_submit(
     State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
-    headers: HeaderMap,
+    ConnectInfo(Peer { addr: peer, .. }): ConnectInfo<Peer>,
     body: axum::body::Bytes,
 ) -> Response {
-    let (request, sampling) = match studio_request(&observer, peer, &headers, &body, "job") {
+    let (request, sampling) = match studio_request(&body, "job") {
         Ok(request) => request,
         Err((code, message)) => return refusal(code, message),
     };
@@ -705,13 +747,9 @@ struct StreamQuery {
 /// `POST /api/workers/WORKER/drain|disable|enable`, WORKER an id or a name.
 async fn worker_control(
     State(observer): State<Observer>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    ConnectInfo(Peer { addr: peer, .. }): ConnectInfo<Peer>,
     Path((worker, action)): Path<(String, String)>,
-    headers: HeaderMap,
 ) -> Response {
-    if let Some(refused) = check(&observer, peer, &headers) {
-        return refused;
-    }
     let request = match action.as_str() {
         "drain" => ClientRequest::DrainWorker { worker },
         "disable" => ClientRequest::DisableWorker { worker },
@@ -730,91 +768,28 @@ async fn worker_control(
 mod tests {
     use super::*;
 
-    const LOOPBACK: IpAddr = IpAddr::V4(std::net::Ipv4Addr::LOCALHOST);
-    const REMOTE: IpAddr = IpAddr::V4(std::net::Ipv4Addr::new(192, 0, 2, 7));
-
-    fn asking(peer: IpAddr, authorization: Option<&str>) -> Asking<'_> {
-        Asking {
-            peer,
-            authorization,
-            content_type: Some("application/json"),
-            origin: None,
-            host: Some("farm:8080"),
-        }
-    }
-
-    fn code(r: Result<(), (StatusCode, String)>) -> Option<StatusCode> {
-        r.err().map(|(code, _)| code)
-    }
-
     #[test]
-    fn without_a_secret_only_loopback_may_control() {
-        assert_eq!(code(authorize(None, asking(LOOPBACK, None))), None);
-        assert_eq!(
-            code(authorize(None, asking(REMOTE, None))),
-            Some(StatusCode::FORBIDDEN)
-        );
-        let v6 = IpAddr::V6(std::net::Ipv6Addr::LOCALHOST);
-        assert_eq!(code(authorize(None, asking(v6, None))), None);
-    }
-
-    #[test]
-    fn with_a_secret_the_token_decides_wherever_the_peer_is() {
-        let secrets = [b"s3cret".to_vec(), b"previous".to_vec()];
-        let secret = Some(&secrets[..]);
-        for peer in [LOOPBACK, REMOTE] {
-            // Within a rotation's window, the previous secret passes too.
-            assert_eq!(
-                code(authorize(secret, asking(peer, Some("Bearer previous")))),
-                None
+    fn every_route_is_in_the_table_once_and_changes_only_by_post() {
+        let routes = routes();
+        for (i, route) in routes.iter().enumerate() {
+            assert!(
+                !routes[..i]
+                    .iter()
+                    .any(|r| r.path == route.path && r.method == route.method),
+                "{} {} is twice in the table",
+                route.method,
+                route.path
             );
+            // A browser sends GETs across sites freely: nothing read may change anything.
+            let changes = matches!(route.access, Access::Control | Access::Login);
             assert_eq!(
-                code(authorize(secret, asking(peer, None))),
-                Some(StatusCode::UNAUTHORIZED)
-            );
-            assert_eq!(
-                code(authorize(secret, asking(peer, Some("Bearer wrong")))),
-                Some(StatusCode::FORBIDDEN)
-            );
-            assert_eq!(
-                code(authorize(secret, asking(peer, Some("Basic s3cret")))),
-                Some(StatusCode::UNAUTHORIZED)
-            );
-            assert_eq!(
-                code(authorize(secret, asking(peer, Some("Bearer s3cret")))),
-                None
+                changes,
+                route.method == Method::POST,
+                "{} {} is {}",
+                route.method,
+                route.path,
+                route.access.as_str()
             );
         }
-    }
-
-    #[test]
-    fn cross_site_requests_are_refused() {
-        let form = Asking {
-            content_type: Some("application/x-www-form-urlencoded"),
-            ..asking(LOOPBACK, None)
-        };
-        assert_eq!(
-            code(authorize(None, form)),
-            Some(StatusCode::UNSUPPORTED_MEDIA_TYPE)
-        );
-        let other = Asking {
-            origin: Some("http://evil.example"),
-            ..asking(LOOPBACK, None)
-        };
-        assert_eq!(code(authorize(None, other)), Some(StatusCode::FORBIDDEN));
-        let same = Asking {
-            origin: Some("http://farm:8080"),
-            content_type: Some("application/json; charset=utf-8"),
-            ..asking(LOOPBACK, None)
-        };
-        assert_eq!(code(authorize(None, same)), None);
-    }
-
-    #[test]
-    fn secrets_compare_equal_only_when_equal() {
-        assert!(same_secret(b"abc", b"abc"));
-        assert!(!same_secret(b"abc", b"abd"));
-        assert!(!same_secret(b"abc", b"abcd"));
-        assert!(!same_secret(b"", b"abc"));
     }
 }
