@@ -23,7 +23,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::support::browser::{browser_or_skip, DevTools};
+use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
     assert_same_png, exclusive, http_get, http_post, ok, poll, shared, spawn_tessera, tessera,
@@ -409,30 +409,6 @@ fn orbit_scene(n: u32) -> String {
         r#""position": "3 1.5 -4""#,
         &format!(r#""position": "{x:.6} 1.5 {z:.6}""#),
     )
-}
-
-/// Standard base64, as the stream carries a tile's PNG.
-fn base64(text: &str) -> Vec<u8> {
-    let value = |c: u8| -> u32 {
-        match c {
-            b'A'..=b'Z' => u32::from(c - b'A'),
-            b'a'..=b'z' => u32::from(c - b'a') + 26,
-            b'0'..=b'9' => u32::from(c - b'0') + 52,
-            b'+' => 62,
-            b'/' => 63,
-            _ => panic!("{c:?} is not base64"),
-        }
-    };
-    let text = text.trim_end_matches('=').as_bytes();
-    let mut out = Vec::with_capacity(text.len() * 3 / 4);
-    for chunk in text.chunks(4) {
-        let bits = chunk
-            .iter()
-            .enumerate()
-            .fold(0u32, |acc, (i, &c)| acc | value(c) << (18 - 6 * i));
-        out.extend_from_slice(&bits.to_be_bytes()[1..chunk.len()]);
-    }
-    out
 }
 
 /// What a reader of the event stream has seen, painted as the page paints it.
