@@ -144,6 +144,8 @@ pub struct Config {
     /// The scene the studio page opens with (already checked by the loader); the
     /// page's own default without one.
     pub studio_scene: Option<String>,
+    /// The name of `studio_scene`'s file (`room.json`), which the page saves it as.
+    pub studio_scene_file: Option<String>,
 }
 
 impl Config {
@@ -165,6 +167,7 @@ impl Config {
             retention: None,
             reset_database: false,
             studio_scene: None,
+            studio_scene_file: None,
         }
     }
 
@@ -209,7 +212,8 @@ struct Shared {
     verifier: verification::Verifier,
     /// The studio's views and their pages (docs/studio.md).
     studio: studio_session::Studio,
-    /// The scene the studio page opens with, if one was given.
+    /// What the studio page opens with, if a scene was given: `{"file": NAME, "scene":
+    /// SCENE}` as JSON ([`studio_opening`]).
     studio_scene: Option<String>,
     /// This coordinator's hold on its data directory, for as long as it lives.
     _data_lock: data_lock::DataLock,
@@ -341,7 +345,10 @@ impl Server {
             metrics: Metrics::new(),
             verifier,
             studio: studio_session::Studio::default(),
-            studio_scene: config.studio_scene.clone(),
+            studio_scene: config
+                .studio_scene
+                .as_deref()
+                .and_then(|scene| studio_opening(scene, config.studio_scene_file.as_deref())),
             _data_lock: data_lock,
         });
         {
@@ -524,4 +531,12 @@ impl Drop for AbortOnDrop {
 /// Binds and serves: the whole daemon.
 pub async fn serve(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
     Server::bind(config).await?.run(shutdown).await
+}
+
+/// What the studio page opens with: the scene and its file's name, one JSON value, so
+/// that the page gets both the way it gets the scene (its `window.STUDIO_SCENE`) and
+/// saves the scene under the name it came with. `None` for a scene that is not JSON.
+fn studio_opening(scene: &str, file: Option<&str>) -> Option<String> {
+    let scene: serde_json::Value = serde_json::from_str(scene).ok()?;
+    Some(serde_json::json!({ "file": file, "scene": scene }).to_string())
 }

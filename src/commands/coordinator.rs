@@ -255,6 +255,11 @@ async fn coordinator(a: Args) -> Result<()> {
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
+        studio_scene_file: a
+            .studio_scene
+            .as_deref()
+            .and_then(|path| path.file_name())
+            .map(|name| name.to_string_lossy().into_owned()),
     };
     config.check_security(a.insecure)?;
     config.studio_scene = a

@@ -403,7 +403,8 @@ impl Observer {
         self.shared.studio.open(self.shared.now())
     }
 
-    /// The scene the studio page opens with (`--studio-scene`), if one was given.
+    /// What the studio page opens with (`--studio-scene`), if a scene was given: the
+    /// scene and its file's name, `{"file": NAME, "scene": SCENE}` as JSON.
     pub fn studio_scene(&self) -> Option<&str> {
         self.shared.studio_scene.as_deref()
     }
