@@ -6,8 +6,9 @@
 //! tiles, and asks for the farm's client token once. With eighteen jobs in a window of
 //! 1400 × 900 (and of 1000 px), every control of the running job and its picture are in
 //! view, its time left shows, and cancel asks first: declined, nothing is cancelled
-//! (the screenshot taken there is README's; `TESSERA_SCREENSHOT_DIR=DIR` keeps a copy). The controls' rules of access
-//! (token, content type, origin) are checked over plain HTTP.
+//! (the screenshot taken there is README's; `TESSERA_SCREENSHOT_DIR=DIR` keeps a
+//! copy). The controls' rules of access (token, content type, origin) are checked over
+//! plain HTTP.
 //!
 //! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
 //! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
@@ -367,9 +368,6 @@ fn a_busy_farm_fits_at_1400_by_900_with_the_running_job_its_time_left_and_cancel
         image::open(&shot).unwrap().to_rgb8().dimensions(),
         (1400, 900)
     );
-    if let Some(keep) = std::env::var_os("TESSERA_SCREENSHOT_DIR") {
-        std::fs::copy(&shot, Path::new(&keep).join("status-page.png")).unwrap();
-    }
 
     // Cancel asks; declined, nothing is cancelled and the job goes on.
     let state = || status_json(dir.path(), &addr, running)["state"].clone();

@@ -292,6 +292,9 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
         "the picture after the radius is mended",
     );
     let studio_final = page.eval(CANVAS_HASH).as_u64().unwrap();
+    // As docs/studio.md shows it (TESSERA_SCREENSHOT_DIR keeps a copy).
+    page.set_viewport(1440, 717);
+    page.screenshot(&dir.join("studio.png"));
 
     // Saved (under the name of the file it was opened with), then rendered by `tessera
     // render`: the studio's very pixels.

@@ -267,7 +267,9 @@ impl DevTools {
         );
     }
 
-    /// Writes what the page shows now to `path`, as PNG.
+    /// Writes what the page shows now to `path`, as PNG, and a copy under the same name
+    /// in `TESSERA_SCREENSHOT_DIR` if set: how the docs' pictures of the pages are
+    /// taken.
     pub fn screenshot(&mut self, path: &Path) {
         let shot = self.call(
             "Page.captureScreenshot",
@@ -276,6 +278,12 @@ impl DevTools {
         let png = base64(shot["data"].as_str().expect("a screenshot"));
         std::fs::write(path, png)
             .unwrap_or_else(|e| panic!("cannot write {}: {e}", path.display()));
+        if let (Some(keep), Some(name)) =
+            (std::env::var_os("TESSERA_SCREENSHOT_DIR"), path.file_name())
+        {
+            std::fs::copy(path, Path::new(&keep).join(name))
+                .unwrap_or_else(|e| panic!("cannot keep {}: {e}", path.display()));
+        }
     }
 }
 
