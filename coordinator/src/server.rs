@@ -217,7 +217,7 @@ struct Shared {
     verifier: verification::Verifier,
     /// The studio's views and their pages (docs/studio.md).
     studio: studio_session::Studio,
-    /// The scene the studio page opens with, if one was given.
+    /// The scene the studio page opens with, if one was given, and its file's name.
     studio_scene: Option<String>,
     studio_scene_file: Option<String>,
     /// The scrape token of `/metrics` ([`Config::metrics_secret`]), replaced by a

@@ -3,7 +3,7 @@
 //! library's rules ([`coordinator::Config::check_security`]) before it binds.
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
@@ -274,7 +274,11 @@ async fn coordinator(a: Args) -> Result<()> {
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
-        studio_scene_file: None,
+        studio_scene_file: a
+            .studio_scene
+            .as_deref()
+            .and_then(|path| path.file_name())
+            .map(|name| name.to_string_lossy().into_owned()),
     };
     config.check_security(a.insecure, a.http_insecure)?;
     config.studio_scene = a
@@ -282,11 +286,6 @@ async fn coordinator(a: Args) -> Result<()> {
         .as_deref()
         .map(read_checked_scene)
         .transpose()?;
-    config.studio_scene_file = a
-        .studio_scene
-        .as_deref()
-        .and_then(Path::file_name)
-        .map(|name| name.to_string_lossy().into_owned());
     serve(config, a.exit_on_stdin_eof, a.secrets).await
 }
 

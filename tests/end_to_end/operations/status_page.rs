@@ -4,8 +4,11 @@
 //! DevTools protocol, pause, resume and delete jobs and disable and enable workers, as
 //! `tessera status` and `tessera workers` then show; it warns when no worker can take
 //! tiles, and on a farm with a client secret logs in with a form, over HTTPS with the
-//! coordinator's own certificate. The controls' rules of access (token, content type,
-//! origin) are checked over plain HTTP.
+//! coordinator's own certificate. With eighteen jobs in a window of 1400 × 900 (and of
+//! 1000 px), every control of the running job and its picture are in view, its time
+//! left shows, and cancel asks first: declined, nothing is cancelled (the screenshot
+//! taken there is README's; `TESSERA_SCREENSHOT_DIR=DIR` keeps a copy). The controls'
+//! rules of access (token, content type, origin) are checked over plain HTTP.
 //!
 //! Needs Chromium (`chromium`, or the path in `TESSERA_CHROMIUM`). Without it the test
 //! says so and passes, unless `TESSERA_REQUIRE_BROWSER=1` (as in CI), where a missing
@@ -18,7 +21,7 @@ use crate::support::browser::{browser_or_skip, dump_dom, trust_key, DevTools};
 use crate::support::{
     client, free_port, http_get, http_post, http_request, json_error, ok, poll, render_reference,
     scene_path, shared, start_coordinator, start_slow_worker, status_json, submit, tessera,
-    wait_done,
+    tiles_done, tiles_total, wait_done,
 };
 
 /// The page's DOM, as a browser that loaded it and let it run for 2 s shows it.
@@ -168,6 +171,232 @@ fn click_until(page: &mut DevTools, what: &str, selector: &str, mut done: impl F
     });
 }
 
+/// Clicks job `job`'s `action` button (cancel or delete) until the page asks whether
+/// to go on: its "yes" button is there.
+fn ask(page: &mut DevTools, action: &str, job: u64) {
+    let yes = format!("button[data-action=\"confirm-{action}\"][data-job=\"{job}\"]");
+    let shown = format!("document.querySelector({yes:?}) !== null");
+    poll(
+        &format!("the page to ask before {action} of job {job}"),
+        Duration::from_secs(30),
+        || {
+            if page.eval(&shown) == true {
+                return Some(());
+            }
+            page.click(&format!(
+                "button[data-action=\"{action}\"][data-job=\"{job}\"]"
+            ));
+            std::thread::sleep(Duration::from_millis(300));
+            None
+        },
+    );
+}
+
+/// What lies outside a `width` × `height` window of the status page (as a list of
+/// problems, empty when all is in view): every control of the running job `job`, once
+/// its row is scrolled to the middle of the window as a user would, must be inside it
+/// and not covered (what is under its centre is itself); so must the selected job's
+/// picture, beside the list; and no job's control may stick out left or right.
+fn out_of_view(page: &mut DevTools, job: u64, width: u32, height: u32) -> Vec<String> {
+    page.set_viewport(width, height);
+    let problems = page.eval(&format!(
+        r##"(() => {{
+  const row = document.querySelector('tr[data-job="{job}"]');
+  if (!row) return ["no row of job {job}"];
+  row.scrollIntoView({{ block: "center" }});
+  const w = document.documentElement.clientWidth, h = document.documentElement.clientHeight;
+  const out = [];
+  const at = r => [r.left, r.top, r.right, r.bottom].map(Math.round).join(",");
+  const inside = (what, e) => {{
+    if (!e) {{ out.push(what + ": missing"); return; }}
+    const r = e.getBoundingClientRect();
+    if (!(r.width > 0 && r.height > 0 && r.left >= 0 && r.top >= 0 && r.right <= w && r.bottom <= h)) {{
+      out.push(what + " at " + at(r) + ", outside " + w + "x" + h);
+      return;
+    }}
+    const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+    if (!hit || !(hit === e || e.contains(hit))) out.push(what + " covered by " + (hit ? hit.outerHTML.slice(0, 60) : "nothing"));
+  }};
+  for (const action of ["pause", "cancel", "priority"])
+    inside(action + " of job {job}", row.querySelector('button[data-action="' + action + '"]'));
+  inside("priority field of job {job}", row.querySelector("input"));
+  const picture = document.getElementById("picture");
+  if (picture.hidden || picture.dataset.job !== "{job}") out.push("the picture is not job {job}'s");
+  inside("the picture", picture);
+  for (const e of document.querySelectorAll("#jobs button, #jobs input")) {{
+    const r = e.getBoundingClientRect();
+    if (r.left < 0 || r.right > w) out.push((e.dataset.action || "input") + " of job " + e.dataset.job + " at " + at(r) + ", outside " + w + "x" + h);
+  }}
+  return out;
+}})()"##
+    ));
+    problems
+        .as_array()
+        .expect("a list of problems")
+        .iter()
+        .map(|p| format!("at {width}x{height}: {}", p.as_str().unwrap_or_default()))
+        .collect()
+}
+
+#[test]
+fn a_busy_farm_fits_at_1400_by_900_with_the_running_job_its_time_left_and_cancel_asked() {
+    let _turn = shared();
+    let Some(browser) = browser_or_skip() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    // Eighteen jobs: seventeen small ones waiting behind a large one of a higher
+    // priority, which a slowed worker renders part of and is then frozen (SIGSTOP),
+    // so that it stays running; the last three small ones cancelled, so that their
+    // rows offer retry and delete.
+    let seed = scene_path("seed.json");
+    let small = [
+        seed.as_str(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--tile",
+        "16",
+    ];
+    let others: Vec<u64> = (0..17).map(|_| submit(dir.path(), &addr, &small)).collect();
+    for job in &others[14..] {
+        ok(
+            client(dir.path(), &addr, &["cancel", &job.to_string()]),
+            "cancel",
+        );
+    }
+    let running = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed,
+            "--width",
+            "640",
+            "--height",
+            "480",
+            "--aa",
+            "4",
+            "--tile",
+            "16",
+            "--priority",
+            "10",
+        ],
+    );
+    let Some((mut worker, _slow)) = start_slow_worker(
+        "a_busy_farm_fits_at_1400_by_900_with_the_running_job_its_time_left_and_cancel_asked",
+        dir.path(),
+        &addr,
+        "slow",
+        1.0 / 150.0,
+        &[],
+    ) else {
+        return;
+    };
+    poll(
+        "a third of the large job done",
+        Duration::from_secs(120),
+        || {
+            let status = status_json(dir.path(), &addr, running);
+            assert_ne!(status["state"], "done", "{status}");
+            (tiles_done(&status) * 3 >= tiles_total(&status)).then_some(())
+        },
+    );
+    worker.signal("STOP");
+    let mut page = DevTools::open(
+        &browser,
+        &dir.path().join("profile"),
+        &format!("http://{http}/"),
+        &dir.path().join("chromium.log"),
+    );
+    page.set_viewport(1400, 900);
+    // The running job, selected as the newest running one: its picture and the time
+    // left, as `tessera status` says it, in its row and in its line beside the list.
+    let shown = format!(
+        r#"(() => {{
+  const row = document.querySelector('tr[data-job="{running}"]');
+  const picture = document.getElementById("picture");
+  const eta = row && row.querySelector(".eta");
+  return row && row.dataset.state === "running" && eta && !picture.hidden && picture.dataset.job === "{running}"
+    ? [eta.textContent, document.getElementById("job-info").textContent] : null;
+}})()"#
+    );
+    let texts = poll(
+        "the running job, its picture and its time left",
+        Duration::from_secs(60),
+        || {
+            let texts = page.eval(&shown);
+            (!texts.is_null()).then_some(texts)
+        },
+    );
+    let (eta, info) = (texts[0].as_str().unwrap(), texts[1].as_str().unwrap());
+    let seconds = eta
+        .strip_prefix("about ")
+        .and_then(|t| t.strip_suffix(" s left"))
+        .unwrap_or_else(|| panic!("the time left reads {eta:?}"));
+    assert!(
+        seconds.parse::<f64>().is_ok_and(|s| s >= 0.0) && seconds.contains('.'),
+        "{eta}"
+    );
+    assert!(info.contains(" s left"), "{info}");
+    assert_eq!(
+        page.eval("document.querySelectorAll('#jobs tr[data-job]').length"),
+        18
+    );
+
+    // Every control of the running job, and its picture, in view at 1400 x 900 and in
+    // a window of 1000 px.
+    let mut problems = out_of_view(&mut page, running, 1400, 900);
+    problems.extend(out_of_view(&mut page, running, 1000, 900));
+    assert!(problems.is_empty(), "{problems:#?}");
+
+    // As README shows it (TESSERA_SCREENSHOT_DIR keeps a copy).
+    page.set_viewport(1400, 900);
+    page.eval("window.scrollTo(0, 0)");
+    std::thread::sleep(Duration::from_millis(600));
+    let shot = dir.path().join("status-page.png");
+    page.screenshot(&shot);
+    assert_eq!(
+        image::open(&shot).unwrap().to_rgb8().dimensions(),
+        (1400, 900)
+    );
+
+    // Cancel asks; declined, nothing is cancelled and the job goes on.
+    let state = || status_json(dir.path(), &addr, running)["state"].clone();
+    ask(&mut page, "cancel", running);
+    assert_eq!(state(), "running");
+    let cancel = format!("button[data-action=\"cancel\"][data-job=\"{running}\"]");
+    let back = format!("document.querySelector({cancel:?}) !== null");
+    poll("the question declined", Duration::from_secs(30), || {
+        if page.eval(&back) == true {
+            return Some(());
+        }
+        page.click(&format!(
+            "button[data-action=\"keep\"][data-job=\"{running}\"]"
+        ));
+        std::thread::sleep(Duration::from_millis(300));
+        None
+    });
+    std::thread::sleep(Duration::from_millis(1000));
+    assert_eq!(state(), "running");
+    // Confirmed, it is cancelled.
+    ask(&mut page, "cancel", running);
+    click_until(
+        &mut page,
+        "the job cancelled once confirmed",
+        &format!("button[data-action=\"confirm-cancel\"][data-job=\"{running}\"]"),
+        || state() == "cancelled",
+    );
+}
+
 #[test]
 fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_warns() {
     let _turn = shared();
@@ -225,7 +454,7 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
         },
     );
 
-    // And in the job's events, under the image.
+    // And in the job's events, beside the list.
     poll(
         "the pause among the job's events",
         Duration::from_secs(20),
@@ -291,11 +520,12 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
         || status_json(dir.path(), &addr, job)["state"] != "paused",
     );
     wait_done(dir.path(), &addr, job, Duration::from_secs(120));
-    // An ended job offers delete; a click removes it.
+    // An ended job offers delete, which asks first; confirmed, it removes the job.
+    ask(&mut page, "delete", job);
     click_until(
         &mut page,
-        "the job deleted by its button",
-        &format!("button[data-action=\"delete\"][data-job=\"{job}\"]"),
+        "the job deleted once confirmed",
+        &format!("button[data-action=\"confirm-delete\"][data-job=\"{job}\"]"),
         || {
             let run = client(dir.path(), &addr, &["status", &job.to_string()]);
             !run.status.success() && run.stderr.contains(&format!("no job {job}"))

@@ -2,11 +2,15 @@
 //! on the farm `tessera studio` starts: the page opens the given scene; dragging the
 //! camera with the mouse changes the picture; a sphere's radius typed into its field
 //! changes it too; an invalid value shows the loader's error under the field while the
-//! last good picture stays; the saved scene, rendered by `tessera render`, gives the
-//! very pixels of the studio's final picture; "Render" submits a stored job whose image
-//! is byte-identical to `tessera render`'s and which `tessera list` shows. The latencies
-//! of camera drags (docs/performance.md) are measured and printed, never asserted: the
-//! machine is shared.
+//! last good picture stays; the saved scene, named after the file the studio opened,
+//! rendered by `tessera render`, gives the very pixels of the studio's final picture;
+//! "Render" submits a stored job whose image is byte-identical to `tessera render`'s
+//! and which `tessera list` shows. The latencies of camera drags (docs/performance.md)
+//! are measured and printed, never asserted: the machine is shared.
+//!
+//! A coordinator's `--studio-scene` page labels every field by its key in the scene's
+//! JSON, keeps each color on one line, and saves under the scene file's name or the
+//! one typed.
 //!
 //! Then, without a browser, the event stream through a 20 Mbit/s link
 //! ([`ThrottleRelay`]) while the camera orbits ten edits a second: the reader decodes
@@ -23,11 +27,11 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::support::browser::{browser_or_skip, DevTools};
+use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
-    assert_same_png, exclusive, http_get, http_post, ok, poll, shared, spawn_tessera, tessera,
-    wait_done, Daemon,
+    assert_same_png, entries, exclusive, free_port, http_get, http_post, ok, poll, shared,
+    spawn_tessera, start_coordinator, tessera, wait_done, Daemon,
 };
 
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -187,8 +191,10 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
         &url,
         &dir.join("chromium.log"),
     );
+    // Saved files go apart from start.json, which a download of the same name would
+    // not replace.
     let downloads = dir.join("downloads");
-    std::fs::create_dir_all(&downloads).unwrap();
+    std::fs::create_dir(&downloads).unwrap();
     page.call(
         "Browser.setDownloadBehavior",
         serde_json::json!({ "behavior": "allow", "downloadPath": downloads.to_str().unwrap() }),
@@ -286,10 +292,13 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
         "the picture after the radius is mended",
     );
     let studio_final = page.eval(CANVAS_HASH).as_u64().unwrap();
+    // As docs/studio.md shows it (TESSERA_SCREENSHOT_DIR keeps a copy).
+    page.set_viewport(1440, 717);
+    page.screenshot(&dir.join("studio.png"));
 
-    // Saved, then rendered by `tessera render`: the studio's very pixels.
+    // Saved (under the name of the file it was opened with), then rendered by `tessera
+    // render`: the studio's very pixels.
     assert!(page.click("#save"), "no Save button");
-    // Under the name of the file the studio opened.
     let saved = downloads.join("start.json");
     poll("the saved scene", TIMEOUT, || {
         let text = std::fs::read_to_string(&saved).ok()?;
@@ -356,6 +365,92 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
     });
 }
 
+/// What is wrong with the studio's sidebar as a user reads it, as a list (empty when
+/// nothing is): every field is labelled by its key in the scene's JSON (`center`,
+/// `color`, `look_at`, `max_depth`...), no label says "centre" or "colour", and each
+/// color's picker and three numbers lie on one line inside the sidebar.
+const SIDEBAR_PROBLEMS: &str = r##"(() => {
+  const out = [];
+  const fields = [...document.querySelectorAll("#side .field")];
+  if (fields.length < 10) return ["only " + fields.length + " fields"];
+  for (const f of fields) {
+    const label = f.querySelector("label").textContent;
+    const key = f.dataset.path.slice(f.dataset.path.lastIndexOf(".") + 1);
+    const color = f.querySelector("input[type=color]");
+    if (/centre|colour/.test(label)) out.push(f.dataset.path + ": labelled " + label);
+    if (["position", "look_at", "aa", "max_depth", "center", "radius", "normal", "distance"].includes(key) || color) {
+      if (label !== key) out.push(f.dataset.path + ": labelled " + JSON.stringify(label) + ", its key is " + key);
+    }
+    if (color) {
+      const inputs = [...f.querySelectorAll("input")];
+      const tops = inputs.map(i => Math.round(i.getBoundingClientRect().top));
+      if (inputs.length !== 4 || new Set(tops).size !== 1) out.push(f.dataset.path + ": inputs at tops " + tops);
+      const right = document.getElementById("side").getBoundingClientRect().right;
+      for (const i of inputs) if (i.getBoundingClientRect().right > right) out.push(f.dataset.path + ": an input past the sidebar");
+    }
+  }
+  return out;
+})()"##;
+
+#[test]
+fn the_studio_labels_fields_by_their_keys_and_saves_under_the_scene_file_name() {
+    let _turn = shared();
+    let Some(chromium) = browser_or_skip() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    std::fs::write(dir.join("my-room.json"), SCENE).unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, _addr) = start_coordinator(
+        dir,
+        &dir.join("data"),
+        "127.0.0.1:0",
+        &["--http", &http, "--studio-scene", "my-room.json"],
+        "coordinator.log",
+    );
+    let mut page = DevTools::open(
+        &chromium,
+        &dir.join("profile"),
+        &format!("http://{http}/studio"),
+        &dir.join("chromium.log"),
+    );
+    page.set_viewport(1400, 900);
+    let downloads = dir.join("downloads");
+    std::fs::create_dir(&downloads).unwrap();
+    page.call(
+        "Browser.setDownloadBehavior",
+        serde_json::json!({ "behavior": "allow", "downloadPath": downloads.to_str().unwrap() }),
+    );
+    poll("the scene's fields", TIMEOUT, || {
+        (page.eval("document.querySelectorAll('#side .field').length") != 0).then_some(())
+    });
+    let problems = page.eval(SIDEBAR_PROBLEMS);
+    assert_eq!(problems, serde_json::json!([]), "{problems:#}");
+
+    // Saved as the file the coordinator opened, the page's scene as it is.
+    let scene: serde_json::Value =
+        serde_json::from_str(page.eval("JSON.stringify(scene)").as_str().unwrap()).unwrap();
+    let saved = |name: &str| {
+        let path = downloads.join(name);
+        poll(&format!("{name} saved"), TIMEOUT, || {
+            let text = std::fs::read_to_string(&path).ok()?;
+            serde_json::from_str::<serde_json::Value>(&text).ok()
+        })
+    };
+    assert!(page.click("#save"), "no Save button");
+    assert_eq!(saved("my-room.json"), scene);
+    // Or as the user names it.
+    let focused = page.eval(
+        "(() => { const e = document.getElementById('save-name'); e.focus(); e.select(); return true; })()",
+    );
+    assert_eq!(focused, true);
+    page.call("Input.insertText", serde_json::json!({ "text": "kitchen" }));
+    assert!(page.click("#save"), "no Save button");
+    assert_eq!(saved("kitchen.json"), scene);
+    assert_eq!(entries(&downloads), ["kitchen.json", "my-room.json"]);
+}
+
 #[test]
 fn a_studio_of_an_invalid_scene_or_address_stops_before_starting_anything() {
     let _turn = shared();
@@ -416,30 +511,6 @@ fn orbit_scene(n: u32) -> String {
         r#""position": "3 1.5 -4""#,
         &format!(r#""position": "{x:.6} 1.5 {z:.6}""#),
     )
-}
-
-/// Standard base64, as the stream carries a tile's PNG.
-fn base64(text: &str) -> Vec<u8> {
-    let value = |c: u8| -> u32 {
-        match c {
-            b'A'..=b'Z' => u32::from(c - b'A'),
-            b'a'..=b'z' => u32::from(c - b'a') + 26,
-            b'0'..=b'9' => u32::from(c - b'0') + 52,
-            b'+' => 62,
-            b'/' => 63,
-            _ => panic!("{c:?} is not base64"),
-        }
-    };
-    let text = text.trim_end_matches('=').as_bytes();
-    let mut out = Vec::with_capacity(text.len() * 3 / 4);
-    for chunk in text.chunks(4) {
-        let bits = chunk
-            .iter()
-            .enumerate()
-            .fold(0u32, |acc, (i, &c)| acc | value(c) << (18 - 6 * i));
-        out.extend_from_slice(&bits.to_be_bytes()[1..chunk.len()]);
-    }
-    out
 }
 
 /// What a reader of the event stream has seen, painted as the page paints it.

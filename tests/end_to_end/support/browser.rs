@@ -287,12 +287,64 @@ impl DevTools {
         }
         true
     }
+
+    /// Lays the page out as in a window of `width` × `height` CSS pixels.
+    pub fn set_viewport(&mut self, width: u32, height: u32) {
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            serde_json::json!({ "width": width, "height": height, "deviceScaleFactor": 1, "mobile": false }),
+        );
+    }
+
+    /// Writes what the page shows now to `path`, as PNG, and a copy under the same name
+    /// in `TESSERA_SCREENSHOT_DIR` if set: how the docs' pictures of the pages are
+    /// taken.
+    pub fn screenshot(&mut self, path: &Path) {
+        let shot = self.call(
+            "Page.captureScreenshot",
+            serde_json::json!({ "format": "png" }),
+        );
+        let png = base64(shot["data"].as_str().expect("a screenshot"));
+        std::fs::write(path, png)
+            .unwrap_or_else(|e| panic!("cannot write {}: {e}", path.display()));
+        if let (Some(keep), Some(name)) =
+            (std::env::var_os("TESSERA_SCREENSHOT_DIR"), path.file_name())
+        {
+            std::fs::copy(path, Path::new(&keep).join(name))
+                .unwrap_or_else(|e| panic!("cannot keep {}: {e}", path.display()));
+        }
+    }
 }
 
 impl Drop for DevTools {
     fn drop(&mut self) {
         self.browser.kill9();
     }
+}
+
+/// Standard base64, as the studio's stream carries a tile's PNG and DevTools a
+/// screenshot.
+pub fn base64(text: &str) -> Vec<u8> {
+    let value = |c: u8| -> u32 {
+        match c {
+            b'A'..=b'Z' => u32::from(c - b'A'),
+            b'a'..=b'z' => u32::from(c - b'a') + 26,
+            b'0'..=b'9' => u32::from(c - b'0') + 52,
+            b'+' => 62,
+            b'/' => 63,
+            _ => panic!("{c:?} is not base64"),
+        }
+    };
+    let text = text.trim_end_matches('=').as_bytes();
+    let mut out = Vec::with_capacity(text.len() * 3 / 4);
+    for chunk in text.chunks(4) {
+        let bits = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |acc, (i, &c)| acc | value(c) << (18 - 6 * i));
+        out.extend_from_slice(&bits.to_be_bytes()[1..chunk.len()]);
+    }
+    out
 }
 
 /// Chromium, or `None` (the test then passes, saying it skipped) when there is none and
