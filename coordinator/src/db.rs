@@ -678,6 +678,20 @@ impl Db {
         Ok(())
     }
 
+    /// How many tiles of the job are stored. For a job that ended unfinished (cancelled
+    /// or failed) this is its progress, kept across restarts: the tiles a retry keeps.
+    pub fn count_tiles(&self, job: JobId) -> Result<u32> {
+        let count: i64 = self
+            .conn
+            .query_row(
+                "SELECT COUNT(*) FROM tiles WHERE job = ?1",
+                params![job as i64],
+                |r| r.get(0),
+            )
+            .context("cannot count the job's stored tiles")?;
+        Ok(u32::try_from(count).unwrap_or(u32::MAX))
+    }
+
     /// Deletes one stored tile (found damaged at startup).
     pub fn delete_tile(&self, job: JobId, tile: i64) -> Result<()> {
         self.conn

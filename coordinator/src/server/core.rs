@@ -891,9 +891,13 @@ impl Core {
             }
         }
         if final_state {
-            if stored.state == JobState::Done {
-                record.tiles_recorded = record.tiles_total;
-            }
+            // Its progress as it ended: all of it, or (cancelled, failed) the tiles it
+            // has stored, which a retry keeps.
+            record.tiles_recorded = if stored.state == JobState::Done {
+                record.tiles_total
+            } else {
+                restored.stored_tiles.min(record.tiles_total)
+            };
             self.jobs.insert(id, record);
             self.life_event(
                 sh,
