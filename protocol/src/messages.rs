@@ -446,6 +446,23 @@ pub struct JobStatus {
     pub sequence: Option<JobId>,
 }
 
+impl JobStatus {
+    /// The mean camera samples per pixel of the image, known once the job is done
+    /// (`None` before). For a sequence, per pixel of a frame: its `samples` add up its
+    /// frames', so they are divided by the pixels of all of them, and an `aa 2` grid
+    /// sequence shows 4 whatever its length.
+    pub fn samples_per_pixel(&self) -> Option<f64> {
+        (self.state == JobState::Done).then(|| {
+            let frames = self
+                .frames
+                .as_ref()
+                .map_or(1, |f| u64::from(f.last.saturating_sub(f.first)) + 1);
+            let pixels = u64::from(self.settings.width) * u64::from(self.settings.height);
+            self.samples as f64 / (pixels * frames).max(1) as f64
+        })
+    }
+}
+
 /// A connected worker, as reported to clients.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WorkerStatus {
