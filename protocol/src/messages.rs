@@ -410,9 +410,11 @@ pub struct JobStatus {
     /// here, next to the time.
     pub samples: u64,
     /// The renderer's own estimate of the image's error, in 8-bit levels: the root mean
-    /// square over the finished pixels of each pixel's standard error. `None` until a
-    /// tile with an estimate is in, and always with one sample per pixel (`aa` 1),
-    /// where the spread of the samples cannot be measured.
+    /// square over the image's pixels of each pixel's standard error. `None` until
+    /// every pixel has an estimate (every tile in, or an adaptive job's first pass
+    /// done: an estimate over the first tiles would read better than the image will),
+    /// and always with one sample per pixel (`aa` 1), where the spread of the samples
+    /// cannot be measured.
     pub estimated_error: Option<f64>,
     /// The job's time limit in milliseconds of rendering, if it has one.
     pub time_limit_ms: Option<u64>,

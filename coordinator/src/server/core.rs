@@ -28,6 +28,7 @@ use crate::db::{EventWrite, Label, StoredJob, Times, Totals};
 use crate::store::JobMetadata;
 use crate::tiling;
 
+mod figures;
 mod sequences;
 pub use sequences::SequenceRecord;
 
@@ -2652,12 +2653,11 @@ impl JobRecord {
         }
     }
 
-    /// The RMS of the per-pixel error estimates over the finished pixels that have one,
-    /// in levels; `None` with one sample per pixel (no spread to measure) or before any.
+    /// The image's estimated error in levels, once every pixel has an estimate
+    /// ([`figures::image_error`]).
     fn estimated_error(&self) -> Option<f64> {
-        let t = &self.totals;
-        (self.settings.aa >= 2 && t.error_pixels > 0)
-            .then(|| (t.error_sq_sum / t.error_pixels as f64).sqrt())
+        let pixels = u64::from(self.settings.width) * u64::from(self.settings.height);
+        figures::image_error(self.settings.aa, &self.totals, pixels)
     }
 
     /// Rays per second of rendering: from the first tile handed out to the end, less

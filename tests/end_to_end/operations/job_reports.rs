@@ -9,8 +9,8 @@ use std::time::Duration;
 use crate::support::{
     assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, orbit, poll,
     render_reference, scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
-    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, try_status,
-    wait_done,
+    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, tiles_total,
+    try_status, wait_done,
 };
 
 #[test]
@@ -30,10 +30,13 @@ fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
     let seed = scene_path("seed.json");
     // Long enough to be cancelled with some of its tiles in.
     let job = submit(dir.path(), &addr, &[&seed, "--aa", "8", "--tile", "16"]);
-    poll("a tile of the job", Duration::from_secs(60), || {
-        let status = try_status(dir.path(), &addr, job)?;
-        (tiles_done(&status) > 0).then_some(())
+    let running = poll("a tile of the job", Duration::from_secs(60), || {
+        try_status(dir.path(), &addr, job).filter(|s| tiles_done(s) > 0)
     });
+    // An estimate over the first tiles is over whichever part came first: none is
+    // shown until every tile is in.
+    assert!(tiles_done(&running) < tiles_total(&running), "{running}");
+    assert!(running["estimated_error"].is_null(), "{running}");
     ok(
         client(dir.path(), &addr, &["cancel", &job.to_string()]),
         "cancel",
