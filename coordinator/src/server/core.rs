@@ -155,6 +155,8 @@ pub struct JobRecord {
     /// coordinator's own downtime is not rendering time.
     pub rendered_before_ms: u64,
     pub running_since: Option<u64>,
+    /// When its tiles of this run were done, lately: what its time left is told from.
+    pub pace: figures::Pace,
     /// Tiles written to the database: the progress reported.
     pub tiles_recorded: u32,
     pub totals: Totals,
@@ -731,6 +733,7 @@ impl Core {
                 times: stored.times,
                 rendered_before_ms: 0,
                 running_since: None,
+                pace: figures::Pace::default(),
                 tiles_recorded: 0,
                 totals: Totals::default(),
                 tiles_per_worker: BTreeMap::new(),
@@ -877,6 +880,7 @@ impl Core {
             },
             rendered_before_ms: 0,
             running_since: None,
+            pace: figures::Pace::default(),
             tiles_recorded: 0,
             totals: stored.totals.unwrap_or_default(),
             tiles_per_worker: BTreeMap::new(),
@@ -1883,6 +1887,7 @@ impl Core {
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
             .then_some(cost.error_sq_sum);
         record.add_cost(cost.rays, cost.samples, error_sq_sum, rect_pixels(rect));
+        record.pace.tile_done(unix_ms());
         let name = machine.to_string();
         let accepted = Accepted {
             machine: Arc::from(machine),
@@ -2719,18 +2724,11 @@ impl JobRecord {
             self.tiles_recorded
         };
         // An adaptive job does not know how many passes are left, a paused one when
-        // it will go on.
-        let eta_ms = (state == JobState::Running
-            && done > 0
-            && done < total
-            && self.adaptive.is_none()
-            && !self.paused)
-            .then(|| {
-                let started = self.times.started?;
-                let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
-                Some((per_tile * f64::from(total - done)) as u64)
-            })
-            .flatten();
+        // it will go on. The others: at the pace of this run's recent tiles.
+        let eta_ms =
+            (state == JobState::Running && done < total && self.adaptive.is_none() && !self.paused)
+                .then(|| self.pace.time_left(self.running_since?, now, total - done))
+                .flatten();
         let error = match &job.phase {
             Phase::Ended { error, .. } if state.is_final() => error.clone(),
             _ => None,

@@ -115,6 +115,40 @@ fn a_sequences_samples_per_pixel_are_per_pixel_of_a_frame_on_the_page_as_in_stat
 }
 
 #[test]
+fn the_time_left_half_way_is_in_a_sane_band_of_the_time_the_job_then_takes() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let seed = scene_path("seed.json");
+    // 1200 tiles of a few milliseconds each: seconds of rendering, read half way.
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "1280", "--height", "960", "--aa", "12", "--tile", "32",
+        ],
+    );
+    let (half_way, at) = poll("half the job's tiles", Duration::from_secs(120), || {
+        let status = try_status(dir.path(), &addr, job)?;
+        assert_ne!(status["state"], "done", "done before it was seen half way");
+        (tiles_done(&status) * 2 >= tiles_total(&status))
+            .then(|| (status, std::time::Instant::now()))
+    });
+    let said = half_way["eta_ms"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no time left half way: {half_way}"));
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let took = at.elapsed().as_millis() as u64;
+    // A band, not a timing: a shared machine's pace varies, but an estimate off by more
+    // than a factor of 3 either way is not telling the time left.
+    assert!(
+        said <= took * 3 && took <= said * 3,
+        "{said} ms left said half way, {took} ms taken: {half_way}"
+    );
+}
+
+#[test]
 fn names_submitters_and_the_queue_wait_are_shown_and_the_rate_leaves_the_wait_out() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();

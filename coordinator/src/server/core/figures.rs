@@ -1,6 +1,8 @@
 //! The figures the coordinator reports of its jobs and workers, as functions of what
 //! it has seen (time passed in): how they are estimated is decided here, and tested.
 
+use std::collections::VecDeque;
+
 use crate::db::Totals;
 
 /// The image's estimated error in 8-bit levels: the root mean square of the per-pixel
@@ -14,6 +16,59 @@ use crate::db::Totals;
 pub fn image_error(aa: u32, totals: &Totals, pixels: u64) -> Option<f64> {
     (aa >= 2 && pixels > 0 && totals.error_pixels >= pixels)
         .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt())
+}
+
+/// The pace of a job's current run: when its recent tiles were done (Unix ms). A run
+/// starts with the job's first tile out in this coordinator's life, or with its retry:
+/// tiles kept from before, and the time before, are no measure of the farm now.
+#[derive(Debug, Default)]
+pub struct Pace {
+    /// The times of the tiles done in the last [`PACE_WINDOW_MS`] before the newest,
+    /// and at least the last [`PACE_TILES`] of them.
+    done: VecDeque<u64>,
+    /// Tiles done earlier were forgotten: the pace is over those kept.
+    forgot: bool,
+}
+
+/// The time left of a job is estimated from the tiles done in about this last while
+/// (and at least [`PACE_TILES`]): a farm whose workers come and go, or whose tiles get
+/// cheaper or dearer down the image, is followed as it goes, not averaged since the
+/// start.
+pub const PACE_WINDOW_MS: u64 = 20_000;
+
+/// The fewest tiles the pace is measured over, once the run has more.
+pub const PACE_TILES: usize = 16;
+
+impl Pace {
+    /// A tile of the run was done at `at`.
+    pub fn tile_done(&mut self, at: u64) {
+        self.done.push_back(at);
+        while self.done.len() > PACE_TILES
+            && self
+                .done
+                .front()
+                .is_some_and(|&t| at.saturating_sub(t) > PACE_WINDOW_MS)
+        {
+            self.done.pop_front();
+            self.forgot = true;
+        }
+    }
+
+    /// The time left, in ms, for `left` tiles at `now`, at the run's pace: the tiles
+    /// done over the time they took, from the run's start (`since`) while all are
+    /// kept, then from the oldest kept (which the count then leaves out). Every worker
+    /// is in it: it is the farm's pace for this job, however many render it at once.
+    /// `None` before the run's first tile.
+    pub fn time_left(&self, since: u64, now: u64, left: u32) -> Option<u64> {
+        let &first = self.done.front()?;
+        let (from, tiles) = if self.forgot {
+            (first, self.done.len() - 1)
+        } else {
+            (since.min(first), self.done.len())
+        };
+        let span = now.saturating_sub(from).max(1) as f64;
+        (tiles > 0).then(|| (f64::from(left) * span / tiles as f64) as u64)
+    }
 }
 
 #[cfg(test)]
@@ -41,5 +96,59 @@ mod tests {
         assert!((whole.unwrap() - 1.309).abs() < 1e-9, "{whole:?}");
         // One sample per pixel: nothing to measure, even with every pixel in.
         assert_eq!(image_error(1, &totals(1.0, pixels), pixels), None);
+    }
+
+    /// A recorded schedule: one worker, a tile a second, for 30 s, then four workers,
+    /// four tiles a second, to the 300th tile.
+    fn schedule(since: u64) -> Vec<u64> {
+        let mut done: Vec<u64> = (1..=30).map(|s| since + s * 1000).collect();
+        while done.len() < 300 {
+            done.push(done.last().unwrap() + 250);
+        }
+        done
+    }
+
+    #[test]
+    fn the_time_left_follows_the_farms_pace_now_not_since_the_start() {
+        let since = 1_000_000;
+        let done = schedule(since);
+        let mut pace = Pace::default();
+        let mut fed = 0;
+        for now in [40_000, 55_000, 70_000].map(|ms| since + ms) {
+            while done[fed] <= now {
+                pace.tile_done(done[fed]);
+                fed += 1;
+            }
+            let left = (done.len() - fed) as u32;
+            let actual = done.last().unwrap() - now;
+            let estimate = pace.time_left(since, now, left).unwrap();
+            // The pace since the start of the run, as it was estimated, reads long.
+            let since_start = (now - since) * u64::from(left) / fed as u64;
+            assert!(
+                since_start > actual * 4 / 3,
+                "{since_start} ms for {actual} ms"
+            );
+            if now >= since + 55_000 {
+                // 20 s past the change, every tile measured is at the pace of four.
+                assert!(
+                    estimate.abs_diff(actual) * 10 <= actual,
+                    "{estimate} ms estimated for {actual} ms left"
+                );
+            } else {
+                assert!(estimate < since_start, "{estimate} ms, {since_start} ms");
+            }
+        }
+    }
+
+    #[test]
+    fn a_new_run_is_timed_from_its_own_start_and_tiles() {
+        let mut pace = Pace::default();
+        // Retried (or the coordinator restarted) with 394 of 1200 tiles kept: none is
+        // in the pace, nor the time before the run.
+        assert_eq!(pace.time_left(10_000, 10_500, 806), None);
+        pace.tile_done(12_000);
+        pace.tile_done(12_000);
+        // Two tiles in 2 s of this run: a second each for the 804 left.
+        assert_eq!(pace.time_left(10_000, 12_000, 804), Some(804_000));
     }
 }
