@@ -475,7 +475,8 @@ pub struct WorkerStatus {
     pub tiles_done: u64,
     pub rays: u64,
     pub connected_ms: u64,
-    /// Rays per second over the worker's connection so far.
+    /// Rays per second while rendering: its results' rays of the last minute over the
+    /// time it spent rendering them; 0 once idle for a minute.
     pub rays_per_second: f64,
     /// The worker's renderer build, as its hello gave it.
     pub build: String,

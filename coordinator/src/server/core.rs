@@ -275,9 +275,10 @@ pub struct WorkerRecord {
     pub draining: bool,
     /// The last round trips measured, in microseconds.
     rtts: VecDeque<u64>,
-    /// The rays of its results of the last [`RATE_WINDOW`], with when each arrived: its
-    /// current rate, not a lifetime average that idle time dilutes.
-    recent: VecDeque<(Instant, u64)>,
+    /// Its results of the last [`RATE_WINDOW`]: when each arrived, how long its tile
+    /// took to render (µs) and its rays. Its rate is theirs while it rendered, not a
+    /// lifetime average, nor one that idle time dilutes.
+    recent: VecDeque<(Instant, u64, u64)>,
     /// Its mean time per tile on one thread, in microseconds (moving average).
     tile_us: Option<f64>,
     /// The pace last given to the scheduler: (rtt, tile time) in ms.
@@ -286,7 +287,8 @@ pub struct WorkerRecord {
     pub key: Option<super::keys::KeyHold>,
 }
 
-/// A worker's rays per second are those of its results of this last while.
+/// A worker's rays per second are those of its results of this last while, over the
+/// time it spent rendering them.
 const RATE_WINDOW: Duration = Duration::from_secs(60);
 
 /// Round trips kept per worker: the smallest of them is its round-trip time (the
@@ -1829,7 +1831,7 @@ impl Core {
         if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
             w.rays += cost.rays;
-            w.count_rays(Instant::now(), cost.rays);
+            w.count_result(Instant::now(), cost.render_us, cost.rays);
         }
         self.log(
             sh,
@@ -2786,30 +2788,35 @@ fn restored_label(id: JobId, stored: &Label) -> Label {
 }
 
 impl WorkerRecord {
-    /// Counts the rays of a result that arrived at `now`, forgetting those older than
-    /// [`RATE_WINDOW`].
-    fn count_rays(&mut self, now: Instant, rays: u64) {
-        self.recent.push_back((now, rays));
+    /// Counts a result that arrived at `now`, its tile rendered in `render_us`,
+    /// forgetting those older than [`RATE_WINDOW`].
+    fn count_result(&mut self, now: Instant, render_us: u64, rays: u64) {
+        self.recent.push_back((now, render_us, rays));
         while self
             .recent
             .front()
-            .is_some_and(|&(at, _)| now.duration_since(at) > RATE_WINDOW)
+            .is_some_and(|&(at, _, _)| now.duration_since(at) > RATE_WINDOW)
         {
             self.recent.pop_front();
         }
     }
 
-    /// Rays per second over the last [`RATE_WINDOW`] (or since it connected, if that is
-    /// shorter): 0 for a worker that has been idle that long.
+    /// Rays per second while rendering, over its results of the last [`RATE_WINDOW`]
+    /// ([`figures::rendering_rate`]): 0 for a worker that has been idle that long.
     fn current_rate(&self, now: Instant) -> f64 {
-        let window = RATE_WINDOW.min(now.duration_since(self.connected));
-        let rays: u64 = self
-            .recent
-            .iter()
-            .filter(|&&(at, _)| now.duration_since(at) <= window)
-            .map(|&(_, rays)| rays)
-            .sum();
-        rays as f64 / window.as_secs_f64().max(1e-3)
+        let connected = self.connected;
+        figures::rendering_rate(
+            self.recent
+                .iter()
+                .filter(|&&(at, _, _)| now.duration_since(at) <= RATE_WINDOW)
+                .map(|&(at, render_us, rays)| {
+                    (
+                        at.duration_since(connected).as_micros() as u64,
+                        render_us,
+                        rays,
+                    )
+                }),
+        )
     }
 
     fn status(&self, id: WorkerId, in_flight: usize, credit: usize) -> WorkerStatus {
@@ -2897,7 +2904,7 @@ mod tests {
     }
 
     #[test]
-    fn a_workers_rate_is_that_of_the_last_minute_not_its_lifetime() {
+    fn a_workers_rate_is_while_it_rendered_in_the_last_minute() {
         let mut w = WorkerRecord::new(
             "w".into(),
             "build".into(),
@@ -2909,18 +2916,20 @@ mod tests {
         let at = |s: u64| start + Duration::from_secs(s);
         // 10 s of work at a million rays a second, then idle.
         for s in 1..=10 {
-            w.count_rays(at(s), 1_000_000);
+            w.count_result(at(s), 1_000_000, 1_000_000);
         }
         let busy = w.current_rate(at(10));
         assert!((busy - 1e6).abs() < 1.0, "{busy}");
-        // Within the minute the work is averaged over the minute...
+        // Within the minute, idle time does not dilute it (the minute's average would
+        // say 10e6 / 60)...
         let later = w.current_rate(at(60));
-        assert!((later - 10e6 / 60.0).abs() < 1.0, "{later}");
+        assert!((later - 1e6).abs() < 1.0, "{later}");
         // ...and a worker idle for longer than that renders nothing now, whatever it did
         // before (the lifetime average would still say 10e6 / 300).
         assert_eq!(w.current_rate(at(300)), 0.0);
-        w.count_rays(at(301), 6_000_000);
-        assert!((w.current_rate(at(301)) - 1e5).abs() < 1.0);
+        // A result of 6 M rays rendered in 2 s: 3 M rays a second.
+        w.count_result(at(301), 2_000_000, 6_000_000);
+        assert!((w.current_rate(at(301)) - 3e6).abs() < 1.0);
         assert_eq!(w.recent.len(), 1, "older results are forgotten");
     }
 }

@@ -71,6 +71,42 @@ impl Pace {
     }
 }
 
+/// A worker's rays per second while it renders: the rays of its `results` over the
+/// time it spent rendering them, each result given as (when it arrived, how long its
+/// tile took to render, both in µs, and its rays). The time is the union of the
+/// results' rendering spans (a tile's ending as it arrived): tiles rendered at once on
+/// its threads count once, and the time it sat idle not at all. So a worker that just
+/// rendered a 37 M rays/s job shows 37 M, not that job's rays spread over a minute
+/// mostly idle. 0 without results.
+pub fn rendering_rate(results: impl IntoIterator<Item = (u64, u64, u64)>) -> f64 {
+    let mut spans: Vec<(u64, u64)> = Vec::new();
+    let mut rays = 0u64;
+    for (arrived, render_us, r) in results {
+        spans.push((arrived.saturating_sub(render_us), arrived));
+        rays = rays.saturating_add(r);
+    }
+    spans.sort_unstable();
+    let mut busy_us = 0u64;
+    let mut current: Option<(u64, u64)> = None;
+    for (start, end) in spans {
+        current = match current {
+            Some((s, e)) if start <= e => Some((s, e.max(end))),
+            Some((s, e)) => {
+                busy_us += e - s;
+                Some((start, end))
+            }
+            None => Some((start, end)),
+        };
+    }
+    if let Some((s, e)) = current {
+        busy_us += e - s;
+    }
+    if busy_us == 0 {
+        return 0.0;
+    }
+    rays as f64 / (busy_us as f64 / 1e6)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -97,7 +133,6 @@ mod tests {
         // One sample per pixel: nothing to measure, even with every pixel in.
         assert_eq!(image_error(1, &totals(1.0, pixels), pixels), None);
     }
-
     /// A recorded schedule: one worker, a tile a second, for 30 s, then four workers,
     /// four tiles a second, to the 300th tile.
     fn schedule(since: u64) -> Vec<u64> {
@@ -150,5 +185,27 @@ mod tests {
         pace.tile_done(12_000);
         // Two tiles in 2 s of this run: a second each for the 804 left.
         assert_eq!(pace.time_left(10_000, 12_000, 804), Some(804_000));
+    }
+    #[test]
+    fn a_workers_rate_is_over_the_time_it_spent_rendering() {
+        // A 5 s job on two threads, tiles of a second two at a time, 37 M rays a
+        // second in all: 37 M, whatever idle time follows.
+        let results: Vec<(u64, u64, u64)> = (1..=5)
+            .flat_map(|s| [(s * 1_000_000, 1_000_000, 18_500_000); 2])
+            .collect();
+        let rate = rendering_rate(results.iter().copied());
+        assert!((rate - 37e6).abs() < 1.0, "{rate}");
+        // Two results apart, with idle time between: the idle time is not in it.
+        let apart = [
+            (2_000_000, 1_000_000, 1_000_000),
+            (60_000_000, 1_000_000, 1_000_000),
+        ];
+        assert!((rendering_rate(apart) - 1e6).abs() < 1.0);
+        // Overlapping spans count once.
+        let overlapping = [(2_000_000, 2_000_000, 3_000_000), (3_000_000, 2_000_000, 0)];
+        assert!((rendering_rate(overlapping) - 1e6).abs() < 1.0);
+        assert_eq!(rendering_rate([]), 0.0);
+        // A tile of no measurable time says nothing of the rate.
+        assert_eq!(rendering_rate([(5, 0, 100)]), 0.0);
     }
 }
