@@ -400,7 +400,8 @@ pub struct JobStatus {
     pub tiles_total: u32,
     /// Rays traced so far.
     pub rays: u64,
-    /// Since submission, or submission to completion for a finished job.
+    /// Since submission (or the last retry: a retry starts a new run), to now or to
+    /// the job's end.
     pub elapsed_ms: u64,
     /// Estimated time left, once some tiles are done.
     pub eta_ms: Option<u64>,
@@ -436,8 +437,9 @@ pub struct JobStatus {
     pub submitted_from: String,
     /// When it was submitted, in milliseconds since the Unix epoch.
     pub submitted_unix_ms: u64,
-    /// How long it waited in the queue before its first tile went out; `None` while
-    /// no tile has gone out. `elapsed_ms` less this is the time it took to render.
+    /// How long it waited in the queue before its first tile went out (of its current
+    /// run, since a retry); `None` while no tile has gone out. `elapsed_ms` less this is
+    /// the time it took to render.
     pub queued_ms: Option<u64>,
     /// The frame of the scene the job renders, from 1 (a sequence job's first frame).
     pub frame: u32,

@@ -888,6 +888,16 @@ impl Core {
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
         };
+        // A retry starts a new run: its first tile out is the run's start (stored anew
+        // when it goes out). What was rendered before still counts in its rate below.
+        if record
+            .times
+            .started
+            .zip(record.times.retried)
+            .is_some_and(|(started, retried)| started < retried)
+        {
+            record.times.started = None;
+        }
         if let Some(sequence) = stored.sequence {
             self.lifecycle.keep(id);
             if let Some(s) = self.sequences.get_mut(&sequence) {
@@ -2048,7 +2058,14 @@ impl Core {
         if first {
             let at = record.running_since.unwrap_or_else(unix_ms);
             record.times.started = Some(at);
-            let queued = at.saturating_sub(record.times.submitted.unwrap_or(at));
+            // The wait of this run: since the submission, or the retry.
+            let queued = at.saturating_sub(
+                record
+                    .times
+                    .retried
+                    .or(record.times.submitted)
+                    .unwrap_or(at),
+            );
             self.store(
                 sh,
                 job,
@@ -2713,6 +2730,8 @@ impl JobRecord {
         let now = unix_ms();
         let end = self.times.ended.filter(|_| state.is_final()).unwrap_or(now);
         let submitted = self.times.submitted.unwrap_or(end);
+        let (elapsed_ms, queued_ms) =
+            figures::run_times(submitted, self.times.retried, self.times.started, end);
         let total = self.tiles_total;
         let done = if state == JobState::Done {
             total
@@ -2743,7 +2762,7 @@ impl JobRecord {
             tiles_done: done,
             tiles_total: total,
             rays: self.totals.rays,
-            elapsed_ms: end.saturating_sub(submitted),
+            elapsed_ms,
             eta_ms,
             error,
             samples: self.totals.samples,
@@ -2759,10 +2778,7 @@ impl JobRecord {
             submitter: self.label.submitter.clone(),
             submitted_from: self.label.submitted_from.clone(),
             submitted_unix_ms: submitted,
-            queued_ms: self
-                .times
-                .started
-                .map(|started| started.saturating_sub(submitted)),
+            queued_ms,
             frame: self.frame,
             frames: None,
             sequence: self.sequence,

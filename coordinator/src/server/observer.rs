@@ -112,7 +112,8 @@ pub struct JobView {
     pub tiles_done: u32,
     pub tiles_total: u32,
     pub rays: u64,
-    /// Since submission (to the end, for an ended job): the queue wait included.
+    /// Since submission, or the last retry (to the end, for an ended job): the queue
+    /// wait included.
     pub elapsed_ms: u64,
     pub eta_ms: Option<u64>,
     /// The mean over the whole image, known once the job is done; a sequence's per

@@ -557,6 +557,55 @@ fn a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them() {
 }
 
 #[test]
+fn a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
+    let seed = scene_path("seed.json");
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let Some((mut worker, _slow)) = slow_worker_past_two_tiles(
+        "a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart",
+        dir.path(),
+        &addr,
+        job,
+    ) else {
+        return;
+    };
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    worker.kill9();
+    // It sits cancelled a while: that is not its time.
+    std::thread::sleep(Duration::from_secs(2));
+    let before_retry = std::time::Instant::now();
+    let retried = ok(
+        client(dir.path(), &addr, &["retry", &id, "--json"]),
+        "retry",
+    );
+    let retried: serde_json::Value = serde_json::from_str(retried.stdout.trim()).unwrap();
+    let since_retry = |status: &serde_json::Value| {
+        let elapsed = status["elapsed_ms"].as_u64().unwrap();
+        assert!(
+            u128::from(elapsed) <= before_retry.elapsed().as_millis(),
+            "elapsed {elapsed} ms, counted from before the retry: {status}"
+        );
+    };
+    since_retry(&retried);
+    // No tile out in this run yet: no wait known (the first run's is not this one's).
+    assert!(retried["queued_ms"].is_null(), "{retried}");
+    // Stored with the job: a restart counts from the retry too.
+    coordinator.kill9();
+    let _coordinator = restart_coordinator(dir.path(), &addr, &[]);
+    since_retry(&status_json(dir.path(), &addr, job));
+    let _worker = start_worker(dir.path(), &addr, "w2");
+    let done = wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    since_retry(&done);
+    let queued = done["queued_ms"].as_u64().expect("the run's wait");
+    assert!(queued <= done["elapsed_ms"].as_u64().unwrap(), "{done}");
+}
+
+#[test]
 fn requeued_tiles_are_rendered_again_and_the_image_is_the_same() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();

@@ -107,6 +107,23 @@ pub fn rendering_rate(results: impl IntoIterator<Item = (u64, u64, u64)>) -> f64
     rays as f64 / (busy_us as f64 / 1e6)
 }
 
+/// A job's elapsed time and queue wait at `end` (now, or its end), in ms: those of its
+/// current run, which starts at its submission or, once retried, at its last retry. A
+/// retry starts a new run: the time the job sat cancelled or failed before it, and its
+/// earlier runs, are not in its elapsed time (a job cancelled twice around a retry
+/// showed 305 s, mostly of waiting). The wait is from the run's start to its first
+/// tile out (`started`, if that is of this run); `None` before.
+pub fn run_times(
+    submitted: u64,
+    retried: Option<u64>,
+    started: Option<u64>,
+    end: u64,
+) -> (u64, Option<u64>) {
+    let from = retried.map_or(submitted, |r| r.max(submitted));
+    let queued = started.filter(|&s| s >= from).map(|s| s - from);
+    (end.saturating_sub(from), queued)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -207,5 +224,26 @@ mod tests {
         assert_eq!(rendering_rate([]), 0.0);
         // A tile of no measurable time says nothing of the rate.
         assert_eq!(rendering_rate([(5, 0, 100)]), 0.0);
+    }
+    #[test]
+    fn a_retry_starts_a_new_run_that_elapsed_time_and_the_wait_count_from() {
+        // Submitted at 0, first tile out at 2 s, still running at 20 s.
+        assert_eq!(
+            run_times(0, None, Some(2_000), 20_000),
+            (20_000, Some(2_000))
+        );
+        // Not started: all of it waiting, no wait known yet.
+        assert_eq!(run_times(0, None, None, 5_000), (5_000, None));
+        // Cancelled at 20 s, retried at 300 s: at 301 s, its run is 1 s old and has not
+        // started (the first run's start is not this run's).
+        assert_eq!(
+            run_times(0, Some(300_000), Some(2_000), 301_000),
+            (1_000, None)
+        );
+        // Its first tile out at 303 s, done at 305 s: 5 s, 3 of them waiting.
+        assert_eq!(
+            run_times(0, Some(300_000), Some(303_000), 305_000),
+            (5_000, Some(3_000))
+        );
     }
 }
