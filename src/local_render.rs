@@ -91,10 +91,17 @@ impl Job<'_> {
                 let met = meets(&frame.totals, frame.rung, target);
                 let capped = frame.rung >= LAST_RUNG && (e > target || e.is_nan());
                 let note = if capped {
-                    format!(
-                        "; every pixel at its cap of {} samples",
-                        sample_cap(settings.aa)
-                    )
+                    let cap = sample_cap(settings.aa);
+                    let (at_cap, pixels) =
+                        region
+                            .blocks()
+                            .iter()
+                            .fold((0, 0), |(at_cap, pixels), block| {
+                                let n = block.rect.pixel_count();
+                                let full = block.levels.last().is_some_and(|l| l.count >= cap);
+                                (at_cap + if full { n } else { 0 }, pixels + n)
+                            });
+                    cap_note(cap, at_cap, pixels)
                 } else if !met && !settings.sampling.time_decides() {
                     "; stopped by the time limit before the target".to_owned()
                 } else if !met {
@@ -151,6 +158,21 @@ impl Job<'_> {
         );
         Ok(())
     }
+}
+
+/// What an adaptive render that reached its last rung above its target says of its
+/// pixels: how many are at the cap of `cap` samples (`at_cap` of `pixels`). The others
+/// met their last threshold with fewer, which is why the mean samples per pixel can be
+/// well below the cap: "every pixel at its cap" only when every one is.
+pub fn cap_note(cap: u32, at_cap: u64, pixels: u64) -> String {
+    if at_cap >= pixels {
+        return format!("; every pixel at its cap of {cap} samples");
+    }
+    let share = 100.0 * at_cap as f64 / pixels.max(1) as f64;
+    format!(
+        "; the last rung reached with {share:.1} % of the pixels at the cap of {cap} samples \
+         (the others below their threshold with fewer)"
+    )
 }
 
 /// A spinner on stderr for adaptive renders, shown only on a terminal after
@@ -231,5 +253,25 @@ impl DelayedProgress {
 
     fn finish(&self) {
         self.bar.finish_and_clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_cap_note_says_how_many_pixels_are_at_the_cap() {
+        assert_eq!(
+            cap_note(64, 100, 100),
+            "; every pixel at its cap of 64 samples"
+        );
+        // 46.02 samples per pixel on average: not every pixel at 64.
+        let note = cap_note(64, 6_902, 10_000);
+        assert_eq!(
+            note,
+            "; the last rung reached with 69.0 % of the pixels at the cap of 64 samples \
+             (the others below their threshold with fewer)"
+        );
     }
 }

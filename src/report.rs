@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use protocol::{FrameProgress, JobState, JobStatus, Sampling, Settings};
+use protocol::{FrameProgress, JobStatus, Sampling, Settings};
 use render::RenderSettings;
 use serde_json::{json, Value};
 
@@ -153,13 +153,8 @@ pub fn status_json(s: &JobStatus) -> Value {
         "sampler": s.settings.sampling.name(),
         "target_error": s.settings.sampling.target_error(),
         "samples": s.samples,
-        // The mean over the whole image, known once every tile is in.
-        // A sequence's samples are its frames': per pixel of a frame.
-        "samples_per_pixel": (s.state == JobState::Done).then(|| {
-            let frames = s.frames.as_ref().map_or(1, |f| u64::from(f.last - f.first + 1));
-            s.samples as f64
-                / (u64::from(s.settings.width) * u64::from(s.settings.height) * frames) as f64
-        }),
+        // The mean over the whole image (a sequence's per pixel of a frame), once done.
+        "samples_per_pixel": s.samples_per_pixel(),
         "estimated_error": s.estimated_error,
         "time_limit_ms": s.time_limit_ms,
         "stopped_on_time_limit": s.stopped_on_time_limit,

@@ -80,8 +80,12 @@ pub struct Label {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Times {
     pub submitted: Option<u64>,
+    /// Its current run's first tile out.
     pub started: Option<u64>,
     pub ended: Option<u64>,
+    /// Its last retry, if it was retried: a retry starts a new run, which its elapsed
+    /// time and queue wait are counted from.
+    pub retried: Option<u64>,
 }
 
 /// A job's accumulated cost and error estimate.
@@ -165,6 +169,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "last_frame", "INTEGER"),
     ("jobs", "sequence", "INTEGER"),
     ("tiles", "encoding", "TEXT NOT NULL DEFAULT 'raw'"),
+    ("jobs", "retried_ms", "INTEGER"),
 ];
 
 /// How a tile row's `rgb` column holds its pixels. Rows are written as `zstd`: the
@@ -482,16 +487,17 @@ impl Db {
     }
 
     /// Puts a failed or cancelled job back in the queue (unpaused, its end and error
-    /// forgotten) and returns it as stored; `None` if there is no such job. A job in
-    /// another state is returned unchanged.
-    pub fn reopen_job(&self, job: JobId) -> Result<Option<StoredJob>, ReopenError> {
+    /// forgotten, retried at `now`) and returns it as stored; `None` if there is no such
+    /// job. A job in another state is returned unchanged.
+    pub fn reopen_job(&self, job: JobId, now: u64) -> Result<Option<StoredJob>, ReopenError> {
         self.conn
             .execute(
                 "UPDATE jobs SET state = 'queued', error = NULL, ended_ms = NULL, paused = 0,
                                  total_rays = NULL, total_samples = NULL,
-                                 total_error_sq_sum = NULL, total_error_pixels = NULL
+                                 total_error_sq_sum = NULL, total_error_pixels = NULL,
+                                 retried_ms = ?2
                  WHERE id = ?1 AND state IN ('failed', 'cancelled')",
-                params![job as i64],
+                params![job as i64, now as i64],
             )
             .context("cannot put the job back in the queue")
             .map_err(ReopenError::Storage)?;
@@ -678,6 +684,20 @@ impl Db {
         Ok(())
     }
 
+    /// How many tiles of the job are stored. For a job that ended unfinished (cancelled
+    /// or failed) this is its progress, kept across restarts: the tiles a retry keeps.
+    pub fn count_tiles(&self, job: JobId) -> Result<u32> {
+        let count: i64 = self
+            .conn
+            .query_row(
+                "SELECT COUNT(*) FROM tiles WHERE job = ?1",
+                params![job as i64],
+                |r| r.get(0),
+            )
+            .context("cannot count the job's stored tiles")?;
+        Ok(u32::try_from(count).unwrap_or(u32::MAX))
+    }
+
     /// Deletes one stored tile (found damaged at startup).
     pub fn delete_tile(&self, job: JobId, tile: i64) -> Result<()> {
         self.conn
@@ -793,7 +813,7 @@ const JOB_COLUMNS: &str = "id, scene, hash, width, height, aa, max_depth, tile_s
     state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
     total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
     time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame,
-    last_frame, sequence";
+    last_frame, sequence, retried_ms";
 
 /// Inserts event log entries in `tx` (see [`Db::save_results`]).
 fn insert_events(tx: &rusqlite::Transaction<'_>, events: &[EventWrite]) -> Result<()> {
@@ -922,6 +942,7 @@ fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
             submitted: time(17)?,
             started: time(18)?,
             ended: time(19)?,
+            retried: time(31)?,
         },
         image_sha256,
     })
@@ -1109,6 +1130,7 @@ pub(crate) mod tests {
             submitted: Some(1_000),
             started: Some(1_500),
             ended: Some(2_000),
+            retried: None,
         };
         db.set_ended(5, JobState::Done, None, totals, times, Some([9; 32]))
             .unwrap();

@@ -400,7 +400,8 @@ pub struct JobStatus {
     pub tiles_total: u32,
     /// Rays traced so far.
     pub rays: u64,
-    /// Since submission, or submission to completion for a finished job.
+    /// Since submission (or the last retry: a retry starts a new run), to now or to
+    /// the job's end.
     pub elapsed_ms: u64,
     /// Estimated time left, once some tiles are done.
     pub eta_ms: Option<u64>,
@@ -410,9 +411,11 @@ pub struct JobStatus {
     /// here, next to the time.
     pub samples: u64,
     /// The renderer's own estimate of the image's error, in 8-bit levels: the root mean
-    /// square over the finished pixels of each pixel's standard error. `None` until a
-    /// tile with an estimate is in, and always with one sample per pixel (`aa` 1),
-    /// where the spread of the samples cannot be measured.
+    /// square over the image's pixels of each pixel's standard error. `None` until
+    /// every pixel has an estimate (every tile in, or an adaptive job's first pass
+    /// done: an estimate over the first tiles would read better than the image will),
+    /// and always with one sample per pixel (`aa` 1), where the spread of the samples
+    /// cannot be measured.
     pub estimated_error: Option<f64>,
     /// The job's time limit in milliseconds of rendering, if it has one.
     pub time_limit_ms: Option<u64>,
@@ -434,8 +437,9 @@ pub struct JobStatus {
     pub submitted_from: String,
     /// When it was submitted, in milliseconds since the Unix epoch.
     pub submitted_unix_ms: u64,
-    /// How long it waited in the queue before its first tile went out; `None` while
-    /// no tile has gone out. `elapsed_ms` less this is the time it took to render.
+    /// How long it waited in the queue before its first tile went out (of its current
+    /// run, since a retry); `None` while no tile has gone out. `elapsed_ms` less this is
+    /// the time it took to render.
     pub queued_ms: Option<u64>,
     /// The frame of the scene the job renders, from 1 (a sequence job's first frame).
     pub frame: u32,
@@ -444,6 +448,23 @@ pub struct JobStatus {
     pub frames: Option<FrameProgress>,
     /// For a frame job of a sequence: the sequence.
     pub sequence: Option<JobId>,
+}
+
+impl JobStatus {
+    /// The mean camera samples per pixel of the image, known once the job is done
+    /// (`None` before). For a sequence, per pixel of a frame: its `samples` add up its
+    /// frames', so they are divided by the pixels of all of them, and an `aa 2` grid
+    /// sequence shows 4 whatever its length.
+    pub fn samples_per_pixel(&self) -> Option<f64> {
+        (self.state == JobState::Done).then(|| {
+            let frames = self
+                .frames
+                .as_ref()
+                .map_or(1, |f| u64::from(f.last.saturating_sub(f.first)) + 1);
+            let pixels = u64::from(self.settings.width) * u64::from(self.settings.height);
+            self.samples as f64 / (pixels * frames).max(1) as f64
+        })
+    }
 }
 
 /// A connected worker, as reported to clients.
@@ -456,7 +477,8 @@ pub struct WorkerStatus {
     pub tiles_done: u64,
     pub rays: u64,
     pub connected_ms: u64,
-    /// Rays per second over the worker's connection so far.
+    /// Rays per second while rendering: its results' rays of the last minute over the
+    /// time it spent rendering them; 0 once idle for a minute.
     pub rays_per_second: f64,
     /// The worker's renderer build, as its hello gave it.
     pub build: String,

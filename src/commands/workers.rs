@@ -11,6 +11,10 @@ use crate::args::ClientArgs;
 
 /// List the workers connected to the coordinator, with their throughput; or drain,
 /// disable or enable one.
+///
+/// A worker's M rays/s is its rate while rendering: the rays of its results of the
+/// last minute over the time it spent rendering them (idle time left out), 0 once it
+/// has returned nothing for a minute.
 #[derive(clap::Args)]
 #[command(
     args_conflicts_with_subcommands = true,

@@ -28,6 +28,7 @@ use crate::db::{EventWrite, Label, StoredJob, Times, Totals};
 use crate::store::JobMetadata;
 use crate::tiling;
 
+mod figures;
 mod sequences;
 pub use sequences::SequenceRecord;
 
@@ -154,6 +155,8 @@ pub struct JobRecord {
     /// coordinator's own downtime is not rendering time.
     pub rendered_before_ms: u64,
     pub running_since: Option<u64>,
+    /// When its tiles of this run were done, lately: what its time left is told from.
+    pub pace: figures::Pace,
     /// Tiles written to the database: the progress reported.
     pub tiles_recorded: u32,
     pub totals: Totals,
@@ -272,9 +275,10 @@ pub struct WorkerRecord {
     pub draining: bool,
     /// The last round trips measured, in microseconds.
     rtts: VecDeque<u64>,
-    /// The rays of its results of the last [`RATE_WINDOW`], with when each arrived: its
-    /// current rate, not a lifetime average that idle time dilutes.
-    recent: VecDeque<(Instant, u64)>,
+    /// Its results of the last [`RATE_WINDOW`]: when each arrived, how long its tile
+    /// took to render (µs) and its rays. Its rate is theirs while it rendered, not a
+    /// lifetime average, nor one that idle time dilutes.
+    recent: VecDeque<(Instant, u64, u64)>,
     /// Its mean time per tile on one thread, in microseconds (moving average).
     tile_us: Option<f64>,
     /// The pace last given to the scheduler: (rtt, tile time) in ms.
@@ -283,7 +287,8 @@ pub struct WorkerRecord {
     pub key: Option<super::keys::KeyHold>,
 }
 
-/// A worker's rays per second are those of its results of this last while.
+/// A worker's rays per second are those of its results of this last while, over the
+/// time it spent rendering them.
 const RATE_WINDOW: Duration = Duration::from_secs(60);
 
 /// Round trips kept per worker: the smallest of them is its round-trip time (the
@@ -730,6 +735,7 @@ impl Core {
                 times: stored.times,
                 rendered_before_ms: 0,
                 running_since: None,
+                pace: figures::Pace::default(),
                 tiles_recorded: 0,
                 totals: Totals::default(),
                 tiles_per_worker: BTreeMap::new(),
@@ -876,11 +882,22 @@ impl Core {
             },
             rendered_before_ms: 0,
             running_since: None,
+            pace: figures::Pace::default(),
             tiles_recorded: 0,
             totals: stored.totals.unwrap_or_default(),
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
         };
+        // A retry starts a new run: its first tile out is the run's start (stored anew
+        // when it goes out). What was rendered before still counts in its rate below.
+        if record
+            .times
+            .started
+            .zip(record.times.retried)
+            .is_some_and(|(started, retried)| started < retried)
+        {
+            record.times.started = None;
+        }
         if let Some(sequence) = stored.sequence {
             self.lifecycle.keep(id);
             if let Some(s) = self.sequences.get_mut(&sequence) {
@@ -891,9 +908,13 @@ impl Core {
             }
         }
         if final_state {
-            if stored.state == JobState::Done {
-                record.tiles_recorded = record.tiles_total;
-            }
+            // Its progress as it ended: all of it, or (cancelled, failed) the tiles it
+            // has stored, which a retry keeps.
+            record.tiles_recorded = if stored.state == JobState::Done {
+                record.tiles_total
+            } else {
+                restored.stored_tiles.min(record.tiles_total)
+            };
             self.jobs.insert(id, record);
             self.life_event(
                 sh,
@@ -1820,7 +1841,7 @@ impl Core {
         if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
             w.rays += cost.rays;
-            w.count_rays(Instant::now(), cost.rays);
+            w.count_result(Instant::now(), cost.render_us, cost.rays);
         }
         self.log(
             sh,
@@ -1878,6 +1899,7 @@ impl Core {
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
             .then_some(cost.error_sq_sum);
         record.add_cost(cost.rays, cost.samples, error_sq_sum, rect_pixels(rect));
+        record.pace.tile_done(unix_ms());
         let name = machine.to_string();
         let accepted = Accepted {
             machine: Arc::from(machine),
@@ -2036,7 +2058,14 @@ impl Core {
         if first {
             let at = record.running_since.unwrap_or_else(unix_ms);
             record.times.started = Some(at);
-            let queued = at.saturating_sub(record.times.submitted.unwrap_or(at));
+            // The wait of this run: since the submission, or the retry.
+            let queued = at.saturating_sub(
+                record
+                    .times
+                    .retried
+                    .or(record.times.submitted)
+                    .unwrap_or(at),
+            );
             self.store(
                 sh,
                 job,
@@ -2648,12 +2677,11 @@ impl JobRecord {
         }
     }
 
-    /// The RMS of the per-pixel error estimates over the finished pixels that have one,
-    /// in levels; `None` with one sample per pixel (no spread to measure) or before any.
+    /// The image's estimated error in levels, once every pixel has an estimate
+    /// ([`figures::image_error`]).
     fn estimated_error(&self) -> Option<f64> {
-        let t = &self.totals;
-        (self.settings.aa >= 2 && t.error_pixels > 0)
-            .then(|| (t.error_sq_sum / t.error_pixels as f64).sqrt())
+        let pixels = u64::from(self.settings.width) * u64::from(self.settings.height);
+        figures::image_error(self.settings.aa, &self.totals, pixels)
     }
 
     /// Rays per second of rendering: from the first tile handed out to the end, less
@@ -2702,6 +2730,8 @@ impl JobRecord {
         let now = unix_ms();
         let end = self.times.ended.filter(|_| state.is_final()).unwrap_or(now);
         let submitted = self.times.submitted.unwrap_or(end);
+        let (elapsed_ms, queued_ms) =
+            figures::run_times(submitted, self.times.retried, self.times.started, end);
         let total = self.tiles_total;
         let done = if state == JobState::Done {
             total
@@ -2715,18 +2745,11 @@ impl JobRecord {
             self.tiles_recorded
         };
         // An adaptive job does not know how many passes are left, a paused one when
-        // it will go on.
-        let eta_ms = (state == JobState::Running
-            && done > 0
-            && done < total
-            && self.adaptive.is_none()
-            && !self.paused)
-            .then(|| {
-                let started = self.times.started?;
-                let per_tile = now.saturating_sub(started) as f64 / f64::from(done);
-                Some((per_tile * f64::from(total - done)) as u64)
-            })
-            .flatten();
+        // it will go on. The others: at the pace of this run's recent tiles.
+        let eta_ms =
+            (state == JobState::Running && done < total && self.adaptive.is_none() && !self.paused)
+                .then(|| self.pace.time_left(self.running_since?, now, total - done))
+                .flatten();
         let error = match &job.phase {
             Phase::Ended { error, .. } if state.is_final() => error.clone(),
             _ => None,
@@ -2739,7 +2762,7 @@ impl JobRecord {
             tiles_done: done,
             tiles_total: total,
             rays: self.totals.rays,
-            elapsed_ms: end.saturating_sub(submitted),
+            elapsed_ms,
             eta_ms,
             error,
             samples: self.totals.samples,
@@ -2755,10 +2778,7 @@ impl JobRecord {
             submitter: self.label.submitter.clone(),
             submitted_from: self.label.submitted_from.clone(),
             submitted_unix_ms: submitted,
-            queued_ms: self
-                .times
-                .started
-                .map(|started| started.saturating_sub(submitted)),
+            queued_ms,
             frame: self.frame,
             frames: None,
             sequence: self.sequence,
@@ -2784,30 +2804,35 @@ fn restored_label(id: JobId, stored: &Label) -> Label {
 }
 
 impl WorkerRecord {
-    /// Counts the rays of a result that arrived at `now`, forgetting those older than
-    /// [`RATE_WINDOW`].
-    fn count_rays(&mut self, now: Instant, rays: u64) {
-        self.recent.push_back((now, rays));
+    /// Counts a result that arrived at `now`, its tile rendered in `render_us`,
+    /// forgetting those older than [`RATE_WINDOW`].
+    fn count_result(&mut self, now: Instant, render_us: u64, rays: u64) {
+        self.recent.push_back((now, render_us, rays));
         while self
             .recent
             .front()
-            .is_some_and(|&(at, _)| now.duration_since(at) > RATE_WINDOW)
+            .is_some_and(|&(at, _, _)| now.duration_since(at) > RATE_WINDOW)
         {
             self.recent.pop_front();
         }
     }
 
-    /// Rays per second over the last [`RATE_WINDOW`] (or since it connected, if that is
-    /// shorter): 0 for a worker that has been idle that long.
+    /// Rays per second while rendering, over its results of the last [`RATE_WINDOW`]
+    /// ([`figures::rendering_rate`]): 0 for a worker that has been idle that long.
     fn current_rate(&self, now: Instant) -> f64 {
-        let window = RATE_WINDOW.min(now.duration_since(self.connected));
-        let rays: u64 = self
-            .recent
-            .iter()
-            .filter(|&&(at, _)| now.duration_since(at) <= window)
-            .map(|&(_, rays)| rays)
-            .sum();
-        rays as f64 / window.as_secs_f64().max(1e-3)
+        let connected = self.connected;
+        figures::rendering_rate(
+            self.recent
+                .iter()
+                .filter(|&&(at, _, _)| now.duration_since(at) <= RATE_WINDOW)
+                .map(|&(at, render_us, rays)| {
+                    (
+                        at.duration_since(connected).as_micros() as u64,
+                        render_us,
+                        rays,
+                    )
+                }),
+        )
     }
 
     fn status(&self, id: WorkerId, in_flight: usize, credit: usize) -> WorkerStatus {
@@ -2895,7 +2920,7 @@ mod tests {
     }
 
     #[test]
-    fn a_workers_rate_is_that_of_the_last_minute_not_its_lifetime() {
+    fn a_workers_rate_is_while_it_rendered_in_the_last_minute() {
         let mut w = WorkerRecord::new(
             "w".into(),
             "build".into(),
@@ -2907,18 +2932,20 @@ mod tests {
         let at = |s: u64| start + Duration::from_secs(s);
         // 10 s of work at a million rays a second, then idle.
         for s in 1..=10 {
-            w.count_rays(at(s), 1_000_000);
+            w.count_result(at(s), 1_000_000, 1_000_000);
         }
         let busy = w.current_rate(at(10));
         assert!((busy - 1e6).abs() < 1.0, "{busy}");
-        // Within the minute the work is averaged over the minute...
+        // Within the minute, idle time does not dilute it (the minute's average would
+        // say 10e6 / 60)...
         let later = w.current_rate(at(60));
-        assert!((later - 10e6 / 60.0).abs() < 1.0, "{later}");
+        assert!((later - 1e6).abs() < 1.0, "{later}");
         // ...and a worker idle for longer than that renders nothing now, whatever it did
         // before (the lifetime average would still say 10e6 / 300).
         assert_eq!(w.current_rate(at(300)), 0.0);
-        w.count_rays(at(301), 6_000_000);
-        assert!((w.current_rate(at(301)) - 1e5).abs() < 1.0);
+        // A result of 6 M rays rendered in 2 s: 3 M rays a second.
+        w.count_result(at(301), 2_000_000, 6_000_000);
+        assert!((w.current_rate(at(301)) - 3e6).abs() < 1.0);
         assert_eq!(w.recent.len(), 1, "older results are forgotten");
     }
 }

@@ -112,11 +112,13 @@ pub struct JobView {
     pub tiles_done: u32,
     pub tiles_total: u32,
     pub rays: u64,
-    /// Since submission (to the end, for an ended job): the queue wait included.
+    /// Since submission, or the last retry (to the end, for an ended job): the queue
+    /// wait included.
     pub elapsed_ms: u64,
     pub eta_ms: Option<u64>,
-    /// The mean over the whole image, known once the job is done (as `tessera status
-    /// --json` gives it).
+    /// The mean over the whole image, known once the job is done; a sequence's per
+    /// pixel of a frame ([`protocol::JobStatus::samples_per_pixel`], as `tessera status --json`
+    /// gives it).
     pub samples_per_pixel: Option<f64>,
     pub estimated_error: Option<f64>,
     pub error: Option<String>,
@@ -222,7 +224,7 @@ impl Observer {
             .filter(|&&(id, state)| !state.is_final() || id >= oldest_ended_shown)
             .filter_map(|&(id, _)| core.status(id))
             .map(|s| {
-                let pixels = u64::from(s.settings.width) * u64::from(s.settings.height);
+                let samples_per_pixel = s.samples_per_pixel();
                 JobView {
                     id: s.id,
                     name: s.name,
@@ -242,8 +244,7 @@ impl Observer {
                     rays: s.rays,
                     elapsed_ms: s.elapsed_ms,
                     eta_ms: s.eta_ms,
-                    samples_per_pixel: (s.state == JobState::Done)
-                        .then(|| s.samples as f64 / pixels.max(1) as f64),
+                    samples_per_pixel,
                     estimated_error: s.estimated_error,
                     error: s.error,
                     frames: s.frames,

@@ -502,7 +502,7 @@ impl Writer {
             Step::One(Write::Reopen { job, then }) => {
                 // A row that cannot be used is the job's problem, not the disk's: it
                 // is answered as such without marking storage unavailable.
-                let result = self.attempt(|db| match db.reopen_job(job) {
+                let result = self.attempt(|db| match db.reopen_job(job, super::unix_ms()) {
                     Ok(Some(stored)) => super::startup::check_job(db, stored).map(Ok),
                     Ok(None) => Ok(Ok(None)),
                     Err(ReopenError::Storage(e)) => Err(e),

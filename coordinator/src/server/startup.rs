@@ -42,6 +42,10 @@ pub struct RestoredJob {
     /// Its event log: the number of its last entry (0: none), and how many entries
     /// its marker says were not kept.
     pub last_event: (u64, u64),
+    /// How many tiles a cancelled or failed job has stored: its progress when it
+    /// ended, shown again after a restart (and what a retry keeps). 0 for the others,
+    /// whose progress is `tiles` (unfinished) or all of them (done).
+    pub stored_tiles: u32,
 }
 
 pub fn open(data: &Path, reset: bool) -> Result<Opened> {
@@ -157,10 +161,21 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
         return Ok(None);
     }
     if job.state.is_final() {
+        // Only a figure: a count that cannot be read shows no progress rather than
+        // stopping the start.
+        let stored_tiles = if matches!(job.state, JobState::Cancelled | JobState::Failed) {
+            db.count_tiles(id).unwrap_or_else(|e| {
+                warn!(job = id, error = %format!("{e:#}"), "cannot count the job's stored tiles");
+                0
+            })
+        } else {
+            0
+        };
         return Ok(Some(RestoredJob {
             job,
             tiles: Vec::new(),
             last_event: (0, 0),
+            stored_tiles,
         }));
     }
     let hash: [u8; 32] = Sha256::digest(job.scene.as_bytes()).into();
@@ -199,6 +214,7 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
             },
             tiles: Vec::new(),
             last_event: (0, 0),
+            stored_tiles: 0,
         }));
     }
     let rects = tiling::cut(&job.settings, job.tile_size);
@@ -239,6 +255,7 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
         job,
         tiles,
         last_event: (0, 0),
+        stored_tiles: 0,
     }))
 }
 

@@ -108,7 +108,7 @@ fn a_time_limit_gives_the_image_reached_and_says_so() {
     let line = succeeds(d, &args);
     assert!(line.contains("no target"), "{line}");
     assert!(
-        line.contains("as far as the time limit allowed") || line.contains("at its cap"),
+        line.contains("as far as the time limit allowed") || line.contains("cap of"),
         "{line}"
     );
     assert!(bytes(d, "limited.png").starts_with(b"\x89PNG"));
@@ -181,4 +181,55 @@ fn damaged_or_foreign_states_are_refused_and_nothing_is_written() {
     let e = one_error(d, &["render", &scene, "--state", "x.state"]);
     assert!(e.contains("--state"), "{e}");
     assert!(!d.join("x.state").exists());
+}
+
+#[test]
+fn a_refine_stopped_at_the_cap_says_how_many_pixels_are_at_it() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = scene_path("seed.json");
+    let mut args = vec!["render", scene.as_str(), "--sampler", "adaptive"];
+    args.extend_from_slice(&SIZE);
+    args.extend_from_slice(&[
+        "--aa",
+        "4",
+        "--target-error",
+        "4",
+        "--state",
+        "s.state",
+        "-o",
+        "coarse.png",
+    ]);
+    succeeds(d, &args);
+    // Far below what 16 samples can reach: the last rung, above the target.
+    let said = succeeds(
+        d,
+        &[
+            "refine",
+            "s.state",
+            "--target-error",
+            "0.05",
+            "-o",
+            "fine.png",
+        ],
+    );
+    let line = said
+        .lines()
+        .find(|l| l.contains("samples/pixel"))
+        .unwrap_or_else(|| panic!("no summary: {said}"));
+    let mean: f64 = line
+        .split(" samples/pixel")
+        .next()
+        .and_then(|head| head.rsplit(' ').next())
+        .and_then(|mean| mean.parse().ok())
+        .unwrap_or_else(|| panic!("no mean: {line}"));
+    // The sky's blocks have no error to take samples for: the mean is below the cap,
+    // and the line says that not every pixel is at it.
+    assert!(mean < 16.0, "{line}");
+    assert!(!line.contains("every pixel at its cap"), "{line}");
+    assert!(
+        line.contains("% of the pixels at the cap of 16 samples"),
+        "{line}"
+    );
 }

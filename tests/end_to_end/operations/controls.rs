@@ -10,8 +10,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use crate::support::{
-    assert_same_png, client, events, exclusive, fetch, ok, poll, render_reference,
-    restart_coordinator, scene_path, shared, spawn_tessera, start_coordinator,
+    assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, poll,
+    render_reference, restart_coordinator, scene_path, shared, spawn_tessera, start_coordinator,
     start_coordinator_in, start_restartable_coordinator, start_slow_worker, start_worker,
     status_json, submit, tiles_done, tiles_of, try_status, wait_done, worker_named, workers_json,
     Daemon,
@@ -470,6 +470,139 @@ fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
         unknown.stderr.trim(),
         "error: no job 999 on this coordinator"
     );
+}
+
+/// Job `job`'s tiles done as `status --json`, `list --json` and the status page's JSON
+/// (on `http`) show them, and `status`'s line.
+fn tiles_shown(dir: &Path, addr: &str, http: &str, job: u64) -> ([u64; 3], String) {
+    let status = tiles_done(&status_json(dir, addr, job));
+    let listed = ok(client(dir, addr, &["list", "--json"]), "list --json");
+    let listed: serde_json::Value = serde_json::from_str(listed.stdout.trim()).unwrap();
+    let listed = listed
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["id"] == job)
+        .map(tiles_done)
+        .unwrap_or_else(|| panic!("job {job} not listed: {listed}"));
+    let (code, body) = http_get(http, "/api/status").expect("the status page");
+    assert_eq!(code, 200);
+    let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let page = farm["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["id"] == job)
+        .map(tiles_done)
+        .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"));
+    let line = ok(client(dir, addr, &["status", &job.to_string()]), "status");
+    ([status, listed, page], line.stdout.trim().to_owned())
+}
+
+#[test]
+fn a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (mut coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        &format!("127.0.0.1:{}", free_port()),
+        &["--http", &http],
+        "coordinator-1.log",
+    );
+    let seed = scene_path("seed.json");
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let Some((mut worker, _slow)) = slow_worker_past_two_tiles(
+        "a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them",
+        dir.path(),
+        &addr,
+        job,
+    ) else {
+        return;
+    };
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    worker.kill9();
+    // Tiles already on their way to the disk when it was cancelled still count: the
+    // figures are read once they have settled.
+    std::thread::sleep(Duration::from_millis(500));
+    let (before, line) = tiles_shown(dir.path(), &addr, &http, job);
+    let kept = before[0];
+    assert!((2..24).contains(&kept), "{line}");
+    assert_eq!(before, [kept; 3], "status, list and page: {line}");
+    assert!(
+        line.starts_with(&format!("job {job}: cancelled, {kept}/24 tiles")),
+        "{line}"
+    );
+
+    coordinator.kill9();
+    let _coordinator = restart_coordinator(dir.path(), &addr, &["--http", &http]);
+    let (after, line) = tiles_shown(dir.path(), &addr, &http, job);
+    assert_eq!(
+        after, before,
+        "after the restart, status, list and page: {line}"
+    );
+    assert!(
+        line.starts_with(&format!("job {job}: cancelled, {kept}/24 tiles")),
+        "{line}"
+    );
+    let retried = ok(client(dir.path(), &addr, &["retry", &id]), "retry");
+    assert_eq!(
+        retried.stdout.trim(),
+        format!("job {job} is back in the queue: {kept} of 24 tiles kept, the others are rendered")
+    );
+}
+
+#[test]
+fn a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
+    let seed = scene_path("seed.json");
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
+    let job = submit(dir.path(), &addr, &args);
+    let id = job.to_string();
+    let Some((mut worker, _slow)) = slow_worker_past_two_tiles(
+        "a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart",
+        dir.path(),
+        &addr,
+        job,
+    ) else {
+        return;
+    };
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    worker.kill9();
+    // It sits cancelled a while: that is not its time.
+    std::thread::sleep(Duration::from_secs(2));
+    let before_retry = std::time::Instant::now();
+    let retried = ok(
+        client(dir.path(), &addr, &["retry", &id, "--json"]),
+        "retry",
+    );
+    let retried: serde_json::Value = serde_json::from_str(retried.stdout.trim()).unwrap();
+    let since_retry = |status: &serde_json::Value| {
+        let elapsed = status["elapsed_ms"].as_u64().unwrap();
+        assert!(
+            u128::from(elapsed) <= before_retry.elapsed().as_millis(),
+            "elapsed {elapsed} ms, counted from before the retry: {status}"
+        );
+    };
+    since_retry(&retried);
+    // No tile out in this run yet: no wait known (the first run's is not this one's).
+    assert!(retried["queued_ms"].is_null(), "{retried}");
+    // Stored with the job: a restart counts from the retry too.
+    coordinator.kill9();
+    let _coordinator = restart_coordinator(dir.path(), &addr, &[]);
+    since_retry(&status_json(dir.path(), &addr, job));
+    let _worker = start_worker(dir.path(), &addr, "w2");
+    let done = wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    since_retry(&done);
+    let queued = done["queued_ms"].as_u64().expect("the run's wait");
+    assert!(queued <= done["elapsed_ms"].as_u64().unwrap(), "{done}");
 }
 
 #[test]

@@ -7,10 +7,10 @@
 use std::time::Duration;
 
 use crate::support::{
-    assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, poll,
+    assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, orbit, poll,
     render_reference, scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
-    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, try_status,
-    wait_done,
+    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, tiles_total,
+    try_status, wait_done,
 };
 
 #[test]
@@ -26,25 +26,17 @@ fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
         "coordinator.log",
     );
     let _worker = start_worker(dir.path(), &addr, "w1");
-    let page_job = |job: u64| -> serde_json::Value {
-        let (code, body) = http_get(&http, "/api/status").expect("the status page");
-        assert_eq!(code, 200);
-        let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
-        farm["jobs"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .find(|j| j["id"] == job)
-            .cloned()
-            .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"))
-    };
+    let page_job = |job: u64| page_job(&http, job);
     let seed = scene_path("seed.json");
     // Long enough to be cancelled with some of its tiles in.
     let job = submit(dir.path(), &addr, &[&seed, "--aa", "8", "--tile", "16"]);
-    poll("a tile of the job", Duration::from_secs(60), || {
-        let status = try_status(dir.path(), &addr, job)?;
-        (tiles_done(&status) > 0).then_some(())
+    let running = poll("a tile of the job", Duration::from_secs(60), || {
+        try_status(dir.path(), &addr, job).filter(|s| tiles_done(s) > 0)
     });
+    // An estimate over the first tiles is over whichever part came first: none is
+    // shown until every tile is in.
+    assert!(tiles_done(&running) < tiles_total(&running), "{running}");
+    assert!(running["estimated_error"].is_null(), "{running}");
     ok(
         client(dir.path(), &addr, &["cancel", &job.to_string()]),
         "cancel",
@@ -75,6 +67,85 @@ fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
         assert!(status[key].is_number(), "{key}: {status}");
         assert_eq!(status[key], page[key], "{key}");
     }
+}
+
+/// Job `job` as the status page's JSON (`/api/status` on `http`) shows it.
+fn page_job(http: &str, job: u64) -> serde_json::Value {
+    let (code, body) = http_get(http, "/api/status").expect("the status page");
+    assert_eq!(code, 200);
+    let farm: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    farm["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["id"] == job)
+        .cloned()
+        .unwrap_or_else(|| panic!("job {job} not on the page: {farm}"))
+}
+
+#[test]
+fn a_sequences_samples_per_pixel_are_per_pixel_of_a_frame_on_the_page_as_in_status() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let scene = orbit();
+    // Four frames of aa 2: 4 samples in each pixel of each frame (the sum over the
+    // frames would read 16).
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &scene, "--frames", "1-4", "--width", "32", "--height", "24", "--aa", "2", "--tile",
+            "16",
+        ],
+    );
+    let status = wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    assert_eq!(status["samples_per_pixel"].as_f64(), Some(4.0), "{status}");
+    let page = page_job(&http, job);
+    assert!(page["frames"].is_object(), "listed as a sequence: {page}");
+    assert_eq!(page["samples_per_pixel"].as_f64(), Some(4.0), "{page}");
+}
+
+#[test]
+fn the_time_left_half_way_is_in_a_sane_band_of_the_time_the_job_then_takes() {
+    let _turn = exclusive();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    let seed = scene_path("seed.json");
+    // 1200 tiles of a few milliseconds each: seconds of rendering, read half way.
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "1280", "--height", "960", "--aa", "12", "--tile", "32",
+        ],
+    );
+    let (half_way, at) = poll("half the job's tiles", Duration::from_secs(120), || {
+        let status = try_status(dir.path(), &addr, job)?;
+        assert_ne!(status["state"], "done", "done before it was seen half way");
+        (tiles_done(&status) * 2 >= tiles_total(&status))
+            .then(|| (status, std::time::Instant::now()))
+    });
+    let said = half_way["eta_ms"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no time left half way: {half_way}"));
+    wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let took = at.elapsed().as_millis() as u64;
+    // A band, not a timing: a shared machine's pace varies, but an estimate off by more
+    // than a factor of 3 either way is not telling the time left.
+    assert!(
+        said <= took * 3 && took <= said * 3,
+        "{said} ms left said half way, {took} ms taken: {half_way}"
+    );
 }
 
 #[test]

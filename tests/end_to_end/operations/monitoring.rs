@@ -6,8 +6,9 @@ use std::time::Duration;
 
 use crate::support::{
     assert_same_png, fetch, free_port, header, http_get, http_get_text, http_request, metric_value,
-    ok, poll, render_reference, scene_path, shared, start_coordinator, start_worker_with, submit,
-    tessera, wait_done, wait_for_workers, Daemon,
+    ok, poll, render_reference, scene_path, shared, start_coordinator, start_coordinator_in,
+    start_worker, start_worker_with, submit, tessera, wait_done, wait_for_workers, worker_named,
+    workers_json, Daemon,
 };
 
 /// A coordinator serving HTTP on its own free port, with JSON logs.
@@ -253,5 +254,59 @@ fn metrics_in_both_formats(http: &str, text: &str) {
         checked.status.success() && said.trim().is_empty(),
         "promtool check metrics: {}: {said}\n{text}",
         checked.status
+    );
+}
+
+#[test]
+fn a_workers_rate_is_its_rate_while_rendering_and_idle_time_does_not_dilute_it() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    wait_for_workers(dir.path(), &addr, 1, Duration::from_secs(30));
+    let seed = scene_path("seed.json");
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &seed, "--width", "640", "--height", "480", "--aa", "8", "--tile", "32",
+        ],
+    );
+    let status = wait_done(dir.path(), &addr, job, Duration::from_secs(120));
+    let rate = |what: &str| -> f64 {
+        let workers = workers_json(dir.path(), &addr, &[]);
+        worker_named(&workers, "w1")
+            .and_then(|w| w["rays_per_second"].as_f64())
+            .unwrap_or_else(|| panic!("{what}: no rate for w1 in {workers:?}"))
+    };
+    let after_job = rate("right after the job");
+    // The job's own rate: its rays over the time from its first tile out to its end,
+    // which its worker spent rendering (and waiting on the round trips).
+    let rays = status["rays"].as_f64().unwrap();
+    let rendering_ms =
+        status["elapsed_ms"].as_u64().unwrap() - status["queued_ms"].as_u64().unwrap();
+    let job_rate = rays / (rendering_ms.max(1) as f64 / 1000.0);
+    assert!(
+        after_job >= 0.9 * job_rate,
+        "w1 at {after_job:.0} rays/s, its job at {job_rate:.0}: {status}"
+    );
+    // Idle for a while: its rate is still what it rendered at.
+    std::thread::sleep(Duration::from_secs(2));
+    let idle = rate("idle");
+    assert_eq!(idle, after_job, "idle time does not dilute the rate");
+    let listed = ok(
+        tessera(
+            dir.path(),
+            &["workers", "--coordinator", &addr],
+            Duration::from_secs(30),
+        ),
+        "workers",
+    );
+    assert!(
+        listed
+            .stdout
+            .contains(&format!("{:.1} M rays/s", idle / 1e6)),
+        "{}",
+        listed.stdout
     );
 }
