@@ -11,9 +11,9 @@ use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
 
 use crate::support::{
-    assert_same_png, client, exclusive, fetch, free_port, ok, one_error_line, poll,
-    render_reference, restart_coordinator, scene_path, shared, start_coordinator,
-    start_coordinator_in, start_worker, submit, tessera, try_status, wait_done, Daemon, BIN,
+    assert_same_png, client, exclusive, fetch, ok, one_error_line, poll, render_reference,
+    restart_coordinator, scene_path, shared, start_coordinator, start_coordinator_in,
+    start_coordinator_with_http, start_worker, submit, tessera, try_status, wait_done, Daemon, BIN,
 };
 
 /// A small frame of the seed scene: quick in a debug build, several tiles.
@@ -379,14 +379,7 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
     );
 
     // The coordinator's HTTP port given for its protocol port.
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, _addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, _addr, http) = start_coordinator_with_http(dir.path(), &[]);
     let line = one_error_line(
         &tessera(dir.path(), &["list", "--coordinator", &http], t),
         "list --coordinator HTTP-PORT",

@@ -391,6 +391,20 @@ fn slow_worker_past_two_tiles(
     Some(slow)
 }
 
+/// A job of [`SMALL_JOB`] cancelled once a slow worker has returned two of its tiles,
+/// the worker then killed: its id, or `None` where `test` is skipped
+/// ([`slow_worker_past_two_tiles`]).
+fn cancelled_part_way(test: &str, dir: &Path, addr: &str) -> Option<u64> {
+    let seed = scene_path("seed.json");
+    let mut args = vec![seed.as_str()];
+    args.extend(SMALL_JOB);
+    let job = submit(dir, addr, &args);
+    let (mut worker, _slow) = slow_worker_past_two_tiles(test, dir, addr, job)?;
+    ok(client(dir, addr, &["cancel", &job.to_string()]), "cancel");
+    worker.kill9();
+    Some(job)
+}
+
 #[test]
 fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
     let _turn = exclusive();
@@ -511,21 +525,14 @@ fn a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them() {
         &["--http", &http],
         "coordinator-1.log",
     );
-    let seed = scene_path("seed.json");
-    let mut args = vec![seed.as_str()];
-    args.extend(SMALL_JOB);
-    let job = submit(dir.path(), &addr, &args);
-    let id = job.to_string();
-    let Some((mut worker, _slow)) = slow_worker_past_two_tiles(
+    let Some(job) = cancelled_part_way(
         "a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them",
         dir.path(),
         &addr,
-        job,
     ) else {
         return;
     };
-    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
-    worker.kill9();
+    let id = job.to_string();
     // Tiles already on their way to the disk when it was cancelled still count: the
     // figures are read once they have settled.
     std::thread::sleep(Duration::from_millis(500));
@@ -561,21 +568,14 @@ fn a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart() 
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
-    let seed = scene_path("seed.json");
-    let mut args = vec![seed.as_str()];
-    args.extend(SMALL_JOB);
-    let job = submit(dir.path(), &addr, &args);
-    let id = job.to_string();
-    let Some((mut worker, _slow)) = slow_worker_past_two_tiles(
+    let Some(job) = cancelled_part_way(
         "a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart",
         dir.path(),
         &addr,
-        job,
     ) else {
         return;
     };
-    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
-    worker.kill9();
+    let id = job.to_string();
     // It sits cancelled a while: that is not its time.
     std::thread::sleep(Duration::from_secs(2));
     let before_retry = std::time::Instant::now();

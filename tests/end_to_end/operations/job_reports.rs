@@ -7,24 +7,17 @@
 use std::time::Duration;
 
 use crate::support::{
-    assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, orbit, poll,
-    render_reference, scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
-    start_slow_worker, start_worker, start_worker_with, submit, tiles_done, tiles_of, tiles_total,
-    try_status, wait_done,
+    assert_same_png, client, events, exclusive, fetch, http_get, ok, orbit, poll, render_reference,
+    scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
+    start_coordinator_with_http, start_slow_worker, start_worker, start_worker_with, submit,
+    tiles_done, tiles_of, tiles_total, try_status, wait_done,
 };
 
 #[test]
 fn a_job_that_did_not_finish_shows_no_error_estimate_and_both_jsons_agree() {
     let _turn = shared();
     let dir = tempfile::tempdir().unwrap();
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     let _worker = start_worker(dir.path(), &addr, "w1");
     let page_job = |job: u64| page_job(&http, job);
     let seed = scene_path("seed.json");
@@ -87,14 +80,7 @@ fn page_job(http: &str, job: u64) -> serde_json::Value {
 fn a_sequences_samples_per_pixel_are_per_pixel_of_a_frame_on_the_page_as_in_status() {
     let _turn = shared();
     let dir = tempfile::tempdir().unwrap();
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     let _worker = start_worker(dir.path(), &addr, "w1");
     let scene = orbit();
     // Four frames of aa 2: 4 samples in each pixel of each frame (the sum over the

@@ -6,19 +6,16 @@ use std::time::Duration;
 
 use crate::support::{
     assert_same_png, fetch, free_port, header, http_get, http_get_text, http_request, metric_value,
-    ok, poll, render_reference, scene_path, shared, start_coordinator, start_coordinator_in,
-    start_worker, start_worker_with, submit, tessera, wait_done, wait_for_workers, worker_named,
-    workers_json, Daemon,
+    ok, poll, render_reference, scene_path, shared, start_coordinator_in,
+    start_coordinator_with_http, start_worker, start_worker_with, submit, tessera, wait_done,
+    wait_for_workers, worker_named, workers_json, Daemon,
 };
 
 /// A coordinator serving HTTP on its own free port, with JSON logs.
 fn observed_coordinator(dir: &Path, extra: &[&str]) -> (Daemon, String, String) {
-    let http = format!("127.0.0.1:{}", free_port());
-    let mut args = vec!["--http", &http, "--log-format", "json"];
+    let mut args = vec!["--log-format", "json"];
     args.extend(extra);
-    let data = dir.join("data");
-    let (daemon, addr) = start_coordinator(dir, &data, "127.0.0.1:0", &args, "coordinator.log");
-    (daemon, addr, http)
+    start_coordinator_with_http(dir, &args)
 }
 
 #[test]

@@ -20,8 +20,8 @@ use std::time::Duration;
 use crate::support::browser::{browser_or_skip, dump_dom, trust_key, DevTools};
 use crate::support::{
     client, free_port, http_get, http_post, http_request, json_error, ok, poll, render_reference,
-    scene_path, shared, start_coordinator, start_slow_worker, status_json, submit, tessera,
-    tiles_done, tiles_total, wait_done,
+    scene_path, shared, start_coordinator, start_coordinator_with_http, start_slow_worker,
+    status_json, submit, tessera, tiles_done, tiles_total, wait_done,
 };
 
 /// The page's DOM, as a browser that loaded it and let it run for 2 s shows it.
@@ -85,14 +85,7 @@ fn the_status_page_shows_a_job_progressing_and_its_finished_image() {
     };
     let dir = tempfile::tempdir().unwrap();
     let profile = dir.path().join("browser-profile");
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     // A slowed worker, so that the job runs long enough to be watched.
     let Some(_worker) = start_slow_worker(
         "the_status_page_shows_a_job_progressing_and_its_finished_image",
@@ -245,14 +238,7 @@ fn a_busy_farm_fits_at_1400_by_900_with_the_running_job_its_time_left_and_cancel
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     // Eighteen jobs: seventeen small ones waiting behind a large one of a higher
     // priority, which a slowed worker renders part of and is then frozen (SIGSTOP),
     // so that it stays running; the last three small ones cancelled, so that their
@@ -404,14 +390,7 @@ fn the_page_pauses_resumes_and_deletes_a_job_disables_and_drains_a_worker_and_wa
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, addr) = start_coordinator(
-        dir.path(),
-        &dir.path().join("data"),
-        "127.0.0.1:0",
-        &["--http", &http],
-        "coordinator.log",
-    );
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     // No worker yet: the job waits, and the page says why.
     let seed = scene_path("seed.json");
     let job = submit(

@@ -30,8 +30,8 @@ use std::time::{Duration, Instant};
 use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
-    assert_same_png, entries, exclusive, free_port, http_get, http_post, ok, poll, shared,
-    spawn_tessera, start_coordinator, tessera, wait_done, Daemon,
+    assert_same_png, entries, exclusive, http_get, http_post, ok, poll, shared, spawn_tessera,
+    start_coordinator_with_http, tessera, wait_done, Daemon,
 };
 
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -401,14 +401,8 @@ fn the_studio_labels_fields_by_their_keys_and_saves_under_the_scene_file_name() 
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     std::fs::write(dir.join("my-room.json"), SCENE).unwrap();
-    let http = format!("127.0.0.1:{}", free_port());
-    let (_coordinator, _addr) = start_coordinator(
-        dir,
-        &dir.join("data"),
-        "127.0.0.1:0",
-        &["--http", &http, "--studio-scene", "my-room.json"],
-        "coordinator.log",
-    );
+    let (_coordinator, _addr, http) =
+        start_coordinator_with_http(dir, &["--studio-scene", "my-room.json"]);
     let mut page = DevTools::open(
         &chromium,
         &dir.join("profile"),

@@ -155,6 +155,23 @@ pub fn start_coordinator_in(dir: &Path) -> (Daemon, String) {
     )
 }
 
+/// [`start_coordinator`] on a free port of 127.0.0.1 with `DIR/data` and `extra`
+/// flags, serving HTTP on a free port of its own, logging to `DIR/coordinator.log`: the
+/// daemon, its address and its HTTP address.
+pub fn start_coordinator_with_http(dir: &Path, extra: &[&str]) -> (Daemon, String, String) {
+    let http = format!("127.0.0.1:{}", free_port());
+    let mut args = vec!["--http", &http];
+    args.extend(extra);
+    let (daemon, addr) = start_coordinator(
+        dir,
+        &dir.join("data"),
+        "127.0.0.1:0",
+        &args,
+        "coordinator.log",
+    );
+    (daemon, addr, http)
+}
+
 /// [`start_coordinator`] on a free port of 127.0.0.1 chosen now, with `DIR/data`, logging
 /// to `DIR/coordinator-1.log`: for a test that kills it and starts it again on the same
 /// address and data with [`restart_coordinator`].
