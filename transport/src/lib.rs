@@ -179,7 +179,7 @@ impl ServerTls {
 
     /// Completes the server side of a TLS handshake.
     pub async fn accept(&self, tcp: TcpStream) -> std::io::Result<Stream> {
-        Ok(Box::new(self.acceptor.accept(tcp).await?))
+        Ok(Box::new(Closing(self.acceptor.accept(tcp).await?)))
     }
 }
 
@@ -432,7 +432,7 @@ impl ClientTls {
             }
         }
         match connected {
-            Ok(stream) => Ok(Box::new(stream)),
+            Ok(stream) => Ok(Box::new(Closing(stream))),
             Err(e) if pin_mismatch(&e).is_some() => Err(DialError::Refused(anyhow!(
                 "TLS with the coordinator at {address}: {}; refusing it (not the farm's \
                  coordinator, or its certificate was replaced)",
@@ -448,6 +448,69 @@ impl ClientTls {
                  coordinator use TLS?)"
             ))),
         }
+    }
+}
+
+/// A TLS stream that ends as TLS should on both sides. Dropped, it sends `close_notify`
+/// (one try that does not wait: a socket that cannot take it now is closed without);
+/// and a peer that closed without one, between frames, is taken as gone, like a plain
+/// TCP peer that closed, instead of an error every client command made the coordinator
+/// log. The framing above still reports a frame cut short (bytes left at the end).
+struct Closing<T: AsyncWrite + Unpin>(T);
+
+/// Whether a read error is a peer closing the connection without `close_notify`.
+fn unannounced_close(error: &std::io::Error) -> bool {
+    error.kind() == std::io::ErrorKind::UnexpectedEof
+}
+
+impl<T: AsyncRead + AsyncWrite + Unpin> AsyncRead for Closing<T> {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        match Pin::new(&mut self.get_mut().0).poll_read(cx, buf) {
+            Poll::Ready(Err(e)) if unannounced_close(&e) => Poll::Ready(Ok(())),
+            other => other,
+        }
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for Closing<T> {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().0).poll_write(cx, buf)
+    }
+
+    fn poll_write_vectored(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().0).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.0.is_write_vectored()
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().0).poll_flush(cx)
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().0).poll_shutdown(cx)
+    }
+}
+
+impl<T: AsyncWrite + Unpin> Drop for Closing<T> {
+    fn drop(&mut self) {
+        // A stream already shut down sends nothing more.
+        let mut cx = TaskContext::from_waker(std::task::Waker::noop());
+        let _ = Pin::new(&mut self.0).poll_shutdown(&mut cx);
     }
 }
 
@@ -887,6 +950,58 @@ mod tests {
                  started without TLS?"
             ),
             "{error}"
+        );
+    }
+
+    /// A TLS connection between `server` and a peer pinned to it: the server's side as
+    /// rustls gives it (without [`Closing`]), and the peer's as [`dial`] gives it.
+    async fn tls_pair(server: &ServerTls) -> (tokio_rustls::server::TlsStream<TcpStream>, Stream) {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let acceptor = server.acceptor.clone();
+        let accepting = tokio::spawn(async move {
+            let (tcp, _) = listener.accept().await.unwrap();
+            acceptor.accept(tcp).await.unwrap()
+        });
+        let client = ClientTls::pinned(server.fingerprint()).unwrap();
+        let tcp = TcpStream::connect(&address).await.unwrap();
+        let Ok(peer) = client.connect(&address, tcp).await else {
+            panic!("no TLS");
+        };
+        (accepting.await.unwrap(), peer)
+    }
+
+    #[tokio::test]
+    async fn tls_ends_with_close_notify_and_a_close_without_it_between_frames_is_no_error() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let dir = tempfile::tempdir().unwrap();
+        let server = ServerTls::auto(dir.path()).unwrap();
+
+        // Dropped, a peer's stream says close_notify: the other side reads a clean end.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        drop(ours);
+        let mut rest = Vec::new();
+        theirs.read_to_end(&mut rest).await.expect("a clean end");
+        assert!(rest.is_empty());
+
+        // A peer gone without close_notify after a whole frame: the frame, then the end.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        let mut framed = Framed::new(ours, LengthDelimitedCodec::new());
+        theirs.write_all(&[0, 0, 0, 2, 7, 7]).await.unwrap();
+        theirs.flush().await.unwrap();
+        drop(theirs.into_inner().0);
+        assert_eq!(&framed.next().await.unwrap().unwrap()[..], &[7, 7]);
+        assert!(framed.next().await.is_none(), "not a clean end");
+
+        // Gone in the middle of a frame: an error still.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        let mut framed = Framed::new(ours, LengthDelimitedCodec::new());
+        theirs.write_all(&[0, 0, 0, 9, 7]).await.unwrap();
+        theirs.flush().await.unwrap();
+        drop(theirs.into_inner().0);
+        assert!(
+            matches!(framed.next().await, Some(Err(_))),
+            "a truncated frame taken for an end"
         );
     }
 

@@ -9,6 +9,8 @@
 //!   both fingerprints, by a client and by a worker, which exits instead of retrying.
 //! - A pinned client or worker pointed at a coordinator without TLS, or at the HTTP
 //!   port, says which mistake it likely is in one line.
+//! - Client commands, `submit --wait` and a worker over TLS end it properly: no side
+//!   logs a connection closed without `close_notify`.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -350,4 +352,47 @@ fn a_pinned_peer_pointed_at_plain_ports_names_the_likely_mistake_in_one_line() {
     assert!(line.ends_with(&no_tls), "{line}");
     let line = worker_that_gives_up(d, &http, "pinned-http", &pinned);
     assert!(line.ends_with(&http_port), "{line}");
+}
+
+#[test]
+fn peers_over_tls_close_it_properly_and_nobody_logs_a_missing_close_notify() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let data = d.join("data");
+    let fingerprint = print_fingerprint(d, &data);
+    let (coordinator, addr) =
+        start_coordinator(d, &data, "127.0.0.1:0", &["--tls-auto"], "coordinator.log");
+    let pin = ["--tls-fingerprint", fingerprint.as_str()];
+    let worker = start_worker_with(d, &addr, "pinned", &pin);
+    poll("the pinned worker to join", Duration::from_secs(30), || {
+        (worker_names(&workers_json(d, &addr, &pin)) == ["pinned"]).then_some(())
+    });
+    let mut said = Vec::new();
+    for args in [&["list"][..], &["workers"], &["list", "--json"]] {
+        let mut args = args.to_vec();
+        args.extend(pin);
+        let run = ok(client(d, &addr, &args), "a client command over TLS");
+        said.push(format!("{}{}", run.stdout, run.stderr));
+    }
+    let scene = scene_path("seed.json");
+    let out = d.join("out.png");
+    let mut args = vec!["submit", &scene, "--wait", "-o", path_str(&out)];
+    args.extend(SMALL);
+    args.extend(pin);
+    let run = ok(client(d, &addr, &args), "submit --wait over TLS");
+    said.push(format!("{}{}", run.stdout, run.stderr));
+    // The worker leaves too (a drain: it closes its connection itself).
+    let mut worker = worker;
+    worker.signal("TERM");
+    worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the worker did not exit on SIGTERM");
+    poll("the worker to be gone", Duration::from_secs(10), || {
+        workers_json(d, &addr, &pin).is_empty().then_some(())
+    });
+    let mut logs = said.join("\n");
+    logs.push_str(&coordinator.log_text());
+    logs.push_str(&worker.log_text());
+    assert!(!logs.contains("close_notify"), "{logs}");
 }
