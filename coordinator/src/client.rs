@@ -219,7 +219,8 @@ impl Client {
     }
 
     /// Drains, disables or enables a worker (see [`ClientRequest::DrainWorker`]): the
-    /// workers once the change is made (and, for a disable or enable, stored).
+    /// worker acted on (none for a machine enabled while not connected), once the
+    /// change is made (and, for a disable or enable, stored).
     pub async fn control_worker(&mut self, request: ClientRequest) -> Result<Vec<WorkerStatus>> {
         match self.request(request).await? {
             ClientResponse::Workers(workers) => Ok(workers),

@@ -246,8 +246,8 @@ pub enum ClientRequest {
     },
     /// Have a worker finish the tiles it holds and exit without reconnecting, as it
     /// does on SIGTERM. `worker` is a connected worker's id (as `Workers` lists it) or
-    /// its name (every connected worker of that name drains). Answered with `Workers`
-    /// once the workers were told.
+    /// its name (unique among connected workers). Answered with `Workers` holding that
+    /// one worker once it was told, so that the client can say which.
     DrainWorker {
         worker: String,
     },
@@ -255,12 +255,13 @@ pub enum ClientRequest {
     /// stay connected. Kept by machine name and stored: a worker of that name that
     /// connects later, even to a restarted coordinator, is disabled too, until
     /// `EnableWorker`. `worker` is an id or a name as in `DrainWorker`. Answered with
-    /// `Workers` once stored.
+    /// `Workers` holding the worker of that name once stored.
     DisableWorker {
         worker: String,
     },
     /// Undo `DisableWorker`: the machine takes tiles again. Answered with `Workers`
-    /// once stored; enabling a machine that is not disabled changes nothing.
+    /// holding the worker of that name (none if it is not connected) once stored;
+    /// enabling a machine that is not disabled changes nothing.
     EnableWorker {
         worker: String,
     },
@@ -500,6 +501,9 @@ pub struct WorkerStatus {
     pub unresponsive: bool,
     /// The worker secret it proved, if the coordinator asks workers for one.
     pub key: Option<PeerKey>,
+    /// The IP address it connected from, as the coordinator saw it: what tells apart
+    /// two machines that asked for one name (the second got a suffixed one).
+    pub host: String,
 }
 
 /// Which of the coordinator's secrets a peer proved: after a rotation, a peer still on
@@ -609,6 +613,10 @@ pub enum ToWorker {
     /// the connection and exit without reconnecting, exactly as on SIGTERM (it answers
     /// with [`FromWorker::Draining`] first).
     Drain,
+    /// The worker joined (its canary passed) under `name`: the name its hello gave,
+    /// or, when a worker of another host is connected under that name, the name with
+    /// a suffix (`NAME-2`, ...). Sent once, before any tile.
+    Joined { name: String },
 }
 
 /// Worker to coordinator.

@@ -37,8 +37,8 @@ enum WorkerAction {
     /// The worker finishes the tiles it holds, then exits (status 0) without
     /// reconnecting, as on SIGTERM on its machine.
     Drain {
-        /// A worker's id or name, as `tessera workers` shows them (a name drains every
-        /// worker connected under it).
+        /// A worker's id or name, as `tessera workers` shows them (names are unique
+        /// among connected workers).
         worker: String,
         #[command(flatten)]
         common: ClientArgs,
@@ -101,9 +101,10 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             // workers whose token file is still to be replaced.
             let key = w.key.map_or(String::new(), |k| format!(", key {k}"));
             println!(
-                "worker {} {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{key}{state}",
+                "worker {} {} on {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{key}{state}",
                 w.id,
                 w.name,
+                w.host,
                 w.threads,
                 w.tiles_in_flight,
                 w.credit,
@@ -117,23 +118,24 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
 }
 
 /// Drains, disables or enables a worker; answers once the change is made (stored, for
-/// a disable or an enable).
+/// a disable or an enable), saying which worker it acted on.
 async fn control(action: WorkerAction) -> Result<()> {
-    let (request, done, common) = match action {
+    let (request, key, done, common) = match action {
         WorkerAction::Drain { worker, common } => (
             ClientRequest::DrainWorker {
                 worker: worker.clone(),
             },
-            format!("worker {worker} draining: it finishes the tiles it holds, then exits"),
+            worker,
+            "draining: it finishes the tiles it holds, then exits".to_string(),
             common,
         ),
         WorkerAction::Disable { worker, common } => (
             ClientRequest::DisableWorker {
                 worker: worker.clone(),
             },
+            worker.clone(),
             format!(
-                "worker {worker} disabled: its machine gets no new tiles until \
-                 `tessera workers enable {worker}`"
+                "disabled: its machine gets no new tiles until `tessera workers enable {worker}`"
             ),
             common,
         ),
@@ -141,10 +143,12 @@ async fn control(action: WorkerAction) -> Result<()> {
             ClientRequest::EnableWorker {
                 worker: worker.clone(),
             },
-            format!("worker {worker} enabled: it takes tiles again"),
+            worker,
+            "enabled: it takes tiles again".into(),
             common,
         ),
     };
+    // The one worker acted on (none when enabling a machine not connected).
     let workers = Client::connect(&common.target()?)
         .await?
         .control_worker(request)
@@ -155,7 +159,10 @@ async fn control(action: WorkerAction) -> Result<()> {
             Value::Array(workers.iter().map(worker_json).collect())
         );
     } else {
-        println!("{done}");
+        match workers.first() {
+            Some(w) => println!("worker {} (id {}, host {}) {done}", w.name, w.id, w.host),
+            None => println!("machine {key} {done}"),
+        }
     }
     Ok(())
 }
@@ -178,5 +185,6 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "disabled": w.disabled,
         "unresponsive": w.unresponsive,
         "key": w.key.map(|k| json!({ "id": k.id.to_string(), "standing": k.standing.as_str() })),
+        "host": w.host,
     })
 }

@@ -12,7 +12,9 @@
 //! token of a peer's role ([`load_secret`]).
 
 use std::path::Path;
-use std::sync::Arc;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::task::{Context as TaskContext, Poll};
 use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
@@ -25,7 +27,7 @@ use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName, UnixTime};
 use rustls::{DigitallySignedStruct, SignatureScheme};
 use sha2::{Digest, Sha256};
-use tokio::io::{AsyncRead, AsyncWrite};
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpStream;
 use tokio_util::codec::{Framed, LengthDelimitedCodec};
 
@@ -177,7 +179,7 @@ impl ServerTls {
 
     /// Completes the server side of a TLS handshake.
     pub async fn accept(&self, tcp: TcpStream) -> std::io::Result<Stream> {
-        Ok(Box::new(self.acceptor.accept(tcp).await?))
+        Ok(Box::new(Closing(self.acceptor.accept(tcp).await?)))
     }
 }
 
@@ -408,8 +410,29 @@ impl ClientTls {
             Some(name) => name.clone(),
             None => host_name(address).map_err(DialError::Refused)?,
         };
-        match self.connector.connect(name, tcp).await {
-            Ok(stream) => Ok(Box::new(stream)),
+        let first = Arc::new(Mutex::new(Vec::new()));
+        let tcp = Recorded {
+            io: tcp,
+            first: Arc::clone(&first),
+            full: false,
+        };
+        let connected = self.connector.connect(name, tcp).await;
+        // What answered the hello, when it was not TLS: the likely mistake, by name.
+        if connected.is_err() {
+            let first = first.lock().unwrap_or_else(|e| e.into_inner());
+            match answered(&first) {
+                Answered::Http => return Err(DialError::Refused(http_port(address))),
+                Answered::Plain => {
+                    return Err(DialError::Refused(anyhow!(
+                        "{address} does not speak TLS: is it the coordinator's HTTP port, or a \
+                         coordinator started without TLS?"
+                    )))
+                }
+                Answered::Nothing | Answered::Tls => {}
+            }
+        }
+        match connected {
+            Ok(stream) => Ok(Box::new(Closing(stream))),
             Err(e) if pin_mismatch(&e).is_some() => Err(DialError::Refused(anyhow!(
                 "TLS with the coordinator at {address}: {}; refusing it (not the farm's \
                  coordinator, or its certificate was replaced)",
@@ -426,6 +449,167 @@ impl ClientTls {
             ))),
         }
     }
+}
+
+/// A TLS stream that ends as TLS should on both sides. Dropped, it sends `close_notify`
+/// (one try that does not wait: a socket that cannot take it now is closed without);
+/// and a peer that closed without one, between frames, is taken as gone, like a plain
+/// TCP peer that closed, instead of an error every client command made the coordinator
+/// log. The framing above still reports a frame cut short (bytes left at the end).
+struct Closing<T: AsyncWrite + Unpin>(T);
+
+/// Whether a read error is a peer closing the connection without `close_notify`.
+fn unannounced_close(error: &std::io::Error) -> bool {
+    error.kind() == std::io::ErrorKind::UnexpectedEof
+}
+
+impl<T: AsyncRead + AsyncWrite + Unpin> AsyncRead for Closing<T> {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        match Pin::new(&mut self.get_mut().0).poll_read(cx, buf) {
+            Poll::Ready(Err(e)) if unannounced_close(&e) => Poll::Ready(Ok(())),
+            other => other,
+        }
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for Closing<T> {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().0).poll_write(cx, buf)
+    }
+
+    fn poll_write_vectored(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().0).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.0.is_write_vectored()
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().0).poll_flush(cx)
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().0).poll_shutdown(cx)
+    }
+}
+
+impl<T: AsyncWrite + Unpin> Drop for Closing<T> {
+    fn drop(&mut self) {
+        // A stream already shut down sends nothing more.
+        let mut cx = TaskContext::from_waker(std::task::Waker::noop());
+        let _ = Pin::new(&mut self.0).poll_shutdown(&mut cx);
+    }
+}
+
+/// How many of the first bytes read back are kept to tell what answered a TLS hello.
+const FIRST_BYTES: usize = 8;
+
+/// A connection that keeps the first bytes it reads ([`FIRST_BYTES`]) where the
+/// dialler can read them after a failed TLS handshake, which consumed them.
+struct Recorded<T> {
+    io: T,
+    first: Arc<Mutex<Vec<u8>>>,
+    /// All the bytes wanted are kept: reads go straight through.
+    full: bool,
+}
+
+impl<T: AsyncRead + Unpin> AsyncRead for Recorded<T> {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        let this = self.get_mut();
+        let before = buf.filled().len();
+        let poll = Pin::new(&mut this.io).poll_read(cx, buf);
+        if !this.full && matches!(poll, Poll::Ready(Ok(()))) {
+            let mut first = this.first.lock().unwrap_or_else(|e| e.into_inner());
+            let room = FIRST_BYTES.saturating_sub(first.len());
+            first.extend(buf.filled()[before..].iter().take(room));
+            this.full = first.len() >= FIRST_BYTES;
+        }
+        poll
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for Recorded<T> {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().io).poll_write(cx, buf)
+    }
+
+    fn poll_write_vectored(
+        self: Pin<&mut Self>,
+        cx: &mut TaskContext<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.get_mut().io).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.io.is_write_vectored()
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().io).poll_flush(cx)
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut TaskContext<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.get_mut().io).poll_shutdown(cx)
+    }
+}
+
+/// What a peer answered, told by the first bytes read from it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Answered {
+    /// Nothing yet (it closed, or said nothing).
+    Nothing,
+    /// A TLS record: a content type TLS knows (20 to 24), then version 3.
+    Tls,
+    /// An HTTP status line: an HTTP server, such as the coordinator's HTTP port (in
+    /// clear, or behind the TLS it serves with the coordinator's certificate, which
+    /// then answers the protocol's first frame with an HTTP error).
+    Http,
+    /// Anything else in clear: to a TLS hello, a coordinator without TLS answers with a
+    /// protocol frame (its refusal of a frame that long).
+    Plain,
+}
+
+/// What answered, from the first bytes read (as many as came, at least one for a
+/// verdict): what names the likely mistake when a TLS handshake or the protocol's
+/// handshake fails on them.
+pub fn answered(first: &[u8]) -> Answered {
+    match first {
+        [] => Answered::Nothing,
+        [b'H', b'T', b'T', b'P', ..] => Answered::Http,
+        [0x14..=0x18] | [0x14..=0x18, 0x03, ..] => Answered::Tls,
+        _ => Answered::Plain,
+    }
+}
+
+/// The error for a peer that found the coordinator's HTTP port where it expected the
+/// protocol's.
+fn http_port(address: &str) -> anyhow::Error {
+    anyhow!(
+        "{address} answered in HTTP: this looks like the coordinator's HTTP port (--http); \
+         give the port it listens on for workers and clients (--listen, 7878 by default)"
+    )
 }
 
 /// The host part of `host:port` (IPv6 addresses in brackets), as a TLS server name.
@@ -557,13 +741,11 @@ async fn dial_now(
     loop {
         let reply = raw.next().await;
         // An HTTP server answers the hello with a status line, whose first bytes read as
-        // an absurd frame length: the coordinator's HTTP port, most likely.
-        if raw.read_buffer().starts_with(b"HTTP") {
-            return Err(DialError::Refused(anyhow!(
-                "{address} answered in HTTP: this looks like the coordinator's HTTP port \
-                 (--http); give the port it listens on for workers and clients (--listen, \
-                 7878 by default)"
-            )));
+        // an absurd frame length: the coordinator's HTTP port, most likely, in clear or
+        // over the TLS it serves when the coordinator has TLS (these are the bytes after
+        // TLS, then).
+        if answered(raw.read_buffer()) == Answered::Http {
+            return Err(DialError::Refused(http_port(address)));
         }
         let reply = reply
             .ok_or_else(|| {
@@ -696,6 +878,131 @@ mod tests {
         // A certificate without its key is not silently replaced.
         std::fs::remove_file(tls.join("key.pem")).unwrap();
         assert!(ServerTls::auto(&tls).is_err());
+    }
+
+    #[test]
+    fn the_first_bytes_read_tell_tls_from_http_and_from_plain_protocol() {
+        assert_eq!(answered(b""), Answered::Nothing);
+        // A TLS alert or handshake record, whole or its first byte only.
+        assert_eq!(answered(&[0x15, 0x03, 0x03, 0x00, 0x02]), Answered::Tls);
+        assert_eq!(answered(&[0x16]), Answered::Tls);
+        // The HTTP port's answer, in clear or read after TLS.
+        assert_eq!(answered(b"HTTP/1.1 400 Bad Request\r\n"), Answered::Http);
+        assert_eq!(answered(b"HTTP/1.0 400"), Answered::Http);
+        // A coordinator without TLS refusing a TLS hello: a frame in clear.
+        assert_eq!(answered(&[0, 0, 0, 0x4c, 1, 0]), Answered::Plain);
+        assert_eq!(answered(b"SSH-2.0-OpenSSH"), Answered::Plain);
+        assert_eq!(answered(&[0x16, 0x00]), Answered::Plain);
+    }
+
+    /// A peer pinned to `pin` dialling a server that, once it read what the peer sent
+    /// first (after TLS with `tls`), answers `answer` and closes: the peer's error.
+    async fn dial_answered(tls: Option<ServerTls>, pin: [u8; 32], answer: &'static [u8]) -> String {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let serving = tokio::spawn(async move {
+            let (tcp, _) = listener.accept().await.unwrap();
+            let mut stream: Stream = match tls {
+                Some(tls) => tls.accept(tcp).await.unwrap(),
+                None => Box::new(tcp),
+            };
+            let mut first = [0u8; 4];
+            let _ = stream.read_exact(&mut first).await;
+            let _ = stream.write_all(answer).await;
+            let _ = stream.shutdown().await;
+        });
+        let endpoint = Endpoint {
+            tls: Some(ClientTls::pinned(pin).unwrap()),
+            ..Endpoint::plain(address.clone())
+        };
+        let result = dial_with(&endpoint, Role::Client, None).await;
+        serving.abort();
+        match result {
+            Err(DialError::Refused(e)) => {
+                let text = format!("{e:#}");
+                assert!(text.starts_with(&address), "{text}");
+                text
+            }
+            Err(DialError::Unreachable(e)) => panic!("taken for unreachable: {e:#}"),
+            Ok(_) => panic!("the handshake succeeded"),
+        }
+    }
+
+    #[tokio::test]
+    async fn a_pinned_peer_names_the_http_port_or_a_coordinator_without_tls() {
+        const HTTP: &[u8] = b"HTTP/1.1 400 Bad Request\r\ncontent-length: 0\r\n\r\n";
+        let dir = tempfile::tempdir().unwrap();
+        let server = ServerTls::auto(dir.path()).unwrap();
+        let pin = server.fingerprint();
+        let http_port = "answered in HTTP: this looks like the coordinator's HTTP port";
+        // The HTTP port in clear.
+        let error = dial_answered(None, pin, HTTP).await;
+        assert!(error.contains(http_port), "{error}");
+        // The HTTP port serving TLS with the coordinator's certificate.
+        let error = dial_answered(Some(server), pin, HTTP).await;
+        assert!(error.contains(http_port), "{error}");
+        // A coordinator without TLS, refusing the TLS hello as a frame too long.
+        let error = dial_answered(None, pin, &[0, 0, 0, 2, 1, 0]).await;
+        assert!(
+            error.ends_with(
+                "does not speak TLS: is it the coordinator's HTTP port, or a coordinator \
+                 started without TLS?"
+            ),
+            "{error}"
+        );
+    }
+
+    /// A TLS connection between `server` and a peer pinned to it: the server's side as
+    /// rustls gives it (without [`Closing`]), and the peer's as [`dial`] gives it.
+    async fn tls_pair(server: &ServerTls) -> (tokio_rustls::server::TlsStream<TcpStream>, Stream) {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap().to_string();
+        let acceptor = server.acceptor.clone();
+        let accepting = tokio::spawn(async move {
+            let (tcp, _) = listener.accept().await.unwrap();
+            acceptor.accept(tcp).await.unwrap()
+        });
+        let client = ClientTls::pinned(server.fingerprint()).unwrap();
+        let tcp = TcpStream::connect(&address).await.unwrap();
+        let Ok(peer) = client.connect(&address, tcp).await else {
+            panic!("no TLS");
+        };
+        (accepting.await.unwrap(), peer)
+    }
+
+    #[tokio::test]
+    async fn tls_ends_with_close_notify_and_a_close_without_it_between_frames_is_no_error() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let dir = tempfile::tempdir().unwrap();
+        let server = ServerTls::auto(dir.path()).unwrap();
+
+        // Dropped, a peer's stream says close_notify: the other side reads a clean end.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        drop(ours);
+        let mut rest = Vec::new();
+        theirs.read_to_end(&mut rest).await.expect("a clean end");
+        assert!(rest.is_empty());
+
+        // A peer gone without close_notify after a whole frame: the frame, then the end.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        let mut framed = Framed::new(ours, LengthDelimitedCodec::new());
+        theirs.write_all(&[0, 0, 0, 2, 7, 7]).await.unwrap();
+        theirs.flush().await.unwrap();
+        drop(theirs.into_inner().0);
+        assert_eq!(&framed.next().await.unwrap().unwrap()[..], &[7, 7]);
+        assert!(framed.next().await.is_none(), "not a clean end");
+
+        // Gone in the middle of a frame: an error still.
+        let (mut theirs, ours) = tls_pair(&server).await;
+        let mut framed = Framed::new(ours, LengthDelimitedCodec::new());
+        theirs.write_all(&[0, 0, 0, 9, 7]).await.unwrap();
+        theirs.flush().await.unwrap();
+        drop(theirs.into_inner().0);
+        assert!(
+            matches!(framed.next().await, Some(Err(_))),
+            "a truncated frame taken for an end"
+        );
     }
 
     /// A TLS handshake between `server` and a peer using `client`: what the peer got.

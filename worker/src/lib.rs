@@ -81,6 +81,7 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     in_flight: 0,
                     pongs: Vec::new(),
                     drain_asked: false,
+                    name: config.name.clone(),
                 };
                 config.ready.store(true, Ordering::Relaxed);
                 let outcome = session.run(&mut shutdown, &config.ready).await;
@@ -220,6 +221,8 @@ struct Session {
     pongs: Vec<u64>,
     /// The coordinator asked it to drain ([`ToWorker::Drain`]).
     drain_asked: bool,
+    /// The name its hello asked for.
+    name: String,
 }
 
 impl Drop for Session {
@@ -316,6 +319,15 @@ impl Session {
             }
             ToWorker::Ping { token } => self.pongs.push(token),
             ToWorker::Drain => self.drain_asked = true,
+            ToWorker::Joined { name } if name == self.name => info!(%name, "joined"),
+            // Another machine is connected under the name asked for: the coordinator
+            // (its listings, logs and controls) knows this one by another.
+            ToWorker::Joined { name } => warn!(
+                %name,
+                "joined as {name}: a worker of another host is connected under the name {} \
+                 (give each machine its own --name)",
+                self.name
+            ),
             ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
                 let received = self.received;

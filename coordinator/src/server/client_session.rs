@@ -14,7 +14,7 @@ use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
     ClientRequest, ClientResponse, JobId, JobSpec, JobState, JobStatus, MessageCodec, SceneHash,
-    Settings,
+    Settings, WorkerStatus,
 };
 use scheduler::lifecycle::{self, Reply};
 use sha2::{Digest, Sha256};
@@ -248,11 +248,11 @@ pub(crate) async fn respond(
             store_controls(sh, job, controls).await
         }
         ClientRequest::DrainWorker { worker } => {
-            let drained = sh.lock().drain_workers(sh, &worker);
+            let drained = sh.lock().drain_worker(sh, &worker);
             match drained {
-                Ok(()) => {
+                Ok(id) => {
                     sh.changed();
-                    ClientResponse::Workers(sh.lock().worker_statuses())
+                    ClientResponse::Workers(acted_on(sh, |w| w.id == id))
                 }
                 Err(message) => ClientResponse::Error { message },
             }
@@ -664,6 +664,15 @@ async fn store_controls(
 
 /// Stores that a machine was disabled or enabled and answers with the workers once
 /// it is written (it survives a restart from then on).
+/// The worker an operator's drain, disable or enable acted on (names are unique among
+/// connected workers): what the answer shows, so that it says which. None for a
+/// machine enabled while none of its workers is connected.
+fn acted_on(sh: &Shared, which: impl Fn(&WorkerStatus) -> bool) -> Vec<WorkerStatus> {
+    let mut statuses = sh.lock().worker_statuses();
+    statuses.retain(which);
+    statuses
+}
+
 async fn store_disabled(
     sh: &Arc<Shared>,
     machine: Result<String, String>,
@@ -683,7 +692,7 @@ async fn store_disabled(
         }),
     });
     match tokio::time::timeout(Duration::from_secs(10), stored).await {
-        Ok(Ok(Ok(()))) => ClientResponse::Workers(sh.lock().worker_statuses()),
+        Ok(Ok(Ok(()))) => ClientResponse::Workers(acted_on(sh, |w| w.name == machine)),
         Ok(Ok(Err(message))) => ClientResponse::Error {
             message: format!("the change to machine {machine:?} could not be stored: {message}"),
         },

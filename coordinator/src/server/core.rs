@@ -29,6 +29,7 @@ use crate::store::JobMetadata;
 use crate::tiling;
 
 mod figures;
+mod names;
 mod sequences;
 pub use sequences::SequenceRecord;
 
@@ -254,15 +255,41 @@ pub struct Accepted {
     error_sq_sum: Option<f64>,
 }
 
+/// How the core closes a worker's connection: its session wakes up and ends, with the
+/// reason.
+#[derive(Default)]
+pub struct Dropped {
+    wake: tokio::sync::Notify,
+    why: std::sync::Mutex<String>,
+}
+
+impl Dropped {
+    fn drop_with(&self, why: &str) {
+        *self.why.lock().unwrap_or_else(|e| e.into_inner()) = why.to_owned();
+        self.wake.notify_one();
+    }
+
+    /// Once the worker is dropped: why.
+    pub async fn wait(&self) -> String {
+        self.wake.notified().await;
+        self.why.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+}
+
 /// A connected worker.
 pub struct WorkerRecord {
+    /// Unique among the connected workers ([`names`]): the name its hello gave, or
+    /// that name with a suffix when a worker of another host holds it.
     pub name: String,
+    /// The address it connected from: a worker joining under a connected worker's
+    /// name from the same host supersedes it.
+    pub host: std::net::IpAddr,
     /// The renderer build its hello named.
     pub build: String,
     pub threads: u32,
     pub outbox: mpsc::UnboundedSender<ToWorker>,
-    /// Notified when the scheduler drops the worker: its connection is closed.
-    pub dropped: Arc<tokio::sync::Notify>,
+    /// Set when the core drops the worker: its connection is closed.
+    pub dropped: Arc<Dropped>,
     pub connected: Instant,
     pub tiles_done: u64,
     pub rays: u64,
@@ -298,13 +325,15 @@ const RTTS_KEPT: usize = 8;
 impl WorkerRecord {
     pub fn new(
         name: String,
+        host: std::net::IpAddr,
         build: String,
         threads: u32,
         outbox: mpsc::UnboundedSender<ToWorker>,
-        dropped: Arc<tokio::sync::Notify>,
+        dropped: Arc<Dropped>,
     ) -> WorkerRecord {
         WorkerRecord {
             name,
+            host,
             build,
             threads,
             outbox,
@@ -648,7 +677,7 @@ impl Core {
             );
         }
         if drop {
-            w.dropped.notify_one();
+            w.dropped.drop_with(why);
         }
     }
 
@@ -996,27 +1025,76 @@ impl Core {
         self.apply_tiles(sh, actions);
     }
 
-    /// A worker connected: its id.
-    pub fn join(&mut self, sh: &Arc<Shared>, mut record: WorkerRecord) -> WorkerId {
+    /// A worker connected: its id and the name it joins under ([`names::place`]).
+    /// A connection it supersedes is told why and closed, and its tiles go back to the
+    /// queue at once, as a lost worker's do.
+    pub fn join(&mut self, sh: &Arc<Shared>, mut record: WorkerRecord) -> (WorkerId, String) {
         let id = self.next_worker;
         self.next_worker += 1;
+        let host = record.host;
+        let connected = self.workers.iter().map(|(&id, w)| names::Holder {
+            id,
+            name: &w.name,
+            host: w.host,
+        });
+        let naming = names::place(connected, &record.name, host);
+        match &naming {
+            names::Naming::Free => {}
+            names::Naming::Supersedes { name, old } => info!(
+                worker = id,
+                old,
+                "worker {name} reconnected from {host} while its old connection (worker \
+                 {old}) was open: the old connection is closed and its tiles put back"
+            ),
+            names::Naming::Suffixed {
+                name,
+                holder,
+                host: held_on,
+                ..
+            } => warn!(
+                worker = id,
+                holder,
+                "worker name {} is already taken by worker {holder} from {held_on}: the \
+                 worker from {host} joins as {name} (give each machine its own --name)",
+                record.name
+            ),
+        }
+        if let Some(old) = naming.superseded() {
+            let why = format!(
+                "superseded by a new connection of worker {} from the same host ({host})",
+                naming.name(&record.name)
+            );
+            if let Some(w) = self.workers.get(&old) {
+                let _ = w.outbox.send(ToWorker::Refuse {
+                    reason: format!(
+                        "{why}: two workers on one machine need different names (--name)"
+                    ),
+                });
+            }
+            self.worker_lost(sh, old, &why, true);
+            self.tiles_event(sh, Event::WorkerLeft { worker: old });
+        }
+        record.name = naming.name(&record.name).to_owned();
         let (threads, name) = (record.threads, record.name.clone());
         if let Some(reason) = self.quarantined.get(&name) {
             warn!(worker = id, %name, "a quarantined machine joined: it gets no tile");
             record.quarantined = Some(reason.clone());
         }
+        // The worker logs the name it is known by (another than it asked for, when
+        // suffixed).
+        let _ = record.outbox.send(ToWorker::Joined { name: name.clone() });
         self.workers.insert(id, record);
         self.tiles_event(
             sh,
             Event::WorkerJoined {
                 worker: id,
                 threads,
-                machine: Some(name),
+                machine: Some(name.clone()),
             },
         );
         // More credit: a sequence may start another frame to keep it busy.
         self.fill_all(sh);
-        id
+        (id, name)
     }
 
     /// Tiles are durably recorded: they count in the progress reported.
@@ -2553,42 +2631,35 @@ impl Core {
             .collect()
     }
 
-    /// The connected workers an operator names: by id (as `tessera workers` lists
-    /// them), or every worker of that name. `Err` is the one-line reason none is.
-    fn named_workers(&self, key: &str) -> Result<Vec<WorkerId>, String> {
+    /// The connected worker an operator names: by id (as `tessera workers` lists
+    /// them), or by name (unique among connected workers, [`names`]). `Err` is the
+    /// one-line reason none is.
+    fn named_worker(&self, key: &str) -> Result<WorkerId, String> {
         if let Ok(id) = key.parse::<WorkerId>() {
             if self.workers.contains_key(&id) {
-                return Ok(vec![id]);
+                return Ok(id);
             }
         }
-        let by_name: Vec<WorkerId> = self
-            .workers
+        self.workers
             .iter()
-            .filter(|(_, w)| w.name == key)
+            .find(|(_, w)| w.name == key)
             .map(|(&id, _)| id)
-            .collect();
-        if by_name.is_empty() {
-            Err(format!(
-                "no worker {key:?} is connected: give an id or a name from tessera workers"
-            ))
-        } else {
-            Ok(by_name)
-        }
+            .ok_or_else(|| {
+                format!("no worker {key:?} is connected: give an id or a name from tessera workers")
+            })
     }
 
-    /// An operator drains workers: each is told to finish what it holds and exit (as
-    /// on SIGTERM), and gets no new tile from now on.
-    pub fn drain_workers(&mut self, sh: &Arc<Shared>, key: &str) -> Result<(), String> {
-        let workers = self.named_workers(key)?;
-        for worker in workers {
-            if let Some(w) = self.workers.get_mut(&worker) {
-                info!(worker, name = %w.name, "worker drained by an operator");
-                w.draining = true;
-                let _ = w.outbox.send(ToWorker::Drain);
-            }
-            self.tiles_event(sh, Event::WorkerDraining { worker });
+    /// An operator drains a worker: it is told to finish what it holds and exit (as
+    /// on SIGTERM), and gets no new tile from now on. Returns its id.
+    pub fn drain_worker(&mut self, sh: &Arc<Shared>, key: &str) -> Result<WorkerId, String> {
+        let worker = self.named_worker(key)?;
+        if let Some(w) = self.workers.get_mut(&worker) {
+            info!(worker, name = %w.name, host = %w.host, "worker drained by an operator");
+            w.draining = true;
+            let _ = w.outbox.send(ToWorker::Drain);
         }
-        Ok(())
+        self.tiles_event(sh, Event::WorkerDraining { worker });
+        Ok(worker)
     }
 
     /// An operator disables (`true`) or enables a machine, named by a connected
@@ -2601,8 +2672,8 @@ impl Core {
         key: &str,
         disabled: bool,
     ) -> Result<String, String> {
-        let machine = match self.named_workers(key) {
-            Ok(workers) => self.workers[&workers[0]].name.clone(),
+        let machine = match self.named_worker(key) {
+            Ok(worker) => self.workers[&worker].name.clone(),
             Err(_) if !disabled && self.tiles.is_disabled(key) => key.to_string(),
             Err(message) => return Err(message),
         };
@@ -2840,6 +2911,7 @@ impl WorkerRecord {
         WorkerStatus {
             id,
             name: self.name.clone(),
+            host: self.host.to_string(),
             threads: self.threads,
             tiles_in_flight: in_flight as u32,
             tiles_done: self.tiles_done,
@@ -2923,10 +2995,11 @@ mod tests {
     fn a_workers_rate_is_while_it_rendered_in_the_last_minute() {
         let mut w = WorkerRecord::new(
             "w".into(),
+            std::net::Ipv4Addr::LOCALHOST.into(),
             "build".into(),
             1,
             mpsc::unbounded_channel().0,
-            Arc::new(tokio::sync::Notify::new()),
+            Arc::default(),
         );
         let start = w.connected;
         let at = |s: u64| start + Duration::from_secs(s);

@@ -207,7 +207,7 @@ pub(super) async fn handle_connection(
             build,
         } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            worker_session::serve(shared, framed, name, threads, build, hold).await
+            worker_session::serve(shared, framed, peer, name, threads, build, hold).await
         }
     }
 }

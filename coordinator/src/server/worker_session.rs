@@ -16,7 +16,7 @@ use tokio_util::codec::Framed;
 use tracing::{error, info, warn};
 use transport::Stream;
 
-use super::core::{Cost, TilePixels, Verdict, WorkerRecord};
+use super::core::{Cost, Dropped, TilePixels, Verdict, WorkerRecord};
 use super::keys::{self, KeyHold};
 use super::Shared;
 
@@ -27,12 +27,16 @@ type WorkerConn = Framed<Stream, MessageCodec<FromWorker, ToWorker>>;
 /// round trip.
 const PING_EVERY: Duration = Duration::from_secs(1);
 
+/// How long the last messages queued for a worker that leaves may take to go out.
+const WRITER_GRACE: Duration = Duration::from_secs(1);
+
 /// How long a worker may take to render the canary (a few milliseconds of work).
 const CANARY_TIMEOUT: Duration = Duration::from_secs(60);
 
 pub(super) async fn serve(
     shared: Arc<Shared>,
     mut conn: WorkerConn,
+    peer: std::net::IpAddr,
     name: String,
     threads: u32,
     build: String,
@@ -55,16 +59,17 @@ pub(super) async fn serve(
     }
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
-    let dropped = Arc::new(tokio::sync::Notify::new());
-    let mut record = WorkerRecord::new(name.clone(), build, threads, outbox, Arc::clone(&dropped));
+    let dropped = Arc::new(Dropped::default());
+    let mut record = WorkerRecord::new(name, peer, build, threads, outbox, Arc::clone(&dropped));
     record.key = hold.clone();
-    let worker = shared.lock().join(&shared, record);
+    // The name it joins under: unique among the connected workers.
+    let (worker, name) = shared.lock().join(&shared, record);
     let key = hold
         .as_ref()
         .map_or_else(|| "none".to_owned(), KeyHold::describe);
-    info!(worker, %name, threads, %key, "worker joined");
+    info!(worker, %name, %peer, threads, %key, "worker joined");
     let clock = shared.clock;
-    let writer = tokio::spawn(async move {
+    let mut writer = tokio::spawn(async move {
         let mut ping = tokio::time::interval(PING_EVERY);
         loop {
             let message = tokio::select! {
@@ -90,7 +95,7 @@ pub(super) async fn serve(
         loop {
             let message = tokio::select! {
                 message = stream.next() => message,
-                () = dropped.notified() => anyhow::bail!("no heartbeat in time: dropped"),
+                why = dropped.wait() => anyhow::bail!("{why}: dropped"),
                 // It reconnects, and proves the secret its token file holds by then.
                 () = keys::retired(&mut hold) => anyhow::bail!(
                     "its worker token was retired by a token rotation: disconnected"
@@ -108,7 +113,15 @@ pub(super) async fn serve(
         core.worker_lost(&shared, worker, "the worker left", false);
         core.tiles_event(&shared, Event::WorkerLeft { worker });
     }
-    writer.abort();
+    // The record is gone, and its sender with it: the writer ends once it has sent
+    // what was queued (a superseded worker's refusal), or is stopped if the
+    // connection does not take it in time.
+    if tokio::time::timeout(WRITER_GRACE, &mut writer)
+        .await
+        .is_err()
+    {
+        writer.abort();
+    }
     info!(worker, %name, "worker left");
     result
 }

@@ -219,7 +219,7 @@ prop_compose! {
         quarantined in prop::option::of(text()), rtt_us in any::<Option<u64>>(),
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
         unresponsive in any::<bool>(),
-        key in prop::option::of((any::<[u8; 4]>(), any::<bool>())),
+        key in prop::option::of((any::<[u8; 4]>(), any::<bool>())), host in text(),
     ) -> WorkerStatus {
         let key = key.map(|(id, current)| PeerKey {
             id: KeyId(id),
@@ -228,7 +228,7 @@ prop_compose! {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
-            unresponsive, key,
+            unresponsive, key, host,
         }
     }
 }
@@ -289,6 +289,7 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
                 }
             ),
         Just(ToWorker::Drain),
+        text().prop_map(|name| ToWorker::Joined { name }),
     ]
 }
 
@@ -1023,6 +1024,7 @@ fn nan_rates_keep_their_bits() {
         disabled: false,
         unresponsive: false,
         key: None,
+        host: "127.0.0.1".into(),
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {

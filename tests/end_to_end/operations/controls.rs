@@ -238,7 +238,8 @@ fn a_disabled_machine_gets_no_tiles_across_a_restart_until_enabled_and_a_drained
         "workers disable",
     );
     assert!(
-        run.stdout.starts_with("worker box disabled"),
+        run.stdout.starts_with("worker box (id ")
+            && run.stdout.contains(", host 127.0.0.1) disabled"),
         "{}",
         run.stdout
     );

@@ -1,7 +1,7 @@
 //! Operating a farm of real `tessera` processes on 127.0.0.1: the client commands, the
-//! controls of jobs and machines, what jobs report, configuration, monitoring, and the
-//! coordinator's pages in a real browser (the status page, the studio, the previews of
-//! sequences).
+//! controls of jobs and machines, worker names, what jobs report, configuration,
+//! monitoring, and the coordinator's pages in a real browser (the status page, the
+//! studio, the previews of sequences).
 
 mod client_commands;
 mod configuration;
@@ -11,3 +11,4 @@ mod monitoring;
 mod sequence_preview;
 mod status_page;
 mod studio;
+mod worker_names;

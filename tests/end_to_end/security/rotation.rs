@@ -347,11 +347,12 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (_coordinator, addr) = crate::support::start_coordinator_in(d);
-    // A version 8 client hello: magic, version, role Client, a nonce (no key then).
+    // A version 9 client hello: magic, version, role Client, a nonce, no key.
     let mut hello = b"TSRA".to_vec();
-    hello.extend(8u16.to_le_bytes());
+    hello.extend(9u16.to_le_bytes());
     hello.extend(0u32.to_le_bytes());
     hello.extend([0u8; 32]);
+    hello.push(0);
     let mut stream = TcpStream::connect(&addr).expect("cannot connect");
     stream
         .set_read_timeout(Some(Duration::from_secs(20)))
@@ -365,11 +366,11 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
         reason,
         format!(
             "protocol version mismatch: this coordinator speaks version {}, the peer speaks \
-             version 8",
+             version 9",
             protocol::PROTOCOL_VERSION
         )
     );
-    assert_eq!(protocol::PROTOCOL_VERSION, 9);
+    assert_eq!(protocol::PROTOCOL_VERSION, 10);
     let mut rest = [0; 16];
     assert_eq!(
         stream.read(&mut rest).ok(),

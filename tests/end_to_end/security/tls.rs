@@ -7,6 +7,10 @@
 //! - `--tls-auto` makes the coordinator's certificate once and keeps it; peers pinned to
 //!   its fingerprint render end to end, and a wrong pin is refused with one line naming
 //!   both fingerprints, by a client and by a worker, which exits instead of retrying.
+//! - A pinned client or worker pointed at a coordinator without TLS, or at the HTTP
+//!   port, says which mistake it likely is in one line.
+//! - Client commands, `submit --wait` and a worker over TLS end it properly: no side
+//!   logs a connection closed without `close_notify`.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -16,8 +20,8 @@ use tempfile::TempDir;
 use super::{submit_and_wait, tokens, worker_that_gives_up, SMALL};
 use crate::support::cut_proxy::CutProxy;
 use crate::support::{
-    assert_same_png, client, ok, one_error_line, path_str, poll, render_reference, scene_path,
-    shared, start_coordinator, start_worker_with, tessera, worker_names, workers_json,
+    assert_same_png, client, free_port, ok, one_error_line, path_str, poll, render_reference,
+    scene_path, shared, start_coordinator, start_worker_with, tessera, worker_names, workers_json,
 };
 
 /// A self-signed certificate for 127.0.0.1 and localhost: (certificate, key) files.
@@ -307,4 +311,108 @@ fn tls_auto_serves_peers_pinned_to_its_fingerprint_and_refuses_other_pins() {
         ),
         "list after a restart, with the same pin",
     );
+}
+
+#[test]
+fn a_pinned_peer_pointed_at_plain_ports_names_the_likely_mistake_in_one_line() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    // A coordinator without TLS, and its HTTP port.
+    let http = format!("127.0.0.1:{}", free_port());
+    let (_coordinator, addr) = start_coordinator(
+        d,
+        &d.join("data"),
+        "127.0.0.1:0",
+        &["--http", &http],
+        "coordinator.log",
+    );
+    let pin = "ab".repeat(32);
+    let pinned = ["--tls-fingerprint", pin.as_str()];
+    let no_tls = format!(
+        "{addr} does not speak TLS: is it the coordinator's HTTP port, or a coordinator \
+         started without TLS?"
+    );
+    let http_port = format!(
+        "{http} answered in HTTP: this looks like the coordinator's HTTP port (--http); give \
+         the port it listens on for workers and clients (--listen, 7878 by default)"
+    );
+    let line = one_error_line(
+        &client(d, &addr, &["list", pinned[0], pinned[1]]),
+        "a pinned client at a coordinator without TLS",
+    );
+    assert_eq!(line, format!("error: {no_tls}"));
+    let line = one_error_line(
+        &client(d, &http, &["list", pinned[0], pinned[1]]),
+        "a pinned client at the HTTP port",
+    );
+    assert_eq!(line, format!("error: {http_port}"));
+    // A worker says the same, and stops instead of retrying.
+    let line = worker_that_gives_up(d, &addr, "pinned-plain", &pinned);
+    assert!(line.ends_with(&no_tls), "{line}");
+    let line = worker_that_gives_up(d, &http, "pinned-http", &pinned);
+    assert!(line.ends_with(&http_port), "{line}");
+}
+
+#[test]
+fn peers_over_tls_close_it_properly_and_nobody_logs_a_missing_close_notify() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let data = d.join("data");
+    let fingerprint = print_fingerprint(d, &data);
+    let http = format!("127.0.0.1:{}", free_port());
+    let (coordinator, addr) = start_coordinator(
+        d,
+        &data,
+        "127.0.0.1:0",
+        &["--tls-auto", "--http", &http],
+        "coordinator.log",
+    );
+    let pin = ["--tls-fingerprint", fingerprint.as_str()];
+    // Its HTTP port serves TLS with the same certificate: a peer pointed there gets
+    // through the handshake, and is then told it found the HTTP port.
+    let line = one_error_line(
+        &client(d, &http, &["list", pin[0], pin[1]]),
+        "a pinned client at the HTTPS port",
+    );
+    assert_eq!(
+        line,
+        format!(
+            "error: {http} answered in HTTP: this looks like the coordinator's HTTP port \
+             (--http); give the port it listens on for workers and clients (--listen, 7878 \
+             by default)"
+        )
+    );
+    let worker = start_worker_with(d, &addr, "pinned", &pin);
+    poll("the pinned worker to join", Duration::from_secs(30), || {
+        (worker_names(&workers_json(d, &addr, &pin)) == ["pinned"]).then_some(())
+    });
+    let mut said = Vec::new();
+    for args in [&["list"][..], &["workers"], &["list", "--json"]] {
+        let mut args = args.to_vec();
+        args.extend(pin);
+        let run = ok(client(d, &addr, &args), "a client command over TLS");
+        said.push(format!("{}{}", run.stdout, run.stderr));
+    }
+    let scene = scene_path("seed.json");
+    let out = d.join("out.png");
+    let mut args = vec!["submit", &scene, "--wait", "-o", path_str(&out)];
+    args.extend(SMALL);
+    args.extend(pin);
+    let run = ok(client(d, &addr, &args), "submit --wait over TLS");
+    said.push(format!("{}{}", run.stdout, run.stderr));
+    // The worker leaves too (a drain: it closes its connection itself).
+    let mut worker = worker;
+    worker.signal("TERM");
+    worker
+        .wait_exit(Duration::from_secs(30))
+        .expect("the worker did not exit on SIGTERM");
+    poll("the worker to be gone", Duration::from_secs(10), || {
+        workers_json(d, &addr, &pin).is_empty().then_some(())
+    });
+    let mut logs = said.join("\n");
+    logs.push_str(&coordinator.log_text());
+    logs.push_str(&worker.log_text());
+    assert!(!logs.contains("close_notify"), "{logs}");
 }

@@ -1,5 +1,6 @@
 //! A worker written in the test, on the real protocol: it connects with
-//! `transport::dial` (no token, plain TCP on 127.0.0.1), renders the canary, its tiles
+//! `transport::dial` (no token, plain TCP on 127.0.0.1), or from another loopback
+//! address with the same handshake done here ([`FakeWorker::start_from`]), renders the canary, its tiles
 //! and its adaptive passes honestly with the `verify` and `render` crates, exactly as
 //! a real worker does, and then lies as it is told: every pixel wrong, one byte of
 //! some tiles (for an adaptive pass: one sum of each block of its state), one pixel
@@ -59,6 +60,8 @@ struct State {
     /// `TileDone` and `Advanced` sent.with pixels changed from the honest render.
     tiles_lied: AtomicU64,
     refusal: Mutex<Option<String>>,
+    /// The name the coordinator said it joined under (`ToWorker::Joined`).
+    joined_as: Mutex<Option<String>>,
     /// How the connection ended or failed, if it did.
     error: Mutex<Option<String>>,
 }
@@ -73,6 +76,18 @@ impl FakeWorker {
     /// Connects to the coordinator at `addr` as worker `name` (one thread) announcing
     /// renderer build `build`, and serves it on a thread of its own.
     pub fn start(addr: &str, name: &str, build: &str, lie: Lie) -> FakeWorker {
+        FakeWorker::start_from(None, addr, name, build, lie)
+    }
+
+    /// As [`FakeWorker::start`], connecting from the local address `source` (another
+    /// loopback address such as 127.0.0.2 is another host to the coordinator).
+    pub fn start_from(
+        source: Option<std::net::IpAddr>,
+        addr: &str,
+        name: &str,
+        build: &str,
+        lie: Lie,
+    ) -> FakeWorker {
         let state = Arc::new(State::default());
         let (addr, name, build) = (addr.to_owned(), name.to_owned(), build.to_owned());
         let shared = Arc::clone(&state);
@@ -83,7 +98,7 @@ impl FakeWorker {
                     .enable_all()
                     .build()
                     .expect("cannot start the fake worker's runtime");
-                let outcome = runtime.block_on(serve(&addr, name, build, lie, &shared));
+                let outcome = runtime.block_on(serve(source, &addr, name, build, lie, &shared));
                 if let Err(e) = outcome {
                     *shared.error.lock().expect("error slot") = Some(e);
                 }
@@ -126,6 +141,11 @@ impl FakeWorker {
         self.state.refusal.lock().expect("refusal slot").clone()
     }
 
+    /// The name the coordinator said it joined under, once it joined.
+    pub fn joined_as(&self) -> Option<String> {
+        self.state.joined_as.lock().expect("name slot").clone()
+    }
+
     /// How its connection ended, if it ended with an error.
     pub fn error(&self) -> Option<String> {
         self.state.error.lock().expect("error slot").clone()
@@ -155,6 +175,7 @@ impl Drop for FakeWorker {
 
 /// One connection, until the coordinator closes it or the fake is dropped.
 async fn serve(
+    source: Option<std::net::IpAddr>,
     addr: &str,
     name: String,
     build: String,
@@ -166,15 +187,20 @@ async fn serve(
         threads: 1,
         build,
     };
-    let raw = transport::dial(&transport::Endpoint::plain(addr), role)
-        .await
-        .map_err(|e| format!("cannot connect: {:#}", e.into_inner()))?;
+    let (io, early) = match source {
+        None => {
+            let raw = transport::dial(&transport::Endpoint::plain(addr), role)
+                .await
+                .map_err(|e| format!("cannot connect: {:#}", e.into_inner()))?;
+            // Frames by hand (4-byte big-endian length, then bincode), starting with
+            // whatever the handshake's framing already read.
+            let parts = raw.into_parts();
+            (parts.io, parts.read_buf.to_vec())
+        }
+        Some(source) => dial_from(source, addr, role).await?,
+    };
     state.connected.store(true, Ordering::SeqCst);
-    // Frames by hand (4-byte big-endian length, then bincode), starting with whatever
-    // the handshake's framing already read.
-    let parts = raw.into_parts();
-    let early = parts.read_buf.to_vec();
-    let (mut reader, mut writer) = tokio::io::split(parts.io);
+    let (mut reader, mut writer) = tokio::io::split(io);
     let (frames_tx, mut frames) = tokio::sync::mpsc::unbounded_channel::<Result<Vec<u8>, String>>();
     tokio::spawn(async move {
         let mut buf = early;
@@ -264,6 +290,10 @@ async fn serve(
                 None
             }
             // The fake worker is stopped by its test, never drained.
+            ToWorker::Joined { name } => {
+                *state.joined_as.lock().expect("name slot") = Some(name);
+                None
+            }
             ToWorker::Heartbeat | ToWorker::Cancel { .. } | ToWorker::Drain => None,
             ToWorker::Advance {
                 job,
@@ -387,6 +417,53 @@ async fn serve(
         };
         if let Some(answer) = answer {
             send(&mut writer, &answer).await?;
+        }
+    }
+}
+
+/// Connects to `addr` from the local address `source` and handshakes as `role` (no
+/// token, plain TCP), as `transport::dial` does: the connection and what was read
+/// past the coordinator's `Accepted`.
+async fn dial_from(
+    source: std::net::IpAddr,
+    addr: &str,
+    role: Role,
+) -> Result<(transport::Stream, Vec<u8>), String> {
+    let socket = tokio::net::TcpSocket::new_v4().map_err(|e| format!("no socket: {e}"))?;
+    socket
+        .bind((source, 0).into())
+        .map_err(|e| format!("cannot bind {source}: {e}"))?;
+    let to = addr.parse().map_err(|e| format!("{addr}: {e}"))?;
+    let mut tcp = socket
+        .connect(to)
+        .await
+        .map_err(|e| format!("cannot connect from {source}: {e}"))?;
+    let mut handshake = protocol::PeerHandshake::new(role, None, [7; 32]);
+    tcp.write_all(&super::wire::frame(&handshake.hello()))
+        .await
+        .map_err(|e| format!("cannot send: {e}"))?;
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 4096];
+    loop {
+        while buf.len() >= 4 {
+            let len = u32::from_be_bytes([buf[0], buf[1], buf[2], buf[3]]) as usize;
+            if buf.len() < 4 + len {
+                break;
+            }
+            let body: Vec<u8> = buf.drain(..4 + len).skip(4).collect();
+            match handshake.on_frame(&body) {
+                Ok(protocol::PeerStep::Accepted) => return Ok((Box::new(tcp), buf)),
+                Ok(protocol::PeerStep::Send(proof)) => tcp
+                    .write_all(&super::wire::frame(&proof))
+                    .await
+                    .map_err(|e| format!("cannot send: {e}"))?,
+                Err(e) => return Err(format!("refused: {e}")),
+            }
+        }
+        match tcp.read(&mut chunk).await {
+            Ok(0) => return Err("the coordinator closed the connection".into()),
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Err(e) => return Err(format!("cannot read: {e}")),
         }
     }
 }
