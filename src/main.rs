@@ -93,7 +93,11 @@ fn main() -> ExitCode {
     };
     let parsed = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     if let Some((name, sub)) = matches.subcommand() {
-        if config::SECTIONS.contains(&name) && sub.get_flag("print_config") {
+        let print_config = config::SECTIONS.contains(&name) && sub.get_flag("print_config");
+        if !signals::keeps_running(name, print_config) {
+            signals::end_quietly_on_a_closed_pipe();
+        }
+        if print_config {
             let command = cli.find_subcommand(name).expect("parsed subcommands exist");
             print!(
                 "{}",

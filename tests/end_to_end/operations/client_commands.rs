@@ -2,7 +2,8 @@
 //! names its job at once, rides through a coordinator restart, says how to recover an
 //! image it could not write and refuses one it cannot write before submitting;
 //! `delete` removes an ended job, and the coordinator's `--retention` removes it by
-//! itself; mistaken job ids and addresses are one line saying what to give.
+//! itself; mistaken job ids and addresses are one line saying what to give; a command
+//! whose output is closed early ends quietly.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -416,5 +417,115 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
             "{args:?}: {value}"
         );
         assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
+    }
+}
+
+/// `tessera ARGS` in `dir` with stdout a pipe of one page (4 KiB, so that the output
+/// cannot all fit in it) whose reader reads `lines` lines and then closes it, as
+/// `tessera ARGS | head -LINES` does: the lines read, the exit status and stderr.
+fn through_closed_pipe(
+    dir: &Path,
+    args: &[&str],
+    lines: usize,
+) -> (Vec<String>, std::process::ExitStatus, String) {
+    use std::os::fd::AsRawFd;
+    let (reader, writer) = std::io::pipe().expect("cannot make a pipe");
+    // SAFETY: F_SETPIPE_SZ only resizes the pipe this test owns (to the minimum the
+    // kernel allows, one page); its failure would only leave the pipe larger.
+    let resized = unsafe { libc::fcntl(reader.as_raw_fd(), libc::F_SETPIPE_SZ, 4096) };
+    assert!(resized > 0, "cannot resize the pipe");
+    let child = Command::new(BIN)
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(writer)
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot start tessera");
+    let mut read = Vec::new();
+    // Unbuffered: what is not read stays in the pipe, which the command must fill.
+    let mut reader = BufReader::with_capacity(1, reader);
+    for _ in 0..lines {
+        let mut line = String::new();
+        reader
+            .read_line(&mut line)
+            .expect("cannot read tessera's stdout");
+        read.push(line.trim_end().to_owned());
+    }
+    drop(reader);
+    let mut daemon = Daemon {
+        name: format!("tessera {}", args.join(" ")),
+        child,
+        log: None,
+    };
+    let status = daemon
+        .wait_exit(Duration::from_secs(20))
+        .unwrap_or_else(|| panic!("{} still running with its output closed", daemon.name));
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(
+        daemon.child.stderr.as_mut().expect("stderr is piped"),
+        &mut stderr,
+    )
+    .expect("cannot read tessera's stderr");
+    (read, status, stderr)
+}
+
+#[test]
+fn a_command_whose_output_is_closed_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    // 64 tiles: more than a hundred lines of events, several pages.
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &scene_path("seed.json"),
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--tile",
+            "8",
+        ],
+    );
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    // Enough jobs for `list`'s table to be longer than a page.
+    for _ in 0..60 {
+        submit(
+            dir.path(),
+            &addr,
+            &[
+                &scene_path("seed.json"),
+                "--width",
+                "8",
+                "--height",
+                "8",
+                "--name",
+                "a-job",
+            ],
+        );
+    }
+    let table = ok(client(dir.path(), &addr, &["list"]), "list").stdout;
+    assert!(table.len() > 5000, "list printed {} bytes", table.len());
+    let job = job.to_string();
+    for (args, lines) in [
+        (vec!["events", &job, "--coordinator", &addr], 1),
+        (vec!["list", "--coordinator", &addr], 1),
+        // A reader gone before anything was written (`tessera simulate | true`).
+        (vec!["simulate", "--workers", "20", "--jobs", "2"], 0),
+    ] {
+        let (read, status, stderr) = through_closed_pipe(dir.path(), &args, lines);
+        assert_eq!(read.len(), lines, "{args:?}");
+        assert!(read.iter().all(|l| !l.is_empty()), "{args:?}: {read:?}");
+        assert_eq!(stderr, "", "{args:?}: nothing on stderr");
+        // Ended by SIGPIPE, as `ls | head -1` ends `ls`: the shell's status 141.
+        assert_eq!(
+            status.signal(),
+            Some(libc::SIGPIPE),
+            "{args:?}: ended by SIGPIPE, not {status}"
+        );
     }
 }
