@@ -157,6 +157,20 @@ pub fn parse_job_id(text: &str) -> Result<JobId, String> {
     })
 }
 
+/// A job's priority as `tessera priority` and `submit --priority` read it.
+pub fn parse_priority(text: &str) -> Result<i32, String> {
+    text.trim().parse().map_err(|_| {
+        "a priority is a whole number, higher runs first (for example 10 or -5)".to_owned()
+    })
+}
+
+/// A tile's number as `tessera requeue` reads it.
+pub fn parse_tile_number(text: &str) -> Result<u32, String> {
+    text.trim().parse().map_err(|_| {
+        "a tile number is a whole number from 0, as `tessera events` names the tiles".to_owned()
+    })
+}
+
 /// The threads of each worker of a farm on this machine (`up`, `studio`): as asked, or
 /// the cores shared among them.
 pub fn threads_per_worker(workers: usize, asked: Option<u32>) -> usize {

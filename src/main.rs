@@ -106,10 +106,19 @@ fn main() -> ExitCode {
             return ExitCode::SUCCESS;
         }
     }
+    let daemon = matches
+        .subcommand()
+        .is_some_and(|(name, _)| signals::keeps_running(name, false));
     match run(parsed.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            report_error(json, &format!("{e:#}"));
+            let unreachable = e.chain().any(|c| c.is::<transport::CannotReach>());
+            let hint = if unreachable && !daemon {
+                "; --coordinator ADDR or TESSERA_COORDINATOR chooses the coordinator"
+            } else {
+                ""
+            };
+            report_error(json, &format!("{e:#}{hint}"));
             match e.downcast_ref::<signals::Interrupted>() {
                 Some(signal) => ExitCode::from(signal.exit_code),
                 None => ExitCode::FAILURE,

@@ -11,7 +11,7 @@ use protocol::{JobId, JobState, JobStatus};
 use serde_json::{json, Value};
 use transport::Endpoint;
 
-use crate::args::{parse_job_id, ClientArgs};
+use crate::args::{parse_job_id, parse_priority, parse_tile_number, ClientArgs};
 use crate::output::{FramesDir, ImageOutput};
 use crate::report::{frames_summary, shown_state, status_json, utc};
 use crate::sequences::fetch_frames;
@@ -82,7 +82,7 @@ pub enum Command {
         #[arg(value_parser = parse_job_id)]
         job: JobId,
         /// The new priority: higher runs first.
-        #[arg(allow_negative_numbers = true)]
+        #[arg(allow_negative_numbers = true, value_parser = parse_priority)]
         priority: i32,
         #[command(flatten)]
         common: ClientArgs,
@@ -141,7 +141,7 @@ pub enum Command {
         #[arg(value_parser = parse_job_id)]
         job: JobId,
         /// The tiles' numbers (from 0, as the job's events name them).
-        #[arg(required = true, num_args = 1..)]
+        #[arg(required = true, num_args = 1.., value_parser = parse_tile_number)]
         tiles: Vec<u32>,
         #[command(flatten)]
         common: ClientArgs,

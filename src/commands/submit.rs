@@ -10,7 +10,7 @@ use anyhow::Result;
 use protocol::{JobId, Verification};
 use serde_json::json;
 
-use crate::args::{parse_frame_range, ClientArgs, FrameRange, ImageArgs};
+use crate::args::{parse_frame_range, parse_priority, ClientArgs, FrameRange, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, status_json, summary};
@@ -50,7 +50,7 @@ pub struct Args {
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
     tile: Option<u32>,
     /// Priority: higher runs first; equal priorities share the farm.
-    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = parse_priority)]
     priority: i32,
     /// How results are checked. `sampled`: 16 pixels of every tile rendered again by
     /// the coordinator, and 1 % of the tiles by a second machine; it catches a tile

@@ -529,3 +529,69 @@ fn a_command_whose_output_is_closed_ends_quietly() {
         );
     }
 }
+
+#[test]
+fn refusals_say_what_is_meant_and_what_to_do() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let t = Duration::from_secs(20);
+
+    // Nothing listens on this port: the line says how the address is chosen.
+    let nowhere = format!("127.0.0.1:{}", free_port());
+    let line = one_error_line(
+        &tessera(dir.path(), &["list", "--coordinator", &nowhere], t),
+        "list --coordinator NOWHERE",
+    );
+    assert_eq!(
+        line,
+        format!(
+            "error: cannot reach the coordinator at {nowhere}: Connection refused (os error \
+             111); --coordinator ADDR or TESSERA_COORDINATOR chooses the coordinator"
+        )
+    );
+
+    let line = one_error_line(
+        &tessera(dir.path(), &["priority", "52", "abc"], t),
+        "priority 52 abc",
+    );
+    assert_eq!(
+        line,
+        "error: invalid value 'abc' for '<PRIORITY>': a priority is a whole number, higher \
+         runs first (for example 10 or -5)"
+    );
+    let line = one_error_line(
+        &tessera(dir.path(), &["requeue", "52", "3", "x"], t),
+        "requeue 52 3 x",
+    );
+    assert_eq!(
+        line,
+        "error: invalid value 'x' for '<TILES>...': a tile number is a whole number from 0, \
+         as `tessera events` names the tiles"
+    );
+
+    // A cancelled job resumed: it is retried, not resumed.
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let job = submit(
+        dir.path(),
+        &addr,
+        &small_seed().iter().map(String::as_str).collect::<Vec<_>>(),
+    );
+    let id = job.to_string();
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    let line = one_error_line(&client(dir.path(), &addr, &["resume", &id]), "resume");
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} cannot be resumed: it is cancelled, only a paused job can be \
+             (`tessera retry {job}` puts it back in the queue)"
+        )
+    );
+    let line = one_error_line(&client(dir.path(), &addr, &["pause", &id]), "pause");
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} cannot be paused: it is cancelled, only a queued or running job \
+             can be (`tessera retry {job}` puts it back in the queue)"
+        )
+    );
+}

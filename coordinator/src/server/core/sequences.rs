@@ -794,10 +794,7 @@ impl Core {
             .ok_or_else(|| unknown(id))?;
         let state = record.frames.state();
         if state.is_final() {
-            return Err(format!(
-                "job {id} cannot be {verb}: it is {}, only a queued or running job can be",
-                state.as_str()
-            ));
+            return Err(super::ended_refusal(id, verb, state));
         }
         Ok(record)
     }
