@@ -36,27 +36,36 @@ pub fn end_quietly_on_a_closed_pipe() {
     }
 }
 
-/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
-/// shell reports a command killed by it, once the farm is stopped and its temporary
-/// directory removed.
+/// A command stopped by a signal: the process exits with 128 + its number, as a
+/// shell reports a command killed by it, once the command has left things as its
+/// line says (`tessera up`: the farm stopped and its temporary directory removed;
+/// `submit --wait`: the job left running on the farm).
 #[derive(Debug)]
 pub struct Interrupted {
     pub name: &'static str,
     /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
     pub exit_code: u8,
+    /// What the interruption leaves, said after its name.
+    left: String,
+}
+
+impl Interrupted {
+    /// The same signal, leaving what `left` says instead.
+    pub fn leaving(self, left: String) -> Interrupted {
+        Interrupted { left, ..self }
+    }
 }
 
 impl std::fmt::Display for Interrupted {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "interrupted by {}: the local farm is stopped, no image written",
-            self.name
-        )
+        write!(f, "interrupted by {}: {}", self.name, self.left)
     }
 }
 
 impl std::error::Error for Interrupted {}
+
+/// What an interrupted `tessera up` leaves.
+const LOCAL_FARM_STOPPED: &str = "the local farm is stopped, no image written";
 
 /// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
 pub struct StopSignals {
@@ -72,7 +81,11 @@ impl StopSignals {
             let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
                 Ok((
                     signal(kind).with_context(|| format!("cannot catch {name}"))?,
-                    Interrupted { name, exit_code },
+                    Interrupted {
+                        name,
+                        exit_code,
+                        left: String::new(),
+                    },
                 ))
             };
             Ok(StopSignals {
@@ -87,7 +100,8 @@ impl StopSignals {
         Ok(StopSignals {})
     }
 
-    /// The next signal caught.
+    /// The next signal caught, said of a local farm (`up`, `studio`); another command
+    /// says what it leaves with [`Interrupted::leaving`].
     pub async fn next(&mut self) -> Interrupted {
         #[cfg(unix)]
         {
@@ -101,6 +115,7 @@ impl StopSignals {
             Interrupted {
                 name: what.name,
                 exit_code: what.exit_code,
+                left: LOCAL_FARM_STOPPED.to_owned(),
             }
         }
         #[cfg(not(unix))]
@@ -109,6 +124,7 @@ impl StopSignals {
             Interrupted {
                 name: "Ctrl-C",
                 exit_code: 130,
+                left: LOCAL_FARM_STOPPED.to_owned(),
             }
         }
     }

@@ -17,6 +17,7 @@ use crate::report::{sequence_summary, status_json, summary};
 use crate::scene_file::read_scene;
 use crate::sequences::wait_sequence;
 use crate::session::{naming_job, wait_and_fetch, Session};
+use crate::signals::StopSignals;
 use crate::submission::{choose_frames, submit, JobChoices, Label};
 
 /// Submit a scene to a coordinator; print the job id, or with --wait, write the image.
@@ -124,19 +125,38 @@ async fn submit_and_follow(args: Args) -> Result<()> {
     } else {
         None
     };
+    // With --wait, caught from before the submission: a Ctrl-C then is answered once
+    // the job's id is known, with what to do about the job.
+    let mut stop = match output {
+        Some(_) => Some(StopSignals::new()?),
+        None => None,
+    };
     let mut session = Session::connect(&coordinator).await?;
     let job = submit(session.client(), &args.scene, choices).await?;
-    let Some(output) = output else {
+    let (Some(output), Some(stop)) = (output, stop.as_mut()) else {
         print_submitted(job, json_out);
         return Ok(());
     };
     eprintln!("submitted job {job}");
     let output_path = output.path().to_path_buf();
-    let status = match output {
-        JobOutput::Image(image) => wait_and_fetch(&mut session, job, image).await?,
-        JobOutput::Frames(dir) => wait_sequence(&mut session, job, Some(&dir))
-            .await
-            .map_err(|e| naming_job(job, e))?,
+    let waiting = async {
+        match output {
+            JobOutput::Image(image) => wait_and_fetch(&mut session, job, image).await,
+            JobOutput::Frames(dir) => wait_sequence(&mut session, job, Some(&dir))
+                .await
+                .map_err(|e| naming_job(job, e)),
+        }
+    };
+    // Stopping the wait does not stop the job: the line says so, and how to follow or
+    // cancel it.
+    let status = tokio::select! {
+        status = waiting => status?,
+        signal = stop.next() => return Err(signal
+            .leaving(format!(
+                "job {job} keeps running on the farm: `tessera status {job}` follows it, \
+                 `tessera cancel {job}` cancels it"
+            ))
+            .into()),
     };
     if json_out {
         let mut v = status_json(&status);

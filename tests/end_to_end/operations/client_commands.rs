@@ -14,7 +14,8 @@ use std::time::{Duration, Instant};
 use crate::support::{
     assert_same_png, client, exclusive, fetch, free_port, ok, one_error_line, poll,
     render_reference, restart_coordinator, scene_path, shared, start_coordinator,
-    start_coordinator_in, start_worker, submit, tessera, try_status, wait_done, Daemon, BIN,
+    start_coordinator_in, start_worker, submit, tessera, try_status, wait_done, wait_for_workers,
+    Daemon, BIN,
 };
 
 /// A small frame of the seed scene: quick in a debug build, several tiles.
@@ -594,4 +595,42 @@ fn refusals_say_what_is_meant_and_what_to_do() {
              can be (`tessera retry {job}` puts it back in the queue)"
         )
     );
+}
+
+#[test]
+fn ctrl_c_on_submit_wait_leaves_the_job_running_and_says_how_to_follow_it() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let mut worker = start_worker(dir.path(), &addr, "w1");
+    wait_for_workers(dir.path(), &addr, 1, Duration::from_secs(30));
+    // Frozen, the worker holds the job running for as long as the test needs.
+    worker.signal("STOP");
+    let mut waiting = Waiting::start(dir.path(), &addr, "out.png");
+    let job = submitted_id(&waiting.line("the job's id", Duration::from_secs(30), |l| {
+        l.starts_with("submitted job ")
+    }));
+    waiting.daemon.signal("INT");
+    let (status, lines) = waiting.finish(Duration::from_secs(20));
+    assert_eq!(status.code(), Some(130), "{status}: {lines:?}");
+    assert_eq!(
+        lines.last().map(String::as_str),
+        Some(
+            format!(
+                "error: interrupted by SIGINT: job {job} keeps running on the farm: `tessera \
+                 status {job}` follows it, `tessera cancel {job}` cancels it"
+            )
+            .as_str()
+        ),
+        "{lines:?}"
+    );
+    assert!(!dir.path().join("out.png").exists());
+    let status = try_status(dir.path(), &addr, job).expect("the job is still there");
+    assert!(
+        status["state"] == "queued" || status["state"] == "running",
+        "{status}"
+    );
+    // Thawed, the worker finishes it.
+    worker.signal("CONT");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
 }
