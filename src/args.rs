@@ -243,10 +243,25 @@ impl PeerArgs {
     }
 }
 
+impl PeerArgs {
+    /// The warning a token file open to other users deserves, if it is one.
+    pub fn token_file_warning(&self) -> Option<String> {
+        self.secret
+            .token_file
+            .as_deref()
+            .and_then(transport::exposed_token_file)
+    }
+}
+
 impl ClientArgs {
-    /// The coordinator the command talks to.
+    /// The coordinator the command talks to; a token file open to other users is
+    /// warned about on stderr.
     pub fn target(&self) -> Result<Endpoint> {
-        self.peer.endpoint()
+        let endpoint = self.peer.endpoint()?;
+        if let Some(warning) = self.peer.token_file_warning() {
+            eprintln!("warning: {warning}");
+        }
+        Ok(endpoint)
     }
 }
 

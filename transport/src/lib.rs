@@ -33,7 +33,7 @@ mod address;
 mod secret;
 
 pub use address::{parse_address, AddressError, DEFAULT_ADDRESS, DEFAULT_PORT};
-pub use secret::{load_secret, SecretError, TokenSource};
+pub use secret::{exposed_token_file, load_secret, SecretError, TokenSource};
 
 /// Anything the protocol can run over.
 pub trait Io: AsyncRead + AsyncWrite + Unpin + Send {}
