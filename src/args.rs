@@ -116,6 +116,18 @@ pub enum FrameRange {
     Span { first: u64, last: u64 },
 }
 
+/// `--frames`, one definition for `render`, `submit` and `up`, so that they read it
+/// alike: `--frames` alone is every frame, as `--frames all`.
+#[derive(Args, Clone, Copy)]
+pub struct FramesArg {
+    /// Frames A to B of an animated scene (A-B, K or all; `--frames` alone: all), as a
+    /// sequence: one file per frame, frame_0001.png, ..., into the directory -o
+    /// [default directory: the scene's file name without .json, here].
+    #[arg(long, value_name = "A-B", num_args = 0..=1, default_missing_value = "all",
+          value_parser = parse_frame_range)]
+    pub frames: Option<FrameRange>,
+}
+
 /// Reads `--frames`: `A-B`, `K` or `all`, frame numbers from 1.
 pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> {
     if text == "all" {

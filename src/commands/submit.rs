@@ -10,7 +10,7 @@ use anyhow::Result;
 use protocol::{JobId, Verification};
 use serde_json::json;
 
-use crate::args::{parse_frame_range, parse_priority, ClientArgs, FrameRange, ImageArgs};
+use crate::args::{parse_priority, ClientArgs, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, status_json, summary};
@@ -34,12 +34,9 @@ pub struct Args {
     #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..),
           conflicts_with = "frames")]
     frame: Option<u32>,
-    /// Render frames A to B of an animated scene as one sequence job (A-B, K or all)
-    /// [default: every frame of an animated scene]. With --wait, the frames are
-    /// written into the directory -o as they are done, as `tessera render --frames`
-    /// writes them.
-    #[arg(long, value_name = "RANGE", value_parser = parse_frame_range)]
-    frames: Option<FrameRange>,
+    // One sequence job; without --frame or --frames, an animated scene's every frame.
+    #[command(flatten)]
+    frames: FramesArg,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m) of the farm's rendering:
@@ -103,7 +100,7 @@ pub fn run(args: Args) -> Result<()> {
 
 async fn submit_and_follow(args: Args) -> Result<()> {
     let text = read_scene(&args.scene)?;
-    let frames = choose_frames(&text, args.frame, args.frames)?;
+    let frames = choose_frames(&text, args.frame, args.frames.frames)?;
     let coordinator = args.common.target()?;
     let (overrides, time_limit_ms) = args.image.farm_job(args.tile, args.time_limit)?;
     let choices = JobChoices {

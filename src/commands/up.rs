@@ -12,7 +12,7 @@ use anyhow::{Context, Result};
 use localfarm::{up_limits, LocalFarm, WorkerSpec};
 use transport::Endpoint;
 
-use crate::args::{parse_frame_range, threads_per_worker, FrameRange, ImageArgs};
+use crate::args::{threads_per_worker, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, summary};
@@ -42,10 +42,8 @@ pub struct Args {
     /// --frames, the directory of the frames [default: the scene's file name].
     #[arg(short, long, value_name = "OUT.png|DIR")]
     output: Option<PathBuf>,
-    /// Render frames A to B of an animated scene (A-B, K or all) as one sequence job,
-    /// written into the directory -o as they are done.
-    #[arg(long, value_name = "RANGE", value_parser = parse_frame_range)]
-    frames: Option<FrameRange>,
+    #[command(flatten)]
+    frames: FramesArg,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m): the job stops at the
@@ -70,7 +68,11 @@ async fn up(args: Args) -> Result<()> {
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
     let text = read_scene(&args.scene)?;
-    let frames = choose_frames(&text, args.frames.is_none().then_some(1), args.frames)?;
+    let frames = choose_frames(
+        &text,
+        args.frames.frames.is_none().then_some(1),
+        args.frames.frames,
+    )?;
     let output = JobOutput::create(frames.frames.is_some(), args.output, &args.scene)?;
     let job = JobChoices {
         overrides,
