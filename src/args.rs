@@ -39,8 +39,9 @@ pub struct ImageArgs {
     #[arg(long, value_name = "SAMPLER", value_enum)]
     pub sampler: Option<SamplerArg>,
 
-    /// With --sampler adaptive: the error each pixel should reach, in 8-bit levels (for
-    /// example 1); a pixel stops taking samples once its estimated error is below it.
+    /// The error each pixel should reach, in 8-bit levels (for example 1); a pixel
+    /// stops taking samples once its estimated error is below it. Implies --sampler
+    /// adaptive.
     #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
     pub target_error: Option<f64>,
 }
