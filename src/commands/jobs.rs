@@ -28,7 +28,7 @@ pub enum Command {
         common: ClientArgs,
     },
 
-    /// List the coordinator's jobs.
+    /// List the coordinator's jobs, newest first (as the status page does).
     List {
         #[command(flatten)]
         common: ClientArgs,
@@ -238,7 +238,8 @@ async fn run_status(coordinator: &Endpoint, job: JobId, json_out: bool) -> Resul
 /// `tessera list`: with `--json`, an array of jobs; the farm's warning (no worker can
 /// take tiles) is in each active job's `warning` field, and on stderr once otherwise.
 async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
-    let jobs = Client::connect(coordinator).await?.list().await?;
+    let mut jobs = Client::connect(coordinator).await?.list().await?;
+    newest_first(&mut jobs);
     if json_out {
         println!("{}", Value::Array(jobs.iter().map(status_json).collect()));
     } else if jobs.is_empty() {
@@ -250,6 +251,13 @@ async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
         print!("{}", list_table(&jobs));
     }
     Ok(())
+}
+
+/// `tessera list`'s order, table and JSON alike: newest first, as the status page
+/// shows jobs, so that what was just submitted is at the top (ids grow with each
+/// submission).
+fn newest_first(jobs: &mut [JobStatus]) {
+    jobs.sort_by_key(|job| std::cmp::Reverse(job.id));
 }
 
 /// `tessera list`'s table: one row per job, columns aligned (`tessera status JOB`

@@ -634,3 +634,30 @@ fn ctrl_c_on_submit_wait_leaves_the_job_running_and_says_how_to_follow_it() {
     worker.signal("CONT");
     wait_done(dir.path(), &addr, job, Duration::from_secs(60));
 }
+
+#[test]
+fn list_shows_the_newest_job_first() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let seed = scene_path("seed.json");
+    let jobs: Vec<u64> = (0..3)
+        .map(|_| submit(dir.path(), &addr, &[&seed, "--width", "8", "--height", "8"]))
+        .collect();
+    let newest_first: Vec<u64> = jobs.iter().rev().copied().collect();
+    let table = ok(client(dir.path(), &addr, &["list"]), "list").stdout;
+    let ids: Vec<u64> = table
+        .lines()
+        .skip(1)
+        .map(|row| row.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(ids, newest_first, "{table}");
+    let json = ok(
+        client(dir.path(), &addr, &["list", "--json"]),
+        "list --json",
+    )
+    .stdout;
+    let listed: Vec<serde_json::Value> = serde_json::from_str(json.trim()).unwrap();
+    let ids: Vec<u64> = listed.iter().map(|j| j["id"].as_u64().unwrap()).collect();
+    assert_eq!(ids, newest_first, "{json}");
+}
