@@ -144,10 +144,18 @@ pub(crate) async fn respond(
         ClientRequest::Requeue { job, .. } | ClientRequest::Refine { job, .. }
             if sh.lock().sequences.contains_key(&job) =>
         {
+            // The frames' jobs, which `tessera list` does not show, named here.
+            let frames = sh
+                .lock()
+                .sequences
+                .get(&job)
+                .map(|r| super::core::frame_jobs(&r.frames))
+                .unwrap_or_default();
             ClientResponse::Error {
                 message: format!(
-                    "job {job} is a sequence: requeue or refine one of its frames' jobs, or \
-                     requeue a frame (`tessera retry {job} --frame K`)"
+                    "job {job} is a sequence: each of its frames is a job of its own \
+                     ({frames}); requeue or refine one of those, or requeue a frame \
+                     (`tessera retry {job} --frame K`)"
                 ),
             }
         }

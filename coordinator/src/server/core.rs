@@ -29,6 +29,8 @@ use crate::store::JobMetadata;
 use crate::tiling;
 
 mod sequences;
+
+pub(super) use sequences::frame_jobs;
 pub use sequences::SequenceRecord;
 
 /// The state machines and their data.

@@ -24,10 +24,10 @@ use tempfile::TempDir;
 
 use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::{
-    client, entries, exclusive, ok, orbit, path_str, poll, restart_coordinator, scene_path, shared,
-    start_coordinator, start_coordinator_in, start_restartable_coordinator, start_slow_worker,
-    start_slow_workers, start_worker, status_json, submit, tessera, try_status, wait_for_workers,
-    Daemon, REGISTER_TIMEOUT,
+    client, entries, exclusive, ok, one_error_line, orbit, path_str, poll, restart_coordinator,
+    scene_path, shared, start_coordinator, start_coordinator_in, start_restartable_coordinator,
+    start_slow_worker, start_slow_workers, start_worker, status_json, submit, tessera, try_status,
+    wait_for_workers, Daemon, REGISTER_TIMEOUT,
 };
 
 /// Small frames of a few dozen tiles each: every worker gets some of every frame.
@@ -607,4 +607,42 @@ fn frames_alone_is_every_frame_for_submit_and_up_as_for_render() {
         (&serde_json::json!(1), &serde_json::json!(1)),
         "{status}"
     );
+}
+
+#[test]
+fn a_sequence_refused_for_refine_names_its_frames_jobs() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let (_coordinator, addr) = start_coordinator_in(d);
+    let _worker = start_worker(d, &addr, "w1");
+    let orbit = orbit();
+    let job = submit(
+        d,
+        &addr,
+        &[
+            &orbit, "--frames", "1-3", "--width", "32", "--height", "24", "--aa", "1",
+        ],
+    );
+    crate::support::wait_done(d, &addr, job, Duration::from_secs(60));
+    let line = one_error_line(
+        &client(
+            d,
+            &addr,
+            &["refine", &job.to_string(), "--target-error", "1"],
+        ),
+        "refine SEQUENCE",
+    );
+    let (first, last) = (job + 1, job + 3);
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} is a sequence: each of its frames is a job of its own (frames \
+             1-3: jobs {first}-{last}); requeue or refine one of those, or requeue a frame \
+             (`tessera retry {job} --frame K`)"
+        )
+    );
+    // What it names is there to be asked about.
+    let status = status_json(d, &addr, last);
+    assert_eq!(status["frame"], 3, "{status}");
 }
