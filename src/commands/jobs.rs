@@ -13,7 +13,7 @@ use transport::Endpoint;
 
 use crate::args::{parse_job_id, parse_priority, parse_tile_number, ClientArgs};
 use crate::output::{FramesDir, ImageOutput};
-use crate::report::{frames_summary, shown_state, status_json, utc};
+use crate::report::{counted, frames_summary, shown_state, status_json, utc};
 use crate::sequences::fetch_frames;
 
 /// The job commands, listed in `tessera --help` between `submit` and `workers`.
@@ -529,7 +529,7 @@ fn status_line(s: &JobStatus) -> String {
         (None, k) => format!("frame {k}, "),
     };
     let mut line = format!(
-        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
+        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {}, {:.1} s",
         s.id,
         shown_state(s),
         s.tiles_done,
@@ -538,7 +538,7 @@ fn status_line(s: &JobStatus) -> String {
         s.settings.height,
         s.settings.aa,
         s.settings.sampling.name(),
-        s.samples,
+        counted(s.samples, "sample"),
         s.elapsed_ms as f64 / 1000.0
     );
     if let Some(q) = s.queued_ms {

@@ -15,7 +15,7 @@ use transport::Endpoint;
 use crate::args::{threads_per_worker, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
-use crate::report::{sequence_summary, summary};
+use crate::report::{counted, sequence_summary, summary};
 use crate::scene_file::read_scene;
 use crate::sequences::wait_sequence;
 use crate::session::{wait, Session};
@@ -126,9 +126,9 @@ async fn render_on(
         JobOutput::Frames(dir) => {
             let status = wait_sequence(&mut session, job, Some(&dir)).await?;
             eprintln!(
-                "{} ({} workers)",
+                "{} ({})",
                 sequence_summary(dir.path(), &status),
-                workers
+                counted(workers, "worker")
             );
             return Ok(());
         }
@@ -138,6 +138,10 @@ async fn render_on(
     // The farm and its copy of the image go with this command: no `tessera fetch`.
     let png = session.fetch(job).await?;
     output.write(&png)?;
-    eprintln!("{} ({} workers)", summary(&path, &status), workers);
+    eprintln!(
+        "{} ({})",
+        summary(&path, &status),
+        counted(workers, "worker")
+    );
     Ok(())
 }

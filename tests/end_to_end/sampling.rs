@@ -175,7 +175,7 @@ fn farm_jobs_with_each_sampler_equal_local_renders() {
     assert!(summary_error(&line) > 0.0, "{line}");
     let (_, line) = render(dir, &seed, "grid1.png", SIZE);
     assert!(
-        line.contains("1 samples/pixel (grid 1x1, 19200 in all)"),
+        line.contains("1 sample/pixel (grid 1x1, 19200 in all)"),
         "{line}"
     );
     assert!(line.contains("no error estimate"), "{line}");
@@ -214,7 +214,7 @@ fn up_with_adaptive_sampling_equals_the_local_render() {
     let line = summary_line(&run);
     assert!(line.contains("(2 workers)"), "{line}");
     assert!(
-        line.contains("adaptive up to 4x4, target 1 levels"),
+        line.contains("adaptive up to 4x4, target 1 level"),
         "{line}"
     );
     assert_eq!(summary_samples(&line), summary_samples(&local), "{line}");
