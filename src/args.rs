@@ -39,8 +39,9 @@ pub struct ImageArgs {
     #[arg(long, value_name = "SAMPLER", value_enum)]
     pub sampler: Option<SamplerArg>,
 
-    /// With --sampler adaptive: the error each pixel should reach, in 8-bit levels (for
-    /// example 1); a pixel stops taking samples once its estimated error is below it.
+    /// The error each pixel should reach, in 8-bit levels (for example 1); a pixel
+    /// stops taking samples once its estimated error is below it. Implies --sampler
+    /// adaptive.
     #[arg(long, value_name = "LEVELS", allow_negative_numbers = true)]
     pub target_error: Option<f64>,
 }
@@ -116,6 +117,18 @@ pub enum FrameRange {
     Span { first: u64, last: u64 },
 }
 
+/// `--frames`, one definition for `render`, `submit` and `up`, so that they read it
+/// alike: `--frames` alone is every frame, as `--frames all`.
+#[derive(Args, Clone, Copy)]
+pub struct FramesArg {
+    /// Frames A to B of an animated scene (A-B, K or all; `--frames` alone: all), as a
+    /// sequence: one file per frame, frame_0001.png, ..., into the directory -o
+    /// [default directory: the scene's file name without .json, here].
+    #[arg(long, value_name = "A-B", num_args = 0..=1, default_missing_value = "all",
+          value_parser = parse_frame_range)]
+    pub frames: Option<FrameRange>,
+}
+
 /// Reads `--frames`: `A-B`, `K` or `all`, frame numbers from 1.
 pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> {
     if text == "all" {
@@ -154,6 +167,20 @@ pub fn parse_frame_range(text: &str) -> std::result::Result<FrameRange, String> 
 pub fn parse_job_id(text: &str) -> Result<JobId, String> {
     text.trim().parse().map_err(|_| {
         "a job id is a whole number, as `tessera submit` and `tessera list` print it".to_owned()
+    })
+}
+
+/// A job's priority as `tessera priority` and `submit --priority` read it.
+pub fn parse_priority(text: &str) -> Result<i32, String> {
+    text.trim().parse().map_err(|_| {
+        "a priority is a whole number, higher runs first (for example 10 or -5)".to_owned()
+    })
+}
+
+/// A tile's number as `tessera requeue` reads it.
+pub fn parse_tile_number(text: &str) -> Result<u32, String> {
+    text.trim().parse().map_err(|_| {
+        "a tile number is a whole number from 0, as `tessera events` names the tiles".to_owned()
     })
 }
 
@@ -229,10 +256,25 @@ impl PeerArgs {
     }
 }
 
+impl PeerArgs {
+    /// The warning a token file open to other users deserves, if it is one.
+    pub fn token_file_warning(&self) -> Option<String> {
+        self.secret
+            .token_file
+            .as_deref()
+            .and_then(transport::exposed_token_file)
+    }
+}
+
 impl ClientArgs {
-    /// The coordinator the command talks to.
+    /// The coordinator the command talks to; a token file open to other users is
+    /// warned about on stderr.
     pub fn target(&self) -> Result<Endpoint> {
-        self.peer.endpoint()
+        let endpoint = self.peer.endpoint()?;
+        if let Some(warning) = self.peer.token_file_warning() {
+            eprintln!("warning: {warning}");
+        }
+        Ok(endpoint)
     }
 }
 

@@ -15,7 +15,7 @@ use render::{render_frame, RenderSettings, Sampling, Tracer, DEFAULT_TILE_SIZE};
 
 use crate::output::{FileOutput, ImageOutput};
 use crate::render_state;
-use crate::report::sampling_summary;
+use crate::report::{counted, sampling_summary};
 
 /// The progress bar appears only after this long, so quick renders stay quiet.
 const PROGRESS_DELAY: Duration = Duration::from_secs(1);
@@ -147,14 +147,14 @@ impl Job<'_> {
         self.output.write(&image.to_png())?;
         let secs = elapsed.as_secs_f64();
         eprintln!(
-            "{}: {}x{}, {}{note}, {:.3} s, {:.1} M rays/s ({} threads)",
+            "{}: {}x{}, {}{note}, {:.3} s, {:.1} M rays/s ({})",
             output.display(),
             settings.width,
             settings.height,
             sampling_summary(&settings, samples, error.is_finite().then_some(error)),
             secs,
             rays as f64 / secs.max(1e-9) / 1e6,
-            pool.current_num_threads(),
+            counted(pool.current_num_threads(), "thread"),
         );
         Ok(())
     }

@@ -52,14 +52,16 @@ enum Command {
     Simulate(commands::simulate::Args),
 }
 
-fn run(command: Command) -> Result<()> {
+/// Runs the subcommand; `print_config` (the daemons' effective settings) makes a
+/// daemon check its settings as its start would, and print them instead of starting.
+fn run(command: Command, print_config: Option<String>) -> Result<()> {
     match command {
         Command::Render(args) => commands::render::run(args),
         Command::Refine(args) => commands::refine::run(args),
         Command::Up(args) => commands::up::run(args),
         Command::Studio(args) => commands::studio::run(args),
-        Command::Coordinator(args) => commands::coordinator::run(args),
-        Command::Worker(args) => commands::worker::run(args),
+        Command::Coordinator(args) => commands::coordinator::run(args, print_config),
+        Command::Worker(args) => commands::worker::run(args, print_config),
         Command::Submit(args) => commands::submit::run(args),
         Command::Job(command) => command.run(),
         Command::Workers(args) => commands::workers::run(args),
@@ -92,20 +94,30 @@ fn main() -> ExitCode {
         Err(e) => e.exit(),
     };
     let parsed = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    let mut settings = None;
     if let Some((name, sub)) = matches.subcommand() {
-        if config::SECTIONS.contains(&name) && sub.get_flag("print_config") {
+        let print_config = config::SECTIONS.contains(&name) && sub.get_flag("print_config");
+        if !signals::keeps_running(name, print_config) {
+            signals::end_quietly_on_a_closed_pipe();
+        }
+        if print_config {
             let command = cli.find_subcommand(name).expect("parsed subcommands exist");
-            print!(
-                "{}",
-                config::describe(name, command, sub, &expanded.from_file)
-            );
-            return ExitCode::SUCCESS;
+            settings = Some(config::describe(name, command, sub, &expanded.from_file));
         }
     }
-    match run(parsed.command) {
+    let daemon = matches
+        .subcommand()
+        .is_some_and(|(name, _)| signals::keeps_running(name, false));
+    match run(parsed.command, settings) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            report_error(json, &format!("{e:#}"));
+            let unreachable = e.chain().any(|c| c.is::<transport::CannotReach>());
+            let hint = if unreachable && !daemon {
+                "; --coordinator ADDR or TESSERA_COORDINATOR chooses the coordinator"
+            } else {
+                ""
+            };
+            report_error(json, &format!("{e:#}{hint}"));
             match e.downcast_ref::<signals::Interrupted>() {
                 Some(signal) => ExitCode::from(signal.exit_code),
                 None => ExitCode::FAILURE,

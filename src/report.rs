@@ -7,6 +7,21 @@ use protocol::{FrameProgress, JobStatus, Sampling, Settings};
 use render::RenderSettings;
 use serde_json::{json, Value};
 
+/// A figure with its noun, singular for exactly one: `1 thread`, `4 threads`, `1
+/// sample/pixel`, `0.5 levels`. One helper for every figure printed, so that none says
+/// `1 threads`. `noun` is the singular; a noun with a `/` (`sample/pixel`) takes its
+/// plural before it.
+pub fn counted(figure: impl std::fmt::Display, noun: &str) -> String {
+    let figure = figure.to_string();
+    if figure == "1" {
+        return format!("1 {noun}");
+    }
+    match noun.split_once('/') {
+        Some((counted, per)) => format!("{figure} {counted}s/{per}"),
+        None => format!("{figure} {noun}s"),
+    }
+}
+
 /// What a render spent and how wrong it may be, for the summary lines of `render`,
 /// `up` and `submit --wait`: `4 samples/pixel (grid 2x2, 96000 in all), estimated
 /// error 0.842 levels`. The mean is exact for the grid and jittered samplers, a
@@ -24,8 +39,11 @@ pub fn sampling_summary(settings: &RenderSettings, samples: u64, error: Option<f
             format!("adaptive up to {n}x{n}, no target")
         }
         render::Sampling::Adaptive { .. } => format!(
-            "adaptive up to {n}x{n}, target {} levels",
-            settings.sampling.target_error().unwrap_or_default()
+            "adaptive up to {n}x{n}, target {}",
+            counted(
+                settings.sampling.target_error().unwrap_or_default(),
+                "level"
+            )
         ),
         other => format!("{} {n}x{n}", other.name()),
     };
@@ -34,7 +52,10 @@ pub fn sampling_summary(settings: &RenderSettings, samples: u64, error: Option<f
         None if n == 1 => "no error estimate from 1 sample/pixel".to_string(),
         None => "no error estimate".to_string(),
     };
-    format!("{mean} samples/pixel ({pattern}, {samples} in all), {error}")
+    format!(
+        "{} ({pattern}, {samples} in all), {error}",
+        counted(mean, "sample/pixel")
+    )
 }
 
 /// The one-line summary of a finished job: size, samples spent, estimated error, tiles,
@@ -59,12 +80,12 @@ pub fn summary(output: &Path, status: &JobStatus) -> String {
         (true, true) => "; as far as the time limit allowed",
     };
     format!(
-        "{}: {}x{}, {}{note}, {} tiles, rendered in {:.3} s{wait}, {:.1} M rays/s",
+        "{}: {}x{}, {}{note}, {}, rendered in {:.3} s{wait}, {:.1} M rays/s",
         output.display(),
         status.settings.width,
         status.settings.height,
         sampling_summary(&settings, status.samples, status.estimated_error),
-        status.tiles_total,
+        counted(status.tiles_total, "tile"),
         secs,
         status.rays as f64 / secs.max(1e-9) / 1e6
     )
@@ -215,6 +236,17 @@ pub fn utc(unix_ms: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_is_singular_and_every_other_figure_plural() {
+        assert_eq!(counted(1, "thread"), "1 thread");
+        assert_eq!(counted(2, "thread"), "2 threads");
+        assert_eq!(counted(0, "tile"), "0 tiles");
+        assert_eq!(counted(1.0, "level"), "1 level");
+        assert_eq!(counted(0.5, "level"), "0.5 levels");
+        assert_eq!(counted("1", "sample/pixel"), "1 sample/pixel");
+        assert_eq!(counted("1.50", "sample/pixel"), "1.50 samples/pixel");
+    }
 
     #[test]
     fn utc_times_are_the_calendar() {

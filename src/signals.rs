@@ -2,32 +2,70 @@
 //! run a farm on this machine (`up`, `studio`), which must stop it and remove its
 //! files before they exit; and for the daemons, the same or their parent gone. The
 //! coordinator takes SIGHUP as the daemons' usual request to reload ([`Hangups`]): its
-//! token files.
+//! token files. And SIGPIPE, which ends the short-lived commands whose output is closed
+//! ([`end_quietly_on_a_closed_pipe`]).
 
 use anyhow::{Context, Result};
 use tracing::info;
 
-/// `tessera up` stopped by a signal: the process exits with 128 + its number, as a
-/// shell reports a command killed by it, once the farm is stopped and its temporary
-/// directory removed.
+/// The subcommands that keep running, serving others: the daemons, and the commands
+/// that run a farm on this machine. They write to sockets and to their children's
+/// pipes, where a reader gone must stay an error they handle (`EPIPE`), never their
+/// death; `--print-config` only prints, then exits.
+pub fn keeps_running(subcommand: &str, print_config: bool) -> bool {
+    ["coordinator", "worker", "up", "studio"].contains(&subcommand) && !print_config
+}
+
+/// Lets SIGPIPE end the process, as it ends `ls` or `grep`: `tessera events 7 | head -1`
+/// stops quietly, with the shell's status for it (141), once `head` has its line.
+///
+/// Rust ignores SIGPIPE, so a write to a closed pipe fails, and `println!` panics on
+/// that failure (`failed printing to stdout: Broken pipe`, exit 101). Restoring the
+/// default action for the commands that are not [`keeps_running`] is one call for
+/// every `println!` of the binary, where routing stdout through a writer that exits on
+/// `BrokenPipe` would have to be kept up by each new line printed. These commands'
+/// sockets are untouched: the standard library sends on them with `MSG_NOSIGNAL`
+/// (`SO_NOSIGPIPE` on macOS), so a coordinator gone is still an error they report.
+pub fn end_quietly_on_a_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: `signal` only sets the disposition of SIGPIPE back to the default; it is
+    // called from `main` before the command starts any thread or installs any handler,
+    // and its failure (SIG_ERR) leaves the signal ignored, as it was.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
+/// A command stopped by a signal: the process exits with 128 + its number, as a
+/// shell reports a command killed by it, once the command has left things as its
+/// line says (`tessera up`: the farm stopped and its temporary directory removed;
+/// `submit --wait`: the job left running on the farm).
 #[derive(Debug)]
 pub struct Interrupted {
     pub name: &'static str,
     /// The exit status: 130 for SIGINT (Ctrl-C), 143 for SIGTERM, 129 for SIGHUP.
     pub exit_code: u8,
+    /// What the interruption leaves, said after its name.
+    left: String,
+}
+
+impl Interrupted {
+    /// The same signal, leaving what `left` says instead.
+    pub fn leaving(self, left: String) -> Interrupted {
+        Interrupted { left, ..self }
+    }
 }
 
 impl std::fmt::Display for Interrupted {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "interrupted by {}: the local farm is stopped, no image written",
-            self.name
-        )
+        write!(f, "interrupted by {}: {}", self.name, self.left)
     }
 }
 
 impl std::error::Error for Interrupted {}
+
+/// What an interrupted `tessera up` leaves.
+const LOCAL_FARM_STOPPED: &str = "the local farm is stopped, no image written";
 
 /// Ctrl-C, SIGTERM and SIGHUP, caught from their creation on.
 pub struct StopSignals {
@@ -43,7 +81,11 @@ impl StopSignals {
             let catch = |kind: SignalKind, name, exit_code| -> Result<_> {
                 Ok((
                     signal(kind).with_context(|| format!("cannot catch {name}"))?,
-                    Interrupted { name, exit_code },
+                    Interrupted {
+                        name,
+                        exit_code,
+                        left: String::new(),
+                    },
                 ))
             };
             Ok(StopSignals {
@@ -58,7 +100,8 @@ impl StopSignals {
         Ok(StopSignals {})
     }
 
-    /// The next signal caught.
+    /// The next signal caught, said of a local farm (`up`, `studio`); another command
+    /// says what it leaves with [`Interrupted::leaving`].
     pub async fn next(&mut self) -> Interrupted {
         #[cfg(unix)]
         {
@@ -72,6 +115,7 @@ impl StopSignals {
             Interrupted {
                 name: what.name,
                 exit_code: what.exit_code,
+                left: LOCAL_FARM_STOPPED.to_owned(),
             }
         }
         #[cfg(not(unix))]
@@ -80,6 +124,7 @@ impl StopSignals {
             Interrupted {
                 name: "Ctrl-C",
                 exit_code: 130,
+                left: LOCAL_FARM_STOPPED.to_owned(),
             }
         }
     }
@@ -152,5 +197,24 @@ pub async fn shutdown_signal(exit_on_stdin_eof: bool) {
         _ = tokio::signal::ctrl_c() => info!("interrupted"),
         () = terminate => info!("terminated"),
         () = stdin_closed => info!("parent gone"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_the_commands_that_print_and_exit_die_of_sigpipe() {
+        for daemon in ["coordinator", "worker", "up", "studio"] {
+            assert!(keeps_running(daemon, false), "{daemon}");
+        }
+        assert!(!keeps_running("coordinator", true));
+        assert!(!keeps_running("worker", true));
+        for client in [
+            "list", "events", "status", "submit", "render", "refine", "simulate",
+        ] {
+            assert!(!keeps_running(client, false), "{client}");
+        }
     }
 }

@@ -78,8 +78,15 @@ impl Config {
     /// On a loopback address only this machine's users can connect, so no token is
     /// needed there; elsewhere both roles need one, unless `insecure` accepts the
     /// roles without a token as they are. An HTTP address elsewhere needs the client
-    /// token (or `insecure`) and TLS (or `http_insecure`).
-    pub fn check_security(&self, insecure: bool, http_insecure: bool) -> Result<(), Unsafe> {
+    /// token (or `insecure`) and TLS (or `http_insecure`): `tls` says whether the
+    /// coordinator will serve it, since its certificate is read (or made) only once
+    /// these checks pass.
+    pub fn check_security(
+        &self,
+        insecure: bool,
+        http_insecure: bool,
+        tls: bool,
+    ) -> Result<(), Unsafe> {
         let (worker, client) = (&self.worker_secret, &self.client_secret);
         if worker.is_some() && worker == client {
             return Err(Unsafe::SameSecret);
@@ -95,7 +102,7 @@ impl Config {
             if client.is_none() && !insecure {
                 return Err(Unsafe::OpenHttp { http });
             }
-            if self.tls.is_none() && !http_insecure {
+            if !tls && !http_insecure {
                 return Err(Unsafe::PlainHttp { http });
             }
         }
@@ -130,11 +137,11 @@ mod tests {
     fn loopback_needs_no_token() {
         for listen in ["127.0.0.1:7878", "[::1]:0"] {
             assert_eq!(
-                config(listen, None, None).check_security(false, false),
+                config(listen, None, None).check_security(false, false, false),
                 Ok(())
             );
             assert_eq!(
-                config(listen, Some("w"), None).check_security(false, false),
+                config(listen, Some("w"), None).check_security(false, false, false),
                 Ok(())
             );
         }
@@ -144,7 +151,7 @@ mod tests {
     fn another_address_needs_both_tokens_or_insecure() {
         let error = |worker, client| {
             config("0.0.0.0:7878", worker, client)
-                .check_security(false, false)
+                .check_security(false, false, false)
                 .unwrap_err()
                 .to_string()
         };
@@ -158,43 +165,44 @@ mod tests {
         assert!(error(None, Some("c")).contains(" without a token for workers: "));
         assert!(error(Some("w"), None).contains(" without a token for clients: "));
         let both = config("10.1.2.3:7878", Some("w"), Some("c"));
-        assert_eq!(both.check_security(false, false), Ok(()));
+        assert_eq!(both.check_security(false, false, false), Ok(()));
         let open = config("0.0.0.0:7878", None, Some("c"));
-        assert_eq!(open.check_security(true, false), Ok(()));
+        assert_eq!(open.check_security(true, false, false), Ok(()));
     }
 
     #[test]
     fn an_http_side_others_reach_needs_the_client_token_and_tls() {
         let mut farm = config("10.1.2.3:7878", Some("w"), Some("c"));
         farm.http = Some("127.0.0.1:9090".parse().unwrap());
-        assert_eq!(farm.check_security(false, false), Ok(()));
+        assert_eq!(farm.check_security(false, false, false), Ok(()));
         let http: SocketAddr = "0.0.0.0:9090".parse().unwrap();
         farm.http = Some(http);
         assert_eq!(
-            farm.check_security(false, false),
+            farm.check_security(false, false, false),
             Err(Unsafe::PlainHttp { http })
         );
-        assert_eq!(farm.check_security(false, true), Ok(()));
+        assert_eq!(farm.check_security(false, true, false), Ok(()));
+        assert_eq!(farm.check_security(false, false, true), Ok(()));
         assert!(Unsafe::PlainHttp { http }
             .to_string()
             .starts_with("refusing to serve HTTP on 0.0.0.0:9090 without TLS: "));
         let mut open = config("127.0.0.1:7878", None, None);
         open.http = Some(http);
         assert_eq!(
-            open.check_security(false, true),
+            open.check_security(false, true, false),
             Err(Unsafe::OpenHttp { http })
         );
-        assert_eq!(open.check_security(true, true), Ok(()));
+        assert_eq!(open.check_security(true, true, false), Ok(()));
     }
 
     #[test]
     fn the_scrape_token_is_a_secret_of_its_own() {
         let mut farm = config("127.0.0.1:7878", Some("w"), Some("c"));
         farm.metrics_secret = Some(b"m".to_vec());
-        assert_eq!(farm.check_security(false, false), Ok(()));
+        assert_eq!(farm.check_security(false, false, false), Ok(()));
         farm.metrics_secret = Some(b"c".to_vec());
         assert_eq!(
-            farm.check_security(false, false),
+            farm.check_security(false, false, false),
             Err(Unsafe::ScrapeIsRoleSecret { role: "client" })
         );
     }
@@ -204,7 +212,7 @@ mod tests {
         for (listen, insecure) in [("127.0.0.1:7878", false), ("0.0.0.0:7878", true)] {
             let same = config(listen, Some("s"), Some("s"));
             assert_eq!(
-                same.check_security(insecure, false),
+                same.check_security(insecure, false, false),
                 Err(Unsafe::SameSecret)
             );
         }

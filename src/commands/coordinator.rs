@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
 use render::limits::MAX_AA;
-use tracing::{error, info};
+use tracing::{error, info, warn};
 use transport::ServerTls;
 
 use crate::args::DaemonArgs;
@@ -220,18 +220,20 @@ impl CoordinatorSecretArgs {
     }
 }
 
-pub fn run(args: Args) -> Result<()> {
+/// Starts the coordinator, or with `print_config` (the effective settings, as
+/// `--print-config` shows them) makes the start's checks and prints them instead.
+pub fn run(args: Args, print_config: Option<String>) -> Result<()> {
     args.daemon.init_logging();
-    super::block_on(coordinator(args))
+    super::block_on(coordinator(args, print_config))
 }
 
-async fn coordinator(a: Args) -> Result<()> {
-    let tls = ServerTls::from_settings(
-        a.tls_cert.as_deref().zip(a.tls_key.as_deref()),
-        a.tls_auto,
-        &a.data,
-    )?;
+async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
+    let pem = a.tls_cert.clone().zip(a.tls_key.clone());
+    let pem = pem
+        .as_ref()
+        .map(|(cert, key)| (cert.as_path(), key.as_path()));
     if a.print_fingerprint {
+        let tls = ServerTls::from_settings(pem, a.tls_auto, &a.data)?;
         let tls = tls.ok_or_else(|| {
             anyhow!(
                 "--print-fingerprint: this coordinator has no certificate: give \
@@ -242,6 +244,11 @@ async fn coordinator(a: Args) -> Result<()> {
         return Ok(());
     }
     let (worker_secret, client_secret) = a.secrets.load()?;
+    for file in [&a.secrets.worker_token_file, &a.secrets.client_token_file] {
+        if let Some(warning) = file.as_deref().and_then(transport::exposed_token_file) {
+            warn!("{warning}");
+        }
+    }
     let mut config = coordinator::Config {
         listen: a.listen,
         data: a.data,
@@ -252,7 +259,8 @@ async fn coordinator(a: Args) -> Result<()> {
         client_secret,
         metrics_secret: a.secrets.load_scrape()?,
         token_overlap: a.token_overlap,
-        tls,
+        // Set once the settings pass the checks: `--tls-auto` creates a certificate.
+        tls: None,
         policy: scheduler::Policy {
             heartbeat_timeout: a.heartbeat_timeout_ms,
             progress_timeout: a.progress_timeout_ms,
@@ -280,12 +288,19 @@ async fn coordinator(a: Args) -> Result<()> {
             .and_then(|path| path.file_name())
             .map(|name| name.to_string_lossy().into_owned()),
     };
-    config.check_security(a.insecure, a.http_insecure)?;
+    config.check_security(a.insecure, a.http_insecure, a.tls_auto || pem.is_some())?;
     config.studio_scene = a
         .studio_scene
         .as_deref()
         .map(read_checked_scene)
         .transpose()?;
+    // `--print-config` stops here, with the verdict of the start's checks: what
+    // follows creates files or binds.
+    if let Some(settings) = print_config {
+        print!("{settings}");
+        return Ok(());
+    }
+    config.tls = ServerTls::from_settings(pem, a.tls_auto, &config.data)?;
     serve(config, a.exit_on_stdin_eof, a.secrets).await
 }
 

@@ -11,9 +11,9 @@ use protocol::{JobId, JobState, JobStatus};
 use serde_json::{json, Value};
 use transport::Endpoint;
 
-use crate::args::{parse_job_id, ClientArgs};
+use crate::args::{parse_job_id, parse_priority, parse_tile_number, ClientArgs};
 use crate::output::{FramesDir, ImageOutput};
-use crate::report::{frames_summary, shown_state, status_json, utc};
+use crate::report::{counted, frames_summary, shown_state, status_json, utc};
 use crate::sequences::fetch_frames;
 
 /// The job commands, listed in `tessera --help` between `submit` and `workers`.
@@ -28,7 +28,7 @@ pub enum Command {
         common: ClientArgs,
     },
 
-    /// List the coordinator's jobs.
+    /// List the coordinator's jobs, newest first (as the status page does).
     List {
         #[command(flatten)]
         common: ClientArgs,
@@ -82,7 +82,7 @@ pub enum Command {
         #[arg(value_parser = parse_job_id)]
         job: JobId,
         /// The new priority: higher runs first.
-        #[arg(allow_negative_numbers = true)]
+        #[arg(allow_negative_numbers = true, value_parser = parse_priority)]
         priority: i32,
         #[command(flatten)]
         common: ClientArgs,
@@ -141,7 +141,7 @@ pub enum Command {
         #[arg(value_parser = parse_job_id)]
         job: JobId,
         /// The tiles' numbers (from 0, as the job's events name them).
-        #[arg(required = true, num_args = 1..)]
+        #[arg(required = true, num_args = 1.., value_parser = parse_tile_number)]
         tiles: Vec<u32>,
         #[command(flatten)]
         common: ClientArgs,
@@ -238,7 +238,8 @@ async fn run_status(coordinator: &Endpoint, job: JobId, json_out: bool) -> Resul
 /// `tessera list`: with `--json`, an array of jobs; the farm's warning (no worker can
 /// take tiles) is in each active job's `warning` field, and on stderr once otherwise.
 async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
-    let jobs = Client::connect(coordinator).await?.list().await?;
+    let mut jobs = Client::connect(coordinator).await?.list().await?;
+    newest_first(&mut jobs);
     if json_out {
         println!("{}", Value::Array(jobs.iter().map(status_json).collect()));
     } else if jobs.is_empty() {
@@ -250,6 +251,13 @@ async fn run_list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
         print!("{}", list_table(&jobs));
     }
     Ok(())
+}
+
+/// `tessera list`'s order, table and JSON alike: newest first, as the status page
+/// shows jobs, so that what was just submitted is at the top (ids grow with each
+/// submission).
+fn newest_first(jobs: &mut [JobStatus]) {
+    jobs.sort_by_key(|job| std::cmp::Reverse(job.id));
 }
 
 /// `tessera list`'s table: one row per job, columns aligned (`tessera status JOB`
@@ -521,7 +529,7 @@ fn status_line(s: &JobStatus) -> String {
         (None, k) => format!("frame {k}, "),
     };
     let mut line = format!(
-        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {} samples, {:.1} s",
+        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {}, {:.1} s",
         s.id,
         shown_state(s),
         s.tiles_done,
@@ -530,7 +538,7 @@ fn status_line(s: &JobStatus) -> String {
         s.settings.height,
         s.settings.aa,
         s.settings.sampling.name(),
-        s.samples,
+        counted(s.samples, "sample"),
         s.elapsed_ms as f64 / 1000.0
     );
     if let Some(q) = s.queued_ms {

@@ -6,10 +6,13 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, bail, Result};
 use protocol::JobId;
 use render::limits::MAX_AA;
-use render::{parse_scene, validate_settings, RenderSettings, Sampling, SamplingChoiceError};
+use render::progressive::Region;
+use render::{
+    parse_scene, validate_settings, Image, RenderSettings, Sampling, SamplingChoiceError, Tracer,
+};
 use serde_json::json;
 
 use crate::args::{limit_ms, ClientArgs};
@@ -103,11 +106,22 @@ fn refine_file(args: Args) -> Result<()> {
         sampling: target,
     };
     validate_settings(&settings, "").map_err(|e| anyhow!("command line: {e}"))?;
-    let output = ImageOutput::create(&args.output.clone().unwrap_or_else(|| {
-        let mut p = args.state.clone();
-        p.set_extension("png");
-        p
-    }))?;
+    let path = match &args.output {
+        Some(path) => path.clone(),
+        None => {
+            let path = args.state.with_extension("png");
+            if path.exists() && !is_image_of(&pool, &scene, &saved, &path)? {
+                bail!(
+                    "{path}: a file of that name exists, and it is not the image of {state}: \
+                     give -o {path} to replace it, or -o another name",
+                    path = path.display(),
+                    state = args.state.display()
+                );
+            }
+            path
+        }
+    };
+    let output = ImageOutput::create(&path)?;
     let job = Job {
         scene: &scene,
         text: Some(&saved.scene),
@@ -119,6 +133,45 @@ fn refine_file(args: Args) -> Result<()> {
         resume: Some((args.state.clone(), saved.blocks)),
     };
     job.run()
+}
+
+/// Whether the file at `path` is the image the render or refine that saved `saved`
+/// wrote (rendering is deterministic: its samples at its rung paint the same bytes).
+/// The name refine chooses by itself (the state's, with .png) replaces only that
+/// image, never another file that happens to have the name.
+fn is_image_of(
+    pool: &rayon::ThreadPool,
+    scene: &render::Scene,
+    saved: &render_state::Saved,
+    path: &Path,
+) -> Result<bool> {
+    let Ok(existing) = std::fs::read(path) else {
+        return Ok(false);
+    };
+    let settings = RenderSettings {
+        width: saved.width,
+        height: saved.height,
+        aa: saved.aa,
+        max_depth: saved.max_depth,
+        sampling: Sampling::Adaptive {
+            target_milli: saved.target_milli,
+        },
+    };
+    let png = pool.install(|| -> Option<Vec<u8>> {
+        let tracer = Tracer::new(scene, settings);
+        let full = render::Rect {
+            x: 0,
+            y: 0,
+            width: saved.width,
+            height: saved.height,
+        };
+        let footprints = Region::footprints(&tracer);
+        let region = Region::new(&tracer, footprints, full, Some(saved.blocks.clone())).ok()?;
+        let mut image = Image::black(saved.width, saved.height);
+        region.paint(saved.rung, &mut image);
+        Some(image.to_png())
+    });
+    Ok(png.is_some_and(|png| png == existing))
 }
 
 /// `tessera refine JOB`: a new job going on from a finished adaptive job's samples;

@@ -11,7 +11,7 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Context, Result};
 use render::{parse_animated, validate_settings, AnimatedScene, RenderSettings};
 
-use crate::args::{parse_frame_range, FrameRange, ImageArgs};
+use crate::args::{FrameRange, FramesArg, ImageArgs};
 use crate::config;
 use crate::local_render::{thread_pool, Job};
 use crate::output::{default_output, FileOutput, FramesDir, ImageOutput};
@@ -56,18 +56,14 @@ pub struct Args {
     /// without animation has frame 1 only) [default: 1].
     #[arg(long, value_name = "K", value_parser = clap::value_parser!(u64).range(1..), conflicts_with = "frames")]
     frame: Option<u64>,
-    /// Render frames A to B of an animated scene (A-B, K or all; alone: all) into the
-    /// directory given by -o, as frame_0001.png, ... [default directory: the scene's
-    /// file name without .json, here].
-    #[arg(long, value_name = "A-B", num_args = 0..=1, default_missing_value = "all",
-          value_parser = parse_frame_range)]
-    frames: Option<FrameRange>,
+    #[command(flatten)]
+    frames: FramesArg,
 }
 
 pub fn run(args: Args) -> Result<()> {
     let sampling = args.image.sampling(args.time_limit)?;
     let scene_path = &args.scene;
-    if args.state.is_some() && (args.frame.is_some() || args.frames.is_some()) {
+    if args.state.is_some() && (args.frame.is_some() || args.frames.frames.is_some()) {
         bail!("--state saves one render of a scene's frame 1: it cannot be used with --frame or --frames");
     }
     // The pool renders, and reads a large scene's file and objects first.
@@ -94,7 +90,7 @@ pub fn run(args: Args) -> Result<()> {
     if args.state.is_some() && settings.sampling.target_error().is_none() {
         bail!("--state saves the samples of adaptive sampling: add --sampler adaptive");
     }
-    if let Some(range) = args.frames {
+    if let Some(range) = args.frames.frames {
         return run_sequence(&args, &animated, range, settings, pool);
     }
     let frame = args.frame.unwrap_or(1);

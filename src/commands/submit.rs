@@ -10,13 +10,14 @@ use anyhow::Result;
 use protocol::{JobId, Verification};
 use serde_json::json;
 
-use crate::args::{parse_frame_range, ClientArgs, FrameRange, ImageArgs};
+use crate::args::{parse_priority, ClientArgs, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, status_json, summary};
 use crate::scene_file::read_scene;
 use crate::sequences::wait_sequence;
 use crate::session::{naming_job, wait_and_fetch, Session};
+use crate::signals::StopSignals;
 use crate::submission::{choose_frames, submit, JobChoices, Label};
 
 /// Submit a scene to a coordinator; print the job id, or with --wait, write the image.
@@ -33,12 +34,9 @@ pub struct Args {
     #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(1..),
           conflicts_with = "frames")]
     frame: Option<u32>,
-    /// Render frames A to B of an animated scene as one sequence job (A-B, K or all)
-    /// [default: every frame of an animated scene]. With --wait, the frames are
-    /// written into the directory -o as they are done, as `tessera render --frames`
-    /// writes them.
-    #[arg(long, value_name = "RANGE", value_parser = parse_frame_range)]
-    frames: Option<FrameRange>,
+    // One sequence job; without --frame or --frames, an animated scene's every frame.
+    #[command(flatten)]
+    frames: FramesArg,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m) of the farm's rendering:
@@ -50,7 +48,7 @@ pub struct Args {
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(8..=512))]
     tile: Option<u32>,
     /// Priority: higher runs first; equal priorities share the farm.
-    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = parse_priority)]
     priority: i32,
     /// How results are checked. `sampled`: 16 pixels of every tile rendered again by
     /// the coordinator, and 1 % of the tiles by a second machine; it catches a tile
@@ -102,7 +100,7 @@ pub fn run(args: Args) -> Result<()> {
 
 async fn submit_and_follow(args: Args) -> Result<()> {
     let text = read_scene(&args.scene)?;
-    let frames = choose_frames(&text, args.frame, args.frames)?;
+    let frames = choose_frames(&text, args.frame, args.frames.frames)?;
     let coordinator = args.common.target()?;
     let (overrides, time_limit_ms) = args.image.farm_job(args.tile, args.time_limit)?;
     let choices = JobChoices {
@@ -124,19 +122,38 @@ async fn submit_and_follow(args: Args) -> Result<()> {
     } else {
         None
     };
+    // With --wait, caught from before the submission: a Ctrl-C then is answered once
+    // the job's id is known, with what to do about the job.
+    let mut stop = match output {
+        Some(_) => Some(StopSignals::new()?),
+        None => None,
+    };
     let mut session = Session::connect(&coordinator).await?;
     let job = submit(session.client(), &args.scene, choices).await?;
-    let Some(output) = output else {
+    let (Some(output), Some(stop)) = (output, stop.as_mut()) else {
         print_submitted(job, json_out);
         return Ok(());
     };
     eprintln!("submitted job {job}");
     let output_path = output.path().to_path_buf();
-    let status = match output {
-        JobOutput::Image(image) => wait_and_fetch(&mut session, job, image).await?,
-        JobOutput::Frames(dir) => wait_sequence(&mut session, job, Some(&dir))
-            .await
-            .map_err(|e| naming_job(job, e))?,
+    let waiting = async {
+        match output {
+            JobOutput::Image(image) => wait_and_fetch(&mut session, job, image).await,
+            JobOutput::Frames(dir) => wait_sequence(&mut session, job, Some(&dir))
+                .await
+                .map_err(|e| naming_job(job, e)),
+        }
+    };
+    // Stopping the wait does not stop the job: the line says so, and how to follow or
+    // cancel it.
+    let status = tokio::select! {
+        status = waiting => status?,
+        signal = stop.next() => return Err(signal
+            .leaving(format!(
+                "job {job} keeps running on the farm: `tessera status {job}` follows it, \
+                 `tessera cancel {job}` cancels it"
+            ))
+            .into()),
     };
     if json_out {
         let mut v = status_json(&status);

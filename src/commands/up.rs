@@ -12,10 +12,10 @@ use anyhow::{Context, Result};
 use localfarm::{up_limits, LocalFarm, WorkerSpec};
 use transport::Endpoint;
 
-use crate::args::{parse_frame_range, threads_per_worker, FrameRange, ImageArgs};
+use crate::args::{threads_per_worker, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
-use crate::report::{sequence_summary, summary};
+use crate::report::{counted, sequence_summary, summary};
 use crate::scene_file::read_scene;
 use crate::sequences::wait_sequence;
 use crate::session::{wait, Session};
@@ -42,10 +42,8 @@ pub struct Args {
     /// --frames, the directory of the frames [default: the scene's file name].
     #[arg(short, long, value_name = "OUT.png|DIR")]
     output: Option<PathBuf>,
-    /// Render frames A to B of an animated scene (A-B, K or all) as one sequence job,
-    /// written into the directory -o as they are done.
-    #[arg(long, value_name = "RANGE", value_parser = parse_frame_range)]
-    frames: Option<FrameRange>,
+    #[command(flatten)]
+    frames: FramesArg,
     #[command(flatten)]
     image: ImageArgs,
     /// Adaptive sampling for about this long (500ms, 30s, 2m): the job stops at the
@@ -70,7 +68,11 @@ async fn up(args: Args) -> Result<()> {
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
     let text = read_scene(&args.scene)?;
-    let frames = choose_frames(&text, args.frames.is_none().then_some(1), args.frames)?;
+    let frames = choose_frames(
+        &text,
+        args.frames.frames.is_none().then_some(1),
+        args.frames.frames,
+    )?;
     let output = JobOutput::create(frames.frames.is_some(), args.output, &args.scene)?;
     let job = JobChoices {
         overrides,
@@ -124,9 +126,9 @@ async fn render_on(
         JobOutput::Frames(dir) => {
             let status = wait_sequence(&mut session, job, Some(&dir)).await?;
             eprintln!(
-                "{} ({} workers)",
+                "{} ({})",
                 sequence_summary(dir.path(), &status),
-                workers
+                counted(workers, "worker")
             );
             return Ok(());
         }
@@ -136,6 +138,10 @@ async fn render_on(
     // The farm and its copy of the image go with this command: no `tessera fetch`.
     let png = session.fetch(job).await?;
     output.write(&png)?;
-    eprintln!("{} ({} workers)", summary(&path, &status), workers);
+    eprintln!(
+        "{} ({})",
+        summary(&path, &status),
+        counted(workers, "worker")
+    );
     Ok(())
 }

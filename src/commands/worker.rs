@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::args::{DaemonArgs, PeerArgs};
 use crate::signals::shutdown_signal;
@@ -30,15 +30,25 @@ pub struct Args {
     exit_on_stdin_eof: bool,
 }
 
-pub fn run(args: Args) -> Result<()> {
+/// Starts the worker, or with `print_config` (the effective settings, as
+/// `--print-config` shows them) makes the start's checks and prints them instead.
+pub fn run(args: Args, print_config: Option<String>) -> Result<()> {
     args.daemon.init_logging();
-    super::block_on(work(args))
+    super::block_on(work(args, print_config))
 }
 
 /// Serves health on `--http` (ready while connected and taking tiles, for supervisors)
 /// and renders until a signal, a drain, or with `--exit-on-stdin-eof` its parent gone.
-async fn work(a: Args) -> Result<()> {
+async fn work(a: Args, print_config: Option<String>) -> Result<()> {
     let coordinator = a.peer.endpoint()?;
+    if let Some(warning) = a.peer.token_file_warning() {
+        warn!("{warning}");
+    }
+    // `--print-config` stops here, with the verdict of the start's checks.
+    if let Some(settings) = print_config {
+        print!("{settings}");
+        return Ok(());
+    }
     let threads = a.threads.map_or_else(
         || std::thread::available_parallelism().map_or(1, |n| n.get()),
         |n| n as usize,

@@ -8,6 +8,7 @@ use serde_json::{json, Value};
 use transport::Endpoint;
 
 use crate::args::ClientArgs;
+use crate::report::counted;
 
 /// List the workers connected to the coordinator, with their throughput; or drain,
 /// disable or enable one.
@@ -101,14 +102,14 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             // workers whose token file is still to be replaced.
             let key = w.key.map_or(String::new(), |k| format!(", key {k}"));
             println!(
-                "worker {} {} on {}: {} threads, {}/{} tiles in flight, {} tiles done, {:.1} M rays/s{rtt}, build {}{key}{state}",
+                "worker {} {} on {}: {}, {}/{} tiles in flight, {} done, {:.1} M rays/s{rtt}, build {}{key}{state}",
                 w.id,
                 w.name,
                 w.host,
-                w.threads,
+                counted(w.threads, "thread"),
                 w.tiles_in_flight,
                 w.credit,
-                w.tiles_done,
+                counted(w.tiles_done, "tile"),
                 w.rays_per_second / 1e6,
                 w.build,
             );

@@ -175,7 +175,7 @@ fn farm_jobs_with_each_sampler_equal_local_renders() {
     assert!(summary_error(&line) > 0.0, "{line}");
     let (_, line) = render(dir, &seed, "grid1.png", SIZE);
     assert!(
-        line.contains("1 samples/pixel (grid 1x1, 19200 in all)"),
+        line.contains("1 sample/pixel (grid 1x1, 19200 in all)"),
         "{line}"
     );
     assert!(line.contains("no error estimate"), "{line}");
@@ -214,7 +214,7 @@ fn up_with_adaptive_sampling_equals_the_local_render() {
     let line = summary_line(&run);
     assert!(line.contains("(2 workers)"), "{line}");
     assert!(
-        line.contains("adaptive up to 4x4, target 1 levels"),
+        line.contains("adaptive up to 4x4, target 1 level"),
         "{line}"
     );
     assert_eq!(summary_samples(&line), summary_samples(&local), "{line}");
@@ -313,10 +313,6 @@ fn bad_sampler_flags_are_one_line_errors_before_anything_runs() {
         (
             &["--sampler", "adaptive"],
             "error: --sampler adaptive needs --target-error LEVELS",
-        ),
-        (
-            &["--target-error", "1"],
-            "error: --target-error applies only to --sampler adaptive",
         ),
         (
             &["--sampler", "jittered", "--target-error", "1"],
@@ -450,4 +446,32 @@ fn adaptive_jobs_give_the_same_bytes_with_any_workers_tiles_and_losses() {
         line.contains("tile: adaptive sampling needs tiles cut on its 8-pixel blocks: a multiple of 8 up to 256, got 20"),
         "{line}"
     );
+}
+
+#[test]
+fn a_target_error_alone_chooses_adaptive_sampling_everywhere() {
+    let _turn = shared();
+    let tmp = TempDir::new().unwrap();
+    let dir = tmp.path();
+    let seed = scene_path("seed.json");
+    let run = |command: &str, flags: &[&str], out: &str| {
+        let mut all = vec![command, seed.as_str(), "-o", out];
+        all.extend(SIZE);
+        all.extend(["--aa", "4"]);
+        all.extend(flags);
+        if command == "up" {
+            all.extend(["--workers", "1"]);
+        }
+        ok(tessera(dir, &all, RUN_TIMEOUT), &all.join(" "));
+        std::fs::read(dir.join(out)).unwrap()
+    };
+    let named = run(
+        "render",
+        &["--sampler", "adaptive", "--target-error", "1"],
+        "named.png",
+    );
+    for command in ["render", "up"] {
+        let alone = run(command, &["--target-error", "1"], &format!("{command}.png"));
+        assert!(alone == named, "{command} --target-error 1 alone differs");
+    }
 }

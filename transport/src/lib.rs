@@ -35,7 +35,7 @@ mod address;
 mod secret;
 
 pub use address::{parse_address, AddressError, DEFAULT_ADDRESS, DEFAULT_PORT};
-pub use secret::{load_secret, SecretError, TokenSource};
+pub use secret::{exposed_token_file, load_secret, SecretError, TokenSource};
 
 /// Anything the protocol can run over.
 pub trait Io: AsyncRead + AsyncWrite + Unpin + Send {}
@@ -671,6 +671,16 @@ impl DialError {
     }
 }
 
+/// No connection to the coordinator's address at all (refused, no route, no such
+/// host): a type of its own, so that a command can add how its address is chosen.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot reach the coordinator at {address}")]
+pub struct CannotReach {
+    pub address: String,
+    #[source]
+    pub source: std::io::Error,
+}
+
 /// A handshaken connection, ready for the role's message codec.
 pub type Handshaken = Framed<Stream, LengthDelimitedCodec>;
 
@@ -721,10 +731,12 @@ async fn dial_now(
             anyhow::Error::from(e).context(format!("cannot talk to the coordinator at {address}")),
         )
     };
-    let tcp = TcpStream::connect(address)
-        .await
-        .with_context(|| format!("cannot reach the coordinator at {address}"))
-        .map_err(unreachable)?;
+    let tcp = TcpStream::connect(address).await.map_err(|source| {
+        unreachable(anyhow::Error::new(CannotReach {
+            address: address.clone(),
+            source,
+        }))
+    })?;
     tcp.set_nodelay(true).map_err(talk)?;
     let stream: Stream = match &endpoint.tls {
         Some(tls) => tls.connect(address, tcp).await?,

@@ -49,6 +49,36 @@ pub fn load_secret(file: Option<&Path>, variable: &str) -> Result<Option<Vec<u8>
     Ok(Some(secret.as_bytes().to_vec()))
 }
 
+/// The warning a token file deserves when users other than its owner may read or
+/// write it (a secret left at the usual 0644), naming the file and the fix; `None`
+/// when it is private, or its mode cannot be read (the read itself reports that).
+pub fn exposed_token_file(path: &Path) -> Option<String> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(path).ok()?.permissions().mode();
+        exposure_warning(path, mode)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = path;
+        None
+    }
+}
+
+/// [`exposed_token_file`] for a file of permission bits `mode`.
+#[cfg_attr(not(unix), expect(dead_code, reason = "only Unix has permission bits"))]
+fn exposure_warning(path: &Path, mode: u32) -> Option<String> {
+    (mode & 0o077 != 0).then(|| {
+        format!(
+            "the token file {path} is open to other users (mode {mode:04o}): `chmod 600 \
+             {path}` keeps it to its owner",
+            path = path.display(),
+            mode = mode & 0o7777
+        )
+    })
+}
+
 /// Where a peer's token comes from, read at every connection ([`TokenSource::load`]).
 #[derive(Clone, Default)]
 pub enum TokenSource {
@@ -99,6 +129,22 @@ impl std::fmt::Debug for TokenSource {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_token_file_open_to_others_is_warned_about() {
+        let path = Path::new("/etc/tessera/token");
+        assert_eq!(exposure_warning(path, 0o100600), None);
+        assert_eq!(exposure_warning(path, 0o100400), None);
+        assert_eq!(
+            exposure_warning(path, 0o100644).as_deref(),
+            Some(
+                "the token file /etc/tessera/token is open to other users (mode 0644): \
+                 `chmod 600 /etc/tessera/token` keeps it to its owner"
+            )
+        );
+        assert!(exposure_warning(path, 0o100640).is_some());
+        assert!(exposure_warning(path, 0o100602).is_some());
+    }
 
     #[test]
     fn a_token_file_is_read_again_at_every_load() {

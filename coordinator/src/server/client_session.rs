@@ -144,10 +144,18 @@ pub(crate) async fn respond(
         ClientRequest::Requeue { job, .. } | ClientRequest::Refine { job, .. }
             if sh.lock().sequences.contains_key(&job) =>
         {
+            // The frames' jobs, which `tessera list` does not show, named here.
+            let frames = sh
+                .lock()
+                .sequences
+                .get(&job)
+                .map(|r| super::core::frame_jobs(&r.frames))
+                .unwrap_or_default();
             ClientResponse::Error {
                 message: format!(
-                    "job {job} is a sequence: requeue or refine one of its frames' jobs, or \
-                     requeue a frame (`tessera retry {job} --frame K`)"
+                    "job {job} is a sequence: each of its frames is a job of its own \
+                     ({frames}); requeue or refine one of those, or requeue a frame \
+                     (`tessera retry {job} --frame K`)"
                 ),
             }
         }
@@ -413,7 +421,7 @@ async fn refine(
             priority,
             verification,
             time_limit_ms,
-            name: format!("{name} (refined)"),
+            name: refined_name(&name),
             submitter,
             frame,
             frames: None,
@@ -891,5 +899,41 @@ async fn serve_image(
 fn unknown_job(job: JobId) -> ClientResponse {
     ClientResponse::Error {
         message: format!("no job {job} on this coordinator"),
+    }
+}
+
+/// The name of a refined job: `seed (refined)`, then `seed (refined 2)`, `seed (refined
+/// 3)`... rather than a suffix stacked at every refine.
+fn refined_name(name: &str) -> String {
+    let count = |inner: &str| -> Option<u32> {
+        match inner.strip_prefix("refined") {
+            Some("") => Some(1),
+            Some(n) => n.strip_prefix(' ')?.parse().ok().filter(|&n| n >= 2),
+            None => None,
+        }
+    };
+    let stem = name.strip_suffix(')').and_then(|rest| {
+        let open = rest.rfind(" (")?;
+        count(&rest[open + 2..]).map(|n| (&rest[..open], n))
+    });
+    match stem {
+        Some((base, n)) => format!("{base} (refined {})", n + 1),
+        None => format!("{name} (refined)"),
+    }
+}
+
+#[cfg(test)]
+mod refined_name_tests {
+    use super::*;
+
+    #[test]
+    fn a_refined_name_counts_its_refines() {
+        assert_eq!(refined_name("seed"), "seed (refined)");
+        assert_eq!(refined_name("seed (refined)"), "seed (refined 2)");
+        assert_eq!(refined_name("seed (refined 2)"), "seed (refined 3)");
+        assert_eq!(refined_name("seed (refined 9)"), "seed (refined 10)");
+        assert_eq!(refined_name("a (b)"), "a (b) (refined)");
+        assert_eq!(refined_name("x (refined 1)"), "x (refined 1) (refined)");
+        assert_eq!(refined_name("(refined)"), "(refined) (refined)");
     }
 }

@@ -31,6 +31,8 @@ use crate::tiling;
 mod figures;
 mod names;
 mod sequences;
+
+pub(super) use sequences::frame_jobs;
 pub use sequences::SequenceRecord;
 
 /// The state machines and their data.
@@ -2505,10 +2507,7 @@ impl Core {
             Phase::Finishing { .. } => Err(format!(
                 "job {id} cannot be {verb}: all its tiles are in and its image is being stored"
             )),
-            Phase::Ended { state, .. } => Err(format!(
-                "job {id} cannot be {verb}: it is {}, only a queued or running job can be",
-                state.as_str()
-            )),
+            Phase::Ended { state, .. } => Err(ended_refusal(id, verb, *state)),
         }
     }
 
@@ -2934,9 +2933,53 @@ fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// Why a job that has ended (`state`) cannot be `verb` (paused, resumed, ...): what
+/// would be accepted instead, and for a failed or cancelled job the command that puts
+/// it back in the queue, since resuming it is the usual mistake.
+pub(super) fn ended_refusal(id: JobId, verb: &str, state: JobState) -> String {
+    let accepted = if verb == "resumed" {
+        "only a paused job can be"
+    } else {
+        "only a queued or running job can be"
+    };
+    let mut refusal = format!(
+        "job {id} cannot be {verb}: it is {}, {accepted}",
+        state.as_str()
+    );
+    if matches!(state, JobState::Failed | JobState::Cancelled) {
+        refusal.push_str(&format!(
+            " (`tessera retry {id}` puts it back in the queue)"
+        ));
+    }
+    refusal
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_ended_job_refused_says_what_is_accepted_and_how_to_retry_it() {
+        assert_eq!(
+            ended_refusal(5, "resumed", JobState::Cancelled),
+            "job 5 cannot be resumed: it is cancelled, only a paused job can be \
+             (`tessera retry 5` puts it back in the queue)"
+        );
+        assert_eq!(
+            ended_refusal(5, "paused", JobState::Failed),
+            "job 5 cannot be paused: it is failed, only a queued or running job can be \
+             (`tessera retry 5` puts it back in the queue)"
+        );
+        assert_eq!(
+            ended_refusal(5, "given a new priority", JobState::Done),
+            "job 5 cannot be given a new priority: it is done, only a queued or running \
+             job can be"
+        );
+        assert_eq!(
+            ended_refusal(5, "resumed", JobState::Done),
+            "job 5 cannot be resumed: it is done, only a paused job can be"
+        );
+    }
 
     #[test]
     fn a_workers_compressed_pixels_are_stored_as_sent_unless_padded() {

@@ -29,7 +29,7 @@ pub enum SamplingChoiceError {
          in 8-bit levels, for example 1)"
     )]
     NoTarget,
-    /// Only adaptive sampling aims for an error.
+    /// Only adaptive sampling aims for an error: a target with another sampler named.
     #[error("--target-error applies only to --sampler adaptive")]
     TargetWithoutAdaptive,
     /// Only adaptive sampling can stop early.
@@ -42,11 +42,13 @@ impl Sampling {
     /// (`time_limited`) ask for; `None` when nothing is asked, which is the grid (a
     /// scene file never chooses a sampler).
     ///
-    /// Adaptive sampling needs a target, and only it takes one. A time limit asks for
-    /// adaptive sampling: alone, or with `--sampler adaptive` and no target, to the
-    /// smallest target there is, so that the time decides; with a target and no
-    /// sampler named, to that target or the limit, whichever comes first. A time limit
-    /// with a sampler named in any other way is refused.
+    /// Adaptive sampling needs a target, and only it takes one. A target alone asks
+    /// for adaptive sampling, as a time limit does (the two flags that only adaptive
+    /// sampling takes each imply it). A time limit asks for adaptive sampling: alone,
+    /// or with `--sampler adaptive` and no target, to the smallest target there is, so
+    /// that the time decides; with a target and no sampler named, to that target or
+    /// the limit, whichever comes first. A target or a time limit with a sampler named
+    /// in any other way is refused.
     pub fn choose(
         sampler: Option<Sampler>,
         target_error: Option<f64>,
@@ -62,7 +64,7 @@ impl Sampling {
             };
         }
         match (sampler, target_error) {
-            (Some(Sampler::Adaptive), Some(levels)) => Sampling::adaptive(levels)
+            (None | Some(Sampler::Adaptive), Some(levels)) => Sampling::adaptive(levels)
                 .map(Some)
                 .map_err(SamplingChoiceError::Target),
             (Some(Sampler::Adaptive), None) => Err(SamplingChoiceError::NoTarget),
@@ -115,7 +117,9 @@ mod tests {
 
     #[test]
     fn a_target_is_for_adaptive_sampling_only_and_in_range() {
-        for sampler in [None, Some(Grid), Some(Jittered)] {
+        // A target alone implies adaptive sampling.
+        assert_eq!(Sampling::choose(None, Some(1.0), false), Ok(adaptive(1000)));
+        for sampler in [Some(Grid), Some(Jittered)] {
             assert_eq!(
                 Sampling::choose(sampler, Some(1.0), false),
                 Err(SamplingChoiceError::TargetWithoutAdaptive)

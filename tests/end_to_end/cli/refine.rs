@@ -233,3 +233,56 @@ fn a_refine_stopped_at_the_cap_says_how_many_pixels_are_at_it() {
         "{line}"
     );
 }
+
+#[test]
+fn refine_replaces_by_default_only_the_image_of_its_state() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = scene_path("seed.json");
+    // `render` writes ./seed.png, the image of seed.state.
+    succeeds(
+        d,
+        &[
+            "render",
+            &scene,
+            "--width",
+            "96",
+            "--height",
+            "64",
+            "--sampler",
+            "adaptive",
+            "--aa",
+            "8",
+            "--target-error",
+            "4",
+            "--state",
+            "seed.state",
+        ],
+    );
+    // Refining replaces it, again and again: each time the image of the state.
+    succeeds(d, &["refine", "seed.state", "--target-error", "2"]);
+    succeeds(d, &["refine", "seed.state", "--target-error", "1"]);
+
+    // Another file under that name is left alone unless named with -o.
+    let other = b"another image".to_vec();
+    std::fs::write(d.join("seed.png"), &other).unwrap();
+    assert_eq!(
+        one_error(d, &["refine", "seed.state", "--target-error", "0.8"]),
+        "error: seed.png: a file of that name exists, and it is not the image of seed.state: \
+         give -o seed.png to replace it, or -o another name"
+    );
+    assert!(bytes(d, "seed.png") == other, "seed.png left as it was");
+    succeeds(
+        d,
+        &[
+            "refine",
+            "seed.state",
+            "--target-error",
+            "0.8",
+            "-o",
+            "seed.png",
+        ],
+    );
+    assert!(bytes(d, "seed.png") != other, "seed.png replaced");
+}

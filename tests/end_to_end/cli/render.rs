@@ -13,7 +13,7 @@ use std::time::Duration;
 use render::limits::{MAX_AA, MAX_SIDE};
 use tempfile::TempDir;
 
-use crate::support::{decode_rgb8, entries, scene_path, shared, tessera, Daemon, Run, BIN};
+use crate::support::{decode_rgb8, entries, ok, scene_path, shared, tessera, Daemon, Run, BIN};
 
 /// Every render here is tiny; a run this long means the binary hangs.
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -48,8 +48,13 @@ fn assert_rendered(run: &Run, width: u32, height: u32, samples: u32) {
         summary.contains(&format!("{width}x{height}")),
         "size missing from {summary:?}"
     );
+    // One sample is said in the singular.
+    let per_pixel = match samples {
+        1 => "1 sample/pixel".to_owned(),
+        n => format!("{n} samples/pixel"),
+    };
     assert!(
-        summary.contains(&format!("{samples} samples")),
+        summary.contains(&per_pixel),
         "samples per pixel missing from {summary:?}"
     );
 }
@@ -624,4 +629,54 @@ fn an_interrupted_render_leaves_nothing_behind() {
         .expect("render did not stop on SIGINT");
     assert!(!status.success());
     assert_eq!(entries(dir.path()), [SCENE]);
+}
+
+#[test]
+fn one_of_anything_is_said_in_the_singular() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let seed = scene_path("seed.json");
+    let small = ["--width", "16", "--height", "16", "--aa", "1"];
+    let line = |args: &[&str]| {
+        let mut all = args.to_vec();
+        all.extend(small);
+        let run = ok(tessera(d, &all, Duration::from_secs(60)), &all.join(" "));
+        run.stderr.lines().last().unwrap_or_default().to_owned()
+    };
+    let grid = line(&["render", &seed, "-o", "grid.png", "--threads", "1"]);
+    assert!(
+        grid.contains(": 16x16, 1 sample/pixel (grid 1x1, 256 in all),")
+            && grid.ends_with("(1 thread)"),
+        "{grid}"
+    );
+    let adaptive = line(&[
+        "render",
+        &seed,
+        "-o",
+        "a.png",
+        "--threads",
+        "1",
+        "--target-error",
+        "1",
+    ]);
+    assert!(
+        adaptive.contains("adaptive up to 1x1, target 1 level,")
+            && adaptive.contains("every pixel at its cap of 1 sample,"),
+        "{adaptive}"
+    );
+    let up = line(&[
+        "up",
+        &seed,
+        "-o",
+        "up.png",
+        "--workers",
+        "1",
+        "--tile",
+        "16",
+    ]);
+    assert!(
+        up.contains(", 1 tile, rendered in") && up.ends_with("(1 worker)"),
+        "{up}"
+    );
 }

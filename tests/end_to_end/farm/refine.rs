@@ -309,3 +309,41 @@ fn a_farm_job_with_a_time_limit_says_the_limit_stopped_it() {
     );
     one_error_line(&run, "a time limit on a grid job");
 }
+
+#[test]
+fn a_job_refined_again_counts_its_refines_in_its_name() {
+    let _turn = shared();
+    let tmp = TempDir::new().unwrap();
+    let dir = tmp.path();
+    let (_coordinator, addr) = start_coordinator(
+        dir,
+        &dir.join("data"),
+        "127.0.0.1:0",
+        &[],
+        "coordinator.log",
+    );
+    let _worker = start_worker(dir, &addr, "a");
+    let seed = scene_path("seed.json");
+    let flags = [SIZE, TILE, &["--aa", "4", "--target-error", "4"]].concat();
+    let mut job = submit(dir, &addr, &[&[seed.as_str()][..], &flags].concat());
+    wait_done(dir, &addr, job, JOB_TIMEOUT);
+    let mut names = Vec::new();
+    for target in ["2", "1"] {
+        let run = ok(
+            client(
+                dir,
+                &addr,
+                &["refine", &job.to_string(), "--target-error", target],
+            ),
+            "refine",
+        );
+        job = run
+            .stdout
+            .trim()
+            .parse()
+            .expect("refine prints the new job's id");
+        let status = wait_done(dir, &addr, job, JOB_TIMEOUT);
+        names.push(status["name"].as_str().unwrap_or_default().to_owned());
+    }
+    assert_eq!(names, ["seed (refined)", "seed (refined 2)"]);
+}

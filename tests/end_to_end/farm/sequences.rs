@@ -24,10 +24,10 @@ use tempfile::TempDir;
 
 use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::{
-    client, exclusive, ok, orbit, path_str, poll, restart_coordinator, scene_path, shared,
-    start_coordinator, start_coordinator_in, start_restartable_coordinator, start_slow_worker,
-    start_slow_workers, start_worker, submit, tessera, try_status, wait_for_workers, Daemon,
-    REGISTER_TIMEOUT,
+    client, entries, exclusive, ok, one_error_line, orbit, path_str, poll, restart_coordinator,
+    scene_path, shared, start_coordinator, start_coordinator_in, start_restartable_coordinator,
+    start_slow_worker, start_slow_workers, start_worker, status_json, submit, tessera, try_status,
+    wait_for_workers, Daemon, REGISTER_TIMEOUT,
 };
 
 /// Small frames of a few dozen tiles each: every worker gets some of every frame.
@@ -471,7 +471,7 @@ fn frame_ranges_the_scene_does_not_have_are_refused_in_one_line() {
         (
             orbit.as_str(),
             "5-3",
-            "error: invalid value '5-3' for '--frames <RANGE>': the range ends (frame 3) \
+            "error: invalid value '5-3' for '--frames [<A-B>]': the range ends (frame 3) \
              before it starts (frame 5)"
                 .to_string(),
         ),
@@ -582,4 +582,67 @@ fn a_failed_frame_fails_alone_and_is_rendered_again_alone() {
     assert_eq!(count(&status, "failed"), 0, "{status}");
     let out = fetch_frames(dir.path(), &addr, job, "all");
     assert_same_frames(&out, &reference, 4, "the failed frame rendered again");
+}
+
+#[test]
+fn frames_alone_is_every_frame_for_submit_and_up_as_for_render() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let seed = scene_path("seed.json");
+    let small = ["--width", "32", "--height", "24", "--aa", "1"];
+    // `up`: a still scene is one frame, written into the directory of its frames.
+    let mut args = vec!["up", seed.as_str(), "--frames", "--workers", "1"];
+    args.extend(small);
+    ok(tessera(d, &args, Duration::from_secs(120)), "up --frames");
+    assert_eq!(entries(&d.join("seed")), ["frame_0001.png"]);
+    // `submit`: a sequence job of every frame, here one.
+    let (_coordinator, addr) = start_coordinator_in(d);
+    let mut args = vec![seed.as_str(), "--frames"];
+    args.extend(small);
+    let job = submit(d, &addr, &args);
+    let status = status_json(d, &addr, job);
+    assert_eq!(
+        (&status["frames"]["first"], &status["frames"]["last"]),
+        (&serde_json::json!(1), &serde_json::json!(1)),
+        "{status}"
+    );
+}
+
+#[test]
+fn a_sequence_refused_for_refine_names_its_frames_jobs() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let (_coordinator, addr) = start_coordinator_in(d);
+    let _worker = start_worker(d, &addr, "w1");
+    let orbit = orbit();
+    let job = submit(
+        d,
+        &addr,
+        &[
+            &orbit, "--frames", "1-3", "--width", "32", "--height", "24", "--aa", "1",
+        ],
+    );
+    crate::support::wait_done(d, &addr, job, Duration::from_secs(60));
+    let line = one_error_line(
+        &client(
+            d,
+            &addr,
+            &["refine", &job.to_string(), "--target-error", "1"],
+        ),
+        "refine SEQUENCE",
+    );
+    let (first, last) = (job + 1, job + 3);
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} is a sequence: each of its frames is a job of its own (frames \
+             1-3: jobs {first}-{last}); requeue or refine one of those, or requeue a frame \
+             (`tessera retry {job} --frame K`)"
+        )
+    );
+    // What it names is there to be asked about.
+    let status = status_json(d, &addr, last);
+    assert_eq!(status["frame"], 3, "{status}");
 }

@@ -2,7 +2,8 @@
 //! names its job at once, rides through a coordinator restart, says how to recover an
 //! image it could not write and refuses one it cannot write before submitting;
 //! `delete` removes an ended job, and the coordinator's `--retention` removes it by
-//! itself; mistaken job ids and addresses are one line saying what to give.
+//! itself; mistaken job ids and addresses are one line saying what to give; a command
+//! whose output is closed early ends quietly.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -11,9 +12,10 @@ use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
 
 use crate::support::{
-    assert_same_png, client, exclusive, fetch, ok, one_error_line, poll, render_reference,
-    restart_coordinator, scene_path, shared, start_coordinator, start_coordinator_in,
-    start_coordinator_with_http, start_worker, submit, tessera, try_status, wait_done, Daemon, BIN,
+    assert_same_png, client, exclusive, fetch, free_port, ok, one_error_line, poll,
+    render_reference, restart_coordinator, scene_path, shared, start_coordinator,
+    start_coordinator_in, start_coordinator_with_http, start_worker, submit, tessera, try_status,
+    wait_done, wait_for_workers, Daemon, BIN,
 };
 
 /// A small frame of the seed scene: quick in a debug build, several tiles.
@@ -410,4 +412,245 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
         );
         assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
     }
+}
+
+/// `tessera ARGS` in `dir` with stdout a pipe of one page (4 KiB, so that the output
+/// cannot all fit in it) whose reader reads `lines` lines and then closes it, as
+/// `tessera ARGS | head -LINES` does: the lines read, the exit status and stderr.
+fn through_closed_pipe(
+    dir: &Path,
+    args: &[&str],
+    lines: usize,
+) -> (Vec<String>, std::process::ExitStatus, String) {
+    use std::os::fd::AsRawFd;
+    let (reader, writer) = std::io::pipe().expect("cannot make a pipe");
+    // SAFETY: F_SETPIPE_SZ only resizes the pipe this test owns (to the minimum the
+    // kernel allows, one page); its failure would only leave the pipe larger.
+    let resized = unsafe { libc::fcntl(reader.as_raw_fd(), libc::F_SETPIPE_SZ, 4096) };
+    assert!(resized > 0, "cannot resize the pipe");
+    let child = Command::new(BIN)
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(writer)
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot start tessera");
+    let mut read = Vec::new();
+    // Unbuffered: what is not read stays in the pipe, which the command must fill.
+    let mut reader = BufReader::with_capacity(1, reader);
+    for _ in 0..lines {
+        let mut line = String::new();
+        reader
+            .read_line(&mut line)
+            .expect("cannot read tessera's stdout");
+        read.push(line.trim_end().to_owned());
+    }
+    drop(reader);
+    let mut daemon = Daemon {
+        name: format!("tessera {}", args.join(" ")),
+        child,
+        log: None,
+    };
+    let status = daemon
+        .wait_exit(Duration::from_secs(20))
+        .unwrap_or_else(|| panic!("{} still running with its output closed", daemon.name));
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(
+        daemon.child.stderr.as_mut().expect("stderr is piped"),
+        &mut stderr,
+    )
+    .expect("cannot read tessera's stderr");
+    (read, status, stderr)
+}
+
+#[test]
+fn a_command_whose_output_is_closed_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let _worker = start_worker(dir.path(), &addr, "w1");
+    // 64 tiles: more than a hundred lines of events, several pages.
+    let job = submit(
+        dir.path(),
+        &addr,
+        &[
+            &scene_path("seed.json"),
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--tile",
+            "8",
+        ],
+    );
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    // Enough jobs for `list`'s table to be longer than a page.
+    for _ in 0..60 {
+        submit(
+            dir.path(),
+            &addr,
+            &[
+                &scene_path("seed.json"),
+                "--width",
+                "8",
+                "--height",
+                "8",
+                "--name",
+                "a-job",
+            ],
+        );
+    }
+    let table = ok(client(dir.path(), &addr, &["list"]), "list").stdout;
+    assert!(table.len() > 5000, "list printed {} bytes", table.len());
+    let job = job.to_string();
+    for (args, lines) in [
+        (vec!["events", &job, "--coordinator", &addr], 1),
+        (vec!["list", "--coordinator", &addr], 1),
+        // A reader gone before anything was written (`tessera simulate | true`).
+        (vec!["simulate", "--workers", "20", "--jobs", "2"], 0),
+    ] {
+        let (read, status, stderr) = through_closed_pipe(dir.path(), &args, lines);
+        assert_eq!(read.len(), lines, "{args:?}");
+        assert!(read.iter().all(|l| !l.is_empty()), "{args:?}: {read:?}");
+        assert_eq!(stderr, "", "{args:?}: nothing on stderr");
+        // Ended by SIGPIPE, as `ls | head -1` ends `ls`: the shell's status 141.
+        assert_eq!(
+            status.signal(),
+            Some(libc::SIGPIPE),
+            "{args:?}: ended by SIGPIPE, not {status}"
+        );
+    }
+}
+
+#[test]
+fn refusals_say_what_is_meant_and_what_to_do() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let t = Duration::from_secs(20);
+
+    // Nothing listens on this port: the line says how the address is chosen.
+    let nowhere = format!("127.0.0.1:{}", free_port());
+    let line = one_error_line(
+        &tessera(dir.path(), &["list", "--coordinator", &nowhere], t),
+        "list --coordinator NOWHERE",
+    );
+    assert_eq!(
+        line,
+        format!(
+            "error: cannot reach the coordinator at {nowhere}: Connection refused (os error \
+             111); --coordinator ADDR or TESSERA_COORDINATOR chooses the coordinator"
+        )
+    );
+
+    let line = one_error_line(
+        &tessera(dir.path(), &["priority", "52", "abc"], t),
+        "priority 52 abc",
+    );
+    assert_eq!(
+        line,
+        "error: invalid value 'abc' for '<PRIORITY>': a priority is a whole number, higher \
+         runs first (for example 10 or -5)"
+    );
+    let line = one_error_line(
+        &tessera(dir.path(), &["requeue", "52", "3", "x"], t),
+        "requeue 52 3 x",
+    );
+    assert_eq!(
+        line,
+        "error: invalid value 'x' for '<TILES>...': a tile number is a whole number from 0, \
+         as `tessera events` names the tiles"
+    );
+
+    // A cancelled job resumed: it is retried, not resumed.
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let job = submit(
+        dir.path(),
+        &addr,
+        &small_seed().iter().map(String::as_str).collect::<Vec<_>>(),
+    );
+    let id = job.to_string();
+    ok(client(dir.path(), &addr, &["cancel", &id]), "cancel");
+    let line = one_error_line(&client(dir.path(), &addr, &["resume", &id]), "resume");
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} cannot be resumed: it is cancelled, only a paused job can be \
+             (`tessera retry {job}` puts it back in the queue)"
+        )
+    );
+    let line = one_error_line(&client(dir.path(), &addr, &["pause", &id]), "pause");
+    assert_eq!(
+        line,
+        format!(
+            "error: job {job} cannot be paused: it is cancelled, only a queued or running job \
+             can be (`tessera retry {job}` puts it back in the queue)"
+        )
+    );
+}
+
+#[test]
+fn ctrl_c_on_submit_wait_leaves_the_job_running_and_says_how_to_follow_it() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let mut worker = start_worker(dir.path(), &addr, "w1");
+    wait_for_workers(dir.path(), &addr, 1, Duration::from_secs(30));
+    // Frozen, the worker holds the job running for as long as the test needs.
+    worker.signal("STOP");
+    let mut waiting = Waiting::start(dir.path(), &addr, "out.png");
+    let job = submitted_id(&waiting.line("the job's id", Duration::from_secs(30), |l| {
+        l.starts_with("submitted job ")
+    }));
+    waiting.daemon.signal("INT");
+    let (status, lines) = waiting.finish(Duration::from_secs(20));
+    assert_eq!(status.code(), Some(130), "{status}: {lines:?}");
+    assert_eq!(
+        lines.last().map(String::as_str),
+        Some(
+            format!(
+                "error: interrupted by SIGINT: job {job} keeps running on the farm: `tessera \
+                 status {job}` follows it, `tessera cancel {job}` cancels it"
+            )
+            .as_str()
+        ),
+        "{lines:?}"
+    );
+    assert!(!dir.path().join("out.png").exists());
+    let status = try_status(dir.path(), &addr, job).expect("the job is still there");
+    assert!(
+        status["state"] == "queued" || status["state"] == "running",
+        "{status}"
+    );
+    // Thawed, the worker finishes it.
+    worker.signal("CONT");
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+}
+
+#[test]
+fn list_shows_the_newest_job_first() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let seed = scene_path("seed.json");
+    let jobs: Vec<u64> = (0..3)
+        .map(|_| submit(dir.path(), &addr, &[&seed, "--width", "8", "--height", "8"]))
+        .collect();
+    let newest_first: Vec<u64> = jobs.iter().rev().copied().collect();
+    let table = ok(client(dir.path(), &addr, &["list"]), "list").stdout;
+    let ids: Vec<u64> = table
+        .lines()
+        .skip(1)
+        .map(|row| row.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(ids, newest_first, "{table}");
+    let json = ok(
+        client(dir.path(), &addr, &["list", "--json"]),
+        "list --json",
+    )
+    .stdout;
+    let listed: Vec<serde_json::Value> = serde_json::from_str(json.trim()).unwrap();
+    let ids: Vec<u64> = listed.iter().map(|j| j["id"].as_u64().unwrap()).collect();
+    assert_eq!(ids, newest_first, "{json}");
 }

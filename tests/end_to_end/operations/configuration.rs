@@ -6,7 +6,8 @@
 use std::time::Duration;
 
 use crate::support::{
-    client, ok, shared, start_coordinator, tessera, tessera_env, try_start_coordinator,
+    client, ok, path_str, poll, shared, start_coordinator, start_worker_with, tessera, tessera_env,
+    try_start_coordinator, write_token_file,
 };
 
 /// The value and source `--print-config` shows for `key`, or `None` if not set.
@@ -286,4 +287,141 @@ fn a_data_directory_in_use_is_refused_with_the_holders_address() {
         client(dir.path(), &again, &["list"]),
         "list after a restart",
     );
+}
+
+#[test]
+fn print_config_gives_the_verdict_the_start_would() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("client.token");
+    write_token_file(&token, "client-secret\n");
+    let env = [("TESSERA_TOKEN_FILE", path_str(&token))];
+    let start = tessera_env(
+        dir.path(),
+        &["coordinator", "--listen", "127.0.0.1:0", "--data", "data"],
+        &env,
+    );
+    let printed = tessera_env(
+        dir.path(),
+        &[
+            "coordinator",
+            "--listen",
+            "127.0.0.1:0",
+            "--data",
+            "data",
+            "--print-config",
+        ],
+        &env,
+    );
+    for (out, what) in [(&start, "the start"), (&printed, "--print-config")] {
+        assert_eq!(out.status.code(), Some(1), "{what}: {out:?}");
+        assert_eq!(out.stdout, b"", "{what}: nothing on stdout");
+    }
+    let line = String::from_utf8(printed.stderr).unwrap();
+    assert!(
+        line.starts_with("error: TESSERA_TOKEN_FILE is set (unset it for the coordinator)")
+            && line.lines().count() == 1,
+        "{line}"
+    );
+    assert_eq!(line, String::from_utf8(start.stderr).unwrap());
+    // Nothing was created by the check.
+    assert!(!dir.path().join("data").exists());
+}
+
+#[test]
+fn a_token_file_open_to_other_users_is_warned_about_by_every_reader() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let open = |name: &str, token: &str| {
+        let path = d.join(name);
+        std::fs::write(&path, token).unwrap();
+        std::fs::set_permissions(&path, std::os::unix::fs::PermissionsExt::from_mode(0o644))
+            .unwrap();
+        path
+    };
+    let worker_token = open("worker.token", "worker-secret\n");
+    let client_token = open("client.token", "client-secret\n");
+    let warning = |path: &std::path::Path| {
+        format!(
+            "the token file {p} is open to other users (mode 0644): `chmod 600 {p}` keeps it \
+             to its owner",
+            p = path.display()
+        )
+    };
+    let (coordinator, addr) = start_coordinator(
+        d,
+        &d.join("data"),
+        "127.0.0.1:0",
+        &[
+            "--worker-token-file",
+            path_str(&worker_token),
+            "--client-token-file",
+            path_str(&client_token),
+        ],
+        "coordinator.log",
+    );
+    let log = coordinator.log_text();
+    for path in [&worker_token, &client_token] {
+        assert_eq!(
+            log.lines().filter(|l| l.contains(&warning(path))).count(),
+            1,
+            "{log}"
+        );
+    }
+
+    // A client: one line on stderr, then its answer.
+    let run = ok(
+        tessera(
+            d,
+            &[
+                "list",
+                "--coordinator",
+                &addr,
+                "--token-file",
+                path_str(&client_token),
+            ],
+            Duration::from_secs(20),
+        ),
+        "list",
+    );
+    assert_eq!(run.stderr, format!("warning: {}\n", warning(&client_token)));
+    assert_eq!(run.stdout, "no jobs\n");
+
+    // A worker: in its log, once.
+    let worker = start_worker_with(d, &addr, "w1", &["--token-file", path_str(&worker_token)]);
+    // Its first line, before it connects.
+    let log = poll("the worker's first line", Duration::from_secs(20), || {
+        let log = worker.log_text();
+        log.contains('\n').then_some(log)
+    });
+    assert_eq!(
+        log.lines()
+            .filter(|l| l.contains(&warning(&worker_token)))
+            .count(),
+        1,
+        "{log}"
+    );
+
+    // A private file: no warning.
+    std::fs::set_permissions(
+        &client_token,
+        std::os::unix::fs::PermissionsExt::from_mode(0o600),
+    )
+    .unwrap();
+    let run = ok(
+        tessera(
+            d,
+            &[
+                "list",
+                "--coordinator",
+                &addr,
+                "--token-file",
+                path_str(&client_token),
+            ],
+            Duration::from_secs(20),
+        ),
+        "list",
+    );
+    assert_eq!(run.stderr, "");
 }

@@ -199,12 +199,13 @@ fn names_submitters_and_the_queue_wait_are_shown_and_the_rate_leaves_the_wait_ou
     ] {
         assert!(lines[0].contains(column), "{column}: {}", lines[0]);
     }
+    // Newest first: the first job is the last row.
     assert!(
-        lines[1].contains("night shot") && lines[1].contains("ann@studio"),
+        lines[2].contains("night shot") && lines[2].contains("ann@studio"),
         "{}",
-        lines[1]
+        lines[2]
     );
-    assert!(lines[1].contains("127.0.0.1"), "{}", lines[1]);
+    assert!(lines[2].contains("127.0.0.1"), "{}", lines[2]);
 
     // `submit --wait` of a job that waits: its summary leaves the wait out of the rate.
     let mut wait_args = vec!["submit", seed.as_str(), "--wait", "-o", "waited.png"];

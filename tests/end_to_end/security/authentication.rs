@@ -29,7 +29,8 @@ use super::{submit_and_wait, tokens, worker_that_gives_up, SMALL};
 use crate::support::wire::{frame, read_frame_until_closed};
 use crate::support::{
     assert_same_png, client, ok, one_error_line, path_str, poll, render_reference, scene_path,
-    shared, start_coordinator, start_worker_with, tessera, worker_names, workers_json, Daemon, BIN,
+    shared, start_coordinator, start_worker_with, tessera, worker_names, workers_json,
+    write_token_file, Daemon, BIN,
 };
 
 #[test]
@@ -37,11 +38,11 @@ fn a_farm_with_tokens_admits_only_peers_that_prove_them() {
     let _turn = shared();
     let dir = TempDir::new().expect("cannot create a temporary directory");
     let token = dir.path().join("client-token");
-    std::fs::write(&token, "correct horse\n").unwrap();
+    write_token_file(&token, "correct horse\n");
     let worker_token = dir.path().join("worker-token");
-    std::fs::write(&worker_token, "  tr0ub4dor &3\n").unwrap();
+    write_token_file(&worker_token, "  tr0ub4dor &3\n");
     let wrong = dir.path().join("wrong");
-    std::fs::write(&wrong, "battery staple\n").unwrap();
+    write_token_file(&wrong, "battery staple\n");
     let token_arg = path_str(&token);
     let worker_token_arg = path_str(&worker_token);
     let timeout = Duration::from_secs(60);

@@ -10,7 +10,7 @@ use tempfile::TempDir;
 
 use super::{submit_and_wait, tokens};
 use crate::support::{
-    header, json_error, one_error_line, path_str, poll, shared, start_coordinator,
+    header, json_error, ok, one_error_line, path_str, poll, shared, start_coordinator,
     start_worker_with, tessera, Answer, Site,
 };
 
@@ -329,6 +329,24 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
          and images would cross the network in clear. Give --tls-auto (or --tls-cert and \
          --tls-key): the HTTP side then serves HTTPS with the same certificate; or bind \
          --http to 127.0.0.1 (or pass --http-insecure)"
+    );
+    // With TLS the same settings pass: `--print-config` makes the start's checks
+    // without binding anything.
+    let mut accepted = vec![
+        "coordinator",
+        "--listen",
+        "127.0.0.1:0",
+        "--data",
+        "data",
+        "--http",
+        "0.0.0.0:0",
+        "--tls-auto",
+        "--print-config",
+    ];
+    accepted.extend_from_slice(&secrets);
+    ok(
+        tessera(d, &accepted, Duration::from_secs(30)),
+        "--print-config of an HTTPS side with both tokens",
     );
     let line = refusal(&["--tls-auto", "--http-insecure"]);
     assert!(

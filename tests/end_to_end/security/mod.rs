@@ -11,7 +11,7 @@ mod tls;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::support::{client, ok, path_str, scene_path, start_worker_with};
+use crate::support::{client, ok, path_str, scene_path, start_worker_with, write_token_file};
 
 /// A quick job: the seed scene at 96 × 64, one sample per pixel.
 const SMALL: &[&str] = &["--width", "96", "--height", "64", "--aa", "1"];
@@ -20,20 +20,18 @@ const SMALL: &[&str] = &["--width", "96", "--height", "64", "--aa", "1"];
 const GIVES_UP_WITHIN: Duration = Duration::from_secs(20);
 
 /// A worker token and a client token in `dir`, as an operator would make them (each
-/// with a final newline, which is trimmed).
+/// with a final newline, which is trimmed, readable by its owner only).
 fn tokens(dir: &Path) -> (PathBuf, PathBuf) {
     let worker = dir.join("worker.token");
     let client = dir.join("client.token");
-    std::fs::write(
+    write_token_file(
         &worker,
         "9f1c2e7a5b3d4c6e8a0b1c2d3e4f5a6b7c8d9e0f1a2b3c4d\n",
-    )
-    .unwrap();
-    std::fs::write(
+    );
+    write_token_file(
         &client,
         "0e9d8c7b6a5f4e3d2c1b0a9f8e7d6c5b4a3f2e1d0c9b8a7f\n",
-    )
-    .unwrap();
+    );
     (worker, client)
 }
 

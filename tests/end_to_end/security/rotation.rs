@@ -24,7 +24,8 @@ use super::{worker_that_gives_up, GIVES_UP_WITHIN};
 use crate::support::wire::{read_frame, send_frame};
 use crate::support::{
     assert_same_png, client, exclusive, ok, one_error_line, path_str, poll, render_reference,
-    scene_path, shared, spawn_tessera, start_coordinator, start_worker_with, workers_json, Daemon,
+    scene_path, shared, spawn_tessera, start_coordinator, start_worker_with, workers_json,
+    write_token_file, Daemon,
 };
 
 /// The overlap window of these tests: long enough for a few client commands after
@@ -37,7 +38,7 @@ const LONG: &[&str] = &["--width", "1280", "--height", "800", "--aa", "8"];
 
 /// Writes a token file as an operator would (with a final newline, which is trimmed).
 fn write_token(path: &Path, token: &str) {
-    std::fs::write(path, format!("{token}\n")).expect("cannot write a token file");
+    write_token_file(path, &format!("{token}\n"));
 }
 
 /// The key id `tessera` shows for `token`.

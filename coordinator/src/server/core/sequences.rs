@@ -794,10 +794,7 @@ impl Core {
             .ok_or_else(|| unknown(id))?;
         let state = record.frames.state();
         if state.is_final() {
-            return Err(format!(
-                "job {id} cannot be {verb}: it is {}, only a queued or running job can be",
-                state.as_str()
-            ));
+            return Err(super::ended_refusal(id, verb, state));
         }
         Ok(record)
     }
@@ -923,4 +920,79 @@ fn add_totals(sum: &mut Totals, more: &Totals) {
     sum.samples += more.samples;
     sum.error_sq_sum += more.error_sq_sum;
     sum.error_pixels += more.error_pixels;
+}
+
+/// Where a sequence's frame jobs are, for a message that asks for one of them: runs of
+/// frames whose jobs follow each other (`frames 1-8: jobs 4-11`), and frames not
+/// started yet, at most a few runs (then `…`): enough to name a job to give
+/// `tessera refine` or `status`, which `tessera list` does not show.
+pub(in crate::server) fn frame_jobs(frames: &Sequence) -> String {
+    describe_frame_jobs((frames.first()..=frames.last()).map(|k| (k, frames.job(k))))
+}
+
+/// [`frame_jobs`] of `(frame, its job if it has one)`, in frame order.
+fn describe_frame_jobs(frames: impl Iterator<Item = (u32, Option<JobId>)>) -> String {
+    const RUNS: usize = 4;
+    // (first frame, last frame, first job of the run if started)
+    let mut runs: Vec<(u32, u32, Option<JobId>)> = Vec::new();
+    for (k, job) in frames {
+        match runs.last_mut() {
+            Some((first, last, start))
+                if *last + 1 == k
+                    && match (*start, job) {
+                        (Some(s), Some(j)) => j == s + u64::from(k - *first),
+                        (None, None) => true,
+                        _ => false,
+                    } =>
+            {
+                *last = k;
+            }
+            _ => runs.push((k, k, job)),
+        }
+    }
+    let mut parts: Vec<String> = runs
+        .iter()
+        .take(RUNS)
+        .map(|&(first, last, start)| match (first == last, start) {
+            (true, Some(job)) => format!("frame {first}: job {job}"),
+            (true, None) => format!("frame {first}: not started"),
+            (false, Some(job)) => format!(
+                "frames {first}-{last}: jobs {job}-{}",
+                job + u64::from(last - first)
+            ),
+            (false, None) => format!("frames {first}-{last}: not started"),
+        })
+        .collect();
+    if runs.len() > RUNS {
+        parts.push("…".to_owned());
+    }
+    parts.join(", ")
+}
+
+#[cfg(test)]
+mod frame_job_tests {
+    use super::*;
+
+    #[test]
+    fn frame_jobs_are_named_in_runs() {
+        let jobs = |list: &[(u32, Option<JobId>)]| describe_frame_jobs(list.iter().copied());
+        assert_eq!(
+            jobs(&[(1, Some(4)), (2, Some(5)), (3, Some(6))]),
+            "frames 1-3: jobs 4-6"
+        );
+        assert_eq!(
+            jobs(&[(1, Some(4)), (2, Some(9)), (3, None), (4, None)]),
+            "frame 1: job 4, frame 2: job 9, frames 3-4: not started"
+        );
+        assert_eq!(
+            jobs(&[
+                (1, Some(2)),
+                (2, None),
+                (3, Some(7)),
+                (4, None),
+                (5, Some(9))
+            ]),
+            "frame 1: job 2, frame 2: not started, frame 3: job 7, frame 4: not started, …"
+        );
+    }
 }
