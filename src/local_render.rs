@@ -166,12 +166,13 @@ impl Job<'_> {
 /// well below the cap: "every pixel at its cap" only when every one is.
 pub fn cap_note(cap: u32, at_cap: u64, pixels: u64) -> String {
     if at_cap >= pixels {
-        return format!("; every pixel at its cap of {cap} samples");
+        return format!("; every pixel at its cap of {}", counted(cap, "sample"));
     }
     let share = 100.0 * at_cap as f64 / pixels.max(1) as f64;
     format!(
-        "; the last rung reached with {share:.1} % of the pixels at the cap of {cap} samples \
-         (the others below their threshold with fewer)"
+        "; the last rung reached with {share:.1} % of the pixels at the cap of {} (the others \
+         below their threshold with fewer)",
+        counted(cap, "sample")
     )
 }
 

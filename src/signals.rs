@@ -16,23 +16,52 @@ pub fn keeps_running(subcommand: &str, print_config: bool) -> bool {
     ["coordinator", "worker", "up", "studio"].contains(&subcommand) && !print_config
 }
 
-/// Lets SIGPIPE end the process, as it ends `ls` or `grep`: `tessera events 7 | head -1`
-/// stops quietly, with the shell's status for it (141), once `head` has its line.
+/// Lets a closed standard output end the process by SIGPIPE, as it ends `ls` or
+/// `grep`: `tessera events 7 | head -1` stops quietly, with the shell's status for it
+/// (141), once `head` has its line.
 ///
 /// Rust ignores SIGPIPE, so a write to a closed pipe fails, and `println!` panics on
 /// that failure (`failed printing to stdout: Broken pipe`, exit 101). Restoring the
-/// default action for the commands that are not [`keeps_running`] is one call for
-/// every `println!` of the binary, where routing stdout through a writer that exits on
-/// `BrokenPipe` would have to be kept up by each new line printed. These commands'
-/// sockets are untouched: the standard library sends on them with `MSG_NOSIGNAL`
-/// (`SO_NOSIGPIPE` on macOS), so a coordinator gone is still an error they report.
+/// default action would end the command on any closed pipe or socket alike: the
+/// standard library sends with `MSG_NOSIGNAL`, but vectored writes (`writev`, which
+/// TLS uses) raise SIGPIPE too, and a coordinator that closes the connection must stay
+/// an error the command reports. So the handler installed here asks which it was: if
+/// standard output is a pipe whose reader is gone (`poll` says `POLLERR`), the default
+/// action is restored and the signal raised again, ending the process; otherwise it
+/// returns, and the write fails with `EPIPE` as before. One handler covers every
+/// `println!` of the binary, where routing stdout through a writer that exits on
+/// `BrokenPipe` would have to be kept up by each new line printed.
 pub fn end_quietly_on_a_closed_pipe() {
     #[cfg(unix)]
-    // SAFETY: `signal` only sets the disposition of SIGPIPE back to the default; it is
-    // called from `main` before the command starts any thread or installs any handler,
-    // and its failure (SIG_ERR) leaves the signal ignored, as it was.
+    // SAFETY: `sigaction` installs `on_sigpipe`, which calls only async-signal-safe
+    // functions (`poll`, `signal`, `raise`); it is called from `main` before the command
+    // starts any thread or installs any other handler, and its failure leaves the
+    // signal ignored, as it was.
     unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        let mut action: libc::sigaction = std::mem::zeroed();
+        action.sa_sigaction = on_sigpipe as extern "C" fn(libc::c_int) as libc::sighandler_t;
+        action.sa_flags = libc::SA_RESTART;
+        libc::sigemptyset(&mut action.sa_mask);
+        libc::sigaction(libc::SIGPIPE, &action, std::ptr::null_mut());
+    }
+}
+
+/// SIGPIPE's handler of [`end_quietly_on_a_closed_pipe`]: ends the process by the
+/// signal if standard output is closed, and otherwise lets the write fail.
+#[cfg(unix)]
+extern "C" fn on_sigpipe(_: libc::c_int) {
+    let mut stdout = libc::pollfd {
+        fd: libc::STDOUT_FILENO,
+        events: libc::POLLOUT,
+        revents: 0,
+    };
+    // SAFETY: `poll` on one descriptor with no wait, `signal` and `raise` are
+    // async-signal-safe; `stdout` lives for the call.
+    unsafe {
+        if libc::poll(&mut stdout, 1, 0) == 1 && stdout.revents & libc::POLLERR != 0 {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+            libc::raise(libc::SIGPIPE);
+        }
     }
 }
 

@@ -219,7 +219,7 @@ fn frozen_worker_is_worked_around(
     for line in text.lines() {
         assert_eq!(
             line.contains(", UNRESPONSIVE"),
-            line.contains(&format!(" {victim}: ")),
+            line.contains(&format!(" {victim} on ")),
             "tessera workers, {victim} frozen:\n{text}"
         );
     }
