@@ -54,10 +54,13 @@ const JOB: &[&str] = &[
 const FULL_JOB: &[&str] = &[
     "--width", "1200", "--height", "900", "--aa", "6", "--tile", "32",
 ];
-/// Some 6.5 CPU-seconds in 160 tiles of about 40 ms, which take a worker on a tenth of
-/// a core half a second or more each.
-const SLOW_JOB: &[&str] = &[
-    "--width", "1024", "--height", "640", "--aa", "8", "--tile", "64",
+/// The seed scene in some 400 tiles of even cost (its floor and sky are alike from row
+/// to row, unlike `hall-of-mirrors.json`'s rows, which differ thirtyfold: a worker on a
+/// tenth of a core handed one of its dearest tiles could return nothing while a fast
+/// worker rendered the rest), each taking a worker on a tenth of a core some 0.15 s
+/// (38 of them in a job of 6.2 s, measured).
+const EVEN_JOB: &[&str] = &[
+    "--width", "1600", "--height", "1000", "--aa", "12", "--tile", "64",
 ];
 /// The small job after the thaw.
 const SMALL: &[&str] = &["--width", "200", "--height", "150", "--tile", "16"];
@@ -339,8 +342,8 @@ fn a_slow_worker_that_makes_progress_is_never_marked_unresponsive() {
     farm.workers.push(slow);
     farm.wait_for_workers(&["fast", "slow"]);
 
-    let scene = scene_path("hall-of-mirrors.json");
-    let job = farm.submit(&scene, SLOW_JOB);
+    let scene = scene_path("seed.json");
+    let job = farm.submit(&scene, EVEN_JOB);
     let started = Instant::now();
     let mut listings = 0;
     let mut slow_tiles = 0;
@@ -391,5 +394,5 @@ fn a_slow_worker_that_makes_progress_is_never_marked_unresponsive() {
          {listings} listings",
         took.as_secs_f64()
     );
-    farm.assert_job_image(job, &scene, SLOW_JOB, "the job of a slow and a fast worker");
+    farm.assert_job_image(job, &scene, EVEN_JOB, "the job of a slow and a fast worker");
 }
