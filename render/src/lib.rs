@@ -26,6 +26,7 @@ mod scene;
 pub mod simd;
 mod tile;
 mod tracer;
+pub mod trig;
 mod vec3;
 mod write;
 
