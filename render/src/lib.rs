@@ -18,6 +18,7 @@ mod footprint;
 mod geometry;
 mod image;
 pub mod limits;
+pub mod mesh;
 pub mod metrics;
 mod parse;
 pub mod progressive;
