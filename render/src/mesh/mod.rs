@@ -2,6 +2,7 @@
 //! and what every reader shares.
 
 pub mod obj;
+pub mod stl;
 
 use thiserror::Error;
 
@@ -28,6 +29,9 @@ pub enum MeshError {
     /// A text format's line (1-based).
     #[error("line {line}: {message}")]
     Line { line: usize, message: String },
+    /// A binary format's record (1-based: a facet, a vertex, a face).
+    #[error("record {record}: {message}")]
+    Record { record: usize, message: String },
 }
 
 /// A number as the text formats write it, read to the nearest double: finite only.
