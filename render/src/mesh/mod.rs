@@ -2,6 +2,7 @@
 //! and what every reader shares.
 
 pub mod obj;
+pub mod ply;
 pub mod stl;
 
 use thiserror::Error;
