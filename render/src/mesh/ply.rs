@@ -289,13 +289,15 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                     Property::Scalar(..) => next().map(Value::Number),
                     Property::List(..) => {
                         let n = next()?;
-                        if !(0.0..=1024.0).contains(&n) || n.fract() != 0.0 {
+                        if n < 0.0 || n.fract() != 0.0 {
                             return Err(format!("a list of {n} items"));
                         }
-                        (0..n as usize)
-                            .map(|_| next())
-                            .collect::<Result<Vec<_>, _>>()
-                            .map(Value::List)
+                        // Grown as the items are read, not sized by the count.
+                        let mut items = Vec::new();
+                        for _ in 0..n as u64 {
+                            items.push(next()?);
+                        }
+                        Ok(Value::List(items))
                     }
                 })
                 .collect()
@@ -335,13 +337,16 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                     Property::Scalar(_, kind) => scalar(kind).map(Value::Number),
                     Property::List(_, count, item) => {
                         let n = scalar(count)?;
-                        if !(0.0..=1024.0).contains(&n) {
+                        if n < 0.0 || n.fract() != 0.0 {
                             return Err(format!("a list of {n} items"));
                         }
-                        (0..n as usize)
-                            .map(|_| scalar(item))
-                            .collect::<Result<Vec<_>, _>>()
-                            .map(Value::List)
+                        // Grown as the items are read, not sized by the count: a
+                        // count the file does not hold ends at its last byte.
+                        let mut items = Vec::new();
+                        for _ in 0..n as u64 {
+                            items.push(scalar(item)?);
+                        }
+                        Ok(Value::List(items))
                     }
                 })
                 .collect()
@@ -502,6 +507,17 @@ mod tests {
         cut.truncate(cut.len() - 12);
         let error = read(&cut).unwrap_err().to_string();
         assert_eq!(error, "line 14: vertex 4 of 4: the line ends early");
+    }
+
+    #[test]
+    fn a_list_longer_than_the_file_ends_at_its_last_byte() {
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
+                          property list uint int vertex_indices\nend_header\n"
+            .to_vec();
+        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+        bytes.extend_from_slice(&7i32.to_le_bytes());
+        let error = read(&bytes).unwrap_err().to_string();
+        assert_eq!(error, "record 1: face 1 of 1: the file ends before it");
     }
 
     #[test]
