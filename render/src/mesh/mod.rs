@@ -1,6 +1,7 @@
 //! Triangle meshes read from files (the scene format, section 8): what a reader gives,
 //! and what every reader shares.
 
+pub mod gltf;
 pub mod obj;
 pub mod ply;
 pub mod stl;
@@ -33,6 +34,10 @@ pub enum MeshError {
     /// A binary format's record (1-based: a facet, a vertex, a face).
     #[error("record {record}: {message}")]
     Record { record: usize, message: String },
+    /// A structured format's mistake, saying where in the file's own terms
+    /// (`nodes[3]`, `accessors[2]`).
+    #[error("{0}")]
+    Format(String),
 }
 
 /// A number as the text formats write it, read to the nearest double: finite only.
