@@ -47,3 +47,82 @@ pub(crate) fn number(word: &str) -> Result<f64, String> {
         _ => Err(format!("{word:?} is not a finite number")),
     }
 }
+
+#[cfg(test)]
+mod fuzz {
+    //! Mutations of small valid files of every format: each reader gives a mesh or an
+    //! error, never a panic, and never more triangles than the bytes could hold.
+
+    use proptest::prelude::*;
+
+    const OBJ: &str =
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1 4//1\nf -1 -2 -3\n";
+    const PLY: &str =
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+                       property float z\nelement face 1\nproperty list uchar int vertex_indices\n\
+                       end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+    const STL: &str = "solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n\
+                       vertex 0 1 0\nendloop\nendfacet\nendsolid s\n";
+
+    fn binary_ply() -> Vec<u8> {
+        let mut bytes =
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n\
+                          property float y\nproperty float z\nelement face 1\n\
+                          property list uchar int vertex_indices\nend_header\n"
+                .to_vec();
+        for v in [[0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] {
+            for x in v {
+                bytes.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        bytes.push(3);
+        for i in 0..3i32 {
+            bytes.extend_from_slice(&i.to_le_bytes());
+        }
+        bytes
+    }
+
+    /// `bytes` with each (position, byte) of `edits` written over it, and cut to
+    /// `keep` of its length.
+    fn mutate(bytes: &[u8], edits: &[(usize, u8)], keep: f64) -> Vec<u8> {
+        let mut out = bytes.to_vec();
+        for &(at, byte) in edits {
+            let len = out.len();
+            out[at % len] = byte;
+        }
+        out.truncate((out.len() as f64 * keep) as usize);
+        out
+    }
+
+    fn check(result: Result<super::MeshData, super::MeshError>, len: usize) {
+        if let Ok(mesh) = result {
+            // A triangle needs at least a byte of the file; a corner, a vertex read.
+            assert!(mesh.triangles.len() <= len.max(1) * 2);
+            assert_eq!(mesh.triangles.len(), mesh.corner_normals.len());
+            let n = mesh.positions.len() as u32;
+            assert!(mesh.triangles.iter().flatten().all(|&v| v < n));
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        #[test]
+        fn mutated_files_never_panic(
+            edits in proptest::collection::vec((0usize..4096, any::<u8>()), 0..8),
+            keep in 0.0f64..=1.0,
+        ) {
+            let none = |name: &str| Err(format!("no file {name}"));
+            for original in [OBJ.as_bytes(), PLY.as_bytes(), STL.as_bytes(), &binary_ply()] {
+                let bytes = mutate(original, &edits, keep);
+                let len = bytes.len();
+                if let Ok(text) = std::str::from_utf8(&bytes) {
+                    check(super::obj::read(text), len);
+                }
+                check(super::ply::read(&bytes), len);
+                check(super::stl::read(&bytes), len);
+                check(super::gltf::read_gltf(&bytes, &none), len);
+                check(super::gltf::read_glb(&bytes, &none), len);
+            }
+        }
+    }
+}
