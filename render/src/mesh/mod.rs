@@ -82,6 +82,24 @@ mod fuzz {
         bytes
     }
 
+    /// A glTF of one triangle, its buffer a data URI.
+    fn gltf() -> Vec<u8> {
+        use base64::Engine;
+        let mut bytes = Vec::new();
+        for x in [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0] {
+            bytes.extend_from_slice(&x.to_le_bytes());
+        }
+        let data = base64::engine::general_purpose::STANDARD.encode(&bytes);
+        format!(
+            r#"{{"scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0, "translation": [1, 2, 3]}}],
+            "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}}}]}}],
+            "buffers": [{{"byteLength": 36, "uri": "data:application/octet-stream;base64,{data}"}}],
+            "bufferViews": [{{"buffer": 0, "byteLength": 36}}],
+            "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}}]}}"#
+        )
+        .into_bytes()
+    }
+
     /// `bytes` with each (position, byte) of `edits` written over it, and cut to
     /// `keep` of its length.
     fn mutate(bytes: &[u8], edits: &[(usize, u8)], keep: f64) -> Vec<u8> {
@@ -112,7 +130,9 @@ mod fuzz {
             keep in 0.0f64..=1.0,
         ) {
             let none = |name: &str| Err(format!("no file {name}"));
-            for original in [OBJ.as_bytes(), PLY.as_bytes(), STL.as_bytes(), &binary_ply()] {
+            let gltf = gltf();
+            assert_eq!(super::gltf::read_gltf(&gltf, &none).map(|m| m.triangles.len()), Ok(1));
+            for original in [OBJ.as_bytes(), PLY.as_bytes(), STL.as_bytes(), &binary_ply(), &gltf] {
                 let bytes = mutate(original, &edits, keep);
                 let len = bytes.len();
                 if let Ok(text) = std::str::from_utf8(&bytes) {
