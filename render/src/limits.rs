@@ -8,3 +8,7 @@ pub const MAX_SIDE: u32 = 16_384;
 pub const MAX_AA: u32 = 64;
 /// Largest reflection depth.
 pub const MAX_DEPTH: u32 = 64;
+/// Largest mesh file, in bytes: a 20-million-triangle binary STL is about 1 GB.
+pub const MAX_MESH_FILE_BYTES: u64 = 2 << 30;
+/// Most triangles in one mesh file.
+pub const MAX_MESH_TRIANGLES: usize = 20_000_000;

@@ -2,6 +2,7 @@
 //! and what every reader shares.
 
 pub mod gltf;
+pub mod load;
 pub mod obj;
 pub mod ply;
 pub mod stl;

@@ -1,0 +1,122 @@
+//! Reading a mesh file named by a scene: the reader chosen by the extension, the file's
+//! size and triangle count held to the renderer's limits, and a mesh with nothing to
+//! hit refused, each mistake one line naming the file.
+
+use std::path::Path;
+
+use super::MeshData;
+use crate::limits::{MAX_MESH_FILE_BYTES, MAX_MESH_TRIANGLES};
+
+/// The mesh in the file at `path` (`.obj`, `.ply`, `.stl`, `.gltf` or `.glb`, in any
+/// case), or one line saying what is wrong, starting with the file's path.
+pub fn load(path: &Path) -> Result<MeshData, String> {
+    let name = path.display();
+    let extension = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    let size = std::fs::metadata(path)
+        .map_err(|e| format!("{name}: cannot read it: {e}"))?
+        .len();
+    if size > MAX_MESH_FILE_BYTES {
+        return Err(format!(
+            "{name}: {size} bytes, more than the limit of {MAX_MESH_FILE_BYTES} for a mesh file"
+        ));
+    }
+    let bytes = std::fs::read(path).map_err(|e| format!("{name}: cannot read it: {e}"))?;
+    let beside = |uri: &str| {
+        let file = path.parent().unwrap_or(Path::new(".")).join(uri);
+        std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+    };
+    let mesh = match extension.as_str() {
+        "obj" => {
+            let text = std::str::from_utf8(&bytes)
+                .map_err(|e| format!("{name}: not text (byte {})", e.valid_up_to()))?;
+            super::obj::read(text)
+        }
+        "ply" => super::ply::read(&bytes),
+        "stl" => super::stl::read(&bytes),
+        "gltf" => super::gltf::read_gltf(&bytes, &beside),
+        "glb" => super::gltf::read_glb(&bytes, &beside),
+        _ => {
+            return Err(format!(
+                "{name}: unknown mesh format {extension:?}: .obj, .ply, .stl, .gltf or .glb"
+            ))
+        }
+    }
+    .map_err(|e| format!("{name}: {e}"))?;
+    if mesh.triangles.len() > MAX_MESH_TRIANGLES {
+        return Err(format!(
+            "{name}: {} triangles, more than the limit of {MAX_MESH_TRIANGLES}",
+            mesh.triangles.len()
+        ));
+    }
+    if !mesh.triangles.iter().any(|t| !degenerate(&mesh, *t)) {
+        return Err(format!(
+            "{name}: no triangle that is not degenerate: nothing to hit"
+        ));
+    }
+    Ok(mesh)
+}
+
+/// Whether (v1 − v0) × (v2 − v0) is exactly zero in double, in the file's coordinates:
+/// such a triangle is never hit (the scene format, section 8).
+pub fn degenerate(mesh: &MeshData, [a, b, c]: [u32; 3]) -> bool {
+    let p = |i: u32| mesh.positions[i as usize];
+    let (v0, v1, v2) = (p(a), p(b), p(c));
+    let e1 = [v1[0] - v0[0], v1[1] - v0[1], v1[2] - v0[2]];
+    let e2 = [v2[0] - v0[0], v2[1] - v0[1], v2[2] - v0[2]];
+    let cross = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ];
+    cross == [0.0; 3]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file of `text` under a fresh directory of the system's temporary one.
+    fn file(name: &str, text: &[u8]) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!(
+            "tessera-mesh-load-{}-{}",
+            std::process::id(),
+            name.replace('.', "-")
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(name);
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    #[test]
+    fn the_extension_chooses_the_reader_in_any_case() {
+        let path = file("Tri.OBJ", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+        assert_eq!(load(&path).unwrap().triangles, vec![[0, 1, 2]]);
+        let unknown = file("tri.off", b"OFF\n");
+        assert!(load(&unknown)
+            .unwrap_err()
+            .ends_with("unknown mesh format \"off\": .obj, .ply, .stl, .gltf or .glb"));
+    }
+
+    #[test]
+    fn mistakes_name_the_file_and_the_line() {
+        let path = file("bad.obj", b"v 0 0 0\nv 1 x 0\n");
+        assert_eq!(
+            load(&path).unwrap_err(),
+            format!("{}: line 2: \"x\" is not a finite number", path.display())
+        );
+        let flat = file("flat.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n");
+        assert!(load(&flat)
+            .unwrap_err()
+            .ends_with("no triangle that is not degenerate: nothing to hit"));
+        let missing = std::env::temp_dir().join("tessera-no-such-mesh.obj");
+        assert!(load(&missing).unwrap_err().contains("cannot read it"));
+        for made in [path, flat] {
+            std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
+        }
+    }
+}
