@@ -100,6 +100,9 @@ mod tests {
         assert!(load(&unknown)
             .unwrap_err()
             .ends_with("unknown mesh format \"off\": .obj, .ply, .stl, .gltf or .glb"));
+        for made in [path, unknown] {
+            std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
+        }
     }
 
     #[test]
