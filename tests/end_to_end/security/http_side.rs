@@ -301,7 +301,8 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (worker_token, client_token) = tokens(d);
-    let refusal = |extra: &[&str]| {
+    // A coordinator whose HTTP side listens on every address, with `extra` flags.
+    let exposed = |extra: &[&str]| {
         let mut args = vec![
             "coordinator",
             "--listen",
@@ -312,11 +313,10 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
             "0.0.0.0:0",
         ];
         args.extend_from_slice(extra);
-        one_error_line(
-            &tessera(d, &args, Duration::from_secs(30)),
-            "a coordinator exposing its HTTP side",
-        )
+        tessera(d, &args, Duration::from_secs(30))
     };
+    let refusal =
+        |extra: &[&str]| one_error_line(&exposed(extra), "a coordinator exposing its HTTP side");
     let secrets = [
         "--worker-token-file",
         path_str(&worker_token),
@@ -332,20 +332,10 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
     );
     // With TLS the same settings pass: `--print-config` makes the start's checks
     // without binding anything.
-    let mut accepted = vec![
-        "coordinator",
-        "--listen",
-        "127.0.0.1:0",
-        "--data",
-        "data",
-        "--http",
-        "0.0.0.0:0",
-        "--tls-auto",
-        "--print-config",
-    ];
+    let mut accepted = vec!["--tls-auto", "--print-config"];
     accepted.extend_from_slice(&secrets);
     ok(
-        tessera(d, &accepted, Duration::from_secs(30)),
+        exposed(&accepted),
         "--print-config of an HTTPS side with both tokens",
     );
     let line = refusal(&["--tls-auto", "--http-insecure"]);
