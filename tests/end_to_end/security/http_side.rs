@@ -8,10 +8,10 @@ use std::time::Duration;
 use coordinator::http::{routes, Access};
 use tempfile::TempDir;
 
-use super::{submit_and_wait, tokens};
+use super::{submit_and_wait, tokens, SMALL};
 use crate::support::{
-    header, json_error, ok, one_error_line, path_str, poll, shared, start_coordinator,
-    start_worker_with, tessera, Answer, Site,
+    assert_same_png, header, json_error, ok, one_error_line, path_str, poll, render_reference,
+    scene_path, shared, start_coordinator, start_worker_with, tessera, Answer, Site,
 };
 
 /// Who may call each route, as this test expects it: a route added to the table
@@ -240,7 +240,9 @@ fn every_http_route_asks_for_what_its_row_says_over_plain_http_and_tls() {
         let mut worker_auth = vec!["--token-file", path_str(&worker_token)];
         worker_auth.extend(auth.iter().skip(2));
         let _worker = start_worker_with(&run, &addr, "w", &worker_auth);
-        submit_and_wait(&run, &addr, "job.png", &auth);
+        let out = submit_and_wait(&run, &addr, "job.png", &auth);
+        let reference = render_reference(&run, &scene_path("seed.json"), "reference.png", SMALL);
+        assert_same_png(&out, &reference, what);
         let site = if tls {
             Site::https(&http, &data.join("tls").join("cert.pem"))
         } else {
