@@ -9,8 +9,8 @@ use std::time::Duration;
 
 use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::{
-    client, ok, poll, scene_path, shared, spawn_tessera, start_coordinator_in, start_worker,
-    submit, wait_done, worker_named, worker_names, workers_json,
+    assert_job_image, client, ok, poll, scene_path, shared, spawn_tessera, start_coordinator_in,
+    start_worker, submit, wait_done, worker_named, worker_names, workers_json,
 };
 
 #[test]
@@ -58,21 +58,19 @@ fn a_worker_of_the_same_name_from_the_same_host_supersedes_the_connected_one() {
         "{log}"
     );
 
-    // The new connection serves.
-    let job = submit(
+    // The new connection serves, the image exactly `tessera render`'s.
+    let scene = scene_path("seed.json");
+    let args = ["--width", "32", "--height", "24", "--aa", "1"];
+    let job = submit(dir.path(), &addr, &[&[scene.as_str()][..], &args].concat());
+    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
+    assert_job_image(
         dir.path(),
         &addr,
-        &[
-            &scene_path("seed.json"),
-            "--width",
-            "32",
-            "--height",
-            "24",
-            "--aa",
-            "1",
-        ],
+        job,
+        &scene,
+        &args,
+        "the superseding worker's job",
     );
-    wait_done(dir.path(), &addr, job, Duration::from_secs(60));
     drop(second);
 }
 

@@ -8,10 +8,10 @@ use std::time::Duration;
 use coordinator::http::{routes, Access};
 use tempfile::TempDir;
 
-use super::{submit_and_wait, tokens};
+use super::{submit_and_wait, tokens, SMALL};
 use crate::support::{
-    header, json_error, ok, one_error_line, path_str, poll, shared, start_coordinator,
-    start_worker_with, tessera, Answer, Site,
+    assert_same_png, header, json_error, ok, one_error_line, path_str, poll, render_reference,
+    scene_path, shared, start_coordinator, start_worker_with, tessera, Answer, Site,
 };
 
 /// Who may call each route, as this test expects it: a route added to the table
@@ -240,7 +240,9 @@ fn every_http_route_asks_for_what_its_row_says_over_plain_http_and_tls() {
         let mut worker_auth = vec!["--token-file", path_str(&worker_token)];
         worker_auth.extend(auth.iter().skip(2));
         let _worker = start_worker_with(&run, &addr, "w", &worker_auth);
-        submit_and_wait(&run, &addr, "job.png", &auth);
+        let out = submit_and_wait(&run, &addr, "job.png", &auth);
+        let reference = render_reference(&run, &scene_path("seed.json"), "reference.png", SMALL);
+        assert_same_png(&out, &reference, what);
         let site = if tls {
             Site::https(&http, &data.join("tls").join("cert.pem"))
         } else {
@@ -301,7 +303,8 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (worker_token, client_token) = tokens(d);
-    let refusal = |extra: &[&str]| {
+    // A coordinator whose HTTP side listens on every address, with `extra` flags.
+    let exposed = |extra: &[&str]| {
         let mut args = vec![
             "coordinator",
             "--listen",
@@ -312,11 +315,10 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
             "0.0.0.0:0",
         ];
         args.extend_from_slice(extra);
-        one_error_line(
-            &tessera(d, &args, Duration::from_secs(30)),
-            "a coordinator exposing its HTTP side",
-        )
+        tessera(d, &args, Duration::from_secs(30))
     };
+    let refusal =
+        |extra: &[&str]| one_error_line(&exposed(extra), "a coordinator exposing its HTTP side");
     let secrets = [
         "--worker-token-file",
         path_str(&worker_token),
@@ -332,20 +334,10 @@ fn an_http_side_other_machines_reach_needs_tls_and_the_client_secret() {
     );
     // With TLS the same settings pass: `--print-config` makes the start's checks
     // without binding anything.
-    let mut accepted = vec![
-        "coordinator",
-        "--listen",
-        "127.0.0.1:0",
-        "--data",
-        "data",
-        "--http",
-        "0.0.0.0:0",
-        "--tls-auto",
-        "--print-config",
-    ];
+    let mut accepted = vec!["--tls-auto", "--print-config"];
     accepted.extend_from_slice(&secrets);
     ok(
-        tessera(d, &accepted, Duration::from_secs(30)),
+        exposed(&accepted),
         "--print-config of an HTTPS side with both tokens",
     );
     let line = refusal(&["--tls-auto", "--http-insecure"]);
