@@ -20,6 +20,14 @@ pub fn read_checked_scene(path: &Path) -> Result<String> {
     Ok(text)
 }
 
+/// The directory a scene file's mesh files are relative to: the file's own.
+pub fn scene_dir(path: &Path) -> std::path::PathBuf {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    }
+}
+
 /// Files from this size are read in parallel parts, one per thread of the pool.
 const PARALLEL_READ_MIN: u64 = 16 << 20;
 

@@ -89,11 +89,13 @@ fn scene(n: usize, spread: bool, aa: u32) -> Scene {
             CameraSpec {
                 position: Vec3::new(0.0, 11.0, -22.0),
                 look_at: Vec3::new(0.0, -1.0, 0.5),
+                ..CameraSpec::default()
             }
         } else {
             CameraSpec {
                 position: Vec3::new(3.0, 2.5, -8.0),
                 look_at: Vec3::ZERO,
+                ..CameraSpec::default()
             }
         },
         settings: RenderSettings {

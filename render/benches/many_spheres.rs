@@ -91,6 +91,7 @@ fn scene(count: usize) -> Scene {
         camera: CameraSpec {
             position: Vec3::new(0.0, 12.0, -22.0),
             look_at: Vec3::new(0.0, 0.0, 0.5),
+            ..CameraSpec::default()
         },
         settings: RenderSettings {
             width: 600,

@@ -12,7 +12,9 @@ pub struct Camera {
     up: Vec3,
     half_width: f64,
     half_height: f64,
-    /// The shorter image side, which spans the field of view 2·atan(1/2).
+    /// The shorter image side divided by k = 2·tan(fov/2): image-plane coordinates are
+    /// pixels over it. Without a `fov`, k = 1 and this is the shorter side exactly, which
+    /// spans the seed's field of view 2·atan(1/2).
     short_side: f64,
 }
 
@@ -20,9 +22,8 @@ impl Camera {
     /// Builds the basis. The scene loader has already refused a camera that looks along
     /// the up axis, so the cross products here are non-zero.
     pub fn new(spec: &CameraSpec, settings: &RenderSettings) -> Self {
-        let world_up = Vec3::new(0.0, 1.0, 0.0);
         let forward = (spec.look_at - spec.position).normalize();
-        let right = world_up.cross(forward).normalize();
+        let right = spec.up.cross(forward).normalize();
         let up = forward.cross(right);
         let width = f64::from(settings.width);
         let height = f64::from(settings.height);
@@ -33,7 +34,10 @@ impl Camera {
             up,
             half_width: width / 2.0,
             half_height: height / 2.0,
-            short_side: width.min(height),
+            short_side: match spec.fov {
+                Some(fov) => width.min(height) / crate::parse::fov_scale(fov),
+                None => width.min(height),
+            },
         }
     }
 

@@ -24,9 +24,11 @@ mod parse;
 pub mod progressive;
 pub mod sampling;
 mod scene;
+mod shapes;
 pub mod simd;
 mod tile;
 mod tracer;
+pub mod transform;
 pub mod trig;
 mod vec3;
 mod write;
@@ -36,12 +38,18 @@ pub use crate::animation::{
 };
 pub use crate::error::SceneError;
 pub use crate::image::Image;
-pub use crate::parse::{parse_animated, parse_scene, validate_settings, MAX_TRACKS};
+pub use crate::mesh::{MeshFile, MeshFiles};
+pub use crate::parse::{
+    parse_animated, parse_animated_with, parse_scene, parse_scene_with, validate_settings,
+    MAX_TRACKS,
+};
 pub use crate::sampling::{
     sample_offsets, InvalidTarget, Sampler, Sampling, SamplingChoiceError, MAX_TARGET_MILLI,
     MIN_TARGET_MILLI,
 };
-pub use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
+pub use crate::scene::{
+    CameraSpec, Light, Material, MeshObject, Object, RenderSettings, Scene, Shape,
+};
 pub use crate::tile::{
     estimated_error, render_frame, render_tile, tiles, Frame, Rect, TileError, TileImage,
     DEFAULT_TILE_SIZE,

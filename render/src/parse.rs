@@ -20,8 +20,11 @@ use serde_json::{Map, Value};
 use crate::animation::AnimatedScene;
 use crate::error::SceneError;
 use crate::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
+use crate::mesh::MeshFiles;
 use crate::sampling::{Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI};
-use crate::scene::{CameraSpec, Light, Material, Object, RenderSettings, Scene, Shape};
+use crate::scene::{CameraSpec, Light, Material, MeshObject, Object, RenderSettings, Scene, Shape};
+use crate::transform::TransformSpec;
+use crate::trig::tan_deg;
 use crate::vec3::Vec3;
 
 type Result<T> = std::result::Result<T, SceneError>;
@@ -43,27 +46,42 @@ pub fn parse_scene(text: &str) -> Result<Scene> {
 /// A scene without an `"animation"` key is read the fast way when it can be, as by
 /// [`parse_scene`]; the fast reading leaves the `"animation"` key (like every key it
 /// does not know) to the reference reading.
+///
+/// A scene given as text alone cannot name mesh files: a `mesh` object is refused in one
+/// line (see [`parse_animated_with`]).
 pub fn parse_animated(text: &str) -> Result<AnimatedScene> {
+    parse_animated_with(text, &MeshFiles::none())
+}
+
+/// [`parse_animated`] for a scene whose mesh files come from `files` (the scene file's
+/// directory): each file is read once, and files of the same bytes share their
+/// geometry.
+pub fn parse_animated_with(text: &str, files: &MeshFiles) -> Result<AnimatedScene> {
     match fast::parse(text) {
         Some(base) => Ok(AnimatedScene {
             base,
             animation: None,
         }),
-        None => parse_reference_animated(text),
+        None => parse_reference_animated(text, files),
     }
+}
+
+/// [`parse_scene`] with the mesh files of `files`.
+pub fn parse_scene_with(text: &str, files: &MeshFiles) -> Result<Scene> {
+    parse_animated_with(text, files).map(AnimatedScene::into_first_frame)
 }
 
 /// The reference reading of a scene as [`parse_scene`] gives it: frame 1 of an animated
 /// scene. [`fast::parse`] must agree with it on every scene it accepts.
 #[cfg(test)]
 fn parse_reference(text: &str) -> Result<Scene> {
-    parse_reference_animated(text).map(AnimatedScene::into_first_frame)
+    parse_reference_animated(text, &MeshFiles::none()).map(AnimatedScene::into_first_frame)
 }
 
 /// The reference reading: every check in a fixed order, so that among several errors
 /// the same one is always reported. The animation, if any, is read last: it names the
 /// scene's objects and lights.
-fn parse_reference_animated(text: &str) -> Result<AnimatedScene> {
+fn parse_reference_animated(text: &str, files: &MeshFiles) -> Result<AnimatedScene> {
     let root: Value = serde_json::from_str(text).map_err(|e| SceneError::Syntax {
         message: syntax_message(&e),
         line: e.line(),
@@ -91,7 +109,7 @@ fn parse_reference_animated(text: &str) -> Result<AnimatedScene> {
     let objects = required_array(root, "", "objects")?
         .iter()
         .enumerate()
-        .map(|(i, v)| parse_object(v, &format!("objects[{i}]")))
+        .map(|(i, v)| parse_object(v, &format!("objects[{i}]"), files))
         .collect::<Result<Vec<_>>>()?;
     let camera = match root.get("camera") {
         Some(v) => parse_camera(v, "camera")?,
@@ -370,7 +388,7 @@ fn parse_light(v: &Value, path: &str) -> Result<Light> {
     Ok(Light { position, color })
 }
 
-fn parse_object(v: &Value, path: &str) -> Result<Object> {
+fn parse_object(v: &Value, path: &str, files: &MeshFiles) -> Result<Object> {
     let obj = as_object(v, path)?;
     let type_path = join(path, "type");
     let kind = match required(obj, path, "type")? {
@@ -410,11 +428,91 @@ fn parse_object(v: &Value, path: &str) -> Result<Object> {
             let distance = number(required(obj, path, "distance")?, &join(path, "distance"))?;
             Shape::Plane { normal, distance }
         }
+        "triangle" => {
+            check_keys(obj, path, &["type", "vertices", "color"])?;
+            let vertices_path = join(path, "vertices");
+            let list = required(obj, path, "vertices")?;
+            let items = match list.as_array() {
+                Some(items) if items.len() == 3 => items,
+                _ => {
+                    return Err(SceneError::invalid(
+                        vertices_path,
+                        format!("expected an array of 3 vectors, got {}", describe(list)),
+                    ))
+                }
+            };
+            let mut vertices = [Vec3::ZERO; 3];
+            for (k, item) in items.iter().enumerate() {
+                vertices[k] = vec3(item, &format!("{vertices_path}[{k}]"))?;
+            }
+            Shape::Triangle { vertices }
+        }
+        "box" => {
+            check_keys(obj, path, &["type", "min", "max", "color"])?;
+            let min = vec3(required(obj, path, "min")?, &join(path, "min"))?;
+            let max_path = join(path, "max");
+            let max = vec3(required(obj, path, "max")?, &max_path)?;
+            if !(min.x < max.x && min.y < max.y && min.z < max.z) {
+                return Err(SceneError::invalid(
+                    max_path,
+                    format!(
+                        "must exceed min on every axis, got min {} {} {} and max {} {} {}",
+                        min.x, min.y, min.z, max.x, max.y, max.z
+                    ),
+                ));
+            }
+            Shape::Box { min, max }
+        }
+        "mesh" => {
+            check_keys(
+                obj,
+                path,
+                &["type", "file", "color", "transform", "shading"],
+            )?;
+            let file_path = join(path, "file");
+            let name = match required(obj, path, "file")? {
+                Value::String(s) if !s.is_empty() => s.as_str(),
+                other => {
+                    return Err(SceneError::invalid(
+                        file_path,
+                        format!("expected a file name, got {}", describe(other)),
+                    ))
+                }
+            };
+            let smooth = match obj.get("shading") {
+                None => false,
+                Some(Value::String(s)) if s == "flat" => false,
+                Some(Value::String(s)) if s == "smooth" => true,
+                Some(other) => {
+                    return Err(SceneError::invalid(
+                        join(path, "shading"),
+                        format!("expected \"flat\" or \"smooth\", got {other}"),
+                    ))
+                }
+            };
+            let transform_path = join(path, "transform");
+            let spec = match obj.get("transform") {
+                Some(v) => parse_transform(v, &transform_path)?,
+                None => TransformSpec::IDENTITY,
+            };
+            let transform = spec
+                .affine()
+                .map_err(|m| SceneError::invalid(&transform_path, m))?;
+            let file = files
+                .get(name)
+                .map_err(|m| SceneError::invalid(&file_path, m))?;
+            Shape::Mesh(MeshObject {
+                file,
+                spec,
+                transform,
+                smooth,
+            })
+        }
         other => {
             return Err(SceneError::invalid(
                 type_path,
                 format!(
-                    "unknown object type {other:?} (expected \"sphere\", \"plan\" or \"plane\")"
+                    "unknown object type {other:?} (expected \"sphere\", \"plane\", \"triangle\", \"box\" or \"mesh\")"
                 ),
             ))
         }
@@ -429,9 +527,73 @@ fn parse_object(v: &Value, path: &str) -> Result<Object> {
     })
 }
 
+/// A mesh's `transform`: `scale`, `rotate`, `translate`, or `matrix` alone.
+pub(crate) fn parse_transform(v: &Value, path: &str) -> Result<TransformSpec> {
+    let obj = as_object(v, path)?;
+    check_keys(obj, path, &["scale", "rotate", "translate", "matrix"])?;
+    if let Some(m) = obj.get("matrix") {
+        if let Some(other) = ["scale", "rotate", "translate"]
+            .into_iter()
+            .find(|k| obj.contains_key(*k))
+        {
+            return Err(SceneError::invalid(
+                join(path, other),
+                "cannot be combined with matrix",
+            ));
+        }
+        let matrix_path = join(path, "matrix");
+        let n = number_list(m, &matrix_path, "12 numbers (a 3 x 4 matrix, row by row)")?;
+        let matrix: [f64; 12] = n.as_slice().try_into().map_err(|_| {
+            SceneError::invalid(
+                &matrix_path,
+                format!(
+                    "expected 12 numbers (a 3 x 4 matrix, row by row), got {}",
+                    n.len()
+                ),
+            )
+        })?;
+        return Ok(TransformSpec::Matrix(matrix));
+    }
+    let scale = match obj.get("scale") {
+        None => Vec3::new(1.0, 1.0, 1.0),
+        Some(v @ Value::Number(_)) => {
+            let s = number(v, &join(path, "scale"))?;
+            Vec3::new(s, s, s)
+        }
+        Some(v) => vec3(v, &join(path, "scale"))?,
+    };
+    let rotate = match obj.get("rotate") {
+        None => Vec3::ZERO,
+        Some(v) => vec3(v, &join(path, "rotate"))?,
+    };
+    let translate = match obj.get("translate") {
+        None => Vec3::ZERO,
+        Some(v) => vec3(v, &join(path, "translate"))?,
+    };
+    Ok(TransformSpec::Parts {
+        scale,
+        rotate,
+        translate,
+    })
+}
+
+/// A value as an error message names it: strings and short values in full.
+fn describe(v: &Value) -> String {
+    match v {
+        Value::Array(items) => format!("an array of {}", items.len()),
+        Value::String(s) if s.is_empty() => "an empty string".into(),
+        other => type_name(other).into(),
+    }
+}
+
+/// k = 2·tan(fov/2) of a field of view in degrees, computed the same on every machine.
+pub(crate) fn fov_scale(fov: f64) -> f64 {
+    2.0 * tan_deg(fov / 2.0)
+}
+
 fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {
     let obj = as_object(v, path)?;
-    check_keys(obj, path, &["position", "look_at"])?;
+    check_keys(obj, path, &["position", "look_at", "fov", "up"])?;
     let default = CameraSpec::default();
     let position = match obj.get("position") {
         Some(v) => vec3(v, &join(path, "position"))?,
@@ -441,9 +603,37 @@ fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {
         Some(v) => vec3(v, &join(path, "look_at"))?,
         None => default.look_at,
     };
-    match camera_problem(position, look_at) {
+    let up = match obj.get("up") {
+        Some(v) => vec3(v, &join(path, "up"))?,
+        None => default.up,
+    };
+    let fov = match obj.get("fov") {
+        Some(v) => {
+            let fov_path = join(path, "fov");
+            let fov = number(v, &fov_path)?;
+            if let Some(problem) = fov_problem(fov) {
+                return Err(SceneError::invalid(fov_path, problem));
+            }
+            Some(fov)
+        }
+        None => None,
+    };
+    let camera = CameraSpec {
+        position,
+        look_at,
+        up,
+        fov,
+    };
+    match camera_problem(&camera) {
         None => {}
-        Some(CameraProblem::Vertical) => return Err(SceneError::invalid(path, VERTICAL)),
+        Some(CameraProblem::Vertical) => {
+            let place = if obj.contains_key("up") {
+                join(path, "up")
+            } else {
+                path.to_string()
+            };
+            return Err(SceneError::invalid(place, vertical_message(up)));
+        }
         Some(problem) => {
             return Err(SceneError::invalid(
                 join(path, "look_at"),
@@ -451,7 +641,32 @@ fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {
             ))
         }
     }
-    Ok(CameraSpec { position, look_at })
+    Ok(camera)
+}
+
+/// Why a field of view is not one, if it is not: 0 < fov < 180 with a finite, non-zero
+/// image plane.
+pub(crate) fn fov_problem(fov: f64) -> Option<String> {
+    let k = fov_scale(fov);
+    (!(fov > 0.0 && fov < 180.0 && k.is_normal()))
+        .then(|| format!("must be between 0 and 180 degrees (exclusive), got {fov}"))
+}
+
+/// What the camera check says about a view along the up vector.
+pub(crate) fn vertical_message(up: Vec3) -> String {
+    if !up.is_finite() || !up.length().is_normal() {
+        format!(
+            "up must be a non-zero vector, got {} {} {}",
+            up.x, up.y, up.z
+        )
+    } else if up == CameraSpec::WORLD_UP {
+        VERTICAL.to_string()
+    } else {
+        format!(
+            "the viewing direction (look_at - position) is parallel to the up vector ({} {} {})",
+            up.x, up.y, up.z
+        )
+    }
 }
 
 /// What the camera check says about a vertical view (with the path `camera`).
@@ -460,7 +675,7 @@ const VERTICAL: &str =
 
 /// Why a camera position and look-at point give no camera.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum CameraProblem {
+pub(crate) enum CameraProblem {
     Same,
     NoDirection,
     Vertical,
@@ -479,18 +694,19 @@ impl CameraProblem {
 }
 
 /// The camera's checks, shared by the static scene and every frame of an animation.
-fn camera_problem(position: Vec3, look_at: Vec3) -> Option<CameraProblem> {
-    let forward = look_at - position;
+pub(crate) fn camera_problem(camera: &CameraSpec) -> Option<CameraProblem> {
+    let forward = camera.look_at - camera.position;
     if forward == Vec3::ZERO {
         return Some(CameraProblem::Same);
     }
     if !forward.is_finite() || !forward.length().is_normal() {
         return Some(CameraProblem::NoDirection);
     }
-    // The right axis is up × forward = (f.z, 0, -f.x): it vanishes (or underflows) when
-    // the camera looks straight up or down.
+    // The right axis is up × forward: it vanishes (or underflows) when the camera looks
+    // along the up vector (with the seed's up, straight up or down).
     let f = forward.normalize();
-    if !Vec3::new(f.z, 0.0, -f.x).length().is_normal() {
+    let up = camera.up;
+    if !up.is_finite() || !up.length().is_normal() || !up.cross(f).length().is_normal() {
         return Some(CameraProblem::Vertical);
     }
     None
@@ -605,7 +821,7 @@ mod tests {
         );
         assert_eq!(
             error_of(&with_object(r#"{"type": "cube"}"#)),
-            "objects[0].type: unknown object type \"cube\" (expected \"sphere\", \"plan\" or \"plane\")"
+            "objects[0].type: unknown object type \"cube\" (expected \"sphere\", \"plane\", \"triangle\", \"box\" or \"mesh\")"
         );
         assert_eq!(
             error_of(&with_object(

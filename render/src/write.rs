@@ -12,7 +12,8 @@
 
 use std::fmt::Write as _;
 
-use crate::scene::{Material, Scene, Shape};
+use crate::scene::{CameraSpec, Material, Scene, Shape};
+use crate::transform::TransformSpec;
 use crate::vec3::Vec3;
 
 /// A number that no spelling tried makes serde_json read back exactly. Every number a
@@ -48,8 +49,8 @@ impl Scene {
             if i > 0 {
                 s.push_str(", ");
             }
-            match object.shape {
-                Shape::Sphere { center, radius } => {
+            match &object.shape {
+                &Shape::Sphere { center, radius } => {
                     let _ = write!(
                         s,
                         "{{\"type\": \"sphere\", \"center\": \"{}\", \"radius\": {}, ",
@@ -57,13 +58,60 @@ impl Scene {
                         json_number(radius)?
                     );
                 }
-                Shape::Plane { normal, distance } => {
+                &Shape::Plane { normal, distance } => {
                     let _ = write!(
                         s,
                         "{{\"type\": \"plane\", \"normal\": \"{}\", \"distance\": {}, ",
                         vector(normal),
                         json_number(distance)?
                     );
+                }
+                Shape::Triangle { vertices } => {
+                    let _ = write!(
+                        s,
+                        "{{\"type\": \"triangle\", \"vertices\": [\"{}\", \"{}\", \"{}\"], ",
+                        vector(vertices[0]),
+                        vector(vertices[1]),
+                        vector(vertices[2])
+                    );
+                }
+                Shape::Box { min, max } => {
+                    let _ = write!(
+                        s,
+                        "{{\"type\": \"box\", \"min\": \"{}\", \"max\": \"{}\", ",
+                        vector(*min),
+                        vector(*max)
+                    );
+                }
+                Shape::Mesh(mesh) => {
+                    let name = serde_json::to_string(&mesh.file.name).unwrap_or_default();
+                    let _ = write!(s, "{{\"type\": \"mesh\", \"file\": {name}, ");
+                    match mesh.spec {
+                        TransformSpec::Matrix(m) => {
+                            let numbers: Vec<String> = m.iter().map(|x| format!("{x:?}")).collect();
+                            let _ = write!(
+                                s,
+                                "\"transform\": {{\"matrix\": \"{}\"}}, ",
+                                numbers.join(" ")
+                            );
+                        }
+                        TransformSpec::Parts {
+                            scale,
+                            rotate,
+                            translate,
+                        } => {
+                            let _ = write!(
+                                s,
+                                "\"transform\": {{\"scale\": \"{}\", \"rotate\": \"{}\", \"translate\": \"{}\"}}, ",
+                                vector(scale),
+                                vector(rotate),
+                                vector(translate)
+                            );
+                        }
+                    }
+                    if mesh.smooth {
+                        s.push_str("\"shading\": \"smooth\", ");
+                    }
                 }
             }
             let special = match object.material {
@@ -74,9 +122,16 @@ impl Scene {
             let _ = write!(s, "\"color\": \"{} {special:?}\"}}", vector(object.color));
         }
         let settings = &self.settings;
+        let mut camera_extra = String::new();
+        if self.camera.up != CameraSpec::WORLD_UP {
+            let _ = write!(camera_extra, ", \"up\": \"{}\"", vector(self.camera.up));
+        }
+        if let Some(fov) = self.camera.fov {
+            let _ = write!(camera_extra, ", \"fov\": {}", json_number(fov)?);
+        }
         let _ = write!(
             s,
-            "], \"camera\": {{\"position\": \"{}\", \"look_at\": \"{}\"}}, \
+            "], \"camera\": {{\"position\": \"{}\", \"look_at\": \"{}\"{camera_extra}}}, \
              \"image\": {{\"width\": {}, \"height\": {}, \"aa\": {}, \"max_depth\": {}}}, \
              \"ambient\": {}}}",
             vector(self.camera.position),

@@ -9,13 +9,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
-use render::{parse_animated, validate_settings, AnimatedScene, RenderSettings};
+use render::{parse_animated_with, validate_settings, AnimatedScene, MeshFiles, RenderSettings};
 
 use crate::args::{FrameRange, FramesArg, ImageArgs};
 use crate::config;
 use crate::local_render::{thread_pool, Job};
 use crate::output::{default_output, FileOutput, FramesDir, ImageOutput};
-use crate::scene_file::read_in_parallel;
+use crate::scene_file::{read_in_parallel, scene_dir};
 
 /// Render a scene file to a PNG image on this machine.
 #[derive(clap::Args)]
@@ -71,8 +71,9 @@ pub fn run(args: Args) -> Result<()> {
     let text = pool
         .install(|| read_in_parallel(scene_path))
         .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
+    let files = MeshFiles::beside(scene_dir(scene_path));
     let animated = pool
-        .install(|| parse_animated(&text))
+        .install(|| parse_animated_with(&text, &files))
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
     // Only a render that saves its samples needs the text again; otherwise it goes now,
     // before the tracer is built (a large scene's text is larger than the scene).

@@ -10,35 +10,53 @@ use crate::limits::{MAX_MESH_FILE_BYTES, MAX_MESH_TRIANGLES};
 /// The mesh in the file at `path` (`.obj`, `.ply`, `.stl`, `.gltf` or `.glb`, in any
 /// case), or one line saying what is wrong, starting with the file's path.
 pub fn load(path: &Path) -> Result<MeshData, String> {
+    let bytes = read(path)?;
+    parse(path, &bytes)
+}
+
+/// The bytes of the mesh file at `path`, held to the file size limit, or one line
+/// starting with the file's path.
+pub fn read(path: &Path) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let name = path.display();
+    let file = std::fs::File::open(path).map_err(|e| format!("{name}: cannot read it: {e}"))?;
+    let mut bytes = Vec::new();
+    // One byte more than the limit tells a file that is too large, whatever its
+    // metadata claims (a pipe, a file still growing).
+    file.take(MAX_MESH_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| format!("{name}: cannot read it: {e}"))?;
+    if bytes.len() as u64 > MAX_MESH_FILE_BYTES {
+        return Err(format!(
+            "{name}: more than the limit of {MAX_MESH_FILE_BYTES} bytes for a mesh file"
+        ));
+    }
+    Ok(bytes)
+}
+
+/// The mesh in `bytes`, read from the file at `path` (whose extension chooses the
+/// reader, and beside which a `.gltf` finds its buffers).
+pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
     let name = path.display();
     let extension = path
         .extension()
         .and_then(|e| e.to_str())
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
-    let size = std::fs::metadata(path)
-        .map_err(|e| format!("{name}: cannot read it: {e}"))?
-        .len();
-    if size > MAX_MESH_FILE_BYTES {
-        return Err(format!(
-            "{name}: {size} bytes, more than the limit of {MAX_MESH_FILE_BYTES} for a mesh file"
-        ));
-    }
-    let bytes = std::fs::read(path).map_err(|e| format!("{name}: cannot read it: {e}"))?;
     let beside = |uri: &str| {
         let file = path.parent().unwrap_or(Path::new(".")).join(uri);
-        std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+        read(&file)
     };
     let mesh = match extension.as_str() {
         "obj" => {
-            let text = std::str::from_utf8(&bytes)
+            let text = std::str::from_utf8(bytes)
                 .map_err(|e| format!("{name}: not text (byte {})", e.valid_up_to()))?;
             super::obj::read(text)
         }
-        "ply" => super::ply::read(&bytes),
-        "stl" => super::stl::read(&bytes),
-        "gltf" => super::gltf::read_gltf(&bytes, &beside),
-        "glb" => super::gltf::read_glb(&bytes, &beside),
+        "ply" => super::ply::read(bytes),
+        "stl" => super::stl::read(bytes),
+        "gltf" => super::gltf::read_gltf(bytes, &beside),
+        "glb" => super::gltf::read_glb(bytes, &beside),
         _ => {
             return Err(format!(
                 "{name}: unknown mesh format {extension:?}: .obj, .ply, .stl, .gltf or .glb"

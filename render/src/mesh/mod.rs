@@ -7,6 +7,11 @@ pub mod obj;
 pub mod ply;
 pub mod stl;
 
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 /// A corner without a normal of the file's ([`MeshData::corner_normals`]).
@@ -24,6 +29,137 @@ pub struct MeshData {
     /// Each triangle's corners' normals, indices into `normals`, [`NO_NORMAL`] where the
     /// file gives none.
     pub corner_normals: Vec<[u32; 3]>,
+}
+
+/// A mesh file as a scene names it: the name as written, the file's SHA-256 (which a
+/// state file records), and its geometry, shared by every object and every file of the
+/// same bytes.
+pub struct MeshFile {
+    /// The `file` string of the scene.
+    pub name: String,
+    /// Where it was read: `name` resolved against the scene's directory.
+    pub path: PathBuf,
+    pub sha256: [u8; 32],
+    pub geometry: Arc<MeshGeometry>,
+}
+
+impl MeshFile {
+    /// The SHA-256 in lower-case hexadecimal.
+    pub fn sha256_hex(&self) -> String {
+        self.sha256.iter().map(|b| format!("{b:02x}")).collect()
+    }
+}
+
+impl PartialEq for MeshFile {
+    fn eq(&self, other: &Self) -> bool {
+        self.name == other.name && self.sha256 == other.sha256
+    }
+}
+
+impl std::fmt::Debug for MeshFile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MeshFile")
+            .field("name", &self.name)
+            .field("sha256", &self.sha256_hex())
+            .field("triangles", &self.geometry.data.triangles.len())
+            .finish()
+    }
+}
+
+/// A mesh's triangles and what the tracer builds from them once, whatever the number
+/// of objects that use it.
+pub struct MeshGeometry {
+    pub data: MeshData,
+    /// The tracer's hierarchy over the triangles, built on first use.
+    pub(crate) prepared: OnceLock<crate::shapes::mesh::MeshAccel>,
+}
+
+impl std::fmt::Debug for MeshGeometry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MeshGeometry")
+            .field("triangles", &self.data.triangles.len())
+            .finish()
+    }
+}
+
+impl MeshGeometry {
+    pub fn new(data: MeshData) -> Self {
+        MeshGeometry {
+            data,
+            prepared: OnceLock::new(),
+        }
+    }
+}
+
+/// Where the mesh files a scene names come from: the directory of the scene file, or
+/// nowhere (a scene given as text alone, as a farm receives it).
+#[derive(Clone, Debug, Default)]
+pub struct MeshFiles {
+    dir: Option<PathBuf>,
+    /// Files read so far, by SHA-256, so that copies of one file (or one file under
+    /// two names) hold their geometry once; and by name, so that a file named by many
+    /// objects is read once.
+    by_hash: Arc<Mutex<HashMap<[u8; 32], Arc<MeshGeometry>>>>,
+    by_name: Arc<Mutex<HashMap<String, Arc<MeshFile>>>>,
+}
+
+impl MeshFiles {
+    /// No mesh files: a scene that names one is refused.
+    pub fn none() -> Self {
+        MeshFiles::default()
+    }
+
+    /// Mesh files relative to `dir`, the scene file's directory.
+    pub fn beside(dir: impl Into<PathBuf>) -> Self {
+        MeshFiles {
+            dir: Some(dir.into()),
+            ..MeshFiles::default()
+        }
+    }
+
+    /// The directory names are resolved against, if files may be read at all.
+    pub fn dir(&self) -> Option<&Path> {
+        self.dir.as_deref()
+    }
+
+    /// The file `name` (as a scene writes it), read and checked, or one line saying
+    /// why not, starting with the file's path.
+    pub fn get(&self, name: &str) -> Result<Arc<MeshFile>, String> {
+        let Some(dir) = &self.dir else {
+            return Err(
+                "a mesh file cannot be read here: a scene with meshes is rendered from its \
+                 file by `tessera render` (a farm does not render meshes yet)"
+                    .into(),
+            );
+        };
+        if let Some(file) = lock(&self.by_name).get(name) {
+            return Ok(file.clone());
+        }
+        let path = dir.join(name);
+        let bytes = load::read(&path)?;
+        let sha256: [u8; 32] = Sha256::digest(&bytes).into();
+        let known = lock(&self.by_hash).get(&sha256).cloned();
+        let geometry = match known {
+            Some(geometry) => geometry,
+            None => {
+                let geometry = Arc::new(MeshGeometry::new(load::parse(&path, &bytes)?));
+                lock(&self.by_hash).insert(sha256, geometry.clone());
+                geometry
+            }
+        };
+        let file = Arc::new(MeshFile {
+            name: name.to_string(),
+            path,
+            sha256,
+            geometry,
+        });
+        lock(&self.by_name).insert(name.to_string(), file.clone());
+        Ok(file)
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Why a mesh file cannot be read; the caller adds the object and the file's name.

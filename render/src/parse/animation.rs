@@ -28,7 +28,7 @@ use crate::animation::{
     Animation, Interpolation, Key, Target, Track, Value as KeyValue, MAX_FRAMES,
 };
 use crate::error::SceneError;
-use crate::scene::{Scene, Shape};
+use crate::scene::{CameraSpec, Scene, Shape};
 use crate::vec3::Vec3;
 
 /// The most tracks an animation may have.
@@ -265,7 +265,7 @@ fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
                     ),
                 )
             })?;
-            match (object.shape, field) {
+            match (&object.shape, field) {
                 (Shape::Sphere { .. }, "center") => Ok(Target::SphereCenter(i)),
                 (Shape::Sphere { .. }, "radius") => Ok(Target::SphereRadius(i)),
                 (Shape::Plane { .. }, "normal") => Ok(Target::PlaneNormal(i)),
@@ -283,6 +283,18 @@ fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
                     format!(
                         "objects[{i}] is a plane, which has no field {other:?} to animate \
                          (expected normal, distance or color)"
+                    ),
+                )),
+                (shape, other) => Err(SceneError::invalid(
+                    path,
+                    format!(
+                        "objects[{i}] is a {}, which has no field {other:?} to animate \
+                         (expected color)",
+                        match shape {
+                            Shape::Triangle { .. } => "triangle",
+                            Shape::Box { .. } => "box",
+                            _ => "mesh",
+                        }
                     ),
                 )),
             }
@@ -337,7 +349,12 @@ fn check_frames(animation: &Animation, base: &Scene) -> Result<()> {
     for k in 1..=animation.frames {
         let p = at(position, k, base.camera.position);
         let l = at(look_at, k, base.camera.look_at);
-        let problem = match camera_problem(p, l) {
+        let camera = CameraSpec {
+            position: p,
+            look_at: l,
+            ..base.camera
+        };
+        let problem = match camera_problem(&camera) {
             None => continue,
             Some(CameraProblem::Same) => "camera.look_at equals camera.position",
             Some(CameraProblem::NoDirection) => {
@@ -464,6 +481,7 @@ mod tests {
             s.camera = CameraSpec {
                 position: Vec3::new(camera_x, 1.0, -5.0),
                 look_at: Vec3::ZERO,
+                ..CameraSpec::default()
             };
             s.objects[1].shape = Shape::Sphere {
                 center: Vec3::new(3.0, 0.0, 0.0),

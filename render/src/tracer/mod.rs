@@ -9,6 +9,7 @@
 //! compiled for the best instruction set the processor has ([`crate::simd`]).
 
 mod camera_rays;
+mod general;
 mod packet;
 mod prepare;
 mod ray;
@@ -53,6 +54,9 @@ pub struct Tracer {
     planes: Vec<(u32, PlaneGeom)>,
     /// The hierarchy over the spheres, when there are enough of them to pay.
     bvh: Option<Bvh>,
+    /// Section 8's shapes (triangles, boxes, meshes), if the scene has any: then every
+    /// ray goes through the general integrator ([`general`]), which also asks them.
+    shapes: Option<std::sync::Arc<crate::shapes::Shapes>>,
     /// Camera-ray constants (only without a hierarchy, which has its own).
     eye_spheres: Vec<EyeSphere>,
     eye_planes: Vec<EyePlane>,
@@ -211,6 +215,15 @@ impl Tracer {
     pub fn nearest_hit(&self, origin: Vec3, dir: Vec3, from: Option<usize>) -> Option<Hit> {
         let from = from.map_or(FROM_CAMERA, |i| i as u32);
         let ray = Ray { origin, dir, from };
+        if self.shapes.is_some() {
+            let ray = general::GRay::leaving(origin, dir, from);
+            return self
+                .with_ctx(&mut 0, |ctx| self.general_nearest(&ray, ctx))
+                .map(|hit| Hit {
+                    t: hit.t(),
+                    object: hit.object() as usize,
+                });
+        }
         self.with_ctx(&mut 0, |ctx| self.nearest(&ray, ctx))
             .map(|(t, object)| Hit {
                 t,
@@ -229,11 +242,19 @@ impl Tracer {
             dir,
             from: from as u32,
         };
+        if self.shapes.is_some() {
+            let ray = general::GRay::leaving(point, dir, from as u32);
+            return !self.with_ctx(&mut 0, |ctx| self.general_occluded(&ray, distance, ctx));
+        }
         !self.with_ctx(&mut 0, |ctx| self.occluded(&ray, distance, ctx))
     }
 
     /// The clipped colour seen along a camera ray.
     pub fn trace(&self, origin: Vec3, dir: Vec3) -> Vec3 {
+        if self.shapes.is_some() {
+            let ray = general::GRay::leaving(origin, dir, FROM_CAMERA);
+            return self.with_ctx(&mut 0, |ctx| self.general_radiance(&ray, Path::CAMERA, ctx));
+        }
         let ray = Ray::camera(origin, dir);
         self.with_ctx(&mut 0, |ctx| self.radiance(&ray, Path::CAMERA, ctx))
     }
@@ -390,6 +411,7 @@ pub(crate) mod tests {
             camera: CameraSpec {
                 position: rng.vec(2.0) + Vec3::new(0.0, 0.0, -6.0),
                 look_at: rng.vec(0.5),
+                ..CameraSpec::default()
             },
             settings: RenderSettings {
                 width: 24,

@@ -153,6 +153,7 @@ impl Tracer {
                 }
             }
             Geometry::Plane(ref pl) => V4::splat(pl.normal),
+            Geometry::Beyond => unreachable!("section 8's shapes are traced one ray at a time"),
         };
         let normal = normal.dot(dir).gt(zero).select3(-normal, normal);
         // 3. Ambient.

@@ -15,6 +15,8 @@ use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 pub(super) enum Geometry {
     Sphere(SphereGeom),
     Plane(PlaneGeom),
+    /// One of section 8's shapes, traced through [`crate::shapes::Shapes`].
+    Beyond,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -209,12 +211,13 @@ impl Tracer {
                 Shape::Plane { normal, distance } => {
                     Geometry::Plane(PlaneGeom::new(normal, distance))
                 }
+                Shape::Triangle { .. } | Shape::Box { .. } | Shape::Mesh(_) => Geometry::Beyond,
             },
             color: o.color,
             material: o.material,
             inverse_radius: match o.shape {
                 Shape::Sphere { radius, .. } => Divisor::new(radius).reciprocal(),
-                Shape::Plane { .. } => None,
+                _ => None,
             },
         };
         let surfaces: Vec<Surface> =
@@ -230,6 +233,7 @@ impl Tracer {
             match s.geometry {
                 Geometry::Sphere(g) => spheres.push((index, g)),
                 Geometry::Plane(g) => planes.push((index, g)),
+                Geometry::Beyond => {}
             }
         }
         let camera = Camera::new(&scene.camera, &settings);
@@ -289,7 +293,9 @@ impl Tracer {
                 .flat_map(|l| spheres.iter().map(|(_, s)| SphereCone::new(l.position, s)))
                 .collect()
         };
+        let shapes = crate::shapes::Shapes::new(scene).map(std::sync::Arc::new);
         Tracer {
+            shapes,
             shadow_cones,
             eye_planes: planes
                 .iter()

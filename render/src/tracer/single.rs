@@ -70,7 +70,7 @@ impl Tracer {
     fn sphere(&self, index: u32) -> Option<&SphereGeom> {
         match self.surfaces.get(index as usize)?.geometry {
             Geometry::Sphere(ref s) => Some(s),
-            Geometry::Plane(_) => None,
+            Geometry::Plane(_) | Geometry::Beyond => None,
         }
     }
 
@@ -171,6 +171,10 @@ impl Tracer {
     /// One camera ray's clipped colour.
     #[inline(always)]
     pub(super) fn camera_sample(&self, dir: Vec3, ctx: &mut Ctx) -> Vec3 {
+        if self.shapes.is_some() {
+            let ray = super::general::GRay::leaving(self.camera.position(), dir, FROM_CAMERA);
+            return self.general_radiance(&ray, Path::CAMERA, ctx);
+        }
         ctx.rays += 1;
         let ray = Ray::camera(self.camera.position(), dir);
         let hit = if self.bvh.is_some() {
@@ -232,6 +236,9 @@ impl Tracer {
         let mut normal = match surface.geometry {
             Geometry::Sphere(ref s) => s.normal_at(p),
             Geometry::Plane(ref pl) => pl.normal,
+            Geometry::Beyond => {
+                unreachable!("section 8's shapes are shaded by the general integrator")
+            }
         };
         if normal.dot(dir) > 0.0 {
             normal = -normal;

@@ -39,7 +39,7 @@ fn soup(rng: &mut Mix, n: usize, scale: f64, with_plane: bool) -> Scene {
             .iter()
             .filter_map(|o| match o.shape {
                 Shape::Sphere { center, radius } => Some((center, radius)),
-                Shape::Plane { .. } => None,
+                _ => None,
             })
             .nth(rng.below(objects.len().max(1)));
         let m = material(rng);
@@ -87,6 +87,7 @@ fn soup(rng: &mut Mix, n: usize, scale: f64, with_plane: bool) -> Scene {
         camera: CameraSpec {
             position: Vec3::new(0.5, 1.5, -6.0) * scale,
             look_at: Vec3::ZERO,
+            ..CameraSpec::default()
         },
         settings: RenderSettings {
             width: 40,
@@ -107,7 +108,7 @@ fn ray(rng: &mut Mix, scene: &Scene, scale: f64) -> (Vec3, Vec3) {
         .iter()
         .filter_map(|o| match o.shape {
             Shape::Sphere { center, radius } => Some((center, radius)),
-            Shape::Plane { .. } => None,
+            _ => None,
         })
         .collect();
     let (c, r) = spheres[rng.below(spheres.len())];

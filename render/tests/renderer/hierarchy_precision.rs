@@ -82,7 +82,11 @@ fn scene(objects: Vec<Object>, lights: Vec<Light>, position: Vec3, look_at: Vec3
     Scene {
         lights,
         objects,
-        camera: CameraSpec { position, look_at },
+        camera: CameraSpec {
+            position,
+            look_at,
+            ..CameraSpec::default()
+        },
         settings: RenderSettings {
             width: 96,
             height: 64,
@@ -101,7 +105,7 @@ fn spheres(scene: &Scene) -> Vec<(Vec3, f64)> {
         .iter()
         .filter_map(|o| match o.shape {
             Shape::Sphere { center, radius } => Some((center, radius)),
-            Shape::Plane { .. } => None,
+            _ => None,
         })
         .collect()
 }
@@ -200,6 +204,7 @@ fn same_answers(
         let normal = match scene.objects[hit.object].shape {
             Shape::Sphere { center, radius } => (p - center) / radius,
             Shape::Plane { normal, .. } => normal.normalize(),
+            _ => unreachable!("spheres and planes only"),
         };
         let mirror = (d - normal * (2.0 * d.dot(normal))).normalize();
         for d2 in [mirror, -d, d] {
@@ -571,6 +576,7 @@ fn scaled(scene: &Scene, factor: f64) -> Scene {
                 normal,
                 distance: distance * factor,
             },
+            ref other => other.clone(),
         };
     }
     for l in &mut s.lights {

@@ -57,6 +57,7 @@ mod textbook {
             let t = match o.shape {
                 render::Shape::Sphere { center, radius } => sphere(p, d, center, radius, eps),
                 render::Shape::Plane { normal, distance } => plane(p, d, normal, distance, eps),
+                _ => unreachable!("spheres and planes only"),
             };
             t.is_some_and(|t| t < dist)
         })
@@ -253,6 +254,7 @@ fn ground_scene(offset: Vec3, ground_radius: f64, small: f64) -> Scene {
         CameraSpec {
             position: offset + v(0.0, 4.0, -15.0) * small,
             look_at: offset + v(0.0, 0.5, 0.0) * small,
+            ..CameraSpec::default()
         },
     )
 }
@@ -367,6 +369,7 @@ fn camera_inside_sphere() -> Outcome {
         CameraSpec {
             position: Vec3::ZERO,
             look_at: v(0.0, 0.0, 1.0),
+            ..CameraSpec::default()
         },
     );
     let tracer = Tracer::new(&s, RenderSettings::default());
@@ -531,6 +534,7 @@ fn light_on_surface() -> Outcome {
         CameraSpec {
             position: v(0.3, 0.4, -6.0),
             look_at: v(0.0, 1.5, 0.0),
+            ..CameraSpec::default()
         },
     );
     let tracer = Tracer::new(&s, RenderSettings::default());
@@ -669,6 +673,7 @@ fn two_facing_mirrors_respect_the_depth_limit() {
             CameraSpec {
                 position: Vec3::ZERO,
                 look_at: v(1.0, 0.0, 0.0),
+                ..CameraSpec::default()
             },
         );
         s.settings = RenderSettings {

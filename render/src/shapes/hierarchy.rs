@@ -1,0 +1,315 @@
+//! A bounding volume hierarchy over primitives given by their bounds: binned
+//! surface-area heuristic, binary nodes in depth-first order, leaves of a few
+//! primitives. One builder serves the triangles of a mesh and the top level (boxes,
+//! triangles, mesh instances); traversal belongs to the callers, which know their
+//! primitives.
+
+use super::bounds::{Bounds, SlabRay};
+
+/// Most primitives in a leaf.
+const LEAF_MAX: usize = 4;
+/// Bins of the surface-area heuristic.
+const BINS: usize = 12;
+/// Deepest node; traversal stacks hold this many entries. Splits by count past a depth
+/// of [`DEPTH_MAX`] − 2, so it is never exceeded.
+pub(crate) const DEPTH_MAX: usize = 64;
+
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Node {
+    pub bounds: Bounds,
+    /// A leaf's first primitive (in [`Hierarchy::order`]), or an inner node's first
+    /// child (the second follows it).
+    pub start: u32,
+    /// A leaf's primitive count; 0 for an inner node.
+    pub count: u32,
+}
+
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Hierarchy {
+    pub nodes: Vec<Node>,
+    /// Primitive indices in leaf order.
+    pub order: Vec<u32>,
+}
+
+impl Hierarchy {
+    /// The hierarchy over primitives with bounds `boxes` (none if there are none).
+    pub fn build(boxes: &[Bounds]) -> Hierarchy {
+        let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
+        let centroids: Vec<[f64; 3]> = boxes
+            .iter()
+            .map(|b| std::array::from_fn(|k| b.centroid(k)))
+            .collect();
+        let mut nodes = Vec::with_capacity(2 * boxes.len() / LEAF_MAX + 1);
+        if !boxes.is_empty() {
+            nodes.push(Node {
+                bounds: Bounds::EMPTY,
+                start: 0,
+                count: 0,
+            });
+            split(
+                0,
+                0,
+                boxes.len(),
+                0,
+                boxes,
+                &centroids,
+                &mut order,
+                &mut nodes,
+            );
+        }
+        Hierarchy { nodes, order }
+    }
+
+    pub fn root_bounds(&self) -> Option<Bounds> {
+        self.nodes.first().map(|n| n.bounds)
+    }
+
+    /// Visits the leaves the ray may reach before `t_max()` (re-read after each leaf,
+    /// so a closer hit prunes the rest), nearer children first, with every box widened
+    /// by `margin`; `leaf(primitives, exit)` returns `true` to stop. Boxes entered
+    /// exactly at `t_max()` are still visited, so equal distances can be compared.
+    #[inline(always)]
+    pub fn walk(
+        &self,
+        ray: &SlabRay,
+        margin: f64,
+        mut t_max: impl FnMut() -> f64,
+        mut leaf: impl FnMut(&[u32], f64) -> bool,
+    ) {
+        let Some(root) = self.nodes.first() else {
+            return;
+        };
+        if root.bounds.lo[0] > root.bounds.hi[0] {
+            return;
+        }
+        let mut stack = [0u32; DEPTH_MAX];
+        let mut top = 0usize;
+        let mut node = 0u32;
+        loop {
+            let n = &self.nodes[node as usize];
+            let limit = t_max();
+            if let Some((_, exit)) = ray.enter(&n.bounds, margin, limit) {
+                if n.count > 0 {
+                    let first = n.start as usize;
+                    if leaf(&self.order[first..first + n.count as usize], exit) {
+                        return;
+                    }
+                } else {
+                    let (a, b) = (n.start, n.start + 1);
+                    let da = ray.enter(&self.nodes[a as usize].bounds, margin, limit);
+                    let db = ray.enter(&self.nodes[b as usize].bounds, margin, limit);
+                    match (da, db) {
+                        (Some((ta, _)), Some((tb, _))) => {
+                            let (near, far) = if tb < ta { (b, a) } else { (a, b) };
+                            stack[top] = far;
+                            top += 1;
+                            node = near;
+                            continue;
+                        }
+                        (Some(_), None) => {
+                            node = a;
+                            continue;
+                        }
+                        (None, Some(_)) => {
+                            node = b;
+                            continue;
+                        }
+                        (None, None) => {}
+                    }
+                }
+            }
+            if top == 0 {
+                return;
+            }
+            top -= 1;
+            node = stack[top];
+        }
+    }
+}
+
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the recursion's state, kept flat"
+)]
+fn split(
+    index: usize,
+    begin: usize,
+    end: usize,
+    depth: usize,
+    boxes: &[Bounds],
+    centroids: &[[f64; 3]],
+    order: &mut [u32],
+    nodes: &mut Vec<Node>,
+) {
+    let mut bounds = Bounds::EMPTY;
+    let mut cb = Bounds::EMPTY;
+    for &p in &order[begin..end] {
+        bounds = bounds.union(&boxes[p as usize]);
+        let c = centroids[p as usize];
+        cb.lo = std::array::from_fn(|k| cb.lo[k].min(c[k]));
+        cb.hi = std::array::from_fn(|k| cb.hi[k].max(c[k]));
+    }
+    let count = end - begin;
+    let leaf = |nodes: &mut Vec<Node>| {
+        nodes[index] = Node {
+            bounds,
+            start: begin as u32,
+            count: count as u32,
+        }
+    };
+    if count <= LEAF_MAX && depth > 0 || count == 1 {
+        leaf(nodes);
+        return;
+    }
+    let axis = (0..3)
+        .max_by(|&a, &b| (cb.hi[a] - cb.lo[a]).total_cmp(&(cb.hi[b] - cb.lo[b])))
+        .unwrap_or(0);
+    let extent = cb.hi[axis] - cb.lo[axis];
+    let mut mid = begin + count / 2;
+    let by_count = !(extent > 0.0 && extent.is_finite()) || depth + 2 >= DEPTH_MAX;
+    if by_count {
+        // All centroids in one place (or too deep): halves by count, in order.
+        if count <= LEAF_MAX {
+            leaf(nodes);
+            return;
+        }
+        order[begin..end].select_nth_unstable_by(count / 2, |&a, &b| {
+            centroids[a as usize][axis]
+                .total_cmp(&centroids[b as usize][axis])
+                .then(a.cmp(&b))
+        });
+    } else {
+        let bin_of = |p: u32| {
+            let x = (centroids[p as usize][axis] - cb.lo[axis]) / extent * BINS as f64;
+            (x as usize).min(BINS - 1)
+        };
+        let mut bin_bounds = [Bounds::EMPTY; BINS];
+        let mut bin_count = [0usize; BINS];
+        for &p in &order[begin..end] {
+            let b = bin_of(p);
+            bin_bounds[b] = bin_bounds[b].union(&boxes[p as usize]);
+            bin_count[b] += 1;
+        }
+        // Cost of each cut after bin i: area × count on both sides.
+        let mut best = (f64::INFINITY, 0usize);
+        let mut right_area = [0.0; BINS];
+        let mut acc = Bounds::EMPTY;
+        let mut acc_n = 0;
+        for i in (1..BINS).rev() {
+            acc = acc.union(&bin_bounds[i]);
+            acc_n += bin_count[i];
+            right_area[i] = acc.area() * acc_n as f64;
+        }
+        let mut left = Bounds::EMPTY;
+        let mut left_n = 0;
+        for i in 0..BINS - 1 {
+            left = left.union(&bin_bounds[i]);
+            left_n += bin_count[i];
+            if left_n == 0 || left_n == count {
+                continue;
+            }
+            let cost = left.area() * left_n as f64 + right_area[i + 1];
+            if cost < best.0 {
+                best = (cost, i);
+            }
+        }
+        let leaf_cost = bounds.area() * count as f64;
+        if count <= LEAF_MAX && best.0 >= leaf_cost {
+            leaf(nodes);
+            return;
+        }
+        if best.0.is_finite() {
+            let mut i = begin;
+            let mut j = end;
+            while i < j {
+                if bin_of(order[i]) <= best.1 {
+                    i += 1;
+                } else {
+                    j -= 1;
+                    order.swap(i, j);
+                }
+            }
+            mid = i;
+        } else {
+            order[begin..end].select_nth_unstable_by(count / 2, |&a, &b| {
+                centroids[a as usize][axis]
+                    .total_cmp(&centroids[b as usize][axis])
+                    .then(a.cmp(&b))
+            });
+        }
+    }
+    let first = nodes.len();
+    let placeholder = Node {
+        bounds: Bounds::EMPTY,
+        start: 0,
+        count: 0,
+    };
+    nodes.push(placeholder);
+    nodes.push(placeholder);
+    nodes[index] = Node {
+        bounds,
+        start: first as u32,
+        count: 0,
+    };
+    split(first, begin, mid, depth + 1, boxes, centroids, order, nodes);
+    split(
+        first + 1,
+        mid,
+        end,
+        depth + 1,
+        boxes,
+        centroids,
+        order,
+        nodes,
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vec3::Vec3;
+
+    /// Every primitive a ray's segment meets is in a leaf the walk visits, whatever
+    /// the shape of the hierarchy.
+    #[test]
+    fn the_walk_visits_every_box_the_ray_meets() {
+        let mut rng = crate::tracer::tests::Mix(3);
+        for case in 0..50 {
+            let n = 1 + (rng.next() % 300) as usize;
+            let boxes: Vec<Bounds> = (0..n)
+                .map(|_| {
+                    let c = Vec3::new(rng.unit(), rng.unit(), rng.unit()) * 10.0;
+                    let mut b = Bounds::of_point(c);
+                    b.grow(c + Vec3::new(rng.unit(), rng.unit(), rng.unit()));
+                    b
+                })
+                .collect();
+            let h = Hierarchy::build(&boxes);
+            assert!(h.nodes.len() < 2 * n + 1, "case {case}");
+            for _ in 0..50 {
+                let o =
+                    Vec3::new(rng.unit(), rng.unit(), rng.unit()) * 12.0 - Vec3::new(1.0, 1.0, 1.0);
+                let d = (Vec3::new(rng.unit(), rng.unit(), rng.unit()) - Vec3::new(0.5, 0.5, 0.5))
+                    .normalize();
+                let ray = SlabRay::new(o, d);
+                let mut seen = vec![false; n];
+                h.walk(
+                    &ray,
+                    0.0,
+                    || f64::INFINITY,
+                    |prims, _| {
+                        for &p in prims {
+                            seen[p as usize] = true;
+                        }
+                        false
+                    },
+                );
+                for (p, b) in boxes.iter().enumerate() {
+                    if ray.enter(b, 0.0, f64::INFINITY).is_some() {
+                        assert!(seen[p], "case {case}: box {p} missed");
+                    }
+                }
+            }
+        }
+    }
+}
