@@ -399,6 +399,37 @@ impl Shapes {
         blocked
     }
 
+    /// Every triangle or box hit of the ray at t > 0, through the hierarchies (for
+    /// tests: the watertightness of the whole path, culling included).
+    #[cfg(test)]
+    pub fn all_hits(&self, origin: Vec3, dir: Vec3) -> Vec<(f64, u32, u32)> {
+        let sheared = ShearedRay::new(origin, dir);
+        let mut hits = Vec::new();
+        let limit = || f64::INFINITY;
+        self.walk(origin, dir, &limit, &mut |_, item, tri| {
+            match item {
+                &Item::Box { object, min, max } => {
+                    if let Some(h) = cuboid::hit(min, max, origin, dir, f64::INFINITY) {
+                        hits.push((h.t, object, 0));
+                    }
+                }
+                Item::Triangle { object, v } => {
+                    if let Some(h) = sheared.hit(v[0], v[1], v[2], f64::INFINITY) {
+                        hits.push((h.t, *object, 0));
+                    }
+                }
+                Item::Instance(instance) => {
+                    let v = Self::triangle_vertices(instance, tri);
+                    if let Some(h) = sheared.hit(v[0], v[1], v[2], f64::INFINITY) {
+                        hits.push((h.t, instance.object, tri));
+                    }
+                }
+            }
+            false
+        });
+        hits
+    }
+
     /// The surface where `hit` meets the ray `origin + t·dir`.
     pub fn surface(&self, hit: &ShapeHit, origin: Vec3, dir: Vec3) -> SurfacePoint {
         match (&self.items[hit.item as usize], hit.detail) {
@@ -484,3 +515,6 @@ impl Shapes {
         }
     }
 }
+
+#[cfg(test)]
+mod tests;
