@@ -35,8 +35,18 @@ pub fn read(path: &Path) -> Result<Vec<u8>, String> {
 }
 
 /// The mesh in `bytes`, read from the file at `path` (whose extension chooses the
-/// reader, and beside which a `.gltf` finds its buffers).
+/// reader, and beside which a glTF finds its buffers).
 pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
+    parse_hashed(path, bytes).map(|(mesh, _)| mesh)
+}
+
+/// [`parse`], and the SHA-256 of what the mesh was read from: the file's bytes, then
+/// those of each buffer file it named, in the order read. For a file that names no
+/// other file, that is the file's own SHA-256.
+pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), String> {
+    use sha2::{Digest, Sha256};
+    let hasher = std::cell::RefCell::new(Sha256::new());
+    hasher.borrow_mut().update(bytes);
     let name = path.display();
     let extension = path
         .extension()
@@ -45,7 +55,9 @@ pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
         .unwrap_or_default();
     let beside = |uri: &str| {
         let file = path.parent().unwrap_or(Path::new(".")).join(uri);
-        read(&file)
+        let buffer = read(&file)?;
+        hasher.borrow_mut().update(&buffer);
+        Ok(buffer)
     };
     let mesh = match extension.as_str() {
         "obj" => {
@@ -75,7 +87,7 @@ pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
             "{name}: no triangle that is not degenerate: nothing to hit"
         ));
     }
-    Ok(mesh)
+    Ok((mesh, hasher.into_inner().finalize().into()))
 }
 
 /// Whether (v1 − v0) × (v2 − v0) is exactly zero in double, in the file's coordinates:

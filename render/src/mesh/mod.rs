@@ -11,7 +11,6 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 
-use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 /// A corner without a normal of the file's ([`MeshData::corner_normals`]).
@@ -31,8 +30,9 @@ pub struct MeshData {
     pub corner_normals: Vec<[u32; 3]>,
 }
 
-/// A mesh file as a scene names it: the name as written, the file's SHA-256 (which a
-/// state file records), and its geometry, shared by every object and every file of the
+/// A mesh file as a scene names it: the name as written, its SHA-256 (which a state
+/// file records; for a glTF, over the file and then the buffer files it reads), and its
+/// geometry, shared by every object and every file of the
 /// same bytes.
 pub struct MeshFile {
     /// The `file` string of the scene.
@@ -137,16 +137,13 @@ impl MeshFiles {
         }
         let path = dir.join(name);
         let bytes = load::read(&path)?;
-        let sha256: [u8; 32] = Sha256::digest(&bytes).into();
-        let known = lock(&self.by_hash).get(&sha256).cloned();
-        let geometry = match known {
-            Some(geometry) => geometry,
-            None => {
-                let geometry = Arc::new(MeshGeometry::new(load::parse(&path, &bytes)?));
-                lock(&self.by_hash).insert(sha256, geometry.clone());
-                geometry
-            }
-        };
+        // Read before the bytes are compared: a glTF's buffers are part of what it is.
+        let (data, sha256) = load::parse_hashed(&path, &bytes)?;
+        drop(bytes);
+        let geometry = lock(&self.by_hash)
+            .entry(sha256)
+            .or_insert_with(|| Arc::new(MeshGeometry::new(data)))
+            .clone();
         let file = Arc::new(MeshFile {
             name: name.to_string(),
             path,
