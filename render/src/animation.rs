@@ -17,7 +17,8 @@
 
 use std::fmt;
 
-use crate::scene::{Scene, Shape};
+use crate::scene::{CameraSpec, Scene, Shape};
+use crate::transform::TransformSpec;
 use crate::vec3::Vec3;
 
 /// The largest frame count an animation may have.
@@ -59,12 +60,22 @@ pub struct Key {
     pub value: Value,
 }
 
-/// A numeric field's value: a number (radius, distance) or three numbers (positions,
-/// directions, r g b).
+/// A numeric field's value: a number (radius, distance, field of view), three numbers
+/// (positions, directions, r g b, a transform's parts) or a transform's 12 (its 3 × 4
+/// matrix, row by row).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Value {
     Number(f64),
     Vector(Vec3),
+    Matrix([f64; 12]),
+}
+
+/// Which of the [`Value`]s a target's keys hold.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Number,
+    Vector,
+    Matrix,
 }
 
 /// How a track goes from one key to the next.
@@ -92,6 +103,8 @@ impl Interpolation {
 pub enum Target {
     CameraPosition,
     CameraLookAt,
+    CameraUp,
+    CameraFov,
     SphereCenter(usize),
     SphereRadius(usize),
     PlaneNormal(usize),
@@ -100,21 +113,96 @@ pub enum Target {
     ObjectColor(usize),
     LightPosition(usize),
     LightColor(usize),
+    /// A part of a mesh's `transform`.
+    MeshTransform(usize, TransformPart),
+}
+
+/// The keys of a mesh's `transform` a track may animate. A matrix and the other three
+/// exclude each other, in a track as in the file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum TransformPart {
+    Translate,
+    Rotate,
+    Scale,
+    Matrix,
+}
+
+impl TransformPart {
+    /// The key as a scene file writes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            TransformPart::Translate => "translate",
+            TransformPart::Rotate => "rotate",
+            TransformPart::Scale => "scale",
+            TransformPart::Matrix => "matrix",
+        }
+    }
+
+    /// Writes `value` into `spec`. A part other than the matrix changes a transform of
+    /// parts only (reading the animation refused it on a matrix); the matrix replaces
+    /// the whole transform.
+    pub(crate) fn set(self, spec: &mut TransformSpec, value: Value) {
+        match (self, spec, value) {
+            (TransformPart::Matrix, spec, Value::Matrix(m)) => *spec = TransformSpec::Matrix(m),
+            (
+                TransformPart::Translate,
+                TransformSpec::Parts { translate, .. },
+                Value::Vector(v),
+            ) => {
+                *translate = v;
+            }
+            (TransformPart::Rotate, TransformSpec::Parts { rotate, .. }, Value::Vector(v)) => {
+                *rotate = v;
+            }
+            (TransformPart::Scale, TransformSpec::Parts { scale, .. }, Value::Vector(v)) => {
+                *scale = v;
+            }
+            _ => {}
+        }
+    }
 }
 
 impl Target {
-    /// Whether the field holds three numbers (else one).
-    pub fn is_vector(self) -> bool {
-        !matches!(self, Target::SphereRadius(_) | Target::PlaneDistance(_))
+    /// Which kind of value the field holds.
+    pub fn kind(self) -> Kind {
+        match self {
+            Target::SphereRadius(_) | Target::PlaneDistance(_) | Target::CameraFov => Kind::Number,
+            Target::MeshTransform(_, TransformPart::Matrix) => Kind::Matrix,
+            _ => Kind::Vector,
+        }
+    }
+
+    /// Whether the field is one of the camera's.
+    pub fn is_camera(self) -> bool {
+        matches!(
+            self,
+            Target::CameraPosition | Target::CameraLookAt | Target::CameraUp | Target::CameraFov
+        )
+    }
+
+    /// Writes `value` into the camera's field, if the target is one.
+    pub(crate) fn set_camera(self, camera: &mut CameraSpec, value: Value) {
+        match (self, value) {
+            (Target::CameraPosition, Value::Vector(v)) => camera.position = v,
+            (Target::CameraLookAt, Value::Vector(v)) => camera.look_at = v,
+            (Target::CameraUp, Value::Vector(v)) => camera.up = v,
+            (Target::CameraFov, Value::Number(x)) => camera.fov = Some(x),
+            _ => {}
+        }
     }
 
     /// Writes `value` into the field of `scene`. The target was checked against this
     /// scene's objects and lights when the animation was read, so it exists and has the
-    /// right shape; a mismatched value leaves the field as it was.
+    /// right shape; a mismatched value leaves the field as it was. A mesh's transform is
+    /// written as its spec only: [`Animation::apply`] maps it.
     fn set(self, scene: &mut Scene, value: Value) {
         match (self, value) {
-            (Target::CameraPosition, Value::Vector(v)) => scene.camera.position = v,
-            (Target::CameraLookAt, Value::Vector(v)) => scene.camera.look_at = v,
+            (target, _) if target.is_camera() => target.set_camera(&mut scene.camera, value),
+            (Target::MeshTransform(i, part), _) => {
+                if let Shape::Mesh(mesh) = &mut scene.objects[i].shape {
+                    part.set(&mut mesh.spec, value);
+                }
+            }
             (Target::SphereCenter(i), Value::Vector(v)) => {
                 if let Shape::Sphere { center, .. } = &mut scene.objects[i].shape {
                     *center = v;
@@ -156,6 +244,9 @@ impl fmt::Display for Target {
             Target::ObjectColor(i) => write!(f, "objects[{i}].color"),
             Target::LightPosition(i) => write!(f, "lights[{i}].position"),
             Target::LightColor(i) => write!(f, "lights[{i}].color"),
+            Target::CameraUp => write!(f, "camera.up"),
+            Target::CameraFov => write!(f, "camera.fov"),
+            Target::MeshTransform(i, part) => write!(f, "objects[{i}].transform.{}", part.name()),
         }
     }
 }
@@ -241,15 +332,40 @@ impl AnimatedScene {
 }
 
 impl Animation {
-    /// `base` with every track's value at frame `k` written in. `k` is not checked
-    /// against the frame count: before the first key a track holds its first value,
-    /// after the last its last.
+    /// `base` with every track's value at frame `k` written in, and each animated mesh's
+    /// transform mapped anew from its spec at `k`. `k` is not checked against the frame
+    /// count: before the first key a track holds its first value, after the last its
+    /// last.
     pub fn apply(&self, base: &Scene, k: u32) -> Scene {
         let mut scene = base.clone();
         for track in &self.tracks {
             track.target.set(&mut scene, track.value_at(k));
         }
+        for i in self.animated_meshes() {
+            if let Shape::Mesh(mesh) = &mut scene.objects[i].shape {
+                // Every frame's transform was mapped once already, when the animation
+                // was read: this cannot fail for a frame of the animation.
+                if let Ok(transform) = mesh.spec.affine() {
+                    mesh.transform = transform;
+                }
+            }
+        }
         scene
+    }
+
+    /// The objects whose transform a track animates, each once, in order.
+    pub(crate) fn animated_meshes(&self) -> Vec<usize> {
+        let mut meshes: Vec<usize> = self
+            .tracks
+            .iter()
+            .filter_map(|t| match t.target {
+                Target::MeshTransform(i, _) => Some(i),
+                _ => None,
+            })
+            .collect();
+        meshes.sort_unstable();
+        meshes.dedup();
+        meshes
     }
 }
 
@@ -365,6 +481,9 @@ fn map2(a: Value, b: Value, f: impl Fn(f64, f64) -> f64) -> Value {
         (Value::Vector(p), Value::Vector(q)) => {
             Value::Vector(Vec3::new(f(p.x, q.x), f(p.y, q.y), f(p.z, q.z)))
         }
+        (Value::Matrix(p), Value::Matrix(q)) => {
+            Value::Matrix(std::array::from_fn(|i| f(p[i], q[i])))
+        }
         // A track's keys all have the target's kind; reading the file made sure.
         _ => a,
     }
@@ -381,6 +500,9 @@ fn map4(a: Value, b: Value, c: Value, d: Value, f: impl Fn(f64, f64, f64, f64) -
                 f(p.y, q.y, r.y, s.y),
                 f(p.z, q.z, r.z, s.z),
             ))
+        }
+        (Value::Matrix(p), Value::Matrix(q), Value::Matrix(r), Value::Matrix(s)) => {
+            Value::Matrix(std::array::from_fn(|i| f(p[i], q[i], r[i], s[i])))
         }
         _ => b,
     }
@@ -407,7 +529,7 @@ mod tests {
     fn number(v: Value) -> f64 {
         match v {
             Value::Number(x) => x,
-            Value::Vector(_) => panic!("a vector"),
+            other => panic!("not a number: {other:?}"),
         }
     }
 
@@ -490,6 +612,37 @@ mod tests {
             ],
         };
         assert_eq!(t.value_at(2), Value::Vector(Vec3::new(1.0, 1.0, 0.0)));
+    }
+
+    #[test]
+    fn matrices_are_interpolated_number_by_number() {
+        let keys = [(1, 0.3), (4, 1.7), (10, -0.2), (13, 5.0)];
+        for interpolation in [Interpolation::Linear, Interpolation::CatmullRom] {
+            let numbers = track(interpolation, &keys);
+            // Entry j of each key is the number key times j + 1.
+            let matrices = Track {
+                target: Target::MeshTransform(0, TransformPart::Matrix),
+                interpolation,
+                keys: numbers
+                    .keys
+                    .iter()
+                    .map(|key| Key {
+                        frame: key.frame,
+                        value: Value::Matrix(std::array::from_fn(|j| {
+                            number(key.value) * (j + 1) as f64
+                        })),
+                    })
+                    .collect(),
+            };
+            let sevens = track(interpolation, &keys.map(|(frame, x)| (frame, x * 7.0)));
+            for k in 1..=14 {
+                let Value::Matrix(m) = matrices.value_at(k) else {
+                    panic!("not a matrix");
+                };
+                assert_eq!(m[6], number(sevens.value_at(k)), "{k}");
+                assert_eq!(m[0], number(numbers.value_at(k)), "{k}");
+            }
+        }
     }
 
     #[test]

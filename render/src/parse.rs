@@ -541,18 +541,7 @@ pub(crate) fn parse_transform(v: &Value, path: &str) -> Result<TransformSpec> {
                 "cannot be combined with matrix",
             ));
         }
-        let matrix_path = join(path, "matrix");
-        let n = number_list(m, &matrix_path, "12 numbers (a 3 x 4 matrix, row by row)")?;
-        let matrix: [f64; 12] = n.as_slice().try_into().map_err(|_| {
-            SceneError::invalid(
-                &matrix_path,
-                format!(
-                    "expected 12 numbers (a 3 x 4 matrix, row by row), got {}",
-                    n.len()
-                ),
-            )
-        })?;
-        return Ok(TransformSpec::Matrix(matrix));
+        return Ok(TransformSpec::Matrix(matrix(m, &join(path, "matrix"))?));
     }
     let scale = match obj.get("scale") {
         None => Vec3::new(1.0, 1.0, 1.0),
@@ -574,6 +563,20 @@ pub(crate) fn parse_transform(v: &Value, path: &str) -> Result<TransformSpec> {
         scale,
         rotate,
         translate,
+    })
+}
+
+/// A transform's `matrix`: 12 numbers, as a string or an array.
+fn matrix(v: &Value, path: &str) -> Result<[f64; 12]> {
+    let n = number_list(v, path, "12 numbers (a 3 x 4 matrix, row by row)")?;
+    n.as_slice().try_into().map_err(|_| {
+        SceneError::invalid(
+            path,
+            format!(
+                "expected 12 numbers (a 3 x 4 matrix, row by row), got {}",
+                n.len()
+            ),
+        )
     })
 }
 

@@ -8,27 +8,32 @@
 //!    interpolation, its keys in order);
 //! 2. each track in order, at every frame from 1 to `frames`: the interpolated value
 //!    must be valid where the static scene's would have to be (finite, radius > 0,
-//!    normal non-zero, r g b ≥ 0);
+//!    normal and up non-zero, r g b ≥ 0, 0 < fov < 180);
 //! 3. the camera at every frame, when a track moves it: its view direction must exist
-//!    and must not be parallel to the up axis.
+//!    and must not be parallel to the up axis;
+//! 4. the transform of each mesh a track animates, at every frame, in the order of the
+//!    objects: it must map (no zero scale, no singular matrix). Its parts come from
+//!    several tracks, so the problem is the frame's, not one track's.
 //!
 //! Checking every frame is cheap (a few operations per track and frame, with at most
 //! [`MAX_TRACKS`] tracks and [`MAX_FRAMES`] frames), and it means that every frame of an
 //! accepted animation renders.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 use serde_json::{Map, Value};
 
 use super::{
-    as_object, camera_problem, check_keys, join, number, required, type_name, vec3, whole_number,
-    CameraProblem, Result,
+    as_object, camera_problem, check_keys, fov_problem, join, matrix, number, required, type_name,
+    vec3, whole_number, CameraProblem, Result,
 };
 use crate::animation::{
-    Animation, Interpolation, Key, Target, Track, Value as KeyValue, MAX_FRAMES,
+    Animation, Interpolation, Key, Kind, Target, Track, TransformPart, Value as KeyValue,
+    MAX_FRAMES,
 };
 use crate::error::SceneError;
-use crate::scene::{CameraSpec, Scene, Shape};
+use crate::scene::{CameraSpec, MeshObject, Scene, Shape};
+use crate::transform::TransformSpec;
 use crate::vec3::Vec3;
 
 /// The most tracks an animation may have.
@@ -37,7 +42,9 @@ pub const MAX_TRACKS: usize = 4096;
 /// The most track values checked (tracks × frames): every frame of every track is
 /// checked when the scene is read, by a coordinator too, so this bounds what one
 /// submitted scene can cost it (0.3 s at the bound, 100 Catmull–Rom vector tracks of
-/// 100,000 frames, on a 2-core Intel Xeon).
+/// 100,000 frames, on a 2-core Intel Xeon). Tracks of mesh transforms cost about four
+/// times as much, each frame's transform being mapped (sines and cosines); a
+/// coordinator refuses meshes before it reads the animation.
 pub const MAX_TRACK_FRAMES: u64 = 10_000_000;
 
 /// The frame rate when the file gives none.
@@ -115,9 +122,39 @@ fn parse_tracks(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Vec<
                 format!("{} is already animated by tracks[{first}]", track.target),
             ));
         }
+        if let Some((other, first)) = conflicting(&seen, track.target) {
+            return Err(SceneError::invalid(
+                join(&track_path, "target"),
+                format!(
+                    "{} cannot be combined with {other}, animated by tracks[{first}]",
+                    track.target
+                ),
+            ));
+        }
         tracks.push(track);
     }
     Ok(tracks)
+}
+
+/// The first track seen that animates the other side of a mesh's transform (its matrix
+/// against its parts): the format does not combine them, in a track as in the file.
+fn conflicting(seen: &HashMap<Target, usize>, target: Target) -> Option<(Target, usize)> {
+    let Target::MeshTransform(i, part) = target else {
+        return None;
+    };
+    let others: &[TransformPart] = match part {
+        TransformPart::Matrix => &[
+            TransformPart::Translate,
+            TransformPart::Rotate,
+            TransformPart::Scale,
+        ],
+        _ => &[TransformPart::Matrix],
+    };
+    others
+        .iter()
+        .map(|&other| Target::MeshTransform(i, other))
+        .filter_map(|other| seen.get(&other).map(|&first| (other, first)))
+        .min_by_key(|&(_, first)| first)
 }
 
 fn parse_track(v: &Value, path: &str, frames: u32, base: &Scene) -> Result<Track> {
@@ -203,15 +240,27 @@ fn parse_keys(
             }
         }
         let value_path = join(&key_path, "value");
-        let value = required(key, &key_path, "value")?;
-        let value = if target.is_vector() {
-            KeyValue::Vector(vec3(value, &value_path)?)
-        } else {
-            KeyValue::Number(number(value, &value_path)?)
-        };
+        let value = key_value(required(key, &key_path, "value")?, &value_path, target)?;
         keys.push(Key { frame, value });
     }
     Ok(keys)
+}
+
+/// A key's value, of the kind its target holds, spelled as the static scene spells the
+/// field: a scale may be one number for all three axes.
+fn key_value(v: &Value, path: &str, target: Target) -> Result<KeyValue> {
+    Ok(match target.kind() {
+        Kind::Number => KeyValue::Number(number(v, path)?),
+        Kind::Vector
+            if v.is_number()
+                && matches!(target, Target::MeshTransform(_, TransformPart::Scale)) =>
+        {
+            let s = number(v, path)?;
+            KeyValue::Vector(Vec3::new(s, s, s))
+        }
+        Kind::Vector => KeyValue::Vector(vec3(v, path)?),
+        Kind::Matrix => KeyValue::Matrix(matrix(v, path)?),
+    })
 }
 
 fn string<'a>(v: &'a Value, path: &str) -> Result<&'a str> {
@@ -220,30 +269,21 @@ fn string<'a>(v: &'a Value, path: &str) -> Result<&'a str> {
     })
 }
 
-/// What a target string names: `camera.position`, `camera.look_at`,
-/// `objects[N].FIELD` or `lights[N].FIELD`, checked against the scene.
+/// What a target string names: `camera.FIELD`, `objects[N].FIELD` or
+/// `lights[N].FIELD`, checked against the scene.
 fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
     let unknown = || {
         SceneError::invalid(
             path,
             format!(
-                "unknown target {text:?} (expected camera.position, camera.look_at, \
-                 objects[N].FIELD or lights[N].FIELD)"
+                "unknown target {text:?} (expected camera.position, camera.look_at, camera.up, \
+                 camera.fov, objects[N].FIELD, objects[N].transform.PART or lights[N].FIELD)"
             ),
         )
     };
     let (head, field) = text.split_once('.').ok_or_else(unknown)?;
     if head == "camera" {
-        return match field {
-            "position" => Ok(Target::CameraPosition),
-            "look_at" => Ok(Target::CameraLookAt),
-            other => Err(SceneError::invalid(
-                path,
-                format!(
-                    "the camera has no field {other:?} to animate (expected position or look_at)"
-                ),
-            )),
-        };
+        return camera_target(field, path);
     }
     let (list, index) = head
         .strip_suffix(']')
@@ -265,39 +305,7 @@ fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
                     ),
                 )
             })?;
-            match (&object.shape, field) {
-                (Shape::Sphere { .. }, "center") => Ok(Target::SphereCenter(i)),
-                (Shape::Sphere { .. }, "radius") => Ok(Target::SphereRadius(i)),
-                (Shape::Plane { .. }, "normal") => Ok(Target::PlaneNormal(i)),
-                (Shape::Plane { .. }, "distance") => Ok(Target::PlaneDistance(i)),
-                (_, "color") => Ok(Target::ObjectColor(i)),
-                (Shape::Sphere { .. }, other) => Err(SceneError::invalid(
-                    path,
-                    format!(
-                        "objects[{i}] is a sphere, which has no field {other:?} to animate \
-                         (expected center, radius or color)"
-                    ),
-                )),
-                (Shape::Plane { .. }, other) => Err(SceneError::invalid(
-                    path,
-                    format!(
-                        "objects[{i}] is a plane, which has no field {other:?} to animate \
-                         (expected normal, distance or color)"
-                    ),
-                )),
-                (shape, other) => Err(SceneError::invalid(
-                    path,
-                    format!(
-                        "objects[{i}] is a {}, which has no field {other:?} to animate \
-                         (expected color)",
-                        match shape {
-                            Shape::Triangle { .. } => "triangle",
-                            Shape::Box { .. } => "box",
-                            _ => "mesh",
-                        }
-                    ),
-                )),
-            }
+            object_target(&object.shape, i, field, path)
         }
         "lights" => {
             if i >= base.lights.len() {
@@ -324,8 +332,104 @@ fn target(text: &str, path: &str, base: &Scene) -> Result<Target> {
     }
 }
 
-/// Steps 2 and 3 of the module's checks: every frame of every track, then the camera.
+fn camera_target(field: &str, path: &str) -> Result<Target> {
+    match field {
+        "position" => Ok(Target::CameraPosition),
+        "look_at" => Ok(Target::CameraLookAt),
+        "up" => Ok(Target::CameraUp),
+        "fov" => Ok(Target::CameraFov),
+        other => Err(SceneError::invalid(
+            path,
+            format!(
+                "the camera has no field {other:?} to animate \
+                 (expected position, look_at, up or fov)"
+            ),
+        )),
+    }
+}
+
+/// The field `field` of `objects[i]`, whose shape is `shape`.
+fn object_target(shape: &Shape, i: usize, field: &str, path: &str) -> Result<Target> {
+    let part = field.strip_prefix("transform.").and_then(transform_part);
+    match (shape, field, part) {
+        (Shape::Sphere { .. }, "center", _) => Ok(Target::SphereCenter(i)),
+        (Shape::Sphere { .. }, "radius", _) => Ok(Target::SphereRadius(i)),
+        (Shape::Plane { .. }, "normal", _) => Ok(Target::PlaneNormal(i)),
+        (Shape::Plane { .. }, "distance", _) => Ok(Target::PlaneDistance(i)),
+        (_, "color", _) => Ok(Target::ObjectColor(i)),
+        (Shape::Mesh(mesh), _, Some(part)) => mesh_target(mesh, i, part, path),
+        _ => {
+            let (name, fields) = match shape {
+                Shape::Sphere { .. } => ("sphere", "center, radius or color"),
+                Shape::Plane { .. } => ("plane", "normal, distance or color"),
+                Shape::Triangle { .. } => ("triangle", "color"),
+                Shape::Box { .. } => ("box", "color"),
+                Shape::Mesh(_) => (
+                    "mesh",
+                    "transform.translate, transform.rotate, transform.scale, \
+                     transform.matrix or color",
+                ),
+            };
+            Err(SceneError::invalid(
+                path,
+                format!(
+                    "objects[{i}] is a {name}, which has no field {field:?} to animate \
+                     (expected {fields})"
+                ),
+            ))
+        }
+    }
+}
+
+fn transform_part(name: &str) -> Option<TransformPart> {
+    match name {
+        "translate" => Some(TransformPart::Translate),
+        "rotate" => Some(TransformPart::Rotate),
+        "scale" => Some(TransformPart::Scale),
+        "matrix" => Some(TransformPart::Matrix),
+        _ => None,
+    }
+}
+
+/// A part of the transform of the mesh `objects[i]`. A matrix replaces the whole
+/// transform, so, as the format does not combine them, it is refused where the file
+/// gives parts and the parts where it gives a matrix. A mesh without a transform has
+/// the identity parts, which nothing contradicts (and which is how a scene written back
+/// spells a mesh without one): any part may animate it.
+fn mesh_target(mesh: &MeshObject, i: usize, part: TransformPart, path: &str) -> Result<Target> {
+    let target = Target::MeshTransform(i, part);
+    let problem = match (mesh.spec, part) {
+        (TransformSpec::Matrix(_), TransformPart::Matrix) => None,
+        (TransformSpec::Matrix(_), _) => Some(format!(
+            "the mesh's transform is a matrix, which cannot be combined with {} (animate \
+             objects[{i}].transform.matrix instead)",
+            part.name()
+        )),
+        (spec, TransformPart::Matrix) if spec != TransformSpec::IDENTITY => Some(
+            "the mesh's transform gives scale, rotate or translate, which cannot be combined \
+             with matrix"
+                .to_string(),
+        ),
+        _ => None,
+    };
+    match problem {
+        None => Ok(target),
+        Some(problem) => Err(SceneError::invalid(
+            path,
+            format!("{target} cannot be animated: {problem}"),
+        )),
+    }
+}
+
+/// Steps 2 to 4 of the module's checks.
 fn check_frames(animation: &Animation, base: &Scene) -> Result<()> {
+    check_values(animation)?;
+    check_cameras(animation, base)?;
+    check_transforms(animation, base)
+}
+
+/// Step 2: every frame of every track.
+fn check_values(animation: &Animation) -> Result<()> {
     for (i, track) in animation.tracks.iter().enumerate() {
         for k in 1..=animation.frames {
             if let Some(problem) = value_problem(track.target, track.value_at(k)) {
@@ -336,38 +440,84 @@ fn check_frames(animation: &Animation, base: &Scene) -> Result<()> {
             }
         }
     }
-    let track_of = |target: Target| animation.tracks.iter().find(|t| t.target == target);
-    let position = track_of(Target::CameraPosition);
-    let look_at = track_of(Target::CameraLookAt);
-    if position.is_none() && look_at.is_none() {
+    Ok(())
+}
+
+/// Step 3: the camera at every frame, when a track moves it (its position, look-at
+/// point or up vector; a field of view is valid on its own, step 2).
+fn check_cameras(animation: &Animation, base: &Scene) -> Result<()> {
+    let tracks: Vec<&Track> = animation
+        .tracks
+        .iter()
+        .filter(|t| t.target.is_camera() && t.target != Target::CameraFov)
+        .collect();
+    if tracks.is_empty() {
         return Ok(());
     }
-    let at = |track: Option<&Track>, k: u32, still: Vec3| match track.map(|t| t.value_at(k)) {
-        Some(KeyValue::Vector(v)) => v,
-        _ => still,
-    };
     for k in 1..=animation.frames {
-        let p = at(position, k, base.camera.position);
-        let l = at(look_at, k, base.camera.look_at);
-        let camera = CameraSpec {
-            position: p,
-            look_at: l,
-            ..base.camera
-        };
+        let mut camera = base.camera;
+        for track in &tracks {
+            track.target.set_camera(&mut camera, track.value_at(k));
+        }
         let problem = match camera_problem(&camera) {
             None => continue,
-            Some(CameraProblem::Same) => "camera.look_at equals camera.position",
+            Some(CameraProblem::Same) => "camera.look_at equals camera.position".to_string(),
             Some(CameraProblem::NoDirection) => {
-                "camera.look_at is too far from or too close to camera.position to define a direction"
+                "camera.look_at is too far from or too close to camera.position to define a \
+                 direction"
+                    .to_string()
             }
-            Some(CameraProblem::Vertical) => {
-                "the camera's viewing direction (look_at - position) is parallel to the world up axis (0 1 0)"
-            }
+            Some(CameraProblem::Vertical) => vertical_at_frame(camera.up),
         };
         return Err(SceneError::invalid(
             "animation",
             format!("at frame {k}, {problem}"),
         ));
+    }
+    Ok(())
+}
+
+/// What step 3 says of a camera that looks along its up vector, which step 2 (or the
+/// static scene's check) made non-zero.
+fn vertical_at_frame(up: Vec3) -> String {
+    if up == CameraSpec::WORLD_UP {
+        "the camera's viewing direction (look_at - position) is parallel to the world up \
+         axis (0 1 0)"
+            .to_string()
+    } else {
+        format!(
+            "the camera's viewing direction (look_at - position) is parallel to the up vector \
+             ({} {} {})",
+            up.x, up.y, up.z
+        )
+    }
+}
+
+/// Step 4: each animated mesh's transform at every frame, mapped as the frame maps it
+/// ([`Animation::apply`]): a zero scale or a singular matrix would flatten the mesh.
+fn check_transforms(animation: &Animation, base: &Scene) -> Result<()> {
+    let mut parts: BTreeMap<usize, Vec<(TransformPart, &Track)>> = BTreeMap::new();
+    for track in &animation.tracks {
+        if let Target::MeshTransform(i, part) = track.target {
+            parts.entry(i).or_default().push((part, track));
+        }
+    }
+    for (i, tracks) in parts {
+        let Shape::Mesh(mesh) = &base.objects[i].shape else {
+            continue;
+        };
+        for k in 1..=animation.frames {
+            let mut spec = mesh.spec;
+            for (part, track) in &tracks {
+                part.set(&mut spec, track.value_at(k));
+            }
+            if let Err(problem) = spec.affine() {
+                return Err(SceneError::invalid(
+                    "animation",
+                    format!("at frame {k}, objects[{i}].transform: {problem}"),
+                ));
+            }
+        }
     }
     Ok(())
 }
@@ -383,6 +533,9 @@ fn value_problem(target: Target, value: KeyValue) -> Option<String> {
             if matches!(target, Target::SphereRadius(_)) && x <= 0.0 {
                 return Some(format!("must be > 0, got {x}"));
             }
+            if target == Target::CameraFov {
+                return fov_problem(x);
+            }
         }
         KeyValue::Vector(v) => {
             if !v.is_finite() {
@@ -395,12 +548,23 @@ fn value_problem(target: Target, value: KeyValue) -> Option<String> {
                         return Some("must be a non-zero vector of finite length".into());
                     }
                 }
+                // As the camera's check has it: a length too small for a direction is
+                // none.
+                Target::CameraUp if !v.length().is_normal() => {
+                    return Some("must be a non-zero vector of finite length".into());
+                }
                 Target::ObjectColor(_) | Target::LightColor(_) => {
                     if let Some(c) = [v.x, v.y, v.z].into_iter().find(|c| *c < 0.0) {
                         return Some(format!("must have r, g and b >= 0, got {c}"));
                     }
                 }
                 _ => {}
+            }
+        }
+        KeyValue::Matrix(m) => {
+            if m.iter().any(|x| !x.is_finite()) {
+                let numbers: Vec<String> = m.iter().map(f64::to_string).collect();
+                return Some(format!("is not finite: {}", numbers.join(" ")));
             }
         }
     }
@@ -410,9 +574,11 @@ fn value_problem(target: Target, value: KeyValue) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use crate::animation::AnimatedScene;
+    use crate::mesh::MeshFiles;
     use crate::scene::{CameraSpec, Shape};
+    use crate::transform::TransformSpec;
     use crate::vec3::Vec3;
-    use crate::{parse_animated, parse_scene};
+    use crate::{parse_animated, parse_animated_with, parse_scene, parse_scene_with};
 
     /// Two lights, two spheres and a plane, with `animation` as the animation key's
     /// value.
@@ -721,19 +887,19 @@ mod tests {
             error_of(&tracks(
                 r#"{"target": "sun.position", "keys": [{"frame": 1, "value": "0 0 0"}]}"#
             )),
-            "animation.tracks[0].target: unknown target \"sun.position\" (expected camera.position, camera.look_at, objects[N].FIELD or lights[N].FIELD)"
+            "animation.tracks[0].target: unknown target \"sun.position\" (expected camera.position, camera.look_at, camera.up, camera.fov, objects[N].FIELD, objects[N].transform.PART or lights[N].FIELD)"
         );
         assert_eq!(
             error_of(&tracks(
                 r#"{"target": "objects[-1].radius", "keys": [{"frame": 1, "value": 1}]}"#
             )),
-            "animation.tracks[0].target: unknown target \"objects[-1].radius\" (expected camera.position, camera.look_at, objects[N].FIELD or lights[N].FIELD)"
+            "animation.tracks[0].target: unknown target \"objects[-1].radius\" (expected camera.position, camera.look_at, camera.up, camera.fov, objects[N].FIELD, objects[N].transform.PART or lights[N].FIELD)"
         );
         assert_eq!(
             error_of(&tracks(
-                r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": 1}]}"#
+                r#"{"target": "camera.zoom", "keys": [{"frame": 1, "value": 1}]}"#
             )),
-            "animation.tracks[0].target: the camera has no field \"fov\" to animate (expected position or look_at)"
+            "animation.tracks[0].target: the camera has no field \"zoom\" to animate (expected position, look_at, up or fov)"
         );
     }
 
@@ -866,6 +1032,314 @@ mod tests {
                 r#"{"target": "camera.position", "keys": [{"frame": 7, "value": "1e-310 0 0"}]}"#
             )),
             "animation: at frame 1, camera.look_at is too far from or too close to camera.position to define a direction"
+        );
+    }
+
+    /// A directory of the system's temporary one holding `tri.obj`, one triangle, for
+    /// the scenes of [`meshes`]; removed when dropped, even by a failing test.
+    struct MeshDir(std::path::PathBuf);
+
+    impl MeshDir {
+        fn new(test: &str) -> Self {
+            let dir = std::env::temp_dir()
+                .join(format!("tessera-animation-{}-{test}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            std::fs::write(dir.join("tri.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+            MeshDir(dir)
+        }
+
+        fn files(&self) -> MeshFiles {
+            MeshFiles::beside(&self.0)
+        }
+
+        fn parse(&self, text: &str) -> AnimatedScene {
+            parse_animated_with(text, &self.files()).unwrap()
+        }
+
+        /// The error, the same when the scene is read as its frame 1.
+        fn error_of(&self, text: &str) -> String {
+            let e = parse_animated_with(text, &self.files())
+                .unwrap_err()
+                .to_string();
+            assert_eq!(
+                parse_scene_with(text, &self.files())
+                    .unwrap_err()
+                    .to_string(),
+                e
+            );
+            assert!(!e.contains('\n'), "{e}");
+            e
+        }
+    }
+
+    impl Drop for MeshDir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    /// A sphere, a box, a mesh without a transform (objects[2]) and one with `transform`
+    /// (objects[3]), animated by `tracks` over 120 frames.
+    fn meshes(transform: &str, tracks: &str) -> String {
+        format!(
+            r#"{{"lights": [{{"position": "-7 10 -10", "color": "1 1 1"}}],
+               "objects": [
+                 {{"type": "sphere", "center": "0 0 0", "radius": 1, "color": "0.5 1 0.5 0"}},
+                 {{"type": "box", "min": "-1 -1 -1", "max": "1 1 1", "color": "1 1 1 0"}},
+                 {{"type": "mesh", "file": "tri.obj", "color": "1 0 0 0"}},
+                 {{"type": "mesh", "file": "tri.obj", "transform": {transform}, "color": "0 0 1 0"}}],
+               "image": {{"width": 32, "height": 24}},
+               "animation": {{"frames": 120, "tracks": [{tracks}]}}}}"#
+        )
+    }
+
+    fn spec_of(scene: &crate::Scene, i: usize) -> (TransformSpec, crate::transform::Affine) {
+        match &scene.objects[i].shape {
+            Shape::Mesh(mesh) => (mesh.spec, mesh.transform),
+            other => panic!("not a mesh: {other:?}"),
+        }
+    }
+
+    fn parts(scale: Vec3, rotate: Vec3, translate: Vec3) -> TransformSpec {
+        TransformSpec::Parts {
+            scale,
+            rotate,
+            translate,
+        }
+    }
+
+    #[test]
+    fn a_mesh_transform_is_interpolated_and_mapped_at_frame_k() {
+        let dir = MeshDir::new("parts");
+        let animated = dir.parse(&meshes(
+            r#"{"scale": 2, "rotate": "0 0 30"}"#,
+            r#"{"target": "objects[2].transform.translate", "keys": [{"frame": 1, "value": "0 0 0"}, {"frame": 11, "value": [10, 0, -5]}]},
+               {"target": "objects[3].transform.scale", "keys": [{"frame": 1, "value": 2}, {"frame": 11, "value": "2 4 2"}]},
+               {"target": "objects[3].transform.rotate", "keys": [{"frame": 3, "value": "0 0 30"}, {"frame": 7, "value": "0 90 30"}]}"#,
+        ));
+        let frame = animated.frame(5).unwrap();
+        // A mesh without a transform animates from the identity parts.
+        let expected = parts(
+            Vec3::new(1.0, 1.0, 1.0),
+            Vec3::ZERO,
+            Vec3::new(4.0, 0.0, -2.0),
+        );
+        assert_eq!(spec_of(&frame, 2), (expected, expected.affine().unwrap()));
+        // The untouched parts keep the file's values; a number scale is all three axes.
+        let expected = parts(
+            Vec3::new(2.0, 2.8, 2.0),
+            Vec3::new(0.0, 45.0, 30.0),
+            Vec3::ZERO,
+        );
+        assert_eq!(spec_of(&frame, 3), (expected, expected.affine().unwrap()));
+        // Before the first key and from the last key on, the end keys hold.
+        assert_eq!(
+            spec_of(&animated.frame(1).unwrap(), 3),
+            spec_of(&animated.base, 3)
+        );
+        let last = animated.frame(120).unwrap();
+        let expected = parts(
+            Vec3::new(2.0, 4.0, 2.0),
+            Vec3::new(0.0, 90.0, 30.0),
+            Vec3::ZERO,
+        );
+        assert_eq!(spec_of(&last, 3), (expected, expected.affine().unwrap()));
+        // The frame's transform is the one it renders with: the vertex (1, 0, 0) scaled
+        // by 2 and turned a quarter about y lands on (0, 0, -2), exactly.
+        assert_eq!(spec_of(&last, 3).1.point([1.0, 0.0, 0.0]).z, -2.0);
+        // A frame is a static scene: written back, it reads back the same.
+        let json = frame.to_json().unwrap();
+        assert_eq!(parse_scene_with(&json, &dir.files()).unwrap(), frame);
+        // The base is the file's.
+        assert_eq!(spec_of(&animated.base, 2).0, TransformSpec::IDENTITY);
+    }
+
+    #[test]
+    fn a_mesh_matrix_is_interpolated_number_by_number() {
+        let dir = MeshDir::new("matrix");
+        let animated = dir.parse(&meshes(
+            r#"{"matrix": "1 0 0 0 0 1 0 0 0 0 1 0"}"#,
+            r#"{"target": "objects[2].transform.matrix", "keys": [{"frame": 1, "value": "1 0 0 0 0 1 0 0 0 0 1 0"}, {"frame": 3, "value": [3, 0, 0, 4, 0, 1, 0, 0, 0, 0, 1, -2]}]},
+               {"target": "objects[3].transform.matrix", "keys": [{"frame": 2, "value": "0 0 2 1 0 3 0 2 4 0 0 3"}]}"#,
+        ));
+        let frame = animated.frame(2).unwrap();
+        let (spec, affine) = spec_of(&frame, 2);
+        assert_eq!(
+            spec,
+            TransformSpec::Matrix([2.0, 0.0, 0.0, 2.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, -1.0])
+        );
+        assert_eq!(affine.point([1.0, 1.0, 1.0]), Vec3::new(4.0, 1.0, 0.0));
+        let (_, affine) = spec_of(&animated.frame(1).unwrap(), 3);
+        assert_eq!(affine.point([1.0, 1.0, 1.0]), Vec3::new(3.0, 5.0, 7.0));
+    }
+
+    #[test]
+    fn error_transform_on_an_object_that_is_not_a_mesh() {
+        let dir = MeshDir::new("not-a-mesh");
+        let one = |target: &str, value: &str| {
+            dir.error_of(&meshes(
+                "{}",
+                &format!(r#"{{"target": "{target}", "keys": [{{"frame": 1, "value": {value}}}]}}"#),
+            ))
+        };
+        assert_eq!(
+            one("objects[0].transform.scale", "2"),
+            "animation.tracks[0].target: objects[0] is a sphere, which has no field \"transform.scale\" to animate (expected center, radius or color)"
+        );
+        assert_eq!(
+            one("objects[1].transform.translate", r#""0 1 0""#),
+            "animation.tracks[0].target: objects[1] is a box, which has no field \"transform.translate\" to animate (expected color)"
+        );
+        assert_eq!(
+            one("objects[2].transform.shear", r#""0 1 0""#),
+            "animation.tracks[0].target: objects[2] is a mesh, which has no field \"transform.shear\" to animate (expected transform.translate, transform.rotate, transform.scale, transform.matrix or color)"
+        );
+        assert_eq!(
+            one("objects[2].transform", r#""0 1 0""#),
+            "animation.tracks[0].target: objects[2] is a mesh, which has no field \"transform\" to animate (expected transform.translate, transform.rotate, transform.scale, transform.matrix or color)"
+        );
+        assert_eq!(
+            one("objects[2].transform.matrix", r#""1 0 0 0 0 1 0 0 0 0 1""#),
+            "animation.tracks[0].keys[0].value: expected 12 numbers (a 3 x 4 matrix, row by row), got 11"
+        );
+        assert_eq!(
+            one("objects[2].transform.rotate", "90"),
+            "animation.tracks[0].keys[0].value: expected 3 numbers as a string or an array, got a number"
+        );
+    }
+
+    #[test]
+    fn error_matrix_combined_with_parts() {
+        let dir = MeshDir::new("mix");
+        const MATRIX: &str = r#"{"target": "objects[3].transform.matrix", "keys": [{"frame": 1, "value": "1 0 0 0 0 1 0 0 0 0 1 0"}]}"#;
+        assert_eq!(
+            dir.error_of(&meshes(r#"{"rotate": "0 90 0"}"#, MATRIX)),
+            "animation.tracks[0].target: objects[3].transform.matrix cannot be animated: the mesh's transform gives scale, rotate or translate, which cannot be combined with matrix"
+        );
+        assert_eq!(
+            dir.error_of(&meshes(
+                r#"{"matrix": "1 0 0 0 0 1 0 0 0 0 1 0"}"#,
+                r#"{"target": "objects[3].transform.scale", "keys": [{"frame": 1, "value": 2}]}"#
+            )),
+            "animation.tracks[0].target: objects[3].transform.scale cannot be animated: the mesh's transform is a matrix, which cannot be combined with scale (animate objects[3].transform.matrix instead)"
+        );
+        assert_eq!(
+            dir.error_of(&meshes(
+                "{}",
+                &format!(
+                    r#"{{"target": "objects[3].transform.rotate", "keys": [{{"frame": 1, "value": "0 0 0"}}]}}, {MATRIX}"#
+                )
+            )),
+            "animation.tracks[1].target: objects[3].transform.matrix cannot be combined with objects[3].transform.rotate, animated by tracks[0]"
+        );
+        assert_eq!(
+            dir.error_of(&meshes(
+                "{}",
+                &format!(
+                    r#"{MATRIX}, {{"target": "objects[3].transform.translate", "keys": [{{"frame": 1, "value": "0 0 0"}}]}}"#
+                )
+            )),
+            "animation.tracks[1].target: objects[3].transform.translate cannot be combined with objects[3].transform.matrix, animated by tracks[0]"
+        );
+        // Identity parts (or none) say nothing a matrix contradicts.
+        dir.parse(&meshes(r#"{"scale": 1}"#, MATRIX));
+        dir.parse(&meshes("{}", MATRIX));
+    }
+
+    #[test]
+    fn error_zero_scale_at_some_frame() {
+        let dir = MeshDir::new("zero-scale");
+        assert_eq!(
+            dir.error_of(&meshes(
+                "{}",
+                r#"{"target": "objects[2].transform.scale", "keys": [{"frame": 1, "value": "1 1 1"}, {"frame": 73, "value": "1 -1 1"}]}"#
+            )),
+            "animation: at frame 37, objects[2].transform: scale must have no zero component, got 1 0 1"
+        );
+        // The scale's parts come from the file where no track gives them.
+        assert_eq!(
+            dir.error_of(&meshes(
+                r#"{"scale": "3 2 1", "translate": "0 0 5"}"#,
+                r#"{"target": "objects[3].transform.translate", "keys": [{"frame": 1, "value": "0 0 5"}]},
+                   {"target": "objects[3].transform.scale", "keys": [{"frame": 1, "value": 2}, {"frame": 5, "value": -2}]}"#
+            )),
+            "animation: at frame 3, objects[3].transform: scale must have no zero component, got 0 0 0"
+        );
+    }
+
+    #[test]
+    fn error_singular_or_infinite_matrix_at_some_frame() {
+        let dir = MeshDir::new("singular");
+        assert_eq!(
+            dir.error_of(&meshes(
+                "{}",
+                r#"{"target": "objects[2].transform.matrix", "keys": [{"frame": 1, "value": "1 0 0 0 0 1 0 0 0 0 1 0"}, {"frame": 73, "value": "-1 0 0 0 0 1 0 0 0 0 1 0"}]}"#
+            )),
+            "animation: at frame 37, objects[2].transform: the matrix is singular (det(A) = 0): it flattens the mesh"
+        );
+        assert_eq!(
+            dir.error_of(&meshes(
+                "{}",
+                r#"{"target": "objects[2].transform.matrix", "keys": [{"frame": 1, "value": "1 0 0 -1e308 0 1 0 0 0 0 1 0"}, {"frame": 3, "value": "1 0 0 1e308 0 1 0 0 0 0 1 0"}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, objects[2].transform.matrix is not finite: 1 0 0 inf 0 1 0 0 0 0 1 0"
+        );
+    }
+
+    #[test]
+    fn the_camera_fov_and_up_are_animated() {
+        let animated = parse_animated(&tracks(
+            r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": 40}, {"frame": 11, "value": 60}]},
+               {"target": "camera.up", "keys": [{"frame": 1, "value": "0 1 0"}, {"frame": 3, "value": [1, 1, 0]}]}"#,
+        ))
+        .unwrap();
+        assert_eq!(animated.base.camera, CameraSpec::default());
+        let frame = animated.frame(2).unwrap();
+        assert_eq!(frame.camera.fov, Some(42.0));
+        assert_eq!(frame.camera.up, Vec3::new(0.5, 1.0, 0.0));
+        let frame = animated.frame(6).unwrap();
+        assert_eq!(frame.camera.fov, Some(50.0));
+        assert_eq!(frame.camera.up, Vec3::new(1.0, 1.0, 0.0));
+        assert_eq!(parse_scene(&frame.to_json().unwrap()).unwrap(), frame);
+    }
+
+    #[test]
+    fn error_fov_out_of_range_at_some_frame() {
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": 100}, {"frame": 3, "value": 300}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, camera.fov must be between 0 and 180 degrees (exclusive), got 200"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": 10}, {"frame": 3, "value": -10}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, camera.fov must be between 0 and 180 degrees (exclusive), got 0"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.fov", "keys": [{"frame": 1, "value": "60"}]}"#
+            )),
+            "animation.tracks[0].keys[0].value: expected a number, got a string"
+        );
+    }
+
+    #[test]
+    fn error_up_parallel_or_zero_at_some_frame() {
+        // The camera looks along +z from frame 1; the up vector passes through 0 0 1.
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.position", "keys": [{"frame": 1, "value": "0 0 -5"}]},
+                   {"target": "camera.up", "keys": [{"frame": 1, "value": "0 1 0"}, {"frame": 3, "value": "0 -1 2"}]}"#
+            )),
+            "animation: at frame 2, the camera's viewing direction (look_at - position) is parallel to the up vector (0 0 1)"
+        );
+        assert_eq!(
+            error_of(&tracks(
+                r#"{"target": "camera.up", "keys": [{"frame": 1, "value": "0 1 0"}, {"frame": 3, "value": "0 -1 0"}]}"#
+            )),
+            "animation.tracks[0]: at frame 2, camera.up must be a non-zero vector of finite length"
         );
     }
 }
