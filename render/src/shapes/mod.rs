@@ -19,6 +19,7 @@ pub(crate) mod bounds;
 pub(crate) mod cuboid;
 pub(crate) mod hierarchy;
 pub(crate) mod mesh;
+pub(crate) mod packet;
 pub(crate) mod triangle;
 
 use std::collections::HashMap;

@@ -71,6 +71,16 @@ impl ShearedRay {
         }
     }
 
+    /// The axes that become x, y and z of the ray's frame.
+    pub fn axes(&self) -> (usize, usize, usize) {
+        (self.kx, self.ky, self.kz)
+    }
+
+    /// The shear: x and y gain sx·z and sy·z, z is scaled by sz.
+    pub fn shear(&self) -> (f64, f64, f64) {
+        (self.sx, self.sy, self.sz)
+    }
+
     /// A vertex in the ray's frame: sheared x and y, unscaled z.
     #[inline(always)]
     fn frame(&self, p: Vec3) -> [f64; 3] {

@@ -198,15 +198,7 @@ impl Tracer {
             return V4::splat(self.camera_sample(dir.lane(0), ctx));
         }
         if self.shapes.is_some() {
-            // Section 8's shapes have no packet path yet: lane by lane.
-            let mut out = V4::splat(Vec3::ZERO);
-            for k in 0..count {
-                out.set_lane(k, self.camera_sample(dir.lane(k), ctx));
-            }
-            for k in count..LANES {
-                out.set_lane(k, out.lane(0));
-            }
-            return out;
+            return self.general_packet(dir, count, ctx);
         }
         let rays = Packet {
             origin: V4::splat(self.camera.position()),

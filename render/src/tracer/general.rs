@@ -15,8 +15,10 @@ use super::ray::{Path, Ray, FROM_CAMERA};
 use super::shading::{checker, clip, pow10};
 use super::{Ctx, Tracer, SHADOW_REACH};
 use crate::scene::Material;
+use crate::shapes::packet::Rays4;
 use crate::shapes::{ShapeHit, Shapes, NO_PRIM};
-use crate::vec3::Vec3;
+use crate::simd::isa_dispatch;
+use crate::vec3::{Vec3, LANES, M4, V4};
 
 /// A ray leaving object `from` (and, on a mesh, its triangle `prim`).
 #[derive(Clone, Copy, Debug)]
@@ -103,9 +105,60 @@ impl Tracer {
     /// Section 5: the clipped colour seen along `ray` on `path`.
     pub(super) fn general_radiance(&self, ray: &GRay, path: Path, ctx: &mut Ctx) -> Vec3 {
         ctx.rays += 1;
-        let Some(hit) = self.general_nearest(ray, ctx) else {
-            return Vec3::ZERO;
+        match self.general_nearest(ray, ctx) {
+            Some(hit) => self.general_shade(ray, hit, path, ctx),
+            None => Vec3::ZERO,
+        }
+    }
+
+    isa_dispatch! {
+        /// The clipped colours of the camera rays along the first `count` lanes of
+        /// `dir`: those [`Tracer::general_radiance`] gives each, with the shapes' nearest
+        /// hits searched four rays at a time, compiled for the tracer's instruction set.
+        pub(super) fn general_packet / general_packet_avx2(&self, dir: V4, count: usize, ctx: &mut Ctx) -> V4 {
+            self.general_packet_lanes(dir, count, ctx)
+        }
+    }
+
+    #[inline(always)]
+    fn general_packet_lanes(&self, dir: V4, count: usize, ctx: &mut Ctx) -> V4 {
+        let eye = self.camera.position();
+        let mut best = [(f64::INFINITY, FROM_CAMERA, 0); LANES];
+        let mut basic = [None; LANES];
+        for k in 0..count {
+            basic[k] = self.nearest(&Ray::camera(eye, dir.lane(k)), ctx);
+            if let Some((t, object)) = basic[k] {
+                best[k] = (t, object, 0);
+            }
+        }
+        let rays = Rays4 {
+            origin: V4::splat(eye),
+            dir,
+            active: M4::first(count),
+            from: [FROM_CAMERA; LANES],
+            prim: [NO_PRIM; LANES],
         };
+        let shapes = self.shapes().nearest4(&rays, &mut best);
+        let mut colors = V4::splat(Vec3::ZERO);
+        for k in 0..count {
+            ctx.rays += 1;
+            let hit = match shapes[k] {
+                Some(hit) => Some(GHit::Shape(hit)),
+                None => basic[k].map(|(t, object)| GHit::Basic(t, object)),
+            };
+            if let Some(hit) = hit {
+                let ray = GRay::leaving(eye, dir.lane(k), FROM_CAMERA);
+                colors.set_lane(k, self.general_shade(&ray, hit, Path::CAMERA, ctx));
+            }
+        }
+        for k in count..LANES {
+            colors.set_lane(k, colors.lane(0));
+        }
+        colors
+    }
+
+    /// Section 5, steps 1 to 6, where `ray` meets `hit`.
+    fn general_shade(&self, ray: &GRay, hit: GHit, path: Path, ctx: &mut Ctx) -> Vec3 {
         let dir = ray.dir;
         let object = hit.object();
         let surface = &self.surfaces[object as usize];
