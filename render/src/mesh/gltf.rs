@@ -92,8 +92,16 @@ fn read_document(
         .as_array()
         .filter(|r| !r.is_empty())
     {
+        let names: Vec<String> = required
+            .iter()
+            .map(|v| {
+                v.as_str()
+                    .map_or_else(|| v.to_string(), |s| format!("{s:?}"))
+            })
+            .collect();
         return Err(fail(format!(
-            "extensionsRequired {required:?}: not supported"
+            "extensionsRequired {}: not supported",
+            names.join(", ")
         )));
     }
     let buffers = document["buffers"]

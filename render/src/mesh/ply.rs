@@ -83,10 +83,14 @@ pub fn read(bytes: &[u8]) -> Result<MeshData, MeshError> {
         },
     };
     let mut record = 0usize;
+    // Where each face record's triangles start, with its record and line, so that an
+    // index checked once every vertex is read names the face it came from.
+    let mut faces: Vec<(usize, usize, usize, u64)> = Vec::new();
     for element in &elements {
         let role = Role::of(element);
         for index in 0..element.count {
             record += 1;
+            let first = mesh.triangles.len();
             let values = match read_record(&mut source, element) {
                 Ok(values) => values,
                 Err(m) => {
@@ -102,17 +106,31 @@ pub fn read(bytes: &[u8]) -> Result<MeshData, MeshError> {
                     format!("{} {}: {m}", element.name, index + 1),
                 )
             })?;
+            if mesh.triangles.len() > first {
+                let line = match &source {
+                    Source::Text(lines) => lines.line,
+                    Source::Binary { .. } => 0,
+                };
+                faces.push((first, record, line, index + 1));
+            }
         }
     }
     let vertices = mesh.positions.len();
-    for (face, triangle) in mesh.triangles.iter().enumerate() {
+    for (t, triangle) in mesh.triangles.iter().enumerate() {
         if let Some(&bad) = triangle.iter().find(|&&v| v as usize >= vertices) {
-            return Err(MeshError::Record {
-                record: face + 1,
-                message: format!(
-                    "face {}: vertex index {bad} is out of range: the file has {vertices} vertices",
-                    face + 1
-                ),
+            let at = faces.partition_point(|f| f.0 <= t).saturating_sub(1);
+            let (_, record, line, face) =
+                faces
+                    .get(at)
+                    .copied()
+                    .unwrap_or((0, t + 1, 0, t as u64 + 1));
+            let message = format!(
+                "face {face}: vertex index {bad} is out of range: the file has {vertices} vertices"
+            );
+            return Err(if line > 0 {
+                MeshError::Line { line, message }
+            } else {
+                MeshError::Record { record, message }
             });
         }
     }
@@ -532,7 +550,7 @@ mod tests {
             format!("ply\nformat ascii 1.0\n{HEADER}0 0 0\n1 0 0\n1 1 0\n0 1 0\n3 0 1 9\n");
         assert_eq!(
             error(&bad_index),
-            "record 1: face 1: vertex index 9 is out of range: the file has 4 vertices"
+            "line 14: face 1: vertex index 9 is out of range: the file has 4 vertices"
         );
     }
 }

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use tempfile::TempDir;
 
 use crate::support::{
-    all_scenes, assert_same_png, names_mesh_files, ok, path_str, poll, proc_stat,
-    render_reference, scene_path, shared, tessera, Daemon, BIN, POLL,
+    all_scenes, assert_same_png, names_mesh_files, ok, path_str, poll, proc_stat, render_reference,
+    scene_path, shared, tessera, Daemon, BIN, POLL,
 };
 
 /// Longest a job of these tests may take to finish.
@@ -164,7 +164,11 @@ fn up_gives_renders_image_for_every_scene_worker_count_and_tile_size() {
         let stem = path.file_stem().unwrap().to_string_lossy().into_owned();
         if names_mesh_files(&path) {
             let out = dir.path().join(format!("{stem}-up.png"));
-            let run = tessera(dir.path(), &["up", scene, "-o", path_str(&out)], JOB_TIMEOUT);
+            let run = tessera(
+                dir.path(),
+                &["up", scene, "-o", path_str(&out)],
+                JOB_TIMEOUT,
+            );
             assert!(
                 !run.status.success()
                     && run.stderr.trim_end().lines().count() == 1
