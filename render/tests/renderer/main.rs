@@ -7,6 +7,7 @@ mod bvh;
 mod calibration;
 mod fuzz_scene;
 mod hierarchy_precision;
+mod mesh_mutations;
 mod numerics;
 mod portable;
 mod sampling;
