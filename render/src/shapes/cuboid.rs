@@ -81,7 +81,10 @@ pub(crate) fn on_face(min: Vec3, max: Vec3, hit: &BoxHit, p: Vec3, dir: Vec3) ->
         _ => Vec3::new(v.x, v.y, x),
     };
     let point = set(p, plane);
-    let leaving = if get(dir, hit.axis) > 0.0 {
+    // A ray along the face leaves it on the outside.
+    let d = get(dir, hit.axis);
+    let up = if d == 0.0 { hit.outward > 0.0 } else { d > 0.0 };
+    let leaving = if up {
         plane.next_up()
     } else {
         plane.next_down()
