@@ -7,8 +7,9 @@ use std::sync::Arc;
 
 use super::*;
 use crate::mesh::{MeshData, MeshFile};
-use crate::scene::{CameraSpec, Material, MeshObject, Object, RenderSettings};
-use crate::tracer::tests::Mix;
+use crate::scene::{CameraSpec, Material, MeshObject, Object};
+use crate::settings::RenderSettings;
+use crate::test_rng::Mix;
 use crate::transform::TransformSpec;
 
 /// A subdivided icosahedron on the unit sphere: closed and convex, every edge shared by
