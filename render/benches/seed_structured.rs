@@ -374,9 +374,10 @@ impl SeedScene {
                         distance,
                         color,
                     }),
-                    // The seed scenes this measures have none (section 8's shapes).
+                    // The seed had spheres and planes only, and so do the scenes this
+                    // baseline is measured on.
                     Shape::Triangle { .. } | Shape::Box { .. } | Shape::Mesh(_) => {
-                        panic!("the seed program has spheres and planes only")
+                        panic!("the seed's structure renders spheres and planes only")
                     }
                 }
             })

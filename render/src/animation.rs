@@ -647,7 +647,14 @@ mod tests {
 
     #[test]
     fn frames_outside_the_scene_are_refused_with_one_line() {
-        let base = crate::parse_scene(r#"{"lights": [], "objects": []}"#).unwrap();
+        // What `{"lights": [], "objects": []}` reads as.
+        let base = Scene {
+            lights: vec![],
+            objects: vec![],
+            camera: crate::scene::CameraSpec::default(),
+            settings: crate::settings::RenderSettings::default(),
+            ambient: 0.2,
+        };
         let still = AnimatedScene {
             base: base.clone(),
             animation: None,

@@ -1,6 +1,8 @@
 //! The pinhole camera of the scene format (section 2).
 
-use crate::scene::{CameraSpec, RenderSettings};
+use crate::scene::CameraSpec;
+use crate::settings::RenderSettings;
+use crate::trig::fov_scale;
 use crate::vec3::{Vec3, F4, V4};
 
 /// The camera's orthonormal basis and the image geometry, computed once per render.
@@ -35,7 +37,7 @@ impl Camera {
             half_width: width / 2.0,
             half_height: height / 2.0,
             short_side: match spec.fov {
-                Some(fov) => width.min(height) / crate::parse::fov_scale(fov),
+                Some(fov) => width.min(height) / fov_scale(fov),
                 None => width.min(height),
             },
         }

@@ -1,6 +1,27 @@
-//! The frame buffer and its PNG encoding (section 6: 8-bit RGB, top row first).
+//! The frame buffer, the tiles put into it, and its PNG encoding (section 6: 8-bit RGB,
+//! top row first).
+//!
+//! Below the samplers and the tile renderer, which all fill images; it knows only the
+//! rectangles pixels come in ([`crate::rect`]).
 
-use crate::tile::{Rect, TileImage};
+use crate::rect::Rect;
+
+/// The pixels of one tile, RGB8, rows top to bottom, and what they cost.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileImage {
+    pub rect: Rect,
+    pub rgb: Vec<u8>,
+    /// Rays traced for this tile (camera, reflection and shadow rays).
+    pub rays: u64,
+    /// Camera samples taken: pixels × `aa`² for the grid and jittered samplers, what
+    /// the pixels needed for adaptive sampling.
+    pub samples: u64,
+    /// The sum over the tile's pixels of the square of each pixel's estimated error, in
+    /// 8-bit levels squared (see [`crate::sampling`]). A sum, so that tiles combine into
+    /// a frame's or a job's RMS estimate by addition. Pixels of one sample have no
+    /// estimate and add 0.
+    pub error_sq_sum: f64,
+}
 
 /// An 8-bit RGB image, rows top to bottom.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -86,7 +107,7 @@ fn write_png(out: &mut Vec<u8>, image: &Image) -> Result<(), png::EncodingError>
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// What `to_png` replaced: `image`'s default PNG encoder.
@@ -115,16 +136,20 @@ mod tests {
         image
     }
 
-    /// A small frame of the seed scene, as the farm renders them.
-    fn rendered(width: u32, height: u32) -> Image {
-        let scene = crate::parse_scene(include_str!("../../scenes/seed.json")).unwrap();
-        let settings = crate::RenderSettings {
-            width,
-            height,
-            ..Default::default()
-        };
-        let tracer = crate::Tracer::new(&scene, settings);
-        crate::render_frame(&tracer, 16, &|_| {}).image
+    /// `image.to_png()` is byte for byte what the `image` crate writes, and decodes to
+    /// the image.
+    pub(crate) fn check_png(image: &Image) {
+        let png = image.to_png();
+        assert_eq!(
+            png,
+            png_by_image(image),
+            "{}×{} image",
+            image.width,
+            image.height
+        );
+        let decoded = ::image::load_from_memory(&png).unwrap().into_rgb8();
+        assert_eq!(decoded.dimensions(), (image.width, image.height));
+        assert_eq!(decoded.into_raw(), image.rgb);
     }
 
     #[test]
@@ -154,21 +179,9 @@ mod tests {
                 }
             }),
             noise,
-            rendered(64, 48),
-            rendered(131, 77),
         ];
         for image in &images {
-            let png = image.to_png();
-            assert_eq!(
-                png,
-                png_by_image(image),
-                "{}×{} image",
-                image.width,
-                image.height
-            );
-            let decoded = ::image::load_from_memory(&png).unwrap().into_rgb8();
-            assert_eq!(decoded.dimensions(), (image.width, image.height));
-            assert_eq!(decoded.into_raw(), image.rgb);
+            check_png(image);
         }
     }
 }

@@ -9,23 +9,49 @@
 //! Pixels are sampled on the scene format's regular grid by default, or jittered, or
 //! adaptively ([`Sampling`]); every tile reports the samples it took and its estimated
 //! error, and [`metrics`] measures an image's real error against a reference.
+//!
+//! # Layering
+//!
+//! The modules depend on each other one way only, lowest first (a module uses only
+//! those on lines above its own, and its tests follow the same order):
+//!
+//! - [`vec3`](Vec3), [`trig`], [`simd`], [`limits`], `error`: numbers, angles, lanes,
+//!   limits and the scene error;
+//! - [`transform`], `bounds` → `hierarchy`: affine maps, and the bounding volume
+//!   hierarchy over boxes that meshes and section 8's shapes share;
+//! - [`mesh`]: mesh files, their readers, and the geometry every object showing a file
+//!   shares, with the hierarchy built over it once;
+//! - `settings` → `scene` → [`animation`]: what a render may override, the scene
+//!   model, and frames as functions of the frame number;
+//! - `parse` → `write`: scene files read, and written back;
+//! - `camera`, `geometry` → `bvh`, `shapes` → `tracer` → `footprint`: rays, their
+//!   intersections, and what a pixel sees;
+//! - `rect` → `image` → [`metrics`]: a frame's rectangles and pixels;
+//! - [`sampling`] → [`progressive`] → `tile`: the samplers, adaptive sampling over the
+//!   whole frame, and tiles and frames rendered with either.
 
 pub mod animation;
+mod bounds;
 mod bvh;
 mod camera;
 mod error;
 mod footprint;
 mod geometry;
+mod hierarchy;
 mod image;
 pub mod limits;
 pub mod mesh;
 pub mod metrics;
 mod parse;
 pub mod progressive;
+mod rect;
 pub mod sampling;
 mod scene;
+mod settings;
 mod shapes;
 pub mod simd;
+#[cfg(test)]
+mod test_rng;
 mod tile;
 mod tracer;
 pub mod transform;
@@ -37,23 +63,20 @@ pub use crate::animation::{
     frame_file_name, AnimatedScene, Animation, FrameOutOfRange, MAX_FRAMES,
 };
 pub use crate::error::SceneError;
-pub use crate::image::Image;
+pub use crate::image::{Image, TileImage};
 pub use crate::mesh::{MeshFile, MeshFiles};
 pub use crate::parse::{
     parse_animated, parse_animated_with, parse_scene, parse_scene_with, validate_settings,
     MAX_TRACKS,
 };
-pub use crate::sampling::{
-    sample_offsets, InvalidTarget, Sampler, Sampling, SamplingChoiceError, MAX_TARGET_MILLI,
+pub use crate::rect::{tiles, Rect, TileError};
+pub use crate::sampling::sample_offsets;
+pub use crate::scene::{CameraSpec, Light, Material, MeshObject, Object, Scene, Shape};
+pub use crate::settings::{
+    InvalidTarget, RenderSettings, Sampler, Sampling, SamplingChoiceError, MAX_TARGET_MILLI,
     MIN_TARGET_MILLI,
 };
-pub use crate::scene::{
-    CameraSpec, Light, Material, MeshObject, Object, RenderSettings, Scene, Shape,
-};
-pub use crate::tile::{
-    estimated_error, render_frame, render_tile, tiles, Frame, Rect, TileError, TileImage,
-    DEFAULT_TILE_SIZE,
-};
+pub use crate::tile::{estimated_error, render_frame, render_tile, Frame, DEFAULT_TILE_SIZE};
 pub use crate::tracer::{Hit, Tracer};
 pub use crate::vec3::Vec3;
 pub use crate::write::Unwritable;

@@ -21,10 +21,10 @@ use crate::animation::AnimatedScene;
 use crate::error::SceneError;
 use crate::limits::{MAX_AA, MAX_DEPTH, MAX_SIDE};
 use crate::mesh::MeshFiles;
-use crate::sampling::{Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI};
-use crate::scene::{CameraSpec, Light, Material, MeshObject, Object, RenderSettings, Scene, Shape};
+use crate::scene::{CameraSpec, Light, Material, MeshObject, Object, Scene, Shape};
+use crate::settings::{RenderSettings, Sampling, MAX_TARGET_MILLI, MIN_TARGET_MILLI};
 use crate::transform::TransformSpec;
-use crate::trig::tan_deg;
+use crate::trig::fov_scale;
 use crate::vec3::Vec3;
 
 type Result<T> = std::result::Result<T, SceneError>;
@@ -587,11 +587,6 @@ fn describe(v: &Value) -> String {
         Value::String(s) if s.is_empty() => "an empty string".into(),
         other => type_name(other).into(),
     }
-}
-
-/// k = 2·tan(fov/2) of a field of view in degrees, computed the same on every machine.
-pub(crate) fn fov_scale(fov: f64) -> f64 {
-    2.0 * tan_deg(fov / 2.0)
 }
 
 fn parse_camera(v: &Value, path: &str) -> Result<CameraSpec> {

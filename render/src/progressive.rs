@@ -39,8 +39,8 @@
 
 pub use crate::footprint::Footprints;
 use crate::image::Image;
-use crate::sampling::Sampling;
-use crate::tile::Rect;
+use crate::rect::Rect;
+use crate::settings::Sampling;
 use crate::tracer::{to_byte, Tracer};
 use crate::vec3::Vec3;
 
@@ -806,7 +806,7 @@ mod tests {
         let footprints = Region::footprints(&t);
         let mut image = Image::black(72, 40);
         let mut totals = RungTotals::default();
-        for rect in crate::tile::tiles(t.settings(), 16) {
+        for rect in crate::rect::tiles(t.settings(), 16) {
             let mut region = Region::new(&t, footprints.clone(), rect, None).unwrap();
             region.advance_to(whole.rung + 3);
             region.paint(whole.rung, &mut image);

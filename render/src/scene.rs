@@ -7,7 +7,7 @@
 use std::sync::Arc;
 
 use crate::mesh::MeshFile;
-use crate::sampling::Sampling;
+use crate::settings::RenderSettings;
 use crate::transform::{Affine, TransformSpec};
 use crate::vec3::Vec3;
 
@@ -123,46 +123,5 @@ impl Default for CameraSpec {
             up: CameraSpec::WORLD_UP,
             fov: None,
         }
-    }
-}
-
-/// Image size, antialiasing, reflection depth and sampling: everything a render may
-/// override.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct RenderSettings {
-    pub width: u32,
-    pub height: u32,
-    /// `aa` = n gives n × n samples per pixel: exactly with the grid and jittered
-    /// samplers, at most with adaptive sampling.
-    pub aa: u32,
-    /// Reflection rays are traced only while the depth is below this.
-    pub max_depth: u32,
-    /// Where the samples of a pixel go. A scene file never sets it: it is the grid
-    /// unless the caller asks otherwise.
-    pub sampling: Sampling,
-}
-
-impl Default for RenderSettings {
-    /// The seed's measurement settings (600 × 400, one sample, depth 10, grid).
-    fn default() -> Self {
-        RenderSettings {
-            width: 600,
-            height: 400,
-            aa: 1,
-            max_depth: 10,
-            sampling: Sampling::Grid,
-        }
-    }
-}
-
-impl RenderSettings {
-    /// Samples per pixel: the grid's and jittered sampling's count, adaptive sampling's
-    /// budget.
-    pub fn samples_per_pixel(&self) -> u64 {
-        u64::from(self.aa) * u64::from(self.aa)
-    }
-
-    pub fn pixel_count(&self) -> u64 {
-        u64::from(self.width) * u64::from(self.height)
     }
 }

@@ -2,80 +2,16 @@
 //! a full-frame render, and whole frames assembled from tiles rendered in parallel.
 
 use rayon::prelude::*;
-use thiserror::Error;
 
-use crate::image::Image;
-use crate::sampling::{PixelResult, PixelSampler, Sampling};
-use crate::scene::RenderSettings;
+use crate::image::{Image, TileImage};
+use crate::rect::{tiles, Rect, TileError};
+use crate::sampling::{PixelResult, PixelSampler};
+use crate::settings::Sampling;
 use crate::tracer::Tracer;
 
 /// Default tile side for whole-frame renders: small enough to balance two to dozens of
 /// threads on a 600 × 400 frame, large enough that scheduling costs nothing.
 pub const DEFAULT_TILE_SIZE: u32 = 32;
-
-/// A rectangle of pixels: columns `x .. x + width`, rows `y .. y + height`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-pub struct Rect {
-    pub x: u32,
-    pub y: u32,
-    pub width: u32,
-    pub height: u32,
-}
-
-/// A tile that cannot be rendered on its own.
-#[derive(Debug, Clone, PartialEq, Eq, Error)]
-pub enum TileError {
-    /// The tile does not lie inside the frame.
-    #[error("tile {rect:?} does not lie inside the {frame_width}x{frame_height} frame")]
-    Outside {
-        rect: Rect,
-        frame_width: u32,
-        frame_height: u32,
-    },
-    /// Adaptive sampling decides over the whole frame which rung each block stops at:
-    /// its tiles are advanced as regions of blocks ([`crate::progressive::Region`]).
-    #[error("tile {0:?}: adaptive sampling renders regions of blocks, not single tiles")]
-    Adaptive(Rect),
-}
-
-impl Rect {
-    pub fn pixel_count(&self) -> u64 {
-        u64::from(self.width) * u64::from(self.height)
-    }
-
-    /// Checks that the tile is non-empty and inside a frame of the given settings.
-    pub fn check_inside(&self, settings: &RenderSettings) -> Result<(), TileError> {
-        let fits = |start: u32, len: u32, side: u32| {
-            len > 0 && start.checked_add(len).is_some_and(|end| end <= side)
-        };
-        if fits(self.x, self.width, settings.width) && fits(self.y, self.height, settings.height) {
-            Ok(())
-        } else {
-            Err(TileError::Outside {
-                rect: *self,
-                frame_width: settings.width,
-                frame_height: settings.height,
-            })
-        }
-    }
-}
-
-/// The pixels of one tile, RGB8, rows top to bottom, and what they cost.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TileImage {
-    pub rect: Rect,
-    pub rgb: Vec<u8>,
-    /// Rays traced for this tile (camera, reflection and shadow rays).
-    pub rays: u64,
-    /// Camera samples taken: pixels × `aa`² for the grid and jittered samplers, what
-    /// the pixels needed for adaptive sampling.
-    pub samples: u64,
-    /// The sum over the tile's pixels of the square of each pixel's estimated error, in
-    /// 8-bit levels squared (see [`crate::sampling`]). A sum, so that tiles combine into
-    /// a frame's or a job's RMS estimate by addition. Pixels of one sample have no
-    /// estimate and add 0.
-    pub error_sq_sum: f64,
-}
 
 /// Renders one tile with the tracer's settings and sampling. Each pixel depends only on
 /// the scene, the settings and its coordinates, so the bytes equal those of the same
@@ -115,23 +51,6 @@ pub fn render_tile(tracer: &Tracer, rect: Rect) -> Result<TileImage, TileError> 
         samples,
         error_sq_sum,
     })
-}
-
-/// Cuts a frame into tiles of at most `size` × `size`, row by row from the top left.
-pub fn tiles(settings: &RenderSettings, size: u32) -> Vec<Rect> {
-    let size = size.max(1);
-    let mut out = Vec::new();
-    for y in (0..settings.height).step_by(size as usize) {
-        for x in (0..settings.width).step_by(size as usize) {
-            out.push(Rect {
-                x,
-                y,
-                width: size.min(settings.width - x),
-                height: size.min(settings.height - y),
-            });
-        }
-    }
-    out
 }
 
 /// A rendered frame, what it cost and how wrong it may be.
@@ -213,5 +132,28 @@ pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sy
         rays,
         samples,
         error_sq_sum,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::tests::check_png;
+    use crate::settings::RenderSettings;
+
+    /// Small frames of the seed scene, as the farm renders them, encode as the `image`
+    /// crate's encoder would (`image`'s tests check made-up images the same way).
+    #[test]
+    fn rendered_frames_are_encoded_as_the_image_crate_does() {
+        let scene = crate::parse_scene(include_str!("../../scenes/seed.json")).unwrap();
+        for (width, height) in [(64, 48), (131, 77)] {
+            let settings = RenderSettings {
+                width,
+                height,
+                ..Default::default()
+            };
+            let tracer = Tracer::new(&scene, settings);
+            check_png(&render_frame(&tracer, 16, &|_| {}).image);
+        }
     }
 }

@@ -44,6 +44,13 @@ pub fn tan_deg(degrees: f64) -> f64 {
     s / c
 }
 
+/// k = 2·tan(fov/2) of a field of view in degrees, computed the same on every machine:
+/// the camera scales its image plane by it, and the scene reader refuses a `fov` for
+/// which it is not a normal number.
+pub(crate) fn fov_scale(fov: f64) -> f64 {
+    2.0 * tan_deg(fov / 2.0)
+}
+
 /// The sine and cosine of `x`, |x| ≤ π/4, by their Taylor series to the terms in x¹⁹
 /// and x²⁰: the first term left out is below 2⁻⁵³ of the result over that range.
 fn sin_cos_small(x: f64) -> (f64, f64) {

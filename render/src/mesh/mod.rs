@@ -1,6 +1,11 @@
 //! Triangle meshes read from files (the scene format, section 8): what a reader gives,
-//! and what every reader shares.
+//! and what every reader shares; and the geometry every object that shows a file
+//! shares, with what the tracer builds from it once (`accel`).
+//!
+//! Below the scene model, which holds mesh files, and above only the generic bounding
+//! volume hierarchy: the readers know nothing of how meshes are traced.
 
+pub(crate) mod accel;
 pub mod gltf;
 pub mod load;
 pub mod obj;
@@ -71,7 +76,7 @@ impl std::fmt::Debug for MeshFile {
 pub struct MeshGeometry {
     pub data: MeshData,
     /// The tracer's hierarchy over the triangles, built on first use.
-    pub(crate) prepared: OnceLock<crate::shapes::mesh::MeshAccel>,
+    pub(crate) prepared: OnceLock<accel::MeshAccel>,
 }
 
 impl std::fmt::Debug for MeshGeometry {

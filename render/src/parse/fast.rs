@@ -28,7 +28,8 @@
 use rayon::prelude::*;
 use serde_json::Value;
 
-use crate::scene::{CameraSpec, Object, RenderSettings, Scene, Shape};
+use crate::scene::{CameraSpec, Object, Scene, Shape};
+use crate::settings::RenderSettings;
 use crate::vec3::Vec3;
 
 /// When less text than this (in bytes) follows the start of the objects array, the

@@ -4,8 +4,10 @@
 //! Spheres and planes keep their own kernels and hierarchy (`crate::bvh`, the tracer's
 //! lane code); a scene without section 8's shapes builds none of this and traces as
 //! before. Each class here has its bounds and its intersection test in its own module
-//! ([`triangle`], [`cuboid`], [`mesh`]); [`Shapes`] joins them under one hierarchy whose
-//! leaves are boxes, loose triangles and mesh instances.
+//! ([`triangle`], [`cuboid`]; a mesh's triangles take the triangle test, under the
+//! hierarchy its shared geometry caches, [`crate::mesh::accel`]); [`Shapes`] joins them
+//! under one hierarchy ([`crate::hierarchy`]) whose leaves are boxes, loose triangles and
+//! mesh instances.
 //!
 //! A mesh is traced in the file's coordinates (its hierarchy is built once, whatever
 //! the number of objects that show it), but every triangle test runs in world space on
@@ -15,21 +17,18 @@
 //! coordinates to walk its hierarchy is rounded, and so is the triangle test, so boxes
 //! are widened by a bound on those errors ([`Shapes::instance_margin`]).
 
-pub(crate) mod bounds;
 pub(crate) mod cuboid;
-pub(crate) mod hierarchy;
-pub(crate) mod mesh;
 pub(crate) mod packet;
 pub(crate) mod triangle;
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use self::bounds::{Bounds, SlabRay};
 use self::cuboid::BoxHit;
-use self::hierarchy::Hierarchy;
-use self::mesh::{vertex, MeshAccel};
 use self::triangle::{ShearedRay, TriangleHit};
+use crate::bounds::{Bounds, SlabRay};
+use crate::hierarchy::Hierarchy;
+use crate::mesh::accel::{vertex, MeshAccel};
 use crate::mesh::{MeshGeometry, NO_NORMAL};
 use crate::scene::{Scene, Shape};
 use crate::transform::{map_normal, Affine};

@@ -1,6 +1,6 @@
 //! Four rays at once through section 8's shapes: the slab test and the watertight
 //! triangle test lane by lane, with the operations of the single-ray code
-//! ([`super::bounds`], [`super::triangle`]) in the same order, so each lane's hit has
+//! ([`crate::bounds`], [`super::triangle`]) in the same order, so each lane's hit has
 //! the bits that ray's hit has when traced alone. The tracer runs this code compiled
 //! for its instruction set (AVX2 or portable), like its other lane code.
 //!
@@ -8,9 +8,9 @@
 //! only costs a wasted test, since every hit is checked lane by lane against that
 //! lane's best so far, with the same tie rule.
 
-use super::bounds::{gamma, Bounds};
-use super::hierarchy::{Hierarchy, DEPTH_MAX};
 use super::{before, cuboid, Detail, Item, ShapeHit, Shapes};
+use crate::bounds::{gamma, Bounds};
+use crate::hierarchy::{Hierarchy, DEPTH_MAX};
 use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
 /// Up to four rays, each leaving object `from[k]` (triangle `prim[k]`); lanes outside
@@ -31,7 +31,7 @@ struct Slab4 {
     inv: V4,
 }
 
-/// 1 + 2γ₃, as in [`super::bounds`].
+/// 1 + 2γ₃, as in [`crate::bounds`].
 const EXIT_SCALE: f64 = 1.0 + 2.0 * gamma(3);
 
 impl Slab4 {
@@ -269,7 +269,7 @@ impl Shapes {
                             test_triangle(*v, lanes, *object, 0, i, &mut consider);
                         }
                         Item::Instance(instance) => {
-                            let accel = super::mesh::MeshAccel::of(&instance.geometry);
+                            let accel = crate::mesh::accel::MeshAccel::of(&instance.geometry);
                             let (local, margin) = if instance.identity {
                                 (slab, margin)
                             } else {

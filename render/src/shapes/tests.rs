@@ -7,8 +7,9 @@ use std::sync::Arc;
 
 use super::*;
 use crate::mesh::{MeshData, MeshFile};
-use crate::scene::{CameraSpec, Material, MeshObject, Object, RenderSettings};
-use crate::tracer::tests::Mix;
+use crate::scene::{CameraSpec, Material, MeshObject, Object};
+use crate::settings::RenderSettings;
+use crate::test_rng::Mix;
 use crate::transform::TransformSpec;
 
 /// A subdivided icosahedron on the unit sphere: closed and convex, every edge shared by
@@ -220,7 +221,7 @@ fn rays_at_edges_and_vertices_never_pass_through() {
                 let count = crossings(ts, 1e-9 * scale);
                 rays += 1;
                 assert!(
-                    count > 0 && count % 2 == 0,
+                    count > 0 && count.is_multiple_of(2),
                     "{name} at scale {scale}, offset {offset}: {count} crossings from \
                      {origin:?} along {dir:?}"
                 );
@@ -269,7 +270,7 @@ fn rays_leaving_a_convex_mesh_do_not_meet_it_again() {
                 if l.dot(ng) < 0.0 {
                     l = -l;
                 }
-                if rng.next() % 4 == 0 {
+                if rng.next().is_multiple_of(4) {
                     // Grazing: almost in the plane.
                     l = (l - ng * l.dot(ng) + ng * 1e-6).normalize();
                 }

@@ -16,7 +16,7 @@
 //! ray leaving a surface does not meet a neighbouring triangle at a distance that is
 //! only rounding.
 
-use super::bounds::gamma;
+use crate::bounds::gamma;
 use crate::vec3::Vec3;
 
 /// A hit of a triangle: distance and barycentric coordinates (b0 + b1 + b2 = 1).
@@ -118,7 +118,7 @@ impl ShearedRay {
         let t = t_scaled * inv_det;
         #[expect(
             clippy::neg_cmp_op_on_partial_ord,
-            reason = "a NaN distance is refused too"
+            reason = "a NaN distance must be refused too"
         )]
         if !(t <= t_max) {
             return None;

@@ -21,7 +21,8 @@ use self::ray::{Path, Ray, FROM_CAMERA};
 use crate::bvh::{Bvh, Stack};
 use crate::camera::Camera;
 use crate::geometry::{PlaneGeom, SphereGeom};
-use crate::scene::{Material, RenderSettings, Scene};
+use crate::scene::{Material, Scene};
+use crate::settings::RenderSettings;
 use crate::simd::Isa;
 use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 
@@ -344,31 +345,10 @@ impl Tracer {
 }
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
     use crate::scene::{CameraSpec, Light, Object, Shape};
-
-    /// SplitMix64, for reproducible random scenes.
-    pub(crate) struct Mix(pub(crate) u64);
-
-    impl Mix {
-        pub(crate) fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-
-        pub(crate) fn unit(&mut self) -> f64 {
-            (self.next() >> 11) as f64 / (1u64 << 53) as f64
-        }
-
-        fn vec(&mut self, scale: f64) -> Vec3 {
-            let mut c = || (2.0 * self.unit() - 1.0) * scale;
-            Vec3::new(c(), c(), c())
-        }
-    }
+    use crate::test_rng::Mix;
 
     fn random_scene(rng: &mut Mix) -> Scene {
         let material = |rng: &mut Mix| match rng.next() % 4 {

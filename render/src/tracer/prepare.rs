@@ -7,7 +7,8 @@ use super::Tracer;
 use crate::bvh::Bvh;
 use crate::camera::Camera;
 use crate::geometry::{PlaneGeom, SphereGeom};
-use crate::scene::{Material, RenderSettings, Scene, Shape};
+use crate::scene::{Material, Scene, Shape};
+use crate::settings::RenderSettings;
 use crate::simd::Isa;
 use crate::vec3::{Divisor, Vec3, F4, LANES, M4, V4};
 

@@ -145,7 +145,7 @@ pub(crate) fn to_byte(v: f64) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tracer::tests::Mix;
+    use crate::test_rng::Mix;
     use crate::vec3::LANES;
 
     /// The SIMD checker and clip agree with the scalar ones, at integers, halves (where

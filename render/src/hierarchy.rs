@@ -3,8 +3,12 @@
 //! primitives. One builder serves the triangles of a mesh and the top level (boxes,
 //! triangles, mesh instances); traversal belongs to the callers, which know their
 //! primitives.
+//!
+//! It knows nothing of meshes or scenes, and sits below both: a mesh's geometry keeps
+//! its hierarchy with it ([`crate::mesh::accel`]), built once for every object and frame
+//! that shows the file.
 
-use super::bounds::{Bounds, SlabRay};
+use crate::bounds::{Bounds, SlabRay};
 
 /// Most primitives in a leaf.
 const LEAF_MAX: usize = 4;
@@ -273,7 +277,7 @@ mod tests {
     /// the shape of the hierarchy.
     #[test]
     fn the_walk_visits_every_box_the_ray_meets() {
-        let mut rng = crate::tracer::tests::Mix(3);
+        let mut rng = crate::test_rng::Mix(3);
         for case in 0..50 {
             let n = 1 + (rng.next() % 300) as usize;
             let boxes: Vec<Bounds> = (0..n)

@@ -1,13 +1,17 @@
 //! What the tracer builds once per mesh geometry, whatever the number of objects that
 //! show it: the hierarchy over its triangles in the file's own coordinates, and, for
 //! smooth shading, the normals computed from its faces.
+//!
+//! Kept with the mesh's geometry ([`MeshGeometry`] caches it), not with the shapes that
+//! trace it, so that the geometry a scene holds needs nothing above the generic
+//! [`crate::hierarchy`]; [`crate::shapes`] walks it.
 
 use std::sync::OnceLock;
 
-use super::bounds::Bounds;
-use super::hierarchy::Hierarchy;
-use crate::mesh::load::degenerate;
-use crate::mesh::{MeshData, MeshGeometry};
+use super::load::degenerate;
+use super::{MeshData, MeshGeometry};
+use crate::bounds::Bounds;
+use crate::hierarchy::Hierarchy;
 use crate::vec3::Vec3;
 
 pub(crate) struct MeshAccel {
