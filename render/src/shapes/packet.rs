@@ -67,8 +67,8 @@ impl Slab4 {
             t0 = near.gt(t0).select(near, t0);
             t1 = far.lt(t1).select(far, t1);
         }
-        // Not t0 > t1: the scalar test's order, where NaN enters.
-        M4::from_fn(|k| !(t0.0[k] > t1.0[k]))
+        // t0 ≤ t1, as the scalar test's "not t0 > t1" (the bounds are never NaN).
+        t0.le(t1)
     }
 }
 

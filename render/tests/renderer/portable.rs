@@ -1,10 +1,10 @@
 //! The portable lane code, which AVX2 machines never run on their own, gives the same
 //! bytes and the same ray counts as the AVX2 build on every example scene, with every
-//! sampler and with and without the hierarchy (whose node tests follow the tracer's
+//! sampler (meshes, boxes and triangles included) and with and without the hierarchy (whose node tests follow the tracer's
 //! instruction set too).
 
 use render::simd::Isa;
-use render::{parse_scene, render_frame, Sampling, Tracer};
+use render::{parse_scene_with, render_frame, MeshFiles, Sampling, Tracer};
 
 #[test]
 fn portable_and_avx2_paths_give_the_same_bytes() {
@@ -31,7 +31,8 @@ fn portable_and_avx2_paths_give_the_same_bytes() {
     ];
     for path in &scenes {
         let text = std::fs::read_to_string(path).expect("scene is readable");
-        let scene = parse_scene(&text).expect("example scene loads");
+        let files = MeshFiles::beside(dir);
+        let scene = parse_scene_with(&text, &files).expect("example scene loads");
         for sampling in samplers {
             for aa in [1, 3] {
                 let mut settings = scene.settings;
