@@ -374,6 +374,10 @@ impl SeedScene {
                         distance,
                         color,
                     }),
+                    // The seed scenes this measures have none (section 8's shapes).
+                    Shape::Triangle { .. } | Shape::Box { .. } | Shape::Mesh(_) => {
+                        panic!("the seed program has spheres and planes only")
+                    }
                 }
             })
             .collect();
