@@ -1,5 +1,5 @@
-//! Scenes of section 8's shapes, written into a test's directory: a mesh read from an
-//! OBJ file beside its scene.
+//! Scenes of section 8's shapes, written into a test's directory: triangles and boxes
+//! (which need no file), and a mesh read from an OBJ file beside its scene.
 
 use std::path::{Path, PathBuf};
 
@@ -46,6 +46,23 @@ fn scene(objects: &[&str]) -> String {
     )
 }
 
+/// `DIR/shapes.json`: triangles (a pyramid and one alone), boxes and a mirror sphere,
+/// all in front of the seed's camera.
+pub fn write_shapes_scene(dir: &Path) -> PathBuf {
+    let text = scene(&[
+        r#"{"type": "box", "min": "-2.5 -1 -0.5", "max": "-1.5 0.5 0.5", "color": "0.2 0.4 0.9 0.3"}"#,
+        r#"{"type": "box", "min": "1 -1 1", "max": "4 -0.6 2", "color": "0.9 0.8 0.2 0"}"#,
+        r#"{"type": "triangle", "vertices": ["-0.8 -1 -0.8", "0.8 -1 -0.8", "0 0.6 0"], "color": "0.9 0.3 0.3 0"}"#,
+        r#"{"type": "triangle", "vertices": ["0.8 -1 -0.8", "0.8 -1 0.8", "0 0.6 0"], "color": "0.3 0.9 0.3 0"}"#,
+        r#"{"type": "triangle", "vertices": ["-0.8 -1 0.8", "-0.8 -1 -0.8", "0 0.6 0"], "color": "0.3 0.3 0.9 0"}"#,
+        r#"{"type": "triangle", "vertices": ["1.5 1.5 0", "3.5 1.2 0.5", "2.5 2.8 -0.5"], "color": "1 1 1 0.5"}"#,
+        r#"{"type": "sphere", "center": "3 0 0", "radius": 1, "color": "0.5 0.5 0.5 0.6"}"#,
+    ]);
+    let path = dir.join("shapes.json");
+    std::fs::write(&path, text).expect("cannot write the scene");
+    path
+}
+
 /// `DIR/cube.obj` ([`CUBE_OBJ`]) and `DIR/cube.json`, a scene of two instances of it
 /// (one rotated, one smooth-shaded and scaled) beside a mirror sphere, naming the file
 /// as `cube.obj`.
@@ -63,3 +80,18 @@ pub fn write_mesh_scene(dir: &Path) -> PathBuf {
     path
 }
 
+/// What the client commands that hand a scene to a farm (`submit`, `up`, `studio`, a
+/// coordinator's `--studio-scene`) say of [`write_mesh_scene`]'s scene at `scene`.
+pub fn farm_refusal(scene: &str) -> String {
+    format!(
+        "error: {scene}: objects[1].file: cube.obj: a farm does not render meshes yet (their \
+         mesh files are not sent to workers): render this scene on this machine with \
+         `tessera render`"
+    )
+}
+
+/// What a coordinator answers when [`write_mesh_scene`]'s scene reaches it all the same
+/// (a job or a studio edit): the renderer's own line.
+pub const LOADER_REFUSAL: &str = "objects[1].file: a mesh file cannot be read here: a scene \
+    with meshes is rendered from its file by `tessera render` (a farm does not render meshes \
+    yet)";
