@@ -4,7 +4,7 @@
 //! and `tessera refine FILE` share.
 
 use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -31,8 +31,8 @@ pub fn thread_pool(threads: Option<u32>) -> Result<rayon::ThreadPool> {
 /// One local render, from the command line or a saved state.
 pub struct Job<'a> {
     pub scene: &'a render::Scene,
-    /// The scene's text, kept when the samples are saved (with it).
-    pub text: Option<&'a str>,
+    /// What a render that saves its samples saves of the scene with them.
+    pub source: Option<SceneSource<'a>>,
     pub settings: RenderSettings,
     /// Checked writable before the render starts.
     pub output: ImageOutput,
@@ -44,6 +44,14 @@ pub struct Job<'a> {
     pub state: Option<FileOutput>,
     /// The saved blocks to go on from, and the file they came from.
     pub resume: Option<(PathBuf, Vec<BlockState>)>,
+}
+
+/// A scene as a saved render keeps it: its text, and where its mesh files are.
+#[derive(Clone, Copy)]
+pub struct SceneSource<'a> {
+    pub text: &'a str,
+    /// The directory the scene's mesh files were read from: absolute and canonical.
+    pub mesh_dir: &'a Path,
 }
 
 impl Job<'_> {
@@ -110,11 +118,13 @@ impl Job<'_> {
                     String::new()
                 };
                 if let Some(out) = self.state {
+                    let source = self
+                        .source
+                        .expect("a render that saves its samples keeps the scene's source");
                     let saved = render_state::Saved {
-                        scene: self
-                            .text
-                            .expect("a render that saves its samples keeps the scene text")
-                            .to_owned(),
+                        scene: source.text.to_owned(),
+                        mesh_dir: source.mesh_dir.to_path_buf(),
+                        meshes: render_state::meshes_of(self.scene),
                         width: settings.width,
                         height: settings.height,
                         aa: settings.aa,

@@ -4,12 +4,55 @@
 
 use std::path::Path;
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
+use serde_json::Value;
 
-/// A scene file's text, for submission: the coordinator checks it.
+/// A scene file's text, for a farm: the coordinator checks it. A scene with mesh
+/// objects is refused here, in one line: their files are on this machine, which a
+/// farm's workers never see, and a farm does not render meshes yet.
 pub fn read_scene(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read scene file {}", path.display()))
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read scene file {}", path.display()))?;
+    refuse_meshes(path, &text)?;
+    Ok(text)
+}
+
+/// One line naming the first mesh object of the scene file at `path`, if it has any.
+fn refuse_meshes(path: &Path, text: &str) -> Result<()> {
+    if let Some((object, file)) = first_mesh(text) {
+        let place = match file {
+            Some(file) => format!("objects[{object}].file: {file}"),
+            None => format!("objects[{object}]"),
+        };
+        bail!(
+            "{}: {place}: a farm does not render meshes yet (their mesh files are not sent to \
+             workers): render this scene on this machine with `tessera render`",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// The first object of type `mesh` in a scene's text: its index and, if it names one,
+/// its file. A text that is not JSON has none (the coordinator says what is wrong with
+/// it). Without `mesh` in it, even \u-escaped, a text has none and is not read again.
+fn first_mesh(text: &str) -> Option<(usize, Option<String>)> {
+    if !text.contains("mesh") && !text.contains("\\u") {
+        return None;
+    }
+    let root: Value = serde_json::from_str(text).ok()?;
+    root.get("objects")?
+        .as_array()?
+        .iter()
+        .enumerate()
+        .find(|(_, object)| object.get("type").and_then(Value::as_str) == Some("mesh"))
+        .map(|(i, object)| {
+            let file = object
+                .get("file")
+                .and_then(Value::as_str)
+                .map(str::to_owned);
+            (i, file)
+        })
 }
 
 /// A scene file's text, checked by the renderer's loader: its error is one line
@@ -72,6 +115,59 @@ mod tests {
             .num_threads(threads)
             .build()
             .unwrap()
+    }
+
+    #[test]
+    fn a_scene_with_a_mesh_is_refused_for_a_farm_naming_its_first_mesh() {
+        let scene = |objects: &str| {
+            format!(
+                r#"{{"camera": {{"position": "0 0 -5", "look_at": "0 0 0"}}, "lights": [],
+                    "objects": [{objects}]}}"#
+            )
+        };
+        let sphere = r#"{"type": "sphere", "center": "0 0 0", "radius": 1, "color": "1 1 1 0"}"#;
+        let triangle = r#"{"type": "triangle", "vertices": ["0 0 0", "1 0 0", "0 1 0"],
+                           "color": "1 1 1 0"}"#;
+        let cube = r#"{"type": "box", "min": "0 0 0", "max": "1 1 1", "color": "1 1 1 0"}"#;
+        let mesh = r#"{"type": "mesh", "file": "meshes/bunny.ply", "color": "1 1 1 0"}"#;
+        // Spheres, planes, triangles and boxes go to a farm; a `mesh` named anywhere else
+        // (a file called mesh.json, a value) is not an object.
+        for text in [
+            scene(sphere),
+            scene(&format!("{triangle}, {cube}")),
+            scene(
+                r#"{"type": "sphere", "center": "0 0 0", "radius": 1, "color": "1 1 1",
+                      "note": "mesh"}"#,
+            )
+            .replace("\"lights\": []", "\"lights\": [], \"mesh\": \"mesh\""),
+            "not JSON, mesh".to_owned(),
+        ] {
+            assert_eq!(first_mesh(&text), None, "{text}");
+        }
+        let text = scene(&format!("{sphere}, {triangle}, {mesh}, {mesh}"));
+        assert_eq!(
+            first_mesh(&text),
+            Some((2, Some("meshes/bunny.ply".to_owned())))
+        );
+        assert_eq!(
+            refuse_meshes(Path::new("scenes/bunny.json"), &text)
+                .unwrap_err()
+                .to_string(),
+            "scenes/bunny.json: objects[2].file: meshes/bunny.ply: a farm does not render \
+             meshes yet (their mesh files are not sent to workers): render this scene on this \
+             machine with `tessera render`"
+        );
+        // Written with escapes, or without a file, a mesh is still one.
+        let escaped = scene(r#"{"type": "m\u0065sh", "color": "1 1 1 0"}"#);
+        assert!(!escaped.contains("mesh"));
+        assert_eq!(first_mesh(&escaped), Some((0, None)));
+        assert_eq!(
+            refuse_meshes(Path::new("s.json"), &escaped)
+                .unwrap_err()
+                .to_string(),
+            "s.json: objects[0]: a farm does not render meshes yet (their mesh files are not \
+             sent to workers): render this scene on this machine with `tessera render`"
+        );
     }
 
     #[test]

@@ -11,13 +11,14 @@ use protocol::JobId;
 use render::limits::MAX_AA;
 use render::progressive::Region;
 use render::{
-    parse_scene, validate_settings, Image, RenderSettings, Sampling, SamplingChoiceError, Tracer,
+    parse_scene_with, validate_settings, Image, MeshFiles, RenderSettings, Sampling,
+    SamplingChoiceError, Tracer,
 };
 use serde_json::json;
 
 use crate::args::{limit_ms, ClientArgs};
 use crate::config;
-use crate::local_render::{thread_pool, Job};
+use crate::local_render::{thread_pool, Job, SceneSource};
 use crate::output::{FileOutput, ImageOutput};
 use crate::render_state;
 use crate::report::{status_json, summary};
@@ -29,9 +30,11 @@ use crate::session::{naming_job, wait_and_fetch, Session};
     long_about = "Go on from a render saved with `tessera render --state FILE` to a lower \
         error target or a larger --aa, taking only the samples it lacks. The image is \
         byte for byte the one a direct render with the final settings gives. The state \
-        file is updated in place, so refining can go on again. Given the id of a \
-        finished adaptive job instead, a coordinator starts a new job from the tile \
-        states it kept for that job, with the same bytes a direct job would give.",
+        file is updated in place, so refining can go on again. The scene's mesh files \
+        are read again from where the render read them, and refused if one has changed \
+        since. Given the id of a finished adaptive job instead, a coordinator starts a \
+        new job from the tile states it kept for that job, with the same bytes a direct \
+        job would give.",
     after_help = "Examples:\n  \
         tessera render scenes/seed.json --sampler adaptive --target-error 4 --state seed.state\n  \
         tessera refine seed.state --target-error 1 -o seed.png\n  \
@@ -89,9 +92,7 @@ fn refines_a_job(state: &Path) -> Result<Option<JobId>> {
 fn refine_file(args: Args) -> Result<()> {
     let saved = render_state::load(&args.state)?;
     let pool = thread_pool(args.threads)?;
-    let scene = pool
-        .install(|| parse_scene(&saved.scene))
-        .map_err(|e| anyhow!("{}: the saved scene: {e}", args.state.display()))?;
+    let scene = saved_scene(&pool, &saved).map_err(|e| anyhow!("{}: {e}", args.state.display()))?;
     let target = match args.target_error {
         Some(levels) => Sampling::adaptive(levels).map_err(SamplingChoiceError::Target)?,
         None => Sampling::Adaptive {
@@ -124,7 +125,10 @@ fn refine_file(args: Args) -> Result<()> {
     let output = ImageOutput::create(&path)?;
     let job = Job {
         scene: &scene,
-        text: Some(&saved.scene),
+        source: Some(SceneSource {
+            text: &saved.scene,
+            mesh_dir: &saved.mesh_dir,
+        }),
         settings,
         output,
         pool: &pool,
@@ -133,6 +137,25 @@ fn refine_file(args: Args) -> Result<()> {
         resume: Some((args.state.clone(), saved.blocks)),
     };
     job.run()
+}
+
+/// The saved scene, its mesh files read again from the directory the render read them
+/// from, and each file the very one the samples were taken of: a file that changed or
+/// is gone since is refused in one line naming it, before anything is rendered.
+fn saved_scene(pool: &rayon::ThreadPool, saved: &render_state::Saved) -> Result<render::Scene> {
+    let files = MeshFiles::beside(&saved.mesh_dir);
+    match pool.install(|| parse_scene_with(&saved.scene, &files)) {
+        Ok(scene) => {
+            render_state::check_meshes(saved, &scene)?;
+            Ok(scene)
+        }
+        Err(e) => {
+            // A mesh file that no longer reads (gone, or changed into another) is named
+            // as such rather than by what is wrong with it now.
+            render_state::check_mesh_files(saved)?;
+            bail!("the saved scene: {e}")
+        }
+    }
 }
 
 /// Whether the file at `path` is the image the render or refine that saved `saved`

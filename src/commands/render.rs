@@ -13,7 +13,7 @@ use render::{parse_animated_with, validate_settings, AnimatedScene, MeshFiles, R
 
 use crate::args::{FrameRange, FramesArg, ImageArgs};
 use crate::config;
-use crate::local_render::{thread_pool, Job};
+use crate::local_render::{thread_pool, Job, SceneSource};
 use crate::output::{default_output, FileOutput, FramesDir, ImageOutput};
 use crate::scene_file::{read_in_parallel, scene_dir};
 
@@ -71,7 +71,15 @@ pub fn run(args: Args) -> Result<()> {
     let text = pool
         .install(|| read_in_parallel(scene_path))
         .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
-    let files = MeshFiles::beside(scene_dir(scene_path));
+    // A render that saves its samples records where its mesh files are, as an absolute
+    // and canonical directory (the one they are then read from), so that a refine from
+    // any directory reads the same files.
+    let mut mesh_dir = scene_dir(scene_path);
+    if args.state.is_some() {
+        mesh_dir = std::fs::canonicalize(&mesh_dir)
+            .with_context(|| format!("cannot resolve the directory of {}", scene_path.display()))?;
+    }
+    let files = MeshFiles::beside(&mesh_dir);
     let animated = pool
         .install(|| parse_animated_with(&text, &files))
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;
@@ -106,7 +114,10 @@ pub fn run(args: Args) -> Result<()> {
     )?;
     let job = Job {
         scene: &scene,
-        text: text.as_deref(),
+        source: text.as_deref().map(|text| SceneSource {
+            text,
+            mesh_dir: &mesh_dir,
+        }),
         settings,
         output,
         pool: &pool,
@@ -152,7 +163,7 @@ fn run_sequence(
             .map_err(|e| anyhow!("{}: frame {k}: {e}", scene_path.display()))?;
         let job = Job {
             scene: &scene,
-            text: None,
+            source: None,
             settings,
             output,
             pool: &pool,

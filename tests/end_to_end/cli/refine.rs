@@ -1,12 +1,13 @@
 //! `tessera render --state` and `tessera refine`: a saved adaptive render goes on to a
 //! lower error or a larger cap and gives, byte for byte, the image of a direct render
 //! with the final settings; `--time-limit` stops at the best image reached; a damaged
-//! state file is refused with one line and writes nothing.
+//! state file, or one whose mesh files have changed or gone since, is refused with one
+//! line and writes nothing.
 
 use std::path::Path;
 use std::time::Duration;
 
-use crate::support::{ok, one_error_line, scene_path, shared, tessera};
+use crate::support::{ok, one_error_line, scene_path, shared, tessera, write_mesh_scene};
 
 const LIMIT: Duration = Duration::from_secs(120);
 
@@ -285,4 +286,110 @@ fn refine_replaces_by_default_only_the_image_of_its_state() {
         ],
     );
     assert!(bytes(d, "seed.png") != other, "seed.png replaced");
+}
+
+#[test]
+fn a_mesh_scene_refines_from_anywhere_until_its_mesh_file_changes() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    write_mesh_scene(d);
+    // The scene named relative to the render's directory; the refines run elsewhere,
+    // and read the mesh from beside the scene all the same.
+    let elsewhere = d.join("elsewhere");
+    std::fs::create_dir(&elsewhere).unwrap();
+    let render = |extra: &[&str]| {
+        let mut args = vec!["render", "cube.json", "--sampler", "adaptive", "--aa", "8"];
+        args.extend_from_slice(&SIZE);
+        args.extend_from_slice(extra);
+        succeeds(d, &args)
+    };
+    render(&[
+        "--target-error",
+        "4",
+        "--state",
+        "s.state",
+        "-o",
+        "coarse.png",
+    ]);
+    succeeds(
+        &elsewhere,
+        &[
+            "refine",
+            "../s.state",
+            "--target-error",
+            "1.5",
+            "-o",
+            "fine.png",
+        ],
+    );
+    render(&["--target-error", "1.5", "-o", "direct-fine.png"]);
+    assert_eq!(bytes(&elsewhere, "fine.png"), bytes(d, "direct-fine.png"));
+    assert_ne!(bytes(d, "direct-fine.png"), bytes(d, "coarse.png"));
+
+    // The mesh changed (one vertex moved, or not a mesh any more): refused in one line
+    // naming the object, the file and both digests; nothing written, the state kept.
+    let state = bytes(d, "s.state");
+    let refused = |what: &str| {
+        let e = one_error(
+            &elsewhere,
+            &[
+                "refine",
+                "../s.state",
+                "--target-error",
+                "1",
+                "-o",
+                "out.png",
+            ],
+        );
+        assert!(
+            !elsewhere.join("out.png").exists(),
+            "{what}: an image was written"
+        );
+        assert!(
+            bytes(d, "s.state") == state,
+            "{what}: the state was changed"
+        );
+        e
+    };
+    let moved = crate::support::CUBE_OBJ.replacen("v 1 1 1", "v 1 1.5 1", 1);
+    std::fs::write(d.join("cube.obj"), &moved).unwrap();
+    for (what, text) in [
+        ("a vertex moved", moved.as_str()),
+        ("no longer a mesh", "v 1 2\n"),
+    ] {
+        std::fs::write(d.join("cube.obj"), text).unwrap();
+        let e = refused(what);
+        assert!(
+            e.starts_with(
+                "error: ../s.state: objects[1].file: cube.obj changed since the state \
+                 was saved (SHA-256 "
+            ) && e.ends_with(" now)"),
+            "{what}: {e}"
+        );
+    }
+    // The mesh gone.
+    std::fs::remove_file(d.join("cube.obj")).unwrap();
+    let e = refused("gone");
+    assert!(
+        e.starts_with(
+            "error: ../s.state: objects[1].file: cube.obj cannot be read since the \
+             state was saved: "
+        ),
+        "{e}"
+    );
+    // Back as it was, the state refines again.
+    std::fs::write(d.join("cube.obj"), crate::support::CUBE_OBJ).unwrap();
+    succeeds(
+        &elsewhere,
+        &[
+            "refine",
+            "../s.state",
+            "--target-error",
+            "1.5",
+            "-o",
+            "again.png",
+        ],
+    );
+    assert_eq!(bytes(&elsewhere, "again.png"), bytes(d, "direct-fine.png"));
 }

@@ -12,6 +12,9 @@
 //! JSON, keeps each color on one line, and saves under the scene file's name or the
 //! one typed.
 //!
+//! A scene with a mesh is refused in one line on the command line, in an edit and in a
+//! job from the page, and the view takes triangles and boxes next.
+//!
 //! Then, without a browser, the event stream through a 20 Mbit/s link
 //! ([`ThrottleRelay`]) while the camera orbits ten edits a second: the reader decodes
 //! every tile as the page does, is never dropped, and has the last edit's final
@@ -30,8 +33,9 @@ use std::time::{Duration, Instant};
 use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
-    assert_same_png, entries, exclusive, http_get, http_post, ok, poll, shared, spawn_tessera,
-    start_coordinator_with_http, tessera, wait_done, Daemon,
+    assert_same_png, entries, exclusive, farm_refusal, http_get, http_post, json_error, ok,
+    one_error_line, poll, shared, spawn_tessera, start_coordinator_with_http, tessera, wait_done,
+    write_mesh_scene, write_shapes_scene, Daemon, LOADER_REFUSAL,
 };
 
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -486,6 +490,87 @@ fn a_studio_of_an_invalid_scene_or_address_stops_before_starting_anything() {
         "{}",
         run.stderr
     );
+}
+
+/// A scene with a mesh is refused in one line wherever it would reach a studio:
+/// `tessera studio` and a coordinator's `--studio-scene` before starting anything, and
+/// an edit sent by a page, or a job it submits, with the loader's own line; the view
+/// then takes the next edit, of triangles and boxes, which need no file.
+#[test]
+fn a_studio_refuses_a_mesh_in_one_line_and_takes_triangles_and_boxes() {
+    let _turn = shared();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    write_mesh_scene(dir);
+    let run = tessera(dir, &["studio", "cube.json"], TIMEOUT);
+    assert_eq!(
+        one_error_line(&run, "tessera studio cube.json"),
+        farm_refusal("cube.json")
+    );
+    let run = tessera(
+        dir,
+        &[
+            "coordinator",
+            "--listen",
+            "127.0.0.1:0",
+            "--data",
+            "data",
+            "--studio-scene",
+            "cube.json",
+        ],
+        TIMEOUT,
+    );
+    assert!(!run.status.success());
+    let refusal = farm_refusal("cube.json");
+    let refusal = refusal.trim_start_matches("error: ");
+    assert!(run.stderr.contains(refusal), "{}", run.stderr);
+
+    std::fs::write(dir.join("start.json"), SCENE).unwrap();
+    let _studio: Daemon = spawn_tessera(
+        dir,
+        &[
+            "studio",
+            "start.json",
+            "--workers",
+            "1",
+            "--threads-per-worker",
+            "1",
+        ],
+        "studio.log",
+    );
+    let url = printed(dir, "studio on ");
+    let http = url
+        .trim_start_matches("http://")
+        .trim_end_matches("/studio")
+        .to_owned();
+    let json = ("Content-Type", "application/json");
+    let (code, body) = http_post(&http, "/api/studio/open", &[json], "{}");
+    assert_eq!(code, 200, "{body}");
+    let answer: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let session = answer["session"].as_str().unwrap().to_owned();
+    let mesh = std::fs::read_to_string(dir.join("cube.json")).unwrap();
+    let edit = |scene: &str| {
+        http_post(
+            &http,
+            "/api/studio/view",
+            &[json],
+            &format!(r#"{{"session": "{session}", "scene": {scene}}}"#),
+        )
+    };
+    let (code, body) = edit(&mesh);
+    assert_eq!(code, 422, "{body}");
+    assert_eq!(json_error(body.as_bytes()), LOADER_REFUSAL);
+    let (code, body) = http_post(
+        &http,
+        "/api/studio/submit",
+        &[json],
+        &format!(r#"{{"scene": {mesh}}}"#),
+    );
+    assert_eq!(code, 422, "{body}");
+    assert_eq!(json_error(body.as_bytes()), LOADER_REFUSAL);
+    let shapes = std::fs::read_to_string(write_shapes_scene(dir)).unwrap();
+    let (code, body) = edit(&shapes);
+    assert_eq!(code, 200, "{body}");
 }
 
 /// The link of the throughput test: 20 Mbit/s each way.

@@ -11,6 +11,7 @@ pub mod flip_relay;
 mod http;
 mod images;
 mod run;
+mod shapes;
 pub mod throttle_relay;
 mod turns;
 pub mod wire;
@@ -20,6 +21,7 @@ pub use daemons::*;
 pub use http::*;
 pub use images::*;
 pub use run::*;
+pub use shapes::*;
 pub use turns::*;
 
 use std::path::{Path, PathBuf};
