@@ -110,6 +110,24 @@ pub fn check_meshes(saved: &Saved, scene: &Scene) -> Result<()> {
 pub fn check_mesh_files(saved: &Saved) -> Result<()> {
     for mesh in &saved.meshes {
         let path = saved.mesh_dir.join(&mesh.name);
+        let gltf = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("gltf"));
+        if gltf {
+            // A glTF's digest covers the buffer files it reads: only reading it tells.
+            let now = render::mesh::load::read(&path)
+                .and_then(|bytes| render::mesh::load::parse_hashed(&path, &bytes))
+                .map(|(_, sha)| sha);
+            match now {
+                Ok(now) if now == mesh.sha256 => continue,
+                Ok(now) => bail!("{}", changed(mesh.object, &mesh.name, &mesh.sha256, &now)),
+                Err(e) => bail!(
+                    "objects[{}].file: {} cannot be read since the state was saved: {e}",
+                    mesh.object,
+                    mesh.name
+                ),
+            }
+        }
         let now = file_sha256(&path).map_err(|e| {
             anyhow::anyhow!(
                 "objects[{}].file: {} cannot be read since the state was saved: {}: {e}",
