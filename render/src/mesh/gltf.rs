@@ -93,7 +93,8 @@ fn read_document(
         .filter(|r| !r.is_empty())
     {
         return Err(fail(format!(
-            "extensionsRequired {required:?}: not supported"
+            "extensionsRequired {}: not supported",
+            super::cut(&format!("{required:?}"))
         )));
     }
     let buffers = document["buffers"]
@@ -120,10 +121,12 @@ fn read_document(
 }
 
 fn index(value: &Value, what: &str) -> Result<usize, MeshError> {
-    value
-        .as_u64()
-        .map(|v| v as usize)
-        .ok_or_else(|| fail(format!("{what} is not an index: {value}")))
+    value.as_u64().map(|v| v as usize).ok_or_else(|| {
+        fail(format!(
+            "{what} is not an index: {}",
+            super::cut(&value.to_string())
+        ))
+    })
 }
 
 fn load_buffer(
@@ -150,7 +153,9 @@ fn load_buffer(
                 .decode(data)
                 .map_err(|e| fail(format!("buffers[{i}]: {e}")))?
         }
-        Some(uri) => file(uri).map_err(|e| fail(format!("buffers[{i}] ({uri}): {e}")))?,
+        Some(uri) => {
+            file(uri).map_err(|e| fail(format!("buffers[{i}] ({}): {e}", super::quoted(uri))))?
+        }
     };
     let declared = buffer["byteLength"].as_u64().unwrap_or(0);
     if (bytes.len() as u64) < declared {

@@ -79,7 +79,8 @@ fn corner(entry: &str, vertices: usize, normals: usize) -> Result<Corner, String
     let normal = parts.next();
     if parts.next().is_some() {
         return Err(format!(
-            "{entry:?} is not a face corner (i, i/t, i//n or i/t/n)"
+            "{} is not a face corner (i, i/t, i//n or i/t/n)",
+            super::quoted(entry)
         ));
     }
     let vertex = absolute(vertex, vertices, "vertex", entry)?;
@@ -93,16 +94,24 @@ fn corner(entry: &str, vertices: usize, normals: usize) -> Result<Corner, String
 /// A 1-based index as written, a negative one made absolute against `count` read so
 /// far.
 fn absolute(text: &str, count: usize, what: &str, entry: &str) -> Result<i64, String> {
-    let value: i64 = text
-        .parse()
-        .map_err(|_| format!("{entry:?}: {what} index {text:?} is not an integer"))?;
+    let value: i64 = text.parse().map_err(|_| {
+        format!(
+            "{}: {what} index {} is not an integer",
+            super::quoted(entry),
+            super::quoted(text)
+        )
+    })?;
     match value {
-        0 => Err(format!("{entry:?}: {what} index 0 (indices start at 1)")),
+        0 => Err(format!(
+            "{}: {what} index 0 (indices start at 1)",
+            super::quoted(entry)
+        )),
         v if v < 0 => {
             let absolute = count as i64 + 1 + v;
             if absolute < 1 {
                 Err(format!(
-                    "{entry:?}: {what} index {v} counts back past the first {what} ({count} read so far)"
+                    "{}: {what} index {v} counts back past the first {what} ({count} read so far)",
+                    super::quoted(entry)
                 ))
             } else {
                 Ok(absolute)

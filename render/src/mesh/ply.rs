@@ -386,22 +386,27 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
                     "ascii" => Format::Ascii,
                     "binary_little_endian" => Format::Little,
                     "binary_big_endian" => Format::Big,
-                    other => return Err(error(format!("unknown format {other:?}"))),
+                    other => return Err(error(format!("unknown format {}", super::quoted(other)))),
                 })
             }
             ["element", name, count] => elements.push(Element {
                 name: (*name).to_owned(),
-                count: count
-                    .parse()
-                    .map_err(|_| error(format!("element count {count:?} is not a number")))?,
+                count: count.parse().map_err(|_| {
+                    error(format!(
+                        "element count {} is not a number",
+                        super::quoted(count)
+                    ))
+                })?,
                 properties: Vec::new(),
             }),
             ["property", "list", count, item, name] => {
                 let element = elements
                     .last_mut()
                     .ok_or_else(|| error("a property before any element".into()))?;
-                let scalar =
-                    |t: &str| Scalar::parse(t).ok_or_else(|| error(format!("unknown type {t:?}")));
+                let scalar = |t: &str| {
+                    Scalar::parse(t)
+                        .ok_or_else(|| error(format!("unknown type {}", super::quoted(t))))
+                };
                 element.properties.push(Property::List(
                     (*name).to_owned(),
                     scalar(count)?,
@@ -412,8 +417,8 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
                 let element = elements
                     .last_mut()
                     .ok_or_else(|| error("a property before any element".into()))?;
-                let kind =
-                    Scalar::parse(kind).ok_or_else(|| error(format!("unknown type {kind:?}")))?;
+                let kind = Scalar::parse(kind)
+                    .ok_or_else(|| error(format!("unknown type {}", super::quoted(kind))))?;
                 element
                     .properties
                     .push(Property::Scalar((*name).to_owned(), kind));
