@@ -7,7 +7,9 @@
 //!
 //! Refused: any `extensionsRequired`, sparse or non-float positions, an index count of
 //! a triangle list that is not a multiple of 3, nodes deeper than 64 levels or in a
-//! cycle, a singular node matrix. Every count and offset is checked against the bytes
+//! cycle, a node reached a second time (glTF gives a node one parent at most: walking
+//! a node again for each path to it would make a few nodes, each naming the next twice,
+//! take forever), a singular node matrix. Every count and offset is checked against the bytes
 //! there are before anything is read, and nothing is allocated from a count alone.
 
 use serde_json::Value;
@@ -112,10 +114,10 @@ fn read_document(
         .as_array()
         .ok_or_else(|| fail(format!("scenes[{scene}] has no nodes")))?;
     let mut mesh = MeshData::default();
-    let mut path = Vec::new();
+    let mut walked = Walked::default();
     for root in roots {
         let node = index(root, "a scene's node")?;
-        walk(document, &buffers, node, &IDENTITY, &mut path, &mut mesh)?;
+        walk(document, &buffers, node, &IDENTITY, &mut walked, &mut mesh)?;
     }
     Ok(mesh)
 }
@@ -167,19 +169,31 @@ fn load_buffer(
     Ok(bytes)
 }
 
+/// The nodes of the walk: those above the current one, and all those reached.
+#[derive(Default)]
+struct Walked {
+    path: Vec<usize>,
+    reached: std::collections::HashSet<usize>,
+}
+
 fn walk(
     document: &Value,
     buffers: &[Vec<u8>],
     node: usize,
     parent: &Affine,
-    path: &mut Vec<usize>,
+    walked: &mut Walked,
     mesh: &mut MeshData,
 ) -> Result<(), MeshError> {
-    if path.contains(&node) {
+    if walked.path.contains(&node) {
         return Err(fail(format!("nodes[{node}] is its own ancestor: a cycle")));
     }
-    if path.len() >= MAX_DEPTH {
+    if walked.path.len() >= MAX_DEPTH {
         return Err(fail(format!("nodes deeper than {MAX_DEPTH} levels")));
+    }
+    if !walked.reached.insert(node) {
+        return Err(fail(format!(
+            "nodes[{node}] is reached a second time: a node has at most one parent"
+        )));
     }
     let value = &document["nodes"][node];
     if value.is_null() {
@@ -200,14 +214,14 @@ fn walk(
                 .map_err(|e| fail(format!("meshes[{m}].primitives[{p}]: {e}")))?;
         }
     }
-    path.push(node);
+    walked.path.push(node);
     if let Some(children) = value["children"].as_array() {
         for child in children {
             let child = index(child, "a node's child")?;
-            walk(document, buffers, child, &matrix, path, mesh)?;
+            walk(document, buffers, child, &matrix, walked, mesh)?;
         }
     }
-    path.pop();
+    walked.path.pop();
     Ok(())
 }
 
@@ -586,6 +600,21 @@ mod tests {
         assert_eq!(
             error(r#"[{"mesh": 0}]"#, &[0, 1, 9]),
             "meshes[0].primitives[0]: index 9 is out of range: the primitive has 4 positions"
+        );
+        // Each node naming the next twice: 2^60 paths to the last one.
+        let lattice: Vec<String> = (1..60)
+            .map(|i| format!(r#"{{"children": [{i}, {i}]}}"#))
+            .chain(std::iter::once(r#"{"mesh": 0}"#.to_owned()))
+            .collect();
+        assert_eq!(
+            error(&format!("[{}]", lattice.join(",")), &square),
+            "nodes[59] is reached a second time: a node has at most one parent"
+        );
+        assert_eq!(
+            read(&document(&SQUARE, &square, 4, r#"[{"mesh": 0}]"#, "[0, 0]"))
+                .unwrap_err()
+                .to_string(),
+            "nodes[0] is reached a second time: a node has at most one parent"
         );
         let required = r#"{"extensionsRequired": ["KHR_draco_mesh_compression"]}"#;
         assert!(read(required)
