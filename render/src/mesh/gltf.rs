@@ -9,12 +9,16 @@
 //! a triangle list that is not a multiple of 3, nodes deeper than 64 levels or in a
 //! cycle, a node reached a second time (glTF gives a node one parent at most: walking
 //! a node again for each path to it would make a few nodes, each naming the next twice,
-//! take forever), a singular node matrix. Every count and offset is checked against the bytes
-//! there are before anything is read, and nothing is allocated from a count alone.
+//! take forever), a singular node matrix. Every count and offset is checked against the
+//! bytes there are before anything is read, and nothing is allocated from a count alone.
+//! Since primitives and nodes may name the same accessors again and again, what they add
+//! is held to the renderer's triangle limit (and three positions a triangle) before it
+//! is read.
 
 use serde_json::Value;
 
 use super::{MeshData, MeshError, NO_NORMAL};
+use crate::limits::MAX_MESH_TRIANGLES;
 
 /// How deep nodes may nest.
 pub const MAX_DEPTH: usize = 64;
@@ -327,7 +331,8 @@ fn add_primitive(
     let position = primitive["attributes"]["POSITION"]
         .as_u64()
         .ok_or("no POSITION attribute")? as usize;
-    let positions = accessor(document, buffers, position, true)?;
+    let room = (3 * MAX_MESH_TRIANGLES).saturating_sub(mesh.positions.len());
+    let positions = accessor(document, buffers, position, true, room as u64)?;
     let base = mesh.positions.len();
     for p in positions.chunks_exact(3) {
         mesh.positions.push(std::array::from_fn(|r| {
@@ -338,7 +343,7 @@ fn add_primitive(
     let normal_base = mesh.normals.len();
     let has_normals = match primitive["attributes"]["NORMAL"].as_u64() {
         Some(n) => {
-            let normals = accessor(document, buffers, n as usize, true)?;
+            let normals = accessor(document, buffers, n as usize, true, count as u64)?;
             if normals.len() / 3 != count {
                 return Err(format!(
                     "{} normals for {count} positions",
@@ -355,13 +360,26 @@ fn add_primitive(
         }
         None => false,
     };
+    let room = MAX_MESH_TRIANGLES - mesh.triangles.len();
+    // The most indices that make no more triangles than there is room for.
+    let most = if mode == 4 { 3 * room + 2 } else { room + 2 };
     let indices: Vec<usize> = match primitive["indices"].as_u64() {
-        Some(i) => accessor(document, buffers, i as usize, false)?
+        Some(i) => accessor(document, buffers, i as usize, false, most as u64)?
             .into_iter()
             .map(|v| v as usize)
             .collect(),
         None => (0..count).collect(),
     };
+    let made = if mode == 4 {
+        indices.len() / 3
+    } else {
+        indices.len().saturating_sub(2)
+    };
+    if made > room {
+        return Err(format!(
+            "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+        ));
+    }
     if let Some(&bad) = indices.iter().find(|&&i| i >= count) {
         return Err(format!(
             "index {bad} is out of range: the primitive has {count} positions"
@@ -414,12 +432,14 @@ fn add_primitive(
 
 /// An accessor's values as doubles: `VEC3` of floats for positions and normals
 /// (`float`), `SCALAR` of unsigned integers for indices. Its count, offset and stride
-/// are checked against the bytes of its buffer view before a value is read.
+/// are checked against the bytes of its buffer view, and its count against `most`,
+/// before a value is read.
 fn accessor(
     document: &Value,
     buffers: &[Vec<u8>],
     i: usize,
     float: bool,
+    most: u64,
 ) -> Result<Vec<f64>, String> {
     let a = &document["accessors"][i];
     if a.is_null() {
@@ -469,6 +489,12 @@ fn accessor(
     if view_offset.saturating_add(view_length) > buffer.len() as u64 || end > view_length {
         return Err(format!(
             "accessors[{i}]: {count} elements do not fit in their buffer view"
+        ));
+    }
+    if count > most {
+        return Err(format!(
+            "accessors[{i}]: {count} elements, more than the limit of \
+             {MAX_MESH_TRIANGLES} triangles leaves room for"
         ));
     }
     let mut values = Vec::new();

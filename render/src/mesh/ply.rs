@@ -6,9 +6,12 @@
 //! ASCII numbers are read to the nearest double whatever type the header declares (a
 //! `property float` too). Nothing is allocated from the counts the header claims: the
 //! records are read one by one, and a file that ends early is an error naming the
-//! record it lacks.
+//! record it lacks. Triangles are made no further than the renderer's limit, and a list
+//! no longer than a face within that limit is read (a face of one-byte indices makes
+//! as many triangles as it has bytes, each of 24 bytes).
 
 use super::{MeshData, MeshError};
+use crate::limits::MAX_MESH_TRIANGLES;
 
 /// A property's scalar type.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -194,6 +197,11 @@ impl Role {
                 };
                 let first = index(indices[0])?;
                 for pair in indices[1..].windows(2) {
+                    if mesh.triangles.len() >= MAX_MESH_TRIANGLES {
+                        return Err(format!(
+                            "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+                        ));
+                    }
                     mesh.triangles
                         .push([first, index(pair[0])?, index(pair[1])?]);
                     // The corners' normals are the vertices' own, when the file has
@@ -288,13 +296,10 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .map(|p| match p {
                     Property::Scalar(..) => next().map(Value::Number),
                     Property::List(..) => {
-                        let n = next()?;
-                        if n < 0.0 || n.fract() != 0.0 {
-                            return Err(format!("a list of {n} items"));
-                        }
+                        let n = list_length(next()?)?;
                         // Grown as the items are read, not sized by the count.
                         let mut items = Vec::new();
-                        for _ in 0..n as u64 {
+                        for _ in 0..n {
                             items.push(next()?);
                         }
                         Ok(Value::List(items))
@@ -336,14 +341,11 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .map(|p| match *p {
                     Property::Scalar(_, kind) => scalar(kind).map(Value::Number),
                     Property::List(_, count, item) => {
-                        let n = scalar(count)?;
-                        if n < 0.0 || n.fract() != 0.0 {
-                            return Err(format!("a list of {n} items"));
-                        }
+                        let n = list_length(scalar(count)?)?;
                         // Grown as the items are read, not sized by the count: a
                         // count the file does not hold ends at its last byte.
                         let mut items = Vec::new();
-                        for _ in 0..n as u64 {
+                        for _ in 0..n {
                             items.push(scalar(item)?);
                         }
                         Ok(Value::List(items))
@@ -352,6 +354,22 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .collect()
         }
     }
+}
+
+/// A list's count as its length: a whole number, and no more items than a face within
+/// the triangle limit has.
+fn list_length(n: f64) -> Result<u64, String> {
+    if n < 0.0 || n.fract() != 0.0 {
+        return Err(format!("a list of {n} items"));
+    }
+    let longest = MAX_MESH_TRIANGLES as u64 + 2;
+    if n > longest as f64 {
+        return Err(format!(
+            "a list of {n} items, more than the {longest} of a face within the limit of \
+             {MAX_MESH_TRIANGLES} triangles"
+        ));
+    }
+    Ok(n as u64)
 }
 
 /// What the header says: the format, the elements, the body's bytes, and how many
@@ -519,10 +537,29 @@ mod tests {
         let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
                           property list uint int vertex_indices\nend_header\n"
             .to_vec();
-        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+        // Twenty million corners claimed (within the limit), one there.
+        bytes.extend_from_slice(&20_000_000u32.to_le_bytes());
         bytes.extend_from_slice(&7i32.to_le_bytes());
         let error = read(&bytes).unwrap_err().to_string();
         assert_eq!(error, "record 1: face 1 of 1: the file ends before it");
+    }
+
+    #[test]
+    fn a_list_longer_than_a_face_within_the_limit_is_not_read() {
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
+                          property list uint uchar vertex_indices\nend_header\n"
+            .to_vec();
+        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+        bytes.extend_from_slice(&[0; 4096]);
+        let error = read(&bytes).unwrap_err().to_string();
+        assert_eq!(
+            error,
+            format!(
+                "record 1: face 1 of 1: a list of 4294967295 items, more than the {} of a \
+                 face within the limit of {MAX_MESH_TRIANGLES} triangles",
+                MAX_MESH_TRIANGLES + 2
+            )
+        );
     }
 
     #[test]
