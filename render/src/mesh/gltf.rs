@@ -480,11 +480,12 @@ fn accessor(
     let element = (components * size) as u64;
     let stride = view["byteStride"].as_u64().unwrap_or(element).max(element);
     let offset = a["byteOffset"].as_u64().unwrap_or(0);
-    // The last element must end inside the view, and the view inside the buffer.
+    // The last element must end inside the view, and the view inside the buffer (sums
+    // that pass the largest number do not fit either).
     let end = if count == 0 {
         0
     } else {
-        offset + (count - 1).saturating_mul(stride).saturating_add(element)
+        offset.saturating_add((count - 1).saturating_mul(stride).saturating_add(element))
     };
     if view_offset.saturating_add(view_length) > buffer.len() as u64 || end > view_length {
         return Err(format!(
@@ -658,6 +659,18 @@ mod tests {
         assert_eq!(
             read(&text).unwrap_err().to_string(),
             "meshes[0].primitives[0]: accessors[0]: 1000000000000 elements do not fit in their buffer view"
+        );
+    }
+
+    #[test]
+    fn an_offset_whose_end_passes_the_largest_number_is_refused() {
+        let text = document(&SQUARE, &[0, 1, 2], 4, r#"[{"mesh": 0}]"#, "[0]").replace(
+            r#""count": 4, "type": "VEC3""#,
+            r#""count": 4, "byteOffset": 18446744073709551615, "type": "VEC3""#,
+        );
+        assert_eq!(
+            read(&text).unwrap_err().to_string(),
+            "meshes[0].primitives[0]: accessors[0]: 4 elements do not fit in their buffer view"
         );
     }
 
