@@ -49,9 +49,10 @@ pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
     };
     let mesh = match extension.as_str() {
         "obj" => {
-            let text = std::str::from_utf8(bytes)
-                .map_err(|e| format!("{name}: not text (byte {})", e.valid_up_to()))?;
-            super::obj::read(text)
+            // The lines the reader ignores (materials, groups, comments) may be in any
+            // encoding: a byte that is not UTF-8 becomes U+FFFD, which no number or
+            // index is, so it is an error on its own line where it matters.
+            super::obj::read(&String::from_utf8_lossy(bytes))
         }
         "ply" => super::ply::read(bytes),
         "stl" => super::stl::read(bytes),
@@ -119,6 +120,27 @@ mod tests {
             .unwrap_err()
             .ends_with("unknown mesh format \"off\": .obj, .ply, .stl, .gltf or .glb"));
         for made in [path, unknown] {
+            std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
+        }
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_matter_only_where_numbers_are() {
+        // A material named in Latin-1 is ignored like any material.
+        let path = file(
+            "latin1.obj",
+            b"usemtl caf\xe9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        );
+        assert_eq!(load(&path).unwrap().triangles, vec![[0, 1, 2]]);
+        let bad = file("latin1-number.obj", b"v 0 0 0\nv 1 \xe9 0\n");
+        assert_eq!(
+            load(&bad).unwrap_err(),
+            format!(
+                "{}: line 2: \"\u{fffd}\" is not a finite number",
+                bad.display()
+            )
+        );
+        for made in [path, bad] {
             std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
         }
     }

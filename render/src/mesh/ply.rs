@@ -77,8 +77,14 @@ enum Format {
 pub fn read(bytes: &[u8]) -> Result<MeshData, MeshError> {
     let (format, elements, body, header_lines) = header(bytes)?;
     let mut mesh = MeshData::default();
+    let text;
     let mut source = match format {
-        Format::Ascii => Source::Text(Lines::new(body, header_lines)?),
+        Format::Ascii => {
+            // A byte that is not UTF-8 becomes U+FFFD, which no number is: an error
+            // on its own line.
+            text = String::from_utf8_lossy(body);
+            Source::Text(Lines::new(&text, header_lines))
+        }
         Format::Little | Format::Big => Source::Binary {
             bytes: body,
             at: 0,
@@ -262,15 +268,11 @@ struct Lines<'a> {
 }
 
 impl<'a> Lines<'a> {
-    fn new(body: &'a [u8], header_lines: usize) -> Result<Lines<'a>, MeshError> {
-        let text = std::str::from_utf8(body).map_err(|_| MeshError::Line {
-            line: header_lines + 1,
-            message: "an ASCII PLY body that is not text".into(),
-        })?;
-        Ok(Lines {
+    fn new(text: &'a str, header_lines: usize) -> Lines<'a> {
+        Lines {
             lines: text.lines(),
             line: header_lines,
-        })
+        }
     }
 }
 
@@ -391,9 +393,9 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
         let Some(end) = bytes[at..].iter().position(|&b| b == b'\n') else {
             return Err(error("the header never ends (no `end_header`)".into()));
         };
-        let line = std::str::from_utf8(&bytes[at..at + end])
-            .map_err(|_| error("a header line that is not text".into()))?
-            .trim_end_matches('\r');
+        // Comments and unknown lines, which are ignored, may be in any encoding.
+        let line = String::from_utf8_lossy(&bytes[at..at + end]);
+        let line = line.trim_end_matches('\r');
         at += end + 1;
         let words: Vec<&str> = line.split_whitespace().collect();
         match words.as_slice() {
@@ -560,6 +562,20 @@ mod tests {
                 MAX_MESH_TRIANGLES + 2
             )
         );
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_matter_only_where_numbers_are() {
+        // A Latin-1 comment is ignored like any comment.
+        let mut bytes = b"ply\nformat ascii 1.0\ncomment caf\xe9\n".to_vec();
+        bytes.extend_from_slice(&ascii()[b"ply\nformat ascii 1.0\n".len()..]);
+        assert_eq!(read(&bytes).unwrap(), read(&ascii()).unwrap());
+        // In a record, it is an error on the record's line.
+        let mut body = ascii();
+        let at = body.len() - 3;
+        body[at] = 0xe9;
+        let error = read(&body).unwrap_err().to_string();
+        assert!(error.starts_with("line 15: face 1 of 1: "), "{error}");
     }
 
     #[test]
