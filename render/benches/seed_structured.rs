@@ -374,6 +374,11 @@ impl SeedScene {
                         distance,
                         color,
                     }),
+                    // The seed had spheres and planes only, and so do the scenes this
+                    // baseline is measured on.
+                    Shape::Triangle { .. } | Shape::Box { .. } | Shape::Mesh(_) => {
+                        panic!("the seed's structure renders spheres and planes only")
+                    }
                 }
             })
             .collect();

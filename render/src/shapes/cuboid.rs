@@ -53,6 +53,10 @@ pub(crate) fn hit(min: Vec3, max: Vec3, origin: Vec3, dir: Vec3, t_max: f64) -> 
     } else {
         return None;
     };
+    #[expect(
+        clippy::neg_cmp_op_on_partial_ord,
+        reason = "a NaN distance must be refused too"
+    )]
     if !(t <= t_max) {
         return None;
     }

@@ -106,6 +106,10 @@ impl ShearedRay {
         }
         let inv_det = 1.0 / det;
         let t = t_scaled * inv_det;
+        #[expect(
+            clippy::neg_cmp_op_on_partial_ord,
+            reason = "a NaN distance must be refused too"
+        )]
         if !(t <= t_max) {
             return None;
         }
