@@ -18,7 +18,7 @@ pub fn load(path: &Path) -> Result<MeshData, String> {
 /// starting with the file's path.
 pub fn read(path: &Path) -> Result<Vec<u8>, String> {
     use std::io::Read;
-    let name = path.display();
+    let name = shown(path);
     let file = std::fs::File::open(path).map_err(|e| format!("{name}: cannot read it: {e}"))?;
     let mut bytes = Vec::new();
     // One byte more than the limit tells a file that is too large, whatever its
@@ -37,7 +37,7 @@ pub fn read(path: &Path) -> Result<Vec<u8>, String> {
 /// The mesh in `bytes`, read from the file at `path` (whose extension chooses the
 /// reader, and beside which a `.gltf` finds its buffers).
 pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
-    let name = path.display();
+    let name = shown(path);
     let extension = path
         .extension()
         .and_then(|e| e.to_str())
@@ -77,6 +77,18 @@ pub fn parse(path: &Path, bytes: &[u8]) -> Result<MeshData, String> {
         ));
     }
     Ok(mesh)
+}
+
+/// A path as an error names it: as it is, or quoted and escaped if it holds a line
+/// break or another control character (a scene's `file` may hold any), so that the
+/// error stays one line.
+pub fn shown(path: &Path) -> String {
+    let text = path.display().to_string();
+    if text.chars().any(char::is_control) {
+        format!("{text:?}")
+    } else {
+        text
+    }
 }
 
 /// Whether (v1 − v0) × (v2 − v0) is exactly zero in double, in the file's coordinates:
@@ -143,6 +155,20 @@ mod tests {
         for made in [path, bad] {
             std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
         }
+    }
+
+    #[test]
+    fn a_name_with_a_line_break_is_quoted_on_one_line() {
+        let missing = std::env::temp_dir().join("tessera-no-such\nmesh.obj");
+        let error = load(&missing).unwrap_err();
+        assert!(
+            error.starts_with(&format!(
+                "{:?}: cannot read it",
+                missing.display().to_string()
+            )),
+            "{error}"
+        );
+        assert_eq!(error.lines().count(), 1);
     }
 
     #[test]
