@@ -7,12 +7,18 @@
 //!
 //! Refused: any `extensionsRequired`, sparse or non-float positions, an index count of
 //! a triangle list that is not a multiple of 3, nodes deeper than 64 levels or in a
-//! cycle, a singular node matrix. Every count and offset is checked against the bytes
-//! there are before anything is read, and nothing is allocated from a count alone.
+//! cycle, a node reached a second time (glTF gives a node one parent at most: walking
+//! a node again for each path to it would make a few nodes, each naming the next twice,
+//! take forever), a singular node matrix. Every count and offset is checked against the
+//! bytes there are before anything is read, and nothing is allocated from a count alone.
+//! Since primitives and nodes may name the same accessors again and again, what they add
+//! is held to the renderer's triangle limit (and three positions a triangle) before it
+//! is read.
 
 use serde_json::Value;
 
 use super::{MeshData, MeshError, NO_NORMAL};
+use crate::limits::MAX_MESH_TRIANGLES;
 
 /// How deep nodes may nest.
 pub const MAX_DEPTH: usize = 64;
@@ -101,7 +107,7 @@ fn read_document(
             .collect();
         return Err(fail(format!(
             "extensionsRequired {}: not supported",
-            names.join(", ")
+            super::cut(&names.join(", "))
         )));
     }
     let buffers = document["buffers"]
@@ -119,19 +125,21 @@ fn read_document(
         .as_array()
         .ok_or_else(|| fail(format!("scenes[{scene}] has no nodes")))?;
     let mut mesh = MeshData::default();
-    let mut path = Vec::new();
+    let mut walked = Walked::default();
     for root in roots {
         let node = index(root, "a scene's node")?;
-        walk(document, &buffers, node, &IDENTITY, &mut path, &mut mesh)?;
+        walk(document, &buffers, node, &IDENTITY, &mut walked, &mut mesh)?;
     }
     Ok(mesh)
 }
 
 fn index(value: &Value, what: &str) -> Result<usize, MeshError> {
-    value
-        .as_u64()
-        .map(|v| v as usize)
-        .ok_or_else(|| fail(format!("{what} is not an index: {value}")))
+    value.as_u64().map(|v| v as usize).ok_or_else(|| {
+        fail(format!(
+            "{what} is not an index: {}",
+            super::cut(&value.to_string())
+        ))
+    })
 }
 
 fn load_buffer(
@@ -158,7 +166,9 @@ fn load_buffer(
                 .decode(data)
                 .map_err(|e| fail(format!("buffers[{i}]: {e}")))?
         }
-        Some(uri) => file(uri).map_err(|e| fail(format!("buffers[{i}] ({uri}): {e}")))?,
+        Some(uri) => {
+            file(uri).map_err(|e| fail(format!("buffers[{i}] ({}): {e}", super::quoted(uri))))?
+        }
     };
     let declared = buffer["byteLength"].as_u64().unwrap_or(0);
     if (bytes.len() as u64) < declared {
@@ -170,19 +180,31 @@ fn load_buffer(
     Ok(bytes)
 }
 
+/// The nodes of the walk: those above the current one, and all those reached.
+#[derive(Default)]
+struct Walked {
+    path: Vec<usize>,
+    reached: std::collections::HashSet<usize>,
+}
+
 fn walk(
     document: &Value,
     buffers: &[Vec<u8>],
     node: usize,
     parent: &Affine,
-    path: &mut Vec<usize>,
+    walked: &mut Walked,
     mesh: &mut MeshData,
 ) -> Result<(), MeshError> {
-    if path.contains(&node) {
+    if walked.path.contains(&node) {
         return Err(fail(format!("nodes[{node}] is its own ancestor: a cycle")));
     }
-    if path.len() >= MAX_DEPTH {
+    if walked.path.len() >= MAX_DEPTH {
         return Err(fail(format!("nodes deeper than {MAX_DEPTH} levels")));
+    }
+    if !walked.reached.insert(node) {
+        return Err(fail(format!(
+            "nodes[{node}] is reached a second time: a node has at most one parent"
+        )));
     }
     let value = &document["nodes"][node];
     if value.is_null() {
@@ -203,14 +225,14 @@ fn walk(
                 .map_err(|e| fail(format!("meshes[{m}].primitives[{p}]: {e}")))?;
         }
     }
-    path.push(node);
+    walked.path.push(node);
     if let Some(children) = value["children"].as_array() {
         for child in children {
             let child = index(child, "a node's child")?;
-            walk(document, buffers, child, &matrix, path, mesh)?;
+            walk(document, buffers, child, &matrix, walked, mesh)?;
         }
     }
-    path.pop();
+    walked.path.pop();
     Ok(())
 }
 
@@ -316,7 +338,8 @@ fn add_primitive(
     let position = primitive["attributes"]["POSITION"]
         .as_u64()
         .ok_or("no POSITION attribute")? as usize;
-    let positions = accessor(document, buffers, position, true)?;
+    let room = (3 * MAX_MESH_TRIANGLES).saturating_sub(mesh.positions.len());
+    let positions = accessor(document, buffers, position, true, room as u64)?;
     let base = mesh.positions.len();
     for p in positions.chunks_exact(3) {
         mesh.positions.push(std::array::from_fn(|r| {
@@ -327,7 +350,7 @@ fn add_primitive(
     let normal_base = mesh.normals.len();
     let has_normals = match primitive["attributes"]["NORMAL"].as_u64() {
         Some(n) => {
-            let normals = accessor(document, buffers, n as usize, true)?;
+            let normals = accessor(document, buffers, n as usize, true, count as u64)?;
             if normals.len() / 3 != count {
                 return Err(format!(
                     "{} normals for {count} positions",
@@ -344,13 +367,26 @@ fn add_primitive(
         }
         None => false,
     };
+    let room = MAX_MESH_TRIANGLES - mesh.triangles.len();
+    // The most indices that make no more triangles than there is room for.
+    let most = if mode == 4 { 3 * room + 2 } else { room + 2 };
     let indices: Vec<usize> = match primitive["indices"].as_u64() {
-        Some(i) => accessor(document, buffers, i as usize, false)?
+        Some(i) => accessor(document, buffers, i as usize, false, most as u64)?
             .into_iter()
             .map(|v| v as usize)
             .collect(),
         None => (0..count).collect(),
     };
+    let made = if mode == 4 {
+        indices.len() / 3
+    } else {
+        indices.len().saturating_sub(2)
+    };
+    if made > room {
+        return Err(format!(
+            "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+        ));
+    }
     if let Some(&bad) = indices.iter().find(|&&i| i >= count) {
         return Err(format!(
             "index {bad} is out of range: the primitive has {count} positions"
@@ -403,12 +439,14 @@ fn add_primitive(
 
 /// An accessor's values as doubles: `VEC3` of floats for positions and normals
 /// (`float`), `SCALAR` of unsigned integers for indices. Its count, offset and stride
-/// are checked against the bytes of its buffer view before a value is read.
+/// are checked against the bytes of its buffer view, and its count against `most`,
+/// before a value is read.
 fn accessor(
     document: &Value,
     buffers: &[Vec<u8>],
     i: usize,
     float: bool,
+    most: u64,
 ) -> Result<Vec<f64>, String> {
     let a = &document["accessors"][i];
     if a.is_null() {
@@ -449,15 +487,22 @@ fn accessor(
     let element = (components * size) as u64;
     let stride = view["byteStride"].as_u64().unwrap_or(element).max(element);
     let offset = a["byteOffset"].as_u64().unwrap_or(0);
-    // The last element must end inside the view, and the view inside the buffer.
+    // The last element must end inside the view, and the view inside the buffer (sums
+    // that pass the largest number do not fit either).
     let end = if count == 0 {
         0
     } else {
-        offset + (count - 1).saturating_mul(stride).saturating_add(element)
+        offset.saturating_add((count - 1).saturating_mul(stride).saturating_add(element))
     };
     if view_offset.saturating_add(view_length) > buffer.len() as u64 || end > view_length {
         return Err(format!(
             "accessors[{i}]: {count} elements do not fit in their buffer view"
+        ));
+    }
+    if count > most {
+        return Err(format!(
+            "accessors[{i}]: {count} elements, more than the limit of \
+             {MAX_MESH_TRIANGLES} triangles leaves room for"
         ));
     }
     let mut values = Vec::new();
@@ -590,6 +635,21 @@ mod tests {
             error(r#"[{"mesh": 0}]"#, &[0, 1, 9]),
             "meshes[0].primitives[0]: index 9 is out of range: the primitive has 4 positions"
         );
+        // Each node naming the next twice: 2^60 paths to the last one.
+        let lattice: Vec<String> = (1..60)
+            .map(|i| format!(r#"{{"children": [{i}, {i}]}}"#))
+            .chain(std::iter::once(r#"{"mesh": 0}"#.to_owned()))
+            .collect();
+        assert_eq!(
+            error(&format!("[{}]", lattice.join(",")), &square),
+            "nodes[59] is reached a second time: a node has at most one parent"
+        );
+        assert_eq!(
+            read(&document(&SQUARE, &square, 4, r#"[{"mesh": 0}]"#, "[0, 0]"))
+                .unwrap_err()
+                .to_string(),
+            "nodes[0] is reached a second time: a node has at most one parent"
+        );
         let required = r#"{"extensionsRequired": ["KHR_draco_mesh_compression"]}"#;
         assert!(read(required)
             .unwrap_err()
@@ -606,6 +666,18 @@ mod tests {
         assert_eq!(
             read(&text).unwrap_err().to_string(),
             "meshes[0].primitives[0]: accessors[0]: 1000000000000 elements do not fit in their buffer view"
+        );
+    }
+
+    #[test]
+    fn an_offset_whose_end_passes_the_largest_number_is_refused() {
+        let text = document(&SQUARE, &[0, 1, 2], 4, r#"[{"mesh": 0}]"#, "[0]").replace(
+            r#""count": 4, "type": "VEC3""#,
+            r#""count": 4, "byteOffset": 18446744073709551615, "type": "VEC3""#,
+        );
+        assert_eq!(
+            read(&text).unwrap_err().to_string(),
+            "meshes[0].primitives[0]: accessors[0]: 4 elements do not fit in their buffer view"
         );
     }
 

@@ -18,7 +18,7 @@ pub fn load(path: &Path) -> Result<MeshData, String> {
 /// starting with the file's path.
 pub fn read(path: &Path) -> Result<Vec<u8>, String> {
     use std::io::Read;
-    let name = path.display();
+    let name = shown(path);
     let file = std::fs::File::open(path).map_err(|e| format!("{name}: cannot read it: {e}"))?;
     let mut bytes = Vec::new();
     // One byte more than the limit tells a file that is too large, whatever its
@@ -47,7 +47,7 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
     use sha2::{Digest, Sha256};
     let hasher = std::cell::RefCell::new(Sha256::new());
     hasher.borrow_mut().update(bytes);
-    let name = path.display();
+    let name = shown(path);
     let extension = path
         .extension()
         .and_then(|e| e.to_str())
@@ -61,9 +61,10 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
     };
     let mesh = match extension.as_str() {
         "obj" => {
-            let text = std::str::from_utf8(bytes)
-                .map_err(|e| format!("{name}: not text (byte {})", e.valid_up_to()))?;
-            super::obj::read(text)
+            // The lines the reader ignores (materials, groups, comments) may be in any
+            // encoding: a byte that is not UTF-8 becomes U+FFFD, which no number or
+            // index is, so it is an error on its own line where it matters.
+            super::obj::read(&String::from_utf8_lossy(bytes))
         }
         "ply" => super::ply::read(bytes),
         "stl" => super::stl::read(bytes),
@@ -88,6 +89,18 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
         ));
     }
     Ok((mesh, hasher.into_inner().finalize().into()))
+}
+
+/// A path as an error names it: as it is, or quoted and escaped if it holds a line
+/// break or another control character (a scene's `file` may hold any), so that the
+/// error stays one line.
+pub fn shown(path: &Path) -> String {
+    let text = path.display().to_string();
+    if text.chars().any(char::is_control) {
+        format!("{text:?}")
+    } else {
+        text
+    }
 }
 
 /// Whether (v1 − v0) × (v2 − v0) is exactly zero in double, in the file's coordinates:
@@ -133,6 +146,41 @@ mod tests {
         for made in [path, unknown] {
             std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
         }
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_matter_only_where_numbers_are() {
+        // A material named in Latin-1 is ignored like any material.
+        let path = file(
+            "latin1.obj",
+            b"usemtl caf\xe9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        );
+        assert_eq!(load(&path).unwrap().triangles, vec![[0, 1, 2]]);
+        let bad = file("latin1-number.obj", b"v 0 0 0\nv 1 \xe9 0\n");
+        assert_eq!(
+            load(&bad).unwrap_err(),
+            format!(
+                "{}: line 2: \"\u{fffd}\" is not a finite number",
+                bad.display()
+            )
+        );
+        for made in [path, bad] {
+            std::fs::remove_dir_all(made.parent().unwrap()).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_name_with_a_line_break_is_quoted_on_one_line() {
+        let missing = std::env::temp_dir().join("tessera-no-such\nmesh.obj");
+        let error = load(&missing).unwrap_err();
+        assert!(
+            error.starts_with(&format!(
+                "{:?}: cannot read it",
+                missing.display().to_string()
+            )),
+            "{error}"
+        );
+        assert_eq!(error.lines().count(), 1);
     }
 
     #[test]

@@ -183,7 +183,74 @@ pub enum MeshError {
 pub(crate) fn number(word: &str) -> Result<f64, String> {
     match word.parse::<f64>() {
         Ok(value) if value.is_finite() => Ok(value),
-        _ => Err(format!("{word:?} is not a finite number")),
+        _ => Err(format!("{} is not a finite number", quoted(word))),
+    }
+}
+
+/// How much of a word of a file an error shows.
+const SHOWN: usize = 32;
+
+/// The first [`SHOWN`] bytes of `text` (cut on a character) and its length, if it is
+/// longer: a file's word in an error, which must stay one short line whatever the file
+/// holds (a number of 500 million digits).
+fn shown(text: &str) -> (&str, Option<usize>) {
+    if text.len() <= 2 * SHOWN {
+        return (text, None);
+    }
+    let mut end = SHOWN;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    (&text[..end], Some(text.len()))
+}
+
+/// A word of a file as an error quotes it (escaped, so on one line): whole if it is
+/// short, else its start and its length.
+pub(crate) fn quoted(word: &str) -> String {
+    match shown(word) {
+        (all, None) => format!("{all:?}"),
+        (start, Some(len)) => format!("{start:?}… ({len} bytes)"),
+    }
+}
+
+/// Text of a file an error shows as it is (a JSON value written back, which is on one
+/// line): whole if it is short, else its start and its length.
+pub(crate) fn cut(text: &str) -> String {
+    match shown(text) {
+        (all, None) => all.to_owned(),
+        (start, Some(len)) => format!("{start}… ({len} bytes)"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_quote_long_words_by_their_start_and_length() {
+        assert_eq!(
+            number("1e400").unwrap_err(),
+            "\"1e400\" is not a finite number"
+        );
+        let long = "7".repeat(1 << 20);
+        assert_eq!(
+            number(&long).unwrap_err(),
+            format!(
+                "\"{}\"… (1048576 bytes) is not a finite number",
+                &long[..SHOWN]
+            )
+        );
+        // Cut on a character, and escaped: still one line.
+        let text = format!("{}é\n{}", "a".repeat(SHOWN - 1), "b".repeat(100));
+        assert_eq!(
+            quoted(&text),
+            format!("\"{}\"… (134 bytes)", "a".repeat(SHOWN - 1))
+        );
+        assert_eq!(cut("[1, 2]"), "[1, 2]");
+        assert_eq!(
+            cut(&"x".repeat(65)),
+            format!("{}… (65 bytes)", "x".repeat(SHOWN))
+        );
     }
 }
 

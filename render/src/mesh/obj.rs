@@ -1,22 +1,31 @@
 //! Wavefront OBJ, as the scene format (section 8) reads it: `v` lines (numbers after
 //! the third ignored), `vn` lines, and `f` lines whose entries are `i`, `i/t`, `i//n` or
 //! `i/t/n`; every other line is ignored. A negative index counts back from the last
-//! vertex (or normal) read so far; a positive one may name any of the file, so indices
-//! are checked once the whole file is read. A face of more than three corners is split
-//! as a fan (v0, vi, vi+1).
+//! vertex (or normal) read so far; a positive one may name any of the file, so the file's
+//! `v` and `vn` lines are counted first, and every index is checked on its line. A face
+//! of more than three corners is split as a fan (v0, vi, vi+1).
 //!
 //! Numbers are read to the nearest double (Rust's `f64` parsing is correctly rounded),
 //! and `inf`, `nan` and anything not a finite number are errors. Nothing is allocated
-//! from a count the file claims: OBJ has none, and the vectors grow with what is read.
+//! from a count the file claims: OBJ has none, and the vectors grow with what is read,
+//! triangles no further than the renderer's limit (a face of a line of corners makes as
+//! many triangles, each larger than its corner's text).
 
 use super::{MeshData, MeshError, NO_NORMAL};
+use crate::limits::MAX_MESH_TRIANGLES;
 
-/// Reads an OBJ file's text. Errors name the 1-based line.
+/// Reads an OBJ file's text. Errors name the 1-based line; the first line in the file
+/// that is wrong is the one named.
 pub fn read(text: &str) -> Result<MeshData, MeshError> {
+    let mut total = Counts::default();
+    for line in text.lines() {
+        match line.split_whitespace().next() {
+            Some("v") => total.vertices += 1,
+            Some("vn") => total.normals += 1,
+            _ => {}
+        }
+    }
     let mut mesh = MeshData::default();
-    // Corners as written (1-based or negative, already made absolute), checked against
-    // the counts once the file is read: (line, vertex, normal or None).
-    let mut faces: Vec<(usize, [Corner; 3])> = Vec::new();
     for (number, line) in text.lines().enumerate() {
         let line_number = number + 1;
         let at = |message: String| MeshError::Line {
@@ -28,100 +37,110 @@ pub fn read(text: &str) -> Result<MeshData, MeshError> {
             Some("v") => mesh.positions.push(vector(&mut words).map_err(at)?),
             Some("vn") => mesh.normals.push(vector(&mut words).map_err(at)?),
             Some("f") => {
-                let corners = words
-                    .map(|entry| corner(entry, mesh.positions.len(), mesh.normals.len()))
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(at)?;
-                if corners.len() < 3 {
-                    return Err(at(format!(
-                        "a face of {} vertices: a face has at least 3",
-                        corners.len()
-                    )));
+                let so_far = Counts {
+                    vertices: mesh.positions.len(),
+                    normals: mesh.normals.len(),
+                };
+                let mut corners = words.map(|entry| corner(entry, &so_far, &total));
+                let mut next = || corners.next().transpose().map_err(at);
+                let (first, mut previous) = match (next()?, next()?) {
+                    (Some(first), Some(second)) => (first, second),
+                    (first, _) => {
+                        return Err(at(format!(
+                            "a face of {} vertices: a face has at least 3",
+                            usize::from(first.is_some())
+                        )))
+                    }
+                };
+                let mut count = 2;
+                // The fan, made as the corners are read.
+                while let Some(corner) = next()? {
+                    if mesh.triangles.len() >= MAX_MESH_TRIANGLES {
+                        return Err(at(format!(
+                            "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+                        )));
+                    }
+                    mesh.triangles.push([first.0, previous.0, corner.0]);
+                    mesh.corner_normals.push([first.1, previous.1, corner.1]);
+                    previous = corner;
+                    count += 1;
                 }
-                for i in 1..corners.len() - 1 {
-                    faces.push((line_number, [corners[0], corners[i], corners[i + 1]]));
+                if count < 3 {
+                    return Err(at("a face of 2 vertices: a face has at least 3".to_owned()));
                 }
             }
             _ => {}
         }
     }
-    let (vertices, normals) = (mesh.positions.len(), mesh.normals.len());
-    for (line, corners) in faces {
-        let at = |message: String| MeshError::Line { line, message };
-        let mut triangle = [0u32; 3];
-        let mut corner_normals = [NO_NORMAL; 3];
-        for (k, c) in corners.iter().enumerate() {
-            triangle[k] = index(c.vertex, vertices, "vertex").map_err(at)?;
-            if let Some(n) = c.normal {
-                corner_normals[k] = index(n, normals, "normal").map_err(at)?;
-            }
-        }
-        mesh.triangles.push(triangle);
-        mesh.corner_normals.push(corner_normals);
-    }
     Ok(mesh)
 }
 
-/// One corner of a face: its vertex and normal as 0-based positions if known to be
-/// in range so far, or as written for a positive index checked at the end.
-#[derive(Clone, Copy, Debug)]
-struct Corner {
-    vertex: i64,
-    normal: Option<i64>,
+/// How many vertices and normals: in the file, or read so far.
+#[derive(Clone, Copy, Debug, Default)]
+struct Counts {
+    vertices: usize,
+    normals: usize,
 }
 
-/// A corner `i`, `i/t`, `i//n` or `i/t/n`, its negative indices resolved against the
-/// vertices and normals read so far (to 1-based indices).
-fn corner(entry: &str, vertices: usize, normals: usize) -> Result<Corner, String> {
+/// A corner `i`, `i/t`, `i//n` or `i/t/n`: its vertex and its normal ([`NO_NORMAL`] if
+/// none) as 0-based indices, negative ones counted back from those read `so_far`, each
+/// checked against the file's `total`.
+fn corner(entry: &str, so_far: &Counts, total: &Counts) -> Result<(u32, u32), String> {
     let mut parts = entry.split('/');
     let vertex = parts.next().unwrap_or_default();
     let _texture = parts.next();
     let normal = parts.next();
     if parts.next().is_some() {
         return Err(format!(
-            "{entry:?} is not a face corner (i, i/t, i//n or i/t/n)"
+            "{} is not a face corner (i, i/t, i//n or i/t/n)",
+            super::quoted(entry)
         ));
     }
-    let vertex = absolute(vertex, vertices, "vertex", entry)?;
+    let vertex = index(vertex, so_far.vertices, total.vertices, "vertex", entry)?;
     let normal = match normal {
-        None | Some("") => None,
-        Some(n) => Some(absolute(n, normals, "normal", entry)?),
+        None | Some("") => NO_NORMAL,
+        Some(n) => index(n, so_far.normals, total.normals, "normal", entry)?,
     };
-    Ok(Corner { vertex, normal })
+    Ok((vertex, normal))
 }
 
-/// A 1-based index as written, a negative one made absolute against `count` read so
-/// far.
-fn absolute(text: &str, count: usize, what: &str, entry: &str) -> Result<i64, String> {
-    let value: i64 = text
-        .parse()
-        .map_err(|_| format!("{entry:?}: {what} index {text:?} is not an integer"))?;
-    match value {
-        0 => Err(format!("{entry:?}: {what} index 0 (indices start at 1)")),
-        v if v < 0 => {
-            let absolute = count as i64 + 1 + v;
-            if absolute < 1 {
-                Err(format!(
-                    "{entry:?}: {what} index {v} counts back past the first {what} ({count} read so far)"
-                ))
-            } else {
-                Ok(absolute)
-            }
+/// A 1-based index as written (a negative one counting back from the `so_far` read),
+/// checked against the file's `total`, as a 0-based `u32`.
+fn index(text: &str, so_far: usize, total: usize, what: &str, entry: &str) -> Result<u32, String> {
+    let value: i64 = text.parse().map_err(|_| {
+        format!(
+            "{}: {what} index {} is not an integer",
+            super::quoted(entry),
+            super::quoted(text)
+        )
+    })?;
+    let value = match value {
+        0 => {
+            return Err(format!(
+                "{}: {what} index 0 (indices start at 1)",
+                super::quoted(entry)
+            ))
         }
-        v => Ok(v),
-    }
-}
-
-/// A checked 1-based index as a 0-based `u32`.
-fn index(value: i64, count: usize, what: &str) -> Result<u32, String> {
-    if value < 1 || value as u64 > count as u64 {
+        v if v < 0 => {
+            let absolute = so_far as i64 + 1 + v;
+            if absolute < 1 {
+                return Err(format!(
+                    "{}: {what} index {v} counts back past the first {what} ({so_far} read so far)",
+                    super::quoted(entry)
+                ));
+            }
+            absolute
+        }
+        v => v,
+    };
+    if value as u64 > total as u64 {
         let plural = if what == "vertex" {
             "vertices"
         } else {
             "normals"
         };
         return Err(format!(
-            "{what} index {value} is out of range: the file has {count} {plural}"
+            "{what} index {value} is out of range: the file has {total} {plural}"
         ));
     }
     u32::try_from(value - 1).map_err(|_| format!("{what} index {value} is too large"))
@@ -165,6 +184,18 @@ mod tests {
     fn numbers_are_read_to_the_nearest_double() {
         let mesh = read("v 0.1 1e-3 -2.5E+2\n").unwrap();
         assert_eq!(mesh.positions[0], [0.1, 0.001, -250.0]);
+    }
+
+    #[test]
+    fn the_first_line_in_error_is_named() {
+        // An index out of range on line 4, a bad number on line 5.
+        let error = read("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\nv 1 x 0\n")
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            error,
+            "line 4: vertex index 9 is out of range: the file has 4 vertices"
+        );
     }
 
     #[test]

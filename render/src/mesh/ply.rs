@@ -6,9 +6,12 @@
 //! ASCII numbers are read to the nearest double whatever type the header declares (a
 //! `property float` too). Nothing is allocated from the counts the header claims: the
 //! records are read one by one, and a file that ends early is an error naming the
-//! record it lacks.
+//! record it lacks. Triangles are made no further than the renderer's limit, and a list
+//! no longer than a face within that limit is read (a face of one-byte indices makes
+//! as many triangles as it has bytes, each of 24 bytes).
 
 use super::{MeshData, MeshError};
+use crate::limits::MAX_MESH_TRIANGLES;
 
 /// A property's scalar type.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -74,8 +77,14 @@ enum Format {
 pub fn read(bytes: &[u8]) -> Result<MeshData, MeshError> {
     let (format, elements, body, header_lines) = header(bytes)?;
     let mut mesh = MeshData::default();
+    let text;
     let mut source = match format {
-        Format::Ascii => Source::Text(Lines::new(body, header_lines)?),
+        Format::Ascii => {
+            // A byte that is not UTF-8 becomes U+FFFD, which no number is: an error
+            // on its own line.
+            text = String::from_utf8_lossy(body);
+            Source::Text(Lines::new(&text, header_lines))
+        }
         Format::Little | Format::Big => Source::Binary {
             bytes: body,
             at: 0,
@@ -212,6 +221,11 @@ impl Role {
                 };
                 let first = index(indices[0])?;
                 for pair in indices[1..].windows(2) {
+                    if mesh.triangles.len() >= MAX_MESH_TRIANGLES {
+                        return Err(format!(
+                            "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+                        ));
+                    }
                     mesh.triangles
                         .push([first, index(pair[0])?, index(pair[1])?]);
                     // The corners' normals are the vertices' own, when the file has
@@ -272,15 +286,11 @@ struct Lines<'a> {
 }
 
 impl<'a> Lines<'a> {
-    fn new(body: &'a [u8], header_lines: usize) -> Result<Lines<'a>, MeshError> {
-        let text = std::str::from_utf8(body).map_err(|_| MeshError::Line {
-            line: header_lines + 1,
-            message: "an ASCII PLY body that is not text".into(),
-        })?;
-        Ok(Lines {
+    fn new(text: &'a str, header_lines: usize) -> Lines<'a> {
+        Lines {
             lines: text.lines(),
             line: header_lines,
-        })
+        }
     }
 }
 
@@ -306,13 +316,10 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .map(|p| match p {
                     Property::Scalar(..) => next().map(Value::Number),
                     Property::List(..) => {
-                        let n = next()?;
-                        if n < 0.0 || n.fract() != 0.0 {
-                            return Err(format!("a list of {n} items"));
-                        }
+                        let n = list_length(next()?)?;
                         // Grown as the items are read, not sized by the count.
                         let mut items = Vec::new();
-                        for _ in 0..n as u64 {
+                        for _ in 0..n {
                             items.push(next()?);
                         }
                         Ok(Value::List(items))
@@ -354,14 +361,11 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .map(|p| match *p {
                     Property::Scalar(_, kind) => scalar(kind).map(Value::Number),
                     Property::List(_, count, item) => {
-                        let n = scalar(count)?;
-                        if n < 0.0 || n.fract() != 0.0 {
-                            return Err(format!("a list of {n} items"));
-                        }
+                        let n = list_length(scalar(count)?)?;
                         // Grown as the items are read, not sized by the count: a
                         // count the file does not hold ends at its last byte.
                         let mut items = Vec::new();
-                        for _ in 0..n as u64 {
+                        for _ in 0..n {
                             items.push(scalar(item)?);
                         }
                         Ok(Value::List(items))
@@ -370,6 +374,22 @@ fn read_record(source: &mut Source<'_>, element: &Element) -> Result<Vec<Value>,
                 .collect()
         }
     }
+}
+
+/// A list's count as its length: a whole number, and no more items than a face within
+/// the triangle limit has.
+fn list_length(n: f64) -> Result<u64, String> {
+    if n < 0.0 || n.fract() != 0.0 {
+        return Err(format!("a list of {n} items"));
+    }
+    let longest = MAX_MESH_TRIANGLES as u64 + 2;
+    if n > longest as f64 {
+        return Err(format!(
+            "a list of {n} items, more than the {longest} of a face within the limit of \
+             {MAX_MESH_TRIANGLES} triangles"
+        ));
+    }
+    Ok(n as u64)
 }
 
 /// What the header says: the format, the elements, the body's bytes, and how many
@@ -391,9 +411,9 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
         let Some(end) = bytes[at..].iter().position(|&b| b == b'\n') else {
             return Err(error("the header never ends (no `end_header`)".into()));
         };
-        let line = std::str::from_utf8(&bytes[at..at + end])
-            .map_err(|_| error("a header line that is not text".into()))?
-            .trim_end_matches('\r');
+        // Comments and unknown lines, which are ignored, may be in any encoding.
+        let line = String::from_utf8_lossy(&bytes[at..at + end]);
+        let line = line.trim_end_matches('\r');
         at += end + 1;
         let words: Vec<&str> = line.split_whitespace().collect();
         match words.as_slice() {
@@ -404,22 +424,27 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
                     "ascii" => Format::Ascii,
                     "binary_little_endian" => Format::Little,
                     "binary_big_endian" => Format::Big,
-                    other => return Err(error(format!("unknown format {other:?}"))),
+                    other => return Err(error(format!("unknown format {}", super::quoted(other)))),
                 })
             }
             ["element", name, count] => elements.push(Element {
                 name: (*name).to_owned(),
-                count: count
-                    .parse()
-                    .map_err(|_| error(format!("element count {count:?} is not a number")))?,
+                count: count.parse().map_err(|_| {
+                    error(format!(
+                        "element count {} is not a number",
+                        super::quoted(count)
+                    ))
+                })?,
                 properties: Vec::new(),
             }),
             ["property", "list", count, item, name] => {
                 let element = elements
                     .last_mut()
                     .ok_or_else(|| error("a property before any element".into()))?;
-                let scalar =
-                    |t: &str| Scalar::parse(t).ok_or_else(|| error(format!("unknown type {t:?}")));
+                let scalar = |t: &str| {
+                    Scalar::parse(t)
+                        .ok_or_else(|| error(format!("unknown type {}", super::quoted(t))))
+                };
                 element.properties.push(Property::List(
                     (*name).to_owned(),
                     scalar(count)?,
@@ -430,8 +455,8 @@ fn header(bytes: &[u8]) -> Result<Header<'_>, MeshError> {
                 let element = elements
                     .last_mut()
                     .ok_or_else(|| error("a property before any element".into()))?;
-                let kind =
-                    Scalar::parse(kind).ok_or_else(|| error(format!("unknown type {kind:?}")))?;
+                let kind = Scalar::parse(kind)
+                    .ok_or_else(|| error(format!("unknown type {}", super::quoted(kind))))?;
                 element
                     .properties
                     .push(Property::Scalar((*name).to_owned(), kind));
@@ -532,10 +557,43 @@ mod tests {
         let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
                           property list uint int vertex_indices\nend_header\n"
             .to_vec();
-        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+        // Twenty million corners claimed (within the limit), one there.
+        bytes.extend_from_slice(&20_000_000u32.to_le_bytes());
         bytes.extend_from_slice(&7i32.to_le_bytes());
         let error = read(&bytes).unwrap_err().to_string();
         assert_eq!(error, "record 1: face 1 of 1: the file ends before it");
+    }
+
+    #[test]
+    fn a_list_longer_than_a_face_within_the_limit_is_not_read() {
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement face 1\n\
+                          property list uint uchar vertex_indices\nend_header\n"
+            .to_vec();
+        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
+        bytes.extend_from_slice(&[0; 4096]);
+        let error = read(&bytes).unwrap_err().to_string();
+        assert_eq!(
+            error,
+            format!(
+                "record 1: face 1 of 1: a list of 4294967295 items, more than the {} of a \
+                 face within the limit of {MAX_MESH_TRIANGLES} triangles",
+                MAX_MESH_TRIANGLES + 2
+            )
+        );
+    }
+
+    #[test]
+    fn bytes_that_are_not_utf8_matter_only_where_numbers_are() {
+        // A Latin-1 comment is ignored like any comment.
+        let mut bytes = b"ply\nformat ascii 1.0\ncomment caf\xe9\n".to_vec();
+        bytes.extend_from_slice(&ascii()[b"ply\nformat ascii 1.0\n".len()..]);
+        assert_eq!(read(&bytes).unwrap(), read(&ascii()).unwrap());
+        // In a record, it is an error on the record's line.
+        let mut body = ascii();
+        let at = body.len() - 3;
+        body[at] = 0xe9;
+        let error = read(&body).unwrap_err().to_string();
+        assert!(error.starts_with("line 15: face 1 of 1: "), "{error}");
     }
 
     #[test]

@@ -4,9 +4,12 @@
 //! own three, so a smooth normal computed for an STL mesh is its flat normal.
 //!
 //! A binary file's count is believed only once the size agrees with it, so nothing is
-//! allocated for a count the bytes do not hold.
+//! allocated for a count the bytes do not hold; a count beyond the renderer's triangle
+//! limit is refused before any facet is read, and an ASCII file's facets are read no
+//! further than the limit.
 
 use super::{MeshData, MeshError, NO_NORMAL};
+use crate::limits::MAX_MESH_TRIANGLES;
 
 /// Reads an STL file's bytes.
 pub fn read(bytes: &[u8]) -> Result<MeshData, MeshError> {
@@ -26,6 +29,11 @@ fn binary_count(bytes: &[u8]) -> Option<usize> {
 /// Facets of 50 bytes: a normal, three vertices (12 little-endian `f32` in all), two
 /// attribute bytes. `f32` values are exact as doubles; a non-finite one is an error.
 fn read_binary(records: &[u8], count: usize) -> Result<MeshData, MeshError> {
+    if count > MAX_MESH_TRIANGLES {
+        return Err(MeshError::Format(format!(
+            "{count} facets, more than the limit of {MAX_MESH_TRIANGLES} triangles"
+        )));
+    }
     let mut mesh = MeshData::default();
     for (record, facet) in records.chunks_exact(50).take(count).enumerate() {
         let mut corners = [0u32; 3];
@@ -107,6 +115,11 @@ fn read_ascii(bytes: &[u8]) -> Result<MeshData, MeshError> {
                 let corners: [u32; 3] = corners.try_into().map_err(|c: Vec<u32>| {
                     at(format!("a facet of {} vertices: a facet has 3", c.len()))
                 })?;
+                if mesh.triangles.len() >= MAX_MESH_TRIANGLES {
+                    return Err(at(format!(
+                        "more than the limit of {MAX_MESH_TRIANGLES} triangles"
+                    )));
+                }
                 mesh.triangles.push(corners);
                 mesh.corner_normals.push([NO_NORMAL; 3]);
             }

@@ -1,9 +1,11 @@
 //! `tessera render` on one machine: the command's contract (images, summaries, one-line
-//! refusals), animated scenes and their frames, the committed golden images of every
-//! example scene, adaptive renders saved and refined, and the scheduler's simulator.
+//! refusals), scenes with mesh files, animated scenes and their frames, the committed
+//! golden images of every example scene, adaptive renders saved and refined, and the
+//! scheduler's simulator.
 
 mod animation;
 mod golden;
+mod meshes;
 mod refine;
 mod render;
 mod simulate;
