@@ -21,8 +21,9 @@ use std::process::ExitCode;
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
-/// Tessera renders ray-traced images of JSON scenes (spheres, planes, point lights,
-/// mirrors and checkerboards), on this machine or on a farm of workers.
+/// Tessera renders ray-traced images of JSON scenes (spheres, planes, triangles, boxes,
+/// meshes from OBJ, PLY, STL and glTF files, point lights, mirrors and checkerboards), on
+/// this machine or on a farm of workers.
 #[derive(Parser)]
 #[command(
     name = "tessera",
