@@ -86,47 +86,62 @@ impl Hierarchy {
         if root.bounds.lo[0] > root.bounds.hi[0] {
             return;
         }
-        let mut stack = [0u32; DEPTH_MAX];
+        // Each node is tested once, by its parent (the root here); a node waiting on
+        // the stack keeps where the ray enters it, and is skipped when a hit found
+        // meanwhile comes before that.
+        let Some((_, root_exit)) = ray.enter(&root.bounds, margin, t_max()) else {
+            return;
+        };
+        let mut stack = [(0u32, 0.0f64, 0.0f64); DEPTH_MAX];
         let mut top = 0usize;
-        let mut node = 0u32;
+        let (mut node, mut exit) = (0u32, root_exit);
         loop {
             let n = &self.nodes[node as usize];
-            let limit = t_max();
-            if let Some((_, exit)) = ray.enter(&n.bounds, margin, limit) {
-                if n.count > 0 {
-                    let first = n.start as usize;
-                    if leaf(&self.order[first..first + n.count as usize], exit) {
-                        return;
+            if n.count > 0 {
+                let first = n.start as usize;
+                if leaf(&self.order[first..first + n.count as usize], exit) {
+                    return;
+                }
+            } else {
+                let limit = t_max();
+                let (a, b) = (n.start, n.start + 1);
+                let da = ray.enter(&self.nodes[a as usize].bounds, margin, limit);
+                let db = ray.enter(&self.nodes[b as usize].bounds, margin, limit);
+                match (da, db) {
+                    (Some((ta, xa)), Some((tb, xb))) => {
+                        let ((near, near_exit), far) = if tb < ta {
+                            ((b, xb), (a, ta, xa))
+                        } else {
+                            ((a, xa), (b, tb, xb))
+                        };
+                        stack[top] = far;
+                        top += 1;
+                        (node, exit) = (near, near_exit);
+                        continue;
                     }
-                } else {
-                    let (a, b) = (n.start, n.start + 1);
-                    let da = ray.enter(&self.nodes[a as usize].bounds, margin, limit);
-                    let db = ray.enter(&self.nodes[b as usize].bounds, margin, limit);
-                    match (da, db) {
-                        (Some((ta, _)), Some((tb, _))) => {
-                            let (near, far) = if tb < ta { (b, a) } else { (a, b) };
-                            stack[top] = far;
-                            top += 1;
-                            node = near;
-                            continue;
-                        }
-                        (Some(_), None) => {
-                            node = a;
-                            continue;
-                        }
-                        (None, Some(_)) => {
-                            node = b;
-                            continue;
-                        }
-                        (None, None) => {}
+                    (Some((_, xa)), None) => {
+                        (node, exit) = (a, xa);
+                        continue;
                     }
+                    (None, Some((_, xb))) => {
+                        (node, exit) = (b, xb);
+                        continue;
+                    }
+                    (None, None) => {}
                 }
             }
-            if top == 0 {
-                return;
+            loop {
+                if top == 0 {
+                    return;
+                }
+                top -= 1;
+                let (next, enter, next_exit) = stack[top];
+                // Entered exactly at the best distance: still visited, for ties.
+                if enter <= t_max() {
+                    (node, exit) = (next, next_exit);
+                    break;
+                }
             }
-            top -= 1;
-            node = stack[top];
         }
     }
 }

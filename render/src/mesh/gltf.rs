@@ -110,6 +110,17 @@ fn read_document(
             super::cut(&names.join(", "))
         )));
     }
+    // glTF 1.0 files share the extension and mean something else.
+    match &document["asset"]["version"] {
+        Value::String(v) if v.split('.').next() == Some("2") => {}
+        Value::String(v) => {
+            return Err(fail(format!(
+                "asset.version {:?}: only glTF 2.0 is read",
+                super::cut(v)
+            )))
+        }
+        _ => return Err(fail("asset.version is missing: not a glTF 2.0 file")),
+    }
     let buffers = document["buffers"]
         .as_array()
         .map(|list| {
@@ -120,7 +131,10 @@ fn read_document(
         })
         .transpose()?
         .unwrap_or_default();
-    let scene = document["scene"].as_u64().unwrap_or(0) as usize;
+    let scene = match &document["scene"] {
+        Value::Null => 0,
+        v => index(v, "the default scene (`scene`)")?,
+    };
     let roots = document["scenes"][scene]["nodes"]
         .as_array()
         .ok_or_else(|| fail(format!("scenes[{scene}] has no nodes")))?;
@@ -601,6 +615,27 @@ mod tests {
     }
 
     #[test]
+    fn versions_other_than_2_and_a_default_scene_that_is_no_index_are_refused() {
+        let read = |text: &str| read_gltf(text.as_bytes(), &|_| Err("no files".into()));
+        assert_eq!(
+            read(r#"{"asset": {"version": "1.0"}, "scenes": []}"#)
+                .unwrap_err()
+                .to_string(),
+            "asset.version \"1.0\": only glTF 2.0 is read"
+        );
+        assert_eq!(
+            read(r#"{"scenes": []}"#).unwrap_err().to_string(),
+            "asset.version is missing: not a glTF 2.0 file"
+        );
+        assert_eq!(
+            read(r#"{"asset": {"version": "2.0"}, "scene": "hello", "scenes": []}"#)
+                .unwrap_err()
+                .to_string(),
+            "the default scene (`scene`) is not an index: \"hello\""
+        );
+    }
+
+    #[test]
     fn cycles_depth_singular_matrices_and_bad_indices_are_refused() {
         let error = |nodes: &str, indices: &[u16]| {
             read(&document(&SQUARE, indices, 4, nodes, "[0]"))
@@ -690,7 +725,7 @@ mod tests {
             }
         }
         let json = format!(
-            r#"{{"scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0}}],
+            r#"{{"asset": {{"version": "2.0"}}, "scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0}}],
             "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}, "mode": 6}}]}}],
             "buffers": [{{"byteLength": {0}}}], "bufferViews": [{{"buffer": 0, "byteLength": {0}}}],
             "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3"}}]}}  "#,

@@ -297,7 +297,7 @@ mod fuzz {
         }
         let data = base64::engine::general_purpose::STANDARD.encode(&bytes);
         format!(
-            r#"{{"scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0, "translation": [1, 2, 3]}}],
+            r#"{{"asset": {{"version": "2.0"}}, "scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0, "translation": [1, 2, 3]}}],
             "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}}}]}}],
             "buffers": [{{"byteLength": 36, "uri": "data:application/octet-stream;base64,{data}"}}],
             "bufferViews": [{{"buffer": 0, "byteLength": 36}}],

@@ -268,12 +268,12 @@ impl Shapes {
         &self,
         origin: Vec3,
         dir: Vec3,
-        limit: &dyn Fn() -> f64,
-        visit: &mut dyn FnMut(u32, &Item, u32) -> bool,
+        limit: impl Fn() -> f64,
+        mut visit: impl FnMut(u32, &Item, u32) -> bool,
     ) {
         let ray = SlabRay::new(origin, dir);
         let margin = self.world_margin(origin);
-        self.top.walk(&ray, margin, limit, |items, exit| {
+        self.top.walk(&ray, margin, &limit, |items, exit| {
             for &i in items {
                 let item = &self.items[i as usize];
                 match item {
@@ -295,7 +295,7 @@ impl Shapes {
                             )
                         };
                         let mut stop = false;
-                        accel.hierarchy.walk(&local, margin, limit, |tris, _| {
+                        accel.hierarchy.walk(&local, margin, &limit, |tris, _| {
                             for &tri in tris {
                                 if visit(i, item, tri) {
                                     stop = true;
@@ -328,7 +328,7 @@ impl Shapes {
         let best = std::cell::Cell::new(best);
         let mut found: Option<ShapeHit> = None;
         let limit = || best.get().0;
-        self.walk(origin, dir, &limit, &mut |i, item, tri| {
+        self.walk(origin, dir, limit, |i, item, tri| {
             let b = best.get();
             let hit = match item {
                 &Item::Box { object, min, max } => cuboid::hit(min, max, origin, dir, b.0)
@@ -374,7 +374,7 @@ impl Shapes {
         let sheared = ShearedRay::new(origin, dir);
         let mut blocked = false;
         let reach = || limit;
-        self.walk(origin, dir, &reach, &mut |_, item, tri| {
+        self.walk(origin, dir, reach, |_, item, tri| {
             let t = match item {
                 &Item::Box { min, max, .. } => {
                     cuboid::hit(min, max, origin, dir, limit).map(|h| h.t)
@@ -406,7 +406,7 @@ impl Shapes {
         let sheared = ShearedRay::new(origin, dir);
         let mut hits = Vec::new();
         let limit = || f64::INFINITY;
-        self.walk(origin, dir, &limit, &mut |_, item, tri| {
+        self.walk(origin, dir, limit, |_, item, tri| {
             match item {
                 &Item::Box { object, min, max } => {
                     if let Some(h) = cuboid::hit(min, max, origin, dir, f64::INFINITY) {

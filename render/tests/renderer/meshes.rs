@@ -898,11 +898,11 @@ const MODELS: &[(&str, Expect)] = &[
     ),
     (
         "glTF/BoxTextured-glTF/BoxTextured.gltf",
-        Refused("scenes[0] has no nodes"),
+        Refused("asset.version \"1.0\": only glTF 2.0 is read"),
     ),
     (
         "glTF/TwoBoxes/TwoBoxes.gltf",
-        Refused("scenes[0] has no nodes"),
+        Refused("asset.version \"1.0\": only glTF 2.0 is read"),
     ),
     // The others.
     ("OBJ/WusonOBJ.obj", Loads(3_732)),
