@@ -386,9 +386,10 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     let dir = tempfile::tempdir().unwrap();
     let (_coordinator, addr) = start_coordinator_in(dir.path());
     let seed = scene_path("seed.json");
-    // About 10 ms of one core a tile, 5 s in all on one thread: long enough for a slow
-    // worker to join while it runs.
-    let settings = ["--width", "1600", "--height", "1200", "--aa", "8"];
+    // About 20 ms of one core a tile, 8 s or more in all on one thread: long enough for
+    // a slow worker, whose CPU limit takes seconds to set up, to join while it runs
+    // (at 1600 x 1200 the job once ended 0.1 s after it joined).
+    let settings = ["--width", "2400", "--height", "1600", "--aa", "8"];
     let mut args = vec![seed.as_str(), "--tile", "64"];
     args.extend(settings);
     let job = submit(dir.path(), &addr, &args);
