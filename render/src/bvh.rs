@@ -1470,7 +1470,7 @@ mod tests {
                 f
             }
         };
-        let mut rng = Mix(4);
+        let mut rng = Mix::seeded(4);
         let mut cases = vec![
             0.0,
             -0.0,
@@ -1661,7 +1661,7 @@ mod tests {
 
     #[test]
     fn grazing_rays_at_unit_scale() {
-        let mut rng = Mix(1);
+        let mut rng = Mix::seeded(1);
         let spheres = soup(&mut rng, 2000, 0.0, 10.0, 0.1);
         grazing(&mut rng, &spheres, 20.0, 20_000);
     }
@@ -1670,7 +1670,7 @@ mod tests {
     fn tiny_spheres_far_from_the_origin() {
         // Spheres at 10⁵ with radius 10⁻³: f32 spacing there is ~0.008, larger than the
         // spheres, so rounding the origin and the boxes to f32 matters.
-        let mut rng = Mix(2);
+        let mut rng = Mix::seeded(2);
         let spheres = soup(&mut rng, 3000, 1e5, 0.5, 1e-3);
         grazing(&mut rng, &spheres, 1.0, 20_000);
         grazing(&mut rng, &spheres, 1e-2, 20_000);
@@ -1684,7 +1684,7 @@ mod tests {
             (0.0, 1e-30, 1e-33, 1e-30),
             (3.0, 1e-6, 1e-9, 1e-7),
         ] {
-            let mut rng = Mix(at.to_bits());
+            let mut rng = Mix::seeded(at.to_bits());
             let spheres = soup(&mut rng, 500, at, spread, radius);
             grazing(&mut rng, &spheres, far, 5000);
         }
@@ -1700,7 +1700,7 @@ mod tests {
             })
             .collect();
         let bvh = Bvh::build(&spheres, Isa::best()).unwrap();
-        let mut rng = Mix(3);
+        let mut rng = Mix::seeded(3);
         for _ in 0..20_000 {
             let pick = |r: &mut Mix| ((r.next() % 17) as f64 - 4.0) * 0.5;
             let origin = Vec3::new(pick(&mut rng), pick(&mut rng), pick(&mut rng));

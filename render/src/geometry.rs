@@ -166,16 +166,16 @@ pub(crate) mod tests {
     use super::*;
     use crate::vec3::LANES;
 
-    /// A small deterministic generator (SplitMix64) for the tests.
-    pub(crate) struct Mix(pub(crate) u64);
+    /// The tests' generator ([`crate::test_rng::Mix`]), drawing in [-1, 1).
+    pub(crate) struct Mix(crate::test_rng::Mix);
 
     impl Mix {
+        pub(crate) fn seeded(seed: u64) -> Self {
+            Mix(crate::test_rng::Mix(seed))
+        }
+
         pub(crate) fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
+            self.0.next()
         }
 
         /// Uniform in [-1, 1).
@@ -197,7 +197,7 @@ pub(crate) mod tests {
 
     #[test]
     fn lane_sphere_test_equals_the_scalar_one() {
-        let mut rng = Mix(7);
+        let mut rng = Mix::seeded(7);
         for case in 0..200_000 {
             let scale = [1e-3, 1.0, 1e3, 1e5][case % 4];
             let s = SphereGeom::new(rng.vec() * scale, scale * (rng.unit().abs() + 1e-3));
@@ -237,7 +237,7 @@ pub(crate) mod tests {
 
     #[test]
     fn lane_plane_test_equals_the_scalar_one() {
-        let mut rng = Mix(11);
+        let mut rng = Mix::seeded(11);
         for case in 0..100_000 {
             let plane = PlaneGeom::new(rng.vec(), rng.unit() * 10.0);
             let origin = rng.vec() * 20.0;

@@ -358,7 +358,7 @@ mod tests {
     /// it.
     #[test]
     fn a_cone_never_passes_by_a_sphere_its_ray_hits() {
-        let mut rng = Mix(11);
+        let mut rng = Mix::seeded(11);
         let (mut passed, mut clear) = (0u64, 0u64);
         for case in 0..40_000 {
             let scale = 10f64.powi((case % 13) - 6);
