@@ -35,16 +35,37 @@ impl Bounds {
     }
 
     pub fn grow(&mut self, p: Vec3) {
-        for (k, x) in [p.x, p.y, p.z].into_iter().enumerate() {
-            self.lo[k] = self.lo[k].min(x);
-            self.hi[k] = self.hi[k].max(x);
+        self.grow_by([p.x, p.y, p.z]);
+    }
+
+    /// Grows to hold point `p`. Comparisons rather than `f64::min`, whose care for NaNs
+    /// costs the hierarchy's build dearly: a NaN coordinate is left out either way.
+    #[inline(always)]
+    pub fn grow_by(&mut self, p: [f64; 3]) {
+        for (k, &x) in p.iter().enumerate() {
+            self.lo[k] = if x < self.lo[k] { x } else { self.lo[k] };
+            self.hi[k] = if x > self.hi[k] { x } else { self.hi[k] };
         }
     }
 
+    /// The bounds holding both (comparisons, as in [`Bounds::grow_by`]).
+    #[inline(always)]
     pub fn union(&self, o: &Bounds) -> Bounds {
         Bounds {
-            lo: std::array::from_fn(|k| self.lo[k].min(o.lo[k])),
-            hi: std::array::from_fn(|k| self.hi[k].max(o.hi[k])),
+            lo: std::array::from_fn(|k| {
+                if o.lo[k] < self.lo[k] {
+                    o.lo[k]
+                } else {
+                    self.lo[k]
+                }
+            }),
+            hi: std::array::from_fn(|k| {
+                if o.hi[k] > self.hi[k] {
+                    o.hi[k]
+                } else {
+                    self.hi[k]
+                }
+            }),
         }
     }
 
@@ -95,7 +116,7 @@ pub(crate) struct SlabRay {
 }
 
 /// 1 + 2γ₃, by which slab exit distances are enlarged.
-const EXIT_SCALE: f64 = 1.0 + 2.0 * gamma(3);
+pub(crate) const EXIT_SCALE: f64 = 1.0 + 2.0 * gamma(3);
 
 impl SlabRay {
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
@@ -107,7 +128,9 @@ impl SlabRay {
 
     /// The part of [0, `t_max`] where the ray is inside `b` widened by `margin`, if
     /// any: conservative, so the interval holds every point of that box on the ray.
-    #[inline(always)]
+    /// (The traversals test four boxes at once with the same operations:
+    /// [`crate::hierarchy::WideRay::enter`]; this one is their reference in tests.)
+    #[cfg(test)]
     pub fn enter(&self, b: &Bounds, margin: f64, t_max: f64) -> Option<(f64, f64)> {
         let mut t0 = 0.0f64;
         let mut t1 = t_max;

@@ -1,25 +1,44 @@
-//! A bounding volume hierarchy over primitives given by their bounds: binned
-//! surface-area heuristic, binary nodes in depth-first order, leaves of a few
+//! A bounding volume hierarchy over primitives given by their bounds: built as a binary
+//! tree by the binned surface-area heuristic, then collapsed into nodes of four children
+//! whose boxes are tested together, four doubles side by side, with leaves of up to four
 //! primitives. One builder serves the triangles of a mesh and the top level (boxes,
-//! triangles, mesh instances); traversal belongs to the callers, which know their
-//! primitives.
+//! triangles, mesh instances); what a leaf holds is the callers' business.
+//!
+//! The boxes stay in double precision and each child's slab test is the one of
+//! [`SlabRay::enter`], lane by lane: culling is conservative, so the primitives a
+//! traversal tests include every one the ray meets, whatever the tree's shape, and the
+//! nearest hit (the smallest distance, ties to the primitive listed first) does not
+//! depend on it.
 //!
 //! It knows nothing of meshes or scenes, and sits below both: a mesh's geometry keeps
 //! its hierarchy with it ([`crate::mesh::accel`]), built once for every object and frame
 //! that shows the file.
 
-use crate::bounds::{Bounds, SlabRay};
+use std::mem::MaybeUninit;
+
+use crate::bounds::{Bounds, SlabRay, EXIT_SCALE};
+use crate::vec3::{F4, LANES};
 
 /// Most primitives in a leaf.
 const LEAF_MAX: usize = 4;
 /// Bins of the surface-area heuristic.
 const BINS: usize = 12;
-/// Deepest node; traversal stacks hold this many entries. Splits by count past a depth
-/// of [`DEPTH_MAX`] − 2, so it is never exceeded.
+/// Deepest binary node. Splits by count past a depth of [`DEPTH_MAX`] − 2, so it is
+/// never exceeded; a wide node holds at least two binary levels, so traversal stacks of
+/// [`STACK`] entries (three waiting siblings a level) never overflow.
 pub(crate) const DEPTH_MAX: usize = 64;
 
+/// Entries of a traversal stack.
+pub(crate) const STACK: usize = 3 * DEPTH_MAX;
+
+/// A child slot that holds nothing.
+pub(crate) const EMPTY: u32 = u32::MAX;
+/// The bit of a child slot that says it holds a leaf (the rest is the leaf's index).
+pub(crate) const LEAF: u32 = 1 << 31;
+
+/// A node of the binary tree, as built.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct Node {
+struct Node {
     pub bounds: Bounds,
     /// A leaf's first primitive (in [`Hierarchy::order`]), or an inner node's first
     /// child (the second follows it).
@@ -28,131 +47,332 @@ pub(crate) struct Node {
     pub count: u32,
 }
 
+/// A traversal stack that costs nothing to make (a walk makes one per ray): entries are
+/// written before they are read.
+pub(crate) struct Stack<T: Copy> {
+    items: [MaybeUninit<T>; STACK],
+    top: usize,
+}
+
+impl<T: Copy> Stack<T> {
+    #[inline(always)]
+    pub fn new() -> Self {
+        Stack {
+            items: [const { MaybeUninit::uninit() }; STACK],
+            top: 0,
+        }
+    }
+
+    #[inline(always)]
+    pub fn push(&mut self, item: T) {
+        self.items[self.top] = MaybeUninit::new(item);
+        self.top += 1;
+    }
+
+    #[inline(always)]
+    pub fn pop(&mut self) -> Option<T> {
+        if self.top == 0 {
+            return None;
+        }
+        self.top -= 1;
+        // SAFETY: every entry below `top` was written by `push`.
+        Some(unsafe { self.items[self.top].assume_init() })
+    }
+}
+
+/// A node of four children: per axis, their lower and upper bounds side by side (an
+/// empty slot's are +∞ and −∞, which no ray enters), and what each holds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(align(32))]
+pub(crate) struct WideNode {
+    /// `bounds[axis][0]` the children's lower bounds, `bounds[axis][1]` their upper.
+    pub bounds: [[F4; 2]; 3],
+    /// An inner node's index, `LEAF | leaf index`, or [`EMPTY`].
+    pub child: [u32; LANES],
+}
+
+impl WideNode {
+    /// Child `c`'s bounds.
+    pub fn child_bounds(&self, c: usize) -> Bounds {
+        Bounds {
+            lo: std::array::from_fn(|k| self.bounds[k][0].0[c]),
+            hi: std::array::from_fn(|k| self.bounds[k][1].0[c]),
+        }
+    }
+}
+
+/// A leaf: `count` primitives from position `start` of [`Hierarchy::order`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Leaf {
+    pub start: u32,
+    pub count: u32,
+}
+
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Hierarchy {
-    pub nodes: Vec<Node>,
+    /// The root first; empty when there are no primitives.
+    pub nodes: Vec<WideNode>,
+    pub leaves: Vec<Leaf>,
     /// Primitive indices in leaf order.
     pub order: Vec<u32>,
+    root: Option<Bounds>,
 }
 
 impl Hierarchy {
     /// The hierarchy over primitives with bounds `boxes` (none if there are none).
     pub fn build(boxes: &[Bounds]) -> Hierarchy {
-        let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
-        let centroids: Vec<[f64; 3]> = boxes
-            .iter()
-            .map(|b| std::array::from_fn(|k| b.centroid(k)))
-            .collect();
-        let nodes = if boxes.is_empty() {
-            Vec::new()
-        } else {
-            subtree(0, 0, boxes, &centroids, &mut order)
-        };
-        Hierarchy { nodes, order }
+        let (binary, order) = binary(boxes);
+        if binary.is_empty() {
+            return Hierarchy::default();
+        }
+        let mut nodes = Vec::with_capacity(binary.len() / 3 + 1);
+        let mut leaves = Vec::with_capacity(binary.len() / 2 + 1);
+        collapse(&binary, 0, &mut nodes, &mut leaves);
+        Hierarchy {
+            nodes,
+            leaves,
+            order,
+            root: Some(binary[0].bounds),
+        }
     }
 
     pub fn root_bounds(&self) -> Option<Bounds> {
-        self.nodes.first().map(|n| n.bounds)
+        self.root
+    }
+
+    /// The primitives of leaf `leaf`.
+    #[inline(always)]
+    pub fn primitives(&self, leaf: u32) -> &[u32] {
+        let l = self.leaves[leaf as usize];
+        &self.order[l.start as usize..(l.start + l.count) as usize]
     }
 
     /// Visits the leaves the ray may reach before `t_max()` (re-read after each leaf,
     /// so a closer hit prunes the rest), nearer children first, with every box widened
-    /// by `margin`; `leaf(primitives, exit)` returns `true` to stop. Boxes entered
-    /// exactly at `t_max()` are still visited, so equal distances can be compared.
+    /// by `margin`; `leaf(index, exit)` (the leaf's index and the distance where the ray
+    /// leaves its box) returns `true` to stop. Boxes entered exactly at `t_max()` are
+    /// still visited, so equal distances can be compared.
     #[inline(always)]
     pub fn walk(
         &self,
         ray: &SlabRay,
         margin: f64,
         mut t_max: impl FnMut() -> f64,
-        mut leaf: impl FnMut(&[u32], f64) -> bool,
+        mut leaf: impl FnMut(u32, f64) -> bool,
     ) {
-        let Some(root) = self.nodes.first() else {
-            return;
-        };
-        if root.bounds.lo[0] > root.bounds.hi[0] {
+        if self.nodes.is_empty() {
             return;
         }
-        // Each node is tested once, by its parent (the root here); a node waiting on
-        // the stack keeps where the ray enters it, and is skipped when a hit found
-        // meanwhile comes before that.
-        let Some((_, root_exit)) = ray.enter(&root.bounds, margin, t_max()) else {
-            return;
-        };
-        let mut stack = [(0u32, 0.0f64, 0.0f64); DEPTH_MAX];
-        let mut top = 0usize;
-        let (mut node, mut exit) = (0u32, root_exit);
+        let wide = WideRay::new(ray, margin);
+        // Each node's children are tested together, by the node; a child waiting on the
+        // stack keeps where the ray enters and leaves it, and is skipped when a hit found
+        // meanwhile comes before its entry.
+        let mut stack = Stack::<(u32, f64, f64)>::new();
+        let mut node = 0u32;
         loop {
             let n = &self.nodes[node as usize];
-            if n.count > 0 {
-                let first = n.start as usize;
-                if leaf(&self.order[first..first + n.count as usize], exit) {
-                    return;
+            let (enter, exit, mut bits) = wide.enter(n, t_max());
+            // The children entered, nearest first (equal entries in slot order).
+            let mut hits = [(0.0f64, 0u32, 0.0f64); LANES];
+            let mut count = 0;
+            while bits != 0 {
+                let c = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let entry = (enter.0[c], n.child[c], exit.0[c]);
+                let mut at = count;
+                while at > 0 && hits[at - 1].0 > entry.0 {
+                    hits[at] = hits[at - 1];
+                    at -= 1;
                 }
-            } else {
-                let limit = t_max();
-                let (a, b) = (n.start, n.start + 1);
-                let da = ray.enter(&self.nodes[a as usize].bounds, margin, limit);
-                let db = ray.enter(&self.nodes[b as usize].bounds, margin, limit);
-                match (da, db) {
-                    (Some((ta, xa)), Some((tb, xb))) => {
-                        let ((near, near_exit), far) = if tb < ta {
-                            ((b, xb), (a, ta, xa))
-                        } else {
-                            ((a, xa), (b, tb, xb))
-                        };
-                        stack[top] = far;
-                        top += 1;
-                        (node, exit) = (near, near_exit);
-                        continue;
-                    }
-                    (Some((_, xa)), None) => {
-                        (node, exit) = (a, xa);
-                        continue;
-                    }
-                    (None, Some((_, xb))) => {
-                        (node, exit) = (b, xb);
-                        continue;
-                    }
-                    (None, None) => {}
-                }
+                hits[at] = entry;
+                count += 1;
+            }
+            for &h in hits[..count].iter().rev() {
+                stack.push((h.1, h.0, h.2));
             }
             loop {
-                if top == 0 {
+                let Some((child, entry, exit)) = stack.pop() else {
                     return;
-                }
-                top -= 1;
-                let (next, enter, next_exit) = stack[top];
+                };
                 // Entered exactly at the best distance: still visited, for ties.
-                if enter <= t_max() {
-                    (node, exit) = (next, next_exit);
-                    break;
+                if entry > t_max() {
+                    continue;
                 }
+                if child & LEAF != 0 {
+                    if leaf(child & !LEAF, exit) {
+                        return;
+                    }
+                    continue;
+                }
+                node = child;
+                break;
             }
         }
     }
+}
+
+/// A ray and its margin set up for the four slab tests of a wide node: each lane
+/// computes what [`SlabRay::enter`] computes for that child, with the entry and exit
+/// faces chosen by the direction's sign instead of by comparing the two.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct WideRay {
+    origin: [F4; 3],
+    inv: [F4; 3],
+    /// Per axis, the margin subtracted at the entry face and added at the exit face
+    /// (−margin where the direction is negative: the entry face is then the upper one).
+    margin: [F4; 3],
+    /// Per axis, 1 where the direction is negative (the entry face is the upper one).
+    near: [usize; 3],
+}
+
+impl WideRay {
+    #[inline(always)]
+    pub fn new(ray: &SlabRay, margin: f64) -> WideRay {
+        let near: [usize; 3] = std::array::from_fn(|k| usize::from(ray.inv[k].is_sign_negative()));
+        WideRay {
+            origin: ray.origin.map(F4::splat),
+            inv: ray.inv.map(F4::splat),
+            margin: std::array::from_fn(|k| F4::splat(if near[k] == 1 { -margin } else { margin })),
+            near,
+        }
+    }
+
+    /// Where the ray enters and leaves each child of `node` before `t_max`, and the
+    /// children it enters (bit c for child c). Lane c is [`SlabRay::enter`] of child c:
+    /// with a positive direction the entry is (lo − m − o)·inv and the exit (hi + m −
+    /// o)·inv, with a negative one (hi − (−m) − o)·inv and (lo + (−m) − o)·inv, the same
+    /// values; where one is NaN (the ray in a face's plane) that face is left out, which
+    /// only widens the interval.
+    #[inline(always)]
+    pub fn enter(&self, node: &WideNode, t_max: f64) -> (F4, F4, u32) {
+        let mut t0 = F4::splat(0.0);
+        let mut t1 = F4::splat(t_max);
+        for k in 0..3 {
+            let near =
+                ((node.bounds[k][self.near[k]] - self.margin[k]) - self.origin[k]) * self.inv[k];
+            let far = ((node.bounds[k][1 - self.near[k]] + self.margin[k]) - self.origin[k])
+                * self.inv[k]
+                * EXIT_SCALE;
+            t0 = near.gt(t0).select(near, t0);
+            t1 = far.lt(t1).select(far, t1);
+        }
+        (t0, t1, t0.le(t1).bitmask())
+    }
+}
+
+/// The binary tree over primitives with bounds `boxes`, its root first, and the
+/// primitives in leaf order.
+fn binary(boxes: &[Bounds]) -> (Vec<Node>, Vec<u32>) {
+    let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
+    let centroids: Vec<[f64; 3]> = boxes
+        .iter()
+        .map(|b| std::array::from_fn(|k| b.centroid(k)))
+        .collect();
+    let nodes = if boxes.is_empty() {
+        Vec::new()
+    } else {
+        subtree(0, 0, boxes, &centroids, &mut order, None)
+    };
+    (nodes, order)
+}
+
+/// Appends the wide node for binary node `index` and those below it (depth first, a
+/// node before its children, children in the binary tree's order), and returns its
+/// index. A binary leaf at the root becomes a wide node holding it alone.
+fn collapse(
+    binary: &[Node],
+    index: usize,
+    nodes: &mut Vec<WideNode>,
+    leaves: &mut Vec<Leaf>,
+) -> u32 {
+    let n = binary[index];
+    let mut kids = [0usize; LANES];
+    let mut count;
+    if n.count > 0 {
+        kids[0] = index;
+        count = 1;
+    } else {
+        kids[0] = n.start as usize;
+        kids[1] = n.start as usize + 1;
+        count = 2;
+        // Open the inner child of largest area until there are four (or only leaves).
+        while count < LANES {
+            let open = (0..count)
+                .filter(|&c| binary[kids[c]].count == 0)
+                .max_by(|&a, &b| {
+                    binary[kids[a]]
+                        .bounds
+                        .area()
+                        .total_cmp(&binary[kids[b]].bounds.area())
+                        .then(b.cmp(&a))
+                });
+            let Some(c) = open else { break };
+            let first = binary[kids[c]].start as usize;
+            kids.copy_within(c + 1..count, c + 2);
+            kids[c] = first;
+            kids[c + 1] = first + 1;
+            count += 1;
+        }
+    }
+    let at = nodes.len();
+    nodes.push(WideNode {
+        bounds: [[F4::splat(f64::INFINITY), F4::splat(f64::NEG_INFINITY)]; 3],
+        child: [EMPTY; LANES],
+    });
+    for (c, &kid) in kids[..count].iter().enumerate() {
+        let k = binary[kid];
+        let code = if k.count > 0 {
+            leaves.push(Leaf {
+                start: k.start,
+                count: k.count,
+            });
+            LEAF | (leaves.len() as u32 - 1)
+        } else {
+            collapse(binary, kid, nodes, leaves)
+        };
+        let node = &mut nodes[at];
+        node.child[c] = code;
+        for axis in 0..3 {
+            node.bounds[axis][0].0[c] = k.bounds.lo[axis];
+            node.bounds[axis][1].0[c] = k.bounds.hi[axis];
+        }
+    }
+    at as u32
 }
 
 /// Subtrees of at least this many primitives are built in parallel, when the pool has
 /// more than one thread; below it, one thread builds faster than two can share.
 const PARALLEL_MIN: usize = 8_192;
 
-/// Where primitives `order` go: their bounds, and either a leaf (`None`) or the position in `order`
-/// where they were split in two, after reordering them.
+/// The bounds of a set of primitives and of their centroids.
+type Extent = (Bounds, Bounds);
+
+/// The bounds of primitives `order` and of their centroids.
+fn extent(boxes: &[Bounds], centroids: &[[f64; 3]], order: &[u32]) -> Extent {
+    let mut bounds = Bounds::EMPTY;
+    let mut cb = Bounds::EMPTY;
+    for &p in order {
+        bounds = bounds.union(&boxes[p as usize]);
+        cb.grow_by(centroids[p as usize]);
+    }
+    (bounds, cb)
+}
+
+/// How primitives are split: at a position of the reordered `order`, with each half's
+/// extent when the bins gave it (a split by count leaves the halves to find theirs).
+type Cut = (usize, Option<[Extent; 2]>);
+
+/// Where primitives `order` go: their bounds, and either a leaf (`None`) or the cut
+/// where they were split in two, after reordering them. `known` is their extent, if
+/// the parent's bins gave it.
 fn choose(
     depth: usize,
     boxes: &[Bounds],
     centroids: &[[f64; 3]],
     order: &mut [u32],
-) -> (Bounds, Option<usize>) {
-    let mut bounds = Bounds::EMPTY;
-    let mut cb = Bounds::EMPTY;
-    for &p in order.iter() {
-        bounds = bounds.union(&boxes[p as usize]);
-        let c = centroids[p as usize];
-        cb.lo = std::array::from_fn(|k| cb.lo[k].min(c[k]));
-        cb.hi = std::array::from_fn(|k| cb.hi[k].max(c[k]));
-    }
+    known: Option<Extent>,
+) -> (Bounds, Option<Cut>) {
+    let (bounds, cb) = known.unwrap_or_else(|| extent(boxes, centroids, order));
     let count = order.len();
     if count <= LEAF_MAX && depth > 0 || count == 1 {
         return (bounds, None);
@@ -167,7 +387,7 @@ fn choose(
                 .total_cmp(&centroids[b as usize][axis])
                 .then(a.cmp(&b))
         });
-        count / 2
+        (count / 2, None)
     };
     let by_count = !(extent > 0.0 && extent.is_finite()) || depth + 2 >= DEPTH_MAX;
     if by_count {
@@ -177,15 +397,19 @@ fn choose(
         }
         return (bounds, Some(halve(order)));
     }
+    let lo = cb.lo[axis];
+    let scale = BINS as f64 / extent;
     let bin_of = |p: u32| {
-        let x = (centroids[p as usize][axis] - cb.lo[axis]) / extent * BINS as f64;
+        let x = (centroids[p as usize][axis] - lo) * scale;
         (x as usize).min(BINS - 1)
     };
     let mut bin_bounds = [Bounds::EMPTY; BINS];
+    let mut bin_centroids = [Bounds::EMPTY; BINS];
     let mut bin_count = [0usize; BINS];
     for &p in order.iter() {
         let b = bin_of(p);
         bin_bounds[b] = bin_bounds[b].union(&boxes[p as usize]);
+        bin_centroids[b].grow_by(centroids[p as usize]);
         bin_count[b] += 1;
     }
     // Cost of each cut after bin i: area × count on both sides.
@@ -228,7 +452,14 @@ fn choose(
             order.swap(i, j);
         }
     }
-    (bounds, Some(i))
+    // Each half's extent, from its bins.
+    let union = |bins: std::ops::Range<usize>| {
+        bins.fold((Bounds::EMPTY, Bounds::EMPTY), |(b, c), k| {
+            (b.union(&bin_bounds[k]), c.union(&bin_centroids[k]))
+        })
+    };
+    let halves = [union(0..best.1 + 1), union(best.1 + 1..BINS)];
+    (bounds, Some((i, Some(halves))))
 }
 
 /// The subtree over `order` (which starts at position `base` of the whole order), its
@@ -241,11 +472,12 @@ fn subtree(
     boxes: &[Bounds],
     centroids: &[[f64; 3]],
     order: &mut [u32],
+    known: Option<Extent>,
 ) -> Vec<Node> {
     if order.len() >= PARALLEL_MIN && rayon::current_num_threads() > 1 {
         let count = order.len();
-        let (bounds, cut) = choose(depth, boxes, centroids, order);
-        let Some(mid) = cut else {
+        let (bounds, cut) = choose(depth, boxes, centroids, order, known);
+        let Some((mid, halves)) = cut else {
             return vec![Node {
                 bounds,
                 start: base as u32,
@@ -254,8 +486,17 @@ fn subtree(
         };
         let (low, high) = order.split_at_mut(mid);
         let (left, right) = rayon::join(
-            || subtree(base, depth + 1, boxes, centroids, low),
-            || subtree(base + mid, depth + 1, boxes, centroids, high),
+            || subtree(base, depth + 1, boxes, centroids, low, halves.map(|h| h[0])),
+            || {
+                subtree(
+                    base + mid,
+                    depth + 1,
+                    boxes,
+                    centroids,
+                    high,
+                    halves.map(|h| h[1]),
+                )
+            },
         );
         return joined(bounds, left, right);
     }
@@ -264,7 +505,7 @@ fn subtree(
         start: 0,
         count: 0,
     }];
-    split(0, base, depth, boxes, centroids, order, &mut nodes);
+    split(0, base, depth, boxes, centroids, order, known, &mut nodes);
     nodes
 }
 
@@ -297,6 +538,10 @@ fn joined(bounds: Bounds, left: Vec<Node>, right: Vec<Node>) -> Vec<Node> {
 
 /// Builds, into `nodes[index]` and on, the subtree over `order` (which starts at
 /// position `base` of the whole order), one thread.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the recursion's state: where the node goes, its primitives and what the parent knows of them"
+)]
 fn split(
     index: usize,
     base: usize,
@@ -304,11 +549,12 @@ fn split(
     boxes: &[Bounds],
     centroids: &[[f64; 3]],
     order: &mut [u32],
+    known: Option<Extent>,
     nodes: &mut Vec<Node>,
 ) {
     let count = order.len();
-    let (bounds, cut) = choose(depth, boxes, centroids, order);
-    let Some(mid) = cut else {
+    let (bounds, cut) = choose(depth, boxes, centroids, order, known);
+    let Some((mid, halves)) = cut else {
         nodes[index] = Node {
             bounds,
             start: base as u32,
@@ -330,7 +576,16 @@ fn split(
         count: 0,
     };
     let (low, high) = order.split_at_mut(mid);
-    split(first, base, depth + 1, boxes, centroids, low, nodes);
+    split(
+        first,
+        base,
+        depth + 1,
+        boxes,
+        centroids,
+        low,
+        halves.map(|h| h[0]),
+        nodes,
+    );
     split(
         first + 1,
         base + mid,
@@ -338,6 +593,7 @@ fn split(
         boxes,
         centroids,
         high,
+        halves.map(|h| h[1]),
         nodes,
     );
 }
@@ -375,8 +631,8 @@ mod tests {
                     &ray,
                     0.0,
                     || f64::INFINITY,
-                    |prims, _| {
-                        for &p in prims {
+                    |leaf, _| {
+                        for &p in h.primitives(leaf) {
                             seen[p as usize] = true;
                         }
                         false
@@ -391,15 +647,16 @@ mod tests {
         }
     }
 
-    /// The tree read from its root: each node's bounds and, for a leaf, its primitives.
-    fn canonical(h: &Hierarchy) -> Vec<(Bounds, Vec<u32>)> {
+    /// The binary tree read from its root: each node's bounds and, for a leaf, its
+    /// primitives.
+    fn canonical((nodes, order): &(Vec<Node>, Vec<u32>)) -> Vec<(Bounds, Vec<u32>)> {
         let mut out = Vec::new();
         let mut stack = vec![0usize];
         while let Some(i) = stack.pop() {
-            let n = h.nodes[i];
+            let n = nodes[i];
             if n.count > 0 {
                 let first = n.start as usize;
-                out.push((n.bounds, h.order[first..first + n.count as usize].to_vec()));
+                out.push((n.bounds, order[first..first + n.count as usize].to_vec()));
             } else {
                 out.push((n.bounds, Vec::new()));
                 stack.push(n.start as usize + 1);
@@ -409,8 +666,8 @@ mod tests {
         out
     }
 
-    /// Built on two threads, the hierarchy is the very tree one thread builds: only
-    /// where its nodes sit in memory differs.
+    /// Built on two threads, the binary tree is the very tree one thread builds (only
+    /// where its nodes sit in memory differs), and the wide hierarchy the same bytes.
     #[test]
     fn parallel_and_sequential_builds_give_the_same_tree() {
         let mut rng = crate::test_rng::Mix(5);
@@ -428,10 +685,16 @@ mod tests {
                 .build()
                 .unwrap()
         };
-        let one = pool(1).install(|| Hierarchy::build(&boxes));
-        let two = pool(2).install(|| Hierarchy::build(&boxes));
-        assert_eq!(one.order, two.order);
-        assert_eq!(one.nodes.len(), two.nodes.len());
+        let one = pool(1).install(|| binary(&boxes));
+        let two = pool(2).install(|| binary(&boxes));
+        assert_eq!(one.1, two.1);
+        assert_eq!(one.0.len(), two.0.len());
         assert!(canonical(&one) == canonical(&two));
+        // The wide tree is read from the binary one in its order: the same nodes.
+        let (one, two) = (
+            pool(1).install(|| Hierarchy::build(&boxes)),
+            pool(2).install(|| Hierarchy::build(&boxes)),
+        );
+        assert!(one.nodes == two.nodes && one.leaves == two.leaves && one.order == two.order);
     }
 }

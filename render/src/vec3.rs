@@ -185,6 +185,12 @@ impl M4 {
         self.0[k] != 0
     }
 
+    /// Bit k set where lane k is.
+    #[inline(always)]
+    pub fn bitmask(self) -> u32 {
+        (0..LANES).fold(0, |m, k| m | (((self.0[k] >> 63) as u32) << k))
+    }
+
     #[inline(always)]
     pub fn any(self) -> bool {
         self.0.iter().fold(0, |a, &b| a | b) != 0

@@ -17,6 +17,7 @@
 //! coordinates to walk its hierarchy is rounded, and so is the triangle test, so boxes
 //! are widened by a bound on those errors ([`Shapes::instance_margin`]).
 
+pub(crate) mod block;
 pub(crate) mod cuboid;
 pub(crate) mod packet;
 pub(crate) mod triangle;
@@ -24,15 +25,17 @@ pub(crate) mod triangle;
 use std::collections::HashMap;
 use std::sync::Arc;
 
+use self::block::TriBlock;
 use self::cuboid::BoxHit;
-use self::triangle::{ShearedRay, TriangleHit};
+use self::triangle::ShearedRay;
 use crate::bounds::{Bounds, SlabRay};
 use crate::hierarchy::Hierarchy;
 use crate::mesh::accel::{vertex, MeshAccel};
 use crate::mesh::{MeshGeometry, NO_NORMAL};
 use crate::scene::{Scene, Shape};
+use crate::simd::{isa_dispatch, Isa};
 use crate::transform::{map_normal, Affine};
-use crate::vec3::Vec3;
+use crate::vec3::{Vec3, F4, M4, V4};
 
 /// The factor of ε in the margins by which boxes are widened: each error bounded is a
 /// few roundings of terms no larger than those the margins sum.
@@ -43,6 +46,8 @@ pub(crate) const NO_PRIM: u32 = u32::MAX;
 
 /// Section 8's shapes of a scene, ready for tracing.
 pub(crate) struct Shapes {
+    /// The instruction set the single-ray searches run with.
+    pub isa: Isa,
     items: Vec<Item>,
     top: Hierarchy,
     /// The largest coordinate of any shape's bounds: hits lie within it.
@@ -72,14 +77,36 @@ struct Instance {
     /// The map into the file's coordinates, for walking its hierarchy.
     inverse: Affine,
     identity: bool,
-    /// The vertices mapped to world space once, when no other object shares the file.
-    world: Option<Vec<Vec3>>,
+    /// The triangles of each leaf of the file's hierarchy, in world space, or in the
+    /// file's coordinates when `mapped` (a file several transformed objects share).
+    blocks: Arc<Vec<TriBlock>>,
+    mapped: bool,
     /// cof(A), which maps normals.
     normal_matrix: [[f64; 3]; 3],
     smooth: bool,
     /// ‖A‖∞·R + ‖t‖∞ (R the file's largest coordinate) and ‖A⁻¹‖∞, for margins.
     world_size: f64,
     inverse_norm: f64,
+}
+
+/// What a walk offers to test: a box, a loose triangle, or a leaf's triangles of a mesh
+/// (each with its item's index).
+enum Candidate<'a> {
+    Box(u32, u32, Vec3, Vec3),
+    Triangle(u32, u32, &'a [Vec3; 3]),
+    Block(u32, &'a Instance, &'a TriBlock),
+}
+
+impl Instance {
+    /// A block's vertices in world space.
+    #[inline(always)]
+    fn block_vertices(&self, block: &TriBlock) -> [V4; 3] {
+        if self.mapped {
+            block.mapped(&self.transform)
+        } else {
+            block.v
+        }
+    }
 }
 
 /// Where a ray meets one of these shapes.
@@ -146,6 +173,7 @@ impl Shapes {
         }
         let mut items = Vec::new();
         let mut boxes = Vec::new();
+        let mut file_blocks: HashMap<*const MeshGeometry, Arc<Vec<TriBlock>>> = HashMap::new();
         for (index, object) in scene.objects.iter().enumerate() {
             let object_index = index as u32;
             match &object.shape {
@@ -184,14 +212,26 @@ impl Shapes {
                     let transform = m.transform;
                     let identity = transform.is_identity();
                     let shared = uses[&Arc::as_ptr(&geometry)] > 1;
-                    let world = (!identity && !shared).then(|| {
-                        geometry
-                            .data
-                            .positions
-                            .iter()
-                            .map(|&p| transform.point(p))
-                            .collect()
-                    });
+                    // A file shown once is mapped to world space here, once; one several
+                    // objects show keeps one copy in its own coordinates, mapped as it
+                    // is tested.
+                    let mapped = !identity && shared;
+                    let blocks = if identity || shared {
+                        file_blocks
+                            .entry(Arc::as_ptr(&geometry))
+                            .or_insert_with(|| {
+                                Arc::new(TriBlock::of_leaves(
+                                    &accel.hierarchy,
+                                    &geometry.data,
+                                    |p| Vec3::new(p[0], p[1], p[2]),
+                                ))
+                            })
+                            .clone()
+                    } else {
+                        Arc::new(TriBlock::of_leaves(&accel.hierarchy, &geometry.data, |p| {
+                            transform.point(p)
+                        }))
+                    };
                     let t_norm = transform.t.iter().fold(0.0f64, |m, x| m.max(x.abs()));
                     let world_size = transform.norm() * local.magnitude() + t_norm;
                     let mut b = Bounds::EMPTY;
@@ -207,7 +247,8 @@ impl Shapes {
                         transform,
                         inverse,
                         identity,
-                        world,
+                        blocks,
+                        mapped,
                         normal_matrix: transform.normal_matrix(),
                         smooth: m.smooth,
                         world_size,
@@ -221,7 +262,12 @@ impl Shapes {
         }
         let top = Hierarchy::build(&boxes);
         let reach = top.root_bounds().map_or(0.0, |b| b.magnitude());
-        Some(Shapes { items, top, reach })
+        Some(Shapes {
+            isa: Isa::detect(),
+            items,
+            top,
+            reach,
+        })
     }
 
     /// The margin of the top level's boxes (and of meshes in world coordinates) for a
@@ -248,12 +294,12 @@ impl Shapes {
     /// Vertex `i` of an instance in world space.
     #[inline(always)]
     fn world_vertex(instance: &Instance, i: u32) -> Vec3 {
-        match &instance.world {
-            Some(w) => w[i as usize],
-            None if instance.identity => vertex(&instance.geometry.data, i),
-            None => instance
+        if instance.identity {
+            vertex(&instance.geometry.data, i)
+        } else {
+            instance
                 .transform
-                .point(instance.geometry.data.positions[i as usize]),
+                .point(instance.geometry.data.positions[i as usize])
         }
     }
 
@@ -261,62 +307,103 @@ impl Shapes {
         instance.geometry.data.triangles[tri as usize].map(|i| Self::world_vertex(instance, i))
     }
 
-    /// Visits every primitive the ray may meet before `limit()`; `test(item, prim,
-    /// vertices or None)` returns `true` to stop.
+    /// Visits every primitive the ray may meet before `limit()`, a leaf's triangles of
+    /// a mesh together; `visit` returns `true` to stop.
     #[inline(always)]
     fn walk(
         &self,
         origin: Vec3,
         dir: Vec3,
         limit: impl Fn() -> f64,
-        mut visit: impl FnMut(u32, &Item, u32) -> bool,
+        mut visit: impl FnMut(Candidate<'_>) -> bool,
     ) {
         let ray = SlabRay::new(origin, dir);
         let margin = self.world_margin(origin);
-        self.top.walk(&ray, margin, &limit, |items, exit| {
-            for &i in items {
-                let item = &self.items[i as usize];
-                match item {
-                    Item::Box { .. } | Item::Triangle { .. } => {
-                        if visit(i, item, 0) {
-                            return true;
-                        }
-                    }
-                    Item::Instance(instance) => {
-                        let accel = MeshAccel::of(&instance.geometry);
-                        let (local, margin) = if instance.identity {
-                            (ray, margin)
-                        } else {
-                            let o = instance.inverse.point([origin.x, origin.y, origin.z]);
-                            let d = instance.inverse.vector(dir);
-                            (
-                                SlabRay::new(o, d),
-                                self.instance_margin(instance, origin, exit),
-                            )
-                        };
-                        let mut stop = false;
-                        accel.hierarchy.walk(&local, margin, &limit, |tris, _| {
-                            for &tri in tris {
-                                if visit(i, item, tri) {
-                                    stop = true;
-                                    return true;
-                                }
+        self.top.walk(
+            &ray,
+            margin,
+            &limit,
+            #[inline(always)]
+            |leaf, exit| {
+                for &i in self.top.primitives(leaf) {
+                    match &self.items[i as usize] {
+                        Item::Box { object, min, max } => {
+                            if visit(Candidate::Box(i, *object, *min, *max)) {
+                                return true;
                             }
-                            false
-                        });
-                        if stop {
-                            return true;
+                        }
+                        Item::Triangle { object, v } => {
+                            if visit(Candidate::Triangle(i, *object, v)) {
+                                return true;
+                            }
+                        }
+                        Item::Instance(instance) => {
+                            let accel = MeshAccel::of(&instance.geometry);
+                            let (local, margin) = if instance.identity {
+                                (ray, margin)
+                            } else {
+                                let o = instance.inverse.point([origin.x, origin.y, origin.z]);
+                                let d = instance.inverse.vector(dir);
+                                (
+                                    SlabRay::new(o, d),
+                                    self.instance_margin(instance, origin, exit),
+                                )
+                            };
+                            let mut stop = false;
+                            accel.hierarchy.walk(
+                                &local,
+                                margin,
+                                &limit,
+                                #[inline(always)]
+                                |leaf, _| {
+                                    let block = &instance.blocks[leaf as usize];
+                                    stop = visit(Candidate::Block(i, instance, block));
+                                    stop
+                                },
+                            );
+                            if stop {
+                                return true;
+                            }
                         }
                     }
                 }
-            }
-            false
-        });
+                false
+            },
+        );
     }
 
-    /// The nearest hit before `best` = (t, object, prim) of a ray leaving object `from`
-    /// (its triangle `from_prim`), if one comes before it.
-    pub fn nearest(
+    isa_dispatch! {
+        /// The nearest hit before `best` = (t, object, prim) of a ray leaving object
+        /// `from` (its triangle `from_prim`), if one comes before it.
+        pub fn nearest / nearest_avx2(
+            &self,
+            origin: Vec3,
+            dir: Vec3,
+            from: u32,
+            from_prim: u32,
+            best: (f64, u32, u32),
+        ) -> Option<ShapeHit> {
+            self.nearest_lanes(origin, dir, from, from_prim, best)
+        }
+    }
+
+    isa_dispatch! {
+        /// Whether the ray leaving object `from` (triangle `from_prim`) meets a shape at
+        /// a distance in (0, `limit`).
+        pub fn occluded / occluded_avx2(
+            &self,
+            origin: Vec3,
+            dir: Vec3,
+            from: u32,
+            from_prim: u32,
+            limit: f64,
+        ) -> bool {
+            self.occluded_lanes(origin, dir, from, from_prim, limit)
+        }
+    }
+
+    #[inline(always)]
+    fn nearest_lanes(
         &self,
         origin: Vec3,
         dir: Vec3,
@@ -328,75 +415,107 @@ impl Shapes {
         let best = std::cell::Cell::new(best);
         let mut found: Option<ShapeHit> = None;
         let limit = || best.get().0;
-        self.walk(origin, dir, limit, |i, item, tri| {
+        let mut consider = |item: u32, t: f64, object: u32, prim: u32, detail: Detail| {
             let b = best.get();
-            let hit = match item {
-                &Item::Box { object, min, max } => cuboid::hit(min, max, origin, dir, b.0)
-                    .map(|h| (h.t, object, 0, Detail::Box(h))),
-                Item::Triangle { object, v } => {
-                    if *object == from {
-                        return false;
-                    }
-                    sheared
-                        .hit(v[0], v[1], v[2], b.0)
-                        .map(|h: TriangleHit| (h.t, *object, 0, Detail::Triangle(h.b)))
-                }
-                Item::Instance(instance) => {
-                    if instance.object == from && tri == from_prim {
-                        return false;
-                    }
-                    let v = Self::triangle_vertices(instance, tri);
-                    sheared
-                        .hit(v[0], v[1], v[2], b.0)
-                        .map(|h| (h.t, instance.object, tri, Detail::Triangle(h.b)))
-                }
-            };
-            if let Some((t, object, prim, detail)) = hit {
-                if before(t, object, prim, &b) {
-                    best.set((t, object, prim));
-                    found = Some(ShapeHit {
-                        t,
-                        object,
-                        prim,
-                        item: i,
-                        detail,
-                    });
-                }
+            if before(t, object, prim, &b) {
+                best.set((t, object, prim));
+                found = Some(ShapeHit {
+                    t,
+                    object,
+                    prim,
+                    item,
+                    detail,
+                });
             }
-            false
-        });
+        };
+        self.walk(
+            origin,
+            dir,
+            limit,
+            #[inline(always)]
+            |candidate| {
+                let t_max = best.get().0;
+                match candidate {
+                    Candidate::Box(i, object, min, max) => {
+                        if let Some(h) = cuboid::hit(min, max, origin, dir, t_max) {
+                            consider(i, h.t, object, 0, Detail::Box(h));
+                        }
+                    }
+                    Candidate::Triangle(i, object, v) => {
+                        if object != from {
+                            if let Some(h) = sheared.hit(v[0], v[1], v[2], t_max) {
+                                consider(i, h.t, object, 0, Detail::Triangle(h.b));
+                            }
+                        }
+                    }
+                    Candidate::Block(i, instance, block) => {
+                        let lanes = Self::lanes_not_from(instance, block, from, from_prim);
+                        let (hit, t, b) = sheared.hit4(&instance.block_vertices(block), t_max);
+                        let mut bits = hit.and(lanes).bitmask();
+                        while bits != 0 {
+                            let k = bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
+                            let h = ShearedRay::lane_hit(t, &b, k);
+                            let detail = Detail::Triangle(h.b);
+                            consider(i, h.t, instance.object, block.tri[k], detail);
+                        }
+                    }
+                }
+                false
+            },
+        );
         found
     }
 
-    /// Whether the ray leaving object `from` (triangle `from_prim`) meets a shape at a
-    /// distance in (0, `limit`).
-    pub fn occluded(&self, origin: Vec3, dir: Vec3, from: u32, from_prim: u32, limit: f64) -> bool {
+    #[inline(always)]
+    fn occluded_lanes(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        from: u32,
+        from_prim: u32,
+        limit: f64,
+    ) -> bool {
         let sheared = ShearedRay::new(origin, dir);
         let mut blocked = false;
         let reach = || limit;
-        self.walk(origin, dir, reach, |_, item, tri| {
-            let t = match item {
-                &Item::Box { min, max, .. } => {
-                    cuboid::hit(min, max, origin, dir, limit).map(|h| h.t)
-                }
-                Item::Triangle { object, v } => {
-                    if *object == from {
-                        return false;
+        self.walk(
+            origin,
+            dir,
+            reach,
+            #[inline(always)]
+            |candidate| {
+                blocked = match candidate {
+                    Candidate::Box(_, _, min, max) => {
+                        cuboid::hit(min, max, origin, dir, limit).is_some_and(|h| h.t < limit)
                     }
-                    sheared.hit(v[0], v[1], v[2], limit).map(|h| h.t)
-                }
-                Item::Instance(instance) => {
-                    if instance.object == from && tri == from_prim {
-                        return false;
+                    Candidate::Triangle(_, object, v) => {
+                        object != from
+                            && sheared
+                                .hit(v[0], v[1], v[2], limit)
+                                .is_some_and(|h| h.t < limit)
                     }
-                    let v = Self::triangle_vertices(instance, tri);
-                    sheared.hit(v[0], v[1], v[2], limit).map(|h| h.t)
-                }
-            };
-            blocked = t.is_some_and(|t| t < limit);
-            blocked
-        });
+                    Candidate::Block(_, instance, block) => {
+                        let lanes = Self::lanes_not_from(instance, block, from, from_prim);
+                        let (hit, t, _) = sheared.hit4(&instance.block_vertices(block), limit);
+                        hit.and(lanes).and(t.lt(F4::splat(limit))).any()
+                    }
+                };
+                blocked
+            },
+        );
         blocked
+    }
+
+    /// The live lanes of `block` other than the triangle `from_prim` of object `from`.
+    #[inline(always)]
+    fn lanes_not_from(instance: &Instance, block: &TriBlock, from: u32, from_prim: u32) -> M4 {
+        if instance.object != from {
+            return block.live;
+        }
+        block
+            .live
+            .and_not(M4::from_fn(|k| block.tri[k] == from_prim))
     }
 
     /// Every triangle or box hit of the ray at t > 0, through the hierarchies (for
@@ -406,27 +525,37 @@ impl Shapes {
         let sheared = ShearedRay::new(origin, dir);
         let mut hits = Vec::new();
         let limit = || f64::INFINITY;
-        self.walk(origin, dir, limit, |_, item, tri| {
-            match item {
-                &Item::Box { object, min, max } => {
-                    if let Some(h) = cuboid::hit(min, max, origin, dir, f64::INFINITY) {
-                        hits.push((h.t, object, 0));
+        self.walk(
+            origin,
+            dir,
+            limit,
+            #[inline(always)]
+            |candidate| {
+                match candidate {
+                    Candidate::Box(_, object, min, max) => {
+                        if let Some(h) = cuboid::hit(min, max, origin, dir, f64::INFINITY) {
+                            hits.push((h.t, object, 0));
+                        }
+                    }
+                    Candidate::Triangle(_, object, v) => {
+                        if let Some(h) = sheared.hit(v[0], v[1], v[2], f64::INFINITY) {
+                            hits.push((h.t, object, 0));
+                        }
+                    }
+                    Candidate::Block(_, instance, block) => {
+                        let v = instance.block_vertices(block);
+                        let (hit, t, _) = sheared.hit4(&v, f64::INFINITY);
+                        let mut bits = hit.and(block.live).bitmask();
+                        while bits != 0 {
+                            let k = bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
+                            hits.push((t.0[k], instance.object, block.tri[k]));
+                        }
                     }
                 }
-                Item::Triangle { object, v } => {
-                    if let Some(h) = sheared.hit(v[0], v[1], v[2], f64::INFINITY) {
-                        hits.push((h.t, *object, 0));
-                    }
-                }
-                Item::Instance(instance) => {
-                    let v = Self::triangle_vertices(instance, tri);
-                    if let Some(h) = sheared.hit(v[0], v[1], v[2], f64::INFINITY) {
-                        hits.push((h.t, instance.object, tri));
-                    }
-                }
-            }
-            false
-        });
+                false
+            },
+        );
         hits
     }
 

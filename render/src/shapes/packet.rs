@@ -9,8 +9,8 @@
 //! lane's best so far, with the same tie rule.
 
 use super::{before, cuboid, Detail, Item, ShapeHit, Shapes};
-use crate::bounds::{gamma, Bounds};
-use crate::hierarchy::{Hierarchy, DEPTH_MAX};
+use crate::bounds::{gamma, Bounds, EXIT_SCALE};
+use crate::hierarchy::{Hierarchy, Stack, EMPTY, LEAF};
 use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
 /// Up to four rays, each leaving object `from[k]` (triangle `prim[k]`); lanes outside
@@ -31,9 +31,6 @@ struct Slab4 {
     inv: V4,
 }
 
-/// 1 + 2γ₃, as in [`crate::bounds`].
-const EXIT_SCALE: f64 = 1.0 + 2.0 * gamma(3);
-
 impl Slab4 {
     #[inline(always)]
     fn new(origin: V4, dir: V4) -> Self {
@@ -48,9 +45,10 @@ impl Slab4 {
         }
     }
 
-    /// The lanes whose ray enters `b` widened by `margin` before their `t_max`.
+    /// The lanes whose ray enters `b` widened by `margin` before their `t_max`, and
+    /// where each enters.
     #[inline(always)]
-    fn enter(&self, b: &Bounds, margin: F4, t_max: F4) -> M4 {
+    fn enter(&self, b: &Bounds, margin: F4, t_max: F4) -> (M4, F4) {
         let mut t0 = F4::splat(0.0);
         let mut t1 = t_max;
         let axes = [
@@ -68,7 +66,7 @@ impl Slab4 {
             t1 = far.lt(t1).select(far, t1);
         }
         // t0 ≤ t1, as the scalar test's "not t0 > t1" (the bounds are never NaN).
-        t0.le(t1)
+        (t0.le(t1), t0)
     }
 }
 
@@ -119,83 +117,130 @@ impl Sheared4 {
     /// distances and barycentric coordinates.
     #[inline(always)]
     fn hit(&self, p0: Vec3, p1: Vec3, p2: Vec3, t_max: F4) -> (M4, F4, [F4; 3]) {
-        let zero = F4::splat(0.0);
-        let a = self.frame(p0);
-        let b = self.frame(p1);
-        let c = self.frame(p2);
-        let e0 = b[0] * c[1] - b[1] * c[0];
-        let e1 = c[0] * a[1] - c[1] * a[0];
-        let e2 = a[0] * b[1] - a[1] * b[0];
-        let negative = e0.lt(zero).or(e1.lt(zero)).or(e2.lt(zero));
-        let positive = e0.gt(zero).or(e1.gt(zero)).or(e2.gt(zero));
-        let mut hit = negative.and(positive).xor(M4::ALL);
-        let det = e0 + e1 + e2;
-        hit = hit.and(M4::from_fn(|k| det.0[k] != 0.0 && det.0[k].is_finite()));
-        let (az, bz, cz) = (a[2] * self.sz, b[2] * self.sz, c[2] * self.sz);
-        let t_scaled = e0 * az + e1 * bz + e2 * cz;
-        let bound = t_max * det;
-        let below = det.lt(zero).and(t_scaled.ge(zero).or(t_scaled.lt(bound)));
-        let above = det.gt(zero).and(t_scaled.le(zero).or(t_scaled.gt(bound)));
-        hit = hit.and_not(below.or(above));
-        let inv_det = F4::splat(1.0) / det;
-        let t = t_scaled * inv_det;
-        hit = hit.and(t.le(t_max));
-        let abs = |v: F4| v.map(f64::abs);
-        let max = |u: F4, v: F4| u.zip(v, f64::max);
-        let max_z = max(max(abs(az), abs(bz)), abs(cz));
-        let delta_z = max_z * gamma(3);
-        let max_x = max(max(abs(a[0]), abs(b[0])), abs(c[0]));
-        let max_y = max(max(abs(a[1]), abs(b[1])), abs(c[1]));
-        let delta_x = (max_x + max_z) * gamma(5);
-        let delta_y = (max_y + max_z) * gamma(5);
-        let delta_e =
-            (F4::splat(gamma(2)) * max_x * max_y + delta_y * max_x + delta_x * max_y) * 2.0;
-        let max_e = max(max(abs(e0), abs(e1)), abs(e2));
-        let delta_t = (F4::splat(gamma(3)) * max_e * max_z + delta_e * max_z + delta_z * max_e)
-            * 3.0
-            * abs(inv_det);
-        hit = hit.and(t.gt(delta_t));
-        (hit, t, [e0 * inv_det, e1 * inv_det, e2 * inv_det])
+        woop4(
+            self.frame(p0),
+            self.frame(p1),
+            self.frame(p2),
+            self.sz,
+            t_max,
+        )
     }
+}
+
+impl Sheared4 {
+    /// The lanes of `lanes` that hit triangle `v` before their `t_max` (bit k for lane
+    /// k), and their distances and barycentric coordinates.
+    #[inline(always)]
+    fn hits(&self, v: [Vec3; 3], lanes: M4, t_max: F4) -> (u32, F4, [F4; 3]) {
+        let (hit, t, b) = self.hit(v[0], v[1], v[2], t_max);
+        (hit.and(lanes).bitmask(), t, b)
+    }
+}
+
+/// The watertight test after the frame, lane by lane ([`super::triangle::ShearedRay::hit`]
+/// from its edge functions on): vertices `a`, `b`, `c` in the ray's frame, its `sz`; the
+/// lanes that hit, their distances and barycentric coordinates. The lanes are four rays
+/// and one triangle, or one ray and four triangles.
+#[inline(always)]
+pub(super) fn woop4(a: [F4; 3], b: [F4; 3], c: [F4; 3], sz: F4, t_max: F4) -> (M4, F4, [F4; 3]) {
+    let zero = F4::splat(0.0);
+    let e0 = b[0] * c[1] - b[1] * c[0];
+    let e1 = c[0] * a[1] - c[1] * a[0];
+    let e2 = a[0] * b[1] - a[1] * b[0];
+    let negative = e0.lt(zero).or(e1.lt(zero)).or(e2.lt(zero));
+    let positive = e0.gt(zero).or(e1.gt(zero)).or(e2.gt(zero));
+    let mut hit = negative.and(positive).xor(M4::ALL);
+    let det = e0 + e1 + e2;
+    hit = hit.and(M4::from_fn(|k| det.0[k] != 0.0 && det.0[k].is_finite()));
+    let (az, bz, cz) = (a[2] * sz, b[2] * sz, c[2] * sz);
+    let t_scaled = e0 * az + e1 * bz + e2 * cz;
+    let bound = t_max * det;
+    let below = det.lt(zero).and(t_scaled.ge(zero).or(t_scaled.lt(bound)));
+    let above = det.gt(zero).and(t_scaled.le(zero).or(t_scaled.gt(bound)));
+    hit = hit.and_not(below.or(above));
+    let inv_det = F4::splat(1.0) / det;
+    let t = t_scaled * inv_det;
+    hit = hit.and(t.le(t_max));
+    let abs = |v: F4| v.map(f64::abs);
+    let max = |u: F4, v: F4| u.zip(v, f64::max);
+    let max_z = max(max(abs(az), abs(bz)), abs(cz));
+    let delta_z = max_z * gamma(3);
+    let max_x = max(max(abs(a[0]), abs(b[0])), abs(c[0]));
+    let max_y = max(max(abs(a[1]), abs(b[1])), abs(c[1]));
+    let delta_x = (max_x + max_z) * gamma(5);
+    let delta_y = (max_y + max_z) * gamma(5);
+    let delta_e = (F4::splat(gamma(2)) * max_x * max_y + delta_y * max_x + delta_x * max_y) * 2.0;
+    let max_e = max(max(abs(e0), abs(e1)), abs(e2));
+    let delta_t = (F4::splat(gamma(3)) * max_e * max_z + delta_e * max_z + delta_z * max_e)
+        * 3.0
+        * abs(inv_det);
+    hit = hit.and(t.gt(delta_t));
+    (hit, t, [e0 * inv_det, e1 * inv_det, e2 * inv_det])
 }
 
 impl Hierarchy {
     /// [`Hierarchy::walk`] for four rays: leaves reached by any lane of `live`, with
-    /// the lanes that reach them.
+    /// the lanes that reach them, nearer children first (by the entry of the first
+    /// lane that enters them).
     #[inline(always)]
     fn walk4(
         &self,
         ray: &Slab4,
         margin: F4,
         live: M4,
-        t_max: &dyn Fn() -> F4,
-        leaf: &mut dyn FnMut(&[u32], M4),
+        t_max: impl Fn() -> F4,
+        mut leaf: impl FnMut(u32, M4),
     ) {
-        if self.nodes.is_empty() {
+        if self.nodes.is_empty() || !live.any() {
             return;
         }
-        let mut stack = [0u32; DEPTH_MAX];
-        let mut top = 0usize;
+        // A child waiting on the stack keeps where each lane enters it, and loses the
+        // lanes whose hit found meanwhile comes before that.
+        let mut stack = Stack::<(u32, M4, F4)>::new();
         let mut node = 0u32;
         loop {
             let n = &self.nodes[node as usize];
-            let lanes = ray.enter(&n.bounds, margin, t_max()).and(live);
-            if lanes.any() {
-                if n.count > 0 {
-                    let first = n.start as usize;
-                    leaf(&self.order[first..first + n.count as usize], lanes);
-                } else {
-                    stack[top] = n.start + 1;
-                    top += 1;
-                    node = n.start;
+            let limit = t_max();
+            let mut hits = [(0.0f64, 0u32, M4::NONE, F4::splat(0.0)); LANES];
+            let mut count = 0;
+            for c in 0..LANES {
+                if n.child[c] == EMPTY {
+                    break;
+                }
+                let (lanes, enter) = ray.enter(&n.child_bounds(c), margin, limit);
+                let lanes = lanes.and(live);
+                if !lanes.any() {
                     continue;
                 }
+                let first = lanes.bitmask().trailing_zeros() as usize;
+                let entry = (enter.0[first], n.child[c], lanes, enter);
+                let mut at = count;
+                while at > 0 && hits[at - 1].0 > entry.0 {
+                    hits[at] = hits[at - 1];
+                    at -= 1;
+                }
+                hits[at] = entry;
+                count += 1;
             }
-            if top == 0 {
-                return;
+            for &(_, child, lanes, enter) in hits[..count].iter().rev() {
+                stack.push((child, lanes, enter));
             }
-            top -= 1;
-            node = stack[top];
+            loop {
+                let Some((child, lanes, enter)) = stack.pop() else {
+                    return;
+                };
+                // Entered exactly at the best distance: still visited, for ties.
+                let lanes = lanes.and(enter.le(t_max()));
+                if !lanes.any() {
+                    continue;
+                }
+                if child & LEAF != 0 {
+                    leaf(child & !LEAF, lanes);
+                    continue;
+                }
+                node = child;
+                break;
+            }
         }
     }
 }
@@ -233,25 +278,14 @@ impl Shapes {
                 });
             }
         };
-        let test_triangle =
-            |v: [Vec3; 3],
-             lanes: M4,
-             object: u32,
-             prim: u32,
-             item: u32,
-             consider: &mut dyn FnMut(usize, (f64, u32, u32, Detail), u32)| {
-                let (hit, t, b) = sheared.hit(v[0], v[1], v[2], t_max());
-                let hit = hit.and(lanes);
-                for k in 0..LANES {
-                    if hit.get(k) {
-                        let bary = [b[0].0[k], b[1].0[k], b[2].0[k]];
-                        consider(k, (t.0[k], object, prim, Detail::Triangle(bary)), item);
-                    }
-                }
-            };
-        self.top
-            .walk4(&slab, margin, rays.active, &t_max, &mut |items, lanes| {
-                for &i in items {
+        self.top.walk4(
+            &slab,
+            margin,
+            rays.active,
+            t_max,
+            #[inline(always)]
+            |leaf, lanes| {
+                for &i in self.top.primitives(leaf) {
                     match &self.items[i as usize] {
                         &Item::Box { object, min, max } => {
                             for k in 0..LANES {
@@ -266,7 +300,13 @@ impl Shapes {
                         }
                         Item::Triangle { object, v } => {
                             let lanes = lanes.and(M4::from_fn(|k| rays.from[k] != *object));
-                            test_triangle(*v, lanes, *object, 0, i, &mut consider);
+                            let (mut bits, t, b) = sheared.hits(*v, lanes, t_max());
+                            while bits != 0 {
+                                let k = bits.trailing_zeros() as usize;
+                                bits &= bits - 1;
+                                let bary = [b[0].0[k], b[1].0[k], b[2].0[k]];
+                                consider(k, (t.0[k], *object, 0, Detail::Triangle(bary)), i);
+                            }
                         }
                         Item::Instance(instance) => {
                             let accel = crate::mesh::accel::MeshAccel::of(&instance.geometry);
@@ -304,31 +344,39 @@ impl Shapes {
                                 &local,
                                 margin,
                                 lanes,
-                                &t_max,
-                                &mut |tris, lanes| {
-                                    for &tri in tris {
-                                        let lanes = lanes.and(M4::from_fn(|k| {
-                                            rays.from[k] != instance.object || rays.prim[k] != tri
+                                t_max,
+                                #[inline(always)]
+                                |leaf, lanes| {
+                                    let block = &instance.blocks[leaf as usize];
+                                    let v = instance.block_vertices(block);
+                                    for k in 0..LANES {
+                                        if !block.live.get(k) {
+                                            break;
+                                        }
+                                        let tri = block.tri[k];
+                                        let lanes = lanes.and(M4::from_fn(|r| {
+                                            rays.from[r] != instance.object || rays.prim[r] != tri
                                         }));
                                         if !lanes.any() {
                                             continue;
                                         }
-                                        let v = Self::triangle_vertices(instance, tri);
-                                        test_triangle(
-                                            v,
-                                            lanes,
-                                            instance.object,
-                                            tri,
-                                            i,
-                                            &mut consider,
-                                        );
+                                        let (mut bits, t, b) =
+                                            sheared.hits(v.map(|p| p.lane(k)), lanes, t_max());
+                                        while bits != 0 {
+                                            let r = bits.trailing_zeros() as usize;
+                                            bits &= bits - 1;
+                                            let bary = [b[0].0[r], b[1].0[r], b[2].0[r]];
+                                            let detail = Detail::Triangle(bary);
+                                            consider(r, (t.0[r], instance.object, tri, detail), i);
+                                        }
                                     }
                                 },
                             );
                         }
                     }
                 }
-            });
+            },
+        );
         *best = best_cell.get();
         found
     }

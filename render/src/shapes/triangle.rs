@@ -17,7 +17,7 @@
 //! only rounding.
 
 use crate::bounds::gamma;
-use crate::vec3::Vec3;
+use crate::vec3::{Vec3, F4, V4};
 
 /// A hit of a triangle: distance and barycentric coordinates (b0 + b1 + b2 = 1).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -87,6 +87,18 @@ impl ShearedRay {
         let q = p - self.origin;
         let (x, y, z) = (get(q, self.kx), get(q, self.ky), get(q, self.kz));
         [x + self.sx * z, y + self.sy * z, z]
+    }
+
+    /// Four vertices in the ray's frame, lane by lane as [`ShearedRay::frame`].
+    #[inline(always)]
+    pub fn frame4(&self, p: V4) -> [F4; 3] {
+        let q = [
+            p.x - F4::splat(self.origin.x),
+            p.y - F4::splat(self.origin.y),
+            p.z - F4::splat(self.origin.z),
+        ];
+        let (x, y, z) = (q[self.kx], q[self.ky], q[self.kz]);
+        [x + z * self.sx, y + z * self.sy, z]
     }
 
     /// The hit of triangle (p0, p1, p2) at a distance in (0, `t_max`], if any.

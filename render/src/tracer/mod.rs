@@ -158,6 +158,11 @@ impl Tracer {
         if let Some(bvh) = &mut self.bvh {
             bvh.set_isa(isa);
         }
+        if let Some(shapes) = &mut self.shapes {
+            std::sync::Arc::get_mut(shapes)
+                .expect("a tracer's shapes are its own until it is shared")
+                .isa = isa;
+        }
         self
     }
 
