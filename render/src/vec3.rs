@@ -115,7 +115,10 @@ impl F4 {
 
     #[inline(always)]
     pub fn map(self, f: impl Fn(f64) -> f64) -> F4 {
-        F4(self.0.map(f))
+        // Written out rather than `array::map`, which is not always inlined, and then
+        // runs without the instruction set of its caller.
+        let a = self.0;
+        F4([f(a[0]), f(a[1]), f(a[2]), f(a[3])])
     }
 
     #[inline(always)]
@@ -253,7 +256,8 @@ macro_rules! lane_op {
             type Output = F4;
             #[inline(always)]
             fn $method(self, o: f64) -> F4 {
-                F4(self.0.map(|a| a $op o))
+                let a = self.0;
+                F4([a[0] $op o, a[1] $op o, a[2] $op o, a[3] $op o])
             }
         }
     };

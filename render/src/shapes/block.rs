@@ -4,15 +4,15 @@
 //!
 //! Each lane runs the operations of [`super::triangle::ShearedRay::hit`] in the same
 //! order, so its hit has the bits the triangle's hit has when tested alone; a lane past
-//! the leaf's count is never a hit. A block holds world-space vertices (a mesh shown
-//! once, or shown as it is in its file) or the file's own (a file several transformed
-//! objects share): these are mapped to world space lane by lane with the operations of
-//! [`Affine::point`], giving the same bits as mapping them one by one.
+//! the leaf's count is never a hit. A block is read from world-space vertices (a mesh
+//! shown once, mapped at load, or shown as it is in its file) or from the file's own (a
+//! file several transformed objects share): these are mapped to world space lane by
+//! lane with the operations of [`Affine::point`], giving the same bits as mapping them
+//! one by one.
 
 use super::packet::woop4;
 use super::triangle::{ShearedRay, TriangleHit};
 use crate::hierarchy::Hierarchy;
-use crate::mesh::MeshData;
 use crate::transform::Affine;
 use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
@@ -21,51 +21,67 @@ use crate::vec3::{Vec3, F4, LANES, M4, V4};
 pub(crate) struct TriBlock {
     /// Vertex j of the triangle in lane k: `v[j].lane(k)`.
     pub v: [V4; 3],
-    /// The triangles (their indices in the file); lanes past `live` repeat the first.
+    /// The triangles (their indices in the file); lanes past `count` repeat the last.
     pub tri: [u32; LANES],
-    /// The lanes that hold a triangle of the leaf.
-    pub live: M4,
+    /// How many lanes hold a triangle of the leaf.
+    pub count: u32,
 }
 
 impl TriBlock {
-    /// One block per leaf of `hierarchy` (whose primitives are triangles of `mesh`), in
-    /// leaf order, with each vertex `map`ped (or as it is in the file).
-    pub fn of_leaves(
+    /// The lanes that hold a triangle of the leaf.
+    #[inline(always)]
+    pub fn live(&self) -> M4 {
+        M4::first(self.count as usize)
+    }
+
+    /// The triangles of leaf `leaf` of `hierarchy` (whose primitives are `triangles`,
+    /// indices into `positions`), read from the mesh as they are tested: a copy per
+    /// leaf would hold the vertices again four times over, in memory the traversal
+    /// would then miss in the caches.
+    #[inline(always)]
+    pub fn gather(
         hierarchy: &Hierarchy,
-        mesh: &MeshData,
-        map: impl Fn([f64; 3]) -> Vec3,
-    ) -> Vec<TriBlock> {
-        (0..hierarchy.leaves.len() as u32)
-            .map(|leaf| {
-                let tris = hierarchy.primitives(leaf);
-                let tri: [u32; LANES] = std::array::from_fn(|k| tris[k.min(tris.len() - 1)]);
-                let corners = tri
-                    .map(|t| mesh.triangles[t as usize].map(|i| map(mesh.positions[i as usize])));
-                let v = std::array::from_fn(|j| V4 {
-                    x: F4(corners.map(|c| c[j].x)),
-                    y: F4(corners.map(|c| c[j].y)),
-                    z: F4(corners.map(|c| c[j].z)),
-                });
-                TriBlock {
-                    v,
-                    tri,
-                    live: M4::first(tris.len()),
-                }
-            })
-            .collect()
+        leaf: u32,
+        triangles: &[[u32; 3]],
+        positions: &[[f64; 3]],
+    ) -> TriBlock {
+        let tris = hierarchy.primitives(leaf);
+        let count = tris.len();
+        let mut block = TriBlock {
+            v: [V4::splat(Vec3::ZERO); 3],
+            tri: [0; LANES],
+            count: count as u32,
+        };
+        for k in 0..LANES {
+            let t = tris[k.min(count - 1)];
+            block.tri[k] = t;
+            let corners = triangles[t as usize];
+            for j in 0..3 {
+                let p = positions[corners[j] as usize];
+                block.v[j].x.0[k] = p[0];
+                block.v[j].y.0[k] = p[1];
+                block.v[j].z.0[k] = p[2];
+            }
+        }
+        block
     }
 
     /// The vertices mapped by `a`, lane by lane as [`Affine::point`] maps one.
     #[inline(always)]
     pub fn mapped(&self, a: &Affine) -> [V4; 3] {
-        self.v.map(|p| {
-            let row = |r: usize| p.x * a.a[r][0] + p.y * a.a[r][1] + p.z * a.a[r][2] + a.t[r];
-            V4 {
-                x: row(0),
-                y: row(1),
-                z: row(2),
-            }
-        })
+        [map(&self.v[0], a), map(&self.v[1], a), map(&self.v[2], a)]
+    }
+}
+
+/// Four points mapped by `a` (written out, without closures, so that it is compiled
+/// with the instruction set of the code that calls it).
+#[inline(always)]
+fn map(p: &V4, a: &Affine) -> V4 {
+    let m = &a.a;
+    V4 {
+        x: p.x * m[0][0] + p.y * m[0][1] + p.z * m[0][2] + a.t[0],
+        y: p.x * m[1][0] + p.y * m[1][1] + p.z * m[1][2] + a.t[1],
+        z: p.x * m[2][0] + p.y * m[2][1] + p.z * m[2][2] + a.t[2],
     }
 }
 
@@ -75,7 +91,7 @@ impl ShearedRay {
     /// coordinates.
     #[inline(always)]
     pub fn hit4(&self, v: &[V4; 3], t_max: f64) -> (M4, F4, [F4; 3]) {
-        let [a, b, c] = v.map(|p| self.frame4(p));
+        let (a, b, c) = (self.frame4(v[0]), self.frame4(v[1]), self.frame4(v[2]));
         woop4(a, b, c, F4::splat(self.shear().2), F4::splat(t_max))
     }
 

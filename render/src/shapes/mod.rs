@@ -35,7 +35,7 @@ use crate::mesh::{MeshGeometry, NO_NORMAL};
 use crate::scene::{Scene, Shape};
 use crate::simd::{isa_dispatch, Isa};
 use crate::transform::{map_normal, Affine};
-use crate::vec3::{Vec3, F4, M4, V4};
+use crate::vec3::{Vec3, F4, M4};
 
 /// The factor of ε in the margins by which boxes are widened: each error bounded is a
 /// few roundings of terms no larger than those the margins sum.
@@ -77,9 +77,10 @@ struct Instance {
     /// The map into the file's coordinates, for walking its hierarchy.
     inverse: Affine,
     identity: bool,
-    /// The triangles of each leaf of the file's hierarchy, in world space, or in the
-    /// file's coordinates when `mapped` (a file several transformed objects share).
-    blocks: Arc<Vec<TriBlock>>,
+    /// The vertices mapped to world space once, when no other object shares the file.
+    world: Option<Vec<[f64; 3]>>,
+    /// Whether vertices are mapped as they are tested (a file several transformed
+    /// objects share).
     mapped: bool,
     /// cof(A), which maps normals.
     normal_matrix: [[f64; 3]; 3],
@@ -98,14 +99,16 @@ enum Candidate<'a> {
 }
 
 impl Instance {
-    /// A block's vertices in world space.
+    /// The triangles of leaf `leaf` of the file's hierarchy, in world space.
     #[inline(always)]
-    fn block_vertices(&self, block: &TriBlock) -> [V4; 3] {
+    fn block(&self, hierarchy: &Hierarchy, leaf: u32) -> TriBlock {
+        let data = &self.geometry.data;
+        let positions = self.world.as_deref().unwrap_or(&data.positions);
+        let mut block = TriBlock::gather(hierarchy, leaf, &data.triangles, positions);
         if self.mapped {
-            block.mapped(&self.transform)
-        } else {
-            block.v
+            block.v = block.mapped(&self.transform);
         }
+        block
     }
 }
 
@@ -173,7 +176,6 @@ impl Shapes {
         }
         let mut items = Vec::new();
         let mut boxes = Vec::new();
-        let mut file_blocks: HashMap<*const MeshGeometry, Arc<Vec<TriBlock>>> = HashMap::new();
         for (index, object) in scene.objects.iter().enumerate() {
             let object_index = index as u32;
             match &object.shape {
@@ -213,25 +215,19 @@ impl Shapes {
                     let identity = transform.is_identity();
                     let shared = uses[&Arc::as_ptr(&geometry)] > 1;
                     // A file shown once is mapped to world space here, once; one several
-                    // objects show keeps one copy in its own coordinates, mapped as it
-                    // is tested.
+                    // transformed objects show is mapped as it is tested.
                     let mapped = !identity && shared;
-                    let blocks = if identity || shared {
-                        file_blocks
-                            .entry(Arc::as_ptr(&geometry))
-                            .or_insert_with(|| {
-                                Arc::new(TriBlock::of_leaves(
-                                    &accel.hierarchy,
-                                    &geometry.data,
-                                    |p| Vec3::new(p[0], p[1], p[2]),
-                                ))
+                    let world = (!identity && !shared).then(|| {
+                        geometry
+                            .data
+                            .positions
+                            .iter()
+                            .map(|&p| {
+                                let w = transform.point(p);
+                                [w.x, w.y, w.z]
                             })
-                            .clone()
-                    } else {
-                        Arc::new(TriBlock::of_leaves(&accel.hierarchy, &geometry.data, |p| {
-                            transform.point(p)
-                        }))
-                    };
+                            .collect()
+                    });
                     let t_norm = transform.t.iter().fold(0.0f64, |m, x| m.max(x.abs()));
                     let world_size = transform.norm() * local.magnitude() + t_norm;
                     let mut b = Bounds::EMPTY;
@@ -247,7 +243,7 @@ impl Shapes {
                         transform,
                         inverse,
                         identity,
-                        blocks,
+                        world,
                         mapped,
                         normal_matrix: transform.normal_matrix(),
                         smooth: m.smooth,
@@ -294,7 +290,10 @@ impl Shapes {
     /// Vertex `i` of an instance in world space.
     #[inline(always)]
     fn world_vertex(instance: &Instance, i: u32) -> Vec3 {
-        if instance.identity {
+        if let Some(w) = &instance.world {
+            let p = w[i as usize];
+            Vec3::new(p[0], p[1], p[2])
+        } else if instance.identity {
             vertex(&instance.geometry.data, i)
         } else {
             instance
@@ -304,7 +303,12 @@ impl Shapes {
     }
 
     fn triangle_vertices(instance: &Instance, tri: u32) -> [Vec3; 3] {
-        instance.geometry.data.triangles[tri as usize].map(|i| Self::world_vertex(instance, i))
+        let [a, b, c] = instance.geometry.data.triangles[tri as usize];
+        [
+            Self::world_vertex(instance, a),
+            Self::world_vertex(instance, b),
+            Self::world_vertex(instance, c),
+        ]
     }
 
     /// Visits every primitive the ray may meet before `limit()`, a leaf's triangles of
@@ -356,8 +360,8 @@ impl Shapes {
                                 &limit,
                                 #[inline(always)]
                                 |leaf, _| {
-                                    let block = &instance.blocks[leaf as usize];
-                                    stop = visit(Candidate::Block(i, instance, block));
+                                    let block = instance.block(&accel.hierarchy, leaf);
+                                    stop = visit(Candidate::Block(i, instance, &block));
                                     stop
                                 },
                             );
@@ -450,7 +454,7 @@ impl Shapes {
                     }
                     Candidate::Block(i, instance, block) => {
                         let lanes = Self::lanes_not_from(instance, block, from, from_prim);
-                        let (hit, t, b) = sheared.hit4(&instance.block_vertices(block), t_max);
+                        let (hit, t, b) = sheared.hit4(&block.v, t_max);
                         let mut bits = hit.and(lanes).bitmask();
                         while bits != 0 {
                             let k = bits.trailing_zeros() as usize;
@@ -497,7 +501,7 @@ impl Shapes {
                     }
                     Candidate::Block(_, instance, block) => {
                         let lanes = Self::lanes_not_from(instance, block, from, from_prim);
-                        let (hit, t, _) = sheared.hit4(&instance.block_vertices(block), limit);
+                        let (hit, t, _) = sheared.hit4(&block.v, limit);
                         hit.and(lanes).and(t.lt(F4::splat(limit))).any()
                     }
                 };
@@ -511,10 +515,10 @@ impl Shapes {
     #[inline(always)]
     fn lanes_not_from(instance: &Instance, block: &TriBlock, from: u32, from_prim: u32) -> M4 {
         if instance.object != from {
-            return block.live;
+            return block.live();
         }
         block
-            .live
+            .live()
             .and_not(M4::from_fn(|k| block.tri[k] == from_prim))
     }
 
@@ -543,9 +547,8 @@ impl Shapes {
                         }
                     }
                     Candidate::Block(_, instance, block) => {
-                        let v = instance.block_vertices(block);
-                        let (hit, t, _) = sheared.hit4(&v, f64::INFINITY);
-                        let mut bits = hit.and(block.live).bitmask();
+                        let (hit, t, _) = sheared.hit4(&block.v, f64::INFINITY);
+                        let mut bits = hit.and(block.live()).bitmask();
                         while bits != 0 {
                             let k = bits.trailing_zeros() as usize;
                             bits &= bits - 1;

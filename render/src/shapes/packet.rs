@@ -347,10 +347,10 @@ impl Shapes {
                                 t_max,
                                 #[inline(always)]
                                 |leaf, lanes| {
-                                    let block = &instance.blocks[leaf as usize];
-                                    let v = instance.block_vertices(block);
+                                    let block = instance.block(&accel.hierarchy, leaf);
+                                    let v = block.v;
                                     for k in 0..LANES {
-                                        if !block.live.get(k) {
+                                        if !block.live().get(k) {
                                             break;
                                         }
                                         let tri = block.tri[k];
@@ -360,8 +360,11 @@ impl Shapes {
                                         if !lanes.any() {
                                             continue;
                                         }
-                                        let (mut bits, t, b) =
-                                            sheared.hits(v.map(|p| p.lane(k)), lanes, t_max());
+                                        let (mut bits, t, b) = sheared.hits(
+                                            [v[0].lane(k), v[1].lane(k), v[2].lane(k)],
+                                            lanes,
+                                            t_max(),
+                                        );
                                         while bits != 0 {
                                             let r = bits.trailing_zeros() as usize;
                                             bits &= bits - 1;
