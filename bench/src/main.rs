@@ -105,6 +105,26 @@ struct Args {
     /// Renderer suite: runs of each program on each case [default: 7, 2 with --quick].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100))]
     reps: Option<u32>,
+    /// Renderer suite: the Embree-based mesh anchor (built from
+    /// embree_whitted_mesh.cpp), run with `--spheres user --robust` on the mesh scenes
+    /// and on the generated meshes of the parse and build sweep.
+    #[arg(long, value_name = "PATH")]
+    anchor_mesh: Option<PathBuf>,
+    /// Renderer suite: the directory of the mesh scenes (bunny, armadillo, elephant,
+    /// dragon, bunny64: a JSON scene each, beside their PLY files) [default:
+    /// ../shared/mesh-scenes beside the source tree, if it is there].
+    #[arg(long, value_name = "DIR")]
+    mesh_scenes: Option<PathBuf>,
+    /// Renderer suite: the largest generated mesh of the parse and build sweep, in
+    /// triangles (the sweep goes 1,000, 10,000, ... up to it) [default: 10,000,000,
+    /// 100,000 with --quick].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1_000..=20_000_000))]
+    mesh_max_triangles: Option<u64>,
+    /// Renderer suite: run only one half, spheres (the sphere cases and the scaling
+    /// sweeps) or meshes (the mesh scenes and the parse and build sweep) [default:
+    /// both].
+    #[arg(long, value_enum, value_name = "PART")]
+    only: Option<renderer::Part>,
 }
 
 fn main() -> ExitCode {
@@ -154,9 +174,23 @@ fn options(a: Args) -> Result<Options> {
             anchor: a.anchor,
             limit_bench: a.limit_bench,
             seed_cpp: a.seed_cpp,
+            anchor_mesh: a.anchor_mesh,
         },
         reps: a.reps.unwrap_or(if a.quick { 2 } else { 7 }),
+        mesh_scenes: a.mesh_scenes.or_else(default_mesh_scenes),
+        mesh_max_triangles: a
+            .mesh_max_triangles
+            .map_or(if a.quick { 100_000 } else { 10_000_000 }, |n| n as usize),
+        renderer_only: a.only,
     })
+}
+
+/// `../shared/mesh-scenes` beside the source tree this was built from, where the
+/// project keeps the mesh scenes it measures, if it is there.
+fn default_mesh_scenes() -> Option<PathBuf> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).parent()?;
+    let dir = workspace.join("../shared/mesh-scenes");
+    dir.is_dir().then(|| dir.canonicalize().unwrap_or(dir))
 }
 
 /// `tessera` in this executable's directory: where `cargo build` puts both.
@@ -226,6 +260,12 @@ pub struct Options {
     pub external: renderer::External,
     /// Runs of each program on each case in the renderer suite.
     pub reps: u32,
+    /// The renderer suite's mesh scenes, `None` when not given and not found.
+    pub mesh_scenes: Option<PathBuf>,
+    /// The largest generated mesh of the renderer suite's parse and build sweep.
+    pub mesh_max_triangles: usize,
+    /// The renderer suite's one half to run, `None` for both.
+    pub renderer_only: Option<renderer::Part>,
 }
 
 pub use renderer::External;
