@@ -42,7 +42,9 @@ use render::limits::MAX_AA;
         processes against external programs given by path (--anchor, --limit-bench, \
         --seed-cpp; a column without its program says \"not given\") and sweeps \
         pixels, objects, lights and mirror depth (renderer.md, renderer.csv, \
-        renderer-scaling.md/.csv/.png). The farm runs on the tessera executable beside \
+        renderer-scaling.md/.csv/.png), and with --anchor-mesh and --mesh-scenes the mesh \
+        scenes (in renderer.md and renderer.csv) and parse and build time against \
+        triangles (renderer-mesh-build.md/.csv/.png). The farm runs on the tessera executable beside \
         this one (--tessera to give another). The static split (scaling, and so all) \
         slows one worker through a cgroup, which needs root; the liveness suite freezes \
         a worker's render threads with ptrace (liveness.md, liveness.csv), which needs \
@@ -51,7 +53,9 @@ use render::limits::MAX_AA;
         cargo build --release && cargo run --release -p tessera-bench -- --out bench-results\n  \
         cargo run --release -p tessera-bench -- --suite error --quick --out /tmp/check\n  \
         target/release/tessera-bench --suite renderer --anchor ./ew --limit-bench ./limit_bench \\\n      \
-        --seed-cpp ./seed_structured --out docs/perf"
+        --seed-cpp ./seed_structured --out docs/perf\n  \
+        target/release/tessera-bench --suite renderer --only meshes --anchor-mesh ./ewm \\\n      \
+        --mesh-scenes ../shared/mesh-scenes --out /tmp/meshes"
 )]
 struct Args {
     /// Which measurements to make.
@@ -218,8 +222,13 @@ pub enum Suite {
     Verification,
     /// The whole `tessera render` process against external programs given by path
     /// (an Embree-based anchor, the SIMD floor, the seed's structure in C++) on six
-    /// cases, and time against pixels, objects, lights and mirror depth with log-log
-    /// slopes. About 10 minutes with the defaults, so not part of `all`.
+    /// sphere cases, and time against pixels, objects, lights and mirror depth with
+    /// log-log slopes; then the five mesh scenes (--mesh-scenes) at 1 and 2 threads
+    /// against the Embree mesh anchor (--anchor-mesh: times, speed-ups, peak memory,
+    /// pixels that differ), and parse and build time of generated meshes of 1,000 to
+    /// 10 million triangles, Tessera's and the anchor's, with log-log slopes. About 10
+    /// minutes for the sphere half and 3 to 5 for the mesh half with the defaults
+    /// (--only to run one), so not part of `all`.
     Renderer,
     /// Sequence jobs: a 120-frame orbit on a local farm of two one-thread workers
     /// against `tessera render --frames` with two threads (throughput, overhead per

@@ -8,11 +8,14 @@
 //! - **Seed structure** (`--seed-cpp`): `render/benches/seed_structured.cpp`, the seed
 //!   program's design in C++; Tessera's whole process on the seed frame is reported as
 //!   a multiple of its whole process.
+//! - **Mesh anchor** (`--anchor-mesh`): the anchor extended to meshes, on the mesh
+//!   scenes and on generated meshes of growing size (see [`mesh`]).
 //!
 //! Every program is timed as a whole process (start to exit, wall clock), each case run
 //! `reps` times with the programs alternating, median and minimum reported. A program
 //! not given is a column saying so. The scaling half sweeps pixels, objects, lights and
 //! mirror depth in process, one thread, and fits the log-log slope of each curve.
+//! `--only` runs the sphere half (the cases above and the sweeps) or the mesh half.
 
 use std::fmt::Write as _;
 use std::io::Read as _;

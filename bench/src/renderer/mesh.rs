@@ -124,7 +124,10 @@ pub(super) fn cases_markdown(opts: &Options, results: &[MeshResult]) -> String {
         let (differing, largest) = match r.anchor_image {
             None => (NOT_GIVEN.to_owned(), NOT_GIVEN.to_owned()),
             Some(diff) => match diff.counts() {
-                Some((n, level)) => (thousands(n), format!("{level} levels")),
+                Some((n, level)) => (
+                    thousands(n),
+                    format!("{level} level{}", if level == 1 { "" } else { "s" }),
+                ),
                 None => (diff.to_string(), "–".into()),
             },
         };
@@ -216,7 +219,7 @@ fn sweep_sizes(max: usize) -> Vec<usize> {
 fn grid_cells(triangles: usize) -> (usize, usize) {
     let cells = (triangles / 2).max(1);
     let mut rows = (cells as f64).sqrt() as usize;
-    while rows > 1 && cells % rows != 0 {
+    while rows > 1 && !cells.is_multiple_of(rows) {
         rows -= 1;
     }
     (cells / rows.max(1), rows.max(1))
@@ -426,11 +429,14 @@ fn curves(points: &[BuildPoint]) -> Vec<(&'static str, Vec<(f64, f64)>)> {
     ]
 }
 
-/// Triangles per second, in millions.
+/// Triangles per second, in millions; "–" for a time below the anchor's resolution
+/// (it prints milliseconds, so a small mesh's parse may read 0).
 fn per_second(triangles: usize, seconds: Option<f64>) -> String {
-    seconds.map_or(NOT_GIVEN.to_owned(), |s| {
-        format!("{:.2} M/s", triangles as f64 / s / 1e6)
-    })
+    match seconds {
+        None => NOT_GIVEN.to_owned(),
+        Some(s) if s <= 0.0 => "–".to_owned(),
+        Some(s) => format!("{:.2} M/s", triangles as f64 / s / 1e6),
+    }
 }
 
 fn build_markdown(opts: &Options, runs: u32, points: &[BuildPoint]) -> String {
@@ -642,6 +648,13 @@ mod tests {
         // Rounds 1 and 2 only: 2.0 and 1.8.
         let speedup = paired_ratio_of(&one, &two, |r| r.tracing).expect("two rounds");
         assert!((speedup - 1.9).abs() < 1e-12, "{speedup}");
+    }
+
+    #[test]
+    fn throughput_is_in_millions_and_none_below_the_resolution() {
+        assert_eq!(per_second(2_000_000, Some(0.5)), "4.00 M/s");
+        assert_eq!(per_second(1_000, Some(0.0)), "–");
+        assert_eq!(per_second(1_000, None), NOT_GIVEN);
     }
 
     #[test]
