@@ -42,7 +42,9 @@ use render::limits::MAX_AA;
         processes against external programs given by path (--anchor, --limit-bench, \
         --seed-cpp; a column without its program says \"not given\") and sweeps \
         pixels, objects, lights and mirror depth (renderer.md, renderer.csv, \
-        renderer-scaling.md/.csv/.png). The farm runs on the tessera executable beside \
+        renderer-scaling.md/.csv/.png), and with --anchor-mesh and --mesh-scenes the mesh \
+        scenes (in renderer.md and renderer.csv) and parse and build time against \
+        triangles (renderer-mesh-build.md/.csv/.png). The farm runs on the tessera executable beside \
         this one (--tessera to give another). The static split (scaling, and so all) \
         slows one worker through a cgroup, which needs root; the liveness suite freezes \
         a worker's render threads with ptrace (liveness.md, liveness.csv), which needs \
@@ -51,7 +53,9 @@ use render::limits::MAX_AA;
         cargo build --release && cargo run --release -p tessera-bench -- --out bench-results\n  \
         cargo run --release -p tessera-bench -- --suite error --quick --out /tmp/check\n  \
         target/release/tessera-bench --suite renderer --anchor ./ew --limit-bench ./limit_bench \\\n      \
-        --seed-cpp ./seed_structured --out docs/perf"
+        --seed-cpp ./seed_structured --out docs/perf\n  \
+        target/release/tessera-bench --suite renderer --only meshes --anchor-mesh ./ewm \\\n      \
+        --mesh-scenes ../shared/mesh-scenes --out /tmp/meshes"
 )]
 struct Args {
     /// Which measurements to make.
@@ -105,6 +109,26 @@ struct Args {
     /// Renderer suite: runs of each program on each case [default: 7, 2 with --quick].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100))]
     reps: Option<u32>,
+    /// Renderer suite: the Embree-based mesh anchor (built from
+    /// embree_whitted_mesh.cpp), run with `--spheres user --robust` on the mesh scenes
+    /// and on the generated meshes of the parse and build sweep.
+    #[arg(long, value_name = "PATH")]
+    anchor_mesh: Option<PathBuf>,
+    /// Renderer suite: the directory of the mesh scenes (bunny, armadillo, elephant,
+    /// dragon, bunny64: a JSON scene each, beside their PLY files) [default:
+    /// ../shared/mesh-scenes beside the source tree, if it is there].
+    #[arg(long, value_name = "DIR")]
+    mesh_scenes: Option<PathBuf>,
+    /// Renderer suite: the largest generated mesh of the parse and build sweep, in
+    /// triangles (the sweep goes 1,000, 10,000, ... up to it) [default: 10,000,000,
+    /// 100,000 with --quick].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1_000..=20_000_000))]
+    mesh_max_triangles: Option<u64>,
+    /// Renderer suite: run only one half, spheres (the sphere cases and the scaling
+    /// sweeps) or meshes (the mesh scenes and the parse and build sweep) [default:
+    /// both].
+    #[arg(long, value_enum, value_name = "PART")]
+    only: Option<renderer::Part>,
 }
 
 fn main() -> ExitCode {
@@ -154,9 +178,23 @@ fn options(a: Args) -> Result<Options> {
             anchor: a.anchor,
             limit_bench: a.limit_bench,
             seed_cpp: a.seed_cpp,
+            anchor_mesh: a.anchor_mesh,
         },
         reps: a.reps.unwrap_or(if a.quick { 2 } else { 7 }),
+        mesh_scenes: a.mesh_scenes.or_else(default_mesh_scenes),
+        mesh_max_triangles: a
+            .mesh_max_triangles
+            .map_or(if a.quick { 100_000 } else { 10_000_000 }, |n| n as usize),
+        renderer_only: a.only,
     })
+}
+
+/// `../shared/mesh-scenes` beside the source tree this was built from, where the
+/// project keeps the mesh scenes it measures, if it is there.
+fn default_mesh_scenes() -> Option<PathBuf> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).parent()?;
+    let dir = workspace.join("../shared/mesh-scenes");
+    dir.is_dir().then(|| dir.canonicalize().unwrap_or(dir))
 }
 
 /// `tessera` in this executable's directory: where `cargo build` puts both.
@@ -184,8 +222,13 @@ pub enum Suite {
     Verification,
     /// The whole `tessera render` process against external programs given by path
     /// (an Embree-based anchor, the SIMD floor, the seed's structure in C++) on six
-    /// cases, and time against pixels, objects, lights and mirror depth with log-log
-    /// slopes. About 10 minutes with the defaults, so not part of `all`.
+    /// sphere cases, and time against pixels, objects, lights and mirror depth with
+    /// log-log slopes; then the five mesh scenes (--mesh-scenes) at 1 and 2 threads
+    /// against the Embree mesh anchor (--anchor-mesh: times, speed-ups, peak memory,
+    /// pixels that differ), and parse and build time of generated meshes of 1,000 to
+    /// 10 million triangles, Tessera's and the anchor's, with log-log slopes. About 10
+    /// minutes for the sphere half and 3 to 5 for the mesh half with the defaults
+    /// (--only to run one), so not part of `all`.
     Renderer,
     /// Sequence jobs: a 120-frame orbit on a local farm of two one-thread workers
     /// against `tessera render --frames` with two threads (throughput, overhead per
@@ -226,6 +269,12 @@ pub struct Options {
     pub external: renderer::External,
     /// Runs of each program on each case in the renderer suite.
     pub reps: u32,
+    /// The renderer suite's mesh scenes, `None` when not given and not found.
+    pub mesh_scenes: Option<PathBuf>,
+    /// The largest generated mesh of the renderer suite's parse and build sweep.
+    pub mesh_max_triangles: usize,
+    /// The renderer suite's one half to run, `None` for both.
+    pub renderer_only: Option<renderer::Part>,
 }
 
 pub use renderer::External;

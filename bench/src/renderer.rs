@@ -8,11 +8,14 @@
 //! - **Seed structure** (`--seed-cpp`): `render/benches/seed_structured.cpp`, the seed
 //!   program's design in C++; Tessera's whole process on the seed frame is reported as
 //!   a multiple of its whole process.
+//! - **Mesh anchor** (`--anchor-mesh`): the anchor extended to meshes, on the mesh
+//!   scenes and on generated meshes of growing size (see [`mesh`]).
 //!
 //! Every program is timed as a whole process (start to exit, wall clock), each case run
 //! `reps` times with the programs alternating, median and minimum reported. A program
 //! not given is a column saying so. The scaling half sweeps pixels, objects, lights and
 //! mirror depth in process, one thread, and fits the log-log slope of each curve.
+//! `--only` runs the sphere half (the cases above and the sweeps) or the mesh half.
 
 use std::fmt::Write as _;
 use std::io::Read as _;
@@ -27,6 +30,8 @@ use super::scenes::{self, thousands};
 use super::Options;
 use crate::plot::{Panel, Series};
 
+mod mesh;
+
 /// The external programs, each optional.
 #[derive(Clone, Debug, Default)]
 pub struct External {
@@ -38,6 +43,30 @@ pub struct External {
     pub limit_bench: Option<PathBuf>,
     /// `render/benches/seed_structured.cpp`, built.
     pub seed_cpp: Option<PathBuf>,
+    /// The Embree-based tracer of meshes (`embree_whitted_mesh.cpp`): the anchor's
+    /// arguments and `--robust`, Embree's watertight mode, the fair match for a
+    /// watertight renderer.
+    pub anchor_mesh: Option<PathBuf>,
+}
+
+/// Which half of the suite to run: both unless one is asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Part {
+    /// The sphere cases against the anchor, the floor and the seed structure, and the
+    /// scaling sweeps.
+    Spheres,
+    /// The mesh scenes against the mesh anchor, and parse and build time against
+    /// triangles.
+    Meshes,
+}
+
+/// Which anchor a case is run against, and how.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum AnchorKind {
+    /// `--anchor`, with `--spheres user`.
+    Spheres,
+    /// `--anchor-mesh`, with `--spheres user --robust`.
+    Meshes,
 }
 
 const NOT_GIVEN: &str = "not given";
@@ -55,6 +84,7 @@ struct Case {
     aa: u32,
     /// The seed frame, where the floor and the seed structure are measured.
     seed_frame: bool,
+    anchor: AnchorKind,
 }
 
 /// One run of one program.
@@ -100,7 +130,18 @@ impl Runs {
 /// after the other see about the same load, so on a shared machine this is steadier
 /// than the ratio of the two medians.
 fn paired_ratio(a: &Runs, b: &Runs) -> Option<f64> {
-    median(a.0.iter().zip(&b.0).map(|(x, y)| x.wall / y.wall).collect())
+    paired_ratio_of(a, b, |r| Some(r.wall))
+}
+
+/// [`paired_ratio`] of another time of the runs (the tracing time they print), over the
+/// rounds where both runs have it.
+fn paired_ratio_of(a: &Runs, b: &Runs, f: impl Fn(&Run) -> Option<f64>) -> Option<f64> {
+    median(
+        a.0.iter()
+            .zip(&b.0)
+            .filter_map(|(x, y)| Some(f(x)? / f(y)?))
+            .collect(),
+    )
 }
 
 /// The median, `None` for no values.
@@ -125,7 +166,7 @@ struct CaseResult {
     anchor: Option<Runs>,
     seed_cpp: Option<Runs>,
     /// The anchor's image against Tessera's (1 thread).
-    anchor_image: Option<String>,
+    anchor_image: Option<ImageDiff>,
     /// Tessera's 2-thread image against its 1-thread image.
     threads_image: String,
     /// The seed structure's image against Tessera's.
@@ -147,25 +188,48 @@ impl Floor {
     }
 }
 
-/// Runs the suite: `renderer.md`, `renderer.csv`, `renderer-scaling.{md,csv,png}`.
+/// Runs the suite: `renderer.md`, `renderer.csv`, `renderer-scaling.{md,csv,png}` for
+/// the sphere half, `renderer-mesh-build.{md,csv,png}` for the mesh half (whose cases
+/// go into `renderer.md` and `renderer.csv` beside the sphere cases).
 pub fn run(opts: &Options, out: &Path) -> Result<()> {
     let load = load_average();
-    let tessera = &opts.tessera;
+    let spheres = opts.renderer_only.is_none_or(|p| p == Part::Spheres);
+    let meshes = opts.renderer_only.is_none_or(|p| p == Part::Meshes);
     let dir = tempfile::tempdir().context("cannot make a temporary directory")?;
-    let cases = write_cases(opts, dir.path())?;
-    let floor = match &opts.external.limit_bench {
-        Some(path) => Some(run_limit_bench(path)?),
-        None => None,
-    };
-    let mut results = Vec::new();
-    for case in cases {
-        results.push(run_case(opts, tessera, case, dir.path())?);
+    let mut md = header_markdown(opts, &load);
+    let mut sphere_results = Vec::new();
+    if spheres {
+        let tessera = &opts.tessera;
+        let cases = write_cases(opts, dir.path())?;
+        let floor = match &opts.external.limit_bench {
+            Some(path) => Some(run_limit_bench(path)?),
+            None => None,
+        };
+        for case in cases {
+            sphere_results.push(run_case(opts, tessera, case, dir.path())?);
+        }
+        md.push_str(&spheres_markdown(&sphere_results, floor));
     }
-    let md = comparison_markdown(opts, &results, floor, &load);
+    let mut mesh_results = Vec::new();
+    if meshes {
+        mesh_results = mesh::run_cases(opts, dir.path())?;
+        md.push_str(&mesh::cases_markdown(opts, &mesh_results));
+    }
     std::fs::write(out.join("renderer.md"), md)?;
-    std::fs::write(out.join("renderer.csv"), comparison_csv(&results))?;
-    eprintln!("renderer: comparison written; now the scaling sweeps");
-    write_scaling(opts, out)
+    let all: Vec<&CaseResult> = sphere_results
+        .iter()
+        .chain(mesh_results.iter().map(|m| &m.result))
+        .collect();
+    std::fs::write(out.join("renderer.csv"), comparison_csv(&all))?;
+    if spheres {
+        eprintln!("renderer: comparison written; now the scaling sweeps");
+        write_scaling(opts, out)?;
+    }
+    if meshes {
+        eprintln!("renderer: mesh cases written; now parse and build against triangles");
+        mesh::write_build_scaling(opts, out)?;
+    }
+    Ok(())
 }
 
 /// Writes the cases' scene files once into `dir`.
@@ -189,6 +253,7 @@ fn write_cases(opts: &Options, dir: &Path) -> Result<Vec<Case>> {
             height: small.1,
             aa: 2,
             seed_frame: true,
+            anchor: AnchorKind::Spheres,
         },
         Case {
             name: format!("seed {}×{} aa 4", large.0, large.1),
@@ -197,6 +262,7 @@ fn write_cases(opts: &Options, dir: &Path) -> Result<Vec<Case>> {
             height: large.1,
             aa: 4,
             seed_frame: false,
+            anchor: AnchorKind::Spheres,
         },
     ];
     let counts: &[usize] = if opts.quick {
@@ -221,6 +287,7 @@ fn write_cases(opts: &Options, dir: &Path) -> Result<Vec<Case>> {
             height: small.1,
             aa: 1,
             seed_frame: false,
+            anchor: AnchorKind::Spheres,
         });
     }
     Ok(cases)
@@ -248,11 +315,18 @@ fn run_case(opts: &Options, tessera: &Path, case: Case, dir: &Path) -> Result<Ca
         cmd
     };
     let anchor_png = dir.join("anchor.png");
-    let anchor_cmd = opts.external.anchor.as_ref().map(|path| {
+    let anchor_path = match case.anchor {
+        AnchorKind::Spheres => &opts.external.anchor,
+        AnchorKind::Meshes => &opts.external.anchor_mesh,
+    };
+    let anchor_cmd = anchor_path.as_ref().map(|path| {
         let mut cmd = Command::new(path);
         cmd.arg(&case.scene).arg("-o").arg(&anchor_png);
         size(&mut cmd);
         cmd.args(["--spheres", "user", "--threads", "1"]);
+        if case.anchor == AnchorKind::Meshes {
+            cmd.arg("--robust");
+        }
         cmd
     });
     let seed_ppm = dir.join("seed-structured.ppm");
@@ -302,7 +376,7 @@ fn run_case(opts: &Options, tessera: &Path, case: Case, dir: &Path) -> Result<Ca
     let ours = decode(&tessera_png(1))?;
     let threads_image = compare(&ours, &decode(&tessera_png(2))?);
     let anchor_image = match anchor {
-        Some(_) => Some(compare(&ours, &decode(&anchor_png)?)),
+        Some(_) => Some(difference(&ours, &decode(&anchor_png)?)),
         None => None,
     };
     let seed_cpp_image = match seed_cpp {
@@ -567,37 +641,87 @@ fn decode_ppm(data: &[u8]) -> Result<Rgb> {
     })
 }
 
-/// `identical`, or how many pixels differ and by how much.
-fn compare(a: &Rgb, b: &Rgb) -> String {
+/// How two images differ: kept as numbers, for the CSV, and said in words by
+/// `Display` for the tables.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ImageDiff {
+    Sizes {
+        a: (u32, u32),
+        b: (u32, u32),
+    },
+    /// Pixels with any channel different, and the largest difference of a channel
+    /// (levels of 255).
+    Pixels {
+        differing: u64,
+        max_level: u8,
+    },
+}
+
+impl ImageDiff {
+    /// The differing pixels and the largest channel difference, `None` for images of
+    /// different sizes.
+    fn counts(self) -> Option<(u64, u8)> {
+        match self {
+            ImageDiff::Sizes { .. } => None,
+            ImageDiff::Pixels {
+                differing,
+                max_level,
+            } => Some((differing, max_level)),
+        }
+    }
+}
+
+impl std::fmt::Display for ImageDiff {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            ImageDiff::Sizes { a, b } => {
+                write!(f, "sizes differ ({}×{} and {}×{})", a.0, a.1, b.0, b.1)
+            }
+            ImageDiff::Pixels { differing: 0, .. } => f.write_str("identical"),
+            ImageDiff::Pixels {
+                differing,
+                max_level,
+            } => write!(
+                f,
+                "{} {} (up to {max_level} levels)",
+                thousands(differing),
+                if differing == 1 {
+                    "pixel differs"
+                } else {
+                    "pixels differ"
+                }
+            ),
+        }
+    }
+}
+
+/// How many pixels differ and by how much.
+fn difference(a: &Rgb, b: &Rgb) -> ImageDiff {
     if (a.width, a.height) != (b.width, b.height) {
-        return format!(
-            "sizes differ ({}×{} and {}×{})",
-            a.width, a.height, b.width, b.height
-        );
+        return ImageDiff::Sizes {
+            a: (a.width, a.height),
+            b: (b.width, b.height),
+        };
     }
     let mut differing = 0u64;
-    let mut worst = 0u8;
+    let mut max_level = 0u8;
     for (p, q) in a.bytes.chunks_exact(3).zip(b.bytes.chunks_exact(3)) {
         if p != q {
             differing += 1;
             for (x, y) in p.iter().zip(q) {
-                worst = worst.max(x.abs_diff(*y));
+                max_level = max_level.max(x.abs_diff(*y));
             }
         }
     }
-    if differing == 0 {
-        "identical".into()
-    } else {
-        format!(
-            "{} {} (up to {worst} levels)",
-            thousands(differing),
-            if differing == 1 {
-                "pixel differs"
-            } else {
-                "pixels differ"
-            }
-        )
+    ImageDiff::Pixels {
+        differing,
+        max_level,
     }
+}
+
+/// `identical`, or how many pixels differ and by how much.
+fn compare(a: &Rgb, b: &Rgb) -> String {
+    difference(a, b).to_string()
 }
 
 fn ms(seconds: f64) -> String {
@@ -677,12 +801,8 @@ fn invocation() -> String {
         .join(" ")
 }
 
-fn comparison_markdown(
-    opts: &Options,
-    results: &[CaseResult],
-    floor: Option<Floor>,
-    load: &str,
-) -> String {
+/// The report's head: how to regenerate it, the machine, the programs.
+fn header_markdown(opts: &Options, load: &str) -> String {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let ext = &opts.external;
     let given = |p: &Option<PathBuf>| {
@@ -699,13 +819,14 @@ fn comparison_markdown(
          The external programs are built with\n\n\
          ```\n\
          g++ -std=c++17 -O3 -march=x86-64-v2 -fno-math-errno embree_whitted.cpp -lembree3 -lz -lpthread -o ew\n\
+         g++ -std=c++17 -O3 -march=x86-64-v2 -fno-math-errno embree_whitted_mesh.cpp -lembree3 -lz -lpthread -o ewm\n\
          g++ -std=c++17 -O3 -mavx2 limit_bench.cpp -o limit_bench\n\
          g++ -O3 -march=x86-64-v2 render/benches/seed_structured.cpp -o seed_structured\n\
          ```\n\n\
          - CPU: {} ({cores} logical CPUs); load average {} when the run started \
          (the machine may be shared: medians and alternation are there for that)\n\
          - {}, {}\n\
-         - anchor: {}; floor: {}; seed structure in C++: {}\n\
+         - anchor: {}; mesh anchor: {}; floor: {}; seed structure in C++: {}\n\
          - every time is a whole process, start to exit (parse, build, render, PNG \
          written), wall clock, median of {} runs (minimum in brackets); the programs \
          run in turn, case by case (Tessera 1 thread, anchor, Tessera 2 threads, seed \
@@ -716,10 +837,17 @@ fn comparison_markdown(
         render::build_identity(),
         utc_date(),
         given(&ext.anchor),
+        given(&ext.anchor_mesh),
         given(&ext.limit_bench),
         given(&ext.seed_cpp),
         opts.reps,
     );
+    md
+}
+
+/// The sphere cases: whole process, where the time goes, the floor, the seed structure.
+fn spheres_markdown(results: &[CaseResult], floor: Option<Floor>) -> String {
+    let mut md = String::new();
     let _ = writeln!(
         md,
         "## Whole process\n\n\
@@ -734,8 +862,7 @@ fn comparison_markdown(
             paired_ratio(&r.tessera_1, &r.tessera_2).map_or("–".into(), |x| format!("{x:.2}"));
         let mut images = r
             .anchor_image
-            .clone()
-            .unwrap_or_else(|| format!("{NOT_GIVEN} (anchor)"));
+            .map_or_else(|| format!("{NOT_GIVEN} (anchor)"), |d| d.to_string());
         if r.threads_image != "identical" {
             let _ = write!(images, "; Tessera 2 threads against 1: {}", r.threads_image);
         }
@@ -861,22 +988,29 @@ fn comparison_markdown(
     md
 }
 
-fn comparison_csv(results: &[CaseResult]) -> String {
+/// Every program's runs on every case, sphere and mesh cases alike; the anchor's rows
+/// also give its image's difference from Tessera's as numbers.
+fn comparison_csv(results: &[&CaseResult]) -> String {
     let mut csv = String::from(
-        "case,width,height,aa,program,threads,runs,median_s,min_s,tracing_median_s,parse_median_s,build_median_s,peak_rss_mib,image_against_tessera_1_thread\n",
+        "case,width,height,aa,program,threads,runs,median_s,min_s,tracing_median_s,parse_median_s,build_median_s,peak_rss_mib,image_against_tessera_1_thread,differing_pixels,max_channel_difference\n",
     );
     let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.6}"));
     for r in results {
-        let mut rows: Vec<(&str, u32, &Runs, String)> = vec![
-            ("tessera", 1, &r.tessera_1, String::new()),
-            ("tessera", 2, &r.tessera_2, r.threads_image.clone()),
+        let anchor = match r.case.anchor {
+            AnchorKind::Spheres => "anchor",
+            AnchorKind::Meshes => "anchor-mesh",
+        };
+        let mut rows: Vec<(&str, u32, &Runs, String, Option<ImageDiff>)> = vec![
+            ("tessera", 1, &r.tessera_1, String::new(), None),
+            ("tessera", 2, &r.tessera_2, r.threads_image.clone(), None),
         ];
         if let Some(runs) = &r.anchor {
             rows.push((
-                "anchor",
+                anchor,
                 1,
                 runs,
-                r.anchor_image.clone().unwrap_or_default(),
+                r.anchor_image.map(|d| d.to_string()).unwrap_or_default(),
+                r.anchor_image,
             ));
         }
         if let Some(runs) = &r.seed_cpp {
@@ -885,12 +1019,18 @@ fn comparison_csv(results: &[CaseResult]) -> String {
                 1,
                 runs,
                 r.seed_cpp_image.clone().unwrap_or_default(),
+                None,
             ));
         }
-        for (program, threads, runs, image) in rows {
+        for (program, threads, runs, image, diff) in rows {
+            let (differing, max_level) = diff
+                .and_then(ImageDiff::counts)
+                .map_or((String::new(), String::new()), |(n, l)| {
+                    (n.to_string(), l.to_string())
+                });
             let _ = writeln!(
                 csv,
-                "\"{}\",{},{},{},{program},{threads},{},{},{},{},{},{},{},\"{image}\"",
+                "\"{}\",{},{},{},{program},{threads},{},{},{},{},{},{},{},\"{image}\",{differing},{max_level}",
                 r.case.name,
                 r.case.width,
                 r.case.height,
