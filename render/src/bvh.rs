@@ -236,7 +236,7 @@ pub(crate) struct Fallback;
 /// about as much as a node test (the compiler turned the selects of an earlier version
 /// into branches).
 #[inline(always)]
-fn up32(x: f64) -> f32 {
+pub(crate) fn up32(x: f64) -> f32 {
     let f = x as f32;
     let bits = f.to_bits();
     // One step towards +∞ when the nearest value lies below x: away from zero for a
@@ -253,7 +253,7 @@ fn up32(x: f64) -> f32 {
 
 /// `x` rounded down to `f32` (to −∞ beyond its range; `x` not NaN).
 #[inline(always)]
-fn down32(x: f64) -> f32 {
+pub(crate) fn down32(x: f64) -> f32 {
     -up32(-x)
 }
 

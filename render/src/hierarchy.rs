@@ -4,11 +4,16 @@
 //! primitives. One builder serves the triangles of a mesh and the top level (boxes,
 //! triangles, mesh instances); what a leaf holds is the callers' business.
 //!
-//! The boxes stay in double precision and each child's slab test is the one of
-//! [`SlabRay::enter`], lane by lane: culling is conservative, so the primitives a
-//! traversal tests include every one the ray meets, whatever the tree's shape, and the
-//! nearest hit (the smallest distance, ties to the primitive listed first) does not
-//! depend on it.
+//! The children's boxes are kept in single precision, relative to a point of the
+//! root's box (so that a mesh far from the origin keeps tight boxes), rounded outward,
+//! and tested as the spheres' hierarchy tests its own ([`crate::bvh`], "Margin"): the
+//! ray's origin shifted by a margin δ = 2⁻²²·(|o|₁ + S) + 8m + 2⁻¹²⁰ that covers the
+//! single-precision test's rounding and m, the caller's own margin for its primitives'
+//! tests, and exit distances given the slack K. Culling is thus conservative: the
+//! primitives a traversal tests include every one the ray meets, whatever the tree's
+//! shape, and the nearest hit (the smallest distance, ties to the primitive listed
+//! first) does not depend on it. Rays beyond that argument's range (|o|₁ or S above
+//! 10³⁰, a direction's length outside [2⁻²⁰, 2²⁰]) enter every box instead.
 //!
 //! It knows nothing of meshes or scenes, and sits below both: a mesh's geometry keeps
 //! its hierarchy with it ([`crate::mesh::accel`]), built once for every object and frame
@@ -16,8 +21,9 @@
 
 use std::mem::MaybeUninit;
 
-use crate::bounds::{Bounds, SlabRay, EXIT_SCALE};
-use crate::vec3::{F4, LANES};
+use crate::bounds::{Bounds, SlabRay};
+use crate::bvh::{down32, up32};
+use crate::vec3::{Vec3, LANES};
 
 /// Most primitives in a leaf.
 const LEAF_MAX: usize = 4;
@@ -80,23 +86,25 @@ impl<T: Copy> Stack<T> {
     }
 }
 
-/// A node of four children: per axis, their lower and upper bounds side by side (an
-/// empty slot's are +∞ and −∞, which no ray enters), and what each holds.
+/// A node of four children: their boxes in single precision relative to
+/// [`Hierarchy::origin`], per axis the lower sides (`bounds[2·axis]`) and the upper
+/// ones (`bounds[2·axis + 1]`), rounded outward (an empty slot's are +∞ and −∞, which
+/// no ray enters), and what each holds.
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[repr(align(32))]
+#[repr(C, align(16))]
 pub(crate) struct WideNode {
-    /// `bounds[axis][0]` the children's lower bounds, `bounds[axis][1]` their upper.
-    pub bounds: [[F4; 2]; 3],
+    pub bounds: [[f32; LANES]; 6],
     /// An inner node's index, `LEAF | leaf index`, or [`EMPTY`].
     pub child: [u32; LANES],
 }
 
 impl WideNode {
-    /// Child `c`'s bounds.
+    /// Child `c`'s box relative to the hierarchy's origin, in double precision (exactly
+    /// the stored box).
     pub fn child_bounds(&self, c: usize) -> Bounds {
         Bounds {
-            lo: std::array::from_fn(|k| self.bounds[k][0].0[c]),
-            hi: std::array::from_fn(|k| self.bounds[k][1].0[c]),
+            lo: std::array::from_fn(|k| f64::from(self.bounds[2 * k][c])),
+            hi: std::array::from_fn(|k| f64::from(self.bounds[2 * k + 1][c])),
         }
     }
 }
@@ -116,6 +124,10 @@ pub(crate) struct Hierarchy {
     /// Primitive indices in leaf order.
     pub order: Vec<u32>,
     root: Option<Bounds>,
+    /// The point the nodes' boxes are relative to: the root box's centre.
+    pub origin: [f64; 3],
+    /// S: the largest |corner − origin|₁ of the root's box (rounded up).
+    pub scale: f64,
 }
 
 impl Hierarchy {
@@ -125,14 +137,24 @@ impl Hierarchy {
         if binary.is_empty() {
             return Hierarchy::default();
         }
+        let root = binary[0].bounds;
+        let origin = std::array::from_fn(|k| root.centroid(k));
+        let scale = root
+            .corners()
+            .iter()
+            .map(|c| (0..3).map(|k| (c[k] - origin[k]).abs()).sum::<f64>())
+            .fold(0.0f64, f64::max)
+            * (1.0 + 1e-12);
         let mut nodes = Vec::with_capacity(binary.len() / 3 + 1);
         let mut leaves = Vec::with_capacity(binary.len() / 2 + 1);
-        collapse(&binary, 0, &mut nodes, &mut leaves);
+        collapse(&binary, 0, origin, &mut nodes, &mut leaves);
         Hierarchy {
             nodes,
             leaves,
             order,
-            root: Some(binary[0].bounds),
+            root: Some(root),
+            origin,
+            scale,
         }
     }
 
@@ -149,36 +171,36 @@ impl Hierarchy {
 
     /// Visits the leaves the ray may reach before `t_max()` (re-read after each leaf,
     /// so a closer hit prunes the rest), nearer children first, with every box widened
-    /// by `margin`; `leaf(index, exit)` (the leaf's index and the distance where the ray
-    /// leaves its box) returns `true` to stop. Boxes entered exactly at `t_max()` are
-    /// still visited, so equal distances can be compared.
+    /// by `margin` (besides the single-precision test's own margin); `leaf(index)`
+    /// returns `true` to stop. Boxes entered at `t_max()` (within the slack) are still
+    /// visited, so equal distances can be compared.
     #[inline(always)]
     pub fn walk(
         &self,
         ray: &SlabRay,
         margin: f64,
         mut t_max: impl FnMut() -> f64,
-        mut leaf: impl FnMut(u32, f64) -> bool,
+        mut leaf: impl FnMut(u32) -> bool,
     ) {
         if self.nodes.is_empty() {
             return;
         }
-        let wide = WideRay::new(ray, margin);
+        let wide = WideRay::new(ray, margin, self);
         // Each node's children are tested together, by the node; a child waiting on the
-        // stack keeps where the ray enters and leaves it, and is skipped when a hit found
-        // meanwhile comes before its entry.
-        let mut stack = Stack::<(u32, f64, f64)>::new();
+        // stack keeps where the ray enters it, and is skipped when a hit found meanwhile
+        // comes before that.
+        let mut stack = Stack::<(u32, f32)>::new();
         let mut node = 0u32;
         loop {
             let n = &self.nodes[node as usize];
-            let (enter, exit, mut bits) = wide.enter(n, t_max());
+            let (enter, mut bits) = wide.enter(n, up32(t_max()));
             // The children entered, nearest first (equal entries in slot order).
-            let mut hits = [(0.0f64, 0u32, 0.0f64); LANES];
+            let mut hits = [(0.0f32, 0u32); LANES];
             let mut count = 0;
             while bits != 0 {
                 let c = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
-                let entry = (enter.0[c], n.child[c], exit.0[c]);
+                let entry = (enter[c], n.child[c]);
                 let mut at = count;
                 while at > 0 && hits[at - 1].0 > entry.0 {
                     hits[at] = hits[at - 1];
@@ -188,18 +210,17 @@ impl Hierarchy {
                 count += 1;
             }
             for &h in hits[..count].iter().rev() {
-                stack.push((h.1, h.0, h.2));
+                stack.push((h.1, h.0));
             }
             loop {
-                let Some((child, entry, exit)) = stack.pop() else {
+                let Some((child, entry)) = stack.pop() else {
                     return;
                 };
-                // Entered exactly at the best distance: still visited, for ties.
-                if entry > t_max() {
+                if entry > up32(t_max()) * SLACK {
                     continue;
                 }
                 if child & LEAF != 0 {
-                    if leaf(child & !LEAF, exit) {
+                    if leaf(child & !LEAF) {
                         return;
                     }
                     continue;
@@ -211,52 +232,80 @@ impl Hierarchy {
     }
 }
 
-/// A ray and its margin set up for the four slab tests of a wide node: each lane
-/// computes what [`SlabRay::enter`] computes for that child, with the entry and exit
-/// faces chosen by the direction's sign instead of by comparing the two.
+/// Largest |o|₁ and S for which the margin argument holds.
+const MAX_SCALE: f64 = 1e30;
+/// The margin δ per unit of |o|₁ + S.
+const MARGIN: f64 = 1.0 / (1u64 << 22) as f64;
+/// The margin's floor, far above the rounding of values near the underflow range.
+const MARGIN_FLOOR: f64 = 1.0 / (1u128 << 120) as f64;
+/// The slack factor K of the entry test t₀ ≤ t₁·K.
+const SLACK: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
+
+/// A ray prepared for a hierarchy's single-precision box tests: per axis its origin
+/// relative to the hierarchy's, shifted by ±δ and rounded, once for the side met first
+/// and once for the other, and its reciprocal direction.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct WideRay {
-    origin: [F4; 3],
-    inv: [F4; 3],
-    /// Per axis, the margin subtracted at the entry face and added at the exit face
-    /// (−margin where the direction is negative: the entry face is then the upper one).
-    margin: [F4; 3],
-    /// Per axis, 1 where the direction is negative (the entry face is the upper one).
+    origin_near: [f32; 3],
+    origin_far: [f32; 3],
+    inv: [f32; 3],
+    /// Per axis, the row of [`WideNode::bounds`] met first (the upper side for a
+    /// negative direction) and the other.
     near: [usize; 3],
+    far: [usize; 3],
 }
 
 impl WideRay {
     #[inline(always)]
-    pub fn new(ray: &SlabRay, margin: f64) -> WideRay {
-        let near: [usize; 3] = std::array::from_fn(|k| usize::from(ray.inv[k].is_sign_negative()));
+    pub fn new(ray: &SlabRay, margin: f64, h: &Hierarchy) -> WideRay {
+        let o: [f64; 3] = std::array::from_fn(|k| ray.origin[k] - h.origin[k]);
+        let reach = o[0].abs() + o[1].abs() + o[2].abs();
+        let d = ray.inv.map(|inv| 1.0 / inv);
+        let d2 = Vec3::new(d[0], d[1], d[2]).dot(Vec3::new(d[0], d[1], d[2]));
+        let within = reach <= MAX_SCALE
+            && h.scale <= MAX_SCALE
+            && d2 >= 1.0 / (1u64 << 40) as f64
+            && d2 <= (1u64 << 40) as f64
+            && margin.is_finite();
+        // Beyond the argument's range: every box is entered.
+        let delta = if within {
+            (reach + h.scale) * MARGIN + 8.0 * margin + MARGIN_FLOOR
+        } else {
+            f64::INFINITY
+        };
+        let negative = ray.inv.map(f64::is_sign_negative);
+        let plus = o.map(|o| (o + delta) as f32);
+        let minus = o.map(|o| (o - delta) as f32);
         WideRay {
-            origin: ray.origin.map(F4::splat),
-            inv: ray.inv.map(F4::splat),
-            margin: std::array::from_fn(|k| F4::splat(if near[k] == 1 { -margin } else { margin })),
-            near,
+            origin_near: std::array::from_fn(|k| if negative[k] { minus[k] } else { plus[k] }),
+            origin_far: std::array::from_fn(|k| if negative[k] { plus[k] } else { minus[k] }),
+            inv: ray.inv.map(|inv| inv as f32),
+            near: std::array::from_fn(|k| 2 * k + usize::from(negative[k])),
+            far: std::array::from_fn(|k| 2 * k + 1 - usize::from(negative[k])),
         }
     }
 
-    /// Where the ray enters and leaves each child of `node` before `t_max`, and the
-    /// children it enters (bit c for child c). Lane c is [`SlabRay::enter`] of child c:
-    /// with a positive direction the entry is (lo − m − o)·inv and the exit (hi + m −
-    /// o)·inv, with a negative one (hi − (−m) − o)·inv and (lo + (−m) − o)·inv, the same
-    /// values; where one is NaN (the ray in a face's plane) that face is left out, which
-    /// only widens the interval.
+    /// Where the ray enters each child of `node` and the children it enters before
+    /// `t_max` (rounded up; bit c for child c): entry ≤ exit·K, as in [`crate::bvh`].
     #[inline(always)]
-    pub fn enter(&self, node: &WideNode, t_max: f64) -> (F4, F4, u32) {
-        let mut t0 = F4::splat(0.0);
-        let mut t1 = F4::splat(t_max);
-        for k in 0..3 {
-            let near =
-                ((node.bounds[k][self.near[k]] - self.margin[k]) - self.origin[k]) * self.inv[k];
-            let far = ((node.bounds[k][1 - self.near[k]] + self.margin[k]) - self.origin[k])
-                * self.inv[k]
-                * EXIT_SCALE;
-            t0 = near.gt(t0).select(near, t0);
-            t1 = far.lt(t1).select(far, t1);
+    pub fn enter(&self, node: &WideNode, t_max: f32) -> ([f32; LANES], u32) {
+        let mut t0 = [0.0f32; LANES];
+        let mut t1 = [t_max; LANES];
+        for axis in 0..3 {
+            let near_side = &node.bounds[self.near[axis]];
+            let far_side = &node.bounds[self.far[axis]];
+            for c in 0..LANES {
+                let near = (near_side[c] - self.origin_near[axis]) * self.inv[axis];
+                let far = (far_side[c] - self.origin_far[axis]) * self.inv[axis];
+                t0[c] = if near > t0[c] { near } else { t0[c] };
+                t1[c] = if far < t1[c] { far } else { t1[c] };
+            }
         }
-        (t0, t1, t0.le(t1).bitmask())
+        let mut mask = 0;
+        for c in 0..LANES {
+            mask |= u32::from(t0[c] <= t1[c] * SLACK) << c;
+        }
+        (t0, mask)
     }
 }
 
@@ -282,6 +331,7 @@ fn binary(boxes: &[Bounds]) -> (Vec<Node>, Vec<u32>) {
 fn collapse(
     binary: &[Node],
     index: usize,
+    origin: [f64; 3],
     nodes: &mut Vec<WideNode>,
     leaves: &mut Vec<Leaf>,
 ) -> u32 {
@@ -316,7 +366,13 @@ fn collapse(
     }
     let at = nodes.len();
     nodes.push(WideNode {
-        bounds: [[F4::splat(f64::INFINITY), F4::splat(f64::NEG_INFINITY)]; 3],
+        bounds: std::array::from_fn(|row| {
+            [if row % 2 == 0 {
+                f32::INFINITY
+            } else {
+                f32::NEG_INFINITY
+            }; LANES]
+        }),
         child: [EMPTY; LANES],
     });
     for (c, &kid) in kids[..count].iter().enumerate() {
@@ -328,13 +384,13 @@ fn collapse(
             });
             LEAF | (leaves.len() as u32 - 1)
         } else {
-            collapse(binary, kid, nodes, leaves)
+            collapse(binary, kid, origin, nodes, leaves)
         };
         let node = &mut nodes[at];
         node.child[c] = code;
-        for axis in 0..3 {
-            node.bounds[axis][0].0[c] = k.bounds.lo[axis];
-            node.bounds[axis][1].0[c] = k.bounds.hi[axis];
+        for (axis, &o) in origin.iter().enumerate() {
+            node.bounds[2 * axis][c] = down32(k.bounds.lo[axis] - o);
+            node.bounds[2 * axis + 1][c] = up32(k.bounds.hi[axis] - o);
         }
     }
     at as u32
@@ -631,7 +687,7 @@ mod tests {
                     &ray,
                     0.0,
                     || f64::INFINITY,
-                    |leaf, _| {
+                    |leaf| {
                         for &p in h.primitives(leaf) {
                             seen[p as usize] = true;
                         }

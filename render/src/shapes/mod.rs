@@ -328,7 +328,7 @@ impl Shapes {
             margin,
             &limit,
             #[inline(always)]
-            |leaf, exit| {
+            |leaf| {
                 for &i in self.top.primitives(leaf) {
                     match &self.items[i as usize] {
                         Item::Box { object, min, max } => {
@@ -350,7 +350,7 @@ impl Shapes {
                                 let d = instance.inverse.vector(dir);
                                 (
                                     SlabRay::new(o, d),
-                                    self.instance_margin(instance, origin, exit),
+                                    self.instance_margin(instance, origin, f64::INFINITY),
                                 )
                             };
                             let mut stop = false;
@@ -359,7 +359,7 @@ impl Shapes {
                                 margin,
                                 &limit,
                                 #[inline(always)]
-                                |leaf, _| {
+                                |leaf| {
                                     let block = instance.block(&accel.hierarchy, leaf);
                                     stop = visit(Candidate::Block(i, instance, &block));
                                     stop

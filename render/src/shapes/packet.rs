@@ -194,6 +194,25 @@ impl Hierarchy {
         if self.nodes.is_empty() || !live.any() {
             return;
         }
+        // The boxes are relative to the hierarchy's origin: so are the rays here (each
+        // origin's rounding, at most 2⁻⁵³ of it, is covered by widening the margin).
+        let shift = |k: usize| F4::splat(self.origin[k]);
+        let origin = V4 {
+            x: ray.origin.x - shift(0),
+            y: ray.origin.y - shift(1),
+            z: ray.origin.z - shift(2),
+        };
+        let reach = |k: usize| {
+            let o = origin.lane(k);
+            o.x.abs().max(o.y.abs()).max(o.z.abs())
+        };
+        let margin = F4(std::array::from_fn(|k| {
+            margin.0[k] + (reach(k) + self.scale) * (1.0 / (1u64 << 50) as f64)
+        }));
+        let ray = &Slab4 {
+            origin,
+            inv: ray.inv,
+        };
         // A child waiting on the stack keeps where each lane enters it, and loses the
         // lanes whose hit found meanwhile comes before that.
         let mut stack = Stack::<(u32, M4, F4)>::new();
