@@ -405,12 +405,14 @@ pub(super) fn write_build_scaling(opts: &Options, out: &Path) -> Result<()> {
     )
 }
 
-/// The curves of the sweep: name, points (triangles, seconds).
+/// The curves of the sweep: name, points (triangles, seconds). A time below the
+/// anchor's resolution (0 ms printed) is left out: it has no place on a log scale.
 fn curves(points: &[BuildPoint]) -> Vec<(&'static str, Vec<(f64, f64)>)> {
     let of = |f: &dyn Fn(&BuildPoint) -> Option<f64>| -> Vec<(f64, f64)> {
         points
             .iter()
             .filter_map(|p| Some((p.triangles as f64, f(p)?)))
+            .filter(|&(_, s)| s > 0.0)
             .collect()
     };
     vec![
