@@ -609,14 +609,26 @@ fn an_interrupted_render_leaves_nothing_behind() {
     let dir = dir_with_scene(VALID_SCENE);
     // A render of minutes, interrupted once it is under way: the output was checked
     // at the start, and nothing of that check, nor any partial image, may remain.
-    let child = std::process::Command::new(BIN)
+    let mut command = std::process::Command::new(BIN);
+    command
         .current_dir(dir.path())
         .args(["render", SCENE, "-o", "out.png", "--width", "4000"])
         .args(["--height", "4000", "--aa", "16", "--threads", "1"])
         .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("cannot start tessera");
+        .stderr(std::process::Stdio::null());
+    // SIGINT as at a terminal: a process started in the background by a shell without
+    // job control (`cmd &` in a script, as some CI runners start the tests) inherits
+    // SIGINT ignored, and so would the render, which then never stops.
+    use std::os::unix::process::CommandExt;
+    // SAFETY: between fork and exec the child only calls `signal`, which is
+    // async-signal-safe, and touches no memory of the parent.
+    unsafe {
+        command.pre_exec(|| {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            Ok(())
+        });
+    }
+    let child = command.spawn().expect("cannot start tessera");
     let mut render = Daemon {
         name: "render".into(),
         child,

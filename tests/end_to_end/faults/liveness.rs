@@ -85,16 +85,47 @@ fn unresponsive(worker: &Value) -> bool {
         .unwrap_or_else(|| panic!("`unresponsive` is not a boolean in {worker}"))
 }
 
-/// Freezes the render threads of `worker`, or returns `None` after the skip line where
-/// tracing is refused.
+/// Freezes the render threads of `worker` while they render, or returns `None` after
+/// the skip line where tracing is refused.
+///
+/// A thread caught between tiles (blocked in a system call: waiting for the next tile,
+/// which on the cheap tiles of a job's first rows may come after the last one is done)
+/// is thawed and frozen again a moment later: these tests are about a thread hung in
+/// the middle of a tile, whose result comes once it is thawed. (A worker frozen while
+/// idle has no result to give after the thaw: the tiles it was sent go to the others
+/// and are cancelled on it when the job ends, so it would stay unresponsive until it
+/// reconnects.) A thread stopped in user code (`syscall` is `-1`) is rendering.
 fn freeze_render_threads(test: &str, worker: &Daemon) -> Option<FrozenThreads> {
-    match FrozenThreads::freeze(worker.pid(), "render-") {
-        Ok(frozen) => Some(frozen),
-        Err(e @ Error::Freeze { .. }) => {
-            localfarm::unprivileged(test, &e);
-            None
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let frozen = match FrozenThreads::freeze(worker.pid(), "render-") {
+            Ok(frozen) => frozen,
+            Err(e @ Error::Freeze { .. }) => {
+                localfarm::unprivileged(test, &e);
+                return None;
+            }
+            Err(e) => panic!("{test}: freezing {}: {e}", worker.name),
+        };
+        let calls: Vec<String> = frozen
+            .tids()
+            .iter()
+            .map(|tid| {
+                let path = format!("/proc/{}/task/{tid}/syscall", worker.pid());
+                std::fs::read_to_string(&path).unwrap_or_default()
+            })
+            .collect();
+        if calls.iter().all(|c| c.starts_with("-1 ")) {
+            return Some(frozen);
         }
-        Err(e) => panic!("{test}: freezing {}: {e}", worker.name),
+        assert!(
+            Instant::now() < deadline,
+            "{test}: {}'s render threads were never caught rendering in 10 s: {calls:?}",
+            worker.name
+        );
+        frozen
+            .thaw()
+            .expect("thawing render threads caught between tiles");
+        thread::sleep(Duration::from_millis(3));
     }
 }
 

@@ -9,8 +9,8 @@ use std::time::Duration;
 use crate::support::{
     assert_same_png, client, events, exclusive, fetch, http_get, ok, orbit, poll, render_reference,
     scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
-    start_coordinator_with_http, start_slow_worker, start_worker, start_worker_with, submit,
-    tiles_done, tiles_of, tiles_total, try_status, wait_done,
+    start_coordinator_with_http, start_worker, start_worker_with, submit, tiles_done, tiles_of,
+    tiles_total, try_status, wait_done, wait_for_workers, REGISTER_TIMEOUT,
 };
 
 #[test]
@@ -385,31 +385,28 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let (_coordinator, addr) = start_coordinator_in(dir.path());
+    let test = "a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged";
+    if let Err(e) = localfarm::CpuLimit::probe() {
+        localfarm::unprivileged(test, &e);
+        return;
+    }
+    // Both workers join before there is a job: the slow one at full speed (on 1/200 of
+    // a core its start alone would take seconds), then limited to 1/200 of a core
+    // (seconds a tile) before it is given anything.
+    let _fast = start_worker_with(dir.path(), &addr, "fast", &["--threads", "1"]);
+    let slow = start_worker_with(dir.path(), &addr, "slow", &["--threads", "1"]);
+    wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);
+    let _limit = localfarm::CpuLimit::apply(slow.pid(), 1.0 / 200.0)
+        .unwrap_or_else(|e| panic!("{test}: limiting the slow worker: {e}"));
     let seed = scene_path("seed.json");
-    // About 20 ms of one core a tile, 8 s or more in all on one thread: long enough for
-    // a slow worker, whose CPU limit takes seconds to set up, to join while it runs
-    // (at 1600 x 1200 the job once ended 0.1 s after it joined).
-    let settings = ["--width", "2400", "--height", "1600", "--aa", "8"];
+    // About 20 ms of one core a tile, 4 s or more in all on one thread. Each worker
+    // takes tiles at once under the default lease; the fast one's first results set the
+    // job's lease to about a second, which cuts the slow one's leases short: it runs
+    // past them with the job still seconds from its end.
+    let settings = ["--width", "1600", "--height", "1200", "--aa", "8"];
     let mut args = vec![seed.as_str(), "--tile", "64"];
     args.extend(settings);
     let job = submit(dir.path(), &addr, &args);
-    // A fast worker first: its tiles set the job's lease to about a second...
-    let _fast = start_worker_with(dir.path(), &addr, "fast", &["--threads", "1"]);
-    poll("the first tiles", Duration::from_secs(30), || {
-        let status = try_status(dir.path(), &addr, job)?;
-        (status["tiles_done"].as_u64()? >= 20).then_some(())
-    });
-    // ...which a worker on 1/200 of a core (seconds a tile) runs past.
-    let Some(_slow) = start_slow_worker(
-        "a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged",
-        dir.path(),
-        &addr,
-        "slow",
-        1.0 / 200.0,
-        &["--threads", "1"],
-    ) else {
-        return;
-    };
     wait_done(dir.path(), &addr, job, Duration::from_secs(120));
     let log = events(dir.path(), &addr, job);
     let expired: Vec<&String> = log
