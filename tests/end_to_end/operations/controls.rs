@@ -375,6 +375,13 @@ const SMALL_JOB: [&str; 8] = [
     "--width", "96", "--height", "64", "--aa", "16", "--tile", "16",
 ];
 
+/// The heartbeat timeout of a coordinator with a worker on 1/400 of a core: its
+/// heartbeats share that quota with its render thread and can come seconds late, which
+/// the default of 5 s would take for a lost worker (these tests are about cancelling and
+/// retrying, not about losing one; a killed worker is still seen at once, by its closed
+/// connection).
+const SLOW_HEARTBEATS: [&str; 2] = ["--heartbeat-timeout-ms", "60000"];
+
 /// A worker slow enough (1/400 of a core) that a job of [`SMALL_JOB`] is stopped half
 /// way: returned, with its limit, once two of its tiles are in; `None` where `test`
 /// cannot limit a process and is skipped.
@@ -427,8 +434,13 @@ fn a_cancelled_job_retried_keeps_its_tiles_and_renders_the_same_image() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let (_coordinator, addr) =
-        start_coordinator(dir.path(), &data, "127.0.0.1:0", &[], "coordinator.log");
+    let (_coordinator, addr) = start_coordinator(
+        dir.path(),
+        &data,
+        "127.0.0.1:0",
+        &SLOW_HEARTBEATS,
+        "coordinator.log",
+    );
     let seed = scene_path("seed.json");
     let mut args = vec![seed.as_str()];
     args.extend(SMALL_JOB);
@@ -539,7 +551,7 @@ fn a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them() {
         dir.path(),
         &dir.path().join("data"),
         &format!("127.0.0.1:{}", free_port()),
-        &["--http", &http],
+        &["--http", &http, SLOW_HEARTBEATS[0], SLOW_HEARTBEATS[1]],
         "coordinator-1.log",
     );
     let Some(job) = cancelled_part_way(
@@ -584,7 +596,15 @@ fn a_cancelled_job_shows_its_tiles_after_a_restart_and_a_retry_keeps_them() {
 fn a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart() {
     let _turn = exclusive();
     let dir = tempfile::tempdir().unwrap();
-    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
+    // As `start_restartable_coordinator`, with the slow worker's heartbeats allowed.
+    let listen = format!("127.0.0.1:{}", free_port());
+    let (mut coordinator, addr) = start_coordinator(
+        dir.path(),
+        &dir.path().join("data"),
+        &listen,
+        &SLOW_HEARTBEATS,
+        "coordinator-1.log",
+    );
     let Some(job) = cancelled_part_way(
         "a_retried_jobs_elapsed_time_and_wait_count_from_its_retry_across_a_restart",
         dir.path(),
