@@ -200,13 +200,7 @@ impl Hierarchy {
             while bits != 0 {
                 let c = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
-                let entry = (enter[c], n.child[c]);
-                let mut at = count;
-                while at > 0 && hits[at - 1].0 > entry.0 {
-                    hits[at] = hits[at - 1];
-                    at -= 1;
-                }
-                hits[at] = entry;
+                insert_sorted(&mut hits, count, (enter[c], n.child[c]));
                 count += 1;
             }
             for &h in hits[..count].iter().rev() {
@@ -230,6 +224,23 @@ impl Hierarchy {
             }
         }
     }
+}
+
+/// Inserts `entry` among the first `count` entries of `hits`, which are in ascending
+/// order of their first element, keeping that order (an equal key goes after those
+/// already there): the children a traversal entered, nearest first.
+#[inline(always)]
+pub(crate) fn insert_sorted<K: PartialOrd + Copy, V: Copy>(
+    hits: &mut [(K, V); LANES],
+    count: usize,
+    entry: (K, V),
+) {
+    let mut at = count;
+    while at > 0 && hits[at - 1].0 > entry.0 {
+        hits[at] = hits[at - 1];
+        at -= 1;
+    }
+    hits[at] = entry;
 }
 
 /// Largest |o|₁ and S for which the margin argument holds.

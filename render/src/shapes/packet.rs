@@ -10,7 +10,7 @@
 
 use super::{before, cuboid, Detail, Item, ShapeHit, Shapes};
 use crate::bounds::{gamma, Bounds, EXIT_SCALE};
-use crate::hierarchy::{Hierarchy, Stack, EMPTY, LEAF};
+use crate::hierarchy::{insert_sorted, Hierarchy, Stack, EMPTY, LEAF};
 use crate::vec3::{Vec3, F4, LANES, M4, V4};
 
 /// Up to four rays, each leaving object `from[k]` (triangle `prim[k]`); lanes outside
@@ -220,7 +220,7 @@ impl Hierarchy {
         loop {
             let n = &self.nodes[node as usize];
             let limit = t_max();
-            let mut hits = [(0.0f64, 0u32, M4::NONE, F4::splat(0.0)); LANES];
+            let mut hits = [(0.0f64, (0u32, M4::NONE, F4::splat(0.0))); LANES];
             let mut count = 0;
             for c in 0..LANES {
                 if n.child[c] == EMPTY {
@@ -232,16 +232,14 @@ impl Hierarchy {
                     continue;
                 }
                 let first = lanes.bitmask().trailing_zeros() as usize;
-                let entry = (enter.0[first], n.child[c], lanes, enter);
-                let mut at = count;
-                while at > 0 && hits[at - 1].0 > entry.0 {
-                    hits[at] = hits[at - 1];
-                    at -= 1;
-                }
-                hits[at] = entry;
+                insert_sorted(
+                    &mut hits,
+                    count,
+                    (enter.0[first], (n.child[c], lanes, enter)),
+                );
                 count += 1;
             }
-            for &(_, child, lanes, enter) in hits[..count].iter().rev() {
+            for &(_, (child, lanes, enter)) in hits[..count].iter().rev() {
                 stack.push((child, lanes, enter));
             }
             loop {
