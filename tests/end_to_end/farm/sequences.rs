@@ -212,7 +212,6 @@ fn workers_killed_mid_sequence_change_no_frame() {
     ) else {
         return;
     };
-    wait_for_workers(dir.path(), &addr, 3, REGISTER_TIMEOUT);
     let job = submit_sequence(dir.path(), &addr, "1-16");
     wait_for(dir.path(), &addr, job, "2 frames done", |s| {
         count(s, "done") >= 2
@@ -379,27 +378,18 @@ fn a_sequence_survives_a_coordinator_killed_mid_way() {
     let _turn = exclusive();
     let dir = TempDir::new().expect("temporary directory");
     let reference = reference(dir.path(), "1-16");
-    let test = "a_sequence_survives_a_coordinator_killed_mid_way";
-    if let Err(e) = localfarm::CpuLimit::probe() {
-        localfarm::unprivileged(test, &e);
-        return;
-    }
     let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
-    // Two workers that join at full speed (on 1/150 of a core their start alone takes
-    // seconds), then limited to 1/150 of a core before the sequence is submitted, so
-    // that the coordinator is killed mid-way.
-    let workers: Vec<Daemon> = ["w0", "w1"]
-        .iter()
-        .map(|name| start_worker(dir.path(), &addr, name))
-        .collect();
-    wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);
-    let limits: Vec<localfarm::CpuLimit> = workers
-        .iter()
-        .map(|w| {
-            localfarm::CpuLimit::apply(w.pid(), 1.0 / 150.0)
-                .unwrap_or_else(|e| panic!("{test}: limiting {}: {e}", w.name))
-        })
-        .collect();
+    // Two workers on 1/150 of a core, so that the coordinator is killed mid-way.
+    let Some(workers) = start_slow_workers(
+        "a_sequence_survives_a_coordinator_killed_mid_way",
+        dir.path(),
+        &addr,
+        2,
+        1.0 / 150.0,
+    ) else {
+        return;
+    };
+    let (_workers, limits): (Vec<Daemon>, Vec<localfarm::CpuLimit>) = workers.into_iter().unzip();
     let job = submit_sequence(dir.path(), &addr, "1-16");
     let before = wait_for(dir.path(), &addr, job, "3 frames done", |s| {
         count(s, "done") >= 3

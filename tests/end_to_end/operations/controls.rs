@@ -13,8 +13,8 @@ use crate::support::{
     assert_same_png, client, events, exclusive, fetch, free_port, http_get, ok, poll,
     render_reference, restart_coordinator, scene_path, shared, spawn_tessera, start_coordinator,
     start_coordinator_in, start_restartable_coordinator, start_slow_worker, start_worker,
-    status_json, submit, tiles_done, tiles_of, try_status, try_workers, wait_done, worker_named,
-    workers_json, Daemon, REGISTER_TIMEOUT,
+    status_json, submit, tiles_done, tiles_of, try_status, wait_done, worker_named, workers_json,
+    Daemon,
 };
 
 #[test]
@@ -395,24 +395,15 @@ fn slow_worker_past_two_tiles(
     addr: &str,
     job: u64,
 ) -> Option<(Daemon, localfarm::CpuLimit)> {
-    if let Err(e) = localfarm::CpuLimit::probe() {
-        localfarm::unprivileged(test, &e);
-        return None;
-    }
     let id = job.to_string();
     ok(client(dir, addr, &["pause", &id]), "pause");
-    let worker = start_worker(dir, addr, "slow");
-    poll("the slow worker to join", REGISTER_TIMEOUT, || {
-        worker_named(&try_workers(dir, addr)?, "slow").map(drop)
-    });
-    let limit = localfarm::CpuLimit::apply(worker.pid(), 1.0 / 400.0)
-        .unwrap_or_else(|e| panic!("{test}: limiting the slow worker: {e}"));
+    let slow = start_slow_worker(test, dir, addr, "slow", 1.0 / 400.0, &[])?;
     ok(client(dir, addr, &["resume", &id]), "resume");
     poll("tiles of the job", Duration::from_secs(60), || {
         let status = try_status(dir, addr, job)?;
         (tiles_done(&status) >= 2).then_some(())
     });
-    Some((worker, limit))
+    Some(slow)
 }
 
 /// A job of [`SMALL_JOB`] cancelled once a slow worker has returned two of its tiles,

@@ -9,8 +9,8 @@ use std::time::Duration;
 use crate::support::{
     assert_same_png, client, events, exclusive, fetch, http_get, ok, orbit, poll, render_reference,
     scene_path, shared, spawn_tessera, start_coordinator, start_coordinator_in,
-    start_coordinator_with_http, start_worker, start_worker_with, submit, tiles_done, tiles_of,
-    tiles_total, try_status, wait_done, wait_for_workers, REGISTER_TIMEOUT,
+    start_coordinator_with_http, start_slow_worker, start_worker, start_worker_with, submit,
+    tiles_done, tiles_of, tiles_total, try_status, wait_done, wait_for_workers, REGISTER_TIMEOUT,
 };
 
 #[test]
@@ -386,18 +386,20 @@ fn a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged() {
     let dir = tempfile::tempdir().unwrap();
     let (_coordinator, addr) = start_coordinator_in(dir.path());
     let test = "a_tile_past_its_lease_is_in_the_jobs_events_and_the_image_is_unchanged";
-    if let Err(e) = localfarm::CpuLimit::probe() {
-        localfarm::unprivileged(test, &e);
-        return;
-    }
-    // Both workers join before there is a job: the slow one at full speed (on 1/200 of
-    // a core its start alone would take seconds), then limited to 1/200 of a core
-    // (seconds a tile) before it is given anything.
+    // Both workers join before there is a job; the slow one is then limited to 1/200
+    // of a core (seconds a tile) before it is given anything.
     let _fast = start_worker_with(dir.path(), &addr, "fast", &["--threads", "1"]);
-    let slow = start_worker_with(dir.path(), &addr, "slow", &["--threads", "1"]);
+    let Some(_slow) = start_slow_worker(
+        test,
+        dir.path(),
+        &addr,
+        "slow",
+        1.0 / 200.0,
+        &["--threads", "1"],
+    ) else {
+        return;
+    };
     wait_for_workers(dir.path(), &addr, 2, REGISTER_TIMEOUT);
-    let _limit = localfarm::CpuLimit::apply(slow.pid(), 1.0 / 200.0)
-        .unwrap_or_else(|e| panic!("{test}: limiting the slow worker: {e}"));
     let seed = scene_path("seed.json");
     // About 20 ms of one core a tile, 4 s or more in all on one thread. Each worker
     // takes tiles at once under the default lease; the fast one's first results set the

@@ -292,10 +292,16 @@ pub fn free_port() -> u16 {
 
 /// A worker on a slower machine: [`start_worker_with`], its process then limited to
 /// `share` of one core through a cgroup, as an operator would slow it (so its runtime,
-/// heartbeats included, is slowed too, not only its rendering). Limited from its start,
-/// so that it never renders a tile at full speed. Needs root: where cgroups cannot be
-/// written, `None` after a line saying the test is skipped, or a failure where
-/// `TESSERA_REQUIRE_PRIVILEGED=1` says it must run (CI).
+/// heartbeats included, is slowed too, not only its rendering). Needs root: where
+/// cgroups cannot be written, `None` after a line saying the test is skipped, or a
+/// failure where `TESSERA_REQUIRE_PRIVILEGED=1` says it must run (CI).
+///
+/// The worker starts and registers at full speed, and is limited as soon as the
+/// coordinator lists it: its start (the canary tile included) takes some 60 ms of CPU,
+/// which on a hundredth of a core is seconds, past short heartbeat timeouts and under
+/// load past [`REGISTER_TIMEOUT`](super::client::REGISTER_TIMEOUT). A tile it is given
+/// in the moment between the two may be rendered in part at full speed; the tests
+/// that need it slow give it tiles of many milliseconds.
 ///
 /// The kernel checks the quota at its scheduler tick (4 ms at 250 Hz), so a process may
 /// run a tick past its quota each period: work of a few milliseconds can finish at
@@ -314,6 +320,14 @@ pub fn start_slow_worker(
         return None;
     }
     let worker = start_worker_with(dir, addr, name, extra);
+    super::poll(
+        &format!("worker {name} to register"),
+        super::client::REGISTER_TIMEOUT,
+        || {
+            let workers = super::client::try_workers(dir, addr)?;
+            super::client::worker_named(&workers, name).map(drop)
+        },
+    );
     let limit = localfarm::CpuLimit::apply(worker.pid(), share)
         .unwrap_or_else(|e| panic!("{test}: limiting worker {name}: {e}"));
     Some((worker, limit))
