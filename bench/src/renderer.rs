@@ -598,13 +598,12 @@ fn decode(path: &Path) -> Result<Rgb> {
     if data.starts_with(b"P6") {
         return decode_ppm(&data).with_context(|| format!("{}: not a P6 PPM", path.display()));
     }
-    let image = image::load_from_memory_with_format(&data, image::ImageFormat::Png)
-        .with_context(|| format!("cannot decode {}", path.display()))?
-        .to_rgb8();
+    let image = coordinator::decode_png(&data)
+        .with_context(|| format!("cannot decode {}", path.display()))?;
     Ok(Rgb {
-        width: image.width(),
-        height: image.height(),
-        bytes: image.into_raw(),
+        width: image.width,
+        height: image.height,
+        bytes: image.rgb,
     })
 }
 

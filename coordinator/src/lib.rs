@@ -19,4 +19,7 @@ mod store;
 pub mod studio;
 mod tiling;
 
+/// Any PNG to 8-bit RGB, as the farm reads back the frames it stored; also what the
+/// benchmarks and the end-to-end tests decode images with.
+pub use crate::preview::decode_png;
 pub use crate::server::{serve, Config, VerifyConfig};

@@ -215,25 +215,29 @@ pub struct DecodedFrame {
     pub rgba: Vec<u8>,
 }
 
-/// The frames of a GIF, for the tests.
+/// The frames of a GIF, for the tests: each as the `gif` crate decodes it, in RGBA,
+/// which is the whole picture for the GIFs [`encode_gif`] writes (every frame covers
+/// the screen from its corner; another GIF is refused).
 #[cfg(test)]
 pub fn decode_gif(gif: &[u8]) -> Result<Vec<DecodedFrame>> {
-    use image::AnimationDecoder;
-    let decoder = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(gif))?;
-    decoder
-        .into_frames()
-        .map(|frame| {
-            let frame = frame?;
-            let (numer, denom) = frame.delay().numer_denom_ms();
-            let buffer = frame.into_buffer();
-            Ok(DecodedFrame {
-                width: buffer.width(),
-                height: buffer.height(),
-                delay_cs: numer / denom.max(1) / 10,
-                rgba: buffer.into_raw(),
-            })
-        })
-        .collect()
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::RGBA);
+    let mut decoder = options.read_info(gif)?;
+    let screen = (decoder.width(), decoder.height());
+    let mut frames = Vec::new();
+    while let Some(frame) = decoder.read_next_frame()? {
+        anyhow::ensure!(
+            (frame.left, frame.top, frame.width, frame.height) == (0, 0, screen.0, screen.1),
+            "a frame that does not cover the screen"
+        );
+        frames.push(DecodedFrame {
+            width: u32::from(frame.width),
+            height: u32::from(frame.height),
+            delay_cs: u32::from(frame.delay),
+            rgba: frame.buffer.to_vec(),
+        });
+    }
+    Ok(frames)
 }
 
 #[cfg(test)]
@@ -315,28 +319,13 @@ mod tests {
         assert!(decode_png(b"not a png").is_err());
     }
 
-    /// What `encode_gif` replaced: `image`'s GIF encoder, as the preview used it.
-    fn gif_by_image(frames: &[render::Image], delay_cs: u16) -> Vec<u8> {
-        use image::codecs::gif::{GifEncoder, Repeat};
-        use image::{Delay, Frame, RgbaImage};
-        let mut out = Vec::new();
-        {
-            let mut encoder = GifEncoder::new_with_speed(&mut out, QUANTISATION_SPEED);
-            encoder.set_repeat(Repeat::Infinite).unwrap();
-            let delay = Delay::from_numer_denom_ms(u32::from(delay_cs) * 10, 1);
-            for frame in frames {
-                let rgba = frame
-                    .rgb
-                    .chunks_exact(3)
-                    .flat_map(|p| [p[0], p[1], p[2], 255])
-                    .collect();
-                let buffer = RgbaImage::from_raw(frame.width, frame.height, rgba).unwrap();
-                encoder
-                    .encode_frame(Frame::from_parts(buffer, 0, 0, delay))
-                    .unwrap();
-            }
-        }
-        out
+    /// The SHA-256 of `bytes`, in hexadecimal.
+    fn sha256_hex(bytes: &[u8]) -> String {
+        use sha2::Digest;
+        sha2::Sha256::digest(bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
     }
 
     /// A pseudo-random byte stream (xorshift), the same on every run.
@@ -390,37 +379,64 @@ mod tests {
                 [(x * 7 + shift) as u8, (y * 11) as u8, (x * y + shift) as u8]
             })
         };
-        let cases: Vec<(Vec<render::Image>, u16)> = vec![
-            (vec![filled(1, 1, [200, 100, 50])], 4),
+        // Each with the SHA-256 of what `image` 0.25's GIF encoder wrote for it, as the
+        // preview used it (quantisation speed 10, repeating forever, the delay given).
+        let cases: Vec<(Vec<render::Image>, u16, &str)> = vec![
+            (
+                vec![filled(1, 1, [200, 100, 50])],
+                4,
+                "d1927ae66da8040bbbb26c2da43ba8c23a440b5e1b9a4312c79784e9f5cbb8ab",
+            ),
             (
                 [[255, 0, 0], [0, 255, 0], [0, 0, 255]]
                     .iter()
                     .map(|&c| filled(32, 18, c))
                     .collect(),
                 delay_cs(24.0, 1),
+                "14fd81a4391622016dcb03245b5767966c571b1cf3ef3f994cb6afba556abddc",
             ),
             // Under 256 colours: an exact palette; over: NeuQuant.
             (
                 vec![from_fn(16, 15, |x, y| [x as u8 * 16, y as u8 * 17, 9])],
                 2,
+                "160a4347373133abd6ba4374b2ad37c868a16cb9be51d3ba86a9effbe351c59f",
             ),
-            (vec![gradient(0), gradient(40), gradient(80)], 13),
-            (vec![noisy.clone(), noisy], u16::MAX),
-            (rendered(3, 80, 53), delay_cs(30.0, 2)),
-            (vec![downscale(&rendered(1, 331, 97)[0], 64)], 10),
+            (
+                vec![gradient(0), gradient(40), gradient(80)],
+                13,
+                "d964416a6e8a1783b24c2b600e805a070dba25243fc9d2f7cbdabb809178788e",
+            ),
+            (
+                vec![noisy.clone(), noisy],
+                u16::MAX,
+                "17f0d9dbc978c9fe533be1939babbeac818b25b476da119b3b82d23c2f978a61",
+            ),
+            (
+                rendered(3, 80, 53),
+                delay_cs(30.0, 2),
+                "623bf255d063155cbbd85de67781a17e00a4331367763eea867d06128468b2ae",
+            ),
+            (
+                vec![downscale(&rendered(1, 331, 97)[0], 64)],
+                10,
+                "e8d8135b4dc195f26102e998c782a28043a69386ec288d5bf9c239f53d46c66b",
+            ),
         ];
-        for (frames, delay) in &cases {
+        for (frames, delay, digest) in &cases {
             let gif = encode_gif(frames.iter().map(Ok), *delay).unwrap();
             let (width, height) = (frames[0].width, frames[0].height);
             assert_eq!(
-                gif,
-                gif_by_image(frames, *delay),
+                sha256_hex(&gif),
+                *digest,
                 "{} frames of {width}×{height}",
                 frames.len()
             );
             let decoded = decode_gif(&gif).unwrap();
             assert_eq!(decoded.len(), frames.len());
             assert!(decoded.iter().all(|f| f.delay_cs == u32::from(*delay)));
+            assert!(decoded
+                .iter()
+                .all(|f| (f.width, f.height) == (width, height)));
         }
     }
 
@@ -529,13 +545,155 @@ mod tests {
         pngs.push(rendered(1, 61, 37)[0].to_png());
         pngs.push(filled(1, 1, [1, 2, 3]).to_png());
 
-        for (i, png) in pngs.iter().enumerate() {
+        // What `image` 0.25's `load_from_memory(..).into_rgb8()` gave for each: its size
+        // and the SHA-256 of its pixels.
+        let theirs = [
+            (
+                13,
+                7,
+                "b0a71fd83e4fdc89f09bee3b0e4df099cd6c61faa37ced11c4a5e396a8d9f94f",
+            ),
+            (
+                13,
+                7,
+                "bb53347331ee8b294924e218f5f9881abc976c7e7c9ff2ff51f1028070303344",
+            ),
+            (
+                13,
+                7,
+                "fbceb8d21c1d7646c9daf63bf107ab009844014aed3b15b6c5f3107acc1eeac1",
+            ),
+            (
+                13,
+                7,
+                "d1fe2af6f4f93df2c95cba21170d3ed066d6087299dc16d0e34b58aede905cfa",
+            ),
+            (
+                13,
+                7,
+                "5df66b0f19ba0d0d8a706488fd66198d407f0c54e7abd1c27b2ca11958962ad6",
+            ),
+            (
+                13,
+                7,
+                "a9415fba98f309a3c64127c81d78c05af9930ac2d19b98511b952f5d9e45c982",
+            ),
+            (
+                13,
+                7,
+                "f73a65c077c0b2d97974dc01ba94d09bc08954a248cf022810c82c67198820f0",
+            ),
+            (
+                13,
+                7,
+                "af849fae12d4992b3e74dec1423d84bf411c20ae00eae67f46d7388e0253a844",
+            ),
+            (
+                13,
+                7,
+                "d8958dfa1a75f85c6554e776741a8740224db5ab098c1a1569633040d1370115",
+            ),
+            (
+                13,
+                7,
+                "9faccba4d91c22190920e84132b5163da2775cbd10baef75bda1bc5a9e83dc08",
+            ),
+            (
+                13,
+                7,
+                "ec6f290a86161412428ff92c18bad2949502bc04f9184b9ff25316da85a89612",
+            ),
+            (
+                13,
+                7,
+                "796fa94f92156cb5e56319dfe68e7b7534a9354dd3687df694c2569273804a7e",
+            ),
+            (
+                13,
+                7,
+                "796fa94f92156cb5e56319dfe68e7b7534a9354dd3687df694c2569273804a7e",
+            ),
+            (
+                13,
+                7,
+                "b6ac9b35e61acfa17eada2caffdcbc9f2cf578591a3dc99f763d9c81d798b83b",
+            ),
+            (
+                13,
+                7,
+                "b6ac9b35e61acfa17eada2caffdcbc9f2cf578591a3dc99f763d9c81d798b83b",
+            ),
+            (
+                13,
+                7,
+                "32163da38f1330cb2793f245151795aaa68a4013e4a5ef9e0b722e6eda39ac5a",
+            ),
+            (
+                13,
+                7,
+                "32163da38f1330cb2793f245151795aaa68a4013e4a5ef9e0b722e6eda39ac5a",
+            ),
+            (
+                13,
+                7,
+                "77e3229ce4af45b3295665c472c2ffca41be24c3b81d338818602ef897c9ea79",
+            ),
+            (
+                13,
+                7,
+                "77e3229ce4af45b3295665c472c2ffca41be24c3b81d338818602ef897c9ea79",
+            ),
+            (
+                13,
+                7,
+                "684b4f082af779547b2d37de562bb392b6164aca2112fdfceabf37f6cf809ad1",
+            ),
+            (
+                13,
+                7,
+                "674b4e083e6ea595940136abbc6c9e5113473383d77341d569c6f794bb95aa52",
+            ),
+            (
+                13,
+                7,
+                "674b4e083e6ea595940136abbc6c9e5113473383d77341d569c6f794bb95aa52",
+            ),
+            (
+                16,
+                16,
+                "72432263dbfe17abc40ed269f24c7a344e077e3671007dfc8a2f3851f8193dc2",
+            ),
+            (
+                256,
+                256,
+                "ff972ca078809fc54fb6af18b581bc19a7744814ad32ab29fefad1c55c4637d6",
+            ),
+            (
+                85,
+                257,
+                "f638907d21c3d151dd508cd2a2b5becf0826e26522d12a3b301360df239a47a2",
+            ),
+            (
+                5,
+                4,
+                "be94067945359c166b3e72b2097e8bbd8e4e6d164f0af69ece66bec5c148387f",
+            ),
+            (
+                61,
+                37,
+                "dcd0ed4ef28a35762c00779e4ecfeb58a87a9706be753a5c4504f9b857f38924",
+            ),
+            (
+                1,
+                1,
+                "039058c6f2c0cb492c533b0a4d14ef77cc0f78abccced5287d84a1a2011cfb81",
+            ),
+        ];
+        assert_eq!(pngs.len(), theirs.len());
+        for (i, (png, (width, height, digest))) in pngs.iter().zip(theirs).enumerate() {
             let ours = decode_png(png).unwrap_or_else(|e| panic!("PNG {i}: {e:#}"));
-            let theirs = image::load_from_memory_with_format(png, image::ImageFormat::Png)
-                .unwrap()
-                .into_rgb8();
-            assert_eq!((ours.width, ours.height), theirs.dimensions(), "PNG {i}");
-            assert!(ours.rgb == theirs.into_raw(), "PNG {i}: other pixels");
+            assert_eq!((ours.width, ours.height), (width, height), "PNG {i}");
+            assert_eq!(sha256_hex(&ours.rgb), digest, "PNG {i}: other pixels");
         }
     }
 
@@ -547,6 +705,7 @@ mod tests {
         let mut bad_data = good.clone();
         let idat = good.windows(4).position(|w| w == b"IDAT").unwrap();
         bad_data[idat + 6] ^= 0x55;
+        // Each refused by `image` 0.25's decoder too, which this one replaced.
         let cases: [&[u8]; 6] = [
             b"",
             b"not a png",
@@ -558,17 +717,9 @@ mod tests {
         for (i, bytes) in cases.iter().enumerate() {
             let error = decode_png(bytes).expect_err(&format!("case {i}"));
             assert_eq!(error.to_string(), "not a PNG image", "case {i}");
-            assert!(
-                image::load_from_memory_with_format(bytes, image::ImageFormat::Png).is_err(),
-                "case {i}"
-            );
         }
-        // A damaged image stream: refused by both or decoded alike.
-        let ours = decode_png(&bad_data).ok();
-        let theirs = image::load_from_memory_with_format(&bad_data, image::ImageFormat::Png)
-            .ok()
-            .map(|i| i.into_rgb8().into_raw());
-        assert_eq!(ours.map(|i| i.rgb), theirs);
+        // A damaged image stream: refused, as `image` 0.25 refused it.
+        assert!(decode_png(&bad_data).is_err());
     }
 
     #[test]

@@ -110,19 +110,13 @@ fn write_png(out: &mut Vec<u8>, image: &Image) -> Result<(), png::EncodingError>
 pub(crate) mod tests {
     use super::*;
 
-    /// What `to_png` replaced: `image`'s default PNG encoder.
-    fn png_by_image(image: &Image) -> Vec<u8> {
-        use ::image::ImageEncoder;
-        let mut out = Vec::new();
-        ::image::codecs::png::PngEncoder::new(&mut out)
-            .write_image(
-                &image.rgb,
-                image.width,
-                image.height,
-                ::image::ExtendedColorType::Rgb8,
-            )
-            .unwrap();
-        out
+    /// The SHA-256 of `bytes`, in hexadecimal.
+    pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
+        use sha2::Digest;
+        sha2::Sha256::digest(bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
     }
 
     fn from_fn(width: u32, height: u32, f: impl Fn(u32, u32) -> [u8; 3]) -> Image {
@@ -136,20 +130,28 @@ pub(crate) mod tests {
         image
     }
 
-    /// `image.to_png()` is byte for byte what the `image` crate writes, and decodes to
-    /// the image.
-    pub(crate) fn check_png(image: &Image) {
+    /// `image.to_png()` is byte for byte what the encoder it replaced wrote (the `image`
+    /// crate's default PNG encoder, 0.25, whose output's SHA-256 is `digest`), and
+    /// decodes to the image.
+    pub(crate) fn check_png(image: &Image, digest: &str) {
         let png = image.to_png();
         assert_eq!(
-            png,
-            png_by_image(image),
+            sha256_hex(&png),
+            digest,
             "{}×{} image",
             image.width,
             image.height
         );
-        let decoded = ::image::load_from_memory(&png).unwrap().into_rgb8();
-        assert_eq!(decoded.dimensions(), (image.width, image.height));
-        assert_eq!(decoded.into_raw(), image.rgb);
+        let decoder = png::Decoder::new(std::io::Cursor::new(&png));
+        let mut reader = decoder.read_info().unwrap();
+        assert_eq!(reader.info().size(), (image.width, image.height));
+        assert_eq!(
+            reader.output_color_type(),
+            (png::ColorType::Rgb, png::BitDepth::Eight)
+        );
+        let mut rgb = vec![0; reader.output_buffer_size().unwrap()];
+        reader.next_frame(&mut rgb).unwrap();
+        assert_eq!(rgb, image.rgb);
     }
 
     #[test]
@@ -163,25 +165,50 @@ pub(crate) mod tests {
             state ^= state << 5;
             *byte = state as u8;
         }
+        // Each with the SHA-256 of what `image` 0.25's PNG encoder wrote for it.
         let images = [
-            Image::black(1, 1),
-            from_fn(1, 1, |_, _| [255, 128, 7]),
-            Image::black(600, 400),
-            from_fn(3, 5, |x, y| [x as u8 * 80, y as u8 * 50, 200]),
-            from_fn(1, 257, |_, y| [y as u8, 0, 255 - y as u8]),
-            from_fn(257, 1, |x, _| [x as u8; 3]),
+            (
+                Image::black(1, 1),
+                "4d44c07cf62f61efdc4fe0ea126031bc958585f934e0ef8c1c7d2baca829aeae",
+            ),
+            (
+                from_fn(1, 1, |_, _| [255, 128, 7]),
+                "5800ebf9696633587bc1e646e40977dac18a1f767afecc839fa1d6c2db93c14a",
+            ),
+            (
+                Image::black(600, 400),
+                "3a59bd56a68239a9455fdf9d1d1defad9eef68924c3307199d8fb510eff2c002",
+            ),
+            (
+                from_fn(3, 5, |x, y| [x as u8 * 80, y as u8 * 50, 200]),
+                "55ff9c9c6e79f6276100b5f81e101665a1c4ae3398f90d1cd00b2e75fe5edd0c",
+            ),
+            (
+                from_fn(1, 257, |_, y| [y as u8, 0, 255 - y as u8]),
+                "f75a2ec44088210425f024793afa6867a46e857df69779c2ebad83a40f94e558",
+            ),
+            (
+                from_fn(257, 1, |x, _| [x as u8; 3]),
+                "ef600c6fa45b601b87191d4484ce6439196ae0447a34564beb13b2a8deb00fad",
+            ),
             // A smooth gradient with a sharp edge, like a sky over a floor.
-            from_fn(333, 211, |x, y| {
-                if y > 120 {
-                    [(x / 3) as u8, 90, 40]
-                } else {
-                    [(x * 255 / 332) as u8, (y * 255 / 120) as u8, 180]
-                }
-            }),
-            noise,
+            (
+                from_fn(333, 211, |x, y| {
+                    if y > 120 {
+                        [(x / 3) as u8, 90, 40]
+                    } else {
+                        [(x * 255 / 332) as u8, (y * 255 / 120) as u8, 180]
+                    }
+                }),
+                "f5a139be016dfef94426c025c6a3e3c61d9fb5d5bc57ca5fb0d8c9c1fa7030d6",
+            ),
+            (
+                noise,
+                "2ff916d4aaf3b23df13626818791174f1c8bbbdcda4fc91b54a5b174ae983b6f",
+            ),
         ];
-        for image in &images {
-            check_png(image);
+        for (image, digest) in &images {
+            check_png(image, digest);
         }
     }
 }

@@ -227,13 +227,13 @@ impl Farm {
 
 /// Whether some whole tile of the PNG is pure red.
 fn has_red_tile(png: &Path) -> bool {
-    let image = image::open(png).expect("a PNG").to_rgb8();
+    let image = crate::support::decode_rgb8(png);
     let (width, height) = image.dimensions();
     (0..height.div_ceil(TILE)).any(|ty| {
         (0..width.div_ceil(TILE)).any(|tx| {
             (ty * TILE..((ty + 1) * TILE).min(height)).all(|y| {
                 (tx * TILE..((tx + 1) * TILE).min(width))
-                    .all(|x| image.get_pixel(x, y).0 == [255, 0, 0])
+                    .all(|x| image.get_pixel(x, y) == [255, 0, 0])
             })
         })
     })

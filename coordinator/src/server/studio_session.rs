@@ -651,11 +651,9 @@ mod tests {
         let png = base64::engine::general_purpose::STANDARD
             .decode(data["png"].as_str().unwrap())
             .unwrap();
-        let decoded = image::load_from_memory_with_format(&png, image::ImageFormat::Png)
-            .unwrap()
-            .to_rgb8();
-        assert_eq!(decoded.dimensions(), (64, 64));
-        assert_eq!(decoded.into_raw(), rgb);
+        let decoded = crate::preview::decode_png(&png).unwrap();
+        assert_eq!((decoded.width, decoded.height), (64, 64));
+        assert_eq!(decoded.rgb, rgb);
     }
 
     #[test]

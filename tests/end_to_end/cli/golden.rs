@@ -28,10 +28,9 @@ use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use image::{Rgb, RgbImage};
 use tempfile::TempDir;
 
-use crate::support::{all_scenes, decode_rgb8, repo, shared, tessera};
+use crate::support::{all_scenes, decode_rgb8, repo, shared, tessera, Rgb8};
 
 /// Far longer than any committed scene takes even in a debug build; a render this long
 /// means the binary hangs.
@@ -49,7 +48,7 @@ enum Mismatch {
         count: u64,
         total: u64,
         /// The first of them in row-major order: (x, y), golden value, rendered value.
-        first: ((u32, u32), Rgb<u8>, Rgb<u8>),
+        first: ((u32, u32), [u8; 3], [u8; 3]),
         /// The largest per-channel difference anywhere, in levels of 255.
         max_delta: u8,
     },
@@ -69,15 +68,15 @@ impl std::fmt::Display for Mismatch {
             } => write!(
                 f,
                 "{count} of {total} pixels differ; the first at (x {x}, y {y}): golden {:?}, \
-                 rendered {:?}; largest channel difference {max_delta} of 255",
-                g.0, a.0
+                 rendered {a:?}; largest channel difference {max_delta} of 255",
+                g
             ),
         }
     }
 }
 
 /// Compares `actual` with `golden` exactly, as the module doc says.
-fn compare(golden: &RgbImage, actual: &RgbImage) -> Result<(), Mismatch> {
+fn compare(golden: &Rgb8, actual: &Rgb8) -> Result<(), Mismatch> {
     if golden.dimensions() != actual.dimensions() {
         return Err(Mismatch::Size {
             golden: golden.dimensions(),
@@ -92,16 +91,16 @@ fn compare(golden: &RgbImage, actual: &RgbImage) -> Result<(), Mismatch> {
             continue;
         }
         count += 1;
-        first.get_or_insert(((x, y), *g, *a));
+        first.get_or_insert(((x, y), g, a));
         for c in 0..3 {
-            max_delta = max_delta.max(g.0[c].abs_diff(a.0[c]));
+            max_delta = max_delta.max(g[c].abs_diff(a[c]));
         }
     }
     match first {
         None => Ok(()),
         Some(first) => Err(Mismatch::Pixels {
             count,
-            total: u64::from(golden.width()) * u64::from(golden.height()),
+            total: u64::from(golden.dimensions().0) * u64::from(golden.dimensions().1),
             first,
             max_delta,
         }),
@@ -211,9 +210,9 @@ fn scenes_match_their_golden_images() {
 
 /// A small image with some structure, so that the comparison is tested without
 /// rendering (and while blessing rewrites the goldens).
-fn pattern() -> RgbImage {
-    RgbImage::from_fn(64, 48, |x, y| {
-        Rgb([(x * 4) as u8, (y * 5) as u8, ((x ^ y) * 3) as u8])
+fn pattern() -> Rgb8 {
+    Rgb8::from_fn(64, 48, |x, y| {
+        [(x * 4) as u8, (y * 5) as u8, ((x ^ y) * 3) as u8]
     })
 }
 
@@ -227,14 +226,14 @@ fn one_level_in_one_pixel_is_a_mismatch() {
 
     for (x, y, channel, up) in [(0, 0, 0, true), (17, 29, 1, false), (63, 47, 2, true)] {
         let mut actual = golden.clone();
-        let before = *golden.get_pixel(x, y);
-        let v = &mut actual.get_pixel_mut(x, y).0[channel];
+        let before = golden.get_pixel(x, y);
+        let v = &mut actual.pixel_mut(x, y)[channel];
         *v = if up {
             v.wrapping_add(1)
         } else {
             v.wrapping_sub(1)
         };
-        let after = *actual.get_pixel(x, y);
+        let after = actual.get_pixel(x, y);
         assert_eq!(
             compare(&golden, &actual),
             Err(Mismatch::Pixels {
@@ -250,7 +249,7 @@ fn one_level_in_one_pixel_is_a_mismatch() {
     // Several pixels: all are counted, the first in row-major order is reported.
     let mut actual = golden.clone();
     for (x, y) in [(40, 30), (5, 31), (60, 2)] {
-        actual.get_pixel_mut(x, y).0[0] ^= 0x80;
+        actual.pixel_mut(x, y)[0] ^= 0x80;
     }
     let Err(Mismatch::Pixels {
         count,
@@ -264,7 +263,7 @@ fn one_level_in_one_pixel_is_a_mismatch() {
     assert_eq!((count, first.0, max_delta), (3, (60, 2), 128));
 
     // A different size is never a match, even when the common part is the same.
-    let cropped = image::imageops::crop_imm(&golden, 0, 0, 63, 48).to_image();
+    let cropped = golden.crop(0, 0, 63, 48);
     assert_eq!(
         compare(&golden, &cropped),
         Err(Mismatch::Size {

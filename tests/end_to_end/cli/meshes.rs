@@ -103,14 +103,14 @@ fn mesh_files_are_read_beside_the_scene_file_and_give_the_renderers_bytes() {
     let expected = render_frame(&Tracer::new(&scene, scene.settings), 16, &|_| {}).image;
     assert_eq!(png.dimensions(), (80, 60));
     assert!(
-        png.as_raw() == &expected.rgb,
+        png.as_raw() == expected.rgb,
         "the PNG is not the renderer's image"
     );
     // The meshes show: a twentieth of the pixels are neither the floor's greys nor the
     // sky's black.
     let coloured = png
         .pixels()
-        .filter(|p| p.0[0] != p.0[1] || p.0[1] != p.0[2])
+        .filter(|p| p[0] != p[1] || p[1] != p[2])
         .count();
     assert!(
         coloured * 20 > 80 * 60,

@@ -98,7 +98,7 @@ fn renders_seed_to_default_path_in_current_dir() {
     let img = decode_rgb8(&dir.path().join("seed.png"));
     assert_eq!(img.dimensions(), (60, 40));
     assert!(
-        img.pixels().any(|p| p.0 != [0, 0, 0]),
+        img.pixels().any(|p| p != [0, 0, 0]),
         "the seed render is all black"
     );
 }

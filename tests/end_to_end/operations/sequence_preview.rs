@@ -84,25 +84,28 @@ struct GifFrame {
     rgba: Vec<u8>,
 }
 
-/// The frames of a GIF, by the `image` crate's decoder (its `gif` feature is the
-/// coordinator's).
+/// The frames of a GIF, by the `gif` crate's decoder (the coordinator's encoder), in
+/// RGBA; each frame of the previews covers the whole picture from its corner.
 fn gif_frames(gif: &[u8]) -> Vec<GifFrame> {
-    use image::AnimationDecoder;
-    let decoder = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(gif)).unwrap();
-    decoder
-        .into_frames()
-        .map(|frame| {
-            let frame = frame.unwrap();
-            let (numer, denom) = frame.delay().numer_denom_ms();
-            let buffer = frame.into_buffer();
-            GifFrame {
-                width: buffer.width(),
-                height: buffer.height(),
-                delay_cs: numer / denom / 10,
-                rgba: buffer.into_raw(),
-            }
-        })
-        .collect()
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::RGBA);
+    let mut decoder = options.read_info(gif).expect("a GIF");
+    let screen = (decoder.width(), decoder.height());
+    let mut frames = Vec::new();
+    while let Some(frame) = decoder.read_next_frame().expect("a GIF frame") {
+        assert_eq!(
+            (frame.left, frame.top, frame.width, frame.height),
+            (0, 0, screen.0, screen.1),
+            "a frame that does not cover the picture"
+        );
+        frames.push(GifFrame {
+            width: u32::from(frame.width),
+            height: u32::from(frame.height),
+            delay_cs: u32::from(frame.delay),
+            rgba: frame.buffer.to_vec(),
+        });
+    }
+    frames
 }
 
 #[test]
@@ -205,8 +208,8 @@ fn a_sequence_has_an_animated_preview_its_frames_and_a_page_that_plays_it() {
         assert_eq!(header(&head, "content-type"), Some("image/png"));
         let stored = data.join(format!("jobs/{sequence}/frame_{k:04}.png"));
         assert_eq!(png, std::fs::read(&stored).unwrap(), "frame {k}");
-        let decoded = image::load_from_memory(&png).unwrap();
-        assert_eq!((decoded.width(), decoded.height()), (WIDTH, HEIGHT));
+        let decoded = crate::support::decode_png(&png).unwrap();
+        assert_eq!(decoded.dimensions(), (WIDTH, HEIGHT));
         assert!(
             header(&head, "etag").is_some_and(|t| t.len() == 66),
             "{head}"

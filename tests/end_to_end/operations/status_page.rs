@@ -134,9 +134,7 @@ fn the_status_page_shows_a_job_progressing_and_its_finished_image() {
     );
     assert_eq!(done.done, done.total);
     let reference = render_reference(dir.path(), &seed, "reference.png", &settings);
-    let expected: u64 = image::open(&reference)
-        .unwrap()
-        .to_rgb8()
+    let expected: u64 = crate::support::decode_rgb8(&reference)
         .as_raw()
         .iter()
         .map(|&b| u64::from(b))
@@ -351,7 +349,9 @@ fn a_busy_farm_fits_at_1400_by_900_with_the_running_job_its_time_left_and_cancel
     let shot = dir.path().join("status-page.png");
     page.screenshot(&shot);
     assert_eq!(
-        image::open(&shot).unwrap().to_rgb8().dimensions(),
+        crate::support::decode_png(&std::fs::read(&shot).unwrap())
+            .unwrap()
+            .dimensions(),
         (1400, 900)
     );
 

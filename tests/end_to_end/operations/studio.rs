@@ -316,7 +316,7 @@ fn the_studio_renders_edits_and_camera_drags_and_saves_what_tessera_render_gives
         ),
         "tessera render of the saved scene",
     );
-    let rendered = image::open(dir.join("render.png")).unwrap().to_rgb8();
+    let rendered = crate::support::decode_rgb8(&dir.join("render.png"));
     assert_eq!(rendered.dimensions(), (960, 540));
     assert_eq!(
         u64::from(fnv(rendered.as_raw())),
@@ -627,9 +627,7 @@ impl Seen {
             self.canvas = vec![0; frame.0 as usize * frame.1 as usize * 3];
         }
         let png = base64(event["png"].as_str().expect("a tile's png"));
-        let pixels = image::load_from_memory_with_format(&png, image::ImageFormat::Png)
-            .expect("a tile's PNG")
-            .to_rgb8();
+        let pixels = crate::support::decode_png(&png).expect("a tile's PNG");
         assert_eq!(pixels.dimensions(), (w, h), "{event}");
         let (x0, y0) = (field("x") * scale, field("y") * scale);
         for (px, py, rgb) in pixels.enumerate_pixels() {
@@ -638,7 +636,7 @@ impl Seen {
                     let (x, y) = (x0 + px * scale + dx, y0 + py * scale + dy);
                     if x < frame.0 && y < frame.1 {
                         let at = (y as usize * frame.0 as usize + x as usize) * 3;
-                        self.canvas[at..at + 3].copy_from_slice(&rgb.0);
+                        self.canvas[at..at + 3].copy_from_slice(&rgb);
                     }
                 }
             }
@@ -820,7 +818,7 @@ fn a_page_behind_a_20_mbit_link_keeps_up_with_a_camera_orbit() {
         tessera(dir, &["render", "last.json", "-o", "last.png"], TIMEOUT),
         "tessera render of the last edit",
     );
-    let rendered = image::open(dir.join("last.png")).unwrap().to_rgb8();
+    let rendered = crate::support::decode_rgb8(&dir.join("last.png"));
     assert_eq!(rendered.dimensions(), (960, 540));
     let differing = rendered
         .as_raw()

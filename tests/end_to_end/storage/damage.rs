@@ -530,7 +530,7 @@ fn check_damaged_fetch(
                 "{what}: fetch of job {job} exited 0 although its image.png is damaged \
                  (fetched {} bytes{}, the right image has {}, {} on disk)",
                 fetched.len(),
-                if image::load_from_memory(&fetched).is_ok() {
+                if crate::support::decode_png(&fetched).is_ok() {
                     ""
                 } else {
                     ", not a readable PNG"
