@@ -238,54 +238,66 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
         .collect();
     before.sort();
 
-    farm.coordinator.signal("STOP");
-    thread::sleep(PAUSE);
-    farm.coordinator.signal("CONT");
-    let continued = Instant::now();
-    let at_cont = tiles_done(&farm.status(job));
+    let dir = farm.dir().to_owned();
+    // Scoped: a failed assertion still waits for (and reaps) the reference's process.
+    thread::scope(|s| {
+        farm.coordinator.signal("STOP");
+        let paused = Instant::now();
+        // The reference renders on one core meanwhile (some 3.6 s): the coordinator is
+        // stopped and the workers soon idle.
+        let reference = s.spawn(|| {
+            let args = [&render_args(JOB)[..], &["--threads", "1"]].concat();
+            render_reference(&dir, &lights, "reference.png", &args)
+        });
+        thread::sleep(PAUSE.saturating_sub(paused.elapsed()));
+        farm.coordinator.signal("CONT");
+        let continued = Instant::now();
+        let at_cont = tiles_done(&farm.status(job));
 
-    // Whatever happens next, the pause must not have dropped anyone.
-    let mut findings = Findings::default();
-    let dropped: Vec<String> = farm
-        .coordinator_logs()
-        .lines()
-        .filter(|l| l.contains("dropping the worker"))
-        .map(str::to_owned)
-        .collect();
-    findings.check(dropped.is_empty(), || {
-        format!(
-            "the coordinator dropped workers after a {PAUSE:?} pause:\n{}",
-            dropped.join("\n")
-        )
-    });
-    let resumed = farm.wait_progress(job, at_cont, "after SIGCONT");
-    let mut after: Vec<(String, u64)> = farm
-        .try_workers()
-        .unwrap_or_default()
-        .iter()
-        .map(|w| {
-            (
-                w["name"].as_str().unwrap().to_owned(),
-                w["id"].as_u64().unwrap(),
+        // Whatever happens next, the pause must not have dropped anyone.
+        let mut findings = Findings::default();
+        let dropped: Vec<String> = farm
+            .coordinator_logs()
+            .lines()
+            .filter(|l| l.contains("dropping the worker"))
+            .map(str::to_owned)
+            .collect();
+        findings.check(dropped.is_empty(), || {
+            format!(
+                "the coordinator dropped workers after a {PAUSE:?} pause:\n{}",
+                dropped.join("\n")
             )
-        })
-        .collect();
-    after.sort();
-    findings.check(after == before, || {
-        format!(
-            "the workers' connections changed across the pause: {before:?} before, {after:?} after"
-        )
+        });
+        let resumed = farm.wait_progress(job, at_cont, "after SIGCONT");
+        let mut after: Vec<(String, u64)> = farm
+            .try_workers()
+            .unwrap_or_default()
+            .iter()
+            .map(|w| {
+                (
+                    w["name"].as_str().unwrap().to_owned(),
+                    w["id"].as_u64().unwrap(),
+                )
+            })
+            .collect();
+        after.sort();
+        findings.check(after == before, || {
+            format!(
+                "the workers' connections changed across the pause: {before:?} before, {after:?} after"
+            )
+        });
+        let status = farm.wait_done_progressing(job);
+        assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
+        eprintln!(
+            "coordinator paused {PAUSE:?} at {at_cont}/{total} tiles; the job progressed {} ms \
+             after SIGCONT; workers dropped: {}",
+            (resumed - continued).as_millis(),
+            dropped.len()
+        );
+        let reference = reference.join().expect("the reference render panicked");
+        farm.assert_job_image_is(job, &reference, "the job whose coordinator was paused");
+        findings.finish();
     });
-    let status = farm.wait_done_progressing(job);
-    assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
-    eprintln!(
-        "coordinator paused {PAUSE:?} at {at_cont}/{total} tiles; the job progressed {} ms \
-         after SIGCONT; workers dropped: {}",
-        (resumed - continued).as_millis(),
-        dropped.len()
-    );
-    farm.assert_job_image(job, &lights, JOB, "the job whose coordinator was paused");
-    findings.finish();
 }
 
 /// The job id a `submit --wait` started at `started` printed on stderr (`submitted job

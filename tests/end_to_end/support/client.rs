@@ -274,8 +274,9 @@ pub fn assert_job_image(dir: &Path, addr: &str, job: u64, scene: &str, args: &[&
 /// process and copied for each test that asks again with the same arguments (the
 /// faults tests compare a dozen jobs with the same few images, each seconds of CPU): a
 /// rendering is deterministic, so the copy is the file `tessera render` would write
-/// again. Other scenes (written by a test, or beside mesh files it may change) are
-/// rendered each time.
+/// again, whatever its `--threads` (the farm's images, of any number of one-thread
+/// workers, are compared with the same references). Other scenes (written by a test,
+/// or beside mesh files it may change) are rendered each time.
 pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> PathBuf {
     use std::collections::BTreeMap;
     use std::sync::Mutex;
@@ -289,8 +290,16 @@ pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> P
         .ok()
         .filter(|p| p.parent() == super::repo().join("scenes").canonicalize().ok().as_deref());
     let key = shipped.map(|scene| {
-        let args = args.iter().map(|a| (*a).to_owned()).collect();
-        (scene, args, out.extension().map(ToOwned::to_owned))
+        let mut image_args = Vec::new();
+        let mut it = args.iter();
+        while let Some(&arg) = it.next() {
+            if arg == "--threads" {
+                it.next();
+            } else {
+                image_args.push(arg.to_owned());
+            }
+        }
+        (scene, image_args, out.extension().map(ToOwned::to_owned))
     });
     let cached = key.as_ref().and_then(|key| {
         let rendered = RENDERED.lock().unwrap_or_else(|e| e.into_inner());
