@@ -7,8 +7,8 @@
 //!   done before the kill is still done after the restart.
 //! - **Stopped** (`SIGTERM`): it exits 0 within 12 s, a job submitted meanwhile is
 //!   refused without harm, and after a restart the job resumes.
-//! - **Paused** (`SIGSTOP`) for 7 s, past the 5 s heartbeat timeout, then continued: it
-//!   reads what the workers sent meanwhile before expiring anyone, so it drops no
+//! - **Paused** (`SIGSTOP`) for 4.5 s, past its 3 s heartbeat timeout, then continued:
+//!   it reads what the workers sent meanwhile before expiring anyone, so it drops no
 //!   worker.
 //! - **Killed and restarted under a `submit --wait`**: the client has printed
 //!   `submitted job N` at once, rides through the restart and exits 0 with the image.
@@ -30,9 +30,10 @@ use crate::support::{
     scene_path, spawn_tessera, tiles_done, tiles_total, Daemon, Findings,
 };
 
-/// Some 10 CPU-seconds (1,102 tiles of 64): longer than the shutdown grace on one
-/// worker.
-const VERY_LONG: &[&str] = &["--width", "2400", "--height", "1800", "--aa", "7"];
+/// Some 5 CPU-seconds (1,102 tiles of 64): seconds of it left on one worker when the
+/// coordinator is stopped after its first tiles, whose reference takes as long on the
+/// second core.
+const VERY_LONG: &[&str] = &["--width", "2400", "--height", "1800", "--aa", "5"];
 /// A 1080p frame in about 0.2 CPU-seconds, whose PNG is about 0.5 MB.
 const FRAME_1080P: &[&str] = &["--width", "1920", "--height", "1080", "--aa", "1"];
 
@@ -205,14 +206,22 @@ fn a_coordinator_terminated_mid_job_exits_cleanly_and_resumes_after_a_restart() 
     });
 }
 
-/// The coordinator is stopped (`SIGSTOP`) for 7 s mid-job, past the 5 s heartbeat
+/// The heartbeat timeout of the paused coordinator: shorter than the default 5 s, so
+/// that the pause past it is shorter too, and three of the workers' 1 s heartbeats, so
+/// that a worker is not dropped for a heartbeat a loaded machine delays.
+const PAUSED_HEARTBEAT_TIMEOUT: &[&str] = &["--heartbeat-timeout-ms", "3000"];
+/// How long the coordinator is paused: half as long again as its heartbeat timeout
+/// (and past the 2 s after which it counts itself paused).
+const PAUSE: Duration = Duration::from_millis(4500);
+
+/// The coordinator is stopped (`SIGSTOP`) mid-job for [`PAUSE`], past its heartbeat
 /// timeout, then continued: it drops no worker (no "dropping the worker" in its log,
 /// the same connections before and after), and the job ends `done` with
 /// `tessera render`'s image.
 #[test]
 fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
     let _turn = exclusive();
-    let mut farm = Farm::restartable(&["w1", "w2"]);
+    let mut farm = Farm::start_with("127.0.0.1:0", &["w1", "w2"], PAUSED_HEARTBEAT_TIMEOUT);
     let lights = scene_path("lights.json");
     let job = farm.submit(&lights, JOB);
     let total = tiles_total(&farm.status(job));
@@ -229,54 +238,66 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
         .collect();
     before.sort();
 
-    farm.coordinator.signal("STOP");
-    thread::sleep(Duration::from_secs(7));
-    farm.coordinator.signal("CONT");
-    let continued = Instant::now();
-    let at_cont = tiles_done(&farm.status(job));
+    let dir = farm.dir().to_owned();
+    // Scoped: a failed assertion still waits for (and reaps) the reference's process.
+    thread::scope(|s| {
+        farm.coordinator.signal("STOP");
+        let paused = Instant::now();
+        // The reference renders on one core meanwhile (some 3.6 s): the coordinator is
+        // stopped and the workers soon idle.
+        let reference = s.spawn(|| {
+            let args = [&render_args(JOB)[..], &["--threads", "1"]].concat();
+            render_reference(&dir, &lights, "reference.png", &args)
+        });
+        thread::sleep(PAUSE.saturating_sub(paused.elapsed()));
+        farm.coordinator.signal("CONT");
+        let continued = Instant::now();
+        let at_cont = tiles_done(&farm.status(job));
 
-    // Whatever happens next, the pause must not have dropped anyone.
-    let mut findings = Findings::default();
-    let dropped: Vec<String> = farm
-        .coordinator_logs()
-        .lines()
-        .filter(|l| l.contains("dropping the worker"))
-        .map(str::to_owned)
-        .collect();
-    findings.check(dropped.is_empty(), || {
-        format!(
-            "the coordinator dropped workers after a 7 s pause:\n{}",
-            dropped.join("\n")
-        )
-    });
-    let resumed = farm.wait_progress(job, at_cont, "after SIGCONT");
-    let mut after: Vec<(String, u64)> = farm
-        .try_workers()
-        .unwrap_or_default()
-        .iter()
-        .map(|w| {
-            (
-                w["name"].as_str().unwrap().to_owned(),
-                w["id"].as_u64().unwrap(),
+        // Whatever happens next, the pause must not have dropped anyone.
+        let mut findings = Findings::default();
+        let dropped: Vec<String> = farm
+            .coordinator_logs()
+            .lines()
+            .filter(|l| l.contains("dropping the worker"))
+            .map(str::to_owned)
+            .collect();
+        findings.check(dropped.is_empty(), || {
+            format!(
+                "the coordinator dropped workers after a {PAUSE:?} pause:\n{}",
+                dropped.join("\n")
             )
-        })
-        .collect();
-    after.sort();
-    findings.check(after == before, || {
-        format!(
-            "the workers' connections changed across the pause: {before:?} before, {after:?} after"
-        )
+        });
+        let resumed = farm.wait_progress(job, at_cont, "after SIGCONT");
+        let mut after: Vec<(String, u64)> = farm
+            .try_workers()
+            .unwrap_or_default()
+            .iter()
+            .map(|w| {
+                (
+                    w["name"].as_str().unwrap().to_owned(),
+                    w["id"].as_u64().unwrap(),
+                )
+            })
+            .collect();
+        after.sort();
+        findings.check(after == before, || {
+            format!(
+                "the workers' connections changed across the pause: {before:?} before, {after:?} after"
+            )
+        });
+        let status = farm.wait_done_progressing(job);
+        assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
+        eprintln!(
+            "coordinator paused {PAUSE:?} at {at_cont}/{total} tiles; the job progressed {} ms \
+             after SIGCONT; workers dropped: {}",
+            (resumed - continued).as_millis(),
+            dropped.len()
+        );
+        let reference = reference.join().expect("the reference render panicked");
+        farm.assert_job_image_is(job, &reference, "the job whose coordinator was paused");
+        findings.finish();
     });
-    let status = farm.wait_done_progressing(job);
-    assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
-    eprintln!(
-        "coordinator paused 7 s at {at_cont}/{total} tiles; the job progressed {} ms after \
-         SIGCONT; workers dropped: {}",
-        (resumed - continued).as_millis(),
-        dropped.len()
-    );
-    farm.assert_job_image(job, &lights, JOB, "the job whose coordinator was paused");
-    findings.finish();
 }
 
 /// The job id a `submit --wait` started at `started` printed on stderr (`submitted job

@@ -13,7 +13,7 @@
 //! - **A slow worker that makes progress** (a tenth of a core) is never marked
 //!   unresponsive, however long its tiles take beside a fast worker's.
 //!
-//! The coordinator runs with `--progress-timeout-ms 3000` so that a frozen worker is
+//! The coordinator runs with `--progress-timeout-ms 2000` so that a frozen worker is
 //! found out within seconds. Freezing threads takes ptrace, which may need privileges:
 //! where it is refused these tests print `skipped: REASON` and pass, unless
 //! `TESSERA_REQUIRE_PRIVILEGED=1`, where they fail (as the slow worker's cgroup does).
@@ -32,7 +32,7 @@ use crate::support::{
 
 /// The coordinator's allowance for a worker's progress: a worker holding a tile past its
 /// lease and returning nothing for this long is unresponsive.
-const COORDINATOR: &[&str] = &["--progress-timeout-ms", "3000"];
+const COORDINATOR: &[&str] = &["--progress-timeout-ms", "2000"];
 
 // CPU-seconds of `hall-of-mirrors.json` (the heaviest shipped scene, so that the jobs
 // last) measured on the project's 2-core machines. A test that needs its job to last
@@ -41,26 +41,27 @@ const COORDINATOR: &[&str] = &["--progress-timeout-ms", "3000"];
 // The tiles are small (some 6 ms each) because a worker's allowance is also 16 times
 // the slowest tile of the jobs it holds, timed from assignment to result (so with the
 // tiles queued behind it in the worker): with tiles of a few milliseconds that stays
-// under the 3 s of `--progress-timeout-ms` even on a loaded machine, and the mark
+// under the 2 s of `--progress-timeout-ms` even on a loaded machine, and the mark
 // comes when the test says.
 
-/// Some 6 CPU-seconds in 1,102 tiles: the other worker alone still has several seconds
-/// of it when its peer is found unresponsive (3 s without a result, the lease of at
-/// least 1 s having run out).
+/// Some 4 CPU-seconds in 1,102 tiles: the other worker alone still has seconds of it
+/// when its peer is found unresponsive (2 s without a result, the lease of at least
+/// 1 s having run out; measured, the mark 2.2 s and the job's end 5 to 6 s after the
+/// freeze).
 const JOB: &[&str] = &[
-    "--width", "1200", "--height", "900", "--aa", "6", "--tile", "32",
+    "--width", "1200", "--height", "900", "--aa", "5", "--tile", "32",
 ];
-/// Some 6 CPU-seconds in 1,102 tiles, each rendered twice under `--verify full`.
+/// Some 4 CPU-seconds in 1,102 tiles, each rendered twice under `--verify full`.
 const FULL_JOB: &[&str] = &[
-    "--width", "1200", "--height", "900", "--aa", "6", "--tile", "32",
+    "--width", "1200", "--height", "900", "--aa", "5", "--tile", "32",
 ];
 /// The seed scene in some 400 tiles of even cost (its floor and sky are alike from row
 /// to row, unlike `hall-of-mirrors.json`'s rows, which differ thirtyfold: a worker on a
 /// tenth of a core handed one of its dearest tiles could return nothing while a fast
-/// worker rendered the rest), each taking a worker on a tenth of a core some 0.15 s
-/// (38 of them in a job of 6.2 s, measured).
+/// worker rendered the rest), each taking a worker on a tenth of a core some 0.1 s,
+/// twenty times a fast worker's (at `--aa 12`, 38 of them in a job of 6.2 s, measured).
 const EVEN_JOB: &[&str] = &[
-    "--width", "1600", "--height", "1000", "--aa", "12", "--tile", "64",
+    "--width", "1600", "--height", "1000", "--aa", "9", "--tile", "64",
 ];
 /// The small job after the thaw.
 const SMALL: &[&str] = &["--width", "200", "--height", "150", "--tile", "16"];
@@ -69,7 +70,7 @@ const SMALL: &[&str] = &["--width", "200", "--height", "150", "--tile", "16"];
 /// times are measured.
 const TILES_BEFORE_FREEZE: u64 = 5;
 /// Longest from the freeze to the mark: the lease (at least 1 s) and the progress
-/// timeout (3 s), plus the coordinator's wake interval (1 s) and the margin of a
+/// timeout (2 s), plus the coordinator's wake interval (1 s) and the margin of a
 /// loaded machine, whose slow tiles lengthen both.
 const MARK_BOUND: Duration = Duration::from_secs(25);
 /// Longest from the freeze to the job's end.

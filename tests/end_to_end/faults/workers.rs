@@ -267,13 +267,24 @@ fn two_workers_restarted_under_their_names_six_times_finish_the_job() {
     );
 }
 
+/// The heartbeat timeout of the farm whose worker is frozen, in milliseconds: shorter
+/// than the default 5 s, which the test would wait out, and three of the workers' 1 s
+/// heartbeats, so that the worker left is not dropped for a heartbeat a loaded machine
+/// delays.
+const FROZEN_HEARTBEAT_TIMEOUT_MS: u64 = 3000;
+
 /// A worker frozen with SIGSTOP mid-job for longer than the heartbeat timeout:
 /// the job completes on the other worker, the frozen one is dropped, and once it is
 /// resumed the farm still serves (the worker may come back or not).
 #[test]
 fn a_frozen_worker_is_worked_around_and_dropped() {
     let _turn = exclusive();
-    let mut farm = Farm::start("127.0.0.1:0", &["w1", "w2"]);
+    let timeout = FROZEN_HEARTBEAT_TIMEOUT_MS.to_string();
+    let mut farm = Farm::start_with(
+        "127.0.0.1:0",
+        &["w1", "w2"],
+        &["--heartbeat-timeout-ms", &timeout],
+    );
     let lights = scene_path("lights.json");
     let job = farm.submit(&lights, &[&["--tile", "32"][..], MEDIUM].concat());
     farm.wait_for_tiles(job, 20);
@@ -284,15 +295,17 @@ fn a_frozen_worker_is_worked_around_and_dropped() {
     let status = farm.wait_done(job);
     let done_after = stopped.elapsed();
     assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
-    // The heartbeat timeout (5 s) drops the frozen worker.
+    // The heartbeat timeout drops the frozen worker; its last heartbeat came up to 1 s
+    // before the freeze, and a second more is allowed for the timer's slack.
     let workers = poll("the frozen worker to be dropped", REGISTER_TIMEOUT, || {
         farm.try_workers()
             .filter(|w| w.iter().all(|w| w["name"] != "w2"))
     });
     let dropped_after = stopped.elapsed();
     assert_eq!(workers.len(), 1, "{workers:?}");
+    let soonest = Duration::from_millis(FROZEN_HEARTBEAT_TIMEOUT_MS) - Duration::from_secs(2);
     assert!(
-        dropped_after >= Duration::from_secs(3),
+        dropped_after >= soonest,
         "dropped {dropped_after:?} after it froze: sooner than the heartbeat timeout allows"
     );
     eprintln!(

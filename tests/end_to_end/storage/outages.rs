@@ -22,8 +22,9 @@
 //!   already open (every write through them fails with `EPERM`; ext4 refuses those
 //!   writes, tmpfs does not, hence an ext4 file system on a loop device). Undone in the
 //!   reverse order. The test prints which way was used.
-//! - **Frozen** (`fsfreeze` on an ext4 file system on a loop device) for 8 s: `/healthz`
-//!   answers within 1 s throughout, `status` within 2 s, no worker is dropped.
+//! - **Frozen** (`fsfreeze` on an ext4 file system on a loop device) for 6 s, twice the
+//!   coordinator's heartbeat timeout: `/healthz` answers within 1 s throughout, `status`
+//!   within 2 s, no worker is dropped.
 //! - **A submission on a full disk** is refused with one line, and accepted once the
 //!   disk has space again.
 //!
@@ -443,14 +444,16 @@ struct Farm<'a> {
 
 impl<'a> Farm<'a> {
     fn start(dir: &'a Path, data: &Path, workers: &[&str]) -> Farm<'a> {
+        Farm::start_with(dir, data, workers, &[])
+    }
+
+    /// [`Farm::start`] with more arguments for the coordinator.
+    fn start_with(dir: &'a Path, data: &Path, workers: &[&str], extra: &[&str]) -> Farm<'a> {
         let http = format!("127.0.0.1:{}", support::free_port());
-        let (coordinator, addr) = support::start_coordinator(
-            dir,
-            data,
-            "127.0.0.1:0",
-            &["--http", &http],
-            "coordinator.log",
-        );
+        let mut args = vec!["--http", http.as_str()];
+        args.extend(extra);
+        let (coordinator, addr) =
+            support::start_coordinator(dir, data, "127.0.0.1:0", &args, "coordinator.log");
         let mut farm = Farm {
             dir,
             coordinator,
@@ -863,10 +866,18 @@ fn a_read_only_data_directory_pauses_the_farm_until_it_is_writable() {
     findings.finish();
 }
 
-/// The data directory's file system is frozen (`fsfreeze`) for 8 s mid-job: `/healthz`
-/// answers within 1 s and `status` within 2 s throughout, the storage is reported
-/// unavailable and new jobs refused, no worker is dropped, and after the thaw the job
-/// resumes by itself and ends `done` with `tessera render`'s image.
+/// How long the file system is frozen: twice [`FREEZE_HEARTBEAT_TIMEOUT`], and seconds
+/// past the 2 s after which a write counts as stalled.
+const FREEZE: Duration = Duration::from_secs(6);
+/// The heartbeat timeout of the coordinator whose disk is frozen: shorter than the
+/// default 5 s, so that the freeze past it is shorter too, and three of the workers' 1 s
+/// heartbeats, so that no worker is dropped for one a loaded machine delays.
+const FREEZE_HEARTBEAT_TIMEOUT: &[&str] = &["--heartbeat-timeout-ms", "3000"];
+
+/// The data directory's file system is frozen (`fsfreeze`) for [`FREEZE`] mid-job:
+/// `/healthz` answers within 1 s and `status` within 2 s throughout, the storage is
+/// reported unavailable and new jobs refused, no worker is dropped, and after the thaw
+/// the job resumes by itself and ends `done` with `tessera render`'s image.
 #[test]
 fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
     const TEST: &str = "a_frozen_file_system_stalls_neither_health_nor_status_nor_workers";
@@ -876,7 +887,7 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
         return;
     };
     let data = mount.point.join("data");
-    let farm = Farm::start(dir.path(), &data, &["w1", "w2"]);
+    let farm = Farm::start_with(dir.path(), &data, &["w1", "w2"], FREEZE_HEARTBEAT_TIMEOUT);
     let lights = support::scene_path("lights.json");
     let seed = support::scene_path("seed.json");
     let job = farm.submit(&lights, LONG_JOB);
@@ -901,167 +912,173 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
 
     // Declared after the farm: on a failure the file system is thawed before the
     // processes are killed.
-    let Some(freeze) = privileged(TEST, || Freeze::new(&mount.point)) else {
-        return;
-    };
-    let frozen = Instant::now();
-    let mut findings = Findings::default();
-    let mut healthz_worst = Duration::ZERO;
-    let mut healthz_bad = Vec::new();
-    let mut status_worst = Duration::ZERO;
-    let mut status_bad = 0;
-    let mut unavailable: Option<(Duration, String)> = None;
-    let mut gauge_seen = None;
-    let mut refused = false;
-    let mut tiles_while_down: Vec<u64> = Vec::new();
-    let mut accepted = Vec::new();
-    let mut last_status = Instant::now() - Duration::from_secs(10);
-    while frozen.elapsed() < Duration::from_secs(8) {
-        let asked = Instant::now();
-        let healthz = farm.get("/healthz", Duration::from_secs(3));
-        let took = asked.elapsed();
-        healthz_worst = healthz_worst.max(took);
-        if !matches!(healthz, Some((200, _))) || took > HEALTHZ_LIMIT {
-            healthz_bad.push(format!(
-                "{:.1} s: {:?} in {} ms",
-                frozen.elapsed().as_secs_f64(),
-                healthz.map(|(code, _)| code),
-                took.as_millis()
-            ));
-        }
-        if last_status.elapsed() >= Duration::from_secs(1) {
-            last_status = Instant::now();
-            let run = support::tessera_within(
-                dir.path(),
-                &[
-                    "status",
-                    &job.to_string(),
-                    "--json",
-                    "--coordinator",
-                    &farm.addr,
-                ],
-                Duration::from_secs(10),
-            );
-            let took = last_status.elapsed();
-            status_worst = status_worst.max(took);
-            if !run.is_some_and(|r| r.status.success()) || took > STATUS_LIMIT {
-                status_bad += 1;
+    // Scoped: a failed assertion still waits for (and reaps) the reference's process.
+    thread::scope(|s| {
+        let Some(freeze) = privileged(TEST, || Freeze::new(&mount.point)) else {
+            return;
+        };
+        let frozen = Instant::now();
+        // The reference renders on one core meanwhile (some 4.5 s): the workers idle once
+        // the stall is noticed, and /healthz and `status` answer in milliseconds beside it.
+        let reference = s.spawn(|| {
+            let args = [&support::render_args(LONG_JOB)[..], &["--threads", "1"]].concat();
+            support::render_reference(dir.path(), &lights, "reference.png", &args)
+        });
+        let mut findings = Findings::default();
+        let mut healthz_worst = Duration::ZERO;
+        let mut healthz_bad = Vec::new();
+        let mut status_worst = Duration::ZERO;
+        let mut status_bad = 0;
+        let mut unavailable: Option<(Duration, String)> = None;
+        let mut gauge_seen = None;
+        let mut refused = false;
+        let mut tiles_while_down: Vec<u64> = Vec::new();
+        let mut accepted = Vec::new();
+        let mut last_status = Instant::now() - Duration::from_secs(10);
+        while frozen.elapsed() < FREEZE {
+            let asked = Instant::now();
+            let healthz = farm.get("/healthz", Duration::from_secs(3));
+            let took = asked.elapsed();
+            healthz_worst = healthz_worst.max(took);
+            if !matches!(healthz, Some((200, _))) || took > HEALTHZ_LIMIT {
+                healthz_bad.push(format!(
+                    "{:.1} s: {:?} in {} ms",
+                    frozen.elapsed().as_secs_f64(),
+                    healthz.map(|(code, _)| code),
+                    took.as_millis()
+                ));
             }
-            if unavailable.is_some() {
-                if let Some(tiles) = farm.worker_tiles() {
-                    tiles_while_down.push(tiles);
+            if last_status.elapsed() >= Duration::from_secs(1) {
+                last_status = Instant::now();
+                let run = support::tessera_within(
+                    dir.path(),
+                    &[
+                        "status",
+                        &job.to_string(),
+                        "--json",
+                        "--coordinator",
+                        &farm.addr,
+                    ],
+                    Duration::from_secs(10),
+                );
+                let took = last_status.elapsed();
+                status_worst = status_worst.max(took);
+                if !run.is_some_and(|r| r.status.success()) || took > STATUS_LIMIT {
+                    status_bad += 1;
+                }
+                if unavailable.is_some() {
+                    if let Some(tiles) = farm.worker_tiles() {
+                        tiles_while_down.push(tiles);
+                    }
                 }
             }
-        }
-        if unavailable.is_none() {
-            if let Some((503, body)) = farm.get("/readyz", Duration::from_secs(1)) {
-                unavailable = Some((frozen.elapsed(), body));
-                gauge_seen = farm.storage_gauge();
+            if unavailable.is_none() {
+                if let Some((503, body)) = farm.get("/readyz", Duration::from_secs(1)) {
+                    unavailable = Some((frozen.elapsed(), body));
+                    gauge_seen = farm.storage_gauge();
+                }
             }
+            if !refused && (unavailable.is_some() || frozen.elapsed() > Duration::from_secs(5)) {
+                refused = true;
+                let asked = Instant::now();
+                let run = farm.try_submit(&small_job(&seed), SUBMIT_LIMIT);
+                eprintln!(
+                    "a submission while frozen answered in {} ms",
+                    asked.elapsed().as_millis()
+                );
+                accepted.extend(check_refused(
+                    run,
+                    &mut findings,
+                    "a submission while frozen",
+                ));
+            }
+            thread::sleep(Duration::from_millis(200));
         }
-        if !refused && (unavailable.is_some() || frozen.elapsed() > Duration::from_secs(5)) {
-            refused = true;
-            let asked = Instant::now();
-            let run = farm.try_submit(&small_job(&seed), SUBMIT_LIMIT);
+        freeze.thaw();
+        let thawed = Instant::now();
+
+        findings.check(healthz_bad.is_empty(), || {
+            format!(
+                "/healthz should answer 200 within {HEALTHZ_LIMIT:?} while the disk is frozen: {}",
+                healthz_bad.join("; ")
+            )
+        });
+        findings.check(status_bad == 0, || {
+            format!("{status_bad} `tessera status` calls failed or took over {STATUS_LIMIT:?} while the disk was frozen (worst {} ms)", status_worst.as_millis())
+        });
+        findings.check(unavailable.is_some(), || {
+            format!("/readyz never answered 503 during a {FREEZE:?} freeze")
+        });
+        if let Some((after, body)) = &unavailable {
+            findings.check(body.starts_with("storage unavailable:"), || {
+                format!("/readyz's 503 should say `storage unavailable: REASON`: {body:?}")
+            });
+            findings.check(gauge_seen == Some(0.0), || {
+                format!("tessera_storage_available should be 0 while frozen: {gauge_seen:?}")
+            });
             eprintln!(
-                "a submission while frozen answered in {} ms",
-                asked.elapsed().as_millis()
+                "frozen: /readyz 503 after {} ms: {}",
+                after.as_millis(),
+                body.trim()
             );
-            accepted.extend(check_refused(
-                run,
-                &mut findings,
-                "a submission while frozen",
-            ));
         }
-        thread::sleep(Duration::from_millis(200));
-    }
-    freeze.thaw();
-    let thawed = Instant::now();
+        let grew = tiles_while_down.windows(2).any(|w| w[1] > w[0]);
+        findings.check(!grew, || {
+            format!("tiles were still handed out and accepted while frozen: {tiles_while_down:?}")
+        });
 
-    findings.check(healthz_bad.is_empty(), || {
-        format!(
-            "/healthz should answer 200 within {HEALTHZ_LIMIT:?} while the disk is frozen: {}",
-            healthz_bad.join("; ")
-        )
-    });
-    findings.check(status_bad == 0, || {
-        format!("{status_bad} `tessera status` calls failed or took over {STATUS_LIMIT:?} while the disk was frozen (worst {} ms)", status_worst.as_millis())
-    });
-    findings.check(unavailable.is_some(), || {
-        "/readyz never answered 503 during an 8 s freeze".to_owned()
-    });
-    if let Some((after, body)) = &unavailable {
-        findings.check(body.starts_with("storage unavailable:"), || {
-            format!("/readyz's 503 should say `storage unavailable: REASON`: {body:?}")
+        let at_thaw = tiles_done(&farm.status(job));
+        eprintln!("frozen: {at_thaw}/{total} tiles done at the thaw");
+        let resumed = support::poll("the job to resume after the thaw", RECOVER_TIMEOUT, || {
+            let status = farm.status(job);
+            assert_not_ended_badly(job, &status);
+            (tiles_done(&status) > at_thaw || status["state"] == "done").then(|| thawed.elapsed())
         });
-        findings.check(gauge_seen == Some(0.0), || {
-            format!("tessera_storage_available should be 0 while frozen: {gauge_seen:?}")
+        let ready = support::poll("/readyz to be 200 after the thaw", RECOVER_TIMEOUT, || {
+            matches!(farm.get("/readyz", Duration::from_secs(3)), Some((200, _)))
+                .then(|| thawed.elapsed())
         });
+        let gauge = farm.storage_gauge();
+        findings.check(gauge == Some(1.0), || {
+            format!("tessera_storage_available should be 1 after the thaw: {gauge:?}")
+        });
+        let workers_after = connections(&farm);
+        findings.check(workers_after == workers_before, || {
+            format!("the workers' connections changed across the freeze: {workers_before:?} before, {workers_after:?} after")
+        });
+        let dropped = farm
+            .log()
+            .lines()
+            .filter(|l| l.contains("dropping the worker"))
+            .count();
+        findings.check(dropped == 0, || {
+            format!("the coordinator dropped {dropped} workers during the freeze")
+        });
+        let status = farm.wait_done(job);
+        assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
         eprintln!(
-            "frozen: /readyz 503 after {} ms: {}",
-            after.as_millis(),
-            body.trim()
+            "frozen {FREEZE:?} at {at_freeze}/{total} tiles: /healthz worst {} ms, status worst {} ms; \
+             thawed → job resumed in {} ms, /readyz ready in {} ms, done in {:.1} s",
+            healthz_worst.as_millis(),
+            status_worst.as_millis(),
+            resumed.as_millis(),
+            ready.as_millis(),
+            thawed.elapsed().as_secs_f64()
         );
-    }
-    let grew = tiles_while_down.windows(2).any(|w| w[1] > w[0]);
-    findings.check(!grew, || {
-        format!("tiles were still handed out and accepted while frozen: {tiles_while_down:?}")
+        let reference = reference.join().expect("the reference render panicked");
+        let out = support::fetch(dir.path(), &farm.addr, job, &format!("job-{job}.png"));
+        support::assert_same_png(&out, &reference, "the job through a frozen file system");
+        for late in accepted {
+            farm.wait_done(late);
+            farm.assert_job_image(
+                late,
+                &seed,
+                &small_job(&seed)[1..],
+                "a job accepted while frozen",
+            );
+        }
+        findings.finish();
     });
-
-    let at_thaw = tiles_done(&farm.status(job));
-    eprintln!("frozen: {at_thaw}/{total} tiles done at the thaw");
-    let resumed = support::poll("the job to resume after the thaw", RECOVER_TIMEOUT, || {
-        let status = farm.status(job);
-        assert_not_ended_badly(job, &status);
-        (tiles_done(&status) > at_thaw || status["state"] == "done").then(|| thawed.elapsed())
-    });
-    let ready = support::poll("/readyz to be 200 after the thaw", RECOVER_TIMEOUT, || {
-        matches!(farm.get("/readyz", Duration::from_secs(3)), Some((200, _)))
-            .then(|| thawed.elapsed())
-    });
-    let gauge = farm.storage_gauge();
-    findings.check(gauge == Some(1.0), || {
-        format!("tessera_storage_available should be 1 after the thaw: {gauge:?}")
-    });
-    let workers_after = connections(&farm);
-    findings.check(workers_after == workers_before, || {
-        format!("the workers' connections changed across the freeze: {workers_before:?} before, {workers_after:?} after")
-    });
-    let dropped = farm
-        .log()
-        .lines()
-        .filter(|l| l.contains("dropping the worker"))
-        .count();
-    findings.check(dropped == 0, || {
-        format!("the coordinator dropped {dropped} workers during the freeze")
-    });
-    let status = farm.wait_done(job);
-    assert_eq!(status["tiles_done"], status["tiles_total"], "{status}");
-    eprintln!(
-        "frozen 8 s at {at_freeze}/{total} tiles: /healthz worst {} ms, status worst {} ms; \
-         thawed → job resumed in {} ms, /readyz ready in {} ms, done in {:.1} s",
-        healthz_worst.as_millis(),
-        status_worst.as_millis(),
-        resumed.as_millis(),
-        ready.as_millis(),
-        thawed.elapsed().as_secs_f64()
-    );
-    farm.assert_job_image(
-        job,
-        &lights,
-        LONG_JOB,
-        "the job through a frozen file system",
-    );
-    for late in accepted {
-        farm.wait_done(late);
-        farm.assert_job_image(
-            late,
-            &seed,
-            &small_job(&seed)[1..],
-            "a job accepted while frozen",
-        );
-    }
-    findings.finish();
 }
 
 /// A submission to a coordinator whose disk is full is refused with one line (and

@@ -269,8 +269,47 @@ pub fn assert_job_image(dir: &Path, addr: &str, job: u64, scene: &str, args: &[&
 }
 
 /// `tessera render SCENE -o DIR/NAME ARGS...`: the reference image.
+///
+/// The references of the scenes shipped in `scenes/` are rendered once per test
+/// process and copied for each test that asks again with the same arguments (the
+/// faults tests compare a dozen jobs with the same few images, each seconds of CPU): a
+/// rendering is deterministic, so the copy is the file `tessera render` would write
+/// again, whatever its `--threads` (the farm's images, of any number of one-thread
+/// workers, are compared with the same references). Other scenes (written by a test,
+/// or beside mesh files it may change) are rendered each time.
 pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> PathBuf {
+    use std::collections::BTreeMap;
+    use std::sync::Mutex;
+    /// The image's bytes by scene, arguments and file type.
+    type Key = (PathBuf, Vec<String>, Option<std::ffi::OsString>);
+    static RENDERED: Mutex<BTreeMap<Key, Vec<u8>>> = Mutex::new(BTreeMap::new());
+
     let out = dir.join(name);
+    let shipped = Path::new(scene)
+        .canonicalize()
+        .ok()
+        .filter(|p| p.parent() == super::repo().join("scenes").canonicalize().ok().as_deref());
+    let key = shipped.map(|scene| {
+        let mut image_args = Vec::new();
+        let mut it = args.iter();
+        while let Some(&arg) = it.next() {
+            if arg == "--threads" {
+                it.next();
+            } else {
+                image_args.push(arg.to_owned());
+            }
+        }
+        (scene, image_args, out.extension().map(ToOwned::to_owned))
+    });
+    let cached = key.as_ref().and_then(|key| {
+        let rendered = RENDERED.lock().unwrap_or_else(|e| e.into_inner());
+        rendered.get(key).cloned()
+    });
+    if let Some(bytes) = cached {
+        std::fs::write(&out, bytes)
+            .unwrap_or_else(|e| panic!("cannot write {}: {e}", out.display()));
+        return out;
+    }
     let out_arg = out.to_str().expect("test paths are UTF-8");
     let mut all = vec!["render", scene, "-o", out_arg];
     all.extend(args);
@@ -278,6 +317,13 @@ pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> P
         tessera(dir, &all, Duration::from_secs(60)),
         &format!("tessera {}", all.join(" ")),
     );
+    // An output that is not a file (`--frames` into a directory) is not kept.
+    if let Some((key, bytes)) = key.zip(std::fs::read(&out).ok()) {
+        RENDERED
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(key, bytes);
+    }
     out
 }
 
