@@ -53,9 +53,11 @@ use crate::support::{
 const JOB: &[&str] = &[
     "--width", "1600", "--height", "1200", "--aa", "5", "--tile", "32",
 ];
-/// Some 9 CPU-seconds in 1,900 tiles: still running when a stall is noticed.
+/// Some 5 CPU-seconds in 1,900 tiles: still running when a stall is noticed (some 2 s
+/// into a freeze begun a sixth of the way; the frozen file system test checks that
+/// tiles were still to come then).
 const LONG_JOB: &[&str] = &[
-    "--width", "1600", "--height", "1200", "--aa", "8", "--tile", "32",
+    "--width", "1600", "--height", "1200", "--aa", "11", "--tile", "32",
 ];
 /// Longest a job may take once the storage is back.
 const JOB_TIMEOUT: Duration = Duration::from_secs(60);
@@ -933,6 +935,9 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
         let mut gauge_seen = None;
         let mut refused = false;
         let mut tiles_while_down: Vec<u64> = Vec::new();
+        // The workers' results when the stall was noticed: fewer than the job's tiles,
+        // or there was nothing left to hold back.
+        let mut tiles_at_notice = None;
         let mut accepted = Vec::new();
         let mut last_status = Instant::now() - Duration::from_secs(10);
         while frozen.elapsed() < FREEZE {
@@ -976,6 +981,7 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
                 if let Some((503, body)) = farm.get("/readyz", Duration::from_secs(1)) {
                     unavailable = Some((frozen.elapsed(), body));
                     gauge_seen = farm.storage_gauge();
+                    tiles_at_notice = farm.worker_tiles();
                 }
             }
             if !refused && (unavailable.is_some() || frozen.elapsed() > Duration::from_secs(5)) {
@@ -1022,6 +1028,12 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
                 body.trim()
             );
         }
+        findings.check(tiles_at_notice.is_some_and(|t| t < total), || {
+            format!(
+                "the workers had returned {tiles_at_notice:?} of the job's {total} tiles when \
+                 the stall was noticed: none was left to hold back (a longer job is needed)"
+            )
+        });
         let grew = tiles_while_down.windows(2).any(|w| w[1] > w[0]);
         findings.check(!grew, || {
             format!("tiles were still handed out and accepted while frozen: {tiles_while_down:?}")
