@@ -6,8 +6,11 @@
 //!   never kept from the job (a lost connection is not proof that a machine is bad).
 //!   Each restart reports the time from the worker's registration to its next tile.
 //! - **Frozen** (`SIGSTOP`) for longer than the heartbeat timeout: the other worker
-//!   takes its tiles over (lease expiry), the frozen one is dropped, and after
-//!   `SIGCONT` the farm still serves.
+//!   renders the rest of the job, the frozen one is dropped, and after `SIGCONT` the
+//!   farm still serves. The job ends once the frozen worker is dropped, not at its
+//!   leases' expiry: the other worker's audited results wait for a second machine to
+//!   confirm them, and with the frozen one gone none is left, so they are accepted
+//!   (docs/reliability.md, "sampled").
 //! - **Stopped** (`SIGTERM`): it finishes its tiles and exits 0 promptly; the remaining
 //!   worker completes the job.
 
