@@ -26,8 +26,8 @@ use serde_json::Value;
 
 use super::{Farm, JOB, JOB_TIMEOUT, MEDIUM};
 use crate::support::{
-    self, assert_same_png, client, exclusive, ok, poll, render_args, render_reference, rss_kib,
-    scene_path, spawn_tessera, tiles_done, tiles_total, Daemon, Findings,
+    self, assert_same_png, client, connections, exclusive, ok, poll, render_args, render_reference,
+    rss_kib, scene_path, spawn_tessera, tiles_done, tiles_total, Daemon, Findings,
 };
 
 /// Some 5 CPU-seconds (1,102 tiles of 64): seconds of it left on one worker when the
@@ -226,17 +226,7 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
     let job = farm.submit(&lights, JOB);
     let total = tiles_total(&farm.status(job));
     farm.wait_for_tiles(job, total / 6);
-    let mut before: Vec<(String, u64)> = farm
-        .wait_for_workers(&["w1", "w2"])
-        .iter()
-        .map(|w| {
-            (
-                w["name"].as_str().unwrap().to_owned(),
-                w["id"].as_u64().unwrap(),
-            )
-        })
-        .collect();
-    before.sort();
+    let before = connections(&farm.wait_for_workers(&["w1", "w2"]));
 
     let dir = farm.dir().to_owned();
     // Scoped: a failed assertion still waits for (and reaps) the reference's process.
@@ -269,18 +259,7 @@ fn a_coordinator_paused_past_the_heartbeat_timeout_drops_no_worker() {
             )
         });
         let resumed = farm.wait_progress(job, at_cont, "after SIGCONT");
-        let mut after: Vec<(String, u64)> = farm
-            .try_workers()
-            .unwrap_or_default()
-            .iter()
-            .map(|w| {
-                (
-                    w["name"].as_str().unwrap().to_owned(),
-                    w["id"].as_u64().unwrap(),
-                )
-            })
-            .collect();
-        after.sort();
+        let after = connections(&farm.try_workers().unwrap_or_default());
         findings.check(after == before, || {
             format!(
                 "the workers' connections changed across the pause: {before:?} before, {after:?} after"

@@ -895,19 +895,8 @@ fn a_frozen_file_system_stalls_neither_health_nor_status_nor_workers() {
     let job = farm.submit(&lights, LONG_JOB);
     let total = tiles_total(&farm.status(job));
     farm.wait_for_tiles(job, total / 6);
-    let connections = |farm: &Farm| -> Vec<(String, u64)> {
-        let mut w: Vec<(String, u64)> = support::try_workers(farm.dir, &farm.addr)
-            .unwrap_or_default()
-            .iter()
-            .map(|w| {
-                (
-                    w["name"].as_str().unwrap().to_owned(),
-                    w["id"].as_u64().unwrap(),
-                )
-            })
-            .collect();
-        w.sort();
-        w
+    let connections = |farm: &Farm| {
+        support::connections(&support::try_workers(farm.dir, &farm.addr).unwrap_or_default())
     };
     let workers_before = connections(&farm);
     let at_freeze = tiles_done(&farm.status(job));

@@ -202,6 +202,22 @@ pub fn worker_named<'a>(workers: &'a [Value], name: &str) -> Option<&'a Value> {
     workers.iter().find(|w| w["name"] == name)
 }
 
+/// Each worker's name and connection id, sorted: equal lists before and after a fault
+/// mean that no worker reconnected or was dropped across it.
+pub fn connections(workers: &[Value]) -> Vec<(String, u64)> {
+    let mut list: Vec<(String, u64)> = workers
+        .iter()
+        .map(|w| {
+            (
+                w["name"].as_str().expect("a worker's name").to_owned(),
+                w["id"].as_u64().expect("a worker's id"),
+            )
+        })
+        .collect();
+    list.sort();
+    list
+}
+
 /// Longest a worker may take to register, also after a reconnection backoff.
 pub const REGISTER_TIMEOUT: Duration = Duration::from_secs(20);
 
