@@ -910,6 +910,9 @@ pub struct Scheduler {
     /// full, and anything that frees a slot puts it back. Filling everyone visits only
     /// these, in id order.
     hungry: BTreeSet<WorkerId>,
+    /// The workers that have each scene (the index of [`Worker::scenes`]), so that the
+    /// end of a job visits only those that had its scene, not every worker.
+    scene_holders: BTreeMap<SceneHash, BTreeSet<WorkerId>>,
     /// Storage cannot record results: no tile goes out.
     storage_down: bool,
     /// Jobs paused by an operator: none of their tiles goes out. Kept by id, not in
@@ -1007,6 +1010,7 @@ impl Scheduler {
                 // connected throughout, so no stall ends.
                 if let Some(old) = self.workers.insert(worker, joined) {
                     self.by_last_seen.remove(&(old.last_seen, worker));
+                    self.unlist_scenes(worker, &old.scenes);
                     if old.takes_tiles() {
                         self.unready(&old.machine);
                     }
@@ -1445,6 +1449,7 @@ impl Scheduler {
         };
         self.hungry.remove(&worker);
         self.by_last_seen.remove(&(w.last_seen, worker));
+        self.unlist_scenes(worker, &w.scenes);
         if w.takes_tiles() {
             self.unready(&w.machine);
         }
@@ -2027,26 +2032,76 @@ impl Scheduler {
         self.forget_unused_scenes(actions);
     }
 
-    /// After a job ended: workers may drop scenes no active job uses.
+    /// After a job ended: workers may drop scenes no active job uses, in worker id
+    /// order, each worker's in scene order. Only the workers that have such a scene
+    /// are visited ([`Scheduler::scene_holders`]).
     fn forget_unused_scenes(&mut self, actions: &mut Vec<Action>) {
         let in_use: BTreeSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
-        for (&worker, w) in &mut self.workers {
-            let unused: Vec<SceneHash> = w.scenes.difference(&in_use).copied().collect();
-            for scene in unused {
+        let unused: Vec<SceneHash> = self
+            .scene_holders
+            .keys()
+            .filter(|scene| !in_use.contains(*scene))
+            .copied()
+            .collect();
+        let mut forget: BTreeMap<WorkerId, Vec<SceneHash>> = BTreeMap::new();
+        for scene in unused {
+            for worker in self.scene_holders.remove(&scene).unwrap_or_default() {
+                forget.entry(worker).or_default().push(scene);
+            }
+        }
+        for (worker, scenes) in forget {
+            let w = self
+                .workers
+                .get_mut(&worker)
+                .expect("scene holders are live");
+            for scene in scenes {
                 w.scenes.remove(&scene);
                 actions.push(Action::ForgetScene { worker, scene });
             }
         }
     }
 
+    /// Takes the worker out of the index of the scenes it had.
+    fn unlist_scenes(&mut self, worker: WorkerId, scenes: &BTreeSet<SceneHash>) {
+        for scene in scenes {
+            if let Some(holders) = self.scene_holders.get_mut(scene) {
+                holders.remove(&worker);
+                if holders.is_empty() {
+                    self.scene_holders.remove(scene);
+                }
+            }
+        }
+    }
+
     /// Fills every worker with free credit, in id order. Filling one worker changes
     /// no other worker's credit, so those full at the start are skipped, as filling
-    /// them would give them nothing.
+    /// them would give them nothing; and once no tile may go to anyone, the rest are
+    /// not visited (they stay listed as hungry), so that a farm of many idle workers
+    /// costs each event the number of jobs, not of workers.
     fn fill_all(&mut self, actions: &mut Vec<Action>) {
+        if self.storage_down || !self.anything_to_hand_out() {
+            return;
+        }
         let ids: Vec<WorkerId> = self.hungry.iter().copied().collect();
         for worker in ids {
+            let before = actions.len();
             self.fill(worker, actions);
+            // Only a tile handed out can close the last one open.
+            if actions.len() != before && !self.anything_to_hand_out() {
+                return;
+            }
         }
+    }
+
+    /// Whether [`Scheduler::next_tile`] may find a tile for some worker: an active job
+    /// that is not paused has a tile waiting, or (with speculation) none waiting and a
+    /// straggler to copy. When not, it finds none for anyone.
+    fn anything_to_hand_out(&self) -> bool {
+        self.order.iter().any(|&(_, _, id)| {
+            let job = &self.jobs[&id];
+            !self.paused.contains(&id)
+                && (job.queued > 0 || (self.policy.speculate && !job.stragglers.is_empty()))
+        })
     }
 
     /// Gives the worker tiles until its credit is used or nothing is left for it.
@@ -2088,6 +2143,10 @@ impl Scheduler {
             self.rerank(job_id, before);
             let worker = self.workers.get_mut(&worker_id).expect("checked above");
             if worker.scenes.insert(scene) {
+                self.scene_holders
+                    .entry(scene)
+                    .or_default()
+                    .insert(worker_id);
                 actions.push(Action::SendScene {
                     worker: worker_id,
                     job: job_id,
