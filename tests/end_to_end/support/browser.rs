@@ -245,6 +245,13 @@ impl DevTools {
 
     /// Calls a DevTools method and returns its result.
     pub fn call(&mut self, method: &str, params: serde_json::Value) -> serde_json::Value {
+        let answer = self.answer(method, params);
+        assert!(answer["error"].is_null(), "{method}: {answer}");
+        answer["result"].clone()
+    }
+
+    /// Calls a DevTools method and returns the whole answer, result or error.
+    fn answer(&mut self, method: &str, params: serde_json::Value) -> serde_json::Value {
         let id = self.next_id;
         self.next_id += 1;
         let request = serde_json::json!({ "id": id, "method": method, "params": params });
@@ -252,19 +259,25 @@ impl DevTools {
         loop {
             let answer: serde_json::Value = serde_json::from_str(&self.read_message()).unwrap();
             if answer["id"] == id {
-                assert!(answer["error"].is_null(), "{method}: {answer}");
-                return answer["result"].clone();
+                return answer;
             }
         }
     }
 
-    /// Evaluates `expression` in the page: its value.
+    /// Evaluates `expression` in the page: its value. `null` if the page navigated
+    /// while it was evaluated (a form sent, a reload, the first load ending): the
+    /// document it ran in is gone, and a poll asks the new one again.
     pub fn eval(&mut self, expression: &str) -> serde_json::Value {
-        let result = self.call(
+        let answer = self.answer(
             "Runtime.evaluate",
             serde_json::json!({ "expression": expression, "returnByValue": true }),
         );
-        result["result"]["value"].clone()
+        let error = &answer["error"];
+        if error["message"] == "Inspected target navigated or closed" {
+            return serde_json::Value::Null;
+        }
+        assert!(error.is_null(), "Runtime.evaluate: {answer}");
+        answer["result"]["result"]["value"].clone()
     }
 
     /// Clicks the element `selector` as a user does: a mouse press and release at its
