@@ -14,6 +14,8 @@ mod sequences;
 mod session;
 mod signals;
 mod submission;
+#[cfg(test)]
+mod workspace_layout;
 
 use std::ffi::OsString;
 use std::process::ExitCode;

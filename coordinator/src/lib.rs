@@ -8,6 +8,7 @@
 //! proves as tokens are rotated.
 
 pub mod client;
+pub mod daemon;
 mod db;
 pub mod http;
 pub mod keyring;
@@ -19,7 +20,8 @@ mod store;
 pub mod studio;
 mod tiling;
 
+pub use crate::daemon::serve;
 /// Any PNG to 8-bit RGB, as the farm reads back the frames it stored; also what the
 /// benchmarks and the end-to-end tests decode images with.
 pub use crate::preview::decode_png;
-pub use crate::server::{serve, Config, VerifyConfig};
+pub use crate::server::{Config, VerifyConfig};

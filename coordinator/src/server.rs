@@ -411,20 +411,20 @@ impl Server {
         }
     }
 
-    /// Serves connections until `shutdown` completes.
+    /// The HTTP listener (with `--http`) and the TLS it serves with, taken out for
+    /// whatever serves the HTTP side ([`crate::daemon::run`]); `None` once taken.
+    pub fn take_http(&mut self) -> Option<(TcpListener, Option<ServerTls>)> {
+        let listener = self.http.take()?;
+        Some((listener, self.shared.tls.clone()))
+    }
+
+    /// Serves the farm's connections until `shutdown` completes. The HTTP side is
+    /// served beside it by [`crate::daemon::run`].
     pub async fn run(mut self, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
         tokio::pin!(shutdown);
         let _timer = AbortOnDrop(tokio::spawn(timer(Arc::clone(&self.shared))));
         let _watchdog = AbortOnDrop(tokio::spawn(watchdog(Arc::clone(&self.shared))));
         let _retire = AbortOnDrop(tokio::spawn(keys::retire(Arc::clone(&self.shared))));
-        // The HTTP side stays up through the graceful shutdown (readiness says so).
-        let _stop_http = self.http.take().map(|listener| {
-            crate::http::spawn(
-                listener,
-                self.shared.tls.clone(),
-                crate::http::coordinator_routes(self.observer()),
-            )
-        });
         loop {
             tokio::select! {
                 accepted = self.listener.as_ref().expect("bound until shutdown").accept() => {
@@ -537,9 +537,4 @@ impl Drop for AbortOnDrop {
     fn drop(&mut self) {
         self.0.abort();
     }
-}
-
-/// Binds and serves: the whole daemon.
-pub async fn serve(config: Config, shutdown: impl std::future::Future<Output = ()>) -> Result<()> {
-    Server::bind(config).await?.run(shutdown).await
 }

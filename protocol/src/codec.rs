@@ -8,15 +8,11 @@ use bytes::{Bytes, BytesMut};
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder, LengthDelimitedCodec, LengthDelimitedCodecError};
 
-use crate::wire::{self, DecodeError};
+use crate::wire::{self, DecodeError, MAX_FRAME_LIMIT};
 
 /// The default largest frame: room for the largest scene a job may carry
 /// (`limits::MAX_SCENE_BYTES`, 8 MiB) with margin for its envelope.
 pub const DEFAULT_MAX_FRAME: usize = 16 * 1024 * 1024;
-
-/// No configuration may raise the frame limit above this (64 MiB); it is also the
-/// decoder's allocation limit.
-pub const MAX_FRAME_LIMIT: usize = 64 * 1024 * 1024;
 
 /// Why a frame could not be read or written.
 #[derive(Debug, thiserror::Error)]

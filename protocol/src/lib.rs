@@ -14,10 +14,11 @@ mod handshake;
 mod messages;
 pub mod wire;
 
-pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME, MAX_FRAME_LIMIT};
+pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME};
 pub use crate::handshake::{
     auth_label, coordinator_proof, peer_proof, AuthFailure, AuthProof, AuthRole,
     CoordinatorChallenge, Hello, HelloError, KeyId, PeerHandshake, PeerHandshakeError, PeerStep,
     Role, Welcome, MAGIC, PROTOCOL_VERSION,
 };
 pub use crate::messages::*;
+pub use crate::wire::MAX_FRAME_LIMIT;

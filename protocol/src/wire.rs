@@ -5,7 +5,9 @@
 use bincode::config::{self, Configuration, Fixint, LittleEndian, NoLimit};
 use serde::{de::DeserializeOwned, Serialize};
 
-use crate::codec::MAX_FRAME_LIMIT;
+/// No configuration may raise the frame limit above this (64 MiB); it is also the
+/// decoder's allocation limit. Kept here, below the framing that caps frames with it.
+pub const MAX_FRAME_LIMIT: usize = 64 * 1024 * 1024;
 
 /// The encoding of every message. Integers are fixed width (u32 = 4 bytes, u64 = 8),
 /// little-endian; lengths of strings, byte vectors and sequences are u64; enum variants

@@ -360,7 +360,7 @@ async fn serve(
         println!("tls fingerprint {fingerprint}");
         info!(%fingerprint, "TLS certificate's SHA-256 fingerprint: pin it with --tls-fingerprint");
     }
-    server.run(shutdown_signal(exit_on_stdin_eof)).await
+    coordinator::daemon::run(server, shutdown_signal(exit_on_stdin_eof)).await
 }
 
 /// Reloads the token files at every SIGHUP. A reload that fails (a file unreadable or

@@ -267,6 +267,19 @@ fn red_tiles_are_rejected_and_their_machine_stays_quarantined_after_reconnecting
     for w in farm.named("liar") {
         assert_eq!(w["tiles_done"], 0, "tiles of the liar accepted: {w}");
     }
+    // The job whose tile caught it says so, though none of its tiles were taken back.
+    let events = crate::support::events(farm.path(), &farm.addr, job);
+    assert!(
+        events
+            .iter()
+            .any(|(kind, detail)| kind == "quarantine"
+                && detail.contains("machine liar quarantined")),
+        "no quarantine of the liar in the job's events (tiles' left out): {:?}",
+        events
+            .iter()
+            .filter(|(kind, _)| !kind.starts_with("tile_"))
+            .collect::<Vec<_>>()
+    );
     let listing = tessera_within(
         farm.path(),
         &["workers", "--coordinator", farm.addr.as_str()],

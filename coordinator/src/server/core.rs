@@ -1247,7 +1247,7 @@ impl Core {
         };
         if let Err(wrong) = verdict.spot {
             let reason = format!("returned wrong pixels for tile {tile} of job {job}: {wrong}");
-            self.quarantine(sh, &machine, reason);
+            self.quarantine(sh, &machine, job, reason);
             return Ok(());
         }
         debug_assert_eq!(
@@ -1306,14 +1306,14 @@ impl Core {
                         "returned wrong pixels for tile {tile} of job {job}: {wrong} \
                          (found comparing its result with {machine}'s)"
                     );
-                    self.quarantine(sh, &other, reason);
+                    self.quarantine(sh, &other, job, reason);
                 }
                 if let Some(wrong) = verdict.second {
                     let reason = format!(
                         "returned wrong pixels for tile {tile} of job {job}: {wrong} \
                          (found comparing its result with {other}'s)"
                     );
-                    self.quarantine(sh, &machine, reason);
+                    self.quarantine(sh, &machine, job, reason);
                     return Ok(());
                 }
                 if verdict.first.is_none() {
@@ -1321,6 +1321,7 @@ impl Core {
                     self.quarantine(
                         sh,
                         &machine,
+                        job,
                         format!("its result for tile {tile} of job {job} differs from {other}'s"),
                     );
                     return Ok(());
@@ -1408,9 +1409,12 @@ impl Core {
         }
     }
 
-    /// The machine returned wrong pixels: it gets no tile again, its held results are
-    /// dropped, and the tiles it rendered in active jobs are rendered again.
-    pub fn quarantine(&mut self, sh: &Arc<Shared>, machine: &str, reason: String) {
+    /// The machine returned wrong pixels for a tile of `job` (said in `reason`, for
+    /// people): it gets no tile again, its held results are dropped, and the tiles it
+    /// rendered in active jobs are rendered again. The events of `job` and of every job
+    /// it had tiles in say so.
+    pub fn quarantine(&mut self, sh: &Arc<Shared>, machine: &str, job: JobId, reason: String) {
+        let caught_in = job;
         sh.metrics.result_rejected();
         let first = !self.quarantined.contains_key(machine);
         error!(machine, reason = %reason, "quarantined");
@@ -1478,14 +1482,10 @@ impl Core {
             affected.push((job, tiles.clone()));
             sh.persistence.write(Write::ForgetTiles { job, tiles });
         }
-        // The jobs it named (its wrong tile's) and those whose tiles it had rendered.
-        let mut jobs: Vec<JobId> = self
-            .jobs
-            .keys()
-            .copied()
-            .filter(|&j| {
-                reason.contains(&format!("of job {j}:")) || reason.contains(&format!("of job {j} "))
-            })
+        // The job of its wrong tile, and those whose tiles it had rendered.
+        let mut jobs: Vec<JobId> = Some(caught_in)
+            .filter(|j| self.jobs.contains_key(j))
+            .into_iter()
             .collect();
         jobs.extend(affected.iter().map(|(j, _)| *j));
         jobs.sort_unstable();
@@ -1850,14 +1850,14 @@ impl Core {
                     "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
                      comparing its result with {machine}'s copy)"
                 );
-                self.quarantine(sh, &first, reason);
+                self.quarantine(sh, &first, job, reason);
             }
             if let Some(wrong) = wrong_second {
                 let reason = format!(
                     "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
                      comparing its copy with the accepted result)"
                 );
-                self.quarantine(sh, machine, reason);
+                self.quarantine(sh, machine, job, reason);
             }
             return;
         }
@@ -1892,14 +1892,14 @@ impl Core {
                 "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
                  its result with {machine}'s copy)"
             );
-            self.quarantine(sh, &first, reason);
+            self.quarantine(sh, &first, job, reason);
         }
         if let Some(wrong) = verdict.second {
             let reason = format!(
                 "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
                  its copy with the accepted result)"
             );
-            self.quarantine(sh, machine, reason);
+            self.quarantine(sh, machine, job, reason);
         }
     }
 
