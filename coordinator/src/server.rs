@@ -58,36 +58,6 @@ pub use observer::{
 use self::core::Core;
 use self::persistence::{Hooks, Persistence};
 
-/// What a job may ask for. Each bound keeps one client from taking the farm's memory
-/// or time from everyone else; exceeding one is a clear error at submission.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct JobLimits {
-    /// Bytes of scene text (8 MiB).
-    pub max_scene_bytes: usize,
-    /// Objects in a scene (100,000).
-    pub max_objects: usize,
-    /// Pixels of an image (8192 × 8192 = 67,108,864: 192 MiB of RGB being assembled).
-    pub max_pixels: u64,
-    /// Antialiasing (16: 256 samples per pixel). It bounds the budget of adaptive
-    /// sampling too, which may spend all of it on a pixel.
-    pub max_aa: u32,
-    /// Jobs queued or running per client address (64).
-    pub max_active_per_client: usize,
-}
-
-impl Default for JobLimits {
-    fn default() -> Self {
-        let l = lifecycle::Limits::default();
-        JobLimits {
-            max_scene_bytes: l.max_scene_bytes,
-            max_objects: l.max_objects,
-            max_pixels: l.max_pixels,
-            max_aa: l.max_aa,
-            max_active_per_client: l.max_active_per_client,
-        }
-    }
-}
-
 /// How long a shutdown waits for the tiles in flight, and again for the disk.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(10);
 
@@ -135,12 +105,12 @@ pub struct Config {
     pub policy: Policy,
     /// Spot checks and audits of the workers' results.
     pub verify: VerifyConfig,
-    pub limits: JobLimits,
+    /// What a job may ask for, and how long a finished job is kept
+    /// ([`lifecycle::Limits`]; its `retry_ms` is the persistence's retry interval,
+    /// whatever is set here).
+    pub limits: lifecycle::Limits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
-    /// Finished jobs (done, failed or cancelled) are deleted this long after they
-    /// ended; `None` keeps them until `tessera delete`.
-    pub retention: Option<Duration>,
     /// Start with a new, empty job database when the one in `data` is missing or
     /// unreadable (its unfinished jobs are lost; ids continue above every id issued).
     pub reset_database: bool,
@@ -167,9 +137,8 @@ impl Config {
             tls: None,
             policy: Policy::default(),
             verify: VerifyConfig::default(),
-            limits: JobLimits::default(),
+            limits: lifecycle::Limits::default(),
             http: None,
-            retention: None,
             reset_database: false,
             studio_scene: None,
             studio_scene_file: None,
@@ -177,16 +146,9 @@ impl Config {
     }
 
     fn lifecycle_limits(&self) -> lifecycle::Limits {
-        let l = self.limits;
         lifecycle::Limits {
-            max_scene_bytes: l.max_scene_bytes,
-            max_objects: l.max_objects,
-            max_pixels: l.max_pixels,
-            max_aa: l.max_aa,
-            max_active_per_client: l.max_active_per_client,
-            max_active_pixels: lifecycle::Limits::default().max_active_pixels,
-            retention: self.retention.map(|d| d.as_millis() as Millis),
             retry_ms: persistence::RETRY.as_millis() as Millis,
+            ..self.limits
         }
     }
 }

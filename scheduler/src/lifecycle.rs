@@ -31,18 +31,21 @@ use protocol::{JobId, JobState};
 
 use crate::Millis;
 
-/// What a job may ask for, and how the lifecycle is timed.
+/// What a job may ask for, and how the lifecycle is timed. Each bound keeps one client
+/// from taking the farm's memory or time from everyone else; exceeding one is a clear
+/// error at submission. The defaults are in brackets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Limits {
-    /// Bytes of scene text.
+    /// Bytes of scene text (8 MiB).
     pub max_scene_bytes: usize,
-    /// Objects in a scene.
+    /// Objects in a scene (100,000).
     pub max_objects: usize,
-    /// Pixels of an image.
+    /// Pixels of an image (8192 × 8192 = 67,108,864: 192 MiB of RGB being assembled).
     pub max_pixels: u64,
-    /// Antialiasing (it bounds the budget of every sampler).
+    /// Antialiasing (16: 256 samples per pixel). It bounds the budget of every sampler
+    /// too: adaptive sampling may spend all of it on a pixel.
     pub max_aa: u32,
-    /// Jobs queued, running or being stored per client address.
+    /// Jobs queued, running or being stored per client address (64).
     pub max_active_per_client: usize,
     /// Pixels of all the jobs queued, running or being stored: what bounds the memory
     /// of the frames being assembled (3 bytes a pixel).

@@ -270,15 +270,16 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
             spot_pixels: a.spot_pixels,
             audit_share: a.audit_share,
         },
-        limits: coordinator::server::JobLimits {
+        limits: scheduler::lifecycle::Limits {
             max_scene_bytes: a.max_scene_bytes as usize,
             max_objects: a.max_objects as usize,
             max_pixels: a.max_pixels,
             max_aa: a.max_aa,
             max_active_per_client: a.max_jobs_per_client as usize,
+            retention: a.retention.map(|d| d.as_millis() as scheduler::Millis),
+            ..Default::default()
         },
         http: a.daemon.http,
-        retention: a.retention,
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
