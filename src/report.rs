@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use protocol::{FrameProgress, JobStatus, Sampling, Settings};
+use protocol::{FrameProgress, JobStatus};
 use render::RenderSettings;
 use serde_json::{json, Value};
 
@@ -69,7 +69,7 @@ pub fn summary(output: &Path, status: &JobStatus) -> String {
     } else {
         String::new()
     };
-    let settings = render_settings(&status.settings);
+    let settings = verify::render_settings(&status.settings);
     // As `tessera render` says it: whether the time limit, not the target, ended it.
     let note = match (
         status.stopped_on_time_limit,
@@ -102,7 +102,7 @@ pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
         status.settings.width,
         status.settings.height,
         sampling_summary(
-            &render_settings(&status.settings),
+            &verify::render_settings(&status.settings),
             status.samples / u64::from(frames.max(1)),
             status.estimated_error
         ),
@@ -112,20 +112,6 @@ pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
     )
 }
 
-/// The renderer's view of a job's settings, for the summary.
-fn render_settings(s: &Settings) -> RenderSettings {
-    RenderSettings {
-        width: s.width,
-        height: s.height,
-        aa: s.aa,
-        max_depth: s.max_depth,
-        sampling: match s.sampling {
-            Sampling::Grid => render::Sampling::Grid,
-            Sampling::Jittered => render::Sampling::Jittered,
-            Sampling::Adaptive { target_milli } => render::Sampling::Adaptive { target_milli },
-        },
-    }
-}
 
 /// The state shown for a job: its lifecycle state, or "paused".
 pub fn shown_state(s: &JobStatus) -> &'static str {
