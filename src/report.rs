@@ -112,7 +112,6 @@ pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
     )
 }
 
-
 /// The state shown for a job: its lifecycle state, or "paused".
 pub fn shown_state(s: &JobStatus) -> &'static str {
     if s.paused && !s.state.is_final() {
