@@ -21,6 +21,7 @@ const ROOTS: &[&str] = &[
     "transport/src",
     "scheduler/src",
     "verify/src",
+    "httpd/src",
     "coordinator/src",
     "worker/src",
     "localfarm/src",

@@ -15,7 +15,7 @@ use crate::server::{Config, Server};
 /// once the server has.
 pub async fn run(mut server: Server, shutdown: impl Future<Output = ()>) -> Result<()> {
     let _stop_http = server.take_http().map(|(listener, tls)| {
-        http::spawn(listener, tls, http::coordinator_routes(server.observer()))
+        httpd::spawn(listener, tls, http::coordinator_routes(server.observer()))
     });
     server.run(shutdown).await
 }

@@ -62,9 +62,8 @@ async fn work(a: Args, print_config: Option<String>) -> Result<()> {
                 .with_context(|| format!("cannot listen for HTTP on {addr}"))?;
             info!(http = %listener.local_addr()?, "health on /healthz and /readyz");
             let flag = Arc::clone(&ready);
-            let routes =
-                coordinator::http::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
-            Some(coordinator::http::spawn(listener, None, routes))
+            let routes = httpd::worker_routes(Arc::new(move || flag.load(Ordering::Relaxed)));
+            Some(httpd::spawn(listener, None, routes))
         }
         None => None,
     };

@@ -1,6 +1,6 @@
-//! The HTTP side of the daemons (`--http ADDR`): health for supervisors, Prometheus
-//! metrics, and the coordinator's status page and studio with live previews and
-//! controls.
+//! The coordinator's HTTP side (`--http ADDR`): health for supervisors, Prometheus
+//! metrics, and the status page and studio with live previews and controls, served on
+//! the listener both daemons share (the `httpd` crate).
 //!
 //! Every route is one row of [`table`]: its method, its path and who may call it
 //! ([`Access`]), and the router is built from that table only, each handler behind
@@ -8,14 +8,11 @@
 //! and the route test walks the table (docs/reliability.md, "The HTTP side").
 //!
 //! The listener serves TLS whenever the coordinator does, with the same certificate
-//! ([`listener::HttpListener`]), so the fingerprint peers pin is the page's too. The
+//! ([`httpd::HttpListener`]), so the fingerprint peers pin is the page's too. The
 //! controls run the very requests of the client protocol ([`Observer::control`]): one
 //! implementation of every operation.
 
 mod access;
-mod listener;
-
-use std::sync::Arc;
 
 use axum::extract::{ConnectInfo, Path, Query, Request, State};
 use axum::http::{header, HeaderMap, Method, StatusCode};
@@ -24,11 +21,9 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post, MethodRouter};
 use axum::{Json, Router};
 use protocol::{ClientRequest, ClientResponse, JobId};
-use tokio::net::TcpListener;
-use transport::ServerTls;
 
 pub use access::{decide, Access, Asking, Secrets};
-pub use listener::{HttpListener, Peer};
+use httpd::Peer;
 
 use crate::metrics::Exposition;
 use crate::server::{Observer, Picture, Refusal};
@@ -159,58 +154,6 @@ fn unix_now() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs())
-}
-
-/// A worker's endpoints: alive, and ready while `ready` says it is connected.
-pub fn worker_routes(ready: Arc<dyn Fn() -> bool + Send + Sync>) -> Router {
-    Router::new()
-        .route("/healthz", get(|| async { "ok\n" }))
-        .route(
-            "/readyz",
-            get(move || async move {
-                readiness(
-                    ready(),
-                    "connected to a coordinator",
-                    "not connected to a coordinator",
-                )
-            }),
-        )
-}
-
-/// Serves `routes` on `listener` in the background, with TLS when `tls` is given, until
-/// the returned guard is dropped.
-pub fn spawn(listener: TcpListener, tls: Option<ServerTls>, routes: Router) -> Serving {
-    Serving(tokio::spawn(async move {
-        use axum::serve::ListenerExt;
-        // The peer's address decides who may use the controls without a secret; the
-        // (empty) tap gives the listener axum's connection info of its address type.
-        let service = routes.into_make_service_with_connect_info::<Peer>();
-        let listener = HttpListener::new(listener, tls).tap_io(|_| {});
-        if let Err(e) = axum::serve(listener, service).await {
-            tracing::error!(error = %e, "the HTTP listener failed");
-        }
-    }))
-}
-
-/// An HTTP listener serving in the background; dropping it stops the listener.
-pub struct Serving(tokio::task::JoinHandle<()>);
-
-impl Drop for Serving {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
-}
-
-fn readiness(ready: bool, yes: &'static str, no: &'static str) -> Response {
-    if ready {
-        (StatusCode::OK, format!("ready: {yes}\n")).into_response()
-    } else {
-        (
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("not ready: {no}\n"),
-        )
-            .into_response()
-    }
 }
 
 async fn coordinator_ready(State(observer): State<Observer>) -> Response {

@@ -1,4 +1,4 @@
-//! The HTTP side's listener: plain TCP, or TLS with the coordinator's own certificate.
+//! The listener: plain TCP, or TLS with the daemon's own certificate.
 //!
 //! The handshakes run in tasks of their own (at most [`MAX_HANDSHAKES`] at once, each
 //! within [`HANDSHAKE_TIMEOUT`]), so that a peer that connects and says nothing holds
