@@ -187,17 +187,17 @@ pub(crate) async fn respond(
             {
                 core.log(sh, job, "cancel", format!("asked from {peer}"));
             }
-            let replies = core.life_event(sh, lifecycle::Event::Cancel { job });
+            let reply = core.life_event(sh, lifecycle::Event::Cancel { job });
             drop(core);
-            match replies.into_iter().next() {
+            match reply {
                 Some(Ok(_)) => ClientResponse::Cancelled { job },
                 Some(Err(message)) => ClientResponse::Error { message },
                 None => unknown_job(job),
             }
         }
         ClientRequest::Delete { job } => {
-            let replies = sh.lock().life_event(sh, lifecycle::Event::Delete { job });
-            match replies.into_iter().next() {
+            let reply = sh.lock().life_event(sh, lifecycle::Event::Delete { job });
+            match reply {
                 Some(Ok(Reply::Deleting)) => wait_deleted(sh, job).await,
                 Some(Ok(Reply::Cancelled | Reply::Retried)) | None => unknown_job(job),
                 Some(Err(message)) => ClientResponse::Error { message },

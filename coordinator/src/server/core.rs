@@ -688,13 +688,14 @@ impl Core {
         self.apply_tiles(sh, actions);
     }
 
-    /// Feeds the lifecycle and carries out its actions; returns its replies to the
-    /// client that caused the event.
+    /// Feeds the lifecycle and carries out its actions; returns its reply to the
+    /// client that caused the event, for the events that ask for one (cancel, delete,
+    /// retry), and `None` for a job it does not know.
     pub fn life_event(
         &mut self,
         sh: &Arc<Shared>,
         event: lifecycle::Event,
-    ) -> Vec<Result<Reply, String>> {
+    ) -> Option<Result<Reply, String>> {
         let actions = self.lifecycle.handle(sh.now(), event);
         self.apply_life(sh, actions)
     }
@@ -836,7 +837,7 @@ impl Core {
         let started = kept > 0 || restored.job.times.started.is_some();
         let pixels =
             u64::from(restored.job.settings.width) * u64::from(restored.job.settings.height);
-        let replies = self.life_event(
+        let reply = self.life_event(
             sh,
             lifecycle::Event::Retry {
                 job: id,
@@ -844,7 +845,7 @@ impl Core {
                 pixels,
             },
         );
-        if let Some(Err(message)) = replies.into_iter().next() {
+        if let Some(Err(message)) = reply {
             return Err(message);
         }
         restored.last_event = self.jobs.get(&id).map_or((0, 0), |r| {
@@ -2180,14 +2181,15 @@ impl Core {
         }
     }
 
-    /// Carries out the lifecycle's actions; returns its replies.
+    /// Carries out the lifecycle's actions; returns its reply (one event asks for one
+    /// at most).
     fn apply_life(
         &mut self,
         sh: &Arc<Shared>,
         actions: Vec<lifecycle::Action>,
-    ) -> Vec<Result<Reply, String>> {
+    ) -> Option<Result<Reply, String>> {
         use lifecycle::Action as A;
-        let mut replies = Vec::new();
+        let mut reply = None;
         for action in actions {
             match action {
                 A::Acknowledge { job } => self.acknowledge(sh, job),
@@ -2231,11 +2233,14 @@ impl Core {
                         },
                     );
                 }
-                A::Reply { result, .. } => replies.push(result),
+                A::Reply { result, .. } => {
+                    debug_assert!(reply.is_none(), "two replies to one event");
+                    reply = Some(result);
+                }
             }
         }
         sh.changed();
-        replies
+        reply
     }
 
     /// The job's row is written: the client hears its id, the tiles go out.
