@@ -1410,12 +1410,17 @@ impl Core {
         }
     }
 
-    /// The machine returned wrong pixels for a tile of `job` (said in `reason`, for
-    /// people): it gets no tile again, its held results are dropped, and the tiles it
+    /// The machine returned wrong pixels for a tile of job `caught_in` (said in
+    /// `reason`, for people): it gets no tile again, its held results are dropped, and the tiles it
     /// rendered in active jobs are rendered again. The events of `job` and of every job
     /// it had tiles in say so.
-    pub fn quarantine(&mut self, sh: &Arc<Shared>, machine: &str, job: JobId, reason: String) {
-        let caught_in = job;
+    pub fn quarantine(
+        &mut self,
+        sh: &Arc<Shared>,
+        machine: &str,
+        caught_in: JobId,
+        reason: String,
+    ) {
         sh.metrics.result_rejected();
         let first = !self.quarantined.contains_key(machine);
         error!(machine, reason = %reason, "quarantined");

@@ -306,15 +306,10 @@ pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> P
         .ok()
         .filter(|p| p.parent() == super::repo().join("scenes").canonicalize().ok().as_deref());
     let key = shipped.map(|scene| {
-        let mut image_args = Vec::new();
-        let mut it = args.iter();
-        while let Some(&arg) = it.next() {
-            if arg == "--threads" {
-                it.next();
-            } else {
-                image_args.push(arg.to_owned());
-            }
-        }
+        let image_args = without_flag(args, "--threads")
+            .into_iter()
+            .map(str::to_owned)
+            .collect();
         (scene, image_args, out.extension().map(ToOwned::to_owned))
     });
     let cached = key.as_ref().and_then(|key| {
@@ -345,10 +340,15 @@ pub fn render_reference(dir: &Path, scene: &str, name: &str, args: &[&str]) -> P
 
 /// A job's arguments less `--tile`, which `tessera render` does not take.
 pub fn render_args<'a>(args: &[&'a str]) -> Vec<&'a str> {
+    without_flag(args, "--tile")
+}
+
+/// `args` less every `flag` and the value after it.
+fn without_flag<'a>(args: &[&'a str], flag: &str) -> Vec<&'a str> {
     let mut out = Vec::new();
     let mut it = args.iter();
     while let Some(&arg) = it.next() {
-        if arg == "--tile" {
+        if arg == flag {
             it.next();
         } else {
             out.push(arg);
