@@ -1411,9 +1411,9 @@ impl Core {
     }
 
     /// The machine returned wrong pixels for a tile of job `caught_in` (said in
-    /// `reason`, for people): it gets no tile again, its held results are dropped, and the tiles it
-    /// rendered in active jobs are rendered again. The events of `job` and of every job
-    /// it had tiles in say so.
+    /// `reason`, for people): it gets no tile again, its held results are dropped, and
+    /// the tiles it rendered in active jobs are rendered again. The events of
+    /// `caught_in` and of every job it had tiles in say so.
     pub fn quarantine(
         &mut self,
         sh: &Arc<Shared>,
