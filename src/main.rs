@@ -79,7 +79,7 @@ fn main() -> ExitCode {
     let expanded = match config::expand(args, &cli) {
         Ok(expanded) => expanded,
         Err(e) => {
-            report_error(json, &format!("{e:#}"));
+            report_error(json, &format!("{e:#}"), None);
             return ExitCode::FAILURE;
         }
     };
@@ -91,7 +91,7 @@ fn main() -> ExitCode {
         {
             let text = e.render().to_string();
             let line = text.lines().next().unwrap_or_default();
-            report_error(json, line.strip_prefix("error: ").unwrap_or(line));
+            report_error(json, line.strip_prefix("error: ").unwrap_or(line), None);
             return ExitCode::from(2);
         }
         Err(e) => e.exit(),
@@ -120,7 +120,9 @@ fn main() -> ExitCode {
             } else {
                 ""
             };
-            report_error(json, &format!("{e:#}{hint}"));
+            // A coordinator's refusal keeps its kind in JSON, for scripts to act on.
+            let kind = e.downcast_ref::<protocol::Refusal>().map(|r| r.kind.as_str());
+            report_error(json, &format!("{e:#}{hint}"), kind);
             match e.downcast_ref::<signals::Interrupted>() {
                 Some(signal) => ExitCode::from(signal.exit_code),
                 None => ExitCode::FAILURE,
@@ -138,10 +140,15 @@ fn wants_json(args: &[OsString]) -> bool {
 }
 
 /// A command's error: one line `error: MESSAGE` on stderr, or with `--json`, the object
-/// `{"error": "MESSAGE"}` on stdout, where the command's result would have been.
-fn report_error(json: bool, message: &str) {
+/// `{"error": "MESSAGE"}` on stdout, where the command's result would have been, with
+/// `"kind"` when the coordinator refused the request (docs/protocol.md, `RefusalKind`).
+fn report_error(json: bool, message: &str, kind: Option<&str>) {
     if json {
-        println!("{}", serde_json::json!({ "error": message }));
+        let value = match kind {
+            Some(kind) => serde_json::json!({ "error": message, "kind": kind }),
+            None => serde_json::json!({ "error": message }),
+        };
+        println!("{value}");
     } else {
         eprintln!("error: {message}");
     }

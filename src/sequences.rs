@@ -104,6 +104,9 @@ pub async fn fetch_frames(
     Ok(written)
 }
 
+/// Whether the coordinator refused a frame for its state (not done yet, failed,
+/// cancelled) rather than for anything else.
 fn is_not_done(e: &anyhow::Error) -> bool {
-    format!("{e:#}").contains("has no image: it is")
+    e.downcast_ref::<protocol::Refusal>()
+        .is_some_and(|r| r.kind == protocol::RefusalKind::State)
 }

@@ -78,7 +78,8 @@ impl Client {
             None => exchange.await,
         };
         match answer {
-            Ok(Some(ClientResponse::Error { message })) => Err(anyhow!(message)),
+            // The refusal itself is the error, so that a caller can act on its kind.
+            Ok(Some(ClientResponse::Error(refusal))) => Err(anyhow::Error::new(refusal)),
             Ok(Some(response)) => Ok(response),
             Ok(None) => Err(self.lost("connection closed".into())),
             Err(FrameError::Io(e)) => Err(self.lost(e.to_string())),

@@ -52,7 +52,7 @@ pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
 
 pub use observer::{
-    FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, Refusal, StudioStream, WorkerView,
+    FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, StudioStream, WorkerView,
 };
 
 use self::core::Core;

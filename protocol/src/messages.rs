@@ -344,10 +344,8 @@ pub enum ClientResponse {
         bytes: Vec<u8>,
     },
     Workers(Vec<WorkerStatus>),
-    /// The request was refused; `message` says why, in one line.
-    Error {
-        message: String,
-    },
+    /// The request was refused: what kind of refusal, and why in one line.
+    Error(Refusal),
     Deleted {
         job: JobId,
     },
@@ -358,6 +356,111 @@ pub enum ClientResponse {
         events: Vec<JobEvent>,
     },
 }
+
+/// What kind of refusal an [`ClientResponse::Error`] is: what a program decides on (to
+/// retry, to skip, to report), so that no decision ever reads the message's text.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum RefusalKind {
+    /// The request is not valid as sent (a scene or setting that fails its checks, a
+    /// verb that does not apply to this kind of job, a malformed frame): sending it
+    /// again changes nothing.
+    Invalid,
+    /// No such job, frame or worker on this coordinator.
+    NotFound,
+    /// The job or frame is not in a state that allows it: no image yet, already ended,
+    /// being deleted. It may be allowed once the job has moved on.
+    State,
+    /// One of the coordinator's limits on what is queued or running would be passed:
+    /// allowed again once some work has finished.
+    Limit,
+    /// The coordinator cannot do it now (shutting down, storage unavailable or slow):
+    /// the same request may succeed later.
+    Unavailable,
+    /// The coordinator failed at it: its storage could not write or read what the
+    /// request needs (a disk error, a damaged file). The message says what.
+    Internal,
+}
+
+impl RefusalKind {
+    /// The lowercase name used in JSON output and logs.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RefusalKind::Invalid => "invalid",
+            RefusalKind::NotFound => "not_found",
+            RefusalKind::State => "state",
+            RefusalKind::Limit => "limit",
+            RefusalKind::Unavailable => "unavailable",
+            RefusalKind::Internal => "internal",
+        }
+    }
+}
+
+/// A refused request: its kind, and one line of English to show a user as it is.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Refusal {
+    pub kind: RefusalKind,
+    pub message: String,
+}
+
+impl Refusal {
+    pub fn new(kind: RefusalKind, message: impl Into<String>) -> Refusal {
+        Refusal {
+            kind,
+            message: message.into(),
+        }
+    }
+
+    /// [`RefusalKind::Invalid`].
+    pub fn invalid(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::Invalid, message)
+    }
+
+    /// [`RefusalKind::NotFound`].
+    pub fn not_found(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::NotFound, message)
+    }
+
+    /// [`RefusalKind::State`].
+    pub fn state(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::State, message)
+    }
+
+    /// [`RefusalKind::Limit`].
+    pub fn limit(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::Limit, message)
+    }
+
+    /// [`RefusalKind::Unavailable`].
+    pub fn unavailable(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::Unavailable, message)
+    }
+
+    /// [`RefusalKind::Internal`].
+    pub fn internal(message: impl Into<String>) -> Refusal {
+        Refusal::new(RefusalKind::Internal, message)
+    }
+
+    /// "no job N on this coordinator", the answer for every request on an unknown job.
+    pub fn unknown_job(job: JobId) -> Refusal {
+        Refusal::not_found(format!("no job {job} on this coordinator"))
+    }
+
+    /// The same refusal with `context` before its message ("cannot refine job 4: ...").
+    pub fn context(self, context: impl std::fmt::Display) -> Refusal {
+        Refusal {
+            kind: self.kind,
+            message: format!("{context}: {}", self.message),
+        }
+    }
+}
+
+impl std::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl std::error::Error for Refusal {}
 
 /// Where a job is in its life.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

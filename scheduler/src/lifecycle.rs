@@ -27,7 +27,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::net::IpAddr;
 
-use protocol::{JobId, JobState};
+use protocol::{JobId, JobState, Refusal};
 
 use crate::Millis;
 
@@ -75,38 +75,38 @@ impl Default for Limits {
 impl Limits {
     /// Checks the size of a scene's text (before parsing it, so that an oversized
     /// scene costs nothing).
-    pub fn check_scene_bytes(&self, bytes: usize) -> Result<(), String> {
+    pub fn check_scene_bytes(&self, bytes: usize) -> Result<(), Refusal> {
         if bytes > self.max_scene_bytes {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "the scene is {bytes} bytes, more than this coordinator's limit of {}",
                 self.max_scene_bytes
-            ));
+            )));
         }
         Ok(())
     }
 
     /// Checks a submission against every bound; the error is the one-line message for
     /// the client.
-    pub fn check(&self, request: &Request) -> Result<(), String> {
+    pub fn check(&self, request: &Request) -> Result<(), Refusal> {
         self.check_scene_bytes(request.scene_bytes)?;
         if request.objects > self.max_objects {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "objects: {} objects, more than this coordinator's limit of {}",
                 request.objects, self.max_objects
-            ));
+            )));
         }
         let pixels = u64::from(request.width) * u64::from(request.height);
         if pixels > self.max_pixels {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "image: {}x{} is {pixels} pixels, more than this coordinator's limit of {}",
                 request.width, request.height, self.max_pixels
-            ));
+            )));
         }
         if request.aa > self.max_aa {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "image.aa: {} is more than this coordinator's limit of {}",
                 request.aa, self.max_aa
-            ));
+            )));
         }
         Ok(())
     }
@@ -278,7 +278,7 @@ pub enum Action {
     /// Reply to a client's request on a job.
     Reply {
         job: JobId,
-        result: Result<Reply, String>,
+        result: Result<Reply, Refusal>,
     },
 }
 
@@ -343,14 +343,14 @@ impl Lifecycle {
 
     /// Checks a submission and, if it may be stored, gives it an id and enters it as
     /// [`Phase::Storing`]. The error is the one-line message for the client.
-    pub fn admit(&mut self, now: Millis, request: &Request) -> Result<JobId, String> {
+    pub fn admit(&mut self, now: Millis, request: &Request) -> Result<JobId, Refusal> {
         self.now = self.now.max(now);
         let limits = &self.limits;
         if let Some(reason) = &self.storage_down {
-            return Err(format!(
+            return Err(Refusal::unavailable(format!(
                 "the coordinator cannot store new jobs now (storage unavailable: {reason}): \
                  submit again later"
-            ));
+            )));
         }
         limits.check(request)?;
         if let Some(client) = request.client {
@@ -360,10 +360,10 @@ impl Lifecycle {
                 .filter(|j| j.client == Some(client) && !j.phase.has_ended())
                 .count();
             if active >= limits.max_active_per_client {
-                return Err(format!(
+                return Err(Refusal::limit(format!(
                     "{client} already has {active} jobs queued or running, this coordinator's \
                      limit: wait for some to finish"
-                ));
+                )));
             }
         }
         let pixels = u64::from(request.width) * u64::from(request.height);
@@ -374,11 +374,11 @@ impl Lifecycle {
             .map(|j| j.pixels)
             .sum();
         if active.saturating_add(pixels) > limits.max_active_pixels {
-            return Err(format!(
+            return Err(Refusal::limit(format!(
                 "the coordinator has jobs of {active} pixels queued or running; this one's \
                  {pixels} would pass its limit of {}: submit again when some have finished",
                 limits.max_active_pixels
-            ));
+            )));
         }
         let id = self.next_id;
         self.next_id += 1;
@@ -538,9 +538,10 @@ impl Lifecycle {
             Event::Cancel { job } => {
                 let result = match self.jobs.get(&job).map(|j| &j.phase) {
                     None | Some(Phase::Storing) => Err(unknown(job)),
-                    Some(Phase::Ended { state, .. }) => {
-                        Err(format!("job {job} is already {}", state.as_str()))
-                    }
+                    Some(Phase::Ended { state, .. }) => Err(Refusal::state(format!(
+                        "job {job} is already {}",
+                        state.as_str()
+                    ))),
                     Some(_) => {
                         actions.push(Action::CancelTiles { job });
                         self.end(job, JobState::Cancelled, None, &mut actions);
@@ -567,10 +568,10 @@ impl Lifecycle {
                         self.deleting.insert(job);
                         Ok(Reply::Deleting)
                     }
-                    Some(phase) => Err(format!(
+                    Some(phase) => Err(Refusal::state(format!(
                         "job {job} is {}: cancel it first",
                         phase.visible().as_str()
-                    )),
+                    ))),
                 };
                 actions.push(Action::Reply { job, result });
             }
@@ -677,12 +678,12 @@ impl Lifecycle {
     /// retried: its image is final and stored (submit the scene again to render it
     /// anew). Like a submission, it must fit in the pixels of the active jobs, and
     /// storage must be able to write.
-    pub fn check_retry(&self, job: JobId, pixels: u64) -> Result<(), String> {
+    pub fn check_retry(&self, job: JobId, pixels: u64) -> Result<(), Refusal> {
         self.check_retry_state(job)?;
         if let Some(reason) = &self.storage_down {
-            return Err(format!(
+            return Err(Refusal::unavailable(format!(
                 "job {job} cannot be retried now (storage unavailable: {reason}): retry later"
-            ));
+            )));
         }
         let active: u64 = self
             .jobs
@@ -691,21 +692,21 @@ impl Lifecycle {
             .map(|j| j.pixels)
             .sum();
         if active.saturating_add(pixels) > self.limits.max_active_pixels {
-            return Err(format!(
+            return Err(Refusal::limit(format!(
                 "job {job} cannot be retried now: the coordinator has jobs of {active} pixels \
                  queued or running, and its {pixels} would pass its limit of {}",
                 self.limits.max_active_pixels
-            ));
+            )));
         }
         Ok(())
     }
 
-    fn check_retry_state(&self, job: JobId) -> Result<(), String> {
+    fn check_retry_state(&self, job: JobId) -> Result<(), Refusal> {
         match self.jobs.get(&job).map(|j| &j.phase) {
             None | Some(Phase::Storing) => Err(unknown(job)),
-            Some(_) if self.deleting.contains(&job) => {
-                Err(format!("job {job} cannot be retried: it is being deleted"))
-            }
+            Some(_) if self.deleting.contains(&job) => Err(Refusal::state(format!(
+                "job {job} cannot be retried: it is being deleted"
+            ))),
             Some(Phase::Ended {
                 state: JobState::Failed | JobState::Cancelled,
                 recorded: true,
@@ -714,23 +715,23 @@ impl Lifecycle {
             Some(Phase::Ended {
                 state: JobState::Done,
                 ..
-            }) => Err(format!(
+            }) => Err(Refusal::state(format!(
                 "job {job} cannot be retried: it is done and its image is final (submit \
                  the scene again to render it anew)"
-            )),
-            Some(Phase::Ended { .. }) => Err(format!(
+            ))),
+            Some(Phase::Ended { .. }) => Err(Refusal::state(format!(
                 "job {job} cannot be retried yet: its end is still being stored"
-            )),
-            Some(phase) => Err(format!(
+            ))),
+            Some(phase) => Err(Refusal::state(format!(
                 "job {job} cannot be retried: it is {}, only a failed or cancelled job can be",
                 phase.visible().as_str()
-            )),
+            ))),
         }
     }
 }
 
-fn unknown(job: JobId) -> String {
-    format!("no job {job} on this coordinator")
+fn unknown(job: JobId) -> Refusal {
+    Refusal::unknown_job(job)
 }
 
 #[cfg(test)]
@@ -788,6 +789,7 @@ mod retry_tests {
             }
         ))
         .unwrap_err()
+        .message
         .contains("it is done"));
         assert!(reply(l.handle(
             1,
@@ -798,6 +800,7 @@ mod retry_tests {
             }
         ))
         .unwrap_err()
+        .message
         .contains("it is queued"));
         assert!(reply(l.handle(
             1,
@@ -808,6 +811,7 @@ mod retry_tests {
             }
         ))
         .unwrap_err()
+        .message
         .contains("no job 9"));
         // Only the done job is deleted when its retention runs out.
         let expired = l.handle(5_000, Event::Timeout);
@@ -849,7 +853,11 @@ mod retry_limit_tests {
             );
         }
         let refused = l.check_retry(1, 64).unwrap_err();
-        assert!(refused.contains("would pass its limit of 100"), "{refused}");
+        assert_eq!(refused.kind, protocol::RefusalKind::Limit);
+        assert!(
+            refused.message.contains("would pass its limit of 100"),
+            "{refused}"
+        );
         assert_eq!(l.check_retry(1, 36), Ok(()));
         l.handle(
             0,
@@ -859,7 +867,7 @@ mod retry_limit_tests {
         );
         let refused = l.check_retry(1, 36).unwrap_err();
         assert!(
-            refused.contains("storage unavailable: disk full"),
+            refused.message.contains("storage unavailable: disk full"),
             "{refused}"
         );
     }
@@ -939,6 +947,7 @@ mod tests {
         assert!(l
             .admit(0, &request(1))
             .unwrap_err()
+            .message
             .contains("already has 1"));
         let refused = l.handle(
             1,
@@ -970,8 +979,11 @@ mod tests {
             },
         );
         let refused = l.admit(3, &request(2)).unwrap_err();
-        assert!(refused.contains("cannot store new jobs"), "{refused}");
-        assert!(refused.contains("No space left"), "{refused}");
+        assert!(
+            refused.message.contains("cannot store new jobs"),
+            "{refused}"
+        );
+        assert!(refused.message.contains("No space left"), "{refused}");
         // A failed store is not a failure of the job: it is retried.
         l.handle(
             4,
@@ -1025,7 +1037,9 @@ mod tests {
             delete_running,
             [Action::Reply {
                 job: b,
-                result: Err(format!("job {b} is queued: cancel it first"))
+                result: Err(Refusal::state(format!(
+                    "job {b} is queued: cancel it first"
+                )))
             }]
         );
         let cancelled = l.handle(4, Event::Cancel { job: b });
@@ -1043,7 +1057,7 @@ mod tests {
             again,
             [Action::Reply {
                 job: b,
-                result: Err(format!("job {b} is already cancelled"))
+                result: Err(Refusal::state(format!("job {b} is already cancelled")))
             }]
         );
         // Deleted before its end is written: the deletion waits for the write.
@@ -1070,7 +1084,7 @@ mod tests {
             l.handle(9, Event::Cancel { job: 99 }),
             [Action::Reply {
                 job: 99,
-                result: Err("no job 99 on this coordinator".into())
+                result: Err(Refusal::not_found("no job 99 on this coordinator"))
             }]
         );
     }
@@ -1167,7 +1181,7 @@ mod tests {
         stored(&mut l, 0);
         let refused = l.admit(1, &request(2)).unwrap_err();
         assert!(
-            refused.contains("would pass its limit of 6144"),
+            refused.message.contains("would pass its limit of 6144"),
             "{refused}"
         );
         l.handle(2, Event::Cancel { job: a });

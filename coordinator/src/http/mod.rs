@@ -20,13 +20,13 @@ use axum::middleware::Next;
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post, MethodRouter};
 use axum::{Json, Router};
-use protocol::{ClientRequest, ClientResponse, JobId};
+use protocol::{ClientRequest, ClientResponse, JobId, Refusal, RefusalKind};
 
 pub use access::{decide, Access, Asking, Secrets};
 use httpd::Peer;
 
 use crate::metrics::Exposition;
-use crate::server::{Observer, Picture, Refusal};
+use crate::server::{Observer, Picture};
 
 /// The status page: one self-contained file, polling `/api/status`.
 const STATUS_PAGE: &str = include_str!("../status.html");
@@ -263,17 +263,10 @@ async fn logout(State(observer): State<Observer>, headers: HeaderMap) -> Respons
 }
 
 /// The answer to a control: the job or the workers as the protocol gives them, or
-/// its error as a one-line JSON error (404 for what does not exist, 409 otherwise).
+/// its error as a one-line JSON error ([`refused`]).
 fn answer(response: ClientResponse) -> Response {
     match response {
-        ClientResponse::Error { message } => {
-            let code = if message.starts_with("no job ") || message.starts_with("no worker ") {
-                StatusCode::NOT_FOUND
-            } else {
-                StatusCode::CONFLICT
-            };
-            refusal(code, message)
-        }
+        ClientResponse::Error(why) => refused(why),
         ClientResponse::Job(status) => Json(serde_json::json!({
             "id": status.id,
             "state": if status.paused { "paused" } else { status.state.as_str() },
@@ -377,14 +370,21 @@ async fn job_events(
     }
 }
 
-/// A preview's or frame's refusal as HTTP: 404 for what does not exist, 409 for what
-/// is not done yet, 500 for images that cannot be read or are damaged.
+/// A refusal as HTTP: the status follows its kind (404 for what does not exist, 409 for
+/// what the job's state does not allow, 422 for what is not valid as sent, 429 for a
+/// limit, 503 for what may work later, 500 for what the coordinator failed at), and
+/// the body is `{"error": MESSAGE, "kind": KIND}`.
 fn refused(why: Refusal) -> Response {
-    match why {
-        Refusal::NotFound(message) => refusal(StatusCode::NOT_FOUND, message),
-        Refusal::NotYet(message) => refusal(StatusCode::CONFLICT, message),
-        Refusal::Failed(message) => refusal(StatusCode::INTERNAL_SERVER_ERROR, message),
-    }
+    let code = match why.kind {
+        RefusalKind::Invalid => StatusCode::UNPROCESSABLE_ENTITY,
+        RefusalKind::NotFound => StatusCode::NOT_FOUND,
+        RefusalKind::State => StatusCode::CONFLICT,
+        RefusalKind::Limit => StatusCode::TOO_MANY_REQUESTS,
+        RefusalKind::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
+        RefusalKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
+    };
+    let body = serde_json::json!({ "error": why.message, "kind": why.kind.as_str() });
+    (code, Json(body)).into_response()
 }
 
 /// Whether the request's `If-None-Match` names `tag`: the page has it already.
@@ -624,7 +624,7 @@ async fn studio_submit(
         ClientResponse::Submitted { job } => {
             Json(serde_json::json!({ "job": job })).into_response()
         }
-        ClientResponse::Error { message } => refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+        ClientResponse::Error(why) => refused(why),
         _ => refusal(StatusCode::INTERNAL_SERVER_ERROR, "unexpected answer"),
     }
 }

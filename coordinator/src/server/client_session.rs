@@ -13,8 +13,8 @@ use std::time::Duration;
 use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, JobId, JobSpec, JobState, JobStatus, MessageCodec, SceneHash,
-    Settings, WorkerStatus,
+    ClientRequest, ClientResponse, JobId, JobSpec, JobState, JobStatus, MessageCodec, Refusal,
+    SceneHash, Settings, WorkerStatus,
 };
 use scheduler::lifecycle::{self, Reply};
 use sha2::{Digest, Sha256};
@@ -65,7 +65,9 @@ pub(super) async fn serve(
                     "bad request: {e} (this coordinator takes frames of at most {} bytes)",
                     shared.max_frame
                 );
-                let _ = conn.send(ClientResponse::Error { message }).await;
+                let _ = conn
+                    .send(ClientResponse::Error(Refusal::invalid(message)))
+                    .await;
                 // Let the peer finish sending and read the answer: closing with its
                 // bytes unread would reset the connection and lose the message.
                 let mut stream = conn.into_inner();
@@ -106,39 +108,39 @@ pub(crate) async fn respond(
         ClientRequest::Cancel { job } if sh.lock().sequences.contains_key(&job) => {
             match sh.lock().cancel_sequence(sh, job, peer) {
                 Ok(()) => ClientResponse::Cancelled { job },
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
             }
         }
         ClientRequest::Delete { job } if sh.lock().sequences.contains_key(&job) => {
             let (done, gone) = tokio::sync::oneshot::channel();
             let deleting = sh.lock().delete_sequence(sh, job, done);
             match deleting {
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
                 Ok(()) => match tokio::time::timeout(Duration::from_secs(10), gone).await {
                     Ok(Ok(())) => ClientResponse::Deleted { job },
-                    _ => ClientResponse::Error {
-                        message: format!("job {job} is being deleted: the disk is slow"),
-                    },
+                    _ => ClientResponse::Error(Refusal::unavailable(format!(
+                        "job {job} is being deleted: the disk is slow"
+                    ))),
                 },
             }
         }
         ClientRequest::Retry { job } if sh.lock().sequences.contains_key(&job) => {
             match sh.lock().requeue_frames(sh, job, None, peer) {
                 Ok(status) => ClientResponse::Job(status),
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
             }
         }
         ClientRequest::RequeueFrame { job, frame } => {
             match sh.lock().requeue_frames(sh, job, Some(frame), peer) {
                 Ok(status) => ClientResponse::Job(status),
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
             }
         }
         ClientRequest::FetchFrame { job, frame, offset } => {
             let image = sh.lock().frame_image(job, frame);
             match image {
                 Ok((place, sha)) => serve_image(sh, job, place, sha, offset).await,
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
             }
         }
         ClientRequest::Requeue { job, .. } | ClientRequest::Refine { job, .. }
@@ -151,13 +153,11 @@ pub(crate) async fn respond(
                 .get(&job)
                 .map(|r| super::core::frame_jobs(&r.frames))
                 .unwrap_or_default();
-            ClientResponse::Error {
-                message: format!(
-                    "job {job} is a sequence: each of its frames is a job of its own \
+            ClientResponse::Error(Refusal::invalid(format!(
+                "job {job} is a sequence: each of its frames is a job of its own \
                      ({frames}); requeue or refine one of those, or requeue a frame \
                      (`tessera retry {job} --frame K`)"
-                ),
-            }
+            )))
         }
         ClientRequest::Retry { job }
             if sh
@@ -171,12 +171,10 @@ pub(crate) async fn respond(
                 let r = &core.jobs[&job];
                 (r.sequence.unwrap_or_default(), r.frame)
             };
-            ClientResponse::Error {
-                message: format!(
-                    "job {job} renders frame {frame} of sequence {sequence}: requeue the frame \
+            ClientResponse::Error(Refusal::invalid(format!(
+                "job {job} renders frame {frame} of sequence {sequence}: requeue the frame \
                      (`tessera retry {sequence} --frame {frame}`)"
-                ),
-            }
+            )))
         }
         ClientRequest::Cancel { job } => {
             let mut core = sh.lock();
@@ -191,7 +189,7 @@ pub(crate) async fn respond(
             drop(core);
             match reply {
                 Some(Ok(_)) => ClientResponse::Cancelled { job },
-                Some(Err(message)) => ClientResponse::Error { message },
+                Some(Err(message)) => ClientResponse::Error(message),
                 None => unknown_job(job),
             }
         }
@@ -200,7 +198,7 @@ pub(crate) async fn respond(
             match reply {
                 Some(Ok(Reply::Deleting)) => wait_deleted(sh, job).await,
                 Some(Ok(Reply::Cancelled | Reply::Retried)) | None => unknown_job(job),
-                Some(Err(message)) => ClientResponse::Error { message },
+                Some(Err(message)) => ClientResponse::Error(message),
             }
         }
         ClientRequest::Pause { job } => {
@@ -249,7 +247,7 @@ pub(crate) async fn respond(
         ClientRequest::Events { job, after } => events(sh, job, after).await,
         ClientRequest::Retry { job } => match retry(sh, job, peer).await {
             Ok(status) => ClientResponse::Job(status),
-            Err(message) => ClientResponse::Error { message },
+            Err(message) => ClientResponse::Error(message),
         },
         ClientRequest::Requeue { job, tiles } => {
             let controls = sh.lock().requeue(sh, job, &tiles, peer);
@@ -262,7 +260,7 @@ pub(crate) async fn respond(
                     sh.changed();
                     ClientResponse::Workers(acted_on(sh, |w| w.id == id))
                 }
-                Err(message) => ClientResponse::Error { message },
+                Err(message) => ClientResponse::Error(message),
             }
         }
         ClientRequest::DisableWorker { worker } => {
@@ -282,9 +280,9 @@ pub(crate) async fn respond(
             time_limit_ms,
         } => match refine(sh, job, target_milli, aa, time_limit_ms, peer).await {
             Ok(response) => response,
-            Err(message) => ClientResponse::Error {
-                message: format!("cannot refine job {job}: {message}"),
-            },
+            Err(refusal) => {
+                ClientResponse::Error(refusal.context(format_args!("cannot refine job {job}")))
+            }
         },
     }
 }
@@ -293,18 +291,18 @@ pub(crate) async fn respond(
 /// lifecycle admit it, and answers once its row is written.
 async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse {
     if sh.closing.load(Ordering::SeqCst) {
-        return ClientResponse::Error {
-            message: "the coordinator is shutting down: submit again when it is back".into(),
-        };
+        return ClientResponse::Error(Refusal::unavailable(
+            "the coordinator is shutting down: submit again when it is back",
+        ));
     }
     let limits = sh.limits;
     let prepared = match tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await {
         Ok(Ok(prepared)) => prepared,
-        Ok(Err(message)) => return ClientResponse::Error { message },
+        Ok(Err(message)) => return ClientResponse::Error(message),
         Err(_) => {
-            return ClientResponse::Error {
-                message: "the scene could not be checked: try again".into(),
-            }
+            return ClientResponse::Error(Refusal::unavailable(
+                "the scene could not be checked: try again",
+            ))
         }
     };
     admit(sh, prepared).await
@@ -317,7 +315,7 @@ pub(super) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientRespons
     if prepared.frames.is_some() {
         let stored = match sh.lock().admit_sequence(prepared, reply) {
             Ok(stored) => stored,
-            Err(message) => return ClientResponse::Error { message },
+            Err(message) => return ClientResponse::Error(message),
         };
         let id = stored.id;
         let shared = Arc::clone(sh);
@@ -331,15 +329,17 @@ pub(super) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientRespons
         let mut core = sh.lock();
         let stored = match core.admit(sh, prepared, reply) {
             Ok(stored) => stored,
-            Err(message) => return ClientResponse::Error { message },
+            Err(message) => return ClientResponse::Error(message),
         };
         let id = stored.id;
         let write = core.insert_write(sh, stored);
         // A studio view's pass is not stored: `store` discards the write.
         core.store(sh, id, write);
     }
-    answer.await.unwrap_or_else(|_| ClientResponse::Error {
-        message: "the coordinator stopped before storing the job: submit again".into(),
+    answer.await.unwrap_or_else(|_| {
+        ClientResponse::Error(Refusal::unavailable(
+            "the coordinator stopped before storing the job: submit again",
+        ))
     })
 }
 
@@ -357,9 +357,11 @@ async fn refine(
     aa: Option<u32>,
     time_limit_ms: Option<u64>,
     peer: IpAddr,
-) -> Result<ClientResponse, String> {
+) -> Result<ClientResponse, Refusal> {
     if sh.closing.load(Ordering::SeqCst) {
-        return Err("the coordinator is shutting down: refine again when it is back".into());
+        return Err(Refusal::unavailable(
+            "the coordinator is shutting down: refine again when it is back",
+        ));
     }
     let (old, tile_size, priority, verification, hash, name, submitter, frame) = {
         let core = sh.lock();
@@ -367,18 +369,21 @@ async fn refine(
             return Ok(unknown_job(job));
         };
         if status.state != JobState::Done {
-            return Err(format!(
+            return Err(Refusal::state(format!(
                 "it is {}: only a job that is done can be refined",
                 status.state.as_str()
-            ));
+            )));
         }
         if status.settings.sampling.target_error().is_none() {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "it was rendered with {} sampling: only adaptive jobs keep their tile states",
                 status.settings.sampling.name()
-            ));
+            )));
         }
-        let record = core.jobs.get(&job).ok_or("its record is gone")?;
+        let record = core
+            .jobs
+            .get(&job)
+            .ok_or_else(|| Refusal::unknown_job(job))?;
         (
             status.settings,
             record.tile_size,
@@ -392,22 +397,26 @@ async fn refine(
     };
     let aa = aa.unwrap_or(old.aa);
     if aa < old.aa {
-        return Err(format!(
+        return Err(Refusal::invalid(format!(
             "aa {aa} is below the job's {}: a refinement can only add samples",
             old.aa
-        ));
+        )));
     }
     let shared = Arc::clone(sh);
     let limits = sh.limits;
-    let prepared = tokio::task::spawn_blocking(move || -> Result<Prepared, String> {
+    let prepared = tokio::task::spawn_blocking(move || -> Result<Prepared, Refusal> {
         let store = &shared.store;
-        let scene = store.read_scene(job).map_err(|e| format!("{e:#}"))?;
+        let scene = store
+            .read_scene(job)
+            .map_err(|e| Refusal::internal(format!("{e:#}")))?;
         if Sha256::digest(scene.as_bytes()).as_slice() != hash {
-            return Err(format!(
+            return Err(Refusal::internal(format!(
                 "the stored scene of job {job} does not match the job's scene hash"
-            ));
+            )));
         }
-        let states = store.read_states(job).map_err(|e| format!("{e:#}"))?;
+        let states = store
+            .read_states(job)
+            .map_err(|e| Refusal::internal(format!("{e:#}")))?;
         let spec = JobSpec {
             scene,
             overrides: protocol::Overrides {
@@ -431,7 +440,7 @@ async fn refine(
             || states.aa != old.aa
             || states.states.len() != prepared.tiles.len()
         {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "its stored tile states are for another tiling ({} tiles of {} px at aa {}, \
                  not {} of {tile_size} px at aa {})",
                 states.states.len(),
@@ -439,15 +448,17 @@ async fn refine(
                 states.aa,
                 prepared.tiles.len(),
                 old.aa
-            ));
+            )));
         }
         let verifier = &shared.verifier;
-        let tracer = verifier.tracer(
-            prepared.hash,
-            prepared.frame,
-            prepared.settings,
-            &prepared.scene,
-        )?;
+        let tracer = verifier
+            .tracer(
+                prepared.hash,
+                prepared.frame,
+                prepared.settings,
+                &prepared.scene,
+            )
+            .map_err(Refusal::invalid)?;
         let footprints = verifier.footprints(&tracer);
         for (t, (state, &rect)) in states.states.iter().zip(&prepared.tiles).enumerate() {
             verify::adaptive::unpack_state(state, rect, prepared.settings.aa)
@@ -460,13 +471,15 @@ async fn refine(
                     )
                     .map(drop)
                 })
-                .map_err(|e| format!("the stored state of tile {t} is not valid: {e}"))?;
+                .map_err(|e| {
+                    Refusal::internal(format!("the stored state of tile {t} is not valid: {e}"))
+                })?;
         }
         prepared.start = Some(states);
         Ok(prepared)
     })
     .await
-    .map_err(|_| "the stored states could not be checked: try again".to_string())??;
+    .map_err(|_| Refusal::unavailable("the stored states could not be checked: try again"))??;
     Ok(admit(sh, prepared).await)
 }
 
@@ -476,12 +489,13 @@ pub(super) fn prepare(
     spec: JobSpec,
     limits: &lifecycle::Limits,
     client: IpAddr,
-) -> Result<Prepared, String> {
+) -> Result<Prepared, Refusal> {
     limits.check_scene_bytes(spec.scene.len())?;
     // The frame is checked with the scene: a frame it does not have is refused in the
     // loader's one line ("frame 122 is beyond the scene's 121 frames"). Image settings
     // are not animated, so the base scene's are every frame's.
-    let animated = render::parse_animated(&spec.scene).map_err(|e| e.to_string())?;
+    let animated =
+        render::parse_animated(&spec.scene).map_err(|e| Refusal::invalid(e.to_string()))?;
     let frames = animated.frame_count();
     let out_of_range = |frame: u32| render::FrameOutOfRange {
         frame: u64::from(frame),
@@ -489,20 +503,22 @@ pub(super) fn prepare(
         animated: animated.animation.is_some(),
     };
     if spec.frame == 0 || spec.frame > frames {
-        return Err(out_of_range(spec.frame).to_string());
+        return Err(Refusal::invalid(out_of_range(spec.frame).to_string()));
     }
     if let Some(range) = spec.frames {
         if spec.frame != 1 {
-            return Err("frames: a sequence job names its range, not a frame".into());
-        }
-        if range.first == 0 || range.first > range.last {
-            return Err(format!(
-                "frames: {}-{} is not a range of frames (from 1, first to last)",
-                range.first, range.last
+            return Err(Refusal::invalid(
+                "frames: a sequence job names its range, not a frame",
             ));
         }
+        if range.first == 0 || range.first > range.last {
+            return Err(Refusal::invalid(format!(
+                "frames: {}-{} is not a range of frames (from 1, first to last)",
+                range.first, range.last
+            )));
+        }
         if range.last > frames {
-            return Err(out_of_range(range.last).to_string());
+            return Err(Refusal::invalid(out_of_range(range.last).to_string()));
         }
     }
     let scene = animated.base;
@@ -513,7 +529,7 @@ pub(super) fn prepare(
     s.aa = o.aa.unwrap_or(s.aa);
     s.max_depth = o.max_depth.unwrap_or(s.max_depth);
     s.sampling = o.sampling.map_or(s.sampling, verify::render_sampling);
-    render::validate_settings(&s, "").map_err(|e| format!("overrides: {e}"))?;
+    render::validate_settings(&s, "").map_err(|e| Refusal::invalid(format!("overrides: {e}")))?;
     let settings = Settings {
         width: s.width,
         height: s.height,
@@ -523,20 +539,20 @@ pub(super) fn prepare(
     };
     if let Some(limit) = spec.time_limit_ms {
         if settings.sampling.target_error().is_none() {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "time_limit: only adaptive jobs stop on a time limit, not {} sampling",
                 settings.sampling.name()
-            ));
+            )));
         }
         if limit == 0 {
-            return Err("time_limit: must be more than 0 ms".into());
+            return Err(Refusal::invalid("time_limit: must be more than 0 ms"));
         }
     }
     let tile_size = match o.tile_size {
         Some(t) if !(MIN_TILE..=MAX_TILE).contains(&t) => {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "overrides: tile: must be between {MIN_TILE} and {MAX_TILE}, got {t}"
-            ))
+            )))
         }
         Some(t) => t,
         None if spec.frames.is_some() => tiling::sequence_tile_size(&settings),
@@ -544,7 +560,7 @@ pub(super) fn prepare(
     };
     if settings.sampling.target_error().is_some() {
         verify::adaptive::check_tile_side(tile_size)
-            .map_err(|e| format!("overrides: tile: {e}"))?;
+            .map_err(|e| Refusal::invalid(format!("overrides: tile: {e}")))?;
     }
     let hash: SceneHash = Sha256::digest(spec.scene.as_bytes()).into();
     let request = lifecycle::Request {
@@ -633,11 +649,11 @@ async fn watch(sh: &Shared, job: JobId, after_tiles: u32) -> ClientResponse {
 async fn store_controls(
     sh: &Arc<Shared>,
     job: JobId,
-    controls: Result<Controls, String>,
+    controls: Result<Controls, Refusal>,
 ) -> ClientResponse {
     let controls = match controls {
         Ok(controls) => controls,
-        Err(message) => return ClientResponse::Error { message },
+        Err(message) => return ClientResponse::Error(message),
     };
     sh.changed();
     let (done, stored) = tokio::sync::oneshot::channel();
@@ -654,19 +670,15 @@ async fn store_controls(
             Some(status) => ClientResponse::Job(status),
             None => unknown_job(job),
         },
-        Ok(Ok(Err(message))) => ClientResponse::Error {
-            message: format!("the change to job {job} could not be stored: {message}"),
-        },
-        Ok(Err(_)) => ClientResponse::Error {
-            message: format!(
-                "the coordinator stopped before storing the change to job {job}: try again"
-            ),
-        },
-        Err(_) => ClientResponse::Error {
-            message: format!(
-                "the change to job {job} is made, but the disk is slow: it is not yet stored"
-            ),
-        },
+        Ok(Ok(Err(message))) => ClientResponse::Error(Refusal::internal(format!(
+            "the change to job {job} could not be stored: {message}"
+        ))),
+        Ok(Err(_)) => ClientResponse::Error(Refusal::unavailable(format!(
+            "the coordinator stopped before storing the change to job {job}: try again"
+        ))),
+        Err(_) => ClientResponse::Error(Refusal::unavailable(format!(
+            "the change to job {job} is made, but the disk is slow: it is not yet stored"
+        ))),
     }
 }
 
@@ -683,12 +695,12 @@ fn acted_on(sh: &Shared, which: impl Fn(&WorkerStatus) -> bool) -> Vec<WorkerSta
 
 async fn store_disabled(
     sh: &Arc<Shared>,
-    machine: Result<String, String>,
+    machine: Result<String, Refusal>,
     disabled: bool,
 ) -> ClientResponse {
     let machine = match machine {
         Ok(machine) => machine,
-        Err(message) => return ClientResponse::Error { message },
+        Err(message) => return ClientResponse::Error(message),
     };
     sh.changed();
     let (done, stored) = tokio::sync::oneshot::channel();
@@ -701,29 +713,27 @@ async fn store_disabled(
     });
     match tokio::time::timeout(Duration::from_secs(10), stored).await {
         Ok(Ok(Ok(()))) => ClientResponse::Workers(acted_on(sh, |w| w.name == machine)),
-        Ok(Ok(Err(message))) => ClientResponse::Error {
-            message: format!("the change to machine {machine:?} could not be stored: {message}"),
-        },
-        Ok(Err(_)) => ClientResponse::Error {
-            message: format!(
-                "the coordinator stopped before storing the change to machine {machine:?}: \
+        Ok(Ok(Err(message))) => ClientResponse::Error(Refusal::internal(format!(
+            "the change to machine {machine:?} could not be stored: {message}"
+        ))),
+        Ok(Err(_)) => ClientResponse::Error(Refusal::unavailable(format!(
+            "the coordinator stopped before storing the change to machine {machine:?}: \
                  try again"
-            ),
-        },
-        Err(_) => ClientResponse::Error {
-            message: format!(
-                "the change to machine {machine:?} is made, but the disk is slow: it is not \
+        ))),
+        Err(_) => ClientResponse::Error(Refusal::unavailable(format!(
+            "the change to machine {machine:?} is made, but the disk is slow: it is not \
                  yet stored"
-            ),
-        },
+        ))),
     }
 }
 
 /// Puts a failed or cancelled job back in the queue: checked, written (state queued,
 /// its stored tiles read back), then taken back by the daemon; answered only then.
-async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, String> {
+async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, Refusal> {
     if sh.closing.load(Ordering::SeqCst) {
-        return Err("the coordinator is shutting down: retry when it is back".into());
+        return Err(Refusal::unavailable(
+            "the coordinator is shutting down: retry when it is back",
+        ));
     }
     // A job whose end is still being written (a retry right after its cancel) is
     // retried once it is written: waited for a few seconds.
@@ -732,9 +742,7 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
     loop {
         let checked = {
             let core = sh.lock();
-            let status = core
-                .status(job)
-                .ok_or_else(|| format!("no job {job} on this coordinator"))?;
+            let status = core.status(job).ok_or_else(|| Refusal::unknown_job(job))?;
             let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
             let ending = core.lifecycle.job(job).is_some_and(|j| {
                 matches!(
@@ -766,21 +774,23 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
         then: Box::new(move |result| {
             let result = match result {
                 Ok(Some(restored)) => shared.lock().retried(&shared, restored, peer),
-                Ok(None) => Err(format!("no job {job} on this coordinator")),
-                Err(message) => Err(format!("job {job} could not be put back: {message}")),
+                Ok(None) => Err(Refusal::unknown_job(job)),
+                Err(message) => Err(Refusal::internal(format!(
+                    "job {job} could not be put back: {message}"
+                ))),
             };
             let _ = done.send(result);
         }),
     });
     match tokio::time::timeout(Duration::from_secs(30), reopened).await {
         Ok(Ok(result)) => result,
-        Ok(Err(_)) => Err(format!(
+        Ok(Err(_)) => Err(Refusal::unavailable(format!(
             "the coordinator stopped before putting job {job} back: try again"
-        )),
-        Err(_) => Err(format!(
+        ))),
+        Err(_) => Err(Refusal::unavailable(format!(
             "the disk is slow: job {job} is not yet back in the queue (`tessera status {job}` \
              shows when it is)"
-        )),
+        ))),
     }
 }
 
@@ -800,15 +810,15 @@ async fn events(sh: &Arc<Shared>, job: JobId, after: u64) -> ClientResponse {
     });
     match tokio::time::timeout(Duration::from_secs(10), read).await {
         Ok(Ok(Ok(events))) => ClientResponse::Events { job, events },
-        Ok(Ok(Err(message))) => ClientResponse::Error {
-            message: format!("cannot read the events of job {job}: {message}"),
-        },
-        Ok(Err(_)) => ClientResponse::Error {
-            message: "the coordinator stopped before reading the events: try again".into(),
-        },
-        Err(_) => ClientResponse::Error {
-            message: format!("the disk is slow: the events of job {job} could not be read in time"),
-        },
+        Ok(Ok(Err(message))) => ClientResponse::Error(Refusal::internal(format!(
+            "cannot read the events of job {job}: {message}"
+        ))),
+        Ok(Err(_)) => ClientResponse::Error(Refusal::unavailable(
+            "the coordinator stopped before reading the events: try again",
+        )),
+        Err(_) => ClientResponse::Error(Refusal::unavailable(format!(
+            "the disk is slow: the events of job {job} could not be read in time"
+        ))),
     }
 }
 
@@ -821,11 +831,9 @@ async fn wait_deleted(sh: &Shared, job: JobId) -> ClientResponse {
         tokio::select! {
             _ = changes.changed() => {}
             () = tokio::time::sleep_until(deadline) => {
-                return ClientResponse::Error {
-                    message: format!(
+                return ClientResponse::Error(Refusal::unavailable(format!(
                         "job {job} is being deleted, but the disk is slow: it will be gone shortly"
-                    ),
-                };
+                    )));
             }
         }
     }
@@ -840,16 +848,15 @@ async fn fetch(sh: &Arc<Shared>, job: JobId, offset: u64) -> ClientResponse {
         match core.status(job) {
             None => return unknown_job(job),
             Some(s) if s.frames.is_some() => {
-                return ClientResponse::Error {
-                    message: format!(
-                        "job {job} is a sequence: fetch its frames (`tessera fetch {job} -o DIR/`)"
-                    ),
-                }
+                return ClientResponse::Error(Refusal::invalid(format!(
+                    "job {job} is a sequence: fetch its frames (`tessera fetch {job} -o DIR/`)"
+                )))
             }
             Some(s) if s.state != JobState::Done => {
-                return ClientResponse::Error {
-                    message: format!("job {job} has no image: it is {}", s.state.as_str()),
-                }
+                return ClientResponse::Error(Refusal::state(format!(
+                    "job {job} has no image: it is {}",
+                    s.state.as_str()
+                )))
             }
             Some(_) => (
                 core.image_place(job),
@@ -884,22 +891,18 @@ async fn serve_image(
             offset: offset.min(total),
             bytes,
         },
-        Ok(Err(e)) => ClientResponse::Error {
-            message: format!(
-                "cannot serve the image of job {job}: {e:#} (its scene is in the job's folder: \
+        Ok(Err(e)) => ClientResponse::Error(Refusal::internal(format!(
+            "cannot serve the image of job {job}: {e:#} (its scene is in the job's folder: \
                  submit it again to render it anew)"
-            ),
-        },
-        Err(_) => ClientResponse::Error {
-            message: format!("cannot read the image of job {job}: try again"),
-        },
+        ))),
+        Err(_) => ClientResponse::Error(Refusal::unavailable(format!(
+            "cannot read the image of job {job}: try again"
+        ))),
     }
 }
 
 fn unknown_job(job: JobId) -> ClientResponse {
-    ClientResponse::Error {
-        message: format!("no job {job} on this coordinator"),
-    }
+    ClientResponse::Error(Refusal::unknown_job(job))
 }
 
 /// The name of a refined job: `seed (refined)`, then `seed (refined 2)`, `seed (refined

@@ -11,8 +11,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use protocol::{
-    ClientResponse, JobEvent, JobId, JobState, JobStatus, SceneHash, Settings, TileRect, ToWorker,
-    Verification, WorkerId, WorkerStatus,
+    ClientResponse, JobEvent, JobId, JobState, JobStatus, Refusal, SceneHash, Settings, TileRect,
+    ToWorker, Verification, WorkerId, WorkerStatus,
 };
 use render::Tracer;
 use scheduler::lifecycle::{self, Lifecycle, Phase, Reply};
@@ -695,7 +695,7 @@ impl Core {
         &mut self,
         sh: &Arc<Shared>,
         event: lifecycle::Event,
-    ) -> Option<Result<Reply, String>> {
+    ) -> Option<Result<Reply, Refusal>> {
         let actions = self.lifecycle.handle(sh.now(), event);
         self.apply_life(sh, actions)
     }
@@ -707,7 +707,7 @@ impl Core {
         sh: &Arc<Shared>,
         prepared: Prepared,
         reply: oneshot::Sender<ClientResponse>,
-    ) -> Result<StoredJob, String> {
+    ) -> Result<StoredJob, Refusal> {
         let id = self.lifecycle.admit(sh.now(), &prepared.request)?;
         let submitted = unix_ms();
         let stored = StoredJob {
@@ -820,18 +820,18 @@ impl Core {
         sh: &Arc<Shared>,
         mut restored: super::startup::RestoredJob,
         peer: std::net::IpAddr,
-    ) -> Result<JobStatus, String> {
+    ) -> Result<JobStatus, Refusal> {
         let id = restored.job.id;
         if restored.job.state.is_final() {
             // Found unusable when read back (its scene or settings): recorded failed.
-            return Err(format!(
+            return Err(Refusal::state(format!(
                 "job {id} cannot be retried: {}",
                 restored
                     .job
                     .error
                     .as_deref()
                     .unwrap_or("it cannot be rendered")
-            ));
+            )));
         }
         let kept = restored.tiles.len();
         let started = kept > 0 || restored.job.times.started.is_some();
@@ -2192,7 +2192,7 @@ impl Core {
         &mut self,
         sh: &Arc<Shared>,
         actions: Vec<lifecycle::Action>,
-    ) -> Option<Result<Reply, String>> {
+    ) -> Option<Result<Reply, Refusal>> {
         use lifecycle::Action as A;
         let mut reply = None;
         for action in actions {
@@ -2206,11 +2206,9 @@ impl Core {
                     }
                     error!(job, error = %message, "cannot store a job");
                     if let Some(reply) = self.submits.remove(&job) {
-                        let _ = reply.send(ClientResponse::Error {
-                            message: format!(
-                                "the coordinator cannot store new jobs now: {message}"
-                            ),
-                        });
+                        let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
+                            "the coordinator cannot store new jobs now: {message}"
+                        ))));
                     }
                 }
                 A::StoreImage { job } => self.store_image(sh, job),
@@ -2452,7 +2450,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         paused: bool,
-    ) -> Result<Controls, String> {
+    ) -> Result<Controls, Refusal> {
         if self.sequences.contains_key(&id) {
             return self.set_sequence_paused(sh, id, paused);
         }
@@ -2485,7 +2483,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         priority: i32,
-    ) -> Result<Controls, String> {
+    ) -> Result<Controls, Refusal> {
         if self.sequences.contains_key(&id) {
             return self.set_sequence_priority(sh, id, priority);
         }
@@ -2510,13 +2508,13 @@ impl Core {
 
     /// Whether an operator may still change the job: it must be queued or running,
     /// with tiles still to hand out.
-    fn check_controllable(&self, id: JobId, verb: &str) -> Result<(), String> {
+    fn check_controllable(&self, id: JobId, verb: &str) -> Result<(), Refusal> {
         let job = self.lifecycle.job(id).ok_or_else(|| unknown(id))?;
         match &job.phase {
             Phase::Storing | Phase::Queued | Phase::Running => Ok(()),
-            Phase::Finishing { .. } => Err(format!(
+            Phase::Finishing { .. } => Err(Refusal::state(format!(
                 "job {id} cannot be {verb}: all its tiles are in and its image is being stored"
-            )),
+            ))),
             Phase::Ended { state, .. } => Err(ended_refusal(id, verb, *state)),
         }
     }
@@ -2531,24 +2529,26 @@ impl Core {
         id: JobId,
         tiles: &[u32],
         peer: std::net::IpAddr,
-    ) -> Result<Controls, String> {
+    ) -> Result<Controls, Refusal> {
         self.check_controllable(id, "requeued")?;
         let record = self.jobs.get_mut(&id).ok_or_else(|| unknown(id))?;
         if record.adaptive.is_some() {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "job {id} cannot be requeued: an adaptive job renders in passes, whose \
                  tiles are not taken back one by one"
-            ));
+            )));
         }
         if tiles.is_empty() {
-            return Err(format!("job {id}: name at least one tile to requeue"));
+            return Err(Refusal::invalid(format!(
+                "job {id}: name at least one tile to requeue"
+            )));
         }
         let total = record.tiles_total;
         if let Some(bad) = tiles.iter().find(|&&t| t >= total) {
-            return Err(format!(
+            return Err(Refusal::invalid(format!(
                 "job {id} has tiles 0 to {}: there is no tile {bad}",
                 total.saturating_sub(1)
-            ));
+            )));
         }
         let mut tiles = tiles.to_vec();
         tiles.sort_unstable();
@@ -2643,7 +2643,7 @@ impl Core {
     /// The connected worker an operator names: by id (as `tessera workers` lists
     /// them), or by name (unique among connected workers, [`names`]). `Err` is the
     /// one-line reason none is.
-    fn named_worker(&self, key: &str) -> Result<WorkerId, String> {
+    fn named_worker(&self, key: &str) -> Result<WorkerId, Refusal> {
         if let Ok(id) = key.parse::<WorkerId>() {
             if self.workers.contains_key(&id) {
                 return Ok(id);
@@ -2654,13 +2654,15 @@ impl Core {
             .find(|(_, w)| w.name == key)
             .map(|(&id, _)| id)
             .ok_or_else(|| {
-                format!("no worker {key:?} is connected: give an id or a name from tessera workers")
+                Refusal::not_found(format!(
+                    "no worker {key:?} is connected: give an id or a name from tessera workers"
+                ))
             })
     }
 
     /// An operator drains a worker: it is told to finish what it holds and exit (as
     /// on SIGTERM), and gets no new tile from now on. Returns its id.
-    pub fn drain_worker(&mut self, sh: &Arc<Shared>, key: &str) -> Result<WorkerId, String> {
+    pub fn drain_worker(&mut self, sh: &Arc<Shared>, key: &str) -> Result<WorkerId, Refusal> {
         let worker = self.named_worker(key)?;
         if let Some(w) = self.workers.get_mut(&worker) {
             info!(worker, name = %w.name, host = %w.host, "worker drained by an operator");
@@ -2680,7 +2682,7 @@ impl Core {
         sh: &Arc<Shared>,
         key: &str,
         disabled: bool,
-    ) -> Result<String, String> {
+    ) -> Result<String, Refusal> {
         let machine = match self.named_worker(key) {
             Ok(worker) => self.workers[&worker].name.clone(),
             Err(_) if !disabled && self.tiles.is_disabled(key) => key.to_string(),
@@ -2705,8 +2707,8 @@ impl Core {
 }
 
 /// The error for a job this coordinator does not know.
-fn unknown(id: JobId) -> String {
-    format!("no job {id} on this coordinator")
+fn unknown(id: JobId) -> Refusal {
+    Refusal::unknown_job(id)
 }
 
 /// Which of two differing results is wrong, and why, if it could be shown.
@@ -2946,7 +2948,7 @@ fn hex(bytes: &[u8]) -> String {
 /// Why a job that has ended (`state`) cannot be `verb` (paused, resumed, ...): what
 /// would be accepted instead, and for a failed or cancelled job the command that puts
 /// it back in the queue, since resuming it is the usual mistake.
-pub(super) fn ended_refusal(id: JobId, verb: &str, state: JobState) -> String {
+pub(super) fn ended_refusal(id: JobId, verb: &str, state: JobState) -> Refusal {
     let accepted = if verb == "resumed" {
         "only a paused job can be"
     } else {
@@ -2961,7 +2963,7 @@ pub(super) fn ended_refusal(id: JobId, verb: &str, state: JobState) -> String {
             " (`tessera retry {id}` puts it back in the queue)"
         ));
     }
-    refusal
+    Refusal::state(refusal)
 }
 
 #[cfg(test)]
@@ -2971,22 +2973,22 @@ mod tests {
     #[test]
     fn an_ended_job_refused_says_what_is_accepted_and_how_to_retry_it() {
         assert_eq!(
-            ended_refusal(5, "resumed", JobState::Cancelled),
+            ended_refusal(5, "resumed", JobState::Cancelled).message,
             "job 5 cannot be resumed: it is cancelled, only a paused job can be \
              (`tessera retry 5` puts it back in the queue)"
         );
         assert_eq!(
-            ended_refusal(5, "paused", JobState::Failed),
+            ended_refusal(5, "paused", JobState::Failed).message,
             "job 5 cannot be paused: it is failed, only a queued or running job can be \
              (`tessera retry 5` puts it back in the queue)"
         );
         assert_eq!(
-            ended_refusal(5, "given a new priority", JobState::Done),
+            ended_refusal(5, "given a new priority", JobState::Done).message,
             "job 5 cannot be given a new priority: it is done, only a queued or running \
              job can be"
         );
         assert_eq!(
-            ended_refusal(5, "resumed", JobState::Done),
+            ended_refusal(5, "resumed", JobState::Done).message,
             "job 5 cannot be resumed: it is done, only a paused job can be"
         );
     }

@@ -8,7 +8,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use anyhow::Context;
-use protocol::{FrameProgress, JobId, JobState};
+use protocol::{FrameProgress, JobId, JobState, Refusal};
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 
@@ -148,18 +148,6 @@ pub enum Picture {
     Final(Vec<u8>),
     /// A downscaled copy of the tiles received so far (the rest black).
     Preview(Vec<u8>),
-}
-
-/// Why a sequence's preview or frame is not served, in one line; the HTTP status
-/// follows the kind.
-#[derive(Debug)]
-pub enum Refusal {
-    /// No such job, not a sequence, or no such frame.
-    NotFound(String),
-    /// Not yet: no frame done, or the frame not done.
-    NotYet(String),
-    /// The images could not be read, or were damaged.
-    Failed(String),
 }
 
 /// What a sequence's preview is made of, taken under the coordinator's lock; the
@@ -313,7 +301,7 @@ impl Observer {
         let done = record.frames.done_prefix();
         let first = record.frames.first();
         if done == 0 {
-            return Err(Refusal::NotYet(format!(
+            return Err(Refusal::state(format!(
                 "job {job} has no preview yet: its first frame, {first}, is not done"
             )));
         }
@@ -323,7 +311,7 @@ impl Observer {
         tag.update(step.to_le_bytes());
         let mut frames = Vec::with_capacity(shown.len());
         for frame in shown {
-            let (place, sha) = core.frame_image(job, frame).map_err(Refusal::NotYet)?;
+            let (place, sha) = core.frame_image(job, frame)?;
             tag.update(frame.to_le_bytes());
             tag.update(record.frames.job(frame).unwrap_or(0).to_le_bytes());
             tag.update(sha.unwrap_or([0; 32]));
@@ -356,8 +344,8 @@ impl Observer {
             Ok::<_, anyhow::Error>(gif)
         })
         .await
-        .map_err(|_| Refusal::Failed(format!("the preview of job {job} could not be made")))?;
-        made.map_err(|e| Refusal::Failed(format!("cannot make the preview of job {job}: {e:#}")))
+        .map_err(|_| Refusal::internal(format!("the preview of job {job} could not be made")))?;
+        made.map_err(|e| Refusal::internal(format!("cannot make the preview of job {job}: {e:#}")))
     }
 
     /// Frame `frame` of sequence `job`, once done: its stored PNG, checked against its
@@ -368,18 +356,18 @@ impl Observer {
             let record = sequence(&core, job)?;
             let (first, last) = (record.frames.first(), record.frames.last());
             if !(first..=last).contains(&frame) {
-                return Err(Refusal::NotFound(format!(
+                return Err(Refusal::not_found(format!(
                     "job {job} has frames {first} to {last}: there is no frame {frame}"
                 )));
             }
-            core.frame_image(job, frame).map_err(Refusal::NotYet)?
+            core.frame_image(job, frame)?
         };
         let png = self
             .shared
             .store
             .read_verified_image(place, sha.as_ref())
             .map_err(|e| {
-                Refusal::Failed(format!("cannot serve frame {frame} of job {job}: {e:#}"))
+                Refusal::internal(format!("cannot serve frame {frame} of job {job}: {e:#}"))
             })?;
         Ok(FramePng {
             png,
@@ -478,10 +466,10 @@ impl Observer {
 fn sequence(core: &Core, job: JobId) -> Result<&super::core::SequenceRecord, Refusal> {
     match core.sequences.get(&job).filter(|r| r.stored && !r.deleting) {
         Some(record) => Ok(record),
-        None if core.status(job).is_some() => Err(Refusal::NotFound(format!(
+        None if core.status(job).is_some() => Err(Refusal::not_found(format!(
             "job {job} is not a sequence: it has no frames"
         ))),
-        None => Err(Refusal::NotFound(format!(
+        None => Err(Refusal::not_found(format!(
             "no job {job} on this coordinator"
         ))),
     }

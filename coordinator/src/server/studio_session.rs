@@ -447,7 +447,9 @@ pub async fn edit(
     if sh.closing.load(std::sync::atomic::Ordering::SeqCst) {
         return Err("the coordinator is shutting down".into());
     }
-    sh.limits.check_scene_bytes(scene.len())?;
+    sh.limits
+        .check_scene_bytes(scene.len())
+        .map_err(|r| r.message)?;
     let text = scene.clone();
     let parsed = tokio::task::spawn_blocking(move || render::parse_scene(&text))
         .await

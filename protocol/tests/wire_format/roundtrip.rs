@@ -27,9 +27,9 @@ use proptest::prelude::*;
 use protocol::{
     wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FrameFailure, FrameProgress,
     FrameRange, FromWorker, Hello, HelloError, JobEvent, JobSpec, JobState, JobStatus, KeyId,
-    KeyStanding, MessageCodec, Overrides, PeerKey, Role, Sampling, Settings, TileRect, ToWorker,
-    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
-    PROTOCOL_VERSION,
+    KeyStanding, MessageCodec, Overrides, PeerKey, Refusal, RefusalKind, Role, Sampling, Settings,
+    TileRect, ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC,
+    MAX_FRAME_LIMIT, PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -425,7 +425,18 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
             }
         ),
         prop::collection::vec(worker_status(), 0..5).prop_map(ClientResponse::Workers),
-        text().prop_map(|message| ClientResponse::Error { message }),
+        (
+            prop_oneof![
+                Just(RefusalKind::Invalid),
+                Just(RefusalKind::NotFound),
+                Just(RefusalKind::State),
+                Just(RefusalKind::Limit),
+                Just(RefusalKind::Unavailable),
+                Just(RefusalKind::Internal),
+            ],
+            text()
+        )
+            .prop_map(|(kind, message)| ClientResponse::Error(Refusal::new(kind, message))),
         (
             any::<u64>(),
             prop::collection::vec((any::<u64>(), any::<u64>(), text(), text()), 0..4)

@@ -881,7 +881,11 @@ struct MeteredLife {
 }
 
 impl MeteredLife {
-    fn admit(&mut self, now: Millis, request: &lifecycle::Request) -> Result<JobId, String> {
+    fn admit(
+        &mut self,
+        now: Millis,
+        request: &lifecycle::Request,
+    ) -> Result<JobId, protocol::Refusal> {
         let start = Instant::now();
         let result = self.lifecycle.admit(now, request);
         self.admit.add(start.elapsed());

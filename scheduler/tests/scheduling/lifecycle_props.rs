@@ -221,7 +221,7 @@ impl Run {
                         self.m.jobs.insert(id, client);
                     }
                     Err(message) => assert!(
-                        self.m.down || message.contains("already has"),
+                        self.m.down || message.kind == protocol::RefusalKind::Limit,
                         "refused for no reason: {message}"
                     ),
                 }

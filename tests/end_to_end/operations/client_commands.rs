@@ -381,7 +381,7 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
     );
 
     // The coordinator's HTTP port given for its protocol port.
-    let (_coordinator, _addr, http) = start_coordinator_with_http(dir.path(), &[]);
+    let (_coordinator, addr, http) = start_coordinator_with_http(dir.path(), &[]);
     let line = one_error_line(
         &tessera(dir.path(), &["list", "--coordinator", &http], t),
         "list --coordinator HTTP-PORT",
@@ -412,6 +412,18 @@ fn mistakes_in_addresses_and_job_ids_are_one_line_saying_what_to_give() {
         );
         assert_eq!(value.as_object().map(|o| o.len()), Some(1), "{value}");
     }
+    // A coordinator's refusal keeps its kind, for a script to act on.
+    let run = tessera(
+        dir.path(),
+        &["status", "999", "--json", "--coordinator", &addr],
+        t,
+    );
+    assert!(!run.status.success());
+    let value: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+    assert_eq!(
+        value,
+        serde_json::json!({ "error": "no job 999 on this coordinator", "kind": "not_found" })
+    );
 }
 
 /// `tessera ARGS` in `dir` with stdout a pipe of one page (4 KiB, so that the output

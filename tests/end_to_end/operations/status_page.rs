@@ -658,6 +658,8 @@ fn the_page_controls_follow_the_client_secret() {
     let (code, body) = http_post(&http, "/api/jobs/999/pause", &[json, good], "{}");
     assert_eq!(code, 404, "{body}");
     assert_eq!(one_line_error(&body), "no job 999 on this coordinator");
+    let refusal: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(refusal["kind"], "not_found", "{body}");
     let (code, body) = http_post(&http, "/api/workers/ghost/drain", &[json, good], "{}");
     assert_eq!(code, 404, "{body}");
     assert!(one_line_error(&body).starts_with("no worker \"ghost\""));

@@ -104,7 +104,14 @@ fn client_connection(addr: &str, what: &str) -> TcpStream {
 fn expect_error_response(stream: &mut TcpStream, what: &str) -> String {
     let frame = read_frame(stream, what);
     let message = match protocol::wire::decode::<ClientResponse>(&frame) {
-        Ok(ClientResponse::Error { message }) => message,
+        Ok(ClientResponse::Error(refusal)) => {
+            assert_eq!(
+                refusal.kind,
+                protocol::RefusalKind::Invalid,
+                "{what}: {refusal}"
+            );
+            refusal.message
+        }
         other => panic!("{what}: expected an Error response, got {other:?}"),
     };
     expect_eof(stream, what);

@@ -11,8 +11,8 @@
 use std::sync::Arc;
 
 use protocol::{
-    ClientResponse, FrameFailure, FrameProgress, JobId, JobState, JobStatus, SceneHash, Settings,
-    Verification, FAILED_FRAMES_LISTED,
+    ClientResponse, FrameFailure, FrameProgress, JobId, JobState, JobStatus, Refusal, SceneHash,
+    Settings, Verification, FAILED_FRAMES_LISTED,
 };
 use scheduler::lifecycle::{self, Phase};
 use scheduler::sequence::{FrameState, Sequence};
@@ -48,7 +48,7 @@ pub struct SequenceRecord {
     /// Being deleted: nothing starts, nothing more is written.
     pub deleting: bool,
     /// Why the last frame could not be admitted, to log it once.
-    last_refusal: Option<String>,
+    last_refusal: Option<Refusal>,
     /// What the frame jobs that have ended cost, added up as they end: a status adds
     /// only the active frames' to it, never walking every frame.
     ended_totals: Totals,
@@ -61,13 +61,13 @@ impl Core {
         &mut self,
         prepared: Prepared,
         reply: oneshot::Sender<ClientResponse>,
-    ) -> Result<StoredJob, String> {
+    ) -> Result<StoredJob, Refusal> {
         let range = prepared.frames.expect("a sequence has a frame range");
         if let Some(reason) = self.lifecycle.storage_down() {
-            return Err(format!(
+            return Err(Refusal::unavailable(format!(
                 "the coordinator cannot store new jobs now (storage unavailable: {reason}): \
                  submit again later"
-            ));
+            )));
         }
         self.lifecycle.limits().check(&prepared.request)?;
         let id = self.lifecycle.issue_id();
@@ -154,9 +154,9 @@ impl Core {
             Err(message) => {
                 self.sequences.remove(&id);
                 if let Some(reply) = reply {
-                    let _ = reply.send(ClientResponse::Error {
-                        message: format!("the coordinator cannot store new jobs now: {message}"),
-                    });
+                    let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
+                        "the coordinator cannot store new jobs now: {message}"
+                    ))));
                 }
             }
         }
@@ -334,7 +334,7 @@ impl Core {
                     return;
                 };
                 record.frames.start_failed(frame);
-                if record.last_refusal.as_deref() != Some(message.as_str()) {
+                if record.last_refusal.as_ref() != Some(&message) {
                     warn!(job = id, frame, error = %message, "a frame waits for admission");
                     record.last_refusal = Some(message.clone());
                     self.log(
@@ -596,7 +596,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         peer: std::net::IpAddr,
-    ) -> Result<(), String> {
+    ) -> Result<(), Refusal> {
         let record = self
             .sequences
             .get_mut(&id)
@@ -604,10 +604,10 @@ impl Core {
             .ok_or_else(|| unknown(id))?;
         let state = record.frames.state();
         if state.is_final() {
-            return Err(format!(
+            return Err(Refusal::state(format!(
                 "job {id} is {}: only a queued or running job can be cancelled",
                 state.as_str()
-            ));
+            )));
         }
         let jobs = record.frames.cancel();
         self.log(sh, id, "cancel", format!("asked from {peer}"));
@@ -626,7 +626,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         done: oneshot::Sender<()>,
-    ) -> Result<(), String> {
+    ) -> Result<(), Refusal> {
         let record = self
             .sequences
             .get_mut(&id)
@@ -634,14 +634,14 @@ impl Core {
             .ok_or_else(|| unknown(id))?;
         let state = record.frames.state();
         if !state.is_final() || record.recorded != Some(state) {
-            return Err(format!(
+            return Err(Refusal::state(format!(
                 "job {id} is {}: cancel it first",
                 if state.is_final() {
                     "still ending"
                 } else {
                     state.as_str()
                 }
-            ));
+            )));
         }
         record.deleting = true;
         let jobs: Vec<JobId> = [FrameState::Done, FrameState::Failed, FrameState::Cancelled]
@@ -675,7 +675,7 @@ impl Core {
         id: JobId,
         frame: Option<u32>,
         peer: std::net::IpAddr,
-    ) -> Result<JobStatus, String> {
+    ) -> Result<JobStatus, Refusal> {
         let record = self
             .sequences
             .get_mut(&id)
@@ -691,9 +691,9 @@ impl Core {
                     .map(|(f, _)| f)
                     .collect();
                 if again.is_empty() {
-                    return Err(format!(
+                    return Err(Refusal::state(format!(
                         "job {id} has no failed or cancelled frame to render again"
-                    ));
+                    )));
                 }
                 again
             }
@@ -703,7 +703,7 @@ impl Core {
             let old = record
                 .frames
                 .requeue(f)
-                .map_err(|e| format!("job {id}: {e}"))?;
+                .map_err(|e| Refusal::state(format!("job {id}: {e}")))?;
             old_jobs.extend(old);
         }
         // The frames' old jobs go: the new ones write their images in their place.
@@ -746,7 +746,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         paused: bool,
-    ) -> Result<Controls, String> {
+    ) -> Result<Controls, Refusal> {
         let record = self.controllable(id, if paused { "paused" } else { "resumed" })?;
         record.frames.set_paused(paused);
         let priority = record.priority;
@@ -771,7 +771,7 @@ impl Core {
         sh: &Arc<Shared>,
         id: JobId,
         priority: i32,
-    ) -> Result<Controls, String> {
+    ) -> Result<Controls, Refusal> {
         let record = self.controllable(id, "given a new priority")?;
         record.priority = priority;
         let paused = record.frames.paused();
@@ -786,7 +786,7 @@ impl Core {
         })
     }
 
-    fn controllable(&mut self, id: JobId, verb: &str) -> Result<&mut SequenceRecord, String> {
+    fn controllable(&mut self, id: JobId, verb: &str) -> Result<&mut SequenceRecord, Refusal> {
         let record = self
             .sequences
             .get_mut(&id)
@@ -804,21 +804,21 @@ impl Core {
         &self,
         id: JobId,
         frame: u32,
-    ) -> Result<(ImagePlace, Option<[u8; 32]>), String> {
+    ) -> Result<(ImagePlace, Option<[u8; 32]>), Refusal> {
         let record = self
             .sequences
             .get(&id)
             .filter(|r| r.stored)
             .ok_or_else(|| unknown(id))?;
         let state = record.frames.frame(frame).ok_or_else(|| {
-            format!(
+            Refusal::not_found(format!(
                 "job {id} has frames {} to {}: there is no frame {frame}",
                 record.frames.first(),
                 record.frames.last()
-            )
+            ))
         })?;
         if state != FrameState::Done {
-            return Err(format!(
+            return Err(Refusal::state(format!(
                 "frame {frame} of job {id} has no image: it is {}",
                 match state {
                     FrameState::Pending | FrameState::Starting => "waiting",
@@ -827,7 +827,7 @@ impl Core {
                     FrameState::Cancelled => "cancelled",
                     FrameState::Done => "done",
                 }
-            ));
+            )));
         }
         let job = record.frames.job(frame).ok_or_else(|| unknown(id))?;
         let sha = self.jobs.get(&job).and_then(|r| r.image_sha256);
