@@ -121,7 +121,9 @@ fn main() -> ExitCode {
                 ""
             };
             // A coordinator's refusal keeps its kind in JSON, for scripts to act on.
-            let kind = e.downcast_ref::<protocol::Refusal>().map(|r| r.kind.as_str());
+            let kind = e
+                .downcast_ref::<protocol::Refusal>()
+                .map(|r| r.kind.as_str());
             report_error(json, &format!("{e:#}{hint}"), kind);
             match e.downcast_ref::<signals::Interrupted>() {
                 Some(signal) => ExitCode::from(signal.exit_code),

@@ -14,6 +14,7 @@
 //! - [`sim`]: a farm of simulated workers driving both, to show the design holds far
 //!   beyond one machine.
 
+pub mod farm;
 pub mod lifecycle;
 pub mod passes;
 pub mod sequence;

@@ -4,6 +4,9 @@
 //! the blocking pool, its row written by the persistence thread (the answer waits for
 //! it, nobody else does), and images are read from disk in chunks on the blocking
 //! pool.
+//!
+//! A submission's checks and a refinement's are in [`submit`]; the other requests are
+//! answered here.
 
 use std::net::IpAddr;
 use std::sync::atomic::Ordering;
@@ -13,21 +16,22 @@ use std::time::Duration;
 use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, JobId, JobSpec, JobState, JobStatus, MessageCodec, Refusal,
-    SceneHash, Settings, WorkerStatus,
+    ClientRequest, ClientResponse, JobId, JobState, JobStatus, MessageCodec, Refusal, WorkerStatus,
 };
 use scheduler::lifecycle::{self, Reply};
-use sha2::{Digest, Sha256};
 use tokio_util::codec::Framed;
 use tracing::info;
 use transport::Stream;
 
-use super::core::{Controls, Prepared};
+use super::core::Controls;
 use super::keys::{self, KeyHold};
 use super::persistence::Write;
 use super::Shared;
-use crate::db::Label;
-use crate::tiling::{self, MAX_TILE, MIN_TILE};
+
+mod submit;
+
+pub(super) use submit::{admit, prepare};
+use submit::{refine, submit};
 
 type ClientConn = Framed<Stream, MessageCodec<ClientRequest, ClientResponse>>;
 
@@ -179,7 +183,8 @@ pub(crate) async fn respond(
         ClientRequest::Cancel { job } => {
             let mut core = sh.lock();
             if core
-                .lifecycle
+                .farm
+                .lifecycle()
                 .job(job)
                 .is_some_and(|j| !j.phase.has_ended())
             {
@@ -285,333 +290,6 @@ pub(crate) async fn respond(
             }
         },
     }
-}
-
-/// Checks and measures a submission (parsing its scene) without the lock, has the
-/// lifecycle admit it, and answers once its row is written.
-async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> ClientResponse {
-    if sh.closing.load(Ordering::SeqCst) {
-        return ClientResponse::Error(Refusal::unavailable(
-            "the coordinator is shutting down: submit again when it is back",
-        ));
-    }
-    let limits = sh.limits;
-    let prepared = match tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await {
-        Ok(Ok(prepared)) => prepared,
-        Ok(Err(message)) => return ClientResponse::Error(message),
-        Err(_) => {
-            return ClientResponse::Error(Refusal::unavailable(
-                "the scene could not be checked: try again",
-            ))
-        }
-    };
-    admit(sh, prepared).await
-}
-
-/// Has the lifecycle admit a prepared job (or a sequence), and answers once its row is
-/// written.
-pub(super) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
-    let (reply, answer) = tokio::sync::oneshot::channel();
-    if prepared.frames.is_some() {
-        let stored = match sh.lock().admit_sequence(prepared, reply) {
-            Ok(stored) => stored,
-            Err(message) => return ClientResponse::Error(message),
-        };
-        let id = stored.id;
-        let shared = Arc::clone(sh);
-        sh.persistence.write(Write::InsertJob {
-            job: Box::new(stored),
-            then: Box::new(move |result| {
-                shared.lock().sequence_stored(&shared, id, result);
-            }),
-        });
-    } else {
-        let mut core = sh.lock();
-        let stored = match core.admit(sh, prepared, reply) {
-            Ok(stored) => stored,
-            Err(message) => return ClientResponse::Error(message),
-        };
-        let id = stored.id;
-        let write = core.insert_write(sh, stored);
-        // A studio view's pass is not stored: `store` discards the write.
-        core.store(sh, id, write);
-    }
-    answer.await.unwrap_or_else(|_| {
-        ClientResponse::Error(Refusal::unavailable(
-            "the coordinator stopped before storing the job: submit again",
-        ))
-    })
-}
-
-/// A new job from a finished adaptive one, its tiles starting from the old job's
-/// final states: the old job's scene (read back and checked against its hash), size,
-/// tiling, depth, priority and verification, with the new target, cap and time limit.
-/// The states are read from disk and checked (their checksum, then each as a state of
-/// its tile for the new job, as a worker's answer would be) before the job is
-/// admitted: a missing or damaged state refuses the refinement, never gives a wrong
-/// image.
-async fn refine(
-    sh: &Arc<Shared>,
-    job: JobId,
-    target_milli: u32,
-    aa: Option<u32>,
-    time_limit_ms: Option<u64>,
-    peer: IpAddr,
-) -> Result<ClientResponse, Refusal> {
-    if sh.closing.load(Ordering::SeqCst) {
-        return Err(Refusal::unavailable(
-            "the coordinator is shutting down: refine again when it is back",
-        ));
-    }
-    let (old, tile_size, priority, verification, hash, name, submitter, frame) = {
-        let core = sh.lock();
-        let Some(status) = core.status(job) else {
-            return Ok(unknown_job(job));
-        };
-        if status.state != JobState::Done {
-            return Err(Refusal::state(format!(
-                "it is {}: only a job that is done can be refined",
-                status.state.as_str()
-            )));
-        }
-        if status.settings.sampling.target_error().is_none() {
-            return Err(Refusal::invalid(format!(
-                "it was rendered with {} sampling: only adaptive jobs keep their tile states",
-                status.settings.sampling.name()
-            )));
-        }
-        let record = core
-            .jobs
-            .get(&job)
-            .ok_or_else(|| Refusal::unknown_job(job))?;
-        (
-            status.settings,
-            record.tile_size,
-            record.priority,
-            record.verification,
-            record.hash,
-            status.name.clone(),
-            status.submitter.clone(),
-            status.frame,
-        )
-    };
-    let aa = aa.unwrap_or(old.aa);
-    if aa < old.aa {
-        return Err(Refusal::invalid(format!(
-            "aa {aa} is below the job's {}: a refinement can only add samples",
-            old.aa
-        )));
-    }
-    let shared = Arc::clone(sh);
-    let limits = sh.limits;
-    let prepared = tokio::task::spawn_blocking(move || -> Result<Prepared, Refusal> {
-        let store = &shared.store;
-        let scene = store
-            .read_scene(job)
-            .map_err(|e| Refusal::internal(format!("{e:#}")))?;
-        if Sha256::digest(scene.as_bytes()).as_slice() != hash {
-            return Err(Refusal::internal(format!(
-                "the stored scene of job {job} does not match the job's scene hash"
-            )));
-        }
-        let states = store
-            .read_states(job)
-            .map_err(|e| Refusal::internal(format!("{e:#}")))?;
-        let spec = JobSpec {
-            scene,
-            overrides: protocol::Overrides {
-                width: Some(old.width),
-                height: Some(old.height),
-                aa: Some(aa),
-                max_depth: Some(old.max_depth),
-                tile_size: Some(tile_size),
-                sampling: Some(protocol::Sampling::Adaptive { target_milli }),
-            },
-            priority,
-            verification,
-            time_limit_ms,
-            name: refined_name(&name),
-            submitter,
-            frame,
-            frames: None,
-        };
-        let mut prepared = prepare(spec, &limits, peer)?;
-        if states.tile_size != tile_size
-            || states.aa != old.aa
-            || states.states.len() != prepared.tiles.len()
-        {
-            return Err(Refusal::invalid(format!(
-                "its stored tile states are for another tiling ({} tiles of {} px at aa {}, \
-                 not {} of {tile_size} px at aa {})",
-                states.states.len(),
-                states.tile_size,
-                states.aa,
-                prepared.tiles.len(),
-                old.aa
-            )));
-        }
-        let verifier = &shared.verifier;
-        let tracer = verifier
-            .tracer(
-                prepared.hash,
-                prepared.frame,
-                prepared.settings,
-                &prepared.scene,
-            )
-            .map_err(Refusal::invalid)?;
-        let footprints = verifier.footprints(&tracer);
-        for (t, (state, &rect)) in states.states.iter().zip(&prepared.tiles).enumerate() {
-            verify::adaptive::unpack_state(state, rect, prepared.settings.aa)
-                .and_then(|blocks| {
-                    verify::adaptive::region(
-                        &tracer,
-                        std::sync::Arc::clone(&footprints),
-                        rect,
-                        blocks,
-                    )
-                    .map(drop)
-                })
-                .map_err(|e| {
-                    Refusal::internal(format!("the stored state of tile {t} is not valid: {e}"))
-                })?;
-        }
-        prepared.start = Some(states);
-        Ok(prepared)
-    })
-    .await
-    .map_err(|_| Refusal::unavailable("the stored states could not be checked: try again"))??;
-    Ok(admit(sh, prepared).await)
-}
-
-/// Parses and checks a job: the settings it will render with, its tiles and what the
-/// lifecycle needs to admit it.
-pub(super) fn prepare(
-    spec: JobSpec,
-    limits: &lifecycle::Limits,
-    client: IpAddr,
-) -> Result<Prepared, Refusal> {
-    limits.check_scene_bytes(spec.scene.len())?;
-    // The frame is checked with the scene: a frame it does not have is refused in the
-    // loader's one line ("frame 122 is beyond the scene's 121 frames"). Image settings
-    // are not animated, so the base scene's are every frame's.
-    let animated =
-        render::parse_animated(&spec.scene).map_err(|e| Refusal::invalid(e.to_string()))?;
-    let frames = animated.frame_count();
-    let out_of_range = |frame: u32| render::FrameOutOfRange {
-        frame: u64::from(frame),
-        frames,
-        animated: animated.animation.is_some(),
-    };
-    if spec.frame == 0 || spec.frame > frames {
-        return Err(Refusal::invalid(out_of_range(spec.frame).to_string()));
-    }
-    if let Some(range) = spec.frames {
-        if spec.frame != 1 {
-            return Err(Refusal::invalid(
-                "frames: a sequence job names its range, not a frame",
-            ));
-        }
-        if range.first == 0 || range.first > range.last {
-            return Err(Refusal::invalid(format!(
-                "frames: {}-{} is not a range of frames (from 1, first to last)",
-                range.first, range.last
-            )));
-        }
-        if range.last > frames {
-            return Err(Refusal::invalid(out_of_range(range.last).to_string()));
-        }
-    }
-    let scene = animated.base;
-    let o = spec.overrides;
-    let mut s = scene.settings;
-    s.width = o.width.unwrap_or(s.width);
-    s.height = o.height.unwrap_or(s.height);
-    s.aa = o.aa.unwrap_or(s.aa);
-    s.max_depth = o.max_depth.unwrap_or(s.max_depth);
-    s.sampling = o.sampling.map_or(s.sampling, verify::render_sampling);
-    render::validate_settings(&s, "").map_err(|e| Refusal::invalid(format!("overrides: {e}")))?;
-    let settings = Settings {
-        width: s.width,
-        height: s.height,
-        aa: s.aa,
-        max_depth: s.max_depth,
-        sampling: o.sampling.unwrap_or_default(),
-    };
-    if let Some(limit) = spec.time_limit_ms {
-        if settings.sampling.target_error().is_none() {
-            return Err(Refusal::invalid(format!(
-                "time_limit: only adaptive jobs stop on a time limit, not {} sampling",
-                settings.sampling.name()
-            )));
-        }
-        if limit == 0 {
-            return Err(Refusal::invalid("time_limit: must be more than 0 ms"));
-        }
-    }
-    let tile_size = match o.tile_size {
-        Some(t) if !(MIN_TILE..=MAX_TILE).contains(&t) => {
-            return Err(Refusal::invalid(format!(
-                "overrides: tile: must be between {MIN_TILE} and {MAX_TILE}, got {t}"
-            )))
-        }
-        Some(t) => t,
-        None if spec.frames.is_some() => tiling::sequence_tile_size(&settings),
-        None => tiling::default_tile_size(&settings),
-    };
-    if settings.sampling.target_error().is_some() {
-        verify::adaptive::check_tile_side(tile_size)
-            .map_err(|e| Refusal::invalid(format!("overrides: tile: {e}")))?;
-    }
-    let hash: SceneHash = Sha256::digest(spec.scene.as_bytes()).into();
-    let request = lifecycle::Request {
-        client: Some(client),
-        scene_bytes: spec.scene.len(),
-        objects: scene.objects.len(),
-        width: s.width,
-        height: s.height,
-        aa: s.aa,
-    };
-    // Checked here too (the lifecycle checks again when it admits the job), so that
-    // the tiles of a huge image are never cut.
-    limits.check(&request)?;
-    let tiles = tiling::cut(&settings, tile_size);
-    Ok(Prepared {
-        interactive: false,
-        owner: None,
-        scene: spec.scene,
-        hash,
-        frame: spec.frame,
-        settings,
-        tile_size,
-        tiles,
-        priority: spec.priority,
-        verification: spec.verification,
-        request,
-        time_limit_ms: spec.time_limit_ms,
-        start: None,
-        label: Label {
-            name: one_line(&spec.name, MAX_LABEL),
-            submitter: one_line(&spec.submitter, MAX_LABEL),
-            submitted_from: client.to_string(),
-        },
-        sequence: None,
-        frames: spec.frames,
-        frame_count: frames,
-    })
-}
-
-/// The most characters of a job's name or submitter kept: listings stay readable and
-/// a client cannot make the coordinator store much through them.
-const MAX_LABEL: usize = 200;
-
-/// `text` on one line (control characters become spaces), at most `max` characters.
-fn one_line(text: &str, max: usize) -> String {
-    text.chars()
-        .map(|c| if c.is_control() { ' ' } else { c })
-        .take(max)
-        .collect::<String>()
-        .trim()
-        .to_owned()
 }
 
 /// Answers a `Watch`: waits until the job has progressed past `after_tiles` (and at
@@ -744,7 +422,7 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
             let core = sh.lock();
             let status = core.status(job).ok_or_else(|| Refusal::unknown_job(job))?;
             let pixels = u64::from(status.settings.width) * u64::from(status.settings.height);
-            let ending = core.lifecycle.job(job).is_some_and(|j| {
+            let ending = core.farm.lifecycle().job(job).is_some_and(|j| {
                 matches!(
                     j.phase,
                     lifecycle::Phase::Ended {
@@ -753,7 +431,7 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
                     }
                 )
             });
-            match core.lifecycle.check_retry(job, pixels) {
+            match core.farm.lifecycle().check_retry(job, pixels) {
                 Err(_) if ending && tokio::time::Instant::now() < patience => None,
                 other => Some(other),
             }
@@ -827,7 +505,7 @@ async fn events(sh: &Arc<Shared>, job: JobId, after: u64) -> ClientResponse {
 async fn wait_deleted(sh: &Shared, job: JobId) -> ClientResponse {
     let mut changes = sh.changes.subscribe();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while sh.lock().lifecycle.job(job).is_some() {
+    while sh.lock().farm.lifecycle().job(job).is_some() {
         tokio::select! {
             _ = changes.changed() => {}
             () = tokio::time::sleep_until(deadline) => {
@@ -903,40 +581,4 @@ async fn serve_image(
 
 fn unknown_job(job: JobId) -> ClientResponse {
     ClientResponse::Error(Refusal::unknown_job(job))
-}
-
-/// The name of a refined job: `seed (refined)`, then `seed (refined 2)`, `seed (refined
-/// 3)`... rather than a suffix stacked at every refine.
-fn refined_name(name: &str) -> String {
-    let count = |inner: &str| -> Option<u32> {
-        match inner.strip_prefix("refined") {
-            Some("") => Some(1),
-            Some(n) => n.strip_prefix(' ')?.parse().ok().filter(|&n| n >= 2),
-            None => None,
-        }
-    };
-    let stem = name.strip_suffix(')').and_then(|rest| {
-        let open = rest.rfind(" (")?;
-        count(&rest[open + 2..]).map(|n| (&rest[..open], n))
-    });
-    match stem {
-        Some((base, n)) => format!("{base} (refined {})", n + 1),
-        None => format!("{name} (refined)"),
-    }
-}
-
-#[cfg(test)]
-mod refined_name_tests {
-    use super::*;
-
-    #[test]
-    fn a_refined_name_counts_its_refines() {
-        assert_eq!(refined_name("seed"), "seed (refined)");
-        assert_eq!(refined_name("seed (refined)"), "seed (refined 2)");
-        assert_eq!(refined_name("seed (refined 2)"), "seed (refined 3)");
-        assert_eq!(refined_name("seed (refined 9)"), "seed (refined 10)");
-        assert_eq!(refined_name("a (b)"), "a (b) (refined)");
-        assert_eq!(refined_name("x (refined 1)"), "x (refined 1) (refined)");
-        assert_eq!(refined_name("(refined)"), "(refined) (refined)");
-    }
 }

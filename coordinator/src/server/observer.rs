@@ -184,7 +184,8 @@ impl Observer {
         }
         self.shared
             .lock()
-            .lifecycle
+            .farm
+            .lifecycle()
             .storage_down()
             .map(|reason| format!("storage unavailable: {reason}"))
     }
@@ -194,7 +195,8 @@ impl Observer {
         // Jobs of one frame and sequences, by id: a sequence's frame jobs are seen
         // through it.
         let mut listed: Vec<(JobId, JobState)> = core
-            .lifecycle
+            .farm
+            .lifecycle()
             .jobs()
             .filter(|(id, _)| core.jobs.get(id).is_none_or(|r| r.sequence.is_none()))
             .map(|(id, j)| (id, j.phase.visible()))
@@ -257,7 +259,8 @@ impl Observer {
             })
             .collect();
         let active = core
-            .lifecycle
+            .farm
+            .lifecycle()
             .jobs()
             .any(|(_, j)| !j.phase.visible().is_final());
         let warning = active.then(|| core.no_worker_warning()).flatten();
@@ -546,7 +549,8 @@ fn snapshot(core: &Core) -> Snapshot {
             .map(|&s| {
                 (
                     s,
-                    core.lifecycle
+                    core.farm
+                        .lifecycle()
                         .jobs()
                         .filter(|(_, j)| j.phase.visible() == s)
                         .count() as i64,
@@ -554,9 +558,9 @@ fn snapshot(core: &Core) -> Snapshot {
             })
             .collect(),
         workers: core.workers.len() as i64,
-        tiles_in_flight: core.tiles.tiles_in_flight() as i64,
-        scheduler: core.tiles.counters(),
-        storage_available: core.lifecycle.storage_down().is_none(),
+        tiles_in_flight: core.farm.tiles().tiles_in_flight() as i64,
+        scheduler: core.farm.tiles().counters(),
+        storage_available: core.farm.lifecycle().storage_down().is_none(),
     }
 }
 

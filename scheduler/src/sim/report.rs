@@ -148,10 +148,8 @@ pub struct Outcome {
     /// The last tile accepted: what the end of the run waited for.
     pub last_tile: Option<LastTile>,
 
-    /// Calls to `Scheduler::handle`.
+    /// Calls to the decision core (`Farm::handle` and `Farm::admit`).
     pub events: u64,
-    /// Calls to `Lifecycle::handle` and `Lifecycle::admit`.
-    pub lifecycle_events: u64,
     /// Disagreements between the scheduler's actions and the simulation's account of
     /// leases and connections (must be 0).
     pub model_mismatches: u64,
@@ -213,26 +211,25 @@ pub struct EventCost {
 }
 
 /// The result of [`super::run`]: the outcome in virtual time, the memory held by the
-/// tile scheduler, and the real time the two state machines took to decide.
+/// decision core, and the real time it took to decide.
 #[derive(Clone, Debug)]
 pub struct SimReport {
     pub outcome: Outcome,
     /// `None` unless [`super::CountingAlloc`] is the global allocator.
     pub memory: Option<Memory>,
-    /// Real time inside `Scheduler::handle` (each call timed on its own, so a timer
-    /// read of some tens of nanoseconds is included per call).
+    /// Real time inside the decision core (each call timed on its own, so a timer
+    /// read of some tens of nanoseconds is included per call), the follow-ups it feeds
+    /// itself included.
     pub handle_time: Duration,
+    /// By kind of input: those about tiles and workers (the time counted as
+    /// `Timeout`), then `admit`, then those about jobs, in the order first seen.
     pub by_event: Vec<EventCost>,
-    /// Real time inside `Lifecycle::handle` and `Lifecycle::admit`, in all and by kind
-    /// (`admit` first).
-    pub lifecycle_time: Duration,
-    pub lifecycle_by_event: Vec<EventCost>,
     /// Real time of the whole run, the simulation's own work included.
     pub wall: Duration,
 }
 
 impl SimReport {
-    /// Tiles accepted per second of scheduler time: the rate at which one core could
+    /// Tiles accepted per second of the core's time: the rate at which one core could
     /// drive this farm, leaving out the network, the database and image assembly.
     pub fn tiles_per_second(&self) -> f64 {
         self.outcome.tiles_accepted as f64 / self.handle_time.as_secs_f64().max(1e-12)
@@ -242,8 +239,8 @@ impl SimReport {
         self.outcome.events as f64 / self.handle_time.as_secs_f64().max(1e-12)
     }
 
-    /// Scheduler time per second of farm time: the share of one core the scheduler
-    /// would take in the daemon (under its single lock) to run this farm.
+    /// The core's time per second of farm time: the share of one core it would take
+    /// in the daemon (under its single lock) to run this farm.
     pub fn cpu_load(&self) -> f64 {
         self.handle_time.as_secs_f64() / (self.outcome.makespan_ms / 1e3).max(1e-12)
     }
@@ -251,7 +248,7 @@ impl SimReport {
     /// The columns of [`SimReport::table_row`], as a Markdown table header.
     pub fn table_header() -> String {
         "| run | workers (threads) | jobs × tiles | makespan | ideal | efficiency | \
-         re-rendered | scheduler time | tiles/s | CPU load | longest call | bytes/job | \
+         re-rendered | core time | tiles/s | CPU load | longest call | bytes/job | \
          bytes/worker |\n\
          | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: \
          | ---: |"
@@ -506,7 +503,7 @@ impl fmt::Display for SimReport {
             o.scenes_sent, o.scenes_forgotten, o.model_mismatches
         )?;
         writeln!(f)?;
-        writeln!(f, "## Scheduler time (real)")?;
+        writeln!(f, "## Decision core time (real)")?;
         writeln!(f)?;
         writeln!(
             f,
@@ -522,18 +519,7 @@ impl fmt::Display for SimReport {
         writeln!(f)?;
         cost_table(f, &self.by_event)?;
         writeln!(f)?;
-        writeln!(f, "## Lifecycle time (real)")?;
-        writeln!(f)?;
-        writeln!(
-            f,
-            "{} calls in {}",
-            o.lifecycle_events,
-            duration(self.lifecycle_time)
-        )?;
-        writeln!(f)?;
-        cost_table(f, &self.lifecycle_by_event)?;
-        writeln!(f)?;
-        writeln!(f, "## Scheduler memory")?;
+        writeln!(f, "## Decision core memory")?;
         writeln!(f)?;
         match &self.memory {
             None => writeln!(

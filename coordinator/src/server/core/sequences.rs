@@ -7,22 +7,25 @@
 //! while it is active, and whose image is stored in the sequence's folder as
 //! `frame_0007.png`. Frame jobs are not listed; the sequence's status adds them up.
 //! After a restart, a sequence's state is rebuilt from its frame jobs' rows.
+//!
+//! Here: a sequence admitted, stored and restored, its frames started and ended, and
+//! its end written; what operators do to a sequence and see of it is in [`controls`].
 
 use std::sync::Arc;
 
-use protocol::{
-    ClientResponse, FrameFailure, FrameProgress, JobId, JobState, JobStatus, Refusal, SceneHash,
-    Settings, Verification, FAILED_FRAMES_LISTED,
-};
+use protocol::{ClientResponse, JobId, JobState, Refusal, SceneHash, Settings, Verification};
+use scheduler::farm::Input;
 use scheduler::lifecycle::{self, Phase};
 use scheduler::sequence::{FrameState, Sequence};
 use tokio::sync::oneshot;
 use tracing::{info, warn};
 
-use super::{unix_ms, unknown, Controls, Core, EventLog, Prepared, Shared, Write};
+use super::records::{EventLog, Prepared};
+use super::{unix_ms, Core, Shared, Write};
 use crate::db::{Label, StoredJob, Times, Totals};
-use crate::store::ImagePlace;
 use crate::tiling;
+
+mod controls;
 
 /// What the daemon keeps of a sequence job.
 pub struct SequenceRecord {
@@ -63,14 +66,14 @@ impl Core {
         reply: oneshot::Sender<ClientResponse>,
     ) -> Result<StoredJob, Refusal> {
         let range = prepared.frames.expect("a sequence has a frame range");
-        if let Some(reason) = self.lifecycle.storage_down() {
+        if let Some(reason) = self.farm.lifecycle().storage_down() {
             return Err(Refusal::unavailable(format!(
                 "the coordinator cannot store new jobs now (storage unavailable: {reason}): \
                  submit again later"
             )));
         }
-        self.lifecycle.limits().check(&prepared.request)?;
-        let id = self.lifecycle.issue_id();
+        self.farm.lifecycle().limits().check(&prepared.request)?;
+        let id = self.farm.issue_id();
         let times = Times {
             submitted: Some(unix_ms()),
             ..Times::default()
@@ -249,7 +252,7 @@ impl Core {
         let Some(record) = self.sequences.get(&id) else {
             return;
         };
-        if !record.stored || record.deleting || self.lifecycle.storage_down().is_some() {
+        if !record.stored || record.deleting || self.farm.lifecycle().storage_down().is_some() {
             return;
         }
         let tiles = u64::from(record.tiles_per_frame);
@@ -257,10 +260,10 @@ impl Core {
         let waiting = record
             .frames
             .active()
-            .map(|(_, job)| self.tiles.waiting(job))
+            .map(|(_, job)| self.farm.tiles().waiting(job))
             .sum::<u64>()
             + starting * tiles;
-        let credit = self.tiles.total_credit();
+        let credit = self.farm.tiles().total_credit();
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
@@ -322,7 +325,7 @@ impl Core {
         match self.admit(sh, prepared, reply) {
             Ok(stored) => {
                 let job = stored.id;
-                self.lifecycle.keep(job);
+                self.farm.keep(job);
                 let write = self.insert_write(sh, stored);
                 self.store(sh, job, write);
                 if let Some(record) = self.sequences.get_mut(&id) {
@@ -369,8 +372,10 @@ impl Core {
             });
         }
         if record.frames.started(frame, job) {
-            // The sequence was cancelled while this frame was being stored.
-            self.life_event(sh, lifecycle::Event::Cancel { job });
+            // The sequence was cancelled while this frame was being stored: cancelled
+            // once its tiles, already handed out, have reached their workers.
+            self.deferred
+                .push_back(Input::Job(lifecycle::Event::Cancel { job }));
         }
     }
 
@@ -383,7 +388,7 @@ impl Core {
 
     /// A frame job's end is written: its frame is done, failed or cancelled.
     pub(super) fn frame_ended(&mut self, sh: &Arc<Shared>, id: JobId, frame: u32, job: JobId) {
-        let state = match self.lifecycle.job(job).map(|j| &j.phase) {
+        let state = match self.farm.lifecycle().job(job).map(|j| &j.phase) {
             Some(Phase::Ended { state, .. }) => *state,
             _ => return,
         };
@@ -410,7 +415,7 @@ impl Core {
     }
 
     fn frame_error(&self, job: JobId) -> Option<String> {
-        match self.lifecycle.job(job).map(|j| &j.phase) {
+        match self.farm.lifecycle().job(job).map(|j| &j.phase) {
             Some(Phase::Ended { error, .. }) => error.clone(),
             _ => None,
         }
@@ -502,416 +507,6 @@ impl Core {
             }
         }
         totals
-    }
-
-    /// A client's view of a sequence: its frames, and its frame jobs added up.
-    pub(super) fn sequence_status(&self, id: JobId) -> Option<JobStatus> {
-        let record = self.sequences.get(&id).filter(|r| r.stored)?;
-        let state = record.frames.state();
-        let c = record.frames.counts();
-        let now = unix_ms();
-        let end = record
-            .times
-            .ended
-            .filter(|_| state.is_final())
-            .unwrap_or(now);
-        let submitted = record.times.submitted.unwrap_or(end);
-        let mut tiles_done = c.done * record.tiles_per_frame;
-        let started = record.times.started;
-        for (_, job) in record.frames.active() {
-            if let Some(r) = self.jobs.get(&job) {
-                tiles_done += r.tiles_recorded;
-            }
-        }
-        let totals = self.sequence_totals(id);
-        let frames = record.frames.len();
-        let eta_ms = (state == JobState::Running
-            && c.done > 0
-            && c.done < frames
-            && !record.frames.paused())
-        .then(|| {
-            let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
-            Some((per_frame * f64::from(frames - c.done)) as u64)
-        })
-        .flatten();
-        let failures = record
-            .frames
-            .failed()
-            .take(FAILED_FRAMES_LISTED)
-            .map(|(frame, job)| FrameFailure {
-                frame,
-                job,
-                error: self.frame_error(job).unwrap_or_default(),
-            })
-            .collect();
-        let error = (state == JobState::Failed).then(|| self.failure_summary(id));
-        let estimated_error =
-            (record.settings.aa >= 2 && totals.error_pixels > 0 && state == JobState::Done)
-                .then(|| (totals.error_sq_sum / totals.error_pixels as f64).sqrt());
-        Some(JobStatus {
-            id,
-            state,
-            settings: record.settings,
-            priority: record.priority,
-            tiles_done,
-            tiles_total: record.tiles_per_frame * frames,
-            rays: totals.rays,
-            elapsed_ms: end.saturating_sub(submitted),
-            eta_ms,
-            error,
-            samples: totals.samples,
-            estimated_error,
-            time_limit_ms: None,
-            stopped_on_time_limit: false,
-            paused: record.frames.paused() && !state.is_final(),
-            warning: (!state.is_final())
-                .then(|| self.no_worker_warning())
-                .flatten(),
-            name: record.label.name.clone(),
-            submitter: record.label.submitter.clone(),
-            submitted_from: record.label.submitted_from.clone(),
-            submitted_unix_ms: submitted,
-            queued_ms: started.map(|s| s.saturating_sub(submitted)),
-            frame: record.frames.first(),
-            frames: Some(FrameProgress {
-                first: record.frames.first(),
-                last: record.frames.last(),
-                scene_frames: record.frame_count,
-                done: c.done,
-                active: c.active,
-                pending: c.pending,
-                cancelled: c.cancelled,
-                done_prefix: record.frames.done_prefix(),
-                failed: c.failed,
-                failures,
-            }),
-            sequence: None,
-        })
-    }
-
-    /// An operator cancels a sequence: its frames not started never will, its frame
-    /// jobs are cancelled.
-    pub fn cancel_sequence(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        peer: std::net::IpAddr,
-    ) -> Result<(), Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
-        if state.is_final() {
-            return Err(Refusal::state(format!(
-                "job {id} is {}: only a queued or running job can be cancelled",
-                state.as_str()
-            )));
-        }
-        let jobs = record.frames.cancel();
-        self.log(sh, id, "cancel", format!("asked from {peer}"));
-        for job in jobs {
-            self.life_event(sh, lifecycle::Event::Cancel { job });
-        }
-        self.settle(sh, id);
-        sh.changed();
-        Ok(())
-    }
-
-    /// An operator deletes an ended sequence: its frame jobs, then its row and folder.
-    /// `done` hears once it is gone.
-    pub fn delete_sequence(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        done: oneshot::Sender<()>,
-    ) -> Result<(), Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
-        if !state.is_final() || record.recorded != Some(state) {
-            return Err(Refusal::state(format!(
-                "job {id} is {}: cancel it first",
-                if state.is_final() {
-                    "still ending"
-                } else {
-                    state.as_str()
-                }
-            )));
-        }
-        record.deleting = true;
-        let jobs: Vec<JobId> = [FrameState::Done, FrameState::Failed, FrameState::Cancelled]
-            .into_iter()
-            .flat_map(|s| record.frames.frames_in(s).map(|(_, j)| j))
-            .filter(|&j| j != 0)
-            .collect();
-        for job in jobs {
-            self.life_event(sh, lifecycle::Event::Delete { job });
-        }
-        let shared = Arc::clone(sh);
-        // Queued after its frames' deletions: the folder goes last.
-        sh.persistence.write(Write::Delete {
-            job: id,
-            place: ImagePlace::Job(id),
-            then: Box::new(move |_| {
-                shared.lock().sequences.remove(&id);
-                info!(job = id, "sequence deleted");
-                shared.changed();
-                let _ = done.send(());
-            }),
-        });
-        Ok(())
-    }
-
-    /// An operator has a frame rendered again, alone; or, with `frame` `None`, every
-    /// failed and cancelled frame (`tessera retry`).
-    pub fn requeue_frames(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        frame: Option<u32>,
-        peer: std::net::IpAddr,
-    ) -> Result<JobStatus, Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
-            .ok_or_else(|| unknown(id))?;
-        let frames: Vec<u32> = match frame {
-            Some(f) => vec![f],
-            None => {
-                let again: Vec<u32> = record
-                    .frames
-                    .failed()
-                    .chain(record.frames.frames_in(FrameState::Cancelled))
-                    .map(|(f, _)| f)
-                    .collect();
-                if again.is_empty() {
-                    return Err(Refusal::state(format!(
-                        "job {id} has no failed or cancelled frame to render again"
-                    )));
-                }
-                again
-            }
-        };
-        let mut old_jobs = Vec::new();
-        for &f in &frames {
-            let old = record
-                .frames
-                .requeue(f)
-                .map_err(|e| Refusal::state(format!("job {id}: {e}")))?;
-            old_jobs.extend(old);
-        }
-        // The frames' old jobs go: the new ones write their images in their place.
-        let mut gone = Totals::default();
-        for job in &old_jobs {
-            if let Some(r) = self.jobs.get(job) {
-                add_totals(&mut gone, &r.totals);
-            }
-        }
-        if let Some(record) = self.sequences.get_mut(&id) {
-            let t = &mut record.ended_totals;
-            t.rays = t.rays.saturating_sub(gone.rays);
-            t.samples = t.samples.saturating_sub(gone.samples);
-            t.error_sq_sum = (t.error_sq_sum - gone.error_sq_sum).max(0.0);
-            t.error_pixels = t.error_pixels.saturating_sub(gone.error_pixels);
-        }
-        for job in old_jobs {
-            self.life_event(sh, lifecycle::Event::Delete { job });
-        }
-        let detail = match frame {
-            Some(f) => format!("frame {f}, from {peer}"),
-            None => format!("{} failed or cancelled frames, from {peer}", frames.len()),
-        };
-        info!(
-            job = id,
-            frames = frames.len(),
-            "frames requeued by an operator"
-        );
-        self.log(sh, id, "requeued", detail);
-        self.settle(sh, id);
-        self.fill(sh, id);
-        sh.changed();
-        self.sequence_status(id).ok_or_else(|| unknown(id))
-    }
-
-    /// An operator pauses or resumes a sequence: no frame starts while it is paused,
-    /// and its frame jobs are paused or resumed with it.
-    pub(super) fn set_sequence_paused(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        paused: bool,
-    ) -> Result<Controls, Refusal> {
-        let record = self.controllable(id, if paused { "paused" } else { "resumed" })?;
-        record.frames.set_paused(paused);
-        let priority = record.priority;
-        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
-        for job in active {
-            // A frame job that has ended meanwhile cannot be paused: nothing to do.
-            let _ = self.set_paused(sh, job, paused);
-        }
-        if !paused {
-            self.fill(sh, id);
-        }
-        Ok(Controls {
-            job: id,
-            paused,
-            priority,
-        })
-    }
-
-    /// An operator gives a sequence a new priority: its frame jobs and those to come.
-    pub(super) fn set_sequence_priority(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        priority: i32,
-    ) -> Result<Controls, Refusal> {
-        let record = self.controllable(id, "given a new priority")?;
-        record.priority = priority;
-        let paused = record.frames.paused();
-        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
-        for job in active {
-            let _ = self.set_priority(sh, job, priority);
-        }
-        Ok(Controls {
-            job: id,
-            paused,
-            priority,
-        })
-    }
-
-    fn controllable(&mut self, id: JobId, verb: &str) -> Result<&mut SequenceRecord, Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
-        if state.is_final() {
-            return Err(super::ended_refusal(id, verb, state));
-        }
-        Ok(record)
-    }
-
-    /// Where a done frame's image is, and its checksum.
-    pub fn frame_image(
-        &self,
-        id: JobId,
-        frame: u32,
-    ) -> Result<(ImagePlace, Option<[u8; 32]>), Refusal> {
-        let record = self
-            .sequences
-            .get(&id)
-            .filter(|r| r.stored)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.frame(frame).ok_or_else(|| {
-            Refusal::not_found(format!(
-                "job {id} has frames {} to {}: there is no frame {frame}",
-                record.frames.first(),
-                record.frames.last()
-            ))
-        })?;
-        if state != FrameState::Done {
-            return Err(Refusal::state(format!(
-                "frame {frame} of job {id} has no image: it is {}",
-                match state {
-                    FrameState::Pending | FrameState::Starting => "waiting",
-                    FrameState::Active => "rendering",
-                    FrameState::Failed => "failed",
-                    FrameState::Cancelled => "cancelled",
-                    FrameState::Done => "done",
-                }
-            )));
-        }
-        let job = record.frames.job(frame).ok_or_else(|| unknown(id))?;
-        let sha = self.jobs.get(&job).and_then(|r| r.image_sha256);
-        Ok((
-            ImagePlace::Frame {
-                sequence: id,
-                frame,
-                count: record.frame_count,
-            },
-            sha,
-        ))
-    }
-
-    /// Where a job's image is kept: its own folder, or its sequence's.
-    pub fn image_place(&self, job: JobId) -> ImagePlace {
-        match self
-            .jobs
-            .get(&job)
-            .and_then(|r| r.sequence.map(|s| (s, r.frame)))
-        {
-            Some((sequence, frame)) => ImagePlace::Frame {
-                sequence,
-                frame,
-                count: self
-                    .sequences
-                    .get(&sequence)
-                    .map_or(frame, |s| s.frame_count),
-            },
-            None => ImagePlace::Job(job),
-        }
-    }
-
-    /// Every job a listing shows: jobs of one frame and sequences, by id; frame jobs
-    /// are seen through their sequence.
-    pub fn list(&self) -> Vec<JobStatus> {
-        let mut list: Vec<JobStatus> = self
-            .lifecycle
-            .jobs()
-            .filter(|(id, _)| self.jobs.get(id).is_some_and(|r| r.sequence.is_none()))
-            .filter_map(|(id, _)| self.status(id))
-            .chain(
-                self.sequences
-                    .keys()
-                    .filter_map(|&id| self.sequence_status(id)),
-            )
-            .collect();
-        list.sort_by_key(|s| s.id);
-        list
-    }
-
-    /// Milliseconds until the next ended sequence's retention runs out, if any will.
-    pub fn next_sequence_expiry(&self) -> Option<u64> {
-        let keep = self.lifecycle.limits().retention?;
-        let now = unix_ms();
-        self.sequences
-            .values()
-            .filter(|r| !r.deleting && r.recorded.is_some())
-            .filter_map(|r| r.times.ended)
-            .map(|ended| ended.saturating_add(keep).saturating_sub(now))
-            .min()
-    }
-
-    /// Sequences whose retention has run out (ended that long ago): deleted.
-    pub(super) fn expire_sequences(&mut self, sh: &Arc<Shared>) {
-        let Some(keep) = self.lifecycle.limits().retention else {
-            return;
-        };
-        let now = unix_ms();
-        let expired: Vec<JobId> = self
-            .sequences
-            .iter()
-            .filter(|(_, r)| {
-                !r.deleting
-                    && r.recorded.is_some()
-                    && r.times.ended.is_some_and(|e| e.saturating_add(keep) <= now)
-            })
-            .map(|(&id, _)| id)
-            .collect();
-        for id in expired {
-            let (done, _) = oneshot::channel();
-            if self.delete_sequence(sh, id, done).is_ok() {
-                info!(job = id, "sequence expired: deleted");
-            }
-        }
     }
 }
 

@@ -1,0 +1,416 @@
+//! Carrying out the core's effects: the tile scheduler's (scenes and tiles to
+//! workers, results accepted or held) and the lifecycle's (a job acknowledged, its
+//! image stored, its end written, its deletion).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use protocol::{ClientResponse, JobId, JobState, Refusal, ToWorker, WorkerId};
+use scheduler::lifecycle::{self, Reply};
+use scheduler::Action;
+use tracing::{error, info, warn};
+
+use super::{unix_ms, Core, Shared, Write};
+
+impl Core {
+    /// Carries out the tile scheduler's actions.
+    /// Carries out one of the tile scheduler's actions.
+    pub(super) fn apply_tiles(&mut self, sh: &Arc<Shared>, action: Action) {
+        {
+            match action {
+                Action::SendScene { worker, job } => {
+                    if let Some(scene) = self.jobs.get(&job).and_then(|r| r.scene.clone()) {
+                        let hash = self.jobs[&job].hash;
+                        self.send(
+                            worker,
+                            ToWorker::Scene {
+                                hash,
+                                scene: scene.to_string(),
+                            },
+                        );
+                    }
+                }
+                Action::Assign { worker, job, tile } => self.assign(sh, worker, job, tile),
+                Action::CancelOnWorker { worker, job } => {
+                    self.send(worker, ToWorker::Cancel { job });
+                    if let Some(w) = self.workers.get_mut(&worker) {
+                        w.assigned.retain(|(j, _), _| *j != job);
+                    }
+                }
+                Action::ForgetScene { worker, scene } => {
+                    self.send(worker, ToWorker::ForgetScene { hash: scene })
+                }
+                Action::AcceptTile { .. }
+                | Action::DuplicateResult { .. }
+                | Action::HoldResult { .. } => {}
+                Action::AcceptHeld { job, tile } => {
+                    if let Some(held) = self.held.remove(&(job, tile)) {
+                        info!(job, tile, machine = %held.machine, "no other machine may confirm the audited tile: accepted as checked");
+                        sh.metrics.tile_accepted(held.cost.rays, None);
+                        self.accept_tile(
+                            sh,
+                            held.worker,
+                            &held.machine,
+                            job,
+                            tile,
+                            held.pixels,
+                            &held.cost,
+                            held.answer,
+                        );
+                    }
+                }
+                Action::WorkerUnresponsive { worker, silent } => {
+                    if let Some(w) = self.workers.get(&worker) {
+                        warn!(
+                            worker,
+                            name = %w.name,
+                            silent_ms = silent,
+                            "worker unresponsive: its leases ran out and no result came; its \
+                             tiles go to other workers until it returns one"
+                        );
+                    }
+                }
+                Action::WorkerResponsive { worker } => {
+                    if let Some(w) = self.workers.get(&worker) {
+                        info!(worker, name = %w.name, "worker responsive again");
+                    }
+                }
+                Action::DropWorker { worker } => {
+                    if let Some(w) = self.workers.get(&worker) {
+                        warn!(worker, name = %w.name, "no heartbeat in time: dropping the worker");
+                    }
+                    self.worker_lost(sh, worker, "no heartbeat in time (timed out)", true);
+                }
+                // The core has made the image due, unless the job is rendered in
+                // passes: then the pass is added up first.
+                Action::JobDone { job } => {
+                    self.held.retain(|(j, _), _| *j != job);
+                    if self.jobs.get(&job).is_some_and(|r| r.adaptive.is_some()) {
+                        self.end_of_pass(sh, job);
+                    }
+                }
+                Action::JobFailed { job, message } => {
+                    self.held.retain(|(j, _), _| *j != job);
+                    warn!(job, error = %message, "job failed");
+                }
+            }
+        }
+    }
+
+    fn send(&self, worker: WorkerId, message: ToWorker) {
+        if let Some(w) = self.workers.get(&worker) {
+            // A closed channel means the worker is leaving; WorkerLeft follows.
+            let _ = w.outbox.send(message);
+        }
+    }
+
+    fn assign(&mut self, sh: &Arc<Shared>, worker: WorkerId, job: JobId, tile: u32) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let Some(&rect) = record.tiles.get(tile as usize) else {
+            return;
+        };
+        let message = match &record.adaptive {
+            Some(ad) => ToWorker::Advance {
+                job,
+                tile,
+                scene: record.hash,
+                frame: record.frame,
+                settings: record.settings,
+                rect,
+                pass: ad.passes.pass(),
+                rung: ad.passes.rung(),
+                previous: ad.tiles[tile as usize]
+                    .previous
+                    .as_ref()
+                    .map(|p| p.to_vec()),
+            },
+            None => ToWorker::Render {
+                job,
+                tile,
+                scene: record.hash,
+                frame: record.frame,
+                settings: record.settings,
+                rect,
+            },
+        };
+        if record.running_since.is_none() {
+            record.running_since = Some(unix_ms());
+        }
+        let first = record.times.started.is_none();
+        if first {
+            let at = record.running_since.unwrap_or_else(unix_ms);
+            record.times.started = Some(at);
+            // The wait of this run: since the submission, or the retry.
+            let queued = at.saturating_sub(
+                record
+                    .times
+                    .retried
+                    .or(record.times.submitted)
+                    .unwrap_or(at),
+            );
+            self.store(
+                sh,
+                job,
+                Write::Started {
+                    job,
+                    at_unix_ms: at,
+                },
+            );
+            self.log(
+                sh,
+                job,
+                "started",
+                format!(
+                    "first tile out after {:.1} s in the queue",
+                    queued as f64 / 1000.0
+                ),
+            );
+        }
+        self.send(worker, message);
+        let name = match self.workers.get_mut(&worker) {
+            Some(w) => {
+                w.assigned.insert((job, tile), Instant::now());
+                w.name.clone()
+            }
+            None => format!("worker {worker}"),
+        };
+        self.log(sh, job, "tile_assigned", format!("tile {tile} to {name}"));
+        // Fewer tiles wait: the sequence may start its next frame.
+        if let Some(sequence) = self.jobs.get(&job).and_then(|r| r.sequence) {
+            self.fill(sh, sequence);
+        }
+    }
+
+    /// Carries out one of the lifecycle's actions; returns the reply it carries, if it
+    /// is one.
+    pub(super) fn apply_life(
+        &mut self,
+        sh: &Arc<Shared>,
+        action: lifecycle::Action,
+    ) -> Option<Result<Reply, Refusal>> {
+        use lifecycle::Action as A;
+        {
+            match action {
+                A::Acknowledge { job } => self.acknowledge(sh, job),
+                A::RefuseStored { job, message } => {
+                    if let Some(r) = self.jobs.remove(&job) {
+                        if let Some(sequence) = r.sequence {
+                            self.frame_refused(sequence, r.frame);
+                        }
+                    }
+                    error!(job, error = %message, "cannot store a job");
+                    if let Some(reply) = self.submits.remove(&job) {
+                        let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
+                            "the coordinator cannot store new jobs now: {message}"
+                        ))));
+                    }
+                }
+                A::StoreImage { job } => self.store_image(sh, job),
+                // The core withdraws the tiles from the scheduler.
+                A::CancelTiles { job } => self.held.retain(|(j, _), _| *j != job),
+                A::RecordEnd { job, state, error } => self.record_end(sh, job, state, error),
+                A::DeleteStored { job } => {
+                    let shared = Arc::clone(sh);
+                    self.store(
+                        sh,
+                        job,
+                        Write::Delete {
+                            job,
+                            place: self.image_place(job),
+                            then: Box::new(move |_| {
+                                let mut core = shared.lock();
+                                core.jobs.remove(&job);
+                                core.life_event(&shared, lifecycle::Event::Deleted { job });
+                                drop(core);
+                                info!(job, "job deleted");
+                                shared.changed();
+                            }),
+                        },
+                    );
+                }
+                A::Reply { result, .. } => return Some(result),
+            }
+        }
+        None
+    }
+
+    /// The job's row is written: the client hears its id; the core hands its tiles out
+    /// next.
+    fn acknowledge(&mut self, sh: &Arc<Shared>, job: JobId) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        record.image = Some(render::Image::black(
+            record.settings.width,
+            record.settings.height,
+        ));
+        let tiles = record.tiles_total;
+        let s = record.settings;
+        info!(
+            job,
+            width = s.width,
+            height = s.height,
+            aa = s.aa,
+            sampler = s.sampling.name(),
+            target_error = ?s.sampling.target_error(),
+            tiles,
+            "job accepted"
+        );
+        if let Some(reply) = self.submits.remove(&job) {
+            let _ = reply.send(ClientResponse::Submitted { job });
+        }
+        if let Some((sequence, frame)) = self
+            .jobs
+            .get(&job)
+            .and_then(|r| Some((r.sequence?, r.frame)))
+        {
+            self.frame_acknowledged(sh, sequence, frame, job);
+        }
+    }
+
+    /// Every tile is in: encode and store the image on the blocking pool; the
+    /// lifecycle hears when it is stored.
+    fn store_image(&mut self, sh: &Arc<Shared>, job: JobId) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let Some(image) = record.image.take() else {
+            error!(job, "no frame to store");
+            return;
+        };
+        let ended = unix_ms();
+        record.times.ended = Some(ended);
+        if record.interactive {
+            // Its tiles went to the view's page as they came: nothing to encode or keep.
+            drop(image);
+            let shared = Arc::clone(sh);
+            drop(sh.runtime.spawn_blocking(move || {
+                let event = lifecycle::Event::ImageStored {
+                    job,
+                    result: Ok(()),
+                };
+                shared.lock().life_event(&shared, event);
+            }));
+            return;
+        }
+        let meta = record.metadata(job, ended);
+        let scene = record.scene.clone().unwrap_or_else(|| Arc::from(""));
+        // An adaptive job keeps its tiles' final states beside its image: a refinement
+        // goes on from them. They are at the last pass's rung (at or past the image's).
+        let states = record.adaptive.as_ref().and_then(|ad| {
+            let states: Option<Vec<Arc<Vec<u8>>>> =
+                ad.tiles.iter().map(|t| t.state.clone()).collect();
+            Some(Box::new(crate::store::TileStates {
+                rung: ad.passes.rung(),
+                aa: record.settings.aa,
+                tile_size: record.tile_size,
+                states: states?,
+            }))
+        });
+        let place = self.image_place(job);
+        let shared = Arc::clone(sh);
+        sh.runtime.spawn_blocking(move || {
+            let png = image.to_png();
+            drop(image);
+            let then_shared = Arc::clone(&shared);
+            shared.persistence.write(Write::Image {
+                place,
+                meta: Box::new(meta),
+                scene,
+                png,
+                states,
+                then: Box::new(move |result| {
+                    let sh = then_shared;
+                    let mut core = sh.lock();
+                    if let (Ok(sha), Some(record)) = (&result, core.jobs.get_mut(&job)) {
+                        record.image_sha256 = Some(*sha);
+                    }
+                    core.life_event(
+                        &sh,
+                        lifecycle::Event::ImageStored {
+                            job,
+                            result: result.map(|_| ()),
+                        },
+                    );
+                }),
+            });
+        });
+    }
+
+    /// The job ended: free what it held and write its end.
+    fn record_end(&mut self, sh: &Arc<Shared>, job: JobId, state: JobState, error: Option<String>) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        record.image = None;
+        record.scene = None;
+        record.tiles = Vec::new();
+        record.accepted = HashMap::new();
+        record.adaptive = None;
+        let ended = *record.times.ended.get_or_insert_with(unix_ms);
+        let rays = record.totals.rays;
+        match state {
+            JobState::Done => info!(
+                job,
+                wall_ms = ended.saturating_sub(record.times.submitted.unwrap_or(ended)),
+                rays,
+                "job done"
+            ),
+            JobState::Cancelled => info!(job, "job cancelled"),
+            _ => {}
+        }
+        let queued = record
+            .times
+            .started
+            .map(|s| s.saturating_sub(record.times.submitted.unwrap_or(s)));
+        let detail = match (state, &error) {
+            (JobState::Done, _) => format!(
+                "{} rays, rendered in {:.1} s after {:.1} s in the queue",
+                rays,
+                ended.saturating_sub(record.times.started.unwrap_or(ended)) as f64 / 1000.0,
+                queued.unwrap_or(0) as f64 / 1000.0
+            ),
+            (_, Some(e)) => e.clone(),
+            (_, None) => format!(
+                "{} of {} tiles done",
+                record.tiles_recorded, record.tiles_total
+            ),
+        };
+        self.log(sh, job, state.as_str(), detail);
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let shared = Arc::clone(sh);
+        // A studio view's pass is forgotten once it has ended: a long drag makes many.
+        let forget = record.interactive;
+        if forget {
+            sh.studio.ended(sh.now(), job, state == JobState::Done);
+        }
+        let frame_of = record.sequence.map(|s| (s, record.frame));
+        let write = Write::End {
+            job,
+            state,
+            error,
+            totals: record.totals,
+            times: record.times,
+            image_sha256: record.image_sha256,
+            stopped_on_time_limit: record.stopped_on_time_limit,
+            then: Box::new(move |_| {
+                let mut core = shared.lock();
+                core.life_event(&shared, lifecycle::Event::EndRecorded { job });
+                if forget {
+                    core.life_event(&shared, lifecycle::Event::Delete { job });
+                }
+                if let Some((sequence, frame)) = frame_of {
+                    core.frame_ended(&shared, sequence, frame, job);
+                }
+                drop(core);
+                shared.changed();
+            }),
+        };
+        self.store(sh, job, write);
+    }
+}

@@ -1,0 +1,260 @@
+//! The farm's decision core: the tile scheduler and the job lifecycle joined into one
+//! state machine, `handle(now, input) -> effects`.
+//!
+//! Each of the two machines decides alone what it owns (tiles and workers; jobs and
+//! what is stored of them), but many of their decisions feed the other: a tile handed
+//! out makes a queued job running, a job's last tile makes its image due, a cancelled
+//! job's tiles must be withdrawn, a stored job's tiles go out. Those rules live here,
+//! once, so that the coordinator daemon and the simulator cannot glue the two
+//! differently: both feed [`Input`]s, with the time passed in, and carry out the
+//! [`Effect`]s in the order given, each the way its world does (a socket and a disk,
+//! or a virtual network and a virtual disk).
+//!
+//! The rules:
+//! - a tile handed out ([`Action::Assign`]) tells the lifecycle
+//!   ([`lifecycle::Event::TileAssigned`]);
+//! - a job's last tile ([`Action::JobDone`]) makes its image due
+//!   ([`lifecycle::Event::TilesComplete`]), except for a job rendered in passes, whose
+//!   pass the executor adds up first (it then feeds `TilesComplete`, or the next pass
+//!   with [`Farm::resume_job`]);
+//! - a job the scheduler gives up ([`Action::JobFailed`]) fails
+//!   ([`lifecycle::Event::TilesFailed`]);
+//! - a job whose row is written ([`lifecycle::Action::Acknowledge`]) has its tiles
+//!   handed out as [`Farm::admit`] described them ([`Event::JobSubmitted`], then
+//!   [`Event::Interactive`] for a studio view's pass);
+//! - a job that ends early ([`lifecycle::Action::CancelTiles`]) has its tiles
+//!   withdrawn ([`Event::CancelJob`]);
+//! - the time ([`Input::Timeout`]) reaches the tile scheduler first, then the
+//!   lifecycle; [`Farm::next_deadline`] is the earlier of theirs;
+//! - storage that cannot write ([`Input::Storage`]) stops the tile scheduler first
+//!   (no tile goes out whose result could not be recorded), then the lifecycle (no
+//!   job is admitted); storage that writes again reaches them in the other order.
+//!
+//! The follow-ups are handled depth first, right after the effect that caused them,
+//! as a direct call would: the effects come out in the order the two machines made
+//! them.
+
+use std::collections::BTreeMap;
+
+use protocol::{JobId, Refusal, SceneHash};
+
+use crate::lifecycle::{self, Lifecycle};
+use crate::tiles::{Action, Event, Scheduler};
+use crate::Millis;
+
+/// Something the executor tells the core.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Input {
+    /// About tiles and workers: a worker joined, a result came, an operator's control.
+    Tiles(Event),
+    /// About jobs: a row written, an image stored, a client's cancel or delete.
+    Job(lifecycle::Event),
+    /// Storage can write (`Ok`) or cannot (`Err`, why): both machines hear it.
+    Storage(Result<(), String>),
+    /// The time has come ([`Farm::next_deadline`]).
+    Timeout,
+}
+
+/// Something the executor carries out: every action of either machine, in the order
+/// they were made, the follow-ups the core fed back included (for the executor to log
+/// and count; it must not feed them again).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Effect {
+    Tiles(Action),
+    Job(lifecycle::Action),
+}
+
+/// How a job's tiles go out once it is stored: what [`Event::JobSubmitted`] needs, and
+/// how its last tile is taken.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TilePlan {
+    pub priority: i32,
+    pub scene: SceneHash,
+    pub tiles: u32,
+    /// A studio view's pass: its tiles go ahead of batch jobs.
+    pub interactive: bool,
+    /// Rendered in passes (adaptive sampling): its last tile ends a pass, which the
+    /// executor adds up, rather than the job.
+    pub in_passes: bool,
+}
+
+/// The tile scheduler and the lifecycle, joined by the rules above.
+pub struct Farm {
+    tiles: Scheduler,
+    lifecycle: Lifecycle,
+    /// The plan of every job the core has been told of, until it is deleted.
+    plans: BTreeMap<JobId, TilePlan>,
+}
+
+impl Farm {
+    pub fn new(tiles: Scheduler, lifecycle: Lifecycle) -> Farm {
+        Farm {
+            tiles,
+            lifecycle,
+            plans: BTreeMap::new(),
+        }
+    }
+
+    /// The tile scheduler, to read.
+    pub fn tiles(&self) -> &Scheduler {
+        &self.tiles
+    }
+
+    /// The lifecycle, to read.
+    pub fn lifecycle(&self) -> &Lifecycle {
+        &self.lifecycle
+    }
+
+    /// The earliest time at which either machine has something to decide.
+    pub fn next_deadline(&self) -> Option<Millis> {
+        [self.tiles.next_deadline(), self.lifecycle.next_deadline()]
+            .into_iter()
+            .flatten()
+            .min()
+    }
+
+    /// Feeds one input, and the follow-ups it causes, at `now`.
+    pub fn handle(&mut self, now: Millis, input: Input) -> Vec<Effect> {
+        let mut effects = Vec::new();
+        match input {
+            Input::Tiles(event) => {
+                // A job not yet stored goes out at its new priority.
+                if let Event::SetPriority { job, priority } = &event {
+                    if let Some(plan) = self.plans.get_mut(job) {
+                        plan.priority = *priority;
+                    }
+                }
+                self.tiles_event(now, event, &mut effects);
+            }
+            Input::Job(event) => self.job_event(now, event, &mut effects),
+            Input::Storage(Err(reason)) => {
+                self.tiles_event(now, Event::StorageUnavailable, &mut effects);
+                let event = lifecycle::Event::StorageUnavailable { reason };
+                self.job_event(now, event, &mut effects);
+            }
+            Input::Storage(Ok(())) => {
+                self.job_event(now, lifecycle::Event::StorageAvailable, &mut effects);
+                self.tiles_event(now, Event::StorageAvailable, &mut effects);
+            }
+            Input::Timeout => {
+                self.tiles_event(now, Event::Timeout, &mut effects);
+                self.job_event(now, lifecycle::Event::Timeout, &mut effects);
+            }
+        }
+        effects
+    }
+
+    /// Checks a submission and enters it ([`Lifecycle::admit`]); its tiles go out as
+    /// `plan` says once its row is written.
+    pub fn admit(
+        &mut self,
+        now: Millis,
+        request: &lifecycle::Request,
+        plan: TilePlan,
+    ) -> Result<JobId, Refusal> {
+        let job = self.lifecycle.admit(now, request)?;
+        self.plans.insert(job, plan);
+        Ok(job)
+    }
+
+    /// Hands out a job's tiles but `done` at once, without a submission: a job taken
+    /// back after a restart or a retry, or the next pass of a job in passes.
+    pub fn resume_job(
+        &mut self,
+        now: Millis,
+        job: JobId,
+        plan: TilePlan,
+        done: &[u32],
+    ) -> Vec<Effect> {
+        self.plans.insert(job, plan);
+        let actions = self
+            .tiles
+            .resume_job(now, job, plan.priority, plan.scene, plan.tiles, done);
+        let mut effects = Vec::new();
+        self.follow(now, actions, &mut effects);
+        if plan.interactive {
+            self.tiles_event(now, Event::Interactive { job }, &mut effects);
+        }
+        effects
+    }
+
+    /// A job id for a job the lifecycle does not run itself (a sequence, whose frames
+    /// are jobs of their own).
+    pub fn issue_id(&mut self) -> JobId {
+        self.lifecycle.issue_id()
+    }
+
+    /// Keeps a job past its retention ([`Lifecycle::keep`]).
+    pub fn keep(&mut self, job: JobId) {
+        self.lifecycle.keep(job);
+    }
+
+    fn tiles_event(&mut self, now: Millis, event: Event, effects: &mut Vec<Effect>) {
+        let actions = self.tiles.handle(now, event);
+        self.follow(now, actions, effects);
+    }
+
+    /// The scheduler's actions, each followed by what it causes in the lifecycle.
+    fn follow(&mut self, now: Millis, actions: Vec<Action>, effects: &mut Vec<Effect>) {
+        for action in actions {
+            let next = match &action {
+                Action::Assign { job, .. } => Some(lifecycle::Event::TileAssigned { job: *job }),
+                Action::JobDone { job } => {
+                    let in_passes = self.plans.get(job).is_some_and(|p| p.in_passes);
+                    (!in_passes).then_some(lifecycle::Event::TilesComplete { job: *job })
+                }
+                Action::JobFailed { job, message } => Some(lifecycle::Event::TilesFailed {
+                    job: *job,
+                    message: message.clone(),
+                }),
+                _ => None,
+            };
+            effects.push(Effect::Tiles(action));
+            if let Some(event) = next {
+                self.job_event(now, event, effects);
+            }
+        }
+    }
+
+    fn job_event(&mut self, now: Millis, event: lifecycle::Event, effects: &mut Vec<Effect>) {
+        if let lifecycle::Event::Deleted { job } = &event {
+            self.plans.remove(job);
+        }
+        if let lifecycle::Event::StoreFailed { job, .. } = &event {
+            self.plans.remove(job);
+        }
+        for action in self.lifecycle.handle(now, event) {
+            let next = match &action {
+                lifecycle::Action::Acknowledge { job } => self.plans.get(job).map(|p| {
+                    (
+                        Event::JobSubmitted {
+                            job: *job,
+                            priority: p.priority,
+                            scene: p.scene,
+                            tiles: p.tiles,
+                        },
+                        p.interactive,
+                    )
+                }),
+                lifecycle::Action::CancelTiles { job } => {
+                    Some((Event::CancelJob { job: *job }, false))
+                }
+                _ => None,
+            };
+            let job = match &action {
+                lifecycle::Action::Acknowledge { job } => Some(*job),
+                _ => None,
+            };
+            effects.push(Effect::Job(action));
+            if let Some((event, interactive)) = next {
+                self.tiles_event(now, event, effects);
+                if let (true, Some(job)) = (interactive, job) {
+                    self.tiles_event(now, Event::Interactive { job }, effects);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

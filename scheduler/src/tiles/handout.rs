@@ -1,0 +1,189 @@
+//! Which tile goes to which worker: free credit filled by priority, fair share and
+//! age, interactive jobs ahead of batch ones, stragglers copied, and each scene sent
+//! before a worker's first tile of it and forgotten when no job uses it. The one
+//! place tiles go out, kept apart from how they come back.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use protocol::{JobId, SceneHash, WorkerId};
+
+use super::{Action, Lease, Scheduler};
+
+/// At most this many tiles in a row go to interactive jobs while batch tiles wait.
+pub const INTERACTIVE_RUN: u32 = 4;
+
+impl Scheduler {
+    /// After a job ended: workers may drop scenes no active job uses, in worker id
+    /// order, each worker's in scene order. Only the workers that have such a scene
+    /// are visited ([`Scheduler::scene_holders`]).
+    pub(super) fn forget_unused_scenes(&mut self, actions: &mut Vec<Action>) {
+        let in_use: BTreeSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
+        let unused: Vec<SceneHash> = self
+            .scene_holders
+            .keys()
+            .filter(|scene| !in_use.contains(*scene))
+            .copied()
+            .collect();
+        let mut forget: BTreeMap<WorkerId, Vec<SceneHash>> = BTreeMap::new();
+        for scene in unused {
+            for worker in self.scene_holders.remove(&scene).unwrap_or_default() {
+                forget.entry(worker).or_default().push(scene);
+            }
+        }
+        for (worker, scenes) in forget {
+            let w = self
+                .workers
+                .get_mut(&worker)
+                .expect("scene holders are live");
+            for scene in scenes {
+                w.scenes.remove(&scene);
+                actions.push(Action::ForgetScene { worker, scene });
+            }
+        }
+    }
+
+    /// Takes the worker out of the index of the scenes it had.
+    pub(super) fn unlist_scenes(&mut self, worker: WorkerId, scenes: &BTreeSet<SceneHash>) {
+        for scene in scenes {
+            if let Some(holders) = self.scene_holders.get_mut(scene) {
+                holders.remove(&worker);
+                if holders.is_empty() {
+                    self.scene_holders.remove(scene);
+                }
+            }
+        }
+    }
+
+    /// Fills every worker with free credit, in id order. Filling one worker changes
+    /// no other worker's credit, so those full at the start are skipped, as filling
+    /// them would give them nothing; and once no tile may go to anyone, the rest are
+    /// not visited (they stay listed as hungry), so that a farm of many idle workers
+    /// costs each event the number of jobs, not of workers.
+    pub(super) fn fill_all(&mut self, actions: &mut Vec<Action>) {
+        if self.storage_down || !self.anything_to_hand_out() {
+            return;
+        }
+        let ids: Vec<WorkerId> = self.hungry.iter().copied().collect();
+        for worker in ids {
+            let before = actions.len();
+            self.fill(worker, actions);
+            // Only a tile handed out can close the last one open.
+            if actions.len() != before && !self.anything_to_hand_out() {
+                return;
+            }
+        }
+    }
+
+    /// Whether [`Scheduler::next_tile`] may find a tile for some worker: an active job
+    /// that is not paused has a tile waiting, or (with speculation) none waiting and a
+    /// straggler to copy. When not, it finds none for anyone.
+    fn anything_to_hand_out(&self) -> bool {
+        self.order.iter().any(|&(_, _, id)| {
+            let job = &self.jobs[&id];
+            !self.paused.contains(&id)
+                && (job.queued > 0 || (self.policy.speculate && !job.stragglers.is_empty()))
+        })
+    }
+
+    /// Gives the worker tiles until its credit is used or nothing is left for it.
+    pub(super) fn fill(&mut self, worker_id: WorkerId, actions: &mut Vec<Action>) {
+        if self.storage_down {
+            // The worker stays hungry: `StorageAvailable` fills it.
+            return;
+        }
+        loop {
+            let Some(worker) = self.workers.get(&worker_id) else {
+                self.hungry.remove(&worker_id);
+                return;
+            };
+            if !worker.takes_tiles() || worker.holding.len() >= worker.credit {
+                self.hungry.remove(&worker_id);
+                return;
+            }
+            let Some((job_id, tile)) = self.next_tile(worker_id) else {
+                return;
+            };
+            let now = self.now;
+            let policy = self.policy;
+            let job = self
+                .jobs
+                .get_mut(&job_id)
+                .expect("next_tile returns an active job");
+            let before = job.rank(job_id);
+            let deadline = now + job.lease_length(&policy);
+            job.add_lease(
+                tile,
+                Lease {
+                    worker: worker_id,
+                    started: now,
+                    deadline,
+                    expired: false,
+                },
+            );
+            let scene = job.scene;
+            self.rerank(job_id, before);
+            let worker = self.workers.get_mut(&worker_id).expect("checked above");
+            if worker.scenes.insert(scene) {
+                self.scene_holders
+                    .entry(scene)
+                    .or_default()
+                    .insert(worker_id);
+                actions.push(Action::SendScene {
+                    worker: worker_id,
+                    job: job_id,
+                });
+            }
+            if worker.holding.is_empty() {
+                // Idle until now: a result is due from now on, not since its last one.
+                worker.progress_since = now;
+            }
+            worker.holding.insert((job_id, tile));
+            actions.push(Action::Assign {
+                worker: worker_id,
+                job: job_id,
+                tile,
+            });
+        }
+    }
+
+    /// The next tile for the worker: a waiting tile of the best job (highest priority,
+    /// then fewest tiles in flight, then oldest) it is not blocked from; failing that,
+    /// a straggler to duplicate.
+    fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
+        let machine = &self.workers.get(&worker)?.machine;
+        // Interactive jobs first; after a run of them, batch jobs first for one tile.
+        let first_interactive = self.interactive_run < INTERACTIVE_RUN;
+        for first in [true, false] {
+            for &(_, _, id) in &self.order {
+                let job = self.jobs.get_mut(&id).expect("ordered jobs are active");
+                if first && job.interactive != first_interactive {
+                    continue;
+                }
+                if self.paused.contains(&id) || job.blocked.contains(machine) {
+                    continue;
+                }
+                if let Some(tile) = job.take_waiting_for(worker, machine) {
+                    self.interactive_run = if job.interactive {
+                        self.interactive_run.saturating_add(1)
+                    } else {
+                        0
+                    };
+                    return Some((id, tile));
+                }
+            }
+        }
+        if !self.policy.speculate {
+            return None;
+        }
+        let holding = &self.workers.get(&worker)?.holding;
+        self.order.iter().find_map(|&(_, _, id)| {
+            let job = &self.jobs[&id];
+            if self.paused.contains(&id) || job.blocked.contains(machine) || job.queued > 0 {
+                return None;
+            }
+            job.straggler_for(worker, machine)
+                .filter(|t| !holding.contains(&(id, *t)))
+                .map(|t| (id, t))
+        })
+    }
+}

@@ -1,0 +1,206 @@
+//! Where time alone acts on workers and jobs: workers that fell silent are dropped,
+//! leases run out, workers that hold tiles late without a result are marked
+//! unresponsive, and jobs no connected worker may serve fail after the stall timeout.
+//! These checks run at a `Timeout` and judge what the other events left behind, so
+//! they read apart from the events themselves.
+
+use std::collections::BTreeSet;
+
+use protocol::{JobId, WorkerId};
+
+use super::{name_list, Action, Machine, Scheduler};
+
+impl Scheduler {
+    /// Drops the workers silent for longer than the heartbeat timeout, in id order.
+    pub(super) fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
+        let timeout = self.policy.heartbeat_timeout;
+        let mut silent: Vec<WorkerId> = self
+            .by_last_seen
+            .iter()
+            .take_while(|(seen, _)| self.now.saturating_sub(*seen) > timeout)
+            .map(|&(_, id)| id)
+            .collect();
+        silent.sort_unstable();
+        for worker in silent {
+            self.counters.workers_dropped += 1;
+            actions.push(Action::DropWorker { worker });
+            self.remove_worker(worker, actions);
+        }
+    }
+
+    /// Puts back every tile whose only live lease has run out.
+    pub(super) fn check_leases(&mut self) {
+        let now = self.now;
+        for job in self.jobs.values_mut() {
+            job.expire_leases(now, &mut self.counters, &mut self.overdue);
+        }
+    }
+
+    /// Marks unresponsive, in id order, the workers that hold a tile late (under a lease
+    /// that ran out, or a copy of a tile accepted from another worker since) and have
+    /// returned no result for longer than their allowance: the greater of
+    /// [`Policy::progress_timeout`] and [`Policy::progress_factor`] times their pace,
+    /// the slowest of their own results and of the measured tiles of the jobs they
+    /// hold. A slow worker's pace is slow, so it is given the time its own results show
+    /// it needs; a worker that never returned anything is judged by the jobs' tiles,
+    /// sixteen times over.
+    ///
+    /// [`Policy::progress_timeout`]: super::Policy::progress_timeout
+    /// [`Policy::progress_factor`]: super::Policy::progress_factor
+    pub(super) fn check_progress(&mut self, actions: &mut Vec<Action>) {
+        let now = self.now;
+        let overdue: Vec<WorkerId> = self.overdue.iter().copied().collect();
+        for id in overdue {
+            let Some(w) = self.workers.get(&id) else {
+                self.overdue.remove(&id);
+                continue;
+            };
+            let mut late = false;
+            let mut pace = w.slowest_result;
+            for (job_id, tile) in &w.holding {
+                let Some(job) = self.jobs.get(job_id) else {
+                    continue;
+                };
+                pace = pace.max(job.slowest);
+                late |= job.late_copies.contains(&(*tile, id))
+                    || job
+                        .in_flight
+                        .get(tile)
+                        .is_some_and(|ls| ls.iter().any(|l| l.worker == id && l.expired));
+            }
+            if !late {
+                self.overdue.remove(&id);
+                continue;
+            }
+            if w.unresponsive {
+                // Marked already; it stays here, so that once a result makes it
+                // responsive again, what it still holds late is watched again.
+                continue;
+            }
+            let allowance = self
+                .policy
+                .progress_timeout
+                .max(pace.saturating_mul(self.policy.progress_factor));
+            let silent = now.saturating_sub(w.progress_since);
+            if silent > allowance {
+                self.set_unresponsive(id, true);
+                self.counters.workers_unresponsive += 1;
+                actions.push(Action::WorkerUnresponsive { worker: id, silent });
+            }
+        }
+    }
+
+    /// A result (or a reported failure) from the worker for a tile: it makes progress.
+    /// Its pace is measured from the tile's lease, if it held one, and it takes tiles
+    /// again if it was unresponsive.
+    pub(super) fn progressed(
+        &mut self,
+        worker: WorkerId,
+        job: JobId,
+        tile: u32,
+        actions: &mut Vec<Action>,
+    ) {
+        let started = self
+            .jobs
+            .get(&job)
+            .and_then(|j| j.in_flight.get(&tile))
+            .and_then(|ls| ls.iter().find(|l| l.worker == worker))
+            .map(|l| l.started);
+        let now = self.now;
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return;
+        };
+        if let Some(started) = started {
+            let took = now.saturating_sub(started.max(w.progress_since));
+            w.slowest_result = w.slowest_result.max(took);
+        }
+        w.progress_since = now;
+        if w.unresponsive {
+            self.set_unresponsive(worker, false);
+            actions.push(Action::WorkerResponsive { worker });
+        }
+    }
+
+    /// Marks the worker unresponsive or not; the ready count follows. An unresponsive
+    /// worker's live leases run out at once: it is trusted with no work, so its tiles
+    /// go back to the queue now rather than at their deadlines (its results still
+    /// count if they come first).
+    fn set_unresponsive(&mut self, worker: WorkerId, unresponsive: bool) {
+        let Some(w) = self.workers.get_mut(&worker) else {
+            return;
+        };
+        if w.unresponsive == unresponsive {
+            return;
+        }
+        let was_ready = w.takes_tiles();
+        w.unresponsive = unresponsive;
+        let is_ready = w.takes_tiles();
+        let machine = w.machine.clone();
+        let holding: Vec<(JobId, u32)> = w.holding.iter().copied().collect();
+        if was_ready && !is_ready {
+            self.unready(&machine);
+        } else if is_ready && !was_ready {
+            *self.ready.entry(machine).or_default() += 1;
+        }
+        if unresponsive {
+            self.hungry.remove(&worker);
+            for (job_id, tile) in holding {
+                if let Some(job) = self.jobs.get_mut(&job_id) {
+                    job.expire_lease_of(tile, worker, &mut self.counters);
+                }
+            }
+        } else {
+            self.hungry.insert(worker);
+        }
+    }
+
+    /// Follows each job's stall (tiles waiting that no connected worker may take), and
+    /// fails the jobs stalled for the stall timeout, in id order.
+    pub(super) fn check_stalls(&mut self, actions: &mut Vec<Action>) {
+        let now = self.now;
+        let mut failed = Vec::new();
+        for (&id, job) in &mut self.jobs {
+            if self.paused.contains(&id) {
+                job.stalled_since = None;
+                continue;
+            }
+            match job.stalled_tile(&self.ready, self.policy.max_attempts) {
+                None => job.stalled_since = None,
+                Some(tile) => {
+                    let since = *job.stalled_since.get_or_insert(now);
+                    if now - since >= self.policy.stall_timeout {
+                        let message = job.stall_message(tile, &self.ready, self.policy.block_after);
+                        failed.push((id, message));
+                    }
+                }
+            }
+        }
+        let unresponsive = self.unresponsive_note();
+        for (job, message) in failed {
+            self.end_job(job, actions);
+            let message = format!("{message}{unresponsive}");
+            actions.push(Action::JobFailed { job, message });
+        }
+    }
+
+    /// What a stall's message adds about the machines whose workers are connected but
+    /// unresponsive (and none of whose workers is ready): they are not counted among
+    /// those that may take tiles, and the operator should know why. Empty without any.
+    /// Walks the workers: called only when a job fails.
+    fn unresponsive_note(&self) -> String {
+        let machines: BTreeSet<&Machine> = self
+            .workers
+            .values()
+            .filter(|w| w.unresponsive && !self.ready.contains_key(&w.machine))
+            .map(|w| &w.machine)
+            .collect();
+        if machines.is_empty() {
+            return String::new();
+        }
+        let machines: Vec<&Machine> = machines.into_iter().collect();
+        format!(
+            "; not counted, unresponsive (leases ran out without a result): {}",
+            name_list(&machines)
+        )
+    }
+}
