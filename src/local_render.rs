@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use render::progressive::{meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG};
+use render::adaptive::{meets, render_to_target, sample_cap, BlockState, Region, LAST_RUNG};
 use render::{render_frame, RenderSettings, Sampling, Tracer, DEFAULT_TILE_SIZE};
 
 use crate::output::{FileOutput, ImageOutput};

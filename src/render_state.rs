@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
-use render::progressive::BlockState;
+use render::adaptive::BlockState;
 use render::{Scene, Shape};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};

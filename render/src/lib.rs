@@ -27,9 +27,10 @@
 //! - `camera`, `geometry` → `bvh`, `shapes` → `tracer` → `footprint`: rays, their
 //!   intersections, and what a pixel sees;
 //! - `rect` → `image` → [`metrics`]: a frame's rectangles and pixels;
-//! - [`sampling`] → [`progressive`] → `tile`: the samplers, adaptive sampling over the
+//! - [`sampling`] → [`adaptive`] → `tile`: the samplers, adaptive sampling over the
 //!   whole frame, and tiles and frames rendered with either.
 
+pub mod adaptive;
 pub mod animation;
 mod bounds;
 mod bvh;
@@ -43,7 +44,6 @@ pub mod limits;
 pub mod mesh;
 pub mod metrics;
 mod parse;
-pub mod progressive;
 mod rect;
 pub mod sampling;
 mod scene;

@@ -28,7 +28,7 @@ pub enum TileError {
         frame_height: u32,
     },
     /// Adaptive sampling decides over the whole frame which rung each block stops at:
-    /// its tiles are advanced as regions of blocks ([`crate::progressive::Region`]).
+    /// its tiles are advanced as regions of blocks ([`crate::adaptive::Region`]).
     #[error("tile {0:?}: adaptive sampling renders regions of blocks, not single tiles")]
     Adaptive(Rect),
 }

@@ -11,7 +11,7 @@
 //!   Sobol sequence ([`owen_sobol`]): one point in each of the n × n cells when n is a
 //!   power of two, and a well-spread set for any n.
 //! - [`Sampling::Adaptive`]: samples to an error target over the whole frame, in
-//!   power-of-two levels of 8 × 8 blocks ([`crate::progressive`]). Its points are the
+//!   power-of-two levels of 8 × 8 blocks ([`crate::adaptive`]). Its points are the
 //!   same scrambled Sobol sequence, every power-of-two prefix of which is well spread,
 //!   so a block can stop after any level and go on later.
 //!
@@ -30,7 +30,7 @@
 //! stratified patterns it is an upper bound (1.1 to 4.4 times the measured error in
 //! `tessera-bench`), and a feature smaller than the spacing of the samples that none of
 //! them hit leaves no trace in it. Adaptive sampling's calibrated estimate is in
-//! [`crate::progressive`].
+//! [`crate::adaptive`].
 
 use crate::settings::RenderSettings;
 // The choice of sampler is a setting, below the scene that holds it; it is named here

@@ -4,7 +4,7 @@
 //! Plain values, below the scene model that holds them and the samplers that follow
 //! them, so that the scene, the camera and the command line can name a sampling without
 //! depending on how it is carried out (that is [`crate::sampling`] and
-//! [`crate::progressive`]).
+//! [`crate::adaptive`]).
 
 use std::fmt;
 
@@ -69,7 +69,7 @@ pub enum Sampling {
     /// Samples to an error target for the whole image: blocks of pixels double their
     /// samples where that removes the most error per ray, until the frame's estimated
     /// RMS error is at most the target, at most the largest power of two ≤ n × n per
-    /// pixel ([`crate::progressive`]).
+    /// pixel ([`crate::adaptive`]).
     ///
     /// `target_milli` is the target error in thousandths of an 8-bit level (1000 is one
     /// level), an integer so that settings stay `Eq` and `Hash` and cross the network

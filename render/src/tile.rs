@@ -94,13 +94,12 @@ pub fn estimated_error(samples: u64, error_sq_sum: f64, pixels: u64) -> f64 {
 /// whatever the tile size and the number of threads.
 ///
 /// With adaptive sampling the frame is walked down the threshold ladder to its target
-/// ([`crate::progressive::render_to_target`]); `tile_size` does not matter then, and
+/// ([`crate::adaptive::render_to_target`]); `tile_size` does not matter then, and
 /// `on_tile` hears of the whole frame at the end.
 pub fn render_frame(tracer: &Tracer, tile_size: u32, on_tile: &(dyn Fn(u64) + Sync)) -> Frame {
     let settings = *tracer.settings();
     if let Some(target) = settings.sampling.target_error() {
-        let (_, frame) =
-            crate::progressive::render_to_target(tracer, None, target, &mut |_, _| true);
+        let (_, frame) = crate::adaptive::render_to_target(tracer, None, target, &mut |_, _| true);
         on_tile(settings.pixel_count());
         return Frame {
             image: frame.image,

@@ -128,7 +128,7 @@ mod policy;
 mod results;
 mod worker;
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -136,7 +136,7 @@ pub use events::{Action, Event};
 pub use handout::INTERACTIVE_RUN;
 use job::{Job, JobRank, Lease, TileState};
 pub use policy::Policy;
-use worker::{name_list, Machine, Worker};
+use worker::{name_list, Machine, Overdue, Worker};
 
 /// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
 pub type Millis = u64;
@@ -157,9 +157,14 @@ pub struct Scheduler {
     /// The active jobs in the order a free slot serves them ([`Job::rank`]).
     order: BTreeSet<JobRank>,
     workers: BTreeMap<WorkerId, Worker>,
-    /// The workers by when they were last heard from, so that a timeout looks only at
-    /// those that fell silent.
-    by_last_seen: BTreeSet<(Millis, WorkerId)>,
+    /// When each worker was heard from, oldest first, so that a timeout looks only at
+    /// those that fell silent: every message appends (the clock never goes back, so
+    /// the queue stays in order), and an entry older than its worker's last one is
+    /// stale, dropped when it reaches the front ([`Scheduler::trim_seen`]). The front
+    /// is always a live worker's last time: the earliest of them. Appending costs
+    /// nothing like moving the worker in an ordered set, which every message of every
+    /// worker did.
+    by_last_seen: VecDeque<(Millis, WorkerId)>,
     /// The machines with a live worker that is not draining, and how many: those that
     /// could take a tile, for the stall check.
     ready: BTreeMap<Machine, u32>,
@@ -187,8 +192,8 @@ pub struct Scheduler {
     /// tile accepted from another worker since), and perhaps some that no longer do:
     /// those whose progress a timeout checks. A worker joins when one of its leases
     /// runs out or its copy becomes late, and leaves when a timeout finds it holds
-    /// nothing late.
-    overdue: BTreeSet<WorkerId>,
+    /// nothing late; a timeout looks only at those due ([`Overdue`]).
+    overdue: Overdue,
     counters: Counters,
 }
 
@@ -267,13 +272,13 @@ impl Scheduler {
                 // the indexes must stay true). The new one counts first: a worker stays
                 // connected throughout, so no stall ends.
                 if let Some(old) = self.workers.insert(worker, joined) {
-                    self.by_last_seen.remove(&(old.last_seen, worker));
                     self.unlist_scenes(worker, &old.scenes);
                     if old.takes_tiles() {
                         self.unready(&old.machine);
                     }
                 }
-                self.by_last_seen.insert((self.now, worker));
+                self.by_last_seen.push_back((self.now, worker));
+                self.trim_seen();
                 self.hungry.insert(worker);
                 self.fill(worker, &mut actions);
             }
@@ -440,7 +445,7 @@ impl Scheduler {
         let mut at: Option<Millis> = None;
         let mut sooner = |t: Millis| at = Some(at.map_or(t, |a| a.min(t)));
         let mut waiting = !self.workers.is_empty();
-        if let Some(&(seen, _)) = self.by_last_seen.first() {
+        if let Some(&(seen, _)) = self.by_last_seen.front() {
             sooner(seen + self.policy.heartbeat_timeout + 1);
         }
         for job in self.jobs.values() {
@@ -591,9 +596,30 @@ impl Scheduler {
 
     fn seen(&mut self, worker: WorkerId) {
         if let Some(w) = self.workers.get_mut(&worker) {
-            self.by_last_seen.remove(&(w.last_seen, worker));
-            w.last_seen = self.now;
-            self.by_last_seen.insert((self.now, worker));
+            if w.last_seen != self.now {
+                // Only this worker's own entry at the front goes stale here.
+                let front = self.by_last_seen.front() == Some(&(w.last_seen, worker));
+                w.last_seen = self.now;
+                self.by_last_seen.push_back((self.now, worker));
+                if front {
+                    self.trim_seen();
+                }
+            }
+        }
+    }
+
+    /// Drops the stale entries at the front of [`Scheduler::by_last_seen`]: those of
+    /// workers gone or heard from since.
+    pub(super) fn trim_seen(&mut self) {
+        while let Some(&(seen, worker)) = self.by_last_seen.front() {
+            if self
+                .workers
+                .get(&worker)
+                .is_some_and(|w| w.last_seen == seen)
+            {
+                break;
+            }
+            self.by_last_seen.pop_front();
         }
     }
 
@@ -706,7 +732,7 @@ impl Scheduler {
             return;
         };
         self.hungry.remove(&worker);
-        self.by_last_seen.remove(&(w.last_seen, worker));
+        self.trim_seen();
         self.unlist_scenes(worker, &w.scenes);
         if w.takes_tiles() {
             self.unready(&w.machine);

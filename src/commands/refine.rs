@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
 use protocol::JobId;
+use render::adaptive::Region;
 use render::limits::MAX_AA;
-use render::progressive::Region;
 use render::{
     parse_scene_with, validate_settings, Image, MeshFiles, RenderSettings, Sampling,
     SamplingChoiceError, Tracer,

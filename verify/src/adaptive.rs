@@ -4,14 +4,14 @@
 //!
 //! A block's state after rung k is a pure function of the scene, the settings, its
 //! coordinates and k, whichever earlier rungs it stopped at on the way (see
-//! `render::progressive`). So a pass that advances a tile from its previous state gives
+//! `render::adaptive`). So a pass that advances a tile from its previous state gives
 //! the bytes a whole-frame walk gives, on any worker, and the coordinator can check one
 //! block of an answer by advancing that block alone from the same previous state.
 
 use std::sync::Arc;
 
 use protocol::TileRect;
-use render::progressive::{sample_cap, BlockState, Footprints, Region, RungTotals, BLOCK};
+use render::adaptive::{sample_cap, BlockState, Footprints, Region, RungTotals, BLOCK};
 use render::Tracer;
 
 /// The largest side of an adaptive tile. A tile's state holds about 80 bytes per pixel
@@ -147,7 +147,7 @@ pub fn region<'t>(
     rect: TileRect,
     blocks: Vec<BlockState>,
 ) -> Result<Region<'t>, String> {
-    let base = render::progressive::BASE_SAMPLES.min(sample_cap(tracer.settings().aa));
+    let base = render::adaptive::BASE_SAMPLES.min(sample_cap(tracer.settings().aa));
     if blocks
         .iter()
         .any(|b| b.levels.first().is_some_and(|l| l.count != base))
@@ -199,7 +199,7 @@ pub fn pixels(
 /// The first rung after `rung` at which some block of the region doubles, if any: a
 /// tile with no block doubling at a pass's rung need not be sent in that pass.
 pub fn next_work(region: &Region, rung: u32) -> Option<u32> {
-    let last = render::progressive::LAST_RUNG;
+    let last = render::adaptive::LAST_RUNG;
     if rung >= last || region.totals(last).is_some() {
         return None;
     }
@@ -385,14 +385,8 @@ mod tests {
         for aa in [1, 2, 3, 4] {
             let t = tracer(aa);
             let fp = footprints(&t);
-            let done = advance(
-                &t,
-                Arc::clone(&fp),
-                TILE,
-                None,
-                render::progressive::LAST_RUNG,
-            )
-            .unwrap();
+            let done =
+                advance(&t, Arc::clone(&fp), TILE, None, render::adaptive::LAST_RUNG).unwrap();
             let raw = protocol::wire::encode(&done.blocks);
             let bound = state_bound(TILE, aa);
             assert!(raw.len() <= bound, "aa {aa}: {} > {bound}", raw.len());

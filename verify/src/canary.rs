@@ -78,9 +78,9 @@ const RUNGS_PER_PASS: u32 = 24;
 /// An adaptive render of `rect` as the farm makes it: rung after rung until the
 /// region's own estimate meets `target`, in passes of [`RUNGS_PER_PASS`] rungs between
 /// which the blocks' state is encoded, compressed and read back (the whole frame gives
-/// exactly what `render::progressive::render_to_target` gives).
+/// exactly what `render::adaptive::render_to_target` gives).
 fn walk(tracer: &render::Tracer, rect: TileRect, target: f64) -> Result<Vec<u8>, String> {
-    use render::progressive::meets;
+    use render::adaptive::meets;
     let footprints = crate::adaptive::footprints(tracer);
     let aa = tracer.settings().aa;
     let mut state = None;
@@ -219,7 +219,7 @@ mod tests {
         let tracer = crate::tracer(&scene, &renders[2].settings).unwrap();
         let target = renders[2].settings.sampling.target_error().unwrap();
         let (_, frame) =
-            render::progressive::render_to_target(&tracer, None, target, &mut |_, _| true);
+            render::adaptive::render_to_target(&tracer, None, target, &mut |_, _| true);
         assert!(
             frame.rung > RUNGS_PER_PASS,
             "several passes: rung {}",

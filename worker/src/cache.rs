@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use protocol::{SceneHash, Settings};
-use render::progressive::Footprints;
+use render::adaptive::Footprints;
 use render::{AnimatedScene, Tracer};
 use sha2::{Digest, Sha256};
 

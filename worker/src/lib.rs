@@ -476,7 +476,7 @@ impl Session {
 }
 
 /// Footprints computed on the pool: the scene's frame and settings they are for.
-type FootprintsKept = (TracerKey, Arc<render::progressive::Footprints>);
+type FootprintsKept = (TracerKey, Arc<render::adaptive::Footprints>);
 type FootprintsBack = (
     std::sync::mpsc::Sender<FootprintsKept>,
     std::sync::mpsc::Receiver<FootprintsKept>,

@@ -11,7 +11,7 @@
 use std::sync::Arc;
 
 use protocol::{Settings, TileRect};
-use render::progressive::{meets, RungTotals};
+use render::adaptive::{meets, RungTotals};
 use scheduler::passes::{Passes, RungCheck};
 use sha2::{Digest, Sha256};
 
@@ -60,7 +60,7 @@ impl AdaptiveJob {
         start: Option<crate::store::TileStates>,
     ) -> AdaptiveJob {
         let target = settings.sampling.target_error().unwrap_or(f64::INFINITY);
-        let last = render::progressive::LAST_RUNG;
+        let last = render::adaptive::LAST_RUNG;
         let (passes, tiles) = match start {
             Some(start) if start.states.len() == tiles => (
                 Passes::from_rung(target, last, start.rung),

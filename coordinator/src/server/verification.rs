@@ -8,7 +8,7 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use protocol::{CanaryRender, SceneHash, Settings, TileRect};
-use render::progressive::Footprints;
+use render::adaptive::Footprints;
 use render::Tracer;
 use verify::spot::{self, WrongPixel};
 

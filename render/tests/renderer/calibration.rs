@@ -10,7 +10,7 @@
 //! image (0.66 levels RMS on the seed scene at 600 × 400), as much as the error being
 //! measured.
 
-use render::progressive::{render_to_target, LAST_RUNG};
+use render::adaptive::{render_to_target, LAST_RUNG};
 use render::{metrics, parse_scene, render_frame, RenderSettings, Sampling, Tracer};
 
 const WIDTH: u32 = 160;

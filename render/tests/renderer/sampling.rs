@@ -4,7 +4,7 @@
 //! known values on hand-made images.
 
 use proptest::prelude::*;
-use render::progressive::{sample_cap, BlockState, Level, Region, BLOCK, LAST_RUNG};
+use render::adaptive::{sample_cap, BlockState, Level, Region, BLOCK, LAST_RUNG};
 use render::{
     metrics, parse_scene, render_tile, sample_offsets, validate_settings, Image, Rect,
     RenderSettings, Sampling, TileError, Tracer,
@@ -138,7 +138,7 @@ proptest! {
 
     /// Any rectangle rendered alone equals the same pixels of the full frame. (Adaptive
     /// tiles are regions of blocks: the same property is tested in
-    /// `render::progressive`.)
+    /// `render::adaptive`.)
     #[test]
     fn a_jittered_tile_equals_its_pixels_in_the_full_frame(
         x in 0u32..80, y in 0u32..60, w in 1u32..40, h in 1u32..40,

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
-use super::{name_list, Counters, Machine, Millis, Policy};
+use super::{name_list, Counters, Machine, Millis, Overdue, Policy};
 
 /// One assignment of a tile to a worker.
 #[derive(Clone, Copy, Debug)]
@@ -239,7 +239,7 @@ impl Job {
         &mut self,
         now: Millis,
         counters: &mut Counters,
-        overdue: &mut BTreeSet<WorkerId>,
+        overdue: &mut Overdue,
     ) {
         let mut due = Vec::new();
         while let Some(&(deadline, tile, _)) = self.deadlines.first() {

@@ -14,13 +14,19 @@ impl Scheduler {
     /// Drops the workers silent for longer than the heartbeat timeout, in id order.
     pub(super) fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
         let timeout = self.policy.heartbeat_timeout;
-        let mut silent: Vec<WorkerId> = self
-            .by_last_seen
-            .iter()
-            .take_while(|(seen, _)| self.now.saturating_sub(*seen) > timeout)
-            .map(|&(_, id)| id)
-            .collect();
+        let mut silent: Vec<WorkerId> = Vec::new();
+        while let Some(&(seen, id)) = self.by_last_seen.front() {
+            let live = self.workers.get(&id).is_some_and(|w| w.last_seen == seen);
+            if live && self.now.saturating_sub(seen) <= timeout {
+                break;
+            }
+            if live {
+                silent.push(id);
+            }
+            self.by_last_seen.pop_front();
+        }
         silent.sort_unstable();
+        silent.dedup();
         for worker in silent {
             self.counters.workers_dropped += 1;
             actions.push(Action::DropWorker { worker });
@@ -49,10 +55,9 @@ impl Scheduler {
     /// [`Policy::progress_factor`]: super::Policy::progress_factor
     pub(super) fn check_progress(&mut self, actions: &mut Vec<Action>) {
         let now = self.now;
-        let overdue: Vec<WorkerId> = self.overdue.iter().copied().collect();
-        for id in overdue {
+        for id in self.overdue.due(now) {
             let Some(w) = self.workers.get(&id) else {
-                self.overdue.remove(&id);
+                self.overdue.remove(id);
                 continue;
             };
             let mut late = false;
@@ -69,12 +74,18 @@ impl Scheduler {
                         .is_some_and(|ls| ls.iter().any(|l| l.worker == id && l.expired));
             }
             if !late {
-                self.overdue.remove(&id);
+                self.overdue.remove(id);
                 continue;
             }
+            // Not found unresponsive before its last progress plus the least
+            // allowance; a worker marked already stays filed, so that once a result
+            // makes it responsive again, what it still holds late is watched again.
+            let next = w
+                .progress_since
+                .saturating_add(self.policy.progress_timeout)
+                .saturating_add(1);
             if w.unresponsive {
-                // Marked already; it stays here, so that once a result makes it
-                // responsive again, what it still holds late is watched again.
+                self.overdue.defer(id, next);
                 continue;
             }
             let allowance = self
@@ -82,6 +93,7 @@ impl Scheduler {
                 .progress_timeout
                 .max(pace.saturating_mul(self.policy.progress_factor));
             let silent = now.saturating_sub(w.progress_since);
+            self.overdue.defer(id, next);
             if silent > allowance {
                 self.set_unresponsive(id, true);
                 self.counters.workers_unresponsive += 1;

@@ -36,8 +36,11 @@ impl Scheduler {
             actions.push(Action::DuplicateResult { job: job_id, tile });
             return;
         }
-        let machine = self.machine_of(worker);
-        if self.jobs[&job_id].held_from(tile, &machine) {
+        // Only a held tile asks whose result it is (the machine's name is not cloned
+        // for every result).
+        let held = !job.held.is_empty();
+        let own = held && self.jobs[&job_id].held_from(tile, &self.machine_of(worker));
+        if own {
             // A machine does not confirm its own result: this copy only frees its slot.
             self.release_unconfirming(worker, job_id, tile);
             return;

@@ -2,7 +2,8 @@
 //! and whether it takes tiles, and the [`Machine`] its failures count against. What
 //! the scheduler remembers of each connection, apart from the decisions made with it.
 
-use std::collections::BTreeSet;
+use std::collections::btree_map::Entry;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 use protocol::{JobId, SceneHash, WorkerId};
@@ -65,5 +66,54 @@ impl Worker {
     /// Whether it may be given new tiles.
     pub(super) fn takes_tiles(&self) -> bool {
         !self.draining && !self.disabled && !self.unresponsive
+    }
+}
+
+/// The workers whose progress a timeout checks (`Scheduler::overdue`), each filed under
+/// the earliest time it could be found unresponsive: its last progress plus
+/// [`Policy::progress_timeout`](super::Policy::progress_timeout), the least allowance
+/// any worker has. Its progress only moves later and its allowance is never less, so
+/// a timeout before that time could only find it in time: only the workers due are
+/// looked at, not every worker holding a tile late on a farm of thousands.
+#[derive(Default)]
+pub(super) struct Overdue {
+    by_time: BTreeSet<(Millis, WorkerId)>,
+    at: BTreeMap<WorkerId, Millis>,
+}
+
+impl Overdue {
+    /// Files the worker for the next timeout, unless it is filed already: its time
+    /// still holds.
+    pub(super) fn insert(&mut self, worker: WorkerId) {
+        if let Entry::Vacant(e) = self.at.entry(worker) {
+            e.insert(0);
+            self.by_time.insert((0, worker));
+        }
+    }
+
+    pub(super) fn remove(&mut self, worker: WorkerId) {
+        if let Some(at) = self.at.remove(&worker) {
+            self.by_time.remove(&(at, worker));
+        }
+    }
+
+    /// Files the worker to be looked at again at `at`.
+    pub(super) fn defer(&mut self, worker: WorkerId, at: Millis) {
+        if let Some(filed) = self.at.insert(worker, at) {
+            self.by_time.remove(&(filed, worker));
+        }
+        self.by_time.insert((at, worker));
+    }
+
+    /// The workers due by `now`, in id order.
+    pub(super) fn due(&self, now: Millis) -> Vec<WorkerId> {
+        let mut due: Vec<WorkerId> = self
+            .by_time
+            .iter()
+            .take_while(|(at, _)| *at <= now)
+            .map(|&(_, worker)| worker)
+            .collect();
+        due.sort_unstable();
+        due
     }
 }
