@@ -1,0 +1,392 @@
+//! The decision core (the tile scheduler and the lifecycle joined) against random
+//! histories of the inputs a daemon feeds it, checked after every input.
+//!
+//! The histories mix submissions whose rows are written or not, workers joining and
+//! leaving, results, reported failures, cancels, pauses and resumes, storage going down
+//! and coming back, images stored or not, ends written, and time passing. After every
+//! input, the two machines agree:
+//!
+//! - **Active means queued or running**: a job has tiles in the tile scheduler exactly
+//!   when the lifecycle shows it queued or running; a job whose row is being written has
+//!   none, nor has one that is finishing or has ended.
+//! - **Handed out means running**: a job one of whose tiles went out in this input
+//!   shows running (or has moved on since, within the same input).
+//! - **Each tile once**: a tile is accepted at most once.
+//! - **The image is due with the last tile**: `StoreImage` comes only once every tile
+//!   of the job is accepted, and at most once per run of the job until it is stored.
+//!
+//! Liveness: after any history, storage comes back, workers join, and every tile out
+//! is returned: every job the core acknowledged ends within a bounded number of inputs,
+//! and a job ends only once (one `RecordEnd`).
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use proptest::prelude::*;
+use protocol::{JobId, JobState, SceneHash, WorkerId};
+use scheduler::farm::{Effect, Farm, Input, TilePlan};
+use scheduler::lifecycle::{self, Lifecycle, Limits, Phase, Request};
+use scheduler::{Action, Event, Policy, Scheduler};
+
+#[derive(Clone, Debug)]
+enum Op {
+    Submit { tiles: u32 },
+    Store { pick: usize, ok: bool },
+    Join { worker: u8, threads: u32 },
+    Leave { worker: u8 },
+    Result { pick: usize },
+    Fail { pick: usize },
+    Cancel { pick: usize },
+    Pause { pick: usize },
+    Resume { pick: usize },
+    ImageStored { pick: usize, ok: bool },
+    EndRecorded { pick: usize },
+    Storage { ok: bool },
+    Advance { ms: u64 },
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        3 => (1u32..6).prop_map(|tiles| Op::Submit { tiles }),
+        3 => (any::<usize>(), prop::bool::weighted(0.85)).prop_map(|(pick, ok)| Op::Store { pick, ok }),
+        2 => (0u8..4, 1u32..3).prop_map(|(worker, threads)| Op::Join { worker, threads }),
+        1 => (0u8..4).prop_map(|worker| Op::Leave { worker }),
+        8 => any::<usize>().prop_map(|pick| Op::Result { pick }),
+        1 => any::<usize>().prop_map(|pick| Op::Fail { pick }),
+        1 => any::<usize>().prop_map(|pick| Op::Cancel { pick }),
+        1 => any::<usize>().prop_map(|pick| Op::Pause { pick }),
+        1 => any::<usize>().prop_map(|pick| Op::Resume { pick }),
+        3 => (any::<usize>(), prop::bool::weighted(0.8)).prop_map(|(pick, ok)| Op::ImageStored { pick, ok }),
+        3 => any::<usize>().prop_map(|pick| Op::EndRecorded { pick }),
+        1 => prop::bool::weighted(0.6).prop_map(|ok| Op::Storage { ok }),
+        2 => (1u64..3_000).prop_map(|ms| Op::Advance { ms }),
+    ]
+}
+
+fn scene(job: u64) -> SceneHash {
+    let mut hash = [0; 32];
+    hash[..8].copy_from_slice(&job.to_le_bytes());
+    hash
+}
+
+struct Run {
+    farm: Farm,
+    now: u64,
+    /// Workers connected, by the small number the history names them with.
+    connected: BTreeMap<u8, WorkerId>,
+    next_worker: WorkerId,
+    /// Jobs admitted, with their tile count.
+    jobs: BTreeMap<JobId, u32>,
+    /// Tiles out: (worker, job, tile) as assigned and not yet returned or withdrawn.
+    out: BTreeSet<(WorkerId, JobId, u32)>,
+    accepted: BTreeSet<(JobId, u32)>,
+    /// Jobs whose image the core asked to store, not yet reported stored.
+    storing: BTreeSet<JobId>,
+    /// Jobs whose end the core asked to write, not yet reported written.
+    ending: BTreeSet<JobId>,
+    ends: BTreeMap<JobId, u32>,
+}
+
+impl Run {
+    fn new() -> Run {
+        let policy = Policy {
+            max_attempts: 3,
+            ..Policy::default()
+        };
+        Run {
+            farm: Farm::new(
+                Scheduler::with_policy(policy),
+                Lifecycle::new(Limits::default(), 1),
+            ),
+            now: 0,
+            connected: BTreeMap::new(),
+            next_worker: 1,
+            jobs: BTreeMap::new(),
+            out: BTreeSet::new(),
+            accepted: BTreeSet::new(),
+            storing: BTreeSet::new(),
+            ending: BTreeSet::new(),
+            ends: BTreeMap::new(),
+        }
+    }
+
+    fn pick_job(&self, pick: usize) -> Option<JobId> {
+        let ids: Vec<JobId> = self.jobs.keys().copied().collect();
+        (!ids.is_empty()).then(|| ids[pick % ids.len()])
+    }
+
+    fn pick_out(&self, pick: usize) -> Option<(WorkerId, JobId, u32)> {
+        let out: Vec<_> = self.out.iter().copied().collect();
+        (!out.is_empty()).then(|| out[pick % out.len()])
+    }
+
+    fn phase(&self, job: JobId) -> Option<Phase> {
+        self.farm.lifecycle().job(job).map(|j| j.phase.clone())
+    }
+
+    fn input(&mut self, input: Input) {
+        let effects = self.farm.handle(self.now, input);
+        self.absorb(&effects);
+    }
+
+    /// Follows the effects as an executor would, and checks what they promise.
+    fn absorb(&mut self, effects: &[Effect]) {
+        let mut assigned = BTreeSet::new();
+        for effect in effects {
+            match effect {
+                Effect::Tiles(Action::Assign { worker, job, tile }) => {
+                    self.out.insert((*worker, *job, *tile));
+                    assigned.insert(*job);
+                }
+                Effect::Tiles(Action::AcceptTile { job, tile }) => {
+                    assert!(
+                        self.accepted.insert((*job, *tile)),
+                        "tile {tile} of job {job} accepted twice"
+                    );
+                }
+                Effect::Tiles(Action::CancelOnWorker { worker, job }) => {
+                    self.out.retain(|&(w, j, _)| !(w == *worker && j == *job));
+                }
+                Effect::Tiles(Action::DropWorker { worker }) => {
+                    self.connected.retain(|_, w| w != worker);
+                    self.out.retain(|&(w, _, _)| w != *worker);
+                    self.input(Input::Tiles(Event::WorkerLeft { worker: *worker }));
+                }
+                Effect::Job(lifecycle::Action::StoreImage { job }) => {
+                    let tiles = self.jobs[job];
+                    let accepted = (0..tiles)
+                        .filter(|t| self.accepted.contains(&(*job, *t)))
+                        .count();
+                    assert_eq!(
+                        accepted, tiles as usize,
+                        "job {job}'s image asked for with {accepted} of {tiles} tiles"
+                    );
+                    self.storing.insert(*job);
+                }
+                Effect::Job(lifecycle::Action::RecordEnd { job, .. }) => {
+                    *self.ends.entry(*job).or_default() += 1;
+                    self.ending.insert(*job);
+                }
+                _ => {}
+            }
+        }
+        for job in assigned {
+            let phase = self.phase(job);
+            assert!(
+                !matches!(phase, Some(Phase::Storing | Phase::Queued) | None),
+                "job {job} handed out while {phase:?}"
+            );
+        }
+    }
+
+    fn check(&self) {
+        for &job in self.jobs.keys() {
+            let phase = self.phase(job);
+            let runs = matches!(phase, Some(Phase::Queued | Phase::Running));
+            assert_eq!(
+                self.farm.tiles().is_active(job),
+                runs,
+                "job {job}: active in the tile scheduler, but {phase:?}"
+            );
+        }
+        for (&job, &count) in &self.ends {
+            assert_eq!(count, 1, "job {job} ended {count} times");
+        }
+    }
+
+    fn apply(&mut self, op: &Op) {
+        match *op {
+            Op::Submit { tiles } => {
+                let request = Request {
+                    client: None,
+                    scene_bytes: 10,
+                    objects: 1,
+                    width: 8,
+                    height: 8,
+                    aa: 1,
+                };
+                let next = self.jobs.keys().last().map_or(1, |j| j + 1);
+                let plan = TilePlan {
+                    priority: 0,
+                    scene: scene(next),
+                    tiles,
+                    interactive: false,
+                    in_passes: false,
+                };
+                if let Ok(job) = self.farm.admit(self.now, &request, plan) {
+                    self.jobs.insert(job, tiles);
+                }
+            }
+            Op::Store { pick, ok } => {
+                let Some(job) = self.pick_job(pick) else {
+                    return;
+                };
+                if self.phase(job) != Some(Phase::Storing) {
+                    return;
+                }
+                let event = if ok {
+                    lifecycle::Event::Stored { job }
+                } else {
+                    lifecycle::Event::StoreFailed {
+                        job,
+                        message: "disk full".into(),
+                    }
+                };
+                self.input(Input::Job(event));
+                if !ok {
+                    self.jobs.remove(&job);
+                }
+            }
+            Op::Join { worker, threads } => {
+                if self.connected.contains_key(&worker) {
+                    return;
+                }
+                let id = self.next_worker;
+                self.next_worker += 1;
+                self.connected.insert(worker, id);
+                self.input(Input::Tiles(Event::WorkerJoined {
+                    worker: id,
+                    threads,
+                    machine: Some(format!("m{worker}")),
+                }));
+            }
+            Op::Leave { worker } => {
+                if let Some(id) = self.connected.remove(&worker) {
+                    self.out.retain(|&(w, _, _)| w != id);
+                    self.input(Input::Tiles(Event::WorkerLeft { worker: id }));
+                }
+            }
+            Op::Result { pick } => {
+                if let Some((worker, job, tile)) = self.pick_out(pick) {
+                    self.out.remove(&(worker, job, tile));
+                    self.input(Input::Tiles(Event::TileDone { worker, job, tile }));
+                }
+            }
+            Op::Fail { pick } => {
+                if let Some((worker, job, tile)) = self.pick_out(pick) {
+                    self.out.remove(&(worker, job, tile));
+                    self.input(Input::Tiles(Event::TileFailed {
+                        worker,
+                        job,
+                        tile,
+                        message: "out of memory".into(),
+                    }));
+                }
+            }
+            Op::Cancel { pick } => {
+                if let Some(job) = self.pick_job(pick) {
+                    self.input(Input::Job(lifecycle::Event::Cancel { job }));
+                }
+            }
+            Op::Pause { pick } => {
+                if let Some(job) = self.pick_job(pick) {
+                    self.input(Input::Tiles(Event::PauseJob { job }));
+                }
+            }
+            Op::Resume { pick } => {
+                if let Some(job) = self.pick_job(pick) {
+                    self.input(Input::Tiles(Event::ResumeJob { job }));
+                }
+            }
+            Op::ImageStored { pick, ok } => {
+                let stored: Vec<JobId> = self.storing.iter().copied().collect();
+                if stored.is_empty() {
+                    return;
+                }
+                let job = stored[pick % stored.len()];
+                self.storing.remove(&job);
+                let result = if ok { Ok(()) } else { Err("disk full".into()) };
+                self.input(Input::Job(lifecycle::Event::ImageStored { job, result }));
+            }
+            Op::EndRecorded { pick } => {
+                let ending: Vec<JobId> = self.ending.iter().copied().collect();
+                if ending.is_empty() {
+                    return;
+                }
+                let job = ending[pick % ending.len()];
+                self.ending.remove(&job);
+                self.input(Input::Job(lifecycle::Event::EndRecorded { job }));
+            }
+            Op::Storage { ok } => {
+                let status = if ok { Ok(()) } else { Err("disk full".into()) };
+                self.input(Input::Storage(status));
+            }
+            Op::Advance { ms } => {
+                self.now += ms;
+                // Connected workers talk at least once a second.
+                let workers: Vec<WorkerId> = self.connected.values().copied().collect();
+                for worker in workers {
+                    self.input(Input::Tiles(Event::Heartbeat { worker }));
+                }
+                self.input(Input::Timeout);
+            }
+        }
+        self.check();
+    }
+
+    /// Storage comes back, the rows are written, a worker joins, and every tile out
+    /// comes back, every image and end is written: every job ends.
+    fn settle(&mut self) {
+        self.apply(&Op::Storage { ok: true });
+        self.apply(&Op::Join {
+            worker: 9,
+            threads: 2,
+        });
+        for _ in 0..2_000 {
+            let storing: Vec<JobId> = self
+                .jobs
+                .keys()
+                .copied()
+                .filter(|&j| self.phase(j) == Some(Phase::Storing))
+                .collect();
+            for job in storing {
+                self.input(Input::Job(lifecycle::Event::Stored { job }));
+            }
+            let jobs: Vec<JobId> = self.jobs.keys().copied().collect();
+            for job in jobs {
+                self.input(Input::Tiles(Event::ResumeJob { job }));
+            }
+            if !self.out.is_empty() {
+                self.apply(&Op::Result { pick: 0 });
+            } else if !self.storing.is_empty() {
+                self.apply(&Op::ImageStored { pick: 0, ok: true });
+            } else if !self.ending.is_empty() {
+                self.apply(&Op::EndRecorded { pick: 0 });
+            } else if self
+                .jobs
+                .keys()
+                .all(|&j| self.phase(j).is_some_and(|p| p.has_ended()))
+            {
+                break;
+            } else {
+                self.apply(&Op::Advance { ms: 1_000 });
+            }
+        }
+        for &job in self.jobs.keys() {
+            let phase = self.phase(job);
+            assert!(
+                matches!(
+                    phase,
+                    Some(Phase::Ended {
+                        recorded: true,
+                        state: JobState::Done | JobState::Failed | JobState::Cancelled,
+                        ..
+                    })
+                ),
+                "job {job} never ended: {phase:?}"
+            );
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+
+    #[test]
+    fn the_two_machines_agree_after_every_input(ops in prop::collection::vec(op(), 1..150)) {
+        let mut run = Run::new();
+        for op in &ops {
+            run.apply(op);
+        }
+        run.settle();
+    }
+}
