@@ -136,7 +136,7 @@ pub use events::{Action, Event};
 pub use handout::INTERACTIVE_RUN;
 use job::{Job, JobRank, Lease, TileState};
 pub use policy::Policy;
-use worker::{name_list, Machine, Overdue, Worker};
+use worker::{name_list, ByWorker, Machine, Overdue, Worker};
 
 /// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
 pub type Millis = u64;
@@ -156,7 +156,7 @@ pub struct Scheduler {
     jobs: BTreeMap<JobId, Job>,
     /// The active jobs in the order a free slot serves them ([`Job::rank`]).
     order: BTreeSet<JobRank>,
-    workers: BTreeMap<WorkerId, Worker>,
+    workers: ByWorker<Worker>,
     /// When each worker was heard from, oldest first, so that a timeout looks only at
     /// those that fell silent: every message appends (the clock never goes back, so
     /// the queue stays in order), and an entry older than its worker's last one is
@@ -649,12 +649,13 @@ impl Scheduler {
         } else {
             self.disabled.remove(&machine);
         }
-        let workers: Vec<WorkerId> = self
+        let mut workers: Vec<WorkerId> = self
             .workers
             .iter()
             .filter(|(_, w)| w.machine == machine && w.disabled != disabled)
             .map(|(&id, _)| id)
             .collect();
+        workers.sort_unstable();
         for worker in workers {
             let w = self.workers.get_mut(&worker).expect("listed above");
             let was_ready = w.takes_tiles();

@@ -73,12 +73,13 @@ impl Scheduler {
         if !self.quarantined.insert(machine.clone()) {
             // Already shut out; revoked tiles still go back.
         }
-        let workers: Vec<WorkerId> = self
+        let mut workers: Vec<WorkerId> = self
             .workers
             .iter()
             .filter(|(_, w)| w.machine == machine)
             .map(|(&id, _)| id)
             .collect();
+        workers.sort_unstable();
         for worker in workers {
             let w = self.workers.get_mut(&worker).expect("listed above");
             let was_ready = w.takes_tiles();

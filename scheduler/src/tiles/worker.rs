@@ -2,9 +2,10 @@
 //! and whether it takes tiles, and the [`Machine`] its failures count against. What
 //! the scheduler remembers of each connection, apart from the decisions made with it.
 
-use std::collections::btree_map::Entry;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::hash_map::Entry;
+use std::collections::{BTreeSet, HashMap};
 use std::fmt;
+use std::hash::{BuildHasherDefault, Hasher};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -78,7 +79,7 @@ impl Worker {
 #[derive(Default)]
 pub(super) struct Overdue {
     by_time: BTreeSet<(Millis, WorkerId)>,
-    at: BTreeMap<WorkerId, Millis>,
+    at: ByWorker<Millis>,
 }
 
 impl Overdue {
@@ -117,3 +118,29 @@ impl Overdue {
         due
     }
 }
+
+/// Hashes a worker id (a counter) by one multiplication: the maps keyed by worker are
+/// looked up on every message of every worker, and a general-purpose hash of eight
+/// bytes costs more than the lookup itself. Nothing walks them in an order that
+/// decides anything (what does sorts first).
+#[derive(Default)]
+pub(super) struct IdHasher(u64);
+
+impl Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+
+    fn write_u64(&mut self, id: u64) {
+        self.0 = id.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+}
+
+/// A map keyed by worker id, hashed with [`IdHasher`].
+pub(super) type ByWorker<V> = HashMap<WorkerId, V, BuildHasherDefault<IdHasher>>;
