@@ -136,7 +136,7 @@ pub use events::{Action, Event};
 pub use handout::INTERACTIVE_RUN;
 use job::{Job, JobRank, Lease, TileState};
 pub use policy::Policy;
-use worker::{name_list, ByWorker, Machine, Overdue, Worker};
+use worker::{name_list, ByTile, ByWorker, Machine, Overdue, Worker};
 
 /// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
 pub type Millis = u64;
@@ -521,6 +521,7 @@ impl Scheduler {
                 }
             }
         }
+        out.sort_unstable_by_key(|&(job, tile, worker, _)| (job, tile, worker));
         out
     }
 

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
-use super::{name_list, Counters, Machine, Millis, Overdue, Policy};
+use super::{name_list, ByTile, Counters, Machine, Millis, Overdue, Policy};
 
 /// One assignment of a tile to a worker.
 #[derive(Clone, Copy, Debug)]
@@ -64,7 +64,9 @@ pub(super) struct Job {
     /// The tiles waiting: the entries of `waiting` that are not stale.
     pub(super) queued: u32,
     pub(super) state: Vec<TileState>,
-    pub(super) in_flight: BTreeMap<u32, Vec<Lease>>,
+    /// Looked up on every result, every assignment and every lease's end, so hashed;
+    /// what walks it in an order that decides or shows anything sorts first.
+    pub(super) in_flight: ByTile<Vec<Lease>>,
     /// The tiles of `in_flight` with exactly one live lease, by [`straggler_key`] then
     /// number: the candidates for a copy, the one out longest first. Kept so that a
     /// worker with free credit finds its straggler without walking every tile in
@@ -103,7 +105,7 @@ impl Job {
             waiting: (0..tiles).collect(),
             queued: tiles,
             state: vec![TileState::Waiting; tiles as usize],
-            in_flight: BTreeMap::new(),
+            in_flight: ByTile::default(),
             stragglers: BTreeSet::new(),
             deadlines: BTreeSet::new(),
             remaining: tiles,

@@ -119,8 +119,8 @@ impl Overdue {
     }
 }
 
-/// Hashes a worker id (a counter) by one multiplication: the maps keyed by worker are
-/// looked up on every message of every worker, and a general-purpose hash of eight
+/// Hashes a worker id or a tile number (counters) by one multiplication: the maps keyed
+/// by them are looked up on every message of every worker, and a general-purpose hash of eight
 /// bytes costs more than the lookup itself. Nothing walks them in an order that
 /// decides anything (what does sorts first).
 #[derive(Default)]
@@ -140,7 +140,14 @@ impl Hasher for IdHasher {
     fn write_u64(&mut self, id: u64) {
         self.0 = id.wrapping_mul(0x9E37_79B9_7F4A_7C15);
     }
+
+    fn write_u32(&mut self, id: u32) {
+        self.write_u64(u64::from(id));
+    }
 }
 
 /// A map keyed by worker id, hashed with [`IdHasher`].
 pub(super) type ByWorker<V> = HashMap<WorkerId, V, BuildHasherDefault<IdHasher>>;
+
+/// A map keyed by a job's tile number, hashed with [`IdHasher`].
+pub(super) type ByTile<V> = HashMap<u32, V, BuildHasherDefault<IdHasher>>;
