@@ -526,3 +526,54 @@ fn a_quarantine_takes_back_the_machines_tiles_and_the_job_waits_for_them() {
     }
     assert!(image_due(&effects, job), "{effects:?}");
 }
+
+/// A worker whose render threads hang keeps talking but returns nothing: once its
+/// leases run out and its allowance is past, it is marked unresponsive, its tiles go
+/// to a worker that renders, and the job's image is due all the same.
+#[test]
+fn a_hung_worker_is_worked_around_and_the_job_ends() {
+    let mut f = farm();
+    join(&mut f, 1, 1);
+    let job = stored_job(&mut f, 2);
+    assert_eq!(f.tiles().held_by(1), 2);
+    join(&mut f, 2, 1);
+    let mut now = 0;
+    let mut marked = false;
+    let mut taken = Vec::new();
+    while now < 5 * 60_000 && !marked {
+        now += 1_000;
+        for worker in [1, 2] {
+            f.handle(now, Input::Tiles(Event::Heartbeat { worker }));
+        }
+        let effects = f.handle(now, Input::Timeout);
+        marked |= effects.iter().any(|e| {
+            matches!(
+                e,
+                Effect::Tiles(Action::WorkerUnresponsive { worker: 1, .. })
+            )
+        });
+        taken.extend(assigned(&effects).into_iter().filter(|a| a.0 == 2));
+    }
+    assert!(marked, "worker 1 never marked unresponsive");
+    let mut effects = Vec::new();
+    for _ in 0..4 {
+        for (_, _, tile) in std::mem::take(&mut taken) {
+            effects = f.handle(
+                now,
+                Input::Tiles(Event::TileDone {
+                    worker: 2,
+                    job,
+                    tile,
+                }),
+            );
+            taken.extend(assigned(&effects).into_iter().filter(|a| a.0 == 2));
+        }
+        if image_due(&effects, job) {
+            break;
+        }
+        now += 1_000;
+        let timeout = f.handle(now, Input::Timeout);
+        taken.extend(assigned(&timeout).into_iter().filter(|a| a.0 == 2));
+    }
+    assert!(image_due(&effects, job), "{effects:?}");
+}
