@@ -445,10 +445,20 @@ impl Server {
 
 /// Wakes the state machines when their next deadline comes, with the timer slack of
 /// [`scheduler::TIMER_SLACK`] (and when something changed, to look at the deadline
-/// again). No periodic tick: an idle coordinator sleeps.
+/// again); at once, between two inputs, while the core has tiles left to hand out (a
+/// hand-out is cut into bounded calls, so that the lock is never held long). No
+/// periodic tick: an idle coordinator sleeps.
 async fn timer(sh: Arc<Shared>) {
     loop {
-        let deadline = sh.lock().next_deadline(sh.now()).map(scheduler::wake_time);
+        let (deadline, more) = {
+            let core = sh.lock();
+            let more = core.farm.has_more();
+            let deadline = match core.next_deadline(sh.now()) {
+                _ if more => Some(sh.now()),
+                deadline => deadline.map(scheduler::wake_time),
+            };
+            (deadline, more)
+        };
         let sleep = async {
             match deadline {
                 Some(at) => {
@@ -460,7 +470,11 @@ async fn timer(sh: Arc<Shared>) {
         };
         tokio::select! {
             () = sleep => {
-                sh.lock().timeout(&sh);
+                if more {
+                    sh.lock().tiles_event(&sh, scheduler::Event::Continue);
+                } else {
+                    sh.lock().timeout(&sh);
+                }
                 sh.changed();
             }
             () = sh.rearm.notified() => {}

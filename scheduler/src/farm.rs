@@ -113,6 +113,14 @@ impl Farm {
             .min()
     }
 
+    /// Whether the last input stopped handing out tiles at the bound of one call
+    /// ([`Policy::handout_per_call`](crate::Policy::handout_per_call)): the executor
+    /// feeds `Input::Tiles(Event::Continue)` at once, after anything that arrived
+    /// meanwhile.
+    pub fn has_more(&self) -> bool {
+        self.tiles.has_more()
+    }
+
     /// Feeds one input, and the follow-ups it causes, at `now`.
     pub fn handle(&mut self, now: Millis, input: Input) -> Vec<Effect> {
         let mut effects = Vec::new();

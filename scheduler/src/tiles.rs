@@ -16,6 +16,10 @@
 //!   tiles, with half a round trip to spare for the round trip's jitter).
 //!   It is capped at [`Policy::max_credit_per_thread`] per thread, so that the tail of
 //!   a job never waits behind a deep queue; stragglers are still copied.
+//! - **Bounded calls.** One call hands out at most [`Policy::handout_per_call`] tiles:
+//!   a job of thousands of tiles submitted to thousands of idle threads goes out over
+//!   several calls ([`Scheduler::has_more`], then [`Event::Continue`]), in the same
+//!   order, and what arrives meanwhile is heard in between.
 //! - **Results confirmed by another machine.** A result the daemon wants confirmed
 //!   ([`Event::TileToConfirm`]: every tile of a job in full verification, a random
 //!   share of the others) is held, not accepted: the tile goes back to the queue for
@@ -194,6 +198,10 @@ pub struct Scheduler {
     /// runs out or its copy becomes late, and leaves when a timeout finds it holds
     /// nothing late; a timeout looks only at those due ([`Overdue`]).
     overdue: Overdue,
+    /// Tiles this call may still hand out ([`Policy::handout_per_call`]), and whether
+    /// a call stopped at that bound with tiles left to hand out.
+    handout_left: usize,
+    more: bool,
     counters: Counters,
 }
 
@@ -228,6 +236,7 @@ impl Scheduler {
     /// smaller value is taken as the last one) and returns the actions, in order.
     pub fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
         self.advance(now);
+        self.handout_left = self.policy.handout_per_call.max(1);
         let mut actions = Vec::new();
         match event {
             Event::Timeout => {
@@ -283,6 +292,7 @@ impl Scheduler {
                 self.fill(worker, &mut actions);
             }
             Event::Heartbeat { worker } => self.seen(worker),
+            Event::Continue => self.fill_all(&mut actions),
             Event::WorkerLeft { worker } => {
                 self.remove_worker(worker, &mut actions);
                 self.fill_all(&mut actions);
@@ -476,6 +486,7 @@ impl Scheduler {
         done: &[u32],
     ) -> Vec<Action> {
         self.advance(now);
+        self.handout_left = self.policy.handout_per_call.max(1);
         let mut actions = Vec::new();
         let mut j = Job::new(priority, scene, tiles);
         for &tile in done.iter().filter(|t| **t < tiles) {
@@ -622,6 +633,13 @@ impl Scheduler {
             }
             self.by_last_seen.pop_front();
         }
+    }
+
+    /// Whether the last call stopped at [`Policy::handout_per_call`] with tiles left
+    /// to hand out: the daemon feeds [`Event::Continue`] at once, after whatever
+    /// arrived meanwhile (any call that fills goes on where it stopped).
+    pub fn has_more(&self) -> bool {
+        self.more
     }
 
     /// Whether some connected worker may be given tiles: none that is draining,

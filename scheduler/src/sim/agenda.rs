@@ -47,6 +47,9 @@ pub(super) enum Down {
 pub(super) enum Ev {
     /// The daemon's timer, armed for the earlier of the two machines' next deadlines.
     Wake,
+    /// The core stopped handing out tiles at the bound of one call: it goes on at
+    /// once, after what arrived first.
+    Continue,
     /// A client's submission of the job (its index in the run) reaches the coordinator.
     Submit {
         job: usize,
@@ -133,6 +136,7 @@ impl Ev {
         matches!(
             self,
             Ev::Wake
+                | Ev::Continue
                 | Ev::Submit { .. }
                 | Ev::Arrival { .. }
                 | Ev::ConnectionTaskLeft { .. }

@@ -11,7 +11,7 @@ use crate::farm::{Effect, Farm, Input, TilePlan};
 use crate::lifecycle;
 use crate::tiles::{Action, Event, Millis};
 
-pub(super) const EVENT_KINDS: [&str; 21] = [
+pub(super) const EVENT_KINDS: [&str; 22] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -33,6 +33,7 @@ pub(super) const EVENT_KINDS: [&str; 21] = [
     "EnableMachine",
     "RequeueTiles",
     "Interactive",
+    "Continue",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -58,6 +59,7 @@ fn kind_of(event: &Event) -> usize {
         Event::EnableMachine { .. } => 18,
         Event::RequeueTiles { .. } => 19,
         Event::Interactive { .. } => 20,
+        Event::Continue => 21,
     }
 }
 

@@ -200,6 +200,8 @@ struct Sim<'a> {
     storage_rng: Rng,
     /// When the daemon's timer is armed for (the earliest wake pending), if it is.
     wake_at: Option<Micros>,
+    /// A `Continue` is on the agenda for the core's hand-out cut short.
+    continuing: bool,
     /// The coordinator is stopped: what it should handle waits here, in order.
     paused: bool,
     backlog: Vec<Ev>,
@@ -268,6 +270,7 @@ impl<'a> Sim<'a> {
             cuts_rng: Rng::new(cfg.seed, STREAM_CUTS),
             storage_rng: Rng::new(cfg.seed, STREAM_STORAGE),
             wake_at: None,
+            continuing: false,
             paused: false,
             backlog: Vec::new(),
             capacity: Vec::new(),
@@ -358,6 +361,9 @@ impl<'a> Sim<'a> {
         let effects = self.core.handle(self.now / MS, input);
         self.model.now = self.model.now.max(self.core.core.tiles().clock());
         self.arm_wake(self.core.core.next_deadline());
+        if self.core.core.has_more() && !std::mem::replace(&mut self.continuing, true) {
+            self.agenda.push(self.now, Ev::Continue);
+        }
         effects
     }
 
@@ -403,6 +409,10 @@ impl<'a> Sim<'a> {
                 if self.wake_at == Some(self.now) {
                     self.timeout();
                 }
+            }
+            Ev::Continue => {
+                self.continuing = false;
+                self.feed(Input::Tiles(Event::Continue));
             }
             Ev::CoordinatorPause => {
                 self.paused = true;

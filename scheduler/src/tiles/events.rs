@@ -135,6 +135,11 @@ pub enum Event {
         job: JobId,
         tiles: Vec<u32>,
     },
+    /// The last call stopped at the hand-out bound ([`Scheduler::has_more`]): hand out
+    /// the next share of what is left, and nothing else.
+    ///
+    /// [`Scheduler::has_more`]: super::Scheduler::has_more
+    Continue,
 }
 
 /// What the daemon must do.

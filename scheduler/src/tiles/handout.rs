@@ -60,6 +60,7 @@ impl Scheduler {
     /// not visited (they stay listed as hungry), so that a farm of many idle workers
     /// costs each event the number of jobs, not of workers.
     pub(super) fn fill_all(&mut self, actions: &mut Vec<Action>) {
+        self.more = false;
         if self.storage_down || !self.anything_to_hand_out() {
             return;
         }
@@ -69,6 +70,11 @@ impl Scheduler {
             self.fill(worker, actions);
             // Only a tile handed out can close the last one open.
             if actions.len() != before && !self.anything_to_hand_out() {
+                self.more = false;
+                return;
+            }
+            if self.more {
+                // This call's share is out; the next call goes on from here.
                 return;
             }
         }
@@ -98,6 +104,11 @@ impl Scheduler {
             };
             if !worker.takes_tiles() || worker.holding.len() >= worker.credit {
                 self.hungry.remove(&worker_id);
+                return;
+            }
+            if self.handout_left == 0 {
+                // The worker stays hungry: the next call fills it.
+                self.more = true;
                 return;
             }
             let Some((job_id, tile)) = self.next_tile(worker_id) else {
@@ -143,6 +154,7 @@ impl Scheduler {
                 job: job_id,
                 tile,
             });
+            self.handout_left -= 1;
         }
     }
 

@@ -44,6 +44,14 @@ pub struct Policy {
     /// ... or this many times its pace (its slowest time per result, or the slowest
     /// measured tile of the jobs it holds), when that is longer.
     pub progress_factor: u64,
+    /// The most tiles one call hands out. A call that could hand out more (a job of
+    /// thousands of tiles submitted to a farm of thousands of idle threads) stops
+    /// there and asks to be called again at once ([`Scheduler::has_more`]): the
+    /// daemon holds its lock for a bounded time, and what arrived meanwhile is heard
+    /// between two calls. The tiles go out in the same order either way.
+    ///
+    /// [`Scheduler::has_more`]: super::Scheduler::has_more
+    pub handout_per_call: usize,
 }
 
 impl Default for Policy {
@@ -63,6 +71,7 @@ impl Default for Policy {
             wake_interval: 1_000,
             progress_timeout: 20_000,
             progress_factor: 16,
+            handout_per_call: 256,
         }
     }
 }

@@ -1183,6 +1183,10 @@ fn credit_covers_the_round_trip_within_its_cap() {
             tile: 1,
         },
     );
+    // Over two calls: one hands out at most `handout_per_call` tiles.
+    assert!(s.has_more());
+    s.handle(2, Event::Continue);
+    assert!(!s.has_more());
     assert_eq!(s.held_by(1), 2 * 256, "capped per thread");
     s.handle(
         3,
@@ -1288,6 +1292,9 @@ fn a_huge_round_trip_reaches_the_cap() {
                 tile,
             },
         );
+        while s.has_more() {
+            s.handle(1, Event::Continue);
+        }
         let cap = Policy::default().max_credit_per_thread as usize;
         assert_eq!(s.held_by(1), 2 * cap);
     }
@@ -1388,4 +1395,33 @@ fn a_quarantined_machine_holds_nothing_even_of_a_replaced_job() {
     );
     assert_eq!(s.held_by(1), 0);
     assert_eq!(s.tiles_in_flight(), 0);
+}
+
+/// A call hands out at most `handout_per_call` tiles and asks to go on; the
+/// `Continue`s that follow hand out the rest, in the very order one unbounded call
+/// would have.
+#[test]
+fn a_large_hand_out_is_cut_into_bounded_calls_in_the_same_order() {
+    let run = |per_call: usize| {
+        let mut s = Scheduler::with_policy(Policy {
+            handout_per_call: per_call,
+            ..Policy::default()
+        });
+        for worker in 1..=40 {
+            join(&mut s, worker, 4);
+        }
+        let mut all = assigns(&submit(&mut s, 1, 0, SCENE_A, 1000));
+        let mut calls = 1;
+        while s.has_more() {
+            all.extend(assigns(&s.handle(0, Event::Continue)));
+            calls += 1;
+        }
+        (all, calls)
+    };
+    let (bounded, calls) = run(64);
+    let (whole, one) = run(usize::MAX);
+    assert_eq!(one, 1);
+    assert_eq!(whole.len(), 40 * 8, "every worker holds its credit");
+    assert_eq!(calls, 5, "320 tiles, 64 a call");
+    assert_eq!(bounded, whole);
 }

@@ -128,6 +128,8 @@ fn no_speculation() -> Policy {
 fn clocked_policy() -> Policy {
     Policy {
         stall_timeout: 4_000,
+        // The model's deadlines know nothing of hand-outs cut into several calls.
+        handout_per_call: usize::MAX,
         ..Policy::default()
     }
 }
@@ -995,8 +997,12 @@ impl Farm {
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
             | Event::RequeueTiles { .. }
-            | Event::Interactive { .. } => {
-                unreachable!("no operator control is generated here: the unit tests cover them")
+            | Event::Interactive { .. }
+            | Event::Continue => {
+                unreachable!(
+                    "no operator control nor continuation is generated here: the unit tests \
+                     cover them"
+                )
             }
             Event::Timeout => {
                 self.last_timeout = self.clock;
@@ -3400,8 +3406,12 @@ fn reference_event(event: &Event) -> reference::Event {
         | Event::DisableMachine { .. }
         | Event::EnableMachine { .. }
         | Event::RequeueTiles { .. }
-        | Event::Interactive { .. } => {
-            unreachable!("no operator control is generated here: the unit tests cover them")
+        | Event::Interactive { .. }
+        | Event::Continue => {
+            unreachable!(
+                "no operator control nor continuation is generated here: the unit tests cover \
+                 them"
+            )
         }
         Event::Timeout => R::Timeout,
         Event::WorkerJoined {
@@ -3504,8 +3514,12 @@ impl Twin {
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
             | Event::RequeueTiles { .. }
-            | Event::Interactive { .. } => {
-                unreachable!("no operator control is generated here: the unit tests cover them")
+            | Event::Interactive { .. }
+            | Event::Continue => {
+                unreachable!(
+                    "no operator control nor continuation is generated here: the unit tests \
+                     cover them"
+                )
             }
             Event::Timeout | Event::StorageUnavailable | Event::StorageAvailable => {}
             Event::WorkerJoined { worker, .. }
@@ -3792,6 +3806,8 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                 wake_interval,
                 progress_timeout,
                 progress_factor,
+                // The reference hands out everything in one call.
+                handout_per_call: usize::MAX,
             },
         )
 }
