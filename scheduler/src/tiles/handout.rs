@@ -4,6 +4,7 @@
 //! place tiles go out, kept apart from how they come back.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::ops::Bound::{Excluded, Unbounded};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
@@ -64,8 +65,18 @@ impl Scheduler {
         if self.storage_down || !self.anything_to_hand_out() {
             return;
         }
-        let ids: Vec<WorkerId> = self.hungry.iter().copied().collect();
-        for worker in ids {
+        // Walked in place, not copied: a call that stops at its bound must not pay for
+        // every hungry worker of a large farm.
+        let mut after = None;
+        loop {
+            let next = match after {
+                None => self.hungry.first(),
+                Some(last) => self.hungry.range((Excluded(last), Unbounded)).next(),
+            };
+            let Some(&worker) = next else {
+                return;
+            };
+            after = Some(worker);
             let before = actions.len();
             self.fill(worker, actions);
             // Only a tile handed out can close the last one open.
