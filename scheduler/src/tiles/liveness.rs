@@ -60,6 +60,16 @@ impl Scheduler {
                 self.overdue.remove(id);
                 continue;
             };
+            // Not silent for the least allowance yet: it cannot be marked now, whatever
+            // it holds, so what it holds is looked at only once it may be (a lease
+            // running out on thousands of busy workers at once costs a lookup each).
+            let least = w
+                .progress_since
+                .saturating_add(self.policy.progress_timeout);
+            if !w.unresponsive && now <= least {
+                self.overdue.defer(id, least.saturating_add(1));
+                continue;
+            }
             let mut late = false;
             let mut pace = w.slowest_result;
             for (job_id, tile) in &w.holding {
