@@ -225,40 +225,31 @@ impl Farm {
     }
 
     fn job_event(&mut self, now: Millis, event: lifecycle::Event, effects: &mut Vec<Effect>) {
-        if let lifecycle::Event::Deleted { job } = &event {
-            self.plans.remove(job);
-        }
-        if let lifecycle::Event::StoreFailed { job, .. } = &event {
+        if let lifecycle::Event::Deleted { job } | lifecycle::Event::StoreFailed { job, .. } =
+            &event
+        {
             self.plans.remove(job);
         }
         for action in self.lifecycle.handle(now, event) {
-            let next = match &action {
-                lifecycle::Action::Acknowledge { job } => self.plans.get(job).map(|p| {
-                    (
-                        Event::JobSubmitted {
+            let next: Vec<Event> = match &action {
+                lifecycle::Action::Acknowledge { job } => {
+                    self.plans.get(job).map_or_else(Vec::new, |p| {
+                        let submitted = Event::JobSubmitted {
                             job: *job,
                             priority: p.priority,
                             scene: p.scene,
                             tiles: p.tiles,
-                        },
-                        p.interactive,
-                    )
-                }),
-                lifecycle::Action::CancelTiles { job } => {
-                    Some((Event::CancelJob { job: *job }, false))
+                        };
+                        let interactive = p.interactive.then_some(Event::Interactive { job: *job });
+                        std::iter::once(submitted).chain(interactive).collect()
+                    })
                 }
-                _ => None,
-            };
-            let job = match &action {
-                lifecycle::Action::Acknowledge { job } => Some(*job),
-                _ => None,
+                lifecycle::Action::CancelTiles { job } => vec![Event::CancelJob { job: *job }],
+                _ => Vec::new(),
             };
             effects.push(Effect::Job(action));
-            if let Some((event, interactive)) = next {
+            for event in next {
                 self.tiles_event(now, event, effects);
-                if let (true, Some(job)) = (interactive, job) {
-                    self.tiles_event(now, Event::Interactive { job }, effects);
-                }
             }
         }
     }
