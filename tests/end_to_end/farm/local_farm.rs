@@ -409,3 +409,43 @@ fn up_takes_the_antialiasing_render_takes() {
     );
     assert_same_png(&dir.path().join("out.png"), &reference, "up --aa 20");
 }
+
+/// A hand-out larger than one call's bound (256 tiles): four workers of 64 threads,
+/// connected before the job comes, take 512 tiles of its 4,800 at once, so the
+/// coordinator hands them out over several calls. The image is `tessera render`'s,
+/// byte for byte.
+#[test]
+fn a_hand_out_cut_into_bounded_calls_gives_renders_image() {
+    let _turn = shared();
+    let dir = tempfile::tempdir().unwrap();
+    let (_coordinator, addr) = crate::support::start_coordinator_in(dir.path());
+    let _workers: Vec<Daemon> = (1..=4)
+        .map(|i| {
+            let name = format!("w{i}");
+            let args = [
+                "worker",
+                "--coordinator",
+                &addr,
+                "--threads",
+                "64",
+                "--name",
+                &name,
+            ];
+            crate::support::spawn_tessera(dir.path(), &args, &format!("worker-{name}.log"))
+        })
+        .collect();
+    crate::support::wait_for_workers(dir.path(), &addr, 4, Duration::from_secs(30));
+    let size = ["--width", "640", "--height", "480"];
+    let mut args = vec!["submit", "--wait", "-o", "out.png", "--tile", "8"];
+    let scene = scene_path("seed.json");
+    args.push(&scene);
+    args.extend(size);
+    let run = crate::support::client(dir.path(), &addr, &args);
+    assert!(run.status.success(), "submit --wait: {}", run.stderr);
+    let reference = render_reference(dir.path(), &scene, "reference.png", &size);
+    assert_same_png(
+        &dir.path().join("out.png"),
+        &reference,
+        "4 workers of 64 threads",
+    );
+}
