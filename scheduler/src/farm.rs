@@ -14,9 +14,12 @@
 //! - a tile handed out ([`Action::Assign`]) tells the lifecycle
 //!   ([`lifecycle::Event::TileAssigned`]);
 //! - a job's last tile ([`Action::JobDone`]) makes its image due
-//!   ([`lifecycle::Event::TilesComplete`]), except for a job rendered in passes, whose
-//!   pass the executor adds up first (it then feeds `TilesComplete`, or the next pass
-//!   with [`Farm::resume_job`]);
+//!   ([`lifecycle::Event::TilesComplete`]), except for a job rendered in passes: its
+//!   pass is added up ([`PassAction::AddUp`]), and the totals ([`PassInput::Evaluated`])
+//!   make the image due or start the next pass, whose tiles go out as a resumed job's,
+//!   paused if an operator paused the job (see [`crate::passes`]);
+//! - a job in passes whose results are taken back ([`PassInput::TakeBack`]) has its
+//!   tiles withdrawn and its pass started again;
 //! - a job the scheduler gives up ([`Action::JobFailed`]) fails
 //!   ([`lifecycle::Event::TilesFailed`]);
 //! - a job whose row is written ([`lifecycle::Action::Acknowledge`]) has its tiles
@@ -38,7 +41,9 @@ use std::collections::BTreeMap;
 
 use protocol::{JobId, Refusal, SceneHash};
 
-use crate::lifecycle::{self, Lifecycle};
+pub use self::pass_run::{PassAction, PassInput, PassRun, PassTile};
+use crate::lifecycle::{self, Lifecycle, Phase};
+use crate::passes::{Decision, Passes};
 use crate::tiles::{Action, Event, Scheduler};
 use crate::Millis;
 
@@ -51,6 +56,8 @@ pub enum Input {
     Job(lifecycle::Event),
     /// Storage can write (`Ok`) or cannot (`Err`, why): both machines hear it.
     Storage(Result<(), String>),
+    /// About a job rendered in passes: a pass's totals, results taken back.
+    Pass(PassInput),
     /// The time has come ([`Farm::next_deadline`]).
     Timeout,
 }
@@ -62,6 +69,7 @@ pub enum Input {
 pub enum Effect {
     Tiles(Action),
     Job(lifecycle::Action),
+    Pass(PassAction),
 }
 
 /// How a job's tiles go out once it is stored: what [`Event::JobSubmitted`] needs, and
@@ -73,9 +81,6 @@ pub struct TilePlan {
     pub tiles: u32,
     /// A studio view's pass: its tiles go ahead of batch jobs.
     pub interactive: bool,
-    /// Rendered in passes (adaptive sampling): its last tile ends a pass, which the
-    /// executor adds up, rather than the job.
-    pub in_passes: bool,
 }
 
 /// The tile scheduler and the lifecycle, joined by the rules above.
@@ -84,6 +89,8 @@ pub struct Farm {
     lifecycle: Lifecycle,
     /// The plan of every job the core has been told of, until it is deleted.
     plans: BTreeMap<JobId, TilePlan>,
+    /// The jobs rendered in passes ([`Farm::start_passes`]), until they are deleted.
+    passes: BTreeMap<JobId, PassRun>,
 }
 
 impl Farm {
@@ -92,6 +99,7 @@ impl Farm {
             tiles,
             lifecycle,
             plans: BTreeMap::new(),
+            passes: BTreeMap::new(),
         }
     }
 
@@ -103,6 +111,11 @@ impl Farm {
     /// The lifecycle, to read.
     pub fn lifecycle(&self) -> &Lifecycle {
         &self.lifecycle
+    }
+
+    /// A job rendered in passes: where its pass under way stands.
+    pub fn pass_run(&self, job: JobId) -> Option<&PassRun> {
+        self.passes.get(&job)
     }
 
     /// The earliest time at which either machine has something to decide.
@@ -127,14 +140,24 @@ impl Farm {
         match input {
             Input::Tiles(event) => {
                 // A job not yet stored goes out at its new priority.
-                if let Event::SetPriority { job, priority } = &event {
-                    if let Some(plan) = self.plans.get_mut(job) {
-                        plan.priority = *priority;
+                match &event {
+                    Event::SetPriority { job, priority } => {
+                        if let Some(plan) = self.plans.get_mut(job) {
+                            plan.priority = *priority;
+                        }
                     }
+                    // A pause outlives the pass it came in.
+                    Event::PauseJob { job } | Event::ResumeJob { job } => {
+                        if let Some(run) = self.passes.get_mut(job) {
+                            run.set_paused(matches!(event, Event::PauseJob { .. }));
+                        }
+                    }
+                    _ => {}
                 }
                 self.tiles_event(now, event, &mut effects);
             }
             Input::Job(event) => self.job_event(now, event, &mut effects),
+            Input::Pass(input) => self.pass_input(now, input, &mut effects),
             Input::Storage(Err(reason)) => {
                 self.tiles_event(now, Event::StorageUnavailable, &mut effects);
                 let event = lifecycle::Event::StorageUnavailable { reason };
@@ -165,8 +188,15 @@ impl Farm {
         Ok(job)
     }
 
+    /// Renders `job` in passes, from the first of `passes`: its last tile ends a pass
+    /// rather than the job. Told before its tiles first go out (after
+    /// [`Farm::admit`], or before [`Farm::resume_job`] for a job taken back).
+    pub fn start_passes(&mut self, job: JobId, passes: Passes) {
+        self.passes.insert(job, PassRun::new(passes));
+    }
+
     /// Hands out a job's tiles but `done` at once, without a submission: a job taken
-    /// back after a restart or a retry, or the next pass of a job in passes.
+    /// back after a restart or a retry.
     pub fn resume_job(
         &mut self,
         now: Millis,
@@ -175,15 +205,131 @@ impl Farm {
         done: &[u32],
     ) -> Vec<Effect> {
         self.plans.insert(job, plan);
+        let mut effects = Vec::new();
+        self.resume(now, job, done, &mut effects);
+        effects
+    }
+
+    /// Hands out the job's tiles but `done`, as its plan says.
+    fn resume(&mut self, now: Millis, job: JobId, done: &[u32], effects: &mut Vec<Effect>) {
+        let Some(plan) = self.plans.get(&job).copied() else {
+            return;
+        };
         let actions = self
             .tiles
             .resume_job(now, job, plan.priority, plan.scene, plan.tiles, done);
-        let mut effects = Vec::new();
-        self.follow(now, actions, &mut effects);
+        self.follow(now, actions, effects);
         if plan.interactive {
-            self.tiles_event(now, Event::Interactive { job }, &mut effects);
+            self.tiles_event(now, Event::Interactive { job }, effects);
         }
-        effects
+    }
+
+    /// Whether the lifecycle has the job queued or running: passes still count.
+    fn passing(&self, job: JobId) -> bool {
+        self.lifecycle
+            .job(job)
+            .is_some_and(|j| matches!(j.phase, Phase::Queued | Phase::Running))
+    }
+
+    fn pass_input(&mut self, now: Millis, input: PassInput, effects: &mut Vec<Effect>) {
+        match input {
+            PassInput::Evaluated {
+                job,
+                pass,
+                checks,
+                tiles,
+                elapsed_ms,
+                samples,
+            } => {
+                let passing = self.passing(job);
+                let Some(run) = self.passes.get_mut(&job).filter(|r| r.awaits(pass)) else {
+                    // A pass restarted or a job ended meanwhile: it counts for nothing.
+                    return;
+                };
+                if !passing {
+                    run.failed();
+                    return;
+                }
+                let (rung, out_of_time) = match run.evaluated(&checks, &tiles, elapsed_ms, samples)
+                {
+                    Decision::Finish { rung } => (rung, false),
+                    Decision::OutOfTime { rung } => (rung, true),
+                    Decision::Next { rung } => {
+                        let pass = run.pass();
+                        effects.push(Effect::Pass(PassAction::Continued { job, pass, rung }));
+                        self.start_pass(now, job, &tiles, effects);
+                        return;
+                    }
+                };
+                effects.push(Effect::Pass(PassAction::Finished {
+                    job,
+                    pass,
+                    rung,
+                    out_of_time,
+                }));
+                self.job_event(now, lifecycle::Event::TilesComplete { job }, effects);
+            }
+            PassInput::Failed { job, pass, message } => {
+                let passing = self.passing(job);
+                let Some(run) = self.passes.get_mut(&job).filter(|r| r.awaits(pass)) else {
+                    return;
+                };
+                run.failed();
+                if passing {
+                    let message = format!("cannot add up the pass's tiles: {message}");
+                    self.job_event(now, lifecycle::Event::TilesFailed { job, message }, effects);
+                }
+            }
+            PassInput::TakeBack {
+                job,
+                taken,
+                mut tiles,
+            } => {
+                if taken.is_empty() || !self.passes.contains_key(&job) {
+                    return;
+                }
+                if !self.passing(job) {
+                    effects.push(Effect::Pass(PassAction::TooLate { job, taken }));
+                    return;
+                }
+                let Some(run) = self.passes.get_mut(&job) else {
+                    return;
+                };
+                let pass = run.restart();
+                for &t in &taken {
+                    if let Some(tile) = tiles.get_mut(t as usize) {
+                        *tile = PassTile {
+                            rung: None,
+                            next_work: Some(0),
+                        };
+                    }
+                }
+                effects.push(Effect::Pass(PassAction::TakenBack { job, pass, taken }));
+                self.tiles_event(now, Event::CancelJob { job }, effects);
+                self.start_pass(now, job, &tiles, effects);
+            }
+        }
+    }
+
+    /// The job's pass under way goes out: the tiles with work at its rung, paused if
+    /// an operator paused the job.
+    fn start_pass(
+        &mut self,
+        now: Millis,
+        job: JobId,
+        tiles: &[PassTile],
+        effects: &mut Vec<Effect>,
+    ) {
+        let Some(run) = self.passes.get(&job) else {
+            return;
+        };
+        let (start, done) = run.start(job, tiles);
+        let paused = run.paused();
+        effects.push(Effect::Pass(start));
+        if paused {
+            self.tiles_event(now, Event::PauseJob { job }, effects);
+        }
+        self.resume(now, job, &done, effects);
     }
 
     /// A job id for a job the lifecycle does not run itself (a sequence, whose frames
@@ -207,10 +353,15 @@ impl Farm {
         for action in actions {
             let next = match &action {
                 Action::Assign { job, .. } => Some(lifecycle::Event::TileAssigned { job: *job }),
-                Action::JobDone { job } => {
-                    let in_passes = self.plans.get(job).is_some_and(|p| p.in_passes);
-                    (!in_passes).then_some(lifecycle::Event::TilesComplete { job: *job })
-                }
+                Action::JobDone { job } => match self.passes.get_mut(job) {
+                    Some(run) => {
+                        let add_up = run.complete(*job);
+                        effects.push(Effect::Tiles(action));
+                        effects.push(Effect::Pass(add_up));
+                        continue;
+                    }
+                    None => Some(lifecycle::Event::TilesComplete { job: *job }),
+                },
                 Action::JobFailed { job, message } => Some(lifecycle::Event::TilesFailed {
                     job: *job,
                     message: message.clone(),
@@ -229,6 +380,7 @@ impl Farm {
             &event
         {
             self.plans.remove(job);
+            self.passes.remove(job);
         }
         for action in self.lifecycle.handle(now, event) {
             let next: Vec<Event> = match &action {
@@ -255,5 +407,8 @@ impl Farm {
     }
 }
 
+mod pass_run;
+#[cfg(test)]
+mod pass_tests;
 #[cfg(test)]
 mod tests;

@@ -23,6 +23,9 @@ pub struct Args {
     /// Jobs submitted at the start.
     #[arg(long, default_value_t = 20)]
     jobs: usize,
+    /// How many of the jobs render in passes (adaptive sampling), the first ones.
+    #[arg(long, default_value_t = 0)]
+    jobs_in_passes: usize,
     /// Seed of the run.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -60,6 +63,7 @@ pub fn run(args: Args) -> Result<()> {
         seed: args.seed,
         workers: args.workers,
         jobs: args.jobs,
+        jobs_in_passes: args.jobs_in_passes,
         width: args.width,
         height: args.height,
         tile_size: args.tile,

@@ -12,17 +12,18 @@ use std::sync::Arc;
 
 use protocol::{Settings, TileRect};
 use render::adaptive::{meets, RungTotals};
+use scheduler::farm::PassTile;
 use scheduler::passes::{Passes, RungCheck};
 use sha2::{Digest, Sha256};
 
 use super::verification::Verifier;
 
-/// What the coordinator holds of an adaptive job beside its record.
+/// What the coordinator holds of an adaptive job beside its record: the bytes. Where
+/// its passes stand is the core's ([`scheduler::farm::PassRun`]).
 pub struct AdaptiveJob {
-    pub passes: Passes,
     pub tiles: Vec<AdaptiveTile>,
-    /// The pass is complete and its totals are being computed.
-    pub evaluating: bool,
+    /// The totals of the pass just added up, until the core has ruled on them.
+    pub evaluation: Option<Evaluation>,
     /// Rays traced for the job over all passes (the local walk would trace the rays of
     /// the final rung only; the farm's overshoot and checks cost more).
     pub rays: u64,
@@ -48,56 +49,76 @@ pub struct AdaptiveTile {
     pub machines: Vec<Arc<str>>,
 }
 
+impl AdaptiveTile {
+    /// A tile with nothing rendered: all its work is ahead.
+    pub fn unrendered() -> AdaptiveTile {
+        AdaptiveTile {
+            next_work: Some(0),
+            ..AdaptiveTile::default()
+        }
+    }
+}
+
+/// The passes of an adaptive job with these settings, limited to `time_limit_ms` of
+/// rendering if given; a refinement's from the rung its tiles' states have reached.
+fn passes_for(settings: &Settings, time_limit_ms: Option<u64>, from: Option<u32>) -> Passes {
+    let target = settings.sampling.target_error().unwrap_or(f64::INFINITY);
+    let last = render::adaptive::LAST_RUNG;
+    let passes = match from {
+        Some(rung) => Passes::from_rung(target, last, rung),
+        None => Passes::new(target, last),
+    };
+    passes.with_time_limit(time_limit_ms)
+}
+
 impl AdaptiveJob {
-    /// A job of `tiles` tiles, limited to `time_limit_ms` of rendering if given. A
-    /// refinement's tiles start from `start` (checked by the caller: one valid state per
-    /// tile): its first pass sends every tile from its state to the states' rung, where
-    /// a larger cap may add samples, and looks at every rung up to it.
+    /// A job of `tiles` tiles. A refinement's tiles start from `start` (checked by the
+    /// caller: one valid state per tile): its first pass sends every tile from its
+    /// state to the states' rung, where a larger cap may add samples, and looks at
+    /// every rung up to it. Returns the job and its passes, for the core.
     pub fn new(
         settings: &Settings,
         tiles: usize,
         time_limit_ms: Option<u64>,
         start: Option<crate::store::TileStates>,
-    ) -> AdaptiveJob {
-        let target = settings.sampling.target_error().unwrap_or(f64::INFINITY);
-        let last = render::adaptive::LAST_RUNG;
-        let (passes, tiles) = match start {
+    ) -> (AdaptiveJob, Passes) {
+        let (from, tiles) = match start {
             Some(start) if start.states.len() == tiles => (
-                Passes::from_rung(target, last, start.rung),
+                Some(start.rung),
                 start
                     .states
                     .into_iter()
                     .map(|state| AdaptiveTile {
-                        next_work: Some(0),
                         state: Some(Arc::clone(&state)),
                         previous: Some(state),
-                        ..AdaptiveTile::default()
+                        ..AdaptiveTile::unrendered()
                     })
                     .collect(),
             ),
-            _ => (
-                Passes::new(target, last),
-                vec![
-                    AdaptiveTile {
-                        next_work: Some(0),
-                        ..AdaptiveTile::default()
-                    };
-                    tiles
-                ],
-            ),
+            _ => (None, vec![AdaptiveTile::unrendered(); tiles]),
         };
-        AdaptiveJob {
-            passes: passes.with_time_limit(time_limit_ms),
+        let job = AdaptiveJob {
             tiles,
-            evaluating: false,
+            evaluation: None,
             rays: 0,
-        }
+        };
+        (job, passes_for(settings, time_limit_ms, from))
     }
 
-    /// Tiles whose state has reached the pass's rung: the progress of the pass.
-    pub fn tiles_done(&self) -> u32 {
-        let rung = Some(self.passes.rung());
-        self.tiles.iter().filter(|t| t.rung == rung).count() as u32
+    /// Tiles whose state has reached `rung`, the pass's: the progress of the pass.
+    pub fn tiles_done(&self, rung: u32) -> u32 {
+        self.tiles.iter().filter(|t| t.rung == Some(rung)).count() as u32
+    }
+
+    /// The tiles as the core weighs them: the rung each has reached and its next work.
+    pub fn pass_tiles(&self) -> Vec<PassTile> {
+        self.tiles
+            .iter()
+            .map(|t| PassTile {
+                rung: t.rung,
+                next_work: t.next_work,
+            })
+            .collect()
     }
 }
 
@@ -200,7 +221,6 @@ pub fn arbitrate(
 
 /// A pass's tiles as the end of the pass needs them, copied under the lock.
 pub struct PassSnapshot {
-    pub pass: u32,
     pub rungs: std::ops::RangeInclusive<u32>,
     pub settings: Settings,
     pub rects: Vec<TileRect>,
@@ -212,7 +232,6 @@ pub struct PassSnapshot {
 
 /// The end of a pass, computed off the lock.
 pub struct Evaluation {
-    pub pass: u32,
     pub checks: Vec<RungCheck>,
     /// The frame's totals at the first rung that meets the target, else at the pass's
     /// rung.
@@ -283,7 +302,6 @@ pub fn evaluate(
     };
     let at = found.unwrap_or(rungs.len() - 1);
     Ok(Evaluation {
-        pass: snap.pass,
         checks,
         totals: sums[at],
         image,

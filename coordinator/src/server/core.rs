@@ -211,6 +211,7 @@ impl Core {
         for effect in effects {
             match effect {
                 Effect::Tiles(action) => self.apply_tiles(sh, action),
+                Effect::Pass(action) => self.apply_pass(sh, action),
                 Effect::Job(action) => {
                     if let Some(answer) = self.apply_life(sh, action) {
                         debug_assert!(reply.is_none(), "two replies to one input");
@@ -230,7 +231,6 @@ impl Core {
             scene: record.hash,
             tiles: record.tiles_total,
             interactive: record.interactive,
-            in_passes: record.adaptive.is_some(),
         }
     }
 

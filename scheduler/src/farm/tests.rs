@@ -4,9 +4,9 @@ use super::*;
 use crate::lifecycle::{Limits, Phase, Reply};
 use crate::Policy;
 
-const SCENE: SceneHash = [7; 32];
+pub(super) const SCENE: SceneHash = [7; 32];
 
-fn farm() -> Farm {
+pub(super) fn farm() -> Farm {
     let policy = Policy {
         max_attempts: 2,
         speculate: false,
@@ -18,7 +18,7 @@ fn farm() -> Farm {
     )
 }
 
-fn request() -> lifecycle::Request {
+pub(super) fn request() -> lifecycle::Request {
     lifecycle::Request {
         client: None,
         scene_bytes: 100,
@@ -29,21 +29,20 @@ fn request() -> lifecycle::Request {
     }
 }
 
-fn plan(tiles: u32) -> TilePlan {
+pub(super) fn plan(tiles: u32) -> TilePlan {
     TilePlan {
         priority: 0,
         scene: SCENE,
         tiles,
         interactive: false,
-        in_passes: false,
     }
 }
 
-fn phase(f: &Farm, job: JobId) -> Phase {
+pub(super) fn phase(f: &Farm, job: JobId) -> Phase {
     f.lifecycle().job(job).expect("a known job").phase.clone()
 }
 
-fn join(f: &mut Farm, worker: u64, threads: u32) -> Vec<Effect> {
+pub(super) fn join(f: &mut Farm, worker: u64, threads: u32) -> Vec<Effect> {
     f.handle(
         0,
         Input::Tiles(Event::WorkerJoined {
@@ -54,11 +53,11 @@ fn join(f: &mut Farm, worker: u64, threads: u32) -> Vec<Effect> {
     )
 }
 
-fn done(f: &mut Farm, worker: u64, job: JobId, tile: u32) -> Vec<Effect> {
+pub(super) fn done(f: &mut Farm, worker: u64, job: JobId, tile: u32) -> Vec<Effect> {
     f.handle(1, Input::Tiles(Event::TileDone { worker, job, tile }))
 }
 
-fn assigned(effects: &[Effect]) -> Vec<(u64, JobId, u32)> {
+pub(super) fn assigned(effects: &[Effect]) -> Vec<(u64, JobId, u32)> {
     effects
         .iter()
         .filter_map(|e| match *e {
@@ -147,37 +146,6 @@ fn a_cancel_withdraws_the_tiles_from_their_holders() {
         })] => assert_eq!(refusal.kind, RefusalKind::State),
         other => panic!("{other:?}"),
     }
-}
-
-/// The last tile of a pass is not the job's end: the executor adds the pass up, and
-/// the next pass goes out with `resume_job`, or the image is due with `TilesComplete`.
-#[test]
-fn a_job_in_passes_ends_a_pass_not_the_job_until_told() {
-    let mut f = farm();
-    join(&mut f, 1, 2);
-    let passes = TilePlan {
-        in_passes: true,
-        ..plan(2)
-    };
-    let job = f.admit(0, &request(), passes).unwrap();
-    f.handle(0, Input::Job(lifecycle::Event::Stored { job }));
-    done(&mut f, 1, job, 0);
-    let pass = done(&mut f, 1, job, 1);
-    assert!(pass.contains(&Effect::Tiles(Action::JobDone { job })));
-    assert!(
-        !pass.iter().any(|e| matches!(e, Effect::Job(_))),
-        "the image is not due: {pass:?}"
-    );
-    // The next pass renders tile 1 again only.
-    let next = f.resume_job(2, job, passes, &[0]);
-    assert_eq!(assigned(&next), vec![(1, job, 1)]);
-    let pass = done(&mut f, 1, job, 1);
-    assert!(pass.contains(&Effect::Tiles(Action::JobDone { job })));
-    let end = f.handle(3, Input::Job(lifecycle::Event::TilesComplete { job }));
-    assert_eq!(
-        end,
-        vec![Effect::Job(lifecycle::Action::StoreImage { job })]
-    );
 }
 
 /// A tile that fails on every machine it may go to fails the job: the scheduler's

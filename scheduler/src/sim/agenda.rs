@@ -63,6 +63,13 @@ pub(super) enum Ev {
     ImageEncoded {
         job: JobId,
     },
+    /// A pass of a job in passes is added up (off the lock): its totals reach the
+    /// core.
+    PassAddedUp {
+        job: JobId,
+        pass: u32,
+        rungs: (u32, u32),
+    },
     /// A machine starts (at the beginning or joining later).
     Boot {
         machine: usize,
@@ -143,6 +150,7 @@ impl Ev {
                 | Ev::WriteDone
                 | Ev::WriteRetry
                 | Ev::ImageEncoded { .. }
+                | Ev::PassAddedUp { .. }
         )
     }
 }

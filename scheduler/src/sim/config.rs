@@ -39,6 +39,10 @@ pub struct SimConfig {
     pub speed_spread: f64,
     /// Jobs (frames) submitted.
     pub jobs: usize,
+    /// The first this many of them render in passes (adaptive sampling): each pass
+    /// takes every tile with work further up the threshold ladder, and the core adds
+    /// it up before the next (see [`super::passes`]).
+    pub jobs_in_passes: usize,
     /// Time between two submissions (0: all at once).
     pub job_interval_ms: u64,
     /// Frame size and tile side, as a client would ask; they give the tiles per job.
@@ -148,6 +152,7 @@ impl Default for SimConfig {
             ],
             speed_spread: 0.2,
             jobs: 20,
+            jobs_in_passes: 0,
             job_interval_ms: 0,
             width: 3840,
             height: 2160,
@@ -244,6 +249,12 @@ impl SimConfig {
         let rate = |r: f64| r.is_finite() && r >= 0.0;
         if self.jobs == 0 {
             return Err("jobs: at least one".into());
+        }
+        if self.jobs_in_passes > self.jobs {
+            return Err(format!(
+                "jobs_in_passes: at most the {} jobs, not {}",
+                self.jobs, self.jobs_in_passes
+            ));
         }
         if self.width == 0 || self.height == 0 || self.tile_size == 0 {
             return Err("width, height and tile_size must be positive".into());

@@ -5,7 +5,7 @@
 
 use protocol::{JobId, JobState, SceneHash};
 
-use super::{Ev, Micros, Rng, Sim, SimConfig, Write, MS};
+use super::{Ev, Micros, Rng, Sim, SimConfig, SimPasses, Write, MS};
 use crate::farm::TilePlan;
 use crate::lifecycle;
 
@@ -26,6 +26,8 @@ pub(super) struct SimJob {
     pub(super) tiles_ended: Option<Micros>,
     /// When its end was written.
     pub(super) ended: Option<Micros>,
+    /// A job rendered in passes: each tile's rung.
+    pub(super) passes: Option<SimPasses>,
 }
 
 impl Sim<'_> {
@@ -41,7 +43,6 @@ impl Sim<'_> {
             scene: scene_of(slot as JobId),
             tiles: self.jobs[slot].costs.len() as u32,
             interactive: false,
-            in_passes: false,
         };
         match self.core.admit(self.now / MS, &self.cfg.request(), plan) {
             Ok(job) => {
@@ -55,6 +56,10 @@ impl Sim<'_> {
                 }
                 self.by_id[i] = slot;
                 self.jobs[slot].id = Some(job);
+                if let Some(p) = self.jobs[slot].passes.as_mut() {
+                    *p = SimPasses::new(p.reached.len());
+                    self.core.core.start_passes(job, SimPasses::passes());
+                }
                 self.out.jobs_admitted += 1;
                 self.persist(Write::Insert(job));
             }

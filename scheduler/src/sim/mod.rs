@@ -90,6 +90,7 @@ mod jobs;
 mod leases;
 mod measure;
 mod metered;
+mod passes;
 mod report;
 mod rng;
 mod workers;
@@ -110,6 +111,7 @@ pub use config::{scaling_runs, MachineClass, SimConfig};
 use jobs::{scene_of, tile_costs, SimJob};
 use leases::{AssignKind, LeaseModel};
 use metered::{Cost, Metered, EVENT_KINDS};
+use passes::SimPasses;
 pub use report::{EventCost, LastTile, Memory, Outcome, SimReport};
 use rng::Rng;
 use workers::{Life, Machine};
@@ -222,6 +224,7 @@ impl<'a> Sim<'a> {
                     accepted: vec![0; costs.len()],
                     assigned: vec![0; costs.len()],
                     last_sent: vec![0; costs.len()],
+                    passes: (j < cfg.jobs_in_passes).then(|| SimPasses::new(costs.len())),
                     costs,
                     sent: j as Micros * cfg.job_interval_ms * MS,
                     id: None,
@@ -467,6 +470,7 @@ impl<'a> Sim<'a> {
             Ev::WriteDone => self.write_done(),
             Ev::WriteRetry => self.attempt_write(),
             Ev::ImageEncoded { job } => self.persist(Write::Image(job)),
+            Ev::PassAddedUp { job, pass, rungs } => self.pass_added_up(job, pass, rungs),
             Ev::StorageOutage => {
                 self.disk_down = true;
                 self.disk_epoch += 1;
@@ -642,6 +646,10 @@ impl<'a> Sim<'a> {
                     self.apply_life(action);
                     continue;
                 }
+                Effect::Pass(action) => {
+                    self.apply_pass(action);
+                    continue;
+                }
             };
             match action {
                 Action::SendScene { .. } => self.out.scenes_sent += 1,
@@ -676,6 +684,9 @@ impl<'a> Sim<'a> {
                 }
                 Action::AcceptTile { job, tile } => {
                     let slot = self.slot(job);
+                    if let Some(p) = self.jobs[slot].passes.as_mut() {
+                        p.reached[tile as usize] = Some(p.rung);
+                    }
                     let count = &mut self.jobs[slot].accepted[tile as usize];
                     *count = count.saturating_add(1);
                     if *count > 1 {
@@ -714,6 +725,10 @@ impl<'a> Sim<'a> {
                     }
                 }
                 // The core has told the lifecycle: what it makes of it follows.
+                // A job in passes: the pass is added up next.
+                Action::JobDone { job } if self.jobs[self.slot(job)].passes.is_some() => {
+                    self.model.end_job(job);
+                }
                 Action::JobDone { job } => self.tiles_ended(job, true),
                 Action::JobFailed { job, .. } => self.tiles_ended(job, false),
             }
@@ -724,7 +739,7 @@ impl<'a> Sim<'a> {
     }
 
     /// The tile scheduler is done with the job (every tile in, or failed).
-    fn tiles_ended(&mut self, job: JobId, done: bool) {
+    pub(super) fn tiles_ended(&mut self, job: JobId, done: bool) {
         let slot = self.slot(job);
         let j = &mut self.jobs[slot];
         if j.tiles_ended.is_some() {

@@ -88,6 +88,8 @@ pub struct Outcome {
     pub tiles_accepted: u64,
     /// Tiles accepted more than once (must be 0).
     pub tiles_accepted_twice: u64,
+    /// Passes that went on to another (jobs in passes only).
+    pub passes_continued: u64,
     /// Tiles of jobs reported done that were never accepted (must be 0).
     pub tiles_missing: u64,
 
@@ -401,6 +403,13 @@ impl fmt::Display for SimReport {
             "- {} tiles: {} accepted, {} twice, {} missing",
             o.tiles, o.tiles_accepted, o.tiles_accepted_twice, o.tiles_missing
         )?;
+        if o.passes_continued > 0 {
+            writeln!(
+                f,
+                "- {} passes of jobs in passes went on to another (each pass accepts its tiles once)",
+                o.passes_continued
+            )?;
+        }
         writeln!(f)?;
         writeln!(f, "## Admission and storage")?;
         writeln!(f)?;

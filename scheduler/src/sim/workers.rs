@@ -170,7 +170,7 @@ impl Sim<'_> {
                 self.out.tasks_skipped += 1;
                 continue;
             }
-            let cost = self.jobs[self.by_id[task.job as usize]].costs[task.tile as usize];
+            let cost = self.jobs[self.by_id[task.job as usize]].cost(task.tile);
             let took = ((cost as f64 / m.speed).round() as Micros).max(1);
             let id = self.next_render;
             self.next_render += 1;

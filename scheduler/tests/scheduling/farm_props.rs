@@ -210,7 +210,6 @@ impl Run {
                     scene: scene(next),
                     tiles,
                     interactive: false,
-                    in_passes: false,
                 };
                 if let Ok(job) = self.farm.admit(self.now, &request, plan) {
                     self.jobs.insert(job, tiles);

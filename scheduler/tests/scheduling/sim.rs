@@ -95,6 +95,38 @@ fn every_tile_is_accepted_exactly_once_despite_crashes_hangs_and_joins() {
     }
 }
 
+/// Jobs rendered in passes on a troubled farm: the core ends each pass, the
+/// simulated daemon adds it up and feeds the totals back, and the core starts the next
+/// pass (with the tiles that have work) or makes the image due. Every job is done in
+/// more than one pass, no tile is accepted twice within a pass, and none is missing.
+#[test]
+fn jobs_in_passes_are_done_through_crashes_hangs_and_joins() {
+    for seed in 1..=2 {
+        let config = SimConfig {
+            jobs_in_passes: 3,
+            ..troubled(seed)
+        };
+        let report = sim::run(&config);
+        let o = &report.outcome;
+        assert!(!o.timed_out, "jobs left at the time limit:\n{report}");
+        assert_eq!(o.model_mismatches, 0, "{report}");
+        assert_eq!(o.tiles_accepted_twice, 0, "{report}");
+        assert_eq!(o.tiles_missing, 0, "{report}");
+        assert_eq!(o.jobs_done, o.jobs, "every job ends done:\n{report}");
+        assert_eq!(o.jobs_failed, 0, "{report}");
+        assert_eq!(o.images_stored, o.jobs as u64, "{report}");
+        assert_eq!(o.tiles_written, o.tiles_accepted, "{report}");
+        // Each job in passes went on at least once, and its later passes rendered
+        // its tiles again.
+        assert!(o.passes_continued >= 3, "seed {seed}:\n{report}");
+        assert!(
+            o.tiles_accepted >= o.tiles + 3 * 60 * 34,
+            "seed {seed}:\n{report}"
+        );
+        assert!(o.crashes > 0 && o.drops > 0, "seed {seed}:\n{report}");
+    }
+}
+
 /// Render hangs at scale: a farm whose machines' render threads stop about every
 /// thirty seconds for 25 to 60 s while their runtimes keep heart-beating (no process
 /// stops, no connection drops). Every job is done: the scheduler marks the hung

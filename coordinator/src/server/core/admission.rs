@@ -35,9 +35,18 @@ impl Core {
             scene: prepared.hash,
             tiles: prepared.tiles.len() as u32,
             interactive: prepared.interactive,
-            in_passes: is_adaptive(&prepared.settings),
         };
         let id = self.farm.admit(sh.now(), &prepared.request, plan)?;
+        let adaptive = is_adaptive(&prepared.settings).then(|| {
+            let (adaptive, passes) = AdaptiveJob::new(
+                &prepared.settings,
+                prepared.tiles.len(),
+                prepared.time_limit_ms,
+                prepared.start,
+            );
+            self.farm.start_passes(id, passes);
+            adaptive
+        });
         let submitted = unix_ms();
         let stored = StoredJob {
             id,
@@ -68,14 +77,7 @@ impl Core {
             JobRecord {
                 interactive: prepared.interactive,
                 owner: prepared.owner,
-                adaptive: is_adaptive(&prepared.settings).then(|| {
-                    AdaptiveJob::new(
-                        &prepared.settings,
-                        prepared.tiles.len(),
-                        prepared.time_limit_ms,
-                        prepared.start,
-                    )
-                }),
+                adaptive,
                 time_limit_ms: prepared.time_limit_ms,
                 stopped_on_time_limit: false,
                 paused: false,
@@ -209,8 +211,12 @@ impl Core {
         }
         let tiles = tiling::cut(&stored.settings, stored.tile_size);
         let final_state = stored.state.is_final();
-        let adaptive = (!final_state && is_adaptive(&stored.settings))
-            .then(|| AdaptiveJob::new(&stored.settings, tiles.len(), stored.time_limit_ms, None));
+        let adaptive = (!final_state && is_adaptive(&stored.settings)).then(|| {
+            let (adaptive, passes) =
+                AdaptiveJob::new(&stored.settings, tiles.len(), stored.time_limit_ms, None);
+            self.farm.start_passes(id, passes);
+            adaptive
+        });
         let mut record = JobRecord {
             interactive: false,
             owner: None,

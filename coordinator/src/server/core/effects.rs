@@ -82,13 +82,10 @@ impl Core {
                     }
                     self.worker_lost(sh, worker, "no heartbeat in time (timed out)", true);
                 }
-                // The core has made the image due, unless the job is rendered in
-                // passes: then the pass is added up first.
+                // The core has made the image due, or (a job in passes) asks for the
+                // pass to be added up next.
                 Action::JobDone { job } => {
                     self.held.retain(|(j, _), _| *j != job);
-                    if self.jobs.get(&job).is_some_and(|r| r.adaptive.is_some()) {
-                        self.end_of_pass(sh, job);
-                    }
                 }
                 Action::JobFailed { job, message } => {
                     self.held.retain(|(j, _), _| *j != job);
@@ -112,22 +109,23 @@ impl Core {
         let Some(&rect) = record.tiles.get(tile as usize) else {
             return;
         };
-        let message = match &record.adaptive {
-            Some(ad) => ToWorker::Advance {
+        let pass = self.farm.pass_run(job).map(|r| (r.pass(), r.rung()));
+        let message = match (&record.adaptive, pass) {
+            (Some(ad), Some((pass, rung))) => ToWorker::Advance {
                 job,
                 tile,
                 scene: record.hash,
                 frame: record.frame,
                 settings: record.settings,
                 rect,
-                pass: ad.passes.pass(),
-                rung: ad.passes.rung(),
+                pass,
+                rung,
                 previous: ad.tiles[tile as usize]
                     .previous
                     .as_ref()
                     .map(|p| p.to_vec()),
             },
-            None => ToWorker::Render {
+            _ => ToWorker::Render {
                 job,
                 tile,
                 scene: record.hash,
@@ -300,11 +298,12 @@ impl Core {
         let scene = record.scene.clone().unwrap_or_else(|| Arc::from(""));
         // An adaptive job keeps its tiles' final states beside its image: a refinement
         // goes on from them. They are at the last pass's rung (at or past the image's).
-        let states = record.adaptive.as_ref().and_then(|ad| {
+        let rung = self.farm.pass_run(job).map(|r| r.rung());
+        let states = record.adaptive.as_ref().zip(rung).and_then(|(ad, rung)| {
             let states: Option<Vec<Arc<Vec<u8>>>> =
                 ad.tiles.iter().map(|t| t.state.clone()).collect();
             Some(Box::new(crate::store::TileStates {
-                rung: ad.passes.rung(),
+                rung,
                 aa: record.settings.aa,
                 tile_size: record.tile_size,
                 states: states?,

@@ -1,30 +1,118 @@
-//! An adaptive job's passes: each pass's tiles added up off the lock once they are
-//! all in, and then the job's image found or the next pass started.
+//! An adaptive job's passes, as the executor of the core's decisions: a pass's tiles
+//! added up off the lock when the core says the pass is complete, the totals fed back,
+//! and the tiles' states kept as the core's pass actions say.
 
 use std::sync::Arc;
 
 use protocol::JobId;
-use scheduler::lifecycle::{self, Phase};
-use scheduler::Event;
-use tracing::{error, info};
+use scheduler::farm::{Input, PassAction, PassInput};
+use tracing::{error, info, warn};
 
 use super::{unix_ms, Core, Shared};
-use crate::server::adaptive::{self, Evaluation, PassSnapshot};
+use crate::server::adaptive::{self, AdaptiveTile, Evaluation, PassSnapshot};
 
 impl Core {
+    /// Carries out one of the core's actions about a job in passes.
+    pub(super) fn apply_pass(&mut self, sh: &Arc<Shared>, action: PassAction) {
+        match action {
+            PassAction::AddUp { job, pass, rungs } => self.add_up(sh, job, pass, rungs),
+            PassAction::Finished {
+                job,
+                pass,
+                rung,
+                out_of_time,
+            } => {
+                let Some(estimate) = self.take_evaluation(job, true) else {
+                    return;
+                };
+                let Some(record) = self.jobs.get_mut(&job) else {
+                    return;
+                };
+                record.stopped_on_time_limit |= out_of_time;
+                record.tiles_recorded = record.tiles_total;
+                let why = if out_of_time {
+                    "the time limit is reached"
+                } else {
+                    "the target is met"
+                };
+                info!(
+                    job,
+                    passes = pass + 1,
+                    rung,
+                    estimate,
+                    "adaptive job: {why}"
+                );
+                let detail = format!(
+                    "pass {} at rung {rung}: estimated error {estimate:.3} levels; {why}",
+                    pass + 1
+                );
+                self.log(sh, job, "adaptive_pass", detail);
+            }
+            PassAction::Continued { job, pass, rung } => {
+                let Some(estimate) = self.take_evaluation(job, false) else {
+                    return;
+                };
+                info!(job, pass, rung, estimate, "adaptive job: next pass");
+                let detail = format!(
+                    "estimated error {estimate:.3} levels: pass {pass} goes on to rung {rung}"
+                );
+                self.log(sh, job, "adaptive_pass", detail);
+            }
+            PassAction::TakenBack { job, taken, .. } => {
+                warn!(
+                    job,
+                    tiles = taken.len(),
+                    "rendering again the adaptive tiles a quarantined machine built"
+                );
+                self.held.retain(|(j, _), _| *j != job);
+                if let Some(ad) = self.jobs.get_mut(&job).and_then(|r| r.adaptive.as_mut()) {
+                    for t in taken {
+                        if let Some(tile) = ad.tiles.get_mut(t as usize) {
+                            *tile = AdaptiveTile::unrendered();
+                        }
+                    }
+                }
+            }
+            PassAction::TooLate { job, taken } => error!(
+                job,
+                tiles = taken.len(),
+                "a finished adaptive job holds tiles of a quarantined machine: submit it again"
+            ),
+            PassAction::Start {
+                job, rung, send, ..
+            } => {
+                let Some(ad) = self.jobs.get_mut(&job).and_then(|r| r.adaptive.as_mut()) else {
+                    return;
+                };
+                for (i, t) in ad.tiles.iter_mut().enumerate() {
+                    if send.binary_search(&(i as u32)).is_ok() {
+                        t.previous = t.state.clone();
+                    } else {
+                        t.rung = Some(rung);
+                    }
+                }
+            }
+        }
+    }
+
     /// Every tile of an adaptive job's pass is in: its totals are added up off the
-    /// lock, and [`Core::pass_evaluated`] decides.
-    pub(super) fn end_of_pass(&mut self, sh: &Arc<Shared>, job: JobId) {
+    /// lock, and fed back to the core ([`Core::pass_evaluated`]).
+    fn add_up(
+        &mut self,
+        sh: &Arc<Shared>,
+        job: JobId,
+        pass: u32,
+        rungs: std::ops::RangeInclusive<u32>,
+    ) {
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
         let (Some(ad), Some(scene)) = (record.adaptive.as_mut(), record.scene.clone()) else {
             return;
         };
-        ad.evaluating = true;
+        ad.evaluation = None;
         let snap = PassSnapshot {
-            pass: ad.passes.pass(),
-            rungs: ad.passes.to_check(),
+            rungs,
             settings: record.settings,
             rects: record.tiles.clone(),
             states: ad.tiles.iter().map(|t| t.state.clone()).collect(),
@@ -37,48 +125,59 @@ impl Core {
             let evaluation = verifier
                 .tracer(hash, frame, snap.settings, &scene)
                 .and_then(|tracer| adaptive::evaluate(verifier, &tracer, snap));
-            shared.lock().pass_evaluated(&shared, job, evaluation);
+            shared.lock().pass_evaluated(&shared, job, pass, evaluation);
         });
     }
 
-    /// A pass's totals are in: the job's image is found (the first rung that meets the
-    /// target), or the next pass starts. A result for a pass that is no longer the
-    /// job's (restarted, cancelled) counts for nothing.
+    /// A pass's totals are in: kept aside for the core's verdict (which may find them
+    /// too late, for a pass restarted or a job ended meanwhile), and fed to the core
+    /// with the tiles as they stand and how long the job has rendered.
     fn pass_evaluated(
         &mut self,
         sh: &Arc<Shared>,
         job: JobId,
+        pass: u32,
         evaluation: Result<Evaluation, String>,
     ) {
-        let running = self
-            .farm
-            .lifecycle()
-            .job(job)
-            .is_some_and(|j| matches!(j.phase, Phase::Queued | Phase::Running));
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
         let Some(ad) = record.adaptive.as_mut() else {
             return;
         };
-        let evaluation = match evaluation {
-            Ok(e) if e.pass != ad.passes.pass() || !ad.evaluating => return,
-            Ok(e) => e,
+        let input = match evaluation {
             Err(message) => {
-                ad.evaluating = false;
-                if !running {
-                    return;
-                }
-                let message = format!("cannot add up the pass's tiles: {message}");
-                error!(job, error = %message, "adaptive job failed");
-                self.life_event(sh, lifecycle::Event::TilesFailed { job, message });
-                return;
+                error!(job, pass, error = %message, "cannot add up an adaptive pass");
+                PassInput::Failed { job, pass, message }
+            }
+            Ok(evaluation) => {
+                // Rendering time, less the coordinator's own downtime: what a limit
+                // budgets.
+                let now = unix_ms();
+                let elapsed_ms = record.rendered_before_ms
+                    + now.saturating_sub(record.running_since.unwrap_or(now));
+                let input = PassInput::Evaluated {
+                    job,
+                    pass,
+                    checks: evaluation.checks.clone(),
+                    tiles: ad.pass_tiles(),
+                    elapsed_ms,
+                    samples: evaluation.totals.samples,
+                };
+                ad.evaluation = Some(evaluation);
+                input
             }
         };
-        ad.evaluating = false;
-        if !running {
-            return;
-        }
+        self.feed(sh, Input::Pass(input));
+        sh.changed();
+    }
+
+    /// The totals of the pass the core has ruled on: they become the job's, with its
+    /// image if the pass ended it (`last`). Returns the estimate, or `None` when there
+    /// are none (the core rules only on totals fed to it).
+    fn take_evaluation(&mut self, job: JobId, last: bool) -> Option<f64> {
+        let record = self.jobs.get_mut(&job)?;
+        let evaluation = record.adaptive.as_mut()?.evaluation.take()?;
         let t = evaluation.totals;
         let pixels = u64::from(record.settings.width) * u64::from(record.settings.height);
         record.totals.samples = t.samples;
@@ -87,123 +186,32 @@ impl Core {
             record.totals.error_sq_sum = estimate * estimate * pixels as f64;
             record.totals.error_pixels = pixels;
         }
-        let first_work = ad.tiles.iter().filter_map(|t| t.next_work).min();
-        // Rendering time, less the coordinator's own downtime: what a limit budgets.
-        let now = unix_ms();
-        let elapsed =
-            record.rendered_before_ms + now.saturating_sub(record.running_since.unwrap_or(now));
-        match ad
-            .passes
-            .pass_done_at(&evaluation.checks, first_work, elapsed, t.samples)
-        {
-            scheduler::passes::Decision::OutOfTime { rung } => {
-                info!(
-                    job,
-                    passes = ad.passes.pass() + 1,
-                    rung,
-                    estimate,
-                    elapsed_ms = elapsed,
-                    "adaptive job: the time limit is reached"
-                );
-                let pass = ad.passes.pass() + 1;
-                record.stopped_on_time_limit = true;
-                record.image = evaluation.image;
-                record.tiles_recorded = record.tiles_total;
-                self.log(
-                    sh,
-                    job,
-                    "adaptive_pass",
-                    format!(
-                        "pass {pass} at rung {rung}: estimated error {estimate:.3} levels; \
-                         the time limit is reached"
-                    ),
-                );
-                self.life_event(sh, lifecycle::Event::TilesComplete { job });
-            }
-            scheduler::passes::Decision::Finish { rung } => {
-                info!(
-                    job,
-                    passes = ad.passes.pass() + 1,
-                    rung,
-                    estimate,
-                    "adaptive job: the target is met"
-                );
-                let pass = ad.passes.pass() + 1;
-                record.image = evaluation.image;
-                record.tiles_recorded = record.tiles_total;
-                self.log(
-                    sh,
-                    job,
-                    "adaptive_pass",
-                    format!(
-                        "pass {pass} at rung {rung}: estimated error {estimate:.3} levels; \
-                         the target is met"
-                    ),
-                );
-                self.life_event(sh, lifecycle::Event::TilesComplete { job });
-            }
-            scheduler::passes::Decision::Next { rung } => {
-                info!(
-                    job,
-                    pass = ad.passes.pass(),
-                    rung,
-                    estimate,
-                    "adaptive job: next pass"
-                );
-                let pass = ad.passes.pass();
-                self.log(
-                    sh,
-                    job,
-                    "adaptive_pass",
-                    format!(
-                        "estimated error {estimate:.3} levels: pass {pass} goes on to rung {rung}"
-                    ),
-                );
-                self.start_pass(sh, job);
-            }
+        if last {
+            record.image = evaluation.image;
         }
-        sh.changed();
+        Some(estimate)
     }
 
-    /// Starts the job's pass under way: every tile with work at its rung goes out from
-    /// the state it has; the others have reached the rung already.
-    pub(super) fn start_pass(&mut self, sh: &Arc<Shared>, job: JobId) {
-        let Some(record) = self.jobs.get_mut(&job) else {
+    /// A machine of the quarantine built some of an adaptive job's tiles: the core
+    /// takes them back to nothing and starts the pass under way again under a new
+    /// number (at the same rung), so that no answer built on their states counts and
+    /// every rung is added up again; or says it is too late.
+    pub(super) fn take_back_adaptive(&mut self, sh: &Arc<Shared>, job: JobId, machine: &str) {
+        let Some(ad) = self.jobs.get(&job).and_then(|r| r.adaptive.as_ref()) else {
             return;
         };
-        let Some(ad) = record.adaptive.as_mut() else {
-            return;
-        };
-        let rung = ad.passes.rung();
-        let next_work: Vec<Option<u32>> = ad
-            .tiles
-            .iter()
-            .map(|t| {
-                if t.rung == Some(rung) {
-                    None
-                } else {
-                    t.next_work
-                }
+        let taken: Vec<u32> = (0..ad.tiles.len() as u32)
+            .filter(|&t| {
+                ad.tiles[t as usize]
+                    .machines
+                    .iter()
+                    .any(|m| &**m == machine)
             })
             .collect();
-        let send = scheduler::passes::tiles_with_work(&next_work, rung);
-        for (i, t) in ad.tiles.iter_mut().enumerate() {
-            if send.binary_search(&(i as u32)).is_ok() {
-                t.previous = t.state.clone();
-            } else {
-                t.rung = Some(rung);
-            }
+        if taken.is_empty() {
+            return;
         }
-        let done: Vec<u32> = (0..record.tiles_total)
-            .filter(|t| send.binary_search(t).is_err())
-            .collect();
-        let plan = Core::plan_of(record);
-        // The scheduler forgets a pause when a run of the job ends (each pass is one):
-        // a paused job's next pass starts paused.
-        if record.paused {
-            self.tiles_event(sh, Event::PauseJob { job });
-        }
-        let effects = self.farm.resume_job(sh.now(), job, plan, &done);
-        self.carry_out(sh, effects);
+        let tiles = ad.pass_tiles();
+        self.feed(sh, Input::Pass(PassInput::TakeBack { job, taken, tiles }));
     }
 }

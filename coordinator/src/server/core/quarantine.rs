@@ -4,13 +4,11 @@
 use std::sync::Arc;
 
 use protocol::JobId;
-use scheduler::lifecycle::Phase;
 use scheduler::Event;
 use tracing::{error, warn};
 
 use super::records::rect_pixels;
 use super::{Core, Shared, Write};
-use crate::server::adaptive;
 
 impl Core {
     /// The machine returned wrong pixels for a tile of job `caught_in` (said in
@@ -42,13 +40,7 @@ impl Core {
             .map(|(&j, _)| j)
             .collect();
         for job in adaptive {
-            if !self.take_back_adaptive(sh, job, machine) {
-                error!(
-                    job,
-                    machine,
-                    "a finished adaptive job holds tiles of a quarantined machine: submit it again"
-                );
-            }
+            self.take_back_adaptive(sh, job, machine);
         }
         let mut revoke = Vec::new();
         let mut affected = Vec::new();
@@ -120,50 +112,5 @@ impl Core {
                 revoke,
             },
         );
-    }
-
-    /// A machine of the quarantine built some of an adaptive job's tiles: they start
-    /// again from nothing, and the pass under way starts again under a new number (at
-    /// the same rung), so that no answer built on its states counts and every rung is
-    /// added up again. `false` when the job is past its passes.
-    fn take_back_adaptive(&mut self, sh: &Arc<Shared>, job: JobId, machine: &str) -> bool {
-        let Some(record) = self.jobs.get_mut(&job) else {
-            return false;
-        };
-        let Some(ad) = record.adaptive.as_mut() else {
-            return false;
-        };
-        let tainted: Vec<usize> = (0..ad.tiles.len())
-            .filter(|&t| ad.tiles[t].machines.iter().any(|m| &**m == machine))
-            .collect();
-        if tainted.is_empty() {
-            return true;
-        }
-        let passing = self
-            .farm
-            .lifecycle()
-            .job(job)
-            .is_some_and(|j| matches!(j.phase, Phase::Queued | Phase::Running));
-        if !passing {
-            return false;
-        }
-        warn!(
-            job,
-            machine,
-            tiles = tainted.len(),
-            "rendering again the adaptive tiles a quarantined machine built"
-        );
-        for t in tainted {
-            ad.tiles[t] = adaptive::AdaptiveTile {
-                next_work: Some(0),
-                ..adaptive::AdaptiveTile::default()
-            };
-        }
-        ad.passes.restart_pass();
-        ad.evaluating = false;
-        self.held.retain(|(j, _), _| *j != job);
-        self.tiles_event(sh, Event::CancelJob { job });
-        self.start_pass(sh, job);
-        true
     }
 }

@@ -161,7 +161,13 @@ impl JobRecord {
         }
     }
 
-    pub(super) fn status(&self, id: JobId, job: &lifecycle::Job) -> JobStatus {
+    /// The job's status; `pass_rung` is the rung of an adaptive job's pass under way.
+    pub(super) fn status(
+        &self,
+        id: JobId,
+        job: &lifecycle::Job,
+        pass_rung: Option<u32>,
+    ) -> JobStatus {
         let state = job.phase.visible();
         let now = unix_ms();
         let end = self.times.ended.filter(|_| state.is_final()).unwrap_or(now);
@@ -175,7 +181,7 @@ impl JobRecord {
             if self.tiles_recorded == total {
                 total
             } else {
-                ad.tiles_done()
+                pass_rung.map_or(0, |rung| ad.tiles_done(rung))
             }
         } else {
             self.tiles_recorded

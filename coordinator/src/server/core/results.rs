@@ -166,7 +166,7 @@ impl Core {
             );
             return Ok(None);
         };
-        if ad.passes.pass() != pass || ad.passes.rung() != rung || ad.evaluating {
+        if !self.farm.pass_run(job).is_some_and(|r| r.takes(pass, rung)) {
             return Ok(None);
         }
         let Some(t) = ad.tiles.get(tile as usize) else {
@@ -558,16 +558,17 @@ impl Core {
             return;
         };
         let TilePixels { rgb, zstd } = pixels;
-        if let Some(ad) = record.adaptive.as_mut() {
+        let pass = self.farm.pass_run(job).map(|r| (r.pass(), r.rung()));
+        if let (Some(ad), Some((pass, rung))) = (record.adaptive.as_mut(), pass) {
             // The tile's new state is kept for the next pass; its pixels show the pass's
             // progress. Nothing is written: a restarted coordinator starts the passes
             // again.
-            let Some(answer) = answer.filter(|a| a.pass == ad.passes.pass()) else {
+            let Some(answer) = answer.filter(|a| a.pass == pass) else {
                 return;
             };
             let t = &mut ad.tiles[tile as usize];
             t.state = Some(answer.state);
-            t.rung = Some(ad.passes.rung());
+            t.rung = Some(rung);
             t.sha = answer.sha;
             t.next_work = answer.next_work;
             if !t.machines.iter().any(|m| &**m == machine) {
