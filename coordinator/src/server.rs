@@ -190,9 +190,13 @@ struct Shared {
 }
 
 impl Shared {
+    /// Takes the lock on the core, and passes it the time: everything decided under
+    /// it sees this one time.
     fn lock(&self) -> MutexGuard<'_, Core> {
         // A panic under the lock must not take the whole farm down with poison.
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
+        let mut core = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        core.now = read_clocks(self.clock);
+        core
     }
 
     /// Milliseconds on the daemon's monotonic clock.
@@ -204,6 +208,17 @@ impl Shared {
     fn changed(&self) {
         self.changes.send_modify(|n| *n = n.wrapping_add(1));
         self.rearm.notify_one();
+    }
+}
+
+/// The daemon's clocks now; `epoch` is the start of its monotonic milliseconds. Read
+/// as the lock on the core is taken: the core itself reads no clock.
+fn read_clocks(epoch: Instant) -> core::Now {
+    let instant = Instant::now();
+    core::Now {
+        mono: instant.saturating_duration_since(epoch).as_millis() as Millis,
+        instant,
+        unix_ms: unix_ms(),
     }
 }
 
@@ -285,10 +300,12 @@ impl Server {
         let limits = config.lifecycle_limits();
         let db_path = opened.db_path.clone();
         let db = opened.db;
+        let epoch = Instant::now();
         let shared = Arc::new_cyclic(|weak: &Weak<Shared>| Shared {
             state: Mutex::new(Core::new(
                 Scheduler::with_policy(config.policy),
                 Lifecycle::new(limits, opened.next_id),
+                read_clocks(epoch),
             )),
             persistence: Persistence::start(
                 db,
@@ -297,7 +314,7 @@ impl Server {
                 Arc::new(DaemonHooks(weak.clone())),
             ),
             store: Arc::clone(&store),
-            clock: Instant::now(),
+            clock: epoch,
             runtime: tokio::runtime::Handle::current(),
             closing: AtomicBool::new(false),
             max_frame: config.max_frame,

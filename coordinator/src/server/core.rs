@@ -16,6 +16,7 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
+use std::time::Instant;
 
 use protocol::{ClientResponse, JobEvent, JobId, Refusal, WorkerId};
 use scheduler::farm::{Effect, Farm, Input, TilePlan};
@@ -24,7 +25,7 @@ use scheduler::{Event, Millis, Scheduler};
 use tokio::sync::oneshot;
 
 use super::persistence::Write;
-use super::{unix_ms, Shared};
+use super::Shared;
 use crate::db::EventWrite;
 
 mod admission;
@@ -47,6 +48,9 @@ pub use sequences::SequenceRecord;
 
 /// The decision core and its data.
 pub struct Core {
+    /// The daemon's clocks as the lock was taken (`Shared::lock`): everything decided
+    /// under the lock sees this one time, and the core reads no clock of its own.
+    pub now: Now,
     pub farm: Farm,
     /// Inputs that arose while effects were being carried out, fed once they all are:
     /// the effects before them reach the world first, in the order the core made them.
@@ -68,9 +72,23 @@ pub struct Core {
     expiries_logged: HashSet<(JobId, u32, WorkerId)>,
 }
 
+/// The daemon's clocks at one moment, passed in to the core: the decision core's
+/// milliseconds, the same instant for round trips and rates, and the wall clock for
+/// the times stored and shown.
+#[derive(Clone, Copy, Debug)]
+pub struct Now {
+    /// Milliseconds on the daemon's monotonic clock, since `epoch`.
+    pub mono: Millis,
+    pub instant: Instant,
+    /// Milliseconds since the Unix epoch.
+    pub unix_ms: u64,
+}
+
 impl Core {
-    pub fn new(tiles: Scheduler, lifecycle: Lifecycle) -> Core {
+    /// A core whose clocks read `now` until the lock is first taken.
+    pub fn new(tiles: Scheduler, lifecycle: Lifecycle, now: Now) -> Core {
         Core {
+            now,
             farm: Farm::new(tiles, lifecycle),
             deferred: VecDeque::new(),
             jobs: BTreeMap::new(),
@@ -99,7 +117,7 @@ impl Core {
 
     /// The time has come: the core looks at its deadlines.
     pub fn timeout(&mut self, sh: &Arc<Shared>) {
-        for job in sh.studio.tick(sh.now()) {
+        for job in sh.studio.tick(self.now.mono) {
             self.life_event(sh, lifecycle::Event::Cancel { job });
         }
         self.feed(sh, Input::Timeout);
@@ -147,7 +165,7 @@ impl Core {
             _ => return,
         };
         let end = matches!(kind, "done" | "failed" | "cancelled");
-        let unix_ms = unix_ms();
+        let unix_ms = self.now.unix_ms;
         let (seq, kind, detail) = match log.number(end) {
             Some(seq) => (seq, kind.to_owned(), detail),
             None => (
@@ -186,7 +204,7 @@ impl Core {
     /// Feeds the core one input at the daemon's clock and carries out its effects,
     /// then the inputs they deferred.
     fn feed(&mut self, sh: &Arc<Shared>, input: Input) -> Option<Result<Reply, Refusal>> {
-        let effects = self.farm.handle(sh.now(), input);
+        let effects = self.farm.handle(self.now.mono, input);
         self.carry_out(sh, effects)
     }
 
@@ -198,7 +216,7 @@ impl Core {
     ) -> Option<Result<Reply, Refusal>> {
         let reply = self.apply(sh, effects);
         while let Some(input) = self.deferred.pop_front() {
-            let effects = self.farm.handle(sh.now(), input);
+            let effects = self.farm.handle(self.now.mono, input);
             self.apply(sh, effects);
         }
         reply

@@ -60,7 +60,15 @@ pub(super) async fn serve(
     let (mut sink, mut stream) = conn.split();
     let (outbox, mut inbox) = mpsc::unbounded_channel::<ToWorker>();
     let dropped = Arc::new(Dropped::default());
-    let mut record = WorkerRecord::new(name, peer, build, threads, outbox, Arc::clone(&dropped));
+    let mut record = WorkerRecord::new(
+        std::time::Instant::now(),
+        name,
+        peer,
+        build,
+        threads,
+        outbox,
+        Arc::clone(&dropped),
+    );
     record.key = hold.clone();
     // The name it joins under: unique among the connected workers.
     let (worker, name) = shared.lock().join(&shared, record);

@@ -57,7 +57,7 @@ pub(in crate::server) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> Cl
         });
     } else {
         let mut core = sh.lock();
-        let stored = match core.admit(sh, prepared, reply) {
+        let stored = match core.admit(prepared, reply) {
             Ok(stored) => stored,
             Err(message) => return ClientResponse::Error(message),
         };

@@ -15,7 +15,7 @@ use super::figures;
 use super::records::{
     rect_pixels, restored_label, to_render_rect, Accepted, EventLog, JobRecord, Prepared,
 };
-use super::{unix_ms, unknown, Core, Shared, Write};
+use super::{unknown, Core, Shared, Write};
 use crate::db::{StoredJob, Times, Totals};
 use crate::server::adaptive::AdaptiveJob;
 use crate::server::startup::RestoredJob;
@@ -26,7 +26,6 @@ impl Core {
     /// answer for the client.
     pub fn admit(
         &mut self,
-        sh: &Arc<Shared>,
         prepared: Prepared,
         reply: oneshot::Sender<ClientResponse>,
     ) -> Result<StoredJob, Refusal> {
@@ -36,7 +35,7 @@ impl Core {
             tiles: prepared.tiles.len() as u32,
             interactive: prepared.interactive,
         };
-        let id = self.farm.admit(sh.now(), &prepared.request, plan)?;
+        let id = self.farm.admit(self.now.mono, &prepared.request, plan)?;
         let adaptive = is_adaptive(&prepared.settings).then(|| {
             let (adaptive, passes) = AdaptiveJob::new(
                 &prepared.settings,
@@ -47,7 +46,7 @@ impl Core {
             self.farm.start_passes(id, passes);
             adaptive
         });
-        let submitted = unix_ms();
+        let submitted = self.now.unix_ms;
         let stored = StoredJob {
             id,
             scene: prepared.scene.clone(),
@@ -239,7 +238,7 @@ impl Core {
             priority: stored.priority,
             image: None,
             times: Times {
-                submitted: stored.times.submitted.or(Some(unix_ms())),
+                submitted: stored.times.submitted.or(Some(self.now.unix_ms)),
                 ..stored.times
             },
             rendered_before_ms: 0,
@@ -289,7 +288,7 @@ impl Core {
                     ended_ago: stored
                         .times
                         .ended
-                        .map_or(0, |ended| unix_ms().saturating_sub(ended)),
+                        .map_or(0, |ended| self.now.unix_ms.saturating_sub(ended)),
                 },
             );
             return;
@@ -352,7 +351,7 @@ impl Core {
                 },
             );
         }
-        let effects = self.farm.resume_job(sh.now(), id, plan, &done);
+        let effects = self.farm.resume_job(self.now.mono, id, plan, &done);
         self.carry_out(sh, effects);
     }
 }

@@ -178,7 +178,7 @@ impl Core {
         let job = self.farm.lifecycle().job(id)?;
         let record = self.jobs.get(&id).filter(|r| !r.interactive)?;
         let pass_rung = self.farm.pass_run(id).map(|r| r.rung());
-        let mut status = record.status(id, job, pass_rung);
+        let mut status = record.status(id, job, pass_rung, self.now.unix_ms);
         if !status.state.is_final() {
             status.warning = self.no_worker_warning();
         }

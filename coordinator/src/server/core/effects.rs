@@ -4,14 +4,13 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::Instant;
 
 use protocol::{ClientResponse, JobId, JobState, Refusal, ToWorker, WorkerId};
 use scheduler::lifecycle::{self, Reply};
 use scheduler::Action;
 use tracing::{error, info, warn};
 
-use super::{unix_ms, Core, Shared, Write};
+use super::{Core, Shared, Write};
 
 impl Core {
     /// Carries out the tile scheduler's actions.
@@ -135,11 +134,11 @@ impl Core {
             },
         };
         if record.running_since.is_none() {
-            record.running_since = Some(unix_ms());
+            record.running_since = Some(self.now.unix_ms);
         }
         let first = record.times.started.is_none();
         if first {
-            let at = record.running_since.unwrap_or_else(unix_ms);
+            let at = record.running_since.unwrap_or(self.now.unix_ms);
             record.times.started = Some(at);
             // The wait of this run: since the submission, or the retry.
             let queued = at.saturating_sub(
@@ -170,7 +169,7 @@ impl Core {
         self.send(worker, message);
         let name = match self.workers.get_mut(&worker) {
             Some(w) => {
-                w.assigned.insert((job, tile), Instant::now());
+                w.assigned.insert((job, tile), self.now.instant);
                 w.name.clone()
             }
             None => format!("worker {worker}"),
@@ -279,7 +278,7 @@ impl Core {
             error!(job, "no frame to store");
             return;
         };
-        let ended = unix_ms();
+        let ended = self.now.unix_ms;
         record.times.ended = Some(ended);
         if record.interactive {
             // Its tiles went to the view's page as they came: nothing to encode or keep.
@@ -349,7 +348,7 @@ impl Core {
         record.tiles = Vec::new();
         record.accepted = HashMap::new();
         record.adaptive = None;
-        let ended = *record.times.ended.get_or_insert_with(unix_ms);
+        let ended = *record.times.ended.get_or_insert(self.now.unix_ms);
         let rays = record.totals.rays;
         match state {
             JobState::Done => info!(
@@ -386,7 +385,7 @@ impl Core {
         // A studio view's pass is forgotten once it has ended: a long drag makes many.
         let forget = record.interactive;
         if forget {
-            sh.studio.ended(sh.now(), job, state == JobState::Done);
+            sh.studio.ended(self.now.mono, job, state == JobState::Done);
         }
         let frame_of = record.sequence.map(|s| (s, record.frame));
         let write = Write::End {

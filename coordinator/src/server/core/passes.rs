@@ -8,7 +8,7 @@ use protocol::JobId;
 use scheduler::farm::{Input, PassAction, PassInput};
 use tracing::{error, info, warn};
 
-use super::{unix_ms, Core, Shared};
+use super::{Core, Shared};
 use crate::server::adaptive::{self, AdaptiveTile, Evaluation, PassSnapshot};
 
 impl Core {
@@ -153,7 +153,7 @@ impl Core {
             Ok(evaluation) => {
                 // Rendering time, less the coordinator's own downtime: what a limit
                 // budgets.
-                let now = unix_ms();
+                let now = self.now.unix_ms;
                 let elapsed_ms = record.rendered_before_ms
                     + now.saturating_sub(record.running_since.unwrap_or(now));
                 let input = PassInput::Evaluated {

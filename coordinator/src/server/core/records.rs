@@ -20,7 +20,6 @@ use super::figures;
 use crate::db::{Label, Times, Totals};
 use crate::server::adaptive::{AdaptiveJob, Answer};
 use crate::server::keys::KeyHold;
-use crate::server::unix_ms;
 use crate::store::JobMetadata;
 
 /// What the daemon keeps of a job beside its lifecycle.
@@ -161,15 +160,16 @@ impl JobRecord {
         }
     }
 
-    /// The job's status; `pass_rung` is the rung of an adaptive job's pass under way.
+    /// The job's status at `now` (milliseconds since the Unix epoch); `pass_rung` is
+    /// the rung of an adaptive job's pass under way.
     pub(super) fn status(
         &self,
         id: JobId,
         job: &lifecycle::Job,
         pass_rung: Option<u32>,
+        now: u64,
     ) -> JobStatus {
         let state = job.phase.visible();
-        let now = unix_ms();
         let end = self.times.ended.filter(|_| state.is_final()).unwrap_or(now);
         let submitted = self.times.submitted.unwrap_or(end);
         let (elapsed_ms, queued_ms) =
@@ -397,7 +397,9 @@ const RATE_WINDOW: Duration = Duration::from_secs(60);
 pub(super) const RTTS_KEPT: usize = 8;
 
 impl WorkerRecord {
+    /// A worker connected at `connected`.
     pub fn new(
+        connected: Instant,
         name: String,
         host: std::net::IpAddr,
         build: String,
@@ -412,7 +414,7 @@ impl WorkerRecord {
             threads,
             outbox,
             dropped,
-            connected: Instant::now(),
+            connected,
             tiles_done: 0,
             rays: 0,
             assigned: HashMap::new(),
@@ -477,8 +479,15 @@ impl WorkerRecord {
         )
     }
 
-    pub(super) fn status(&self, id: WorkerId, in_flight: usize, credit: usize) -> WorkerStatus {
-        let connected = self.connected.elapsed();
+    /// The worker's status at `now`.
+    pub(super) fn status(
+        &self,
+        id: WorkerId,
+        in_flight: usize,
+        credit: usize,
+        now: Instant,
+    ) -> WorkerStatus {
+        let connected = now.saturating_duration_since(self.connected);
         WorkerStatus {
             id,
             name: self.name.clone(),
@@ -488,7 +497,7 @@ impl WorkerRecord {
             tiles_done: self.tiles_done,
             rays: self.rays,
             connected_ms: connected.as_millis() as u64,
-            rays_per_second: self.current_rate(Instant::now()),
+            rays_per_second: self.current_rate(now),
             build: self.build.clone(),
             quarantined: self.quarantined.clone(),
             rtt_us: self.rtt_us(),

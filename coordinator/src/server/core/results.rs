@@ -3,7 +3,6 @@
 //! settled against a copy, and a worker's failures and round trips.
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use protocol::{JobId, SceneHash, Settings, TileRect, Verification, WorkerId};
 use render::Tracer;
@@ -14,7 +13,7 @@ use tracing::{error, info, warn};
 use super::records::{
     decompress, rect_pixels, to_render_rect, Accepted, Cost, Held, TilePixels, RTTS_KEPT,
 };
-use super::{unix_ms, Core, Shared, Write};
+use super::{Core, Shared, Write};
 use crate::server::adaptive::{self, AdaptivePlan, Answer};
 use crate::server::verification::Verifier;
 
@@ -350,7 +349,7 @@ impl Core {
                 return Ok(());
             }
         }
-        let effects = self.farm.handle(sh.now(), Input::Tiles(event));
+        let effects = self.farm.handle(self.now.mono, Input::Tiles(event));
         let latency = self
             .workers
             .get_mut(&worker)
@@ -539,7 +538,7 @@ impl Core {
         if let Some(w) = self.workers.get_mut(&worker) {
             w.tiles_done += 1;
             w.rays += cost.rays;
-            w.count_result(Instant::now(), cost.render_us, cost.rays);
+            w.count_result(self.now.instant, cost.render_us, cost.rays);
         }
         self.log(
             sh,
@@ -598,7 +597,7 @@ impl Core {
         let error_sq_sum = (cost.error_sq_sum.is_finite() && cost.error_sq_sum >= 0.0)
             .then_some(cost.error_sq_sum);
         record.add_cost(cost.rays, cost.samples, error_sq_sum, rect_pixels(rect));
-        record.pace.tile_done(unix_ms());
+        record.pace.tile_done(self.now.unix_ms);
         let name = machine.to_string();
         let accepted = Accepted {
             machine: Arc::from(machine),
@@ -622,7 +621,7 @@ impl Core {
                 worker: name,
                 samples: cost.samples,
                 error_sq_sum,
-                done_ms: unix_ms(),
+                done_ms: self.now.unix_ms,
             }),
         );
     }

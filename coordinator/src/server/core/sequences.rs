@@ -21,7 +21,7 @@ use tokio::sync::oneshot;
 use tracing::{info, warn};
 
 use super::records::{EventLog, Prepared};
-use super::{unix_ms, Core, Shared, Write};
+use super::{Core, Shared, Write};
 use crate::db::{Label, StoredJob, Times, Totals};
 use crate::tiling;
 
@@ -75,7 +75,7 @@ impl Core {
         self.farm.lifecycle().limits().check(&prepared.request)?;
         let id = self.farm.issue_id();
         let times = Times {
-            submitted: Some(unix_ms()),
+            submitted: Some(self.now.unix_ms),
             ..Times::default()
         };
         let stored = StoredJob {
@@ -322,7 +322,7 @@ impl Core {
         };
         // The answer goes to the sequence (see `frame_acknowledged`), not to a client.
         let (reply, _) = oneshot::channel();
-        match self.admit(sh, prepared, reply) {
+        match self.admit(prepared, reply) {
             Ok(stored) => {
                 let job = stored.id;
                 self.farm.keep(job);
@@ -364,7 +364,7 @@ impl Core {
         };
         if record.times.started.is_none() {
             // Its first frame is out: the sequence's time in the queue ends.
-            let at = unix_ms();
+            let at = self.now.unix_ms;
             record.times.started = Some(at);
             sh.persistence.write(Write::Started {
                 job: id,
@@ -447,7 +447,7 @@ impl Core {
             return;
         };
         record.recorded = Some(state);
-        let ended = unix_ms();
+        let ended = self.now.unix_ms;
         record.times.ended = Some(ended);
         let times = record.times;
         let c = record.frames.counts();

@@ -89,6 +89,7 @@ fn an_event_log_keeps_its_cap_then_counts_what_it_drops_and_keeps_the_end() {
 #[test]
 fn a_workers_rate_is_while_it_rendered_in_the_last_minute() {
     let mut w = WorkerRecord::new(
+        std::time::Instant::now(),
         "w".into(),
         std::net::Ipv4Addr::LOCALHOST.into(),
         "build".into(),

@@ -114,6 +114,7 @@ impl Core {
                     id,
                     self.farm.tiles().held_by(id),
                     self.farm.tiles().credit_of(id),
+                    self.now.instant,
                 );
                 status.disabled = self.farm.tiles().is_disabled(&w.name);
                 status.unresponsive = self.farm.tiles().is_unresponsive(id);

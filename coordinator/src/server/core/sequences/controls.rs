@@ -18,7 +18,7 @@ use crate::server::core::controls::ended_refusal;
 use crate::server::core::records::Controls;
 use crate::server::core::{unknown, Core};
 use crate::server::persistence::Write;
-use crate::server::{unix_ms, Shared};
+use crate::server::Shared;
 use crate::store::ImagePlace;
 
 impl Core {
@@ -27,7 +27,7 @@ impl Core {
         let record = self.sequences.get(&id).filter(|r| r.stored)?;
         let state = record.frames.state();
         let c = record.frames.counts();
-        let now = unix_ms();
+        let now = self.now.unix_ms;
         let end = record
             .times
             .ended
@@ -400,7 +400,7 @@ impl Core {
     /// Milliseconds until the next ended sequence's retention runs out, if any will.
     pub fn next_sequence_expiry(&self) -> Option<u64> {
         let keep = self.farm.lifecycle().limits().retention?;
-        let now = unix_ms();
+        let now = self.now.unix_ms;
         self.sequences
             .values()
             .filter(|r| !r.deleting && r.recorded.is_some())
@@ -414,7 +414,7 @@ impl Core {
         let Some(keep) = self.farm.lifecycle().limits().retention else {
             return;
         };
-        let now = unix_ms();
+        let now = self.now.unix_ms;
         let expired: Vec<JobId> = self
             .sequences
             .iter()
