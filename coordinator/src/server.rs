@@ -462,19 +462,22 @@ impl Server {
 
 /// Wakes the state machines when their next deadline comes, with the timer slack of
 /// [`scheduler::TIMER_SLACK`] (and when something changed, to look at the deadline
-/// again); at once, between two inputs, while the core has tiles left to hand out (a
-/// hand-out is cut into bounded calls, so that the lock is never held long). No
-/// periodic tick: an idle coordinator sleeps.
+/// again); at once, between two inputs, while the core has more to do than one call
+/// does (a hand-out, or checks such as thousands of leases running out together, are
+/// cut into bounded calls, so that the lock is never held long). A deadline that has
+/// come meanwhile is a timeout, which goes on with that too. No periodic tick: an idle
+/// coordinator sleeps.
 async fn timer(sh: Arc<Shared>) {
     loop {
         let (deadline, more) = {
             let core = sh.lock();
-            let more = core.farm.has_more();
-            let deadline = match core.next_deadline(sh.now()) {
-                _ if more => Some(sh.now()),
-                deadline => deadline.map(scheduler::wake_time),
-            };
-            (deadline, more)
+            let now = sh.now();
+            let due = core.next_deadline(now).map(scheduler::wake_time);
+            match due {
+                _ if !core.farm.has_more() => (due, false),
+                Some(at) if at <= now => (due, false),
+                _ => (Some(now), true),
+            }
         };
         let sleep = async {
             match deadline {
@@ -488,7 +491,7 @@ async fn timer(sh: Arc<Shared>) {
         tokio::select! {
             () = sleep => {
                 if more {
-                    sh.lock().tiles_event(&sh, scheduler::Event::Continue);
+                    sh.lock().go_on(&sh);
                 } else {
                     sh.lock().timeout(&sh);
                 }

@@ -19,7 +19,15 @@
 //! - **Bounded calls.** One call hands out at most [`Policy::handout_per_call`] tiles:
 //!   a job of thousands of tiles submitted to thousands of idle threads goes out over
 //!   several calls ([`Scheduler::has_more`], then [`Event::Continue`]), in the same
-//!   order, and what arrives meanwhile is heard in between.
+//!   order, and what arrives meanwhile is heard in between. Likewise one call makes at
+//!   most [`Policy::checks_per_call`] checks (leases run out, entries of silent
+//!   workers, workers looked at for progress, scenes forgotten): thousands of leases
+//!   running out together, or a scene thousands of workers have, are taken over
+//!   several calls at the same time. The earliest go first; with no bound, the
+//!   decisions are those of one call. No work waits on a table that grows with the
+//!   farm all at once: the leases handed out before a job's first tile is measured
+//!   share one length, so bringing them down to the measured lease moves none, and the
+//!   queue of last-heard times grows a millisecond's bucket at a time.
 //! - **Results confirmed by another machine.** A result the daemon wants confirmed
 //!   ([`Event::TileToConfirm`]: every tile of a job in full verification, a random
 //!   share of the others) is held, not accepted: the tile goes back to the queue for
@@ -140,7 +148,7 @@ pub use events::{Action, Event};
 pub use handout::INTERACTIVE_RUN;
 use job::{Job, JobRank, Lease, TileState};
 pub use policy::Policy;
-use worker::{name_list, ByTile, ByWorker, Machine, Overdue, Worker};
+use worker::{name_list, ByTile, ByWorker, Machine, Overdue, SeenQueue, Worker};
 
 /// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
 pub type Millis = u64;
@@ -165,10 +173,11 @@ pub struct Scheduler {
     /// those that fell silent: every message appends (the clock never goes back, so
     /// the queue stays in order), and an entry older than its worker's last one is
     /// stale, dropped when it reaches the front ([`Scheduler::trim_seen`]). The front
-    /// is always a live worker's last time: the earliest of them. Appending costs
+    /// is a live worker's last time, the earliest of them, once the stale entries
+    /// before it are dropped (a long run of them over several calls). Appending costs
     /// nothing like moving the worker in an ordered set, which every message of every
     /// worker did.
-    by_last_seen: VecDeque<(Millis, WorkerId)>,
+    by_last_seen: SeenQueue,
     /// The machines with a live worker that is not draining, and how many: those that
     /// could take a tile, for the stall check.
     ready: BTreeMap<Machine, u32>,
@@ -202,6 +211,13 @@ pub struct Scheduler {
     /// a call stopped at that bound with tiles left to hand out.
     handout_left: usize,
     more: bool,
+    /// Checks this call may still make ([`Policy::checks_per_call`]), and whether a
+    /// call stopped at that bound with checks left, until a call makes them all.
+    checks_left: usize,
+    checks_more: bool,
+    /// Scenes no active job uses, whose holders are still to be told to forget them,
+    /// in the order they fell out of use ([`Scheduler::forget_unused_scenes`]).
+    forgetting: VecDeque<SceneHash>,
     counters: Counters,
 }
 
@@ -237,13 +253,17 @@ impl Scheduler {
     pub fn handle(&mut self, now: Millis, event: Event) -> Vec<Action> {
         self.advance(now);
         self.handout_left = self.policy.handout_per_call.max(1);
+        self.checks_left = self.policy.checks_per_call.max(1);
+        self.checks_left = self.policy.checks_per_call.max(1);
         let mut actions = Vec::new();
         match event {
             Event::Timeout => {
                 self.last_timeout = self.now;
+                self.checks_more = false;
                 self.check_heartbeats(&mut actions);
                 self.check_leases();
                 self.check_progress(&mut actions);
+                self.forget_pending(&mut actions);
                 self.give_up_confirmations(&mut actions);
                 self.check_stalls(&mut actions);
                 self.fill_all(&mut actions);
@@ -286,13 +306,24 @@ impl Scheduler {
                         self.unready(&old.machine);
                     }
                 }
-                self.by_last_seen.push_back((self.now, worker));
+                self.by_last_seen.push(self.now, worker);
                 self.trim_seen();
+                self.overdue.reserve(self.workers.len());
                 self.hungry.insert(worker);
                 self.fill(worker, &mut actions);
             }
             Event::Heartbeat { worker } => self.seen(worker),
-            Event::Continue => self.fill_all(&mut actions),
+            // Goes on with what the last calls left at their bounds: the checks, then
+            // the hand-out.
+            Event::Continue => {
+                if std::mem::take(&mut self.checks_more) {
+                    self.check_heartbeats(&mut actions);
+                    self.check_leases();
+                    self.check_progress(&mut actions);
+                    self.forget_pending(&mut actions);
+                }
+                self.fill_all(&mut actions);
+            }
             Event::WorkerLeft { worker } => {
                 self.remove_worker(worker, &mut actions);
                 self.fill_all(&mut actions);
@@ -455,11 +486,11 @@ impl Scheduler {
         let mut at: Option<Millis> = None;
         let mut sooner = |t: Millis| at = Some(at.map_or(t, |a| a.min(t)));
         let mut waiting = !self.workers.is_empty();
-        if let Some(&(seen, _)) = self.by_last_seen.front() {
+        if let Some((seen, _)) = self.by_last_seen.front() {
             sooner(seen + self.policy.heartbeat_timeout + 1);
         }
         for job in self.jobs.values() {
-            if let Some(&(deadline, _, _)) = job.deadlines.first() {
+            if let Some(deadline) = job.first_deadline() {
                 sooner(deadline);
                 waiting = true;
             }
@@ -610,9 +641,9 @@ impl Scheduler {
         if let Some(w) = self.workers.get_mut(&worker) {
             if w.last_seen != self.now {
                 // Only this worker's own entry at the front goes stale here.
-                let front = self.by_last_seen.front() == Some(&(w.last_seen, worker));
+                let front = self.by_last_seen.front() == Some((w.last_seen, worker));
                 w.last_seen = self.now;
-                self.by_last_seen.push_back((self.now, worker));
+                self.by_last_seen.push(self.now, worker);
                 if front {
                     self.trim_seen();
                 }
@@ -621,13 +652,16 @@ impl Scheduler {
     }
 
     /// Drops the stale entries at the front of [`Scheduler::by_last_seen`]: those of
-    /// workers gone or heard from since.
+    /// workers gone or heard from since. One check each: a long run of them is
+    /// dropped over several calls, the front stale meanwhile (the next deadline is
+    /// then early, never late).
     pub(super) fn trim_seen(&mut self) {
-        while let Some(&(seen, worker)) = self.by_last_seen.front() {
+        while let Some((seen, worker)) = self.by_last_seen.front() {
             if self
                 .workers
                 .get(&worker)
                 .is_some_and(|w| w.last_seen == seen)
+                || !self.take_check()
             {
                 break;
             }
@@ -635,11 +669,28 @@ impl Scheduler {
         }
     }
 
+    /// Takes one check from the call's allowance ([`Policy::checks_per_call`]);
+    /// `false` when none is left, and then the call asks to be continued.
+    fn take_check(&mut self) -> bool {
+        self.take_checks(1)
+    }
+
+    /// Takes `n` checks at once, for a step that costs as much.
+    fn take_checks(&mut self, n: usize) -> bool {
+        if self.checks_left < n {
+            self.checks_more = true;
+            return false;
+        }
+        self.checks_left -= n;
+        true
+    }
+
     /// Whether the last call stopped at [`Policy::handout_per_call`] with tiles left
-    /// to hand out: the daemon feeds [`Event::Continue`] at once, after whatever
-    /// arrived meanwhile (any call that fills goes on where it stopped).
+    /// to hand out, or a call at [`Policy::checks_per_call`] with checks left: the
+    /// daemon feeds [`Event::Continue`] at once, after whatever arrived meanwhile (any
+    /// call that fills goes on where it stopped).
     pub fn has_more(&self) -> bool {
-        self.more
+        self.more || self.checks_more
     }
 
     /// Whether some connected worker may be given tiles: none that is draining,

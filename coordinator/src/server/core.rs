@@ -126,6 +126,16 @@ impl Core {
         self.expire_sequences(sh);
     }
 
+    /// The core goes on with what its last call left at a bound (a hand-out, checks):
+    /// leases it ran out meanwhile reach the jobs' event logs.
+    pub fn go_on(&mut self, sh: &Arc<Shared>) {
+        let expired = self.farm.tiles().counters().leases_expired;
+        self.tiles_event(sh, Event::Continue);
+        if self.farm.tiles().counters().leases_expired != expired {
+            self.log_expired_leases(sh);
+        }
+    }
+
     /// Whether tiles are out or images are being stored (a shutdown waits for them).
     pub fn is_busy(&self) -> bool {
         self.farm.tiles().tiles_in_flight() > 0

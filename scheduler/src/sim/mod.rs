@@ -415,7 +415,12 @@ impl<'a> Sim<'a> {
             }
             Ev::Continue => {
                 self.continuing = false;
-                self.feed(Input::Tiles(Event::Continue));
+                // It goes on with the checks a call left at its bound, leases that
+                // ran out meanwhile included: as for a timeout, the account expires
+                // them before the first assignment.
+                let effects = self.handle(Input::Tiles(Event::Continue));
+                let clock = self.core.core.tiles().clock();
+                self.apply(effects, Some(clock));
             }
             Ev::CoordinatorPause => {
                 self.paused = true;

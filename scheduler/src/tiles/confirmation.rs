@@ -137,6 +137,7 @@ impl Scheduler {
                     worker,
                     started: self.now,
                     deadline: self.now,
+                    unmeasured: false,
                     expired: true,
                 });
             }

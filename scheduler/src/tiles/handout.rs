@@ -3,7 +3,7 @@
 //! before a worker's first tile of it and forgotten when no job uses it. The one
 //! place tiles go out, kept apart from how they come back.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::ops::Bound::{Excluded, Unbounded};
 
 use protocol::{JobId, SceneHash, WorkerId};
@@ -13,34 +13,78 @@ use super::{Action, Lease, Scheduler};
 /// At most this many tiles in a row go to interactive jobs while batch tiles wait.
 pub const INTERACTIVE_RUN: u32 = 4;
 
+/// Checks a scene forgotten by one worker counts for: it touches that worker's own
+/// state, spread over the farm's memory, where a lease running out touches its job's.
+const FORGET_COST: usize = 4;
+
 impl Scheduler {
-    /// After a job ended: workers may drop scenes no active job uses, in worker id
-    /// order, each worker's in scene order. Only the workers that have such a scene
-    /// are visited ([`Scheduler::scene_holders`]).
+    /// After a job ended: the workers that have a scene no active job uses are to be
+    /// told to forget it ([`Scheduler::forget_pending`]).
     pub(super) fn forget_unused_scenes(&mut self, actions: &mut Vec<Action>) {
         let in_use: BTreeSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
-        let unused: Vec<SceneHash> = self
-            .scene_holders
-            .keys()
-            .filter(|scene| !in_use.contains(*scene))
-            .copied()
-            .collect();
-        let mut forget: BTreeMap<WorkerId, Vec<SceneHash>> = BTreeMap::new();
-        for scene in unused {
-            for worker in self.scene_holders.remove(&scene).unwrap_or_default() {
-                forget.entry(worker).or_default().push(scene);
+        for scene in self.scene_holders.keys() {
+            if !in_use.contains(scene) && !self.forgetting.contains(scene) {
+                self.forgetting.push_back(*scene);
             }
         }
-        for (worker, scenes) in forget {
-            let w = self
-                .workers
-                .get_mut(&worker)
-                .expect("scene holders are live");
-            for scene in scenes {
-                w.scenes.remove(&scene);
-                actions.push(Action::ForgetScene { worker, scene });
-            }
+        self.forget_pending(actions);
+    }
+
+    /// Tells the holders of scenes no active job uses to forget them, [`FORGET_COST`]
+    /// checks each ([`Policy::checks_per_call`](super::Policy::checks_per_call)).
+    /// Within the
+    /// call's checks: in worker id order, each worker's scenes in order. Beyond them
+    /// (a scene thousands of workers have): scene after scene, each in worker order,
+    /// as many as the call allows, and the rest in the calls that follow. A scene in
+    /// use again meanwhile stays with the workers not yet told. Only the workers that
+    /// have such a scene are visited ([`Scheduler::scene_holders`]).
+    pub(super) fn forget_pending(&mut self, actions: &mut Vec<Action>) {
+        if self.forgetting.is_empty() {
+            return;
         }
+        let in_use: BTreeSet<SceneHash> = self.jobs.values().map(|j| j.scene).collect();
+        let holders = &self.scene_holders;
+        self.forgetting
+            .retain(|s| !in_use.contains(s) && holders.contains_key(s));
+        let pending: usize = self.forgetting.iter().map(|s| holders[s].len()).sum();
+        if pending.saturating_mul(FORGET_COST) <= self.checks_left {
+            self.checks_left -= pending * FORGET_COST;
+            let mut forget: Vec<(WorkerId, SceneHash)> = Vec::with_capacity(pending);
+            for scene in std::mem::take(&mut self.forgetting) {
+                let holders = self.scene_holders.remove(&scene).unwrap_or_default();
+                forget.extend(holders.into_iter().map(|worker| (worker, scene)));
+            }
+            forget.sort_unstable();
+            for (worker, scene) in forget {
+                self.forget_scene(worker, scene, actions);
+            }
+            return;
+        }
+        while let Some(&scene) = self.forgetting.front() {
+            if !self.take_checks(FORGET_COST) {
+                return;
+            }
+            let holders = self
+                .scene_holders
+                .get_mut(&scene)
+                .expect("a scene being forgotten has holders");
+            let worker = holders.pop_first().expect("holders are never empty");
+            if holders.is_empty() {
+                self.scene_holders.remove(&scene);
+                self.forgetting.pop_front();
+            }
+            self.forget_scene(worker, scene, actions);
+        }
+    }
+
+    /// The worker forgets the scene (it is out of the index already).
+    fn forget_scene(&mut self, worker: WorkerId, scene: SceneHash, actions: &mut Vec<Action>) {
+        let w = self
+            .workers
+            .get_mut(&worker)
+            .expect("scene holders are live");
+        w.scenes.remove(&scene);
+        actions.push(Action::ForgetScene { worker, scene });
     }
 
     /// Takes the worker out of the index of the scenes it had.
@@ -139,6 +183,7 @@ impl Scheduler {
                     worker: worker_id,
                     started: now,
                     deadline,
+                    unmeasured: false,
                     expired: false,
                 },
             );

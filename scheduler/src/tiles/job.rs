@@ -15,7 +15,12 @@ use super::{name_list, ByTile, Counters, Machine, Millis, Overdue, Policy};
 pub(super) struct Lease {
     pub(super) worker: WorkerId,
     pub(super) started: Millis,
+    /// When it runs out, for a lease given once the job's tiles were measured; one
+    /// given before runs out at its start plus the job's
+    /// [`Job::unmeasured_length`] (see [`Job::unmeasured`]).
     pub(super) deadline: Millis,
+    /// Given before the job's first tile was measured.
+    pub(super) unmeasured: bool,
     /// Ran out: the tile was put back in the queue, but this holder may still deliver.
     pub(super) expired: bool,
 }
@@ -72,8 +77,17 @@ pub(super) struct Job {
     /// worker with free credit finds its straggler without walking every tile in
     /// flight.
     pub(super) stragglers: BTreeSet<(Millis, u32)>,
-    /// The live leases by deadline, so that a timeout looks only at those that ran out.
-    pub(super) deadlines: BTreeSet<(Millis, u32, WorkerId)>,
+    /// The live leases given once the job's tiles were measured, by deadline, so that
+    /// a timeout looks only at those that ran out.
+    deadlines: BTreeSet<(Millis, u32, WorkerId)>,
+    /// The live leases given before the first tile was measured, by start: they all
+    /// have one length, [`Job::unmeasured_length`], so their order by start is their
+    /// order by deadline, and bringing that length down when the first tile is
+    /// measured moves none of them.
+    unmeasured: BTreeSet<(Millis, u32, WorkerId)>,
+    /// The length of every lease of [`Job::unmeasured`]: the initial lease, then
+    /// (once the first tile is measured) no more than the measured lease.
+    unmeasured_length: Millis,
     pub(super) remaining: u32,
     /// Failures reported per tile, and the machines each tile failed on.
     pub(super) failures: BTreeMap<u32, (u32, BTreeSet<Machine>)>,
@@ -108,6 +122,8 @@ impl Job {
             in_flight: ByTile::default(),
             stragglers: BTreeSet::new(),
             deadlines: BTreeSet::new(),
+            unmeasured: BTreeSet::new(),
+            unmeasured_length: Millis::MAX,
             remaining: tiles,
             failures: BTreeMap::new(),
             losses: BTreeMap::new(),
@@ -169,18 +185,37 @@ impl Job {
     /// is sooner: done once, when the job's first tile is measured, so that the tiles
     /// handed out under the initial lease (a guess, 60 s by default) are held no longer
     /// than the job's measured pace allows. A worker that hung on its first tiles is
-    /// then found out as soon as one on a working machine is. Walks the tiles in
-    /// flight, once per job.
+    /// then found out as soon as one on a working machine is. Those are the leases of
+    /// [`Job::unmeasured`]: one length changes, whatever the tiles in flight.
     pub(super) fn shorten_leases(&mut self, length: Millis) {
-        for (&tile, leases) in &mut self.in_flight {
-            for lease in leases.iter_mut().filter(|l| !l.expired) {
-                let deadline = lease.started.saturating_add(length);
-                if deadline < lease.deadline {
-                    self.deadlines.remove(&(lease.deadline, tile, lease.worker));
-                    lease.deadline = deadline;
-                    self.deadlines.insert((deadline, tile, lease.worker));
-                }
-            }
+        self.unmeasured_length = self.unmeasured_length.min(length);
+    }
+
+    /// The earliest deadline of a live lease.
+    pub(super) fn first_deadline(&self) -> Option<Millis> {
+        self.first_due().map(|((deadline, _, _), _)| deadline)
+    }
+
+    /// The live lease that runs out first, as (deadline, tile, worker), and whether it
+    /// is one of [`Job::unmeasured`].
+    fn first_due(&self) -> Option<((Millis, u32, WorkerId), bool)> {
+        let measured = self.deadlines.first().map(|&key| (key, false));
+        let unmeasured = self.unmeasured.first().map(|&(started, tile, worker)| {
+            let deadline = started.saturating_add(self.unmeasured_length);
+            ((deadline, tile, worker), true)
+        });
+        match (measured, unmeasured) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Takes a live lease out of the deadline indexes.
+    fn unindex(&mut self, tile: u32, lease: &Lease) {
+        if lease.unmeasured {
+            self.unmeasured.remove(&(lease.started, tile, lease.worker));
+        } else {
+            self.deadlines.remove(&(lease.deadline, tile, lease.worker));
         }
     }
 
@@ -196,12 +231,21 @@ impl Job {
         }
     }
 
-    pub(super) fn add_lease(&mut self, tile: u32, lease: Lease) {
+    /// Gives the worker a lease on the tile (`unmeasured` is the job's to set).
+    pub(super) fn add_lease(&mut self, tile: u32, mut lease: Lease) {
+        lease.unmeasured = self.measured == 0;
+        if lease.unmeasured {
+            // The initial lease: the same for every lease before the first measure.
+            let length = lease.deadline.saturating_sub(lease.started);
+            self.unmeasured_length = self.unmeasured_length.min(length);
+            self.unmeasured.insert((lease.started, tile, lease.worker));
+        } else {
+            self.deadlines.insert((lease.deadline, tile, lease.worker));
+        }
         let leases = self.in_flight.entry(tile).or_default();
         let before = straggler_key(leases);
         leases.push(lease);
         let after = straggler_key(leases);
-        self.deadlines.insert((lease.deadline, tile, lease.worker));
         self.restraggle(tile, before, after);
     }
 
@@ -216,7 +260,7 @@ impl Job {
             self.in_flight.remove(&tile);
         }
         if !lease.expired {
-            self.deadlines.remove(&(lease.deadline, tile, worker));
+            self.unindex(tile, &lease);
         }
         self.restraggle(tile, before, after);
         Some(lease)
@@ -226,7 +270,7 @@ impl Job {
     pub(super) fn take_leases(&mut self, tile: u32) -> Option<Vec<Lease>> {
         let leases = self.in_flight.remove(&tile)?;
         for l in leases.iter().filter(|l| !l.expired) {
-            self.deadlines.remove(&(l.deadline, tile, l.worker));
+            self.unindex(tile, l);
         }
         self.restraggle(tile, straggler_key(&leases), None);
         Some(leases)
@@ -236,37 +280,51 @@ impl Job {
     /// (in increasing tile order, each at the head) the tiles left with no live lease.
     /// Marks the leases due by `now` expired and requeues the tiles all of whose leases
     /// ran out; counts both.
-    /// The workers whose leases ran out join `overdue`.
+    /// The workers whose leases ran out join `overdue`. At most `checks` leases run
+    /// out, each taking one; returns whether more were due (the earliest go first).
     pub(super) fn expire_leases(
         &mut self,
         now: Millis,
+        checks: &mut usize,
         counters: &mut Counters,
         overdue: &mut Overdue,
-    ) {
+    ) -> bool {
         let mut due = Vec::new();
-        while let Some(&(deadline, tile, _)) = self.deadlines.first() {
+        let mut cut = false;
+        while let Some(((deadline, tile, worker), unmeasured)) = self.first_due() {
             if deadline > now {
                 break;
             }
-            self.deadlines.pop_first();
-            due.push(tile);
+            if *checks == 0 {
+                cut = true;
+                break;
+            }
+            *checks -= 1;
+            if unmeasured {
+                self.unmeasured.pop_first();
+            } else {
+                self.deadlines.pop_first();
+            }
+            due.push((tile, worker));
         }
+        // Tile by tile, in increasing order, each tile's due leases at once.
         due.sort_unstable();
-        due.dedup();
-        for tile in due {
+        let mut due = due.as_slice();
+        while let Some(&(tile, _)) = due.first() {
+            let ends = due.iter().take_while(|(t, _)| *t == tile).count();
             let leases = self
                 .in_flight
                 .get_mut(&tile)
                 .expect("a live lease is in flight");
             let before = straggler_key(leases);
-            for lease in leases
-                .iter_mut()
-                .filter(|l| !l.expired && l.deadline <= now)
-            {
-                lease.expired = true;
-                counters.leases_expired += 1;
-                overdue.insert(lease.worker);
+            for &(_, worker) in &due[..ends] {
+                if let Some(lease) = leases.iter_mut().find(|l| l.worker == worker && !l.expired) {
+                    lease.expired = true;
+                    counters.leases_expired += 1;
+                    overdue.insert(worker);
+                }
             }
+            due = &due[ends..];
             let all_expired = leases.iter().all(|l| l.expired);
             let after = straggler_key(leases);
             self.restraggle(tile, before, after);
@@ -274,6 +332,7 @@ impl Job {
                 counters.tiles_requeued += 1;
             }
         }
+        cut
     }
 
     /// Ends the worker's live lease on the tile now, if it has one, and puts the tile
@@ -287,11 +346,11 @@ impl Job {
             return;
         };
         lease.expired = true;
-        let deadline = lease.deadline;
+        let ended = *lease;
         counters.leases_expired += 1;
         let all_expired = leases.iter().all(|l| l.expired);
         let after = straggler_key(leases);
-        self.deadlines.remove(&(deadline, tile, worker));
+        self.unindex(tile, &ended);
         self.restraggle(tile, before, after);
         if all_expired && self.state[tile as usize] != TileState::Done && self.requeue(tile) {
             counters.tiles_requeued += 1;

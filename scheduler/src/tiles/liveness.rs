@@ -15,9 +15,9 @@ impl Scheduler {
     pub(super) fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
         let timeout = self.policy.heartbeat_timeout;
         let mut silent: Vec<WorkerId> = Vec::new();
-        while let Some(&(seen, id)) = self.by_last_seen.front() {
+        while let Some((seen, id)) = self.by_last_seen.front() {
             let live = self.workers.get(&id).is_some_and(|w| w.last_seen == seen);
-            if live && self.now.saturating_sub(seen) <= timeout {
+            if (live && self.now.saturating_sub(seen) <= timeout) || !self.take_check() {
                 break;
             }
             if live {
@@ -38,7 +38,16 @@ impl Scheduler {
     pub(super) fn check_leases(&mut self) {
         let now = self.now;
         for job in self.jobs.values_mut() {
-            job.expire_leases(now, &mut self.counters, &mut self.overdue);
+            let cut = job.expire_leases(
+                now,
+                &mut self.checks_left,
+                &mut self.counters,
+                &mut self.overdue,
+            );
+            if cut {
+                self.checks_more = true;
+                return;
+            }
         }
     }
 
@@ -55,7 +64,10 @@ impl Scheduler {
     /// [`Policy::progress_factor`]: super::Policy::progress_factor
     pub(super) fn check_progress(&mut self, actions: &mut Vec<Action>) {
         let now = self.now;
-        for id in self.overdue.due(now) {
+        let (due, cut) = self.overdue.due(now, self.checks_left);
+        self.checks_left -= due.len();
+        self.checks_more |= cut;
+        for id in due {
             let Some(w) = self.workers.get(&id) else {
                 self.overdue.remove(id);
                 continue;
@@ -90,10 +102,13 @@ impl Scheduler {
             // Not found unresponsive before its last progress plus the least
             // allowance; a worker marked already stays filed, so that once a result
             // makes it responsive again, what it still holds late is watched again.
+            // Never again at this time: a call that goes on where the last stopped
+            // looks at the others.
             let next = w
                 .progress_since
                 .saturating_add(self.policy.progress_timeout)
-                .saturating_add(1);
+                .saturating_add(1)
+                .max(now + 1);
             if w.unresponsive {
                 self.overdue.defer(id, next);
                 continue;

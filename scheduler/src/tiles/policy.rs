@@ -52,6 +52,13 @@ pub struct Policy {
     ///
     /// [`Scheduler::has_more`]: super::Scheduler::has_more
     pub handout_per_call: usize,
+    /// The most checks one call makes: leases run out, entries of silent workers
+    /// looked at, workers looked at for progress, and scenes forgotten by a worker.
+    /// When more are due (thousands of leases running out together on a large farm,
+    /// the end of a job whose scene thousands of workers have), the call stops there
+    /// and asks to be called again at once, as for the hand-out: what is due is
+    /// checked over several calls, at the same time.
+    pub checks_per_call: usize,
 }
 
 impl Default for Policy {
@@ -72,6 +79,7 @@ impl Default for Policy {
             progress_timeout: 20_000,
             progress_factor: 16,
             handout_per_call: 256,
+            checks_per_call: 512,
         }
     }
 }

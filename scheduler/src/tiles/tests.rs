@@ -1425,3 +1425,104 @@ fn a_large_hand_out_is_cut_into_bounded_calls_in_the_same_order() {
     assert_eq!(calls, 5, "320 tiles, 64 a call");
     assert_eq!(bounded, whole);
 }
+
+/// Leases that run out together are checked a bounded number per call: the timeout
+/// that finds them asks to go on, and the `Continue`s that follow run out the rest.
+/// The same leases run out and the same tiles go back to the queue as in one call.
+#[test]
+fn leases_running_out_together_are_checked_over_bounded_calls() {
+    let run = |checks_per_call: usize| {
+        let mut s = Scheduler::with_policy(Policy {
+            checks_per_call,
+            heartbeat_timeout: 120_000,
+            speculate: false,
+            ..Policy::default()
+        });
+        submit(&mut s, 1, 0, SCENE_A, 40);
+        for worker in 1..=10 {
+            join(&mut s, worker, 1);
+        }
+        assert_eq!(s.tiles_in_flight(), 20);
+        // Nothing comes back: every lease runs out at the initial lease. (A timeout
+        // every second: the clock does not take a longer gap for the farm's time.)
+        let at = Policy::default().initial_lease;
+        for now in (1_000..at).step_by(1_000) {
+            let quiet = s.handle(now, Event::Timeout);
+            assert!(quiet.is_empty(), "{now}: {quiet:?}");
+        }
+        let first = s.handle(at, Event::Timeout);
+        let mut calls = vec![s.counters().leases_expired];
+        let mut reassigned = assigns(&first).len();
+        while s.has_more() {
+            reassigned += assigns(&s.handle(at, Event::Continue)).len();
+            calls.push(s.counters().leases_expired);
+        }
+        (calls, s.counters(), reassigned)
+    };
+    let (bounded, counters, reassigned) = run(6);
+    let (whole, whole_counters, whole_reassigned) = run(usize::MAX);
+    assert_eq!(whole, vec![20]);
+    // Six a call, and then the ten workers holding them late are looked at (four
+    // checks were left in the fourth call): every one of them is unresponsive.
+    assert_eq!(bounded, vec![6, 12, 18, 20, 20]);
+    assert_eq!(counters, whole_counters);
+    assert_eq!(counters.workers_unresponsive, 10);
+    assert_eq!(counters.tiles_requeued, 20);
+    // Each worker still holds its two late tiles: nothing is handed out meanwhile.
+    assert_eq!((reassigned, whole_reassigned), (0, 0));
+}
+
+/// A scene many workers have is forgotten a bounded number of workers per call, in
+/// worker order; a job with that scene submitted before the last of them leaves the
+/// scene with those not yet told, and only the others are sent it again.
+#[test]
+fn a_scene_many_workers_have_is_forgotten_over_bounded_calls() {
+    let forgets = |actions: &[Action]| -> Vec<WorkerId> {
+        actions
+            .iter()
+            .filter_map(|a| match *a {
+                Action::ForgetScene { worker, scene } if scene == SCENE_A => Some(worker),
+                _ => None,
+            })
+            .collect()
+    };
+    // Two scenes forgotten per call (each counts for four checks).
+    let mut s = Scheduler::with_policy(Policy {
+        checks_per_call: 8,
+        speculate: false,
+        ..Policy::default()
+    });
+    submit(&mut s, 1, 0, SCENE_A, 10);
+    for worker in 1..=5 {
+        join(&mut s, worker, 1);
+    }
+    // Each worker holds two tiles, in order.
+    let mut last = Vec::new();
+    for tile in 0..10 {
+        let worker = WorkerId::from(tile / 2 + 1);
+        last = s.handle(
+            1,
+            Event::TileDone {
+                worker,
+                job: 1,
+                tile,
+            },
+        );
+    }
+    assert!(last.contains(&Action::JobDone { job: 1 }));
+    assert_eq!(forgets(&last), vec![1, 2]);
+    assert!(s.has_more());
+    assert_eq!(forgets(&s.handle(2, Event::Continue)), vec![3, 4]);
+    assert!(s.has_more());
+    // A job of the same scene before worker 5 is told: worker 5 keeps it.
+    let sent: Vec<WorkerId> = submit(&mut s, 2, 0, SCENE_A, 10)
+        .iter()
+        .filter_map(|a| match *a {
+            Action::SendScene { worker, .. } => Some(worker),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(sent, vec![1, 2, 3, 4]);
+    assert!(forgets(&s.handle(3, Event::Continue)).is_empty());
+    assert!(!s.has_more());
+}

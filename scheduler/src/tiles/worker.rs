@@ -3,7 +3,7 @@
 //! the scheduler remembers of each connection, apart from the decisions made with it.
 
 use std::collections::hash_map::Entry;
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::fmt;
 use std::hash::{BuildHasherDefault, Hasher};
 
@@ -98,6 +98,13 @@ impl Overdue {
         }
     }
 
+    /// Makes room for one entry per worker of a farm of `workers`, ahead of need:
+    /// the table grows while workers join (when few are filed) rather than when a
+    /// lease runs out on thousands of them at once.
+    pub(super) fn reserve(&mut self, workers: usize) {
+        self.at.reserve(workers.saturating_sub(self.at.len()));
+    }
+
     /// Files the worker to be looked at again at `at`.
     pub(super) fn defer(&mut self, worker: WorkerId, at: Millis) {
         if let Some(filed) = self.at.insert(worker, at) {
@@ -106,16 +113,18 @@ impl Overdue {
         self.by_time.insert((at, worker));
     }
 
-    /// The workers due by `now`, in id order.
-    pub(super) fn due(&self, now: Millis) -> Vec<WorkerId> {
-        let mut due: Vec<WorkerId> = self
-            .by_time
-            .iter()
-            .take_while(|(at, _)| *at <= now)
+    /// The workers due by `now`, the `most` filed earliest, in id order; and whether
+    /// more are due.
+    pub(super) fn due(&self, now: Millis, most: usize) -> (Vec<WorkerId>, bool) {
+        let mut filed = self.by_time.iter().take_while(|(at, _)| *at <= now);
+        let mut due: Vec<WorkerId> = filed
+            .by_ref()
+            .take(most)
             .map(|&(_, worker)| worker)
             .collect();
+        let more = filed.next().is_some();
         due.sort_unstable();
-        due
+        (due, more)
     }
 }
 
@@ -151,3 +160,40 @@ pub(super) type ByWorker<V> = HashMap<WorkerId, V, BuildHasherDefault<IdHasher>>
 
 /// A map keyed by a job's tile number, hashed with [`IdHasher`].
 pub(super) type ByTile<V> = HashMap<u32, V, BuildHasherDefault<IdHasher>>;
+
+/// When each worker was heard from, oldest first: every message appends the worker at
+/// the time it came (the clock never goes back), so the queue stays in order. An entry
+/// older than its worker's last one is stale, for the owner to drop when it reaches
+/// the front. The entries of one millisecond share a bucket: the queue of buckets stays
+/// short (one per millisecond of the heartbeat timeout at most), so it never grows by
+/// copying a whole farm's entries at once, and each bucket is small.
+#[derive(Default)]
+pub(super) struct SeenQueue {
+    buckets: VecDeque<(Millis, Vec<WorkerId>)>,
+}
+
+impl SeenQueue {
+    /// The worker was heard from at `now`.
+    pub(super) fn push(&mut self, now: Millis, worker: WorkerId) {
+        match self.buckets.back_mut() {
+            Some((at, workers)) if *at == now => workers.push(worker),
+            _ => self.buckets.push_back((now, vec![worker])),
+        }
+    }
+
+    /// The front entry: of the oldest time, the last worker appended then.
+    pub(super) fn front(&self) -> Option<(Millis, WorkerId)> {
+        let (at, workers) = self.buckets.front()?;
+        workers.last().map(|&worker| (*at, worker))
+    }
+
+    /// Drops the front entry.
+    pub(super) fn pop_front(&mut self) {
+        if let Some((_, workers)) = self.buckets.front_mut() {
+            workers.pop();
+            if workers.is_empty() {
+                self.buckets.pop_front();
+            }
+        }
+    }
+}

@@ -130,6 +130,7 @@ fn clocked_policy() -> Policy {
         stall_timeout: 4_000,
         // The model's deadlines know nothing of hand-outs cut into several calls.
         handout_per_call: usize::MAX,
+        checks_per_call: usize::MAX,
         ..Policy::default()
     }
 }
@@ -3808,6 +3809,7 @@ fn any_policy() -> impl Strategy<Value = Policy> {
                 progress_factor,
                 // The reference hands out everything in one call.
                 handout_per_call: usize::MAX,
+                checks_per_call: usize::MAX,
             },
         )
 }
