@@ -14,6 +14,12 @@
 //! - **Each tile once**: a tile is accepted at most once.
 //! - **The image is due with the last tile**: `StoreImage` comes only once every tile
 //!   of the job is accepted, and at most once per run of the job until it is stored.
+//! - **Jobs in passes**: some jobs render in passes. A pass's last tile asks for the
+//!   pass to be added up, and the job then has no tile out until the totals come
+//!   (`Evaluated`, `Failed`, or a take-back that restarts the pass); each tile is
+//!   accepted once per pass that sends it, and the image is due only once the totals
+//!   meet the target with every tile in. Totals for a pass that is no longer awaited
+//!   (restarted, or its job ended) change nothing.
 //!
 //! Liveness: after any history, storage comes back, workers join, and every tile out
 //! is returned: every job the core acknowledged ends within a bounded number of inputs,
@@ -23,30 +29,80 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use proptest::prelude::*;
 use protocol::{JobId, JobState, SceneHash, WorkerId};
-use scheduler::farm::{Effect, Farm, Input, TilePlan};
+use scheduler::farm::{Effect, Farm, Input, PassAction, PassInput, PassTile, TilePlan};
 use scheduler::lifecycle::{self, Lifecycle, Limits, Phase, Request};
+use scheduler::passes::{Passes, RungCheck};
 use scheduler::{Action, Event, Policy, Scheduler};
+
+/// The ladder of the jobs in passes: short, so that histories reach its end.
+const LAST_RUNG: u32 = 6;
 
 #[derive(Clone, Debug)]
 enum Op {
-    Submit { tiles: u32 },
-    Store { pick: usize, ok: bool },
-    Join { worker: u8, threads: u32 },
-    Leave { worker: u8 },
-    Result { pick: usize },
-    Fail { pick: usize },
-    Cancel { pick: usize },
-    Pause { pick: usize },
-    Resume { pick: usize },
-    ImageStored { pick: usize, ok: bool },
-    EndRecorded { pick: usize },
-    Storage { ok: bool },
-    Advance { ms: u64 },
+    Submit {
+        tiles: u32,
+        in_passes: bool,
+    },
+    /// The totals of a pass being added up come: meeting the target (at the pass's
+    /// rung), not meeting it, or not computable; or for a pass not awaited.
+    AddedUp {
+        pick: usize,
+        meets: bool,
+        fails: bool,
+        stale: bool,
+    },
+    /// Some tiles of a job in passes were built by a machine caught lying.
+    TakeBack {
+        pick: usize,
+        tiles: u8,
+    },
+    Store {
+        pick: usize,
+        ok: bool,
+    },
+    Join {
+        worker: u8,
+        threads: u32,
+    },
+    Leave {
+        worker: u8,
+    },
+    Result {
+        pick: usize,
+    },
+    Fail {
+        pick: usize,
+    },
+    Cancel {
+        pick: usize,
+    },
+    Pause {
+        pick: usize,
+    },
+    Resume {
+        pick: usize,
+    },
+    ImageStored {
+        pick: usize,
+        ok: bool,
+    },
+    EndRecorded {
+        pick: usize,
+    },
+    Storage {
+        ok: bool,
+    },
+    Advance {
+        ms: u64,
+    },
 }
 
 fn op() -> impl Strategy<Value = Op> {
     prop_oneof![
-        3 => (1u32..6).prop_map(|tiles| Op::Submit { tiles }),
+        3 => (1u32..6, prop::bool::weighted(0.4)).prop_map(|(tiles, in_passes)| Op::Submit { tiles, in_passes }),
+        3 => (any::<usize>(), any::<bool>(), prop::bool::weighted(0.1), prop::bool::weighted(0.1))
+            .prop_map(|(pick, meets, fails, stale)| Op::AddedUp { pick, meets, fails, stale }),
+        1 => (any::<usize>(), 1u8..8).prop_map(|(pick, tiles)| Op::TakeBack { pick, tiles }),
         3 => (any::<usize>(), prop::bool::weighted(0.85)).prop_map(|(pick, ok)| Op::Store { pick, ok }),
         2 => (0u8..4, 1u32..3).prop_map(|(worker, threads)| Op::Join { worker, threads }),
         1 => (0u8..4).prop_map(|worker| Op::Leave { worker }),
@@ -84,6 +140,14 @@ struct Run {
     /// Jobs whose end the core asked to write, not yet reported written.
     ending: BTreeSet<JobId>,
     ends: BTreeMap<JobId, u32>,
+    /// Jobs in passes: the rung each tile has reached.
+    passes: BTreeMap<JobId, Vec<Option<u32>>>,
+    /// Passes being added up: the job's pass and the rungs to look at.
+    adding: BTreeMap<JobId, (u32, u32, u32)>,
+    /// The rung of each job in passes' pass under way.
+    rung: BTreeMap<JobId, u32>,
+    /// Jobs in passes whose totals met the target (or the ladder's end).
+    finished: BTreeSet<JobId>,
 }
 
 impl Run {
@@ -106,7 +170,27 @@ impl Run {
             storing: BTreeSet::new(),
             ending: BTreeSet::new(),
             ends: BTreeMap::new(),
+            passes: BTreeMap::new(),
+            adding: BTreeMap::new(),
+            rung: BTreeMap::new(),
+            finished: BTreeSet::new(),
         }
+    }
+
+    /// A job in passes' tiles as the executor holds them: the rung each has reached
+    /// and its next work (one rung up, none at the last).
+    fn pass_tiles(&self, job: JobId) -> Vec<PassTile> {
+        self.passes[&job]
+            .iter()
+            .map(|&rung| PassTile {
+                rung,
+                next_work: match rung {
+                    None => Some(0),
+                    Some(r) if r >= LAST_RUNG => None,
+                    Some(r) => Some(r + 1),
+                },
+            })
+            .collect()
     }
 
     fn pick_job(&self, pick: usize) -> Option<JobId> {
@@ -142,6 +226,46 @@ impl Run {
                         self.accepted.insert((*job, *tile)),
                         "tile {tile} of job {job} accepted twice"
                     );
+                    if let (Some(reached), Some(&rung)) =
+                        (self.passes.get_mut(job), self.rung.get(job))
+                    {
+                        reached[*tile as usize] = Some(rung);
+                    }
+                }
+                Effect::Pass(PassAction::AddUp { job, pass, rungs }) => {
+                    let unfinished = (0..self.jobs[job])
+                        .filter(|t| !self.accepted.contains(&(*job, *t)))
+                        .count();
+                    assert_eq!(unfinished, 0, "job {job}'s pass {pass} added up unfinished");
+                    self.adding
+                        .insert(*job, (*pass, *rungs.start(), *rungs.end()));
+                }
+                Effect::Pass(PassAction::Start {
+                    job, rung, send, ..
+                }) => {
+                    self.adding.remove(job);
+                    self.rung.insert(*job, *rung);
+                    let reached = self.passes.get_mut(job).expect("a job in passes");
+                    for (t, reached) in reached.iter_mut().enumerate() {
+                        if send.contains(&(t as u32)) {
+                            // Accepted again in this pass.
+                            self.accepted.remove(&(*job, t as u32));
+                        } else {
+                            *reached = Some(*rung);
+                        }
+                    }
+                }
+                Effect::Pass(PassAction::TakenBack { job, taken, .. }) => {
+                    self.adding.remove(job);
+                    let reached = self.passes.get_mut(job).expect("a job in passes");
+                    for &t in taken {
+                        reached[t as usize] = None;
+                        self.accepted.remove(&(*job, t));
+                    }
+                }
+                Effect::Pass(PassAction::Finished { job, .. }) => {
+                    self.adding.remove(job);
+                    self.finished.insert(*job);
                 }
                 Effect::Tiles(Action::CancelOnWorker { worker, job }) => {
                     self.out.retain(|&(w, j, _)| !(w == *worker && j == *job));
@@ -159,6 +283,10 @@ impl Run {
                     assert_eq!(
                         accepted, tiles as usize,
                         "job {job}'s image asked for with {accepted} of {tiles} tiles"
+                    );
+                    assert!(
+                        !self.passes.contains_key(job) || self.finished.contains(job),
+                        "job {job}'s image asked for before its passes met the target"
                     );
                     self.storing.insert(*job);
                 }
@@ -181,7 +309,8 @@ impl Run {
     fn check(&self) {
         for &job in self.jobs.keys() {
             let phase = self.phase(job);
-            let runs = matches!(phase, Some(Phase::Queued | Phase::Running));
+            let adding = self.farm.pass_run(job).is_some_and(|r| r.evaluating());
+            let runs = matches!(phase, Some(Phase::Queued | Phase::Running)) && !adding;
             assert_eq!(
                 self.farm.tiles().is_active(job),
                 runs,
@@ -195,7 +324,7 @@ impl Run {
 
     fn apply(&mut self, op: &Op) {
         match *op {
-            Op::Submit { tiles } => {
+            Op::Submit { tiles, in_passes } => {
                 let request = Request {
                     client: None,
                     scene_bytes: 10,
@@ -213,6 +342,89 @@ impl Run {
                 };
                 if let Ok(job) = self.farm.admit(self.now, &request, plan) {
                     self.jobs.insert(job, tiles);
+                    if in_passes {
+                        self.farm.start_passes(job, Passes::new(1.0, LAST_RUNG));
+                        self.passes.insert(job, vec![None; tiles as usize]);
+                        self.rung.insert(job, 0);
+                    }
+                }
+            }
+            Op::AddedUp {
+                pick,
+                meets,
+                fails,
+                stale,
+            } => {
+                let adding: Vec<JobId> = self.adding.keys().copied().collect();
+                if adding.is_empty() {
+                    return;
+                }
+                let job = adding[pick % adding.len()];
+                let (pass, first, last) = self.adding[&job];
+                let pass = if stale { pass + 7 } else { pass };
+                let input = if fails {
+                    PassInput::Failed {
+                        job,
+                        pass,
+                        message: "no tracer".into(),
+                    }
+                } else {
+                    let checks = (first..=last)
+                        .map(|rung| RungCheck {
+                            rung,
+                            estimate: 2.0 / f64::from(rung + 1),
+                            meets: (meets && rung == last) || rung >= LAST_RUNG,
+                        })
+                        .collect();
+                    PassInput::Evaluated {
+                        job,
+                        pass,
+                        checks,
+                        tiles: self.pass_tiles(job),
+                        elapsed_ms: 10,
+                        samples: 100,
+                    }
+                };
+                if !stale {
+                    self.adding.remove(&job);
+                    self.input(Input::Pass(input));
+                    return self.check();
+                }
+                let effects = self.farm.handle(self.now, Input::Pass(input));
+                assert!(
+                    effects.is_empty(),
+                    "totals of a pass not awaited: {effects:?}"
+                );
+            }
+            Op::TakeBack { pick, tiles } => {
+                let jobs: Vec<JobId> = self.passes.keys().copied().collect();
+                if jobs.is_empty() {
+                    return;
+                }
+                let job = jobs[pick % jobs.len()];
+                let count = self.jobs.get(&job).copied().unwrap_or(0);
+                let taken: Vec<u32> = (0..count).filter(|t| tiles & (1 << t) != 0).collect();
+                let input = PassInput::TakeBack {
+                    job,
+                    taken,
+                    tiles: self.pass_tiles(job),
+                };
+                let effects = self.farm.handle(self.now, Input::Pass(input));
+                let before: Vec<_> = self.out.iter().filter(|o| o.1 == job).copied().collect();
+                self.absorb(&effects);
+                // A pass restarted: every holder of a tile of the pass it replaces is
+                // told to drop it.
+                if effects
+                    .iter()
+                    .any(|e| matches!(e, Effect::Pass(PassAction::TakenBack { .. })))
+                {
+                    for (worker, job, tile) in before {
+                        let withdrawn = Effect::Tiles(Action::CancelOnWorker { worker, job });
+                        assert!(
+                            effects.contains(&withdrawn),
+                            "tile {tile} of job {job} left with worker {worker} by a restart"
+                        );
+                    }
                 }
             }
             Op::Store { pick, ok } => {
@@ -346,6 +558,13 @@ impl Run {
             }
             if !self.out.is_empty() {
                 self.apply(&Op::Result { pick: 0 });
+            } else if !self.adding.is_empty() {
+                self.apply(&Op::AddedUp {
+                    pick: 0,
+                    meets: true,
+                    fails: false,
+                    stale: false,
+                });
             } else if !self.storing.is_empty() {
                 self.apply(&Op::ImageStored { pick: 0, ok: true });
             } else if !self.ending.is_empty() {
