@@ -637,54 +637,6 @@ impl Scheduler {
         }
     }
 
-    fn seen(&mut self, worker: WorkerId) {
-        if let Some(w) = self.workers.get_mut(&worker) {
-            if w.last_seen != self.now {
-                // Only this worker's own entry at the front goes stale here.
-                let front = self.by_last_seen.front() == Some((w.last_seen, worker));
-                w.last_seen = self.now;
-                self.by_last_seen.push(self.now, worker);
-                if front {
-                    self.trim_seen();
-                }
-            }
-        }
-    }
-
-    /// Drops the stale entries at the front of [`Scheduler::by_last_seen`]: those of
-    /// workers gone or heard from since. One check each: a long run of them is
-    /// dropped over several calls, the front stale meanwhile (the next deadline is
-    /// then early, never late).
-    pub(super) fn trim_seen(&mut self) {
-        while let Some((seen, worker)) = self.by_last_seen.front() {
-            if self
-                .workers
-                .get(&worker)
-                .is_some_and(|w| w.last_seen == seen)
-                || !self.take_check()
-            {
-                break;
-            }
-            self.by_last_seen.pop_front();
-        }
-    }
-
-    /// Takes one check from the call's allowance ([`Policy::checks_per_call`]);
-    /// `false` when none is left, and then the call asks to be continued.
-    fn take_check(&mut self) -> bool {
-        self.take_checks(1)
-    }
-
-    /// Takes `n` checks at once, for a step that costs as much.
-    fn take_checks(&mut self, n: usize) -> bool {
-        if self.checks_left < n {
-            self.checks_more = true;
-            return false;
-        }
-        self.checks_left -= n;
-        true
-    }
-
     /// Whether the last call stopped at [`Policy::handout_per_call`] with tiles left
     /// to hand out, or a call at [`Policy::checks_per_call`] with checks left: the
     /// daemon feeds [`Event::Continue`] at once, after whatever arrived meanwhile (any

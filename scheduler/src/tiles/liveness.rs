@@ -1,8 +1,10 @@
 //! Where time alone acts on workers and jobs: workers that fell silent are dropped,
 //! leases run out, workers that hold tiles late without a result are marked
 //! unresponsive, and jobs no connected worker may serve fail after the stall timeout.
-//! These checks run at a `Timeout` and judge what the other events left behind, so
-//! they read apart from the events themselves.
+//! These checks run at a `Timeout` (and go on at a `Continue` when a call's allowance
+//! of checks ran out) and judge what the other events left behind, so they read apart
+//! from the events themselves. What a worker's message leaves for them (its last-heard
+//! time) is kept here too.
 
 use std::collections::BTreeSet;
 
@@ -11,6 +13,55 @@ use protocol::{JobId, WorkerId};
 use super::{name_list, Action, Machine, Scheduler};
 
 impl Scheduler {
+    /// The worker was heard from: its last-heard time moves to now.
+    pub(super) fn seen(&mut self, worker: WorkerId) {
+        if let Some(w) = self.workers.get_mut(&worker) {
+            if w.last_seen != self.now {
+                // Only this worker's own entry at the front goes stale here.
+                let front = self.by_last_seen.front() == Some((w.last_seen, worker));
+                w.last_seen = self.now;
+                self.by_last_seen.push(self.now, worker);
+                if front {
+                    self.trim_seen();
+                }
+            }
+        }
+    }
+
+    /// Drops the stale entries at the front of `Scheduler::by_last_seen`: those of
+    /// workers gone or heard from since. One check each: a long run of them is
+    /// dropped over several calls, the front stale meanwhile (the next deadline is
+    /// then early, never late).
+    pub(super) fn trim_seen(&mut self) {
+        while let Some((seen, worker)) = self.by_last_seen.front() {
+            if self
+                .workers
+                .get(&worker)
+                .is_some_and(|w| w.last_seen == seen)
+                || !self.take_check()
+            {
+                break;
+            }
+            self.by_last_seen.pop_front();
+        }
+    }
+
+    /// Takes one check from the call's allowance ([`Policy::checks_per_call`](super::Policy::checks_per_call));
+    /// `false` when none is left, and then the call asks to be continued.
+    pub(super) fn take_check(&mut self) -> bool {
+        self.take_checks(1)
+    }
+
+    /// Takes `n` checks at once, for a step that costs as much.
+    pub(super) fn take_checks(&mut self, n: usize) -> bool {
+        if self.checks_left < n {
+            self.checks_more = true;
+            return false;
+        }
+        self.checks_left -= n;
+        true
+    }
+
     /// Drops the workers silent for longer than the heartbeat timeout, in id order.
     pub(super) fn check_heartbeats(&mut self, actions: &mut Vec<Action>) {
         let timeout = self.policy.heartbeat_timeout;
