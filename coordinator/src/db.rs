@@ -172,8 +172,7 @@ impl TileEncoding {
     }
 }
 
-/// The checksum stored beside every tile's pixels.
-/// The checksum of a tile row: of its pixels exactly as stored.
+/// The checksum stored beside every tile's pixels: of its pixels exactly as stored.
 pub fn tile_checksum(stored: &[u8]) -> [u8; 32] {
     Sha256::digest(stored).into()
 }

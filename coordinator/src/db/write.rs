@@ -177,9 +177,10 @@ impl Db {
         Ok(())
     }
 
-    /// Records a job's end: its final state, totals, times and image checksum. Its
-    /// tiles are no longer needed (the image is stored and verified, or the job will
-    /// not have one): they are deleted, and the space they took given back.
+    /// Records a job's end: its final state, totals, times and image checksum. A done
+    /// job's tiles are no longer needed (its image is stored and verified): they are
+    /// deleted, and the space they took given back. A failed or cancelled job keeps
+    /// them until it is deleted, for a retry to render only the others.
     pub fn set_ended(
         &mut self,
         job: JobId,
