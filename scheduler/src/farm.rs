@@ -20,6 +20,10 @@
 //!   paused if an operator paused the job (see [`crate::passes`]);
 //! - a job in passes whose results are taken back ([`PassInput::TakeBack`]) has its
 //!   tiles withdrawn and its pass started again;
+//! - a machine caught returning wrong pixels ([`Input::Quarantine`]) has the tiles it
+//!   rendered in the active jobs taken back ([`Effect::TakenBack`], for the executor
+//!   to forget their pixels) and rendered again by others ([`Event::Quarantine`]): the
+//!   core keeps which machine rendered each accepted tile while its job is active;
 //! - a job the scheduler gives up ([`Action::JobFailed`]) fails
 //!   ([`lifecycle::Event::TilesFailed`]);
 //! - a job whose row is written ([`lifecycle::Action::Acknowledge`]) has its tiles
@@ -39,9 +43,10 @@
 
 use std::collections::BTreeMap;
 
-use protocol::{JobId, Refusal, SceneHash};
+use protocol::{JobId, Refusal, SceneHash, WorkerId};
 
 pub use self::pass_run::{PassAction, PassInput, PassRun, PassTile};
+use self::renderers::Renderers;
 use crate::lifecycle::{self, Lifecycle, Phase};
 use crate::passes::{Decision, Passes};
 use crate::tiles::{Action, Event, Scheduler};
@@ -58,6 +63,10 @@ pub enum Input {
     Storage(Result<(), String>),
     /// About a job rendered in passes: a pass's totals, results taken back.
     Pass(PassInput),
+    /// A machine was caught returning wrong pixels: it gets no tile again, and what it
+    /// rendered of the active jobs (not those in passes, whose states the executor
+    /// takes back with [`PassInput::TakeBack`]) is rendered again.
+    Quarantine { machine: String },
     /// The time has come ([`Farm::next_deadline`]).
     Timeout,
 }
@@ -70,6 +79,12 @@ pub enum Effect {
     Tiles(Action),
     Job(lifecycle::Action),
     Pass(PassAction),
+    /// Tiles of `job` accepted from a quarantined machine, taken back: the executor
+    /// forgets their pixels (and what it stored of them); they go out again.
+    TakenBack {
+        job: JobId,
+        tiles: Vec<u32>,
+    },
 }
 
 /// How a job's tiles go out once it is stored: what [`Event::JobSubmitted`] needs, and
@@ -91,6 +106,10 @@ pub struct Farm {
     plans: BTreeMap<JobId, TilePlan>,
     /// The jobs rendered in passes ([`Farm::start_passes`]), until they are deleted.
     passes: BTreeMap<JobId, PassRun>,
+    /// Which machine rendered each accepted tile of the active jobs.
+    renderers: Renderers,
+    /// The worker whose result the input under way is, if it is one.
+    reporter: Option<WorkerId>,
 }
 
 impl Farm {
@@ -100,6 +119,8 @@ impl Farm {
             lifecycle,
             plans: BTreeMap::new(),
             passes: BTreeMap::new(),
+            renderers: Renderers::default(),
+            reporter: None,
         }
     }
 
@@ -152,9 +173,40 @@ impl Farm {
                             run.set_paused(matches!(event, Event::PauseJob { .. }));
                         }
                     }
+                    Event::WorkerJoined {
+                        worker, machine, ..
+                    } => self.renderers.joined(*worker, machine.as_deref()),
+                    Event::RequeueTiles { job, tiles } => self.renderers.requeued(*job, tiles),
                     _ => {}
                 }
+                self.reporter = match &event {
+                    Event::TileDone { worker, .. } | Event::TileToConfirm { worker, .. } => {
+                        Some(*worker)
+                    }
+                    _ => None,
+                };
+                let left = match &event {
+                    Event::WorkerLeft { worker } => Some(*worker),
+                    _ => None,
+                };
                 self.tiles_event(now, event, &mut effects);
+                self.reporter = None;
+                if let Some(worker) = left {
+                    self.renderers.left(worker);
+                }
+            }
+            Input::Quarantine { machine } => {
+                let passes = &self.passes;
+                let tiles = &self.tiles;
+                let taken = self.renderers.take_back(&machine, |job| {
+                    tiles.is_active(job) && !passes.contains_key(&job)
+                });
+                let mut revoke = Vec::new();
+                for (job, tiles) in taken {
+                    revoke.extend(tiles.iter().map(|&t| (job, t)));
+                    effects.push(Effect::TakenBack { job, tiles });
+                }
+                self.tiles_event(now, Event::Quarantine { machine, revoke }, &mut effects);
             }
             Input::Job(event) => self.job_event(now, event, &mut effects),
             Input::Pass(input) => self.pass_input(now, input, &mut effects),
@@ -332,6 +384,17 @@ impl Farm {
         self.resume(now, job, &done, effects);
     }
 
+    /// Tiles of `job` stored before a restart, with the machine that rendered each:
+    /// what a quarantine of one of them takes back. Told after [`Farm::resume_job`].
+    pub fn restored_tiles(&mut self, job: JobId, done: &[(u32, &str)]) {
+        match self.plans.get(&job) {
+            Some(plan) if self.tiles.is_active(job) && !self.passes.contains_key(&job) => {
+                self.renderers.restored(job, plan.tiles, done);
+            }
+            _ => {}
+        }
+    }
+
     /// A job id for a job the lifecycle does not run itself (a sequence, whose frames
     /// are jobs of their own).
     pub fn issue_id(&mut self) -> JobId {
@@ -351,6 +414,7 @@ impl Farm {
     /// The scheduler's actions, each followed by what it causes in the lifecycle.
     fn follow(&mut self, now: Millis, actions: Vec<Action>, effects: &mut Vec<Effect>) {
         for action in actions {
+            self.note_renderer(&action);
             let next = match &action {
                 Action::Assign { job, .. } => Some(lifecycle::Event::TileAssigned { job: *job }),
                 Action::JobDone { job } => match self.passes.get_mut(job) {
@@ -375,12 +439,35 @@ impl Farm {
         }
     }
 
+    /// Keeps who rendered the accepted tiles of the active jobs not in passes.
+    fn note_renderer(&mut self, action: &Action) {
+        let tiles_of = |job: &JobId| self.plans.get(job).map(|p| p.tiles);
+        match *action {
+            Action::AcceptTile { job, tile } if !self.passes.contains_key(&job) => {
+                if let Some(tiles) = tiles_of(&job) {
+                    self.renderers.accepted(job, tile, tiles, self.reporter);
+                }
+            }
+            Action::HoldResult { worker, job, tile } => self.renderers.held(job, tile, worker),
+            Action::AcceptHeld { job, tile } if !self.passes.contains_key(&job) => {
+                if let Some(tiles) = tiles_of(&job) {
+                    self.renderers.accepted_held(job, tile, tiles);
+                }
+            }
+            Action::JobDone { job } | Action::JobFailed { job, .. } => {
+                self.renderers.forget_job(job);
+            }
+            _ => {}
+        }
+    }
+
     fn job_event(&mut self, now: Millis, event: lifecycle::Event, effects: &mut Vec<Effect>) {
         if let lifecycle::Event::Deleted { job } | lifecycle::Event::StoreFailed { job, .. } =
             &event
         {
             self.plans.remove(job);
             self.passes.remove(job);
+            self.renderers.forget_job(*job);
         }
         for action in self.lifecycle.handle(now, event) {
             let next: Vec<Event> = match &action {
@@ -396,7 +483,10 @@ impl Farm {
                         std::iter::once(submitted).chain(interactive).collect()
                     })
                 }
-                lifecycle::Action::CancelTiles { job } => vec![Event::CancelJob { job: *job }],
+                lifecycle::Action::CancelTiles { job } => {
+                    self.renderers.forget_job(*job);
+                    vec![Event::CancelJob { job: *job }]
+                }
                 _ => Vec::new(),
             };
             effects.push(Effect::Job(action));
@@ -410,5 +500,6 @@ impl Farm {
 mod pass_run;
 #[cfg(test)]
 mod pass_tests;
+mod renderers;
 #[cfg(test)]
 mod tests;

@@ -240,6 +240,7 @@ impl Core {
             match effect {
                 Effect::Tiles(action) => self.apply_tiles(sh, action),
                 Effect::Pass(action) => self.apply_pass(sh, action),
+                Effect::TakenBack { job, tiles } => self.taken_back(sh, job, tiles),
                 Effect::Job(action) => {
                     if let Some(answer) = self.apply_life(sh, action) {
                         debug_assert!(reply.is_none(), "two replies to one input");

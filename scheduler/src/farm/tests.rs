@@ -453,21 +453,38 @@ fn a_stragglers_second_copy_is_a_duplicate_not_a_second_tile() {
 }
 
 /// A machine caught returning wrong pixels gets no tile again, and the tiles it
-/// rendered in an active job are taken back: they go to another machine, and the
-/// job's image is due only once they are in again.
+/// rendered in an active job are taken back (the core knows which they are): they go
+/// to another machine, and the job's image is due only once they are in again. A
+/// finished job's tiles are too late to take back.
 #[test]
 fn a_quarantine_takes_back_the_machines_tiles_and_the_job_waits_for_them() {
     let mut f = farm();
     join(&mut f, 1, 1);
+    let finished = stored_job(&mut f, 1);
+    assert!(image_due(&done(&mut f, 1, finished, 0), finished));
     let job = stored_job(&mut f, 3);
     assert!(done(&mut f, 1, job, 0).contains(&Effect::Tiles(Action::AcceptTile { job, tile: 0 })));
     join(&mut f, 2, 4);
     let caught = f.handle(
         2,
-        Input::Tiles(Event::Quarantine {
+        Input::Quarantine {
             machine: "m1".into(),
-            revoke: vec![(job, 0)],
-        }),
+        },
+    );
+    assert_eq!(
+        caught[0],
+        Effect::TakenBack {
+            job,
+            tiles: vec![0]
+        },
+        "only the active job's tile, before anything goes out: {caught:?}"
+    );
+    assert_eq!(
+        caught
+            .iter()
+            .filter(|e| matches!(e, Effect::TakenBack { .. }))
+            .count(),
+        1
     );
     let again = assigned(&caught);
     assert!(
@@ -544,4 +561,58 @@ fn a_hung_worker_is_worked_around_and_the_job_ends() {
         taken.extend(assigned(&timeout).into_iter().filter(|a| a.0 == 2));
     }
     assert!(image_due(&effects, job), "{effects:?}");
+}
+
+/// What a quarantine takes back is what the machine rendered as the core saw it: tiles
+/// stored before a restart (told with `restored_tiles`), not a tile an operator put
+/// back in the queue since, and only in jobs still active.
+#[test]
+fn a_quarantine_takes_back_restored_tiles_but_not_requeued_ones() {
+    let mut f = farm();
+    join(&mut f, 1, 1);
+    // A job taken back after a restart: tiles 0 and 1 stored, by m7 and m1.
+    let job = f.admit(0, &request(), plan(4)).unwrap();
+    f.handle(0, Input::Job(lifecycle::Event::Stored { job }));
+    f.handle(0, Input::Tiles(Event::CancelJob { job }));
+    let resumed = f.resume_job(1, job, plan(4), &[0, 1]);
+    f.restored_tiles(job, &[(0, "m7"), (1, "m1")]);
+    // m1 renders a tile now; an operator puts tile 1 back in the queue.
+    let out: Vec<u32> = assigned(&resumed).iter().map(|a| a.2).collect();
+    assert!(!out.is_empty(), "{resumed:?}");
+    done(&mut f, 1, job, out[0]);
+    f.handle(
+        2,
+        Input::Tiles(Event::RequeueTiles {
+            job,
+            tiles: vec![1],
+        }),
+    );
+    let caught = f.handle(
+        3,
+        Input::Quarantine {
+            machine: "m1".into(),
+        },
+    );
+    assert_eq!(
+        caught[0],
+        Effect::TakenBack {
+            job,
+            tiles: vec![out[0]]
+        },
+        "{caught:?}"
+    );
+    let seven = f.handle(
+        4,
+        Input::Quarantine {
+            machine: "m7".into(),
+        },
+    );
+    assert_eq!(
+        seven[0],
+        Effect::TakenBack {
+            job,
+            tiles: vec![0]
+        },
+        "{seven:?}"
+    );
 }

@@ -655,6 +655,11 @@ impl<'a> Sim<'a> {
                     self.apply_pass(action);
                     continue;
                 }
+                // The simulated workers are honest: nothing is taken back.
+                Effect::TakenBack { .. } => {
+                    self.out.model_mismatches += 1;
+                    continue;
+                }
             };
             match action {
                 Action::SendScene { .. } => self.out.scenes_sent += 1,

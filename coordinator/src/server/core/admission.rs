@@ -352,6 +352,12 @@ impl Core {
             );
         }
         let effects = self.farm.resume_job(self.now.mono, id, plan, &done);
+        let renderers: Vec<(u32, &str)> = self.jobs[&id]
+            .accepted
+            .iter()
+            .map(|(&tile, a)| (tile, &*a.machine))
+            .collect();
+        self.farm.restored_tiles(id, &renderers);
         self.carry_out(sh, effects);
     }
 }

@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use protocol::JobId;
-use scheduler::Event;
+use scheduler::farm::{Effect, Input};
 use tracing::{error, warn};
 
 use super::records::rect_pixels;
@@ -42,47 +42,35 @@ impl Core {
         for job in adaptive {
             self.take_back_adaptive(sh, job, machine);
         }
-        let mut revoke = Vec::new();
-        let mut affected = Vec::new();
-        for (&job, record) in &mut self.jobs {
-            let tiles: Vec<u32> = record
+        // Too late to take back from a finished job: its image is stored or being
+        // stored.
+        for (&job, record) in &self.jobs {
+            let tiles = record
                 .accepted
-                .iter()
-                .filter(|(_, a)| &*a.machine == machine)
-                .map(|(&t, _)| t)
-                .collect();
-            if tiles.is_empty() {
-                continue;
-            }
-            if !self.farm.tiles().is_active(job) {
-                // Too late to take back: the image is stored or being stored.
+                .values()
+                .filter(|a| &*a.machine == machine)
+                .count();
+            if tiles > 0 && !self.farm.tiles().is_active(job) {
                 error!(
                     job,
                     machine,
-                    tiles = tiles.len(),
+                    tiles,
                     "a finished job holds tiles of a quarantined machine: submit it again"
                 );
-                continue;
             }
-            for &tile in &tiles {
-                if let Some(a) = record.accepted.remove(&tile) {
-                    record.remove_cost(&a, rect_pixels(record.tiles[tile as usize]));
-                }
-                revoke.push((job, tile));
-            }
-            record.tiles_recorded = record.tiles_recorded.saturating_sub(tiles.len() as u32);
-            if let Some(count) = record.tiles_per_worker.get_mut(machine) {
-                *count = count.saturating_sub(tiles.len() as u64);
-            }
-            warn!(
-                job,
-                machine,
-                tiles = tiles.len(),
-                "rendering again the tiles of a quarantined machine"
-            );
-            affected.push((job, tiles.clone()));
-            sh.persistence.write(Write::ForgetTiles { job, tiles });
         }
+        let input = Input::Quarantine {
+            machine: machine.to_string(),
+        };
+        let effects = self.farm.handle(self.now.mono, input);
+        let affected: Vec<(JobId, Vec<u32>)> = effects
+            .iter()
+            .filter_map(|e| match e {
+                Effect::TakenBack { job, tiles } => Some((*job, tiles.clone())),
+                _ => None,
+            })
+            .collect();
+        self.carry_out(sh, effects);
         // The job of its wrong tile, and those whose tiles it had rendered.
         let mut jobs: Vec<JobId> = Some(caught_in)
             .filter(|j| self.jobs.contains_key(j))
@@ -105,12 +93,33 @@ impl Core {
                 format!("machine {machine} quarantined: {reason}{taken}"),
             );
         }
-        self.tiles_event(
-            sh,
-            Event::Quarantine {
-                machine: machine.to_string(),
-                revoke,
-            },
+    }
+
+    /// Tiles of an active job accepted from a quarantined machine, taken back by the
+    /// core: their cost no longer counts, their stored pixels are forgotten, and they
+    /// go out again.
+    pub(super) fn taken_back(&mut self, sh: &Shared, job: JobId, tiles: Vec<u32>) {
+        let Some(record) = self.jobs.get_mut(&job) else {
+            return;
+        };
+        let mut machines: Vec<std::sync::Arc<str>> = Vec::new();
+        for &tile in &tiles {
+            if let Some(a) = record.accepted.remove(&tile) {
+                record.remove_cost(&a, rect_pixels(record.tiles[tile as usize]));
+                machines.push(a.machine);
+            }
+        }
+        record.tiles_recorded = record.tiles_recorded.saturating_sub(machines.len() as u32);
+        for machine in &machines {
+            if let Some(count) = record.tiles_per_worker.get_mut(&**machine) {
+                *count = count.saturating_sub(1);
+            }
+        }
+        warn!(
+            job,
+            tiles = tiles.len(),
+            "rendering again the tiles of a quarantined machine"
         );
+        sh.persistence.write(Write::ForgetTiles { job, tiles });
     }
 }
