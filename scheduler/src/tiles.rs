@@ -148,7 +148,8 @@ pub use events::{Action, Event};
 pub use handout::INTERACTIVE_RUN;
 use job::{Job, JobRank, Lease, TileState};
 pub use policy::Policy;
-use worker::{name_list, ByTile, ByWorker, Machine, Overdue, SeenQueue, Worker};
+pub(crate) use worker::ByWorker;
+use worker::{name_list, ByTile, Machine, Overdue, SeenQueue, Worker};
 
 /// Milliseconds on the daemon's monotonic clock (or a test's virtual one).
 pub type Millis = u64;

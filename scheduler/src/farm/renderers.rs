@@ -4,20 +4,24 @@
 //! number per tile (the machines' names are interned), only while the job is active:
 //! a finished job's tiles are too late to take back.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use protocol::{JobId, WorkerId};
+
+use crate::tiles::ByWorker;
 
 /// No machine known for the tile (not accepted, or rendered by an unnamed worker).
 const NONE: u32 = u32::MAX;
 
 #[derive(Default)]
 pub(super) struct Renderers {
+    /// The machines' names, interned: ordered rather than hashed, so that the table
+    /// never grows by hashing every name again at one join.
     names: Vec<Arc<str>>,
-    ids: HashMap<Arc<str>, u32>,
-    /// The machine of each connected worker.
-    by_worker: HashMap<WorkerId, u32>,
+    ids: BTreeMap<Arc<str>, u32>,
+    /// The machine of each connected worker, looked up on every result.
+    by_worker: ByWorker<u32>,
     /// The machine of each result held for confirmation.
     held: BTreeMap<(JobId, u32), u32>,
     /// Per active job, the machine that rendered each accepted tile.

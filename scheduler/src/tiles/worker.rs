@@ -133,7 +133,7 @@ impl Overdue {
 /// bytes costs more than the lookup itself. Nothing walks them in an order that
 /// decides anything (what does sorts first).
 #[derive(Default)]
-pub(super) struct IdHasher(u64);
+pub(crate) struct IdHasher(u64);
 
 impl Hasher for IdHasher {
     fn finish(&self) -> u64 {
@@ -156,7 +156,7 @@ impl Hasher for IdHasher {
 }
 
 /// A map keyed by worker id, hashed with [`IdHasher`].
-pub(super) type ByWorker<V> = HashMap<WorkerId, V, BuildHasherDefault<IdHasher>>;
+pub(crate) type ByWorker<V> = HashMap<WorkerId, V, BuildHasherDefault<IdHasher>>;
 
 /// A map keyed by a job's tile number, hashed with [`IdHasher`].
 pub(super) type ByTile<V> = HashMap<u32, V, BuildHasherDefault<IdHasher>>;
