@@ -20,6 +20,9 @@
 //!   accepted once per pass that sends it, and the image is due only once the totals
 //!   meet the target with every tile in. Totals for a pass that is no longer awaited
 //!   (restarted, or its job ended) change nothing.
+//! - **A quarantine takes back what the machine rendered**: exactly the tiles accepted
+//!   from its workers in the active jobs not in passes, each of which must then be
+//!   accepted again.
 //!
 //! Liveness: after any history, storage comes back, workers join, and every tile out
 //! is returned: every job the core acknowledged ends within a bounded number of inputs,
@@ -55,6 +58,10 @@ enum Op {
     TakeBack {
         pick: usize,
         tiles: u8,
+    },
+    /// The machine of a history's worker is caught returning wrong pixels.
+    Quarantine {
+        worker: u8,
     },
     Store {
         pick: usize,
@@ -103,6 +110,7 @@ fn op() -> impl Strategy<Value = Op> {
         3 => (any::<usize>(), any::<bool>(), prop::bool::weighted(0.1), prop::bool::weighted(0.1))
             .prop_map(|(pick, meets, fails, stale)| Op::AddedUp { pick, meets, fails, stale }),
         1 => (any::<usize>(), 1u8..8).prop_map(|(pick, tiles)| Op::TakeBack { pick, tiles }),
+        1 => (0u8..4).prop_map(|worker| Op::Quarantine { worker }),
         3 => (any::<usize>(), prop::bool::weighted(0.85)).prop_map(|(pick, ok)| Op::Store { pick, ok }),
         2 => (0u8..4, 1u32..3).prop_map(|(worker, threads)| Op::Join { worker, threads }),
         1 => (0u8..4).prop_map(|worker| Op::Leave { worker }),
@@ -148,6 +156,12 @@ struct Run {
     rung: BTreeMap<JobId, u32>,
     /// Jobs in passes whose totals met the target (or the ladder's end).
     finished: BTreeSet<JobId>,
+    /// The machine each accepted tile came from, and the worker whose result the
+    /// input under way is.
+    accepted_from: BTreeMap<(JobId, u32), String>,
+    reporter: Option<WorkerId>,
+    /// Each worker's machine name.
+    machines: BTreeMap<WorkerId, String>,
 }
 
 impl Run {
@@ -174,6 +188,9 @@ impl Run {
             adding: BTreeMap::new(),
             rung: BTreeMap::new(),
             finished: BTreeSet::new(),
+            accepted_from: BTreeMap::new(),
+            reporter: None,
+            machines: BTreeMap::new(),
         }
     }
 
@@ -231,6 +248,9 @@ impl Run {
                     {
                         reached[*tile as usize] = Some(rung);
                     }
+                    if let Some(machine) = self.reporter.and_then(|w| self.machines.get(&w)) {
+                        self.accepted_from.insert((*job, *tile), machine.clone());
+                    }
                 }
                 Effect::Pass(PassAction::AddUp { job, pass, rungs }) => {
                     let unfinished = (0..self.jobs[job])
@@ -261,6 +281,15 @@ impl Run {
                     for &t in taken {
                         reached[t as usize] = None;
                         self.accepted.remove(&(*job, t));
+                    }
+                }
+                Effect::TakenBack { job, tiles } => {
+                    for &tile in tiles {
+                        assert!(
+                            self.accepted.remove(&(*job, tile)),
+                            "tile {tile} of job {job} taken back, never accepted"
+                        );
+                        self.accepted_from.remove(&(*job, tile));
                     }
                 }
                 Effect::Pass(PassAction::Finished { job, .. }) => {
@@ -454,6 +483,7 @@ impl Run {
                 let id = self.next_worker;
                 self.next_worker += 1;
                 self.connected.insert(worker, id);
+                self.machines.insert(id, format!("m{worker}"));
                 self.input(Input::Tiles(Event::WorkerJoined {
                     worker: id,
                     threads,
@@ -469,8 +499,42 @@ impl Run {
             Op::Result { pick } => {
                 if let Some((worker, job, tile)) = self.pick_out(pick) {
                     self.out.remove(&(worker, job, tile));
+                    self.reporter = Some(worker);
                     self.input(Input::Tiles(Event::TileDone { worker, job, tile }));
+                    self.reporter = None;
                 }
+            }
+            Op::Quarantine { worker } => {
+                let machine = format!("m{worker}");
+                // What the core must take back: that machine's accepted tiles in the
+                // active jobs not in passes.
+                let expect: BTreeSet<(JobId, u32)> = self
+                    .accepted_from
+                    .iter()
+                    .filter(|(&(job, _), m)| {
+                        **m == machine
+                            && self.farm.tiles().is_active(job)
+                            && !self.passes.contains_key(&job)
+                    })
+                    .map(|(&k, _)| k)
+                    .collect();
+                let effects = self.farm.handle(self.now, Input::Quarantine { machine });
+                let taken: BTreeSet<(JobId, u32)> = effects
+                    .iter()
+                    .flat_map(|e| match e {
+                        Effect::TakenBack { job, tiles } => {
+                            tiles.iter().map(|&t| (*job, t)).collect::<Vec<_>>()
+                        }
+                        _ => Vec::new(),
+                    })
+                    .collect();
+                assert_eq!(taken, expect, "what the quarantine took back");
+                // Its workers hold nothing any more: what they send counts for nothing.
+                let machine = format!("m{worker}");
+                let machines = &self.machines;
+                self.out
+                    .retain(|(w, _, _)| machines.get(w).is_none_or(|m| *m != machine));
+                self.absorb(&effects);
             }
             Op::Fail { pick } => {
                 if let Some((worker, job, tile)) = self.pick_out(pick) {
