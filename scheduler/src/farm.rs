@@ -160,8 +160,11 @@ impl Farm {
         let mut effects = Vec::new();
         match input {
             Input::Tiles(event) => {
-                // A job not yet stored goes out at its new priority.
+                // The worker whose result this is (who rendered what it accepts), and
+                // one leaving (forgotten once its tiles went back).
+                let mut left = None;
                 match &event {
+                    // A job not yet stored goes out at its new priority.
                     Event::SetPriority { job, priority } => {
                         if let Some(plan) = self.plans.get_mut(job) {
                             plan.priority = *priority;
@@ -177,18 +180,12 @@ impl Farm {
                         worker, machine, ..
                     } => self.renderers.joined(*worker, machine.as_deref()),
                     Event::RequeueTiles { job, tiles } => self.renderers.requeued(*job, tiles),
+                    Event::TileDone { worker, .. } | Event::TileToConfirm { worker, .. } => {
+                        self.reporter = Some(*worker);
+                    }
+                    Event::WorkerLeft { worker } => left = Some(*worker),
                     _ => {}
                 }
-                self.reporter = match &event {
-                    Event::TileDone { worker, .. } | Event::TileToConfirm { worker, .. } => {
-                        Some(*worker)
-                    }
-                    _ => None,
-                };
-                let left = match &event {
-                    Event::WorkerLeft { worker } => Some(*worker),
-                    _ => None,
-                };
                 self.tiles_event(now, event, &mut effects);
                 self.reporter = None;
                 if let Some(worker) = left {

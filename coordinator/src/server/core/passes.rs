@@ -104,13 +104,12 @@ impl Core {
         pass: u32,
         rungs: std::ops::RangeInclusive<u32>,
     ) {
-        let Some(record) = self.jobs.get_mut(&job) else {
+        let Some(record) = self.jobs.get(&job) else {
             return;
         };
-        let (Some(ad), Some(scene)) = (record.adaptive.as_mut(), record.scene.clone()) else {
+        let (Some(ad), Some(scene)) = (record.adaptive.as_ref(), record.scene.clone()) else {
             return;
         };
-        ad.evaluation = None;
         let snap = PassSnapshot {
             rungs,
             settings: record.settings,
@@ -169,6 +168,11 @@ impl Core {
             }
         };
         self.feed(sh, Input::Pass(input));
+        // Totals the core did not rule on (a pass restarted, a job ended meanwhile)
+        // are not kept.
+        if let Some(ad) = self.jobs.get_mut(&job).and_then(|r| r.adaptive.as_mut()) {
+            ad.evaluation = None;
+        }
         sh.changed();
     }
 
