@@ -41,12 +41,13 @@
 //! as a direct call would: the effects come out in the order the two machines made
 //! them.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use protocol::{JobId, Refusal, SceneHash, WorkerId};
 
 pub use self::pass_run::{PassAction, PassInput, PassRun, PassTile};
 use self::renderers::Renderers;
+pub use self::sequence_run::{SequenceAction, SequenceInput, SequenceRun, FRAME_RETRY_MS};
 use crate::lifecycle::{self, Lifecycle, Phase};
 use crate::passes::{Decision, Passes};
 use crate::tiles::{Action, Event, Scheduler};
@@ -63,6 +64,8 @@ pub enum Input {
     Storage(Result<(), String>),
     /// About a job rendered in passes: a pass's totals, results taken back.
     Pass(PassInput),
+    /// About a sequence: its row written, an operator's control.
+    Sequence(SequenceInput),
     /// A machine was caught returning wrong pixels: it gets no tile again, and what it
     /// rendered of the active jobs (not those in passes, whose states the executor
     /// takes back with [`PassInput::TakeBack`]) is rendered again.
@@ -79,6 +82,7 @@ pub enum Effect {
     Tiles(Action),
     Job(lifecycle::Action),
     Pass(PassAction),
+    Sequence(SequenceAction),
     /// Tiles of `job` accepted from a quarantined machine, taken back: the executor
     /// forgets their pixels (and what it stored of them); they go out again.
     TakenBack {
@@ -110,6 +114,13 @@ pub struct Farm {
     renderers: Renderers,
     /// The worker whose result the input under way is, if it is one.
     reporter: Option<WorkerId>,
+    /// The sequences, until they are deleted.
+    sequences: BTreeMap<JobId, SequenceRun>,
+    /// Each frame job admitted and not deleted: its sequence and frame.
+    frame_jobs: BTreeMap<JobId, (JobId, u32)>,
+    /// The sequences that may start frames once the input under way is handled: a
+    /// frame's tile went out, a frame ended, an operator's control.
+    to_fill: BTreeSet<JobId>,
 }
 
 impl Farm {
@@ -121,6 +132,9 @@ impl Farm {
             passes: BTreeMap::new(),
             renderers: Renderers::default(),
             reporter: None,
+            sequences: BTreeMap::new(),
+            frame_jobs: BTreeMap::new(),
+            to_fill: BTreeSet::new(),
         }
     }
 
@@ -139,12 +153,27 @@ impl Farm {
         self.passes.get(&job)
     }
 
-    /// The earliest time at which either machine has something to decide.
+    /// A sequence, while it is not deleted.
+    pub fn sequence(&self, sequence: JobId) -> Option<&SequenceRun> {
+        self.sequences.get(&sequence)
+    }
+
+    /// Every sequence, by id.
+    pub fn sequences(&self) -> impl Iterator<Item = (JobId, &SequenceRun)> + '_ {
+        self.sequences.iter().map(|(&id, run)| (id, run))
+    }
+
+    /// The earliest time at which either machine has something to decide, or a
+    /// sequence tries again to start a frame.
     pub fn next_deadline(&self) -> Option<Millis> {
-        [self.tiles.next_deadline(), self.lifecycle.next_deadline()]
-            .into_iter()
-            .flatten()
-            .min()
+        [
+            self.tiles.next_deadline(),
+            self.lifecycle.next_deadline(),
+            self.frame_retry_at(),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     /// Whether the last input stopped handing out tiles at the bound of one call
@@ -186,10 +215,15 @@ impl Farm {
                     Event::WorkerLeft { worker } => left = Some(*worker),
                     _ => {}
                 }
+                let joined = matches!(event, Event::WorkerJoined { .. });
                 self.tiles_event(now, event, &mut effects);
                 self.reporter = None;
                 if let Some(worker) = left {
                     self.renderers.left(worker);
+                }
+                if joined {
+                    // More credit: a sequence may start another frame to keep it busy.
+                    self.to_fill.extend(self.sequences.keys());
                 }
             }
             Input::Quarantine { machine } => {
@@ -207,6 +241,7 @@ impl Farm {
             }
             Input::Job(event) => self.job_event(now, event, &mut effects),
             Input::Pass(input) => self.pass_input(now, input, &mut effects),
+            Input::Sequence(input) => self.sequence_input(now, input, &mut effects),
             Input::Storage(Err(reason)) => {
                 self.tiles_event(now, Event::StorageUnavailable, &mut effects);
                 let event = lifecycle::Event::StorageUnavailable { reason };
@@ -215,12 +250,17 @@ impl Farm {
             Input::Storage(Ok(())) => {
                 self.job_event(now, lifecycle::Event::StorageAvailable, &mut effects);
                 self.tiles_event(now, Event::StorageAvailable, &mut effects);
+                self.to_fill.extend(self.sequences.keys());
             }
             Input::Timeout => {
                 self.tiles_event(now, Event::Timeout, &mut effects);
                 self.job_event(now, lifecycle::Event::Timeout, &mut effects);
+                // Frames refused admission try again once their wait is over; and
+                // whatever else changed is looked at once more.
+                self.to_fill.extend(self.sequences.keys());
             }
         }
+        self.fill(now, &mut effects);
         effects
     }
 
@@ -413,7 +453,13 @@ impl Farm {
         for action in actions {
             self.note_renderer(&action);
             let next = match &action {
-                Action::Assign { job, .. } => Some(lifecycle::Event::TileAssigned { job: *job }),
+                Action::Assign { job, .. } => {
+                    // Fewer tiles wait: the sequence may start its next frame.
+                    if let Some(&(sequence, _)) = self.frame_jobs.get(job) {
+                        self.to_fill.insert(sequence);
+                    }
+                    Some(lifecycle::Event::TileAssigned { job: *job })
+                }
                 Action::JobDone { job } => match self.passes.get_mut(job) {
                     Some(run) => {
                         let add_up = run.complete(*job);
@@ -459,12 +505,21 @@ impl Farm {
     }
 
     fn job_event(&mut self, now: Millis, event: lifecycle::Event, effects: &mut Vec<Effect>) {
-        if let lifecycle::Event::Deleted { job } | lifecycle::Event::StoreFailed { job, .. } =
-            &event
-        {
-            self.plans.remove(job);
-            self.passes.remove(job);
-            self.renderers.forget_job(*job);
+        let mut end_recorded = None;
+        match &event {
+            lifecycle::Event::Deleted { job } => {
+                self.plans.remove(job);
+                self.passes.remove(job);
+                self.renderers.forget_job(*job);
+                self.frame_jobs.remove(job);
+            }
+            lifecycle::Event::StoreFailed { job, .. } => {
+                self.plans.remove(job);
+                self.passes.remove(job);
+                self.renderers.forget_job(*job);
+            }
+            lifecycle::Event::EndRecorded { job } => end_recorded = Some(*job),
+            _ => {}
         }
         for action in self.lifecycle.handle(now, event) {
             let next: Vec<Event> = match &action {
@@ -486,10 +541,21 @@ impl Farm {
                 }
                 _ => Vec::new(),
             };
+            let stored = match &action {
+                lifecycle::Action::Acknowledge { job } => Some((*job, true)),
+                lifecycle::Action::RefuseStored { job, .. } => Some((*job, false)),
+                _ => None,
+            };
             effects.push(Effect::Job(action));
             for event in next {
                 self.tiles_event(now, event, effects);
             }
+            if let Some((job, stored)) = stored {
+                self.frame_stored(now, job, stored, effects);
+            }
+        }
+        if let Some(job) = end_recorded {
+            self.frame_ended(job, effects);
         }
     }
 }
@@ -498,5 +564,8 @@ mod pass_run;
 #[cfg(test)]
 mod pass_tests;
 mod renderers;
+mod sequence_run;
+#[cfg(test)]
+mod sequence_tests;
 #[cfg(test)]
 mod tests;

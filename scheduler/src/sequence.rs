@@ -329,6 +329,19 @@ impl Sequence {
     /// pending again, and goes before the later frames. Returns its old frame job, if
     /// any, which the new one replaces.
     pub fn requeue(&mut self, frame: u32) -> Result<Option<JobId>, String> {
+        self.may_requeue(frame)?;
+        let Some(i) = self.index(frame) else {
+            return Ok(None);
+        };
+        let old = self.job(frame);
+        self.slots[i].job = 0;
+        self.set(i, FrameState::Pending);
+        self.cancelled = false;
+        Ok(old)
+    }
+
+    /// Whether [`Sequence::requeue`] would render `frame` again, and if not why.
+    pub fn may_requeue(&self, frame: u32) -> Result<(), String> {
         let i = self.index(frame).ok_or_else(|| {
             format!(
                 "the sequence has frames {} to {}: there is no frame {frame}",
@@ -337,19 +350,12 @@ impl Sequence {
             )
         })?;
         match self.slots[i].state {
-            FrameState::Failed | FrameState::Cancelled | FrameState::Done => {}
-            FrameState::Pending | FrameState::Starting | FrameState::Active => {
-                return Err(format!(
-                    "frame {frame} is not rendered yet: only a done, failed or cancelled \
-                     frame is requeued"
-                ))
-            }
+            FrameState::Failed | FrameState::Cancelled | FrameState::Done => Ok(()),
+            FrameState::Pending | FrameState::Starting | FrameState::Active => Err(format!(
+                "frame {frame} is not rendered yet: only a done, failed or cancelled frame \
+                 is requeued"
+            )),
         }
-        let old = self.job(frame);
-        self.slots[i].job = 0;
-        self.set(i, FrameState::Pending);
-        self.cancelled = false;
-        Ok(old)
     }
 
     /// What clients see: queued until a frame starts; running while frames are pending

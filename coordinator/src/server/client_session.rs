@@ -153,9 +153,8 @@ pub(crate) async fn respond(
             // The frames' jobs, which `tessera list` does not show, named here.
             let frames = sh
                 .lock()
-                .sequences
-                .get(&job)
-                .map(|r| super::core::frame_jobs(&r.frames))
+                .sequence_run(job)
+                .map(|r| super::core::frame_jobs(r.frames()))
                 .unwrap_or_default();
             ClientResponse::Error(Refusal::invalid(format!(
                 "job {job} is a sequence: each of its frames is a job of its own \

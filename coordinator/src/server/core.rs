@@ -105,11 +105,9 @@ impl Core {
 
     /// The earliest deadline of either state machine.
     pub fn next_deadline(&self, now: Millis) -> Option<Millis> {
-        // Frames refused admission are tried again every second; a sequence is deleted
-        // when its retention runs out.
-        let waiting = self.sequences_waiting().then_some(now + 1_000);
+        // A sequence is deleted when its retention runs out.
         let expiry = self.next_sequence_expiry().map(|ms| now + ms);
-        [self.farm.next_deadline(), waiting, expiry]
+        [self.farm.next_deadline(), expiry]
             .into_iter()
             .flatten()
             .min()
@@ -122,7 +120,6 @@ impl Core {
         }
         self.feed(sh, Input::Timeout);
         self.log_expired_leases(sh);
-        self.fill_all(sh);
         self.expire_sequences(sh);
     }
 
@@ -240,6 +237,7 @@ impl Core {
             match effect {
                 Effect::Tiles(action) => self.apply_tiles(sh, action),
                 Effect::Pass(action) => self.apply_pass(sh, action),
+                Effect::Sequence(action) => self.apply_sequence(sh, action),
                 Effect::TakenBack { job, tiles } => self.taken_back(sh, job, tiles),
                 Effect::Job(action) => {
                     if let Some(answer) = self.apply_life(sh, action) {

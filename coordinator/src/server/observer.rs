@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use protocol::{FrameProgress, JobId, JobState, Refusal};
+use scheduler::farm::SequenceRun;
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 
@@ -201,10 +202,10 @@ impl Observer {
             .filter(|(id, _)| core.jobs.get(id).is_none_or(|r| r.sequence.is_none()))
             .map(|(id, j)| (id, j.phase.visible()))
             .chain(
-                core.sequences
-                    .iter()
-                    .filter(|(_, r)| r.stored)
-                    .map(|(&id, r)| (id, r.frames.state())),
+                core.farm
+                    .sequences()
+                    .filter(|(_, r)| r.stored())
+                    .map(|(id, r)| (id, r.frames().state())),
             )
             .collect();
         listed.sort_unstable_by_key(|&(id, _)| id);
@@ -301,8 +302,8 @@ impl Observer {
     pub fn preview_plan(&self, job: JobId) -> Result<PreviewPlan, Refusal> {
         let core = self.shared.lock();
         let record = sequence(&core, job)?;
-        let done = record.frames.done_prefix();
-        let first = record.frames.first();
+        let done = record.frames().done_prefix();
+        let first = record.frames().first();
         if done == 0 {
             return Err(Refusal::state(format!(
                 "job {job} has no preview yet: its first frame, {first}, is not done"
@@ -316,7 +317,7 @@ impl Observer {
         for frame in shown {
             let (place, sha) = core.frame_image(job, frame)?;
             tag.update(frame.to_le_bytes());
-            tag.update(record.frames.job(frame).unwrap_or(0).to_le_bytes());
+            tag.update(record.frames().job(frame).unwrap_or(0).to_le_bytes());
             tag.update(sha.unwrap_or([0; 32]));
             frames.push((frame, place, sha));
         }
@@ -324,7 +325,10 @@ impl Observer {
             job,
             frames,
             step,
-            scene: Arc::clone(&record.scene),
+            scene: core
+                .sequences
+                .get(&job)
+                .map_or_else(|| Arc::from(""), |r| Arc::clone(&r.scene)),
             tag: format!("\"{}\"", hex(&tag.finalize()[..16])),
         })
     }
@@ -357,7 +361,7 @@ impl Observer {
         let (place, sha) = {
             let core = self.shared.lock();
             let record = sequence(&core, job)?;
-            let (first, last) = (record.frames.first(), record.frames.last());
+            let (first, last) = (record.frames().first(), record.frames().last());
             if !(first..=last).contains(&frame) {
                 return Err(Refusal::not_found(format!(
                     "job {job} has frames {first} to {last}: there is no frame {frame}"
@@ -466,8 +470,11 @@ impl Observer {
 }
 
 /// The stored sequence `job`, or why there is none.
-fn sequence(core: &Core, job: JobId) -> Result<&super::core::SequenceRecord, Refusal> {
-    match core.sequences.get(&job).filter(|r| r.stored && !r.deleting) {
+fn sequence(core: &Core, job: JobId) -> Result<&SequenceRun, Refusal> {
+    match core
+        .sequence_run(job)
+        .filter(|r| r.stored() && !r.deleting())
+    {
         Some(record) => Ok(record),
         None if core.status(job).is_some() => Err(Refusal::not_found(format!(
             "job {job} is not a sequence: it has no frames"

@@ -124,11 +124,16 @@ impl Metered {
         let tiles_kind = match &input {
             Input::Tiles(event) => Some(kind_of(event)),
             Input::Timeout => Some(0),
-            Input::Job(_) | Input::Storage(_) | Input::Pass(_) | Input::Quarantine { .. } => None,
+            Input::Job(_)
+            | Input::Storage(_)
+            | Input::Pass(_)
+            | Input::Sequence(_)
+            | Input::Quarantine { .. } => None,
         };
         let job_kind = match &input {
             Input::Job(event) => Some(self.job_kind(&format!("{event:?}"))),
             Input::Pass(input) => Some(self.job_kind(&format!("{input:?}"))),
+            Input::Sequence(input) => Some(self.job_kind(&format!("{input:?}"))),
             Input::Quarantine { .. } => Some(self.job_kind("Quarantine")),
             Input::Storage(Ok(())) => Some(self.job_kind("StorageAvailable")),
             Input::Storage(Err(_)) => Some(self.job_kind("StorageUnavailable")),

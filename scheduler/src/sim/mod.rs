@@ -655,8 +655,9 @@ impl<'a> Sim<'a> {
                     self.apply_pass(action);
                     continue;
                 }
-                // The simulated workers are honest: nothing is taken back.
-                Effect::TakenBack { .. } => {
+                // The simulated workers are honest: nothing is taken back; and the
+                // simulated farm renders no sequence.
+                Effect::TakenBack { .. } | Effect::Sequence(_) => {
                     self.out.model_mismatches += 1;
                     continue;
                 }

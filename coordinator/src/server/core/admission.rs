@@ -35,7 +35,15 @@ impl Core {
             tiles: prepared.tiles.len() as u32,
             interactive: prepared.interactive,
         };
-        let id = self.farm.admit(self.now.mono, &prepared.request, plan)?;
+        let now = self.now.mono;
+        let id = match prepared.sequence {
+            // A frame the core started: refused, it waits again.
+            Some(sequence) => {
+                self.farm
+                    .admit_frame(now, sequence, prepared.frame, &prepared.request, plan)?
+            }
+            None => self.farm.admit(now, &prepared.request, plan)?,
+        };
         let adaptive = is_adaptive(&prepared.settings).then(|| {
             let (adaptive, passes) = AdaptiveJob::new(
                 &prepared.settings,
@@ -261,10 +269,13 @@ impl Core {
         }
         if let Some(sequence) = stored.sequence {
             self.farm.keep(id);
-            if let Some(s) = self.sequences.get_mut(&sequence) {
-                s.frames.restore(stored.frame, id, stored.state);
+            self.farm
+                .restore_frame(sequence, stored.frame, id, stored.state);
+            if let (Some(s), Some(run)) =
+                (self.sequences.get(&sequence), self.farm.sequence(sequence))
+            {
                 // The sequence's controls are its frames'.
-                record.paused = s.frames.paused() && !final_state;
+                record.paused = run.frames().paused() && !final_state;
                 record.priority = s.priority;
             }
         }

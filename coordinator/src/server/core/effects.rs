@@ -175,10 +175,6 @@ impl Core {
             None => format!("worker {worker}"),
         };
         self.log(sh, job, "tile_assigned", format!("tile {tile} to {name}"));
-        // Fewer tiles wait: the sequence may start its next frame.
-        if let Some(sequence) = self.jobs.get(&job).and_then(|r| r.sequence) {
-            self.fill(sh, sequence);
-        }
     }
 
     /// Carries out one of the lifecycle's actions; returns the reply it carries, if it
@@ -191,13 +187,10 @@ impl Core {
         use lifecycle::Action as A;
         {
             match action {
-                A::Acknowledge { job } => self.acknowledge(sh, job),
+                A::Acknowledge { job } => self.acknowledge(job),
                 A::RefuseStored { job, message } => {
-                    if let Some(r) = self.jobs.remove(&job) {
-                        if let Some(sequence) = r.sequence {
-                            self.frame_refused(sequence, r.frame);
-                        }
-                    }
+                    // A frame job's frame waits again: the core saw to it.
+                    self.jobs.remove(&job);
                     error!(job, error = %message, "cannot store a job");
                     if let Some(reply) = self.submits.remove(&job) {
                         let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
@@ -236,7 +229,7 @@ impl Core {
 
     /// The job's row is written: the client hears its id; the core hands its tiles out
     /// next.
-    fn acknowledge(&mut self, sh: &Arc<Shared>, job: JobId) {
+    fn acknowledge(&mut self, job: JobId) {
         let Some(record) = self.jobs.get_mut(&job) else {
             return;
         };
@@ -258,13 +251,6 @@ impl Core {
         );
         if let Some(reply) = self.submits.remove(&job) {
             let _ = reply.send(ClientResponse::Submitted { job });
-        }
-        if let Some((sequence, frame)) = self
-            .jobs
-            .get(&job)
-            .and_then(|r| Some((r.sequence?, r.frame)))
-        {
-            self.frame_acknowledged(sh, sequence, frame, job);
         }
     }
 
@@ -387,7 +373,6 @@ impl Core {
         if forget {
             sh.studio.ended(self.now.mono, job, state == JobState::Done);
         }
-        let frame_of = record.sequence.map(|s| (s, record.frame));
         let write = Write::End {
             job,
             state,
@@ -401,9 +386,6 @@ impl Core {
                 core.life_event(&shared, lifecycle::Event::EndRecorded { job });
                 if forget {
                     core.life_event(&shared, lifecycle::Event::Delete { job });
-                }
-                if let Some((sequence, frame)) = frame_of {
-                    core.frame_ended(&shared, sequence, frame, job);
                 }
                 drop(core);
                 shared.changed();

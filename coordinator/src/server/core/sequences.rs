@@ -1,5 +1,7 @@
-//! Sequence jobs on the daemon: the decisions are [`scheduler::sequence`]'s, this is
-//! where they are carried out.
+//! Sequence jobs on the daemon: the decisions are the core's
+//! ([`scheduler::farm::SequenceRun`]: which frames start and when, what a frame job's
+//! storing and end mean, when the sequence has ended); this is where they are
+//! carried out.
 //!
 //! A sequence is a row of the jobs table (its scene, settings and label, `frame` and
 //! `last_frame` its range) and, per frame, a frame job: an ordinary job with its
@@ -8,13 +10,14 @@
 //! `frame_0007.png`. Frame jobs are not listed; the sequence's status adds them up.
 //! After a restart, a sequence's state is rebuilt from its frame jobs' rows.
 //!
-//! Here: a sequence admitted, stored and restored, its frames started and ended, and
-//! its end written; what operators do to a sequence and see of it is in [`controls`].
+//! Here: a sequence admitted, stored and restored, the frames the core starts
+//! admitted, what its frames cost added up, and its end written; what operators do to
+//! a sequence and see of it is in [`controls`].
 
 use std::sync::Arc;
 
 use protocol::{ClientResponse, JobId, JobState, Refusal, SceneHash, Settings, Verification};
-use scheduler::farm::Input;
+use scheduler::farm::{Input, SequenceAction, SequenceInput, SequenceRun};
 use scheduler::lifecycle::{self, Phase};
 use scheduler::sequence::{FrameState, Sequence};
 use tokio::sync::oneshot;
@@ -23,20 +26,20 @@ use tracing::{info, warn};
 use super::records::{EventLog, Prepared};
 use super::{Core, Shared, Write};
 use crate::db::{Label, StoredJob, Times, Totals};
+use crate::store::ImagePlace;
 use crate::tiling;
 
 mod controls;
 
-/// What the daemon keeps of a sequence job.
+/// What the daemon keeps of a sequence job: its bytes and what it cost. Where its
+/// frames stand is the core's ([`Core::sequence_run`]).
 pub struct SequenceRecord {
-    pub frames: Sequence,
     pub scene: Arc<str>,
     pub hash: SceneHash,
     /// The scene's frame count (frames are named by it: `frame_0007.png`).
     pub frame_count: u32,
     pub settings: Settings,
     pub tile_size: u32,
-    pub tiles_per_frame: u32,
     pub priority: i32,
     pub verification: Verification,
     /// What each frame job is admitted as.
@@ -44,20 +47,29 @@ pub struct SequenceRecord {
     pub label: Label,
     pub times: Times,
     pub log: EventLog,
-    /// Its row is written: frames start only then.
-    pub stored: bool,
-    /// The final state written to its row, if it has ended.
-    pub recorded: Option<JobState>,
-    /// Being deleted: nothing starts, nothing more is written.
-    pub deleting: bool,
     /// Why the last frame could not be admitted, to log it once.
     last_refusal: Option<Refusal>,
     /// What the frame jobs that have ended cost, added up as they end: a status adds
     /// only the active frames' to it, never walking every frame.
     ended_totals: Totals,
+    /// Who hears once an operator's deletion is done.
+    deleted: Option<oneshot::Sender<()>>,
 }
 
 impl Core {
+    /// Where a sequence's frames stand, while it is not deleted.
+    pub fn sequence_run(&self, id: JobId) -> Option<&SequenceRun> {
+        self.farm.sequence(id)
+    }
+
+    /// Its frames, once its row is written and while it is not being deleted.
+    fn stored_frames(&self, id: JobId) -> Option<&Sequence> {
+        self.farm
+            .sequence(id)
+            .filter(|r| r.stored() && !r.deleting())
+            .map(SequenceRun::frames)
+    }
+
     /// Enters an admitted sequence, waiting for its row to be written; `reply` gets
     /// the client's answer. Its frames start once it is stored.
     pub fn admit_sequence(
@@ -99,27 +111,25 @@ impl Core {
             paused: false,
             label: prepared.label.clone(),
         };
+        let run = SequenceRun::new(range.first, range.last, prepared.tiles.len() as u32);
+        self.farm.enter_sequence(id, run);
         self.sequences.insert(
             id,
             SequenceRecord {
-                frames: Sequence::new(range.first, range.last),
                 scene: Arc::from(prepared.scene),
                 hash: prepared.hash,
                 frame_count: prepared.frame_count,
                 settings: prepared.settings,
                 tile_size: prepared.tile_size,
-                tiles_per_frame: prepared.tiles.len() as u32,
                 priority: prepared.priority,
                 verification: prepared.verification,
                 request: prepared.request,
                 label: prepared.label,
                 times,
                 log: EventLog::new(),
-                stored: false,
-                recorded: None,
-                deleting: false,
                 last_refusal: None,
                 ended_totals: Totals::default(),
+                deleted: None,
             },
         );
         self.submits.insert(id, reply);
@@ -130,13 +140,15 @@ impl Core {
     /// first frames start.
     pub fn sequence_stored(&mut self, sh: &Arc<Shared>, id: JobId, result: Result<(), String>) {
         let reply = self.submits.remove(&id);
-        let Some(record) = self.sequences.get_mut(&id) else {
+        let Some(record) = self.sequences.get(&id) else {
+            return;
+        };
+        let Some(run) = self.farm.sequence(id) else {
             return;
         };
         match result {
             Ok(()) => {
-                record.stored = true;
-                let (first, last) = (record.frames.first(), record.frames.last());
+                let (first, last) = (run.frames().first(), run.frames().last());
                 let label = record.label.clone();
                 info!(job = id, first, last, "sequence accepted");
                 self.log(
@@ -151,11 +163,14 @@ impl Core {
                 if let Some(reply) = reply {
                     let _ = reply.send(ClientResponse::Submitted { job: id });
                 }
-                self.fill(sh, id);
-                sh.changed();
+                self.feed(sh, Input::Sequence(SequenceInput::Stored { sequence: id }));
             }
             Err(message) => {
                 self.sequences.remove(&id);
+                self.feed(
+                    sh,
+                    Input::Sequence(SequenceInput::NotStored { sequence: id }),
+                );
                 if let Some(reply) = reply {
                     let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
                         "the coordinator cannot store new jobs now: {message}"
@@ -179,8 +194,10 @@ impl Core {
             .map(|a| (a.frame_count(), a.base.objects.len()))
             .unwrap_or((last, 0));
         let tiles_per_frame = tiling::cut(&stored.settings, stored.tile_size).len() as u32;
-        let mut frames = Sequence::new(stored.frame, last);
-        frames.set_paused(stored.paused);
+        let recorded = stored.state.is_final().then_some(stored.state);
+        let run =
+            SequenceRun::restored(stored.frame, last, tiles_per_frame, stored.paused, recorded);
+        self.farm.enter_sequence(id, run);
         let request = lifecycle::Request {
             client: stored.label.submitted_from.parse().ok(),
             scene_bytes: stored.scene.len(),
@@ -192,105 +209,125 @@ impl Core {
         self.sequences.insert(
             id,
             SequenceRecord {
-                frames,
                 scene: Arc::from(stored.scene),
                 hash: stored.hash,
                 frame_count,
                 settings: stored.settings,
                 tile_size: stored.tile_size,
-                tiles_per_frame,
                 priority: stored.priority,
                 verification: stored.verification,
                 request,
                 label: stored.label,
                 times: stored.times,
                 log: EventLog::restored(last_event.0, last_event.1),
-                stored: true,
-                recorded: stored.state.is_final().then_some(stored.state),
-                deleting: false,
                 last_refusal: None,
                 ended_totals: Totals::default(),
+                deleted: None,
             },
         );
     }
 
-    /// Every sequence and frame job is back: a sequence cancelled before the restart
-    /// starts none of its pending frames; the others go on.
+    /// Every sequence and frame job is back: what the ended frames cost is added up,
+    /// and the core takes the sequences back as they stood.
     pub fn sequences_restored(&mut self, sh: &Arc<Shared>) {
         let ids: Vec<JobId> = self.sequences.keys().copied().collect();
         for id in ids {
+            let Some(run) = self.farm.sequence(id) else {
+                continue;
+            };
             let mut ended = Totals::default();
-            if let Some(record) = self.sequences.get(&id) {
-                for state in [FrameState::Done, FrameState::Failed, FrameState::Cancelled] {
-                    for (_, job) in record.frames.frames_in(state) {
-                        if let Some(r) = self.jobs.get(&job) {
-                            add_totals(&mut ended, &r.totals);
-                        }
+            for state in [FrameState::Done, FrameState::Failed, FrameState::Cancelled] {
+                for (_, job) in run.frames().frames_in(state) {
+                    if let Some(r) = self.jobs.get(&job) {
+                        add_totals(&mut ended, &r.totals);
                     }
                 }
             }
-            let Some(record) = self.sequences.get_mut(&id) else {
-                continue;
-            };
-            record.ended_totals = ended;
-            if record.recorded == Some(JobState::Cancelled) {
-                record.frames.cancel();
-            }
             info!(
                 job = id,
-                done = record.frames.counts().done,
-                frames = record.frames.len(),
+                done = run.frames().counts().done,
+                frames = run.frames().len(),
                 "resuming sequence"
             );
-            self.settle(sh, id);
-            self.fill(sh, id);
+            if let Some(record) = self.sequences.get_mut(&id) {
+                record.ended_totals = ended;
+            }
         }
+        self.feed(sh, Input::Sequence(SequenceInput::Restored));
     }
 
-    /// Starts the frames the sequence's machine asks for.
-    pub fn fill(&mut self, sh: &Arc<Shared>, id: JobId) {
-        let Some(record) = self.sequences.get(&id) else {
-            return;
-        };
-        if !record.stored || record.deleting || self.farm.lifecycle().storage_down().is_some() {
-            return;
+    /// Carries out one of the core's actions about a sequence.
+    pub(super) fn apply_sequence(&mut self, sh: &Arc<Shared>, action: SequenceAction) {
+        match action {
+            SequenceAction::StartFrames { sequence, frames } => {
+                for frame in frames {
+                    self.start_frame(sh, sequence, frame);
+                }
+            }
+            SequenceAction::FrameOut { sequence, .. } => self.frame_out(sh, sequence),
+            SequenceAction::FrameEnded {
+                sequence,
+                frame,
+                job,
+                state,
+            } => self.frame_ended(sh, sequence, frame, job, state),
+            SequenceAction::Ended { sequence, state } => self.sequence_ended(sh, sequence, state),
+            SequenceAction::Running { sequence } => {
+                if let Some(record) = self.sequences.get_mut(&sequence) {
+                    record.times.ended = None;
+                }
+                sh.persistence
+                    .write(Write::SequenceRunning { job: sequence });
+            }
+            SequenceAction::Requeued { sequence, old, .. } => {
+                // What the old frame jobs cost is no longer the sequence's.
+                let mut gone = Totals::default();
+                for job in &old {
+                    if let Some(r) = self.jobs.get(job) {
+                        add_totals(&mut gone, &r.totals);
+                    }
+                }
+                if let Some(record) = self.sequences.get_mut(&sequence) {
+                    let t = &mut record.ended_totals;
+                    t.rays = t.rays.saturating_sub(gone.rays);
+                    t.samples = t.samples.saturating_sub(gone.samples);
+                    t.error_sq_sum = (t.error_sq_sum - gone.error_sq_sum).max(0.0);
+                    t.error_pixels = t.error_pixels.saturating_sub(gone.error_pixels);
+                }
+            }
+            SequenceAction::Paused { paused, jobs, .. } => {
+                for job in jobs {
+                    // A frame job that has ended meanwhile cannot be paused: nothing
+                    // to do.
+                    let _ = self.set_paused(sh, job, paused);
+                }
+            }
+            SequenceAction::DeleteStored { sequence } => {
+                let shared = Arc::clone(sh);
+                // Queued after its frames' deletions: the folder goes last.
+                sh.persistence.write(Write::Delete {
+                    job: sequence,
+                    place: ImagePlace::Job(sequence),
+                    then: Box::new(move |_| {
+                        let mut core = shared.lock();
+                        let done = core
+                            .sequences
+                            .remove(&sequence)
+                            .and_then(|mut r| r.deleted.take());
+                        core.feed(
+                            &shared,
+                            Input::Sequence(SequenceInput::Deleted { sequence }),
+                        );
+                        drop(core);
+                        info!(job = sequence, "sequence deleted");
+                        shared.changed();
+                        if let Some(done) = done {
+                            let _ = done.send(());
+                        }
+                    }),
+                });
+            }
         }
-        let tiles = u64::from(record.tiles_per_frame);
-        let starting = record.frames.starting() as u64;
-        let waiting = record
-            .frames
-            .active()
-            .map(|(_, job)| self.farm.tiles().waiting(job))
-            .sum::<u64>()
-            + starting * tiles;
-        let credit = self.farm.tiles().total_credit();
-        let Some(record) = self.sequences.get_mut(&id) else {
-            return;
-        };
-        for frame in record.frames.to_start(waiting, credit, tiles) {
-            self.start_frame(sh, id, frame);
-        }
-    }
-
-    /// Gives every sequence the frames it needs (a worker joined: more credit; or
-    /// frames wait for admission).
-    pub fn fill_all(&mut self, sh: &Arc<Shared>) {
-        let ids: Vec<JobId> = self.sequences.keys().copied().collect();
-        for id in ids {
-            self.fill(sh, id);
-        }
-    }
-
-    /// Whether a sequence has frames waiting while none of its frames runs (the
-    /// admission refused them): the daemon wakes to try again.
-    pub fn sequences_waiting(&self) -> bool {
-        self.sequences.values().any(|s| {
-            s.stored
-                && !s.deleting
-                && !s.frames.paused()
-                && s.frames.counts().pending > 0
-                && s.frames.counts().active == 0
-        })
     }
 
     /// Admits frame `frame` of the sequence as a frame job, and stores it.
@@ -320,7 +357,7 @@ impl Core {
             frames: None,
             frame_count: record.frame_count,
         };
-        // The answer goes to the sequence (see `frame_acknowledged`), not to a client.
+        // The answer goes to the sequence (the core tells it), not to a client.
         let (reply, _) = oneshot::channel();
         match self.admit(prepared, reply) {
             Ok(stored) => {
@@ -336,7 +373,6 @@ impl Core {
                 let Some(record) = self.sequences.get_mut(&id) else {
                     return;
                 };
-                record.frames.start_failed(frame);
                 if record.last_refusal.as_ref() != Some(&message) {
                     warn!(job = id, frame, error = %message, "a frame waits for admission");
                     record.last_refusal = Some(message.clone());
@@ -351,55 +387,36 @@ impl Core {
         }
     }
 
-    /// A frame job is stored and its tiles are out to the scheduler.
-    pub(super) fn frame_acknowledged(
-        &mut self,
-        sh: &Arc<Shared>,
-        id: JobId,
-        frame: u32,
-        job: JobId,
-    ) {
+    /// A frame job is stored and its tiles are out: the sequence's first one ends its
+    /// time in the queue.
+    fn frame_out(&mut self, sh: &Arc<Shared>, id: JobId) {
+        let at = self.now.unix_ms;
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
         if record.times.started.is_none() {
-            // Its first frame is out: the sequence's time in the queue ends.
-            let at = self.now.unix_ms;
             record.times.started = Some(at);
             sh.persistence.write(Write::Started {
                 job: id,
                 at_unix_ms: at,
             });
         }
-        if record.frames.started(frame, job) {
-            // The sequence was cancelled while this frame was being stored: cancelled
-            // once its tiles, already handed out, have reached their workers.
-            self.deferred
-                .push_back(Input::Job(lifecycle::Event::Cancel { job }));
-        }
     }
 
-    /// A frame job could not be stored: its frame waits again.
-    pub(super) fn frame_refused(&mut self, id: JobId, frame: u32) {
-        if let Some(record) = self.sequences.get_mut(&id) {
-            record.frames.start_failed(frame);
-        }
-    }
-
-    /// A frame job's end is written: its frame is done, failed or cancelled.
-    pub(super) fn frame_ended(&mut self, sh: &Arc<Shared>, id: JobId, frame: u32, job: JobId) {
-        let state = match self.farm.lifecycle().job(job).map(|j| &j.phase) {
-            Some(Phase::Ended { state, .. }) => *state,
-            _ => return,
-        };
+    /// A frame job's end is written: what it cost counts, and a failure is logged.
+    fn frame_ended(
+        &mut self,
+        sh: &Arc<Shared>,
+        id: JobId,
+        frame: u32,
+        job: JobId,
+        state: JobState,
+    ) {
         let error = self.frame_error(job);
         let cost = self.jobs.get(&job).map(|r| r.totals).unwrap_or_default();
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
-        if !record.frames.ended(frame, job, state) {
-            return;
-        }
         add_totals(&mut record.ended_totals, &cost);
         if state == JobState::Failed {
             let detail = format!(
@@ -409,9 +426,6 @@ impl Core {
             warn!(job = id, frame, "a frame failed");
             self.log(sh, id, "frame_failed", detail);
         }
-        self.settle(sh, id);
-        self.fill(sh, id);
-        sh.changed();
     }
 
     fn frame_error(&self, job: JobId) -> Option<String> {
@@ -421,41 +435,26 @@ impl Core {
         }
     }
 
-    /// Writes the sequence's end once every frame has ended (and its return to
-    /// running if a requeued frame made it run again).
-    fn settle(&mut self, sh: &Arc<Shared>, id: JobId) {
-        let Some(record) = self.sequences.get(&id) else {
-            return;
-        };
-        let state = record.frames.state();
-        if record.deleting || record.recorded == Some(state) {
-            return;
-        }
-        if !state.is_final() {
-            if record.recorded.is_some() {
-                if let Some(record) = self.sequences.get_mut(&id) {
-                    record.recorded = None;
-                    record.times.ended = None;
-                }
-                sh.persistence.write(Write::SequenceRunning { job: id });
-            }
-            return;
-        }
+    /// Every frame has ended as `state`: the sequence's end is written.
+    fn sequence_ended(&mut self, sh: &Arc<Shared>, id: JobId, state: JobState) {
         let totals = self.sequence_totals(id);
         let error = (state == JobState::Failed).then(|| self.failure_summary(id));
+        let counts = self
+            .farm
+            .sequence(id)
+            .map(|r| (r.frames().counts(), r.frames().len()));
         let Some(record) = self.sequences.get_mut(&id) else {
             return;
         };
-        record.recorded = Some(state);
         let ended = self.now.unix_ms;
         record.times.ended = Some(ended);
         let times = record.times;
-        let c = record.frames.counts();
+        let (c, frames) = counts.unwrap_or_default();
         let detail = match state {
             JobState::Done => format!("{} frames, {} rays", c.done, totals.rays),
             _ => error
                 .clone()
-                .unwrap_or_else(|| format!("{} of {} frames done", c.done, record.frames.len())),
+                .unwrap_or_else(|| format!("{} of {frames} frames done", c.done)),
         };
         info!(job = id, state = state.as_str(), "sequence ended");
         self.log(sh, id, state.as_str(), detail);
@@ -473,10 +472,10 @@ impl Core {
 
     /// Why a sequence failed, in one line: its failed frames and the first error.
     fn failure_summary(&self, id: JobId) -> String {
-        let Some(record) = self.sequences.get(&id) else {
+        let Some(run) = self.farm.sequence(id) else {
             return String::new();
         };
-        let failed: Vec<(u32, JobId)> = record.frames.failed().collect();
+        let failed: Vec<(u32, JobId)> = run.frames().failed().collect();
         let listed: Vec<String> = failed.iter().take(10).map(|(f, _)| f.to_string()).collect();
         let more = if failed.len() > listed.len() {
             format!(" and {} more", failed.len() - listed.len())
@@ -490,7 +489,7 @@ impl Core {
         format!(
             "{} of {} frames failed (frames {}{more}; requeue them with `tessera retry {id}`): {first}",
             failed.len(),
-            record.frames.len(),
+            run.frames().len(),
             listed.join(", ")
         )
     }
@@ -501,9 +500,11 @@ impl Core {
             return Totals::default();
         };
         let mut totals = record.ended_totals;
-        for (_, job) in record.frames.active() {
-            if let Some(r) = self.jobs.get(&job) {
-                add_totals(&mut totals, &r.totals);
+        if let Some(run) = self.farm.sequence(id) {
+            for (_, job) in run.frames().active() {
+                if let Some(r) = self.jobs.get(&job) {
+                    add_totals(&mut totals, &r.totals);
+                }
             }
         }
         totals

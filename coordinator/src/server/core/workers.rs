@@ -79,8 +79,6 @@ impl Core {
                 machine: Some(name.clone()),
             },
         );
-        // More credit: a sequence may start another frame to keep it busy.
-        self.fill_all(sh);
         (id, name)
     }
 

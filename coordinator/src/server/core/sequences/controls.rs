@@ -7,26 +7,25 @@ use std::sync::Arc;
 use protocol::{
     FrameFailure, FrameProgress, JobId, JobState, JobStatus, Refusal, FAILED_FRAMES_LISTED,
 };
-use scheduler::lifecycle;
+use scheduler::farm::{Input, SequenceInput, SequenceRun};
 use scheduler::sequence::FrameState;
 use tokio::sync::oneshot;
 use tracing::info;
 
-use super::{add_totals, SequenceRecord};
-use crate::db::Totals;
 use crate::server::core::controls::ended_refusal;
 use crate::server::core::records::Controls;
 use crate::server::core::{unknown, Core};
-use crate::server::persistence::Write;
 use crate::server::Shared;
 use crate::store::ImagePlace;
 
 impl Core {
     /// A client's view of a sequence: its frames, and its frame jobs added up.
     pub(in crate::server::core) fn sequence_status(&self, id: JobId) -> Option<JobStatus> {
-        let record = self.sequences.get(&id).filter(|r| r.stored)?;
-        let state = record.frames.state();
-        let c = record.frames.counts();
+        let record = self.sequences.get(&id)?;
+        let run = self.farm.sequence(id).filter(|r| r.stored())?;
+        let frames_of = run.frames();
+        let state = frames_of.state();
+        let c = frames_of.counts();
         let now = self.now.unix_ms;
         let end = record
             .times
@@ -34,26 +33,24 @@ impl Core {
             .filter(|_| state.is_final())
             .unwrap_or(now);
         let submitted = record.times.submitted.unwrap_or(end);
-        let mut tiles_done = c.done * record.tiles_per_frame;
+        let tiles_per_frame = run.tiles_per_frame();
+        let mut tiles_done = c.done * tiles_per_frame;
         let started = record.times.started;
-        for (_, job) in record.frames.active() {
+        for (_, job) in frames_of.active() {
             if let Some(r) = self.jobs.get(&job) {
                 tiles_done += r.tiles_recorded;
             }
         }
         let totals = self.sequence_totals(id);
-        let frames = record.frames.len();
-        let eta_ms = (state == JobState::Running
-            && c.done > 0
-            && c.done < frames
-            && !record.frames.paused())
-        .then(|| {
-            let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
-            Some((per_frame * f64::from(frames - c.done)) as u64)
-        })
-        .flatten();
-        let failures = record
-            .frames
+        let frames = frames_of.len();
+        let eta_ms =
+            (state == JobState::Running && c.done > 0 && c.done < frames && !frames_of.paused())
+                .then(|| {
+                    let per_frame = now.saturating_sub(started?) as f64 / f64::from(c.done);
+                    Some((per_frame * f64::from(frames - c.done)) as u64)
+                })
+                .flatten();
+        let failures = frames_of
             .failed()
             .take(FAILED_FRAMES_LISTED)
             .map(|(frame, job)| FrameFailure {
@@ -72,7 +69,7 @@ impl Core {
             settings: record.settings,
             priority: record.priority,
             tiles_done,
-            tiles_total: record.tiles_per_frame * frames,
+            tiles_total: tiles_per_frame * frames,
             rays: totals.rays,
             elapsed_ms: end.saturating_sub(submitted),
             eta_ms,
@@ -81,7 +78,7 @@ impl Core {
             estimated_error,
             time_limit_ms: None,
             stopped_on_time_limit: false,
-            paused: record.frames.paused() && !state.is_final(),
+            paused: frames_of.paused() && !state.is_final(),
             warning: (!state.is_final())
                 .then(|| self.no_worker_warning())
                 .flatten(),
@@ -90,16 +87,16 @@ impl Core {
             submitted_from: record.label.submitted_from.clone(),
             submitted_unix_ms: submitted,
             queued_ms: started.map(|s| s.saturating_sub(submitted)),
-            frame: record.frames.first(),
+            frame: frames_of.first(),
             frames: Some(FrameProgress {
-                first: record.frames.first(),
-                last: record.frames.last(),
+                first: frames_of.first(),
+                last: frames_of.last(),
                 scene_frames: record.frame_count,
                 done: c.done,
                 active: c.active,
                 pending: c.pending,
                 cancelled: c.cancelled,
-                done_prefix: record.frames.done_prefix(),
+                done_prefix: frames_of.done_prefix(),
                 failed: c.failed,
                 failures,
             }),
@@ -115,25 +112,21 @@ impl Core {
         id: JobId,
         peer: std::net::IpAddr,
     ) -> Result<(), Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
+        let state = self
+            .farm
+            .sequence(id)
+            .filter(|r| r.stored())
+            .ok_or_else(|| unknown(id))?
+            .frames()
+            .state();
         if state.is_final() {
             return Err(Refusal::state(format!(
                 "job {id} is {}: only a queued or running job can be cancelled",
                 state.as_str()
             )));
         }
-        let jobs = record.frames.cancel();
         self.log(sh, id, "cancel", format!("asked from {peer}"));
-        for job in jobs {
-            self.life_event(sh, lifecycle::Event::Cancel { job });
-        }
-        self.settle(sh, id);
-        sh.changed();
+        self.feed(sh, Input::Sequence(SequenceInput::Cancel { sequence: id }));
         Ok(())
     }
 
@@ -145,13 +138,13 @@ impl Core {
         id: JobId,
         done: oneshot::Sender<()>,
     ) -> Result<(), Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
+        let run = self
+            .farm
+            .sequence(id)
+            .filter(|r| r.stored() && !r.deleting())
             .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
-        if !state.is_final() || record.recorded != Some(state) {
+        let state = run.frames().state();
+        if !state.is_final() || run.recorded() != Some(state) {
             return Err(Refusal::state(format!(
                 "job {id} is {}: cancel it first",
                 if state.is_final() {
@@ -161,27 +154,10 @@ impl Core {
                 }
             )));
         }
-        record.deleting = true;
-        let jobs: Vec<JobId> = [FrameState::Done, FrameState::Failed, FrameState::Cancelled]
-            .into_iter()
-            .flat_map(|s| record.frames.frames_in(s).map(|(_, j)| j))
-            .filter(|&j| j != 0)
-            .collect();
-        for job in jobs {
-            self.life_event(sh, lifecycle::Event::Delete { job });
+        if let Some(record) = self.sequences.get_mut(&id) {
+            record.deleted = Some(done);
         }
-        let shared = Arc::clone(sh);
-        // Queued after its frames' deletions: the folder goes last.
-        sh.persistence.write(Write::Delete {
-            job: id,
-            place: ImagePlace::Job(id),
-            then: Box::new(move |_| {
-                shared.lock().sequences.remove(&id);
-                info!(job = id, "sequence deleted");
-                shared.changed();
-                let _ = done.send(());
-            }),
-        });
+        self.feed(sh, Input::Sequence(SequenceInput::Delete { sequence: id }));
         Ok(())
     }
 
@@ -194,18 +170,17 @@ impl Core {
         frame: Option<u32>,
         peer: std::net::IpAddr,
     ) -> Result<JobStatus, Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
-            .ok_or_else(|| unknown(id))?;
+        let run = self.stored_frames(id).ok_or_else(|| unknown(id))?;
         let frames: Vec<u32> = match frame {
-            Some(f) => vec![f],
+            Some(f) => {
+                run.may_requeue(f)
+                    .map_err(|e| Refusal::state(format!("job {id}: {e}")))?;
+                vec![f]
+            }
             None => {
-                let again: Vec<u32> = record
-                    .frames
+                let again: Vec<u32> = run
                     .failed()
-                    .chain(record.frames.frames_in(FrameState::Cancelled))
+                    .chain(run.frames_in(FrameState::Cancelled))
                     .map(|(f, _)| f)
                     .collect();
                 if again.is_empty() {
@@ -216,43 +191,20 @@ impl Core {
                 again
             }
         };
-        let mut old_jobs = Vec::new();
-        for &f in &frames {
-            let old = record
-                .frames
-                .requeue(f)
-                .map_err(|e| Refusal::state(format!("job {id}: {e}")))?;
-            old_jobs.extend(old);
-        }
-        // The frames' old jobs go: the new ones write their images in their place.
-        let mut gone = Totals::default();
-        for job in &old_jobs {
-            if let Some(r) = self.jobs.get(job) {
-                add_totals(&mut gone, &r.totals);
-            }
-        }
-        if let Some(record) = self.sequences.get_mut(&id) {
-            let t = &mut record.ended_totals;
-            t.rays = t.rays.saturating_sub(gone.rays);
-            t.samples = t.samples.saturating_sub(gone.samples);
-            t.error_sq_sum = (t.error_sq_sum - gone.error_sq_sum).max(0.0);
-            t.error_pixels = t.error_pixels.saturating_sub(gone.error_pixels);
-        }
-        for job in old_jobs {
-            self.life_event(sh, lifecycle::Event::Delete { job });
-        }
+        let count = frames.len();
+        self.feed(
+            sh,
+            Input::Sequence(SequenceInput::Requeue {
+                sequence: id,
+                frames,
+            }),
+        );
         let detail = match frame {
             Some(f) => format!("frame {f}, from {peer}"),
-            None => format!("{} failed or cancelled frames, from {peer}", frames.len()),
+            None => format!("{count} failed or cancelled frames, from {peer}"),
         };
-        info!(
-            job = id,
-            frames = frames.len(),
-            "frames requeued by an operator"
-        );
+        info!(job = id, frames = count, "frames requeued by an operator");
         self.log(sh, id, "requeued", detail);
-        self.settle(sh, id);
-        self.fill(sh, id);
         sh.changed();
         self.sequence_status(id).ok_or_else(|| unknown(id))
     }
@@ -265,17 +217,14 @@ impl Core {
         id: JobId,
         paused: bool,
     ) -> Result<Controls, Refusal> {
-        let record = self.controllable(id, if paused { "paused" } else { "resumed" })?;
-        record.frames.set_paused(paused);
-        let priority = record.priority;
-        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
-        for job in active {
-            // A frame job that has ended meanwhile cannot be paused: nothing to do.
-            let _ = self.set_paused(sh, job, paused);
-        }
-        if !paused {
-            self.fill(sh, id);
-        }
+        let priority = self.controllable(id, if paused { "paused" } else { "resumed" })?;
+        self.feed(
+            sh,
+            Input::Sequence(SequenceInput::Pause {
+                sequence: id,
+                paused,
+            }),
+        );
         Ok(Controls {
             job: id,
             paused,
@@ -290,10 +239,14 @@ impl Core {
         id: JobId,
         priority: i32,
     ) -> Result<Controls, Refusal> {
-        let record = self.controllable(id, "given a new priority")?;
+        self.controllable(id, "given a new priority")?;
+        let Some(record) = self.sequences.get_mut(&id) else {
+            return Err(unknown(id));
+        };
         record.priority = priority;
-        let paused = record.frames.paused();
-        let active: Vec<JobId> = record.frames.active().map(|(_, j)| j).collect();
+        let frames = self.stored_frames(id).ok_or_else(|| unknown(id))?;
+        let paused = frames.paused();
+        let active: Vec<JobId> = frames.active().map(|(_, j)| j).collect();
         for job in active {
             let _ = self.set_priority(sh, job, priority);
         }
@@ -304,17 +257,18 @@ impl Core {
         })
     }
 
-    fn controllable(&mut self, id: JobId, verb: &str) -> Result<&mut SequenceRecord, Refusal> {
-        let record = self
-            .sequences
-            .get_mut(&id)
-            .filter(|r| r.stored && !r.deleting)
-            .ok_or_else(|| unknown(id))?;
-        let state = record.frames.state();
+    /// Whether the sequence takes an operator's control (it is stored and has not
+    /// ended); returns its priority.
+    fn controllable(&self, id: JobId, verb: &str) -> Result<i32, Refusal> {
+        let frames = self.stored_frames(id).ok_or_else(|| unknown(id))?;
+        let state = frames.state();
         if state.is_final() {
             return Err(ended_refusal(id, verb, state));
         }
-        Ok(record)
+        self.sequences
+            .get(&id)
+            .map(|r| r.priority)
+            .ok_or_else(|| unknown(id))
     }
 
     /// Where a done frame's image is, and its checksum.
@@ -323,16 +277,18 @@ impl Core {
         id: JobId,
         frame: u32,
     ) -> Result<(ImagePlace, Option<[u8; 32]>), Refusal> {
-        let record = self
-            .sequences
-            .get(&id)
-            .filter(|r| r.stored)
+        let record = self.sequences.get(&id).ok_or_else(|| unknown(id))?;
+        let frames = self
+            .farm
+            .sequence(id)
+            .filter(|r| r.stored())
+            .map(SequenceRun::frames)
             .ok_or_else(|| unknown(id))?;
-        let state = record.frames.frame(frame).ok_or_else(|| {
+        let state = frames.frame(frame).ok_or_else(|| {
             Refusal::not_found(format!(
                 "job {id} has frames {} to {}: there is no frame {frame}",
-                record.frames.first(),
-                record.frames.last()
+                frames.first(),
+                frames.last()
             ))
         })?;
         if state != FrameState::Done {
@@ -347,7 +303,7 @@ impl Core {
                 }
             )));
         }
-        let job = record.frames.job(frame).ok_or_else(|| unknown(id))?;
+        let job = frames.job(frame).ok_or_else(|| unknown(id))?;
         let sha = self.jobs.get(&job).and_then(|r| r.image_sha256);
         Ok((
             ImagePlace::Frame {
@@ -402,11 +358,18 @@ impl Core {
         let keep = self.farm.lifecycle().limits().retention?;
         let now = self.now.unix_ms;
         self.sequences
-            .values()
-            .filter(|r| !r.deleting && r.recorded.is_some())
-            .filter_map(|r| r.times.ended)
+            .iter()
+            .filter(|(&id, _)| self.has_ended(id))
+            .filter_map(|(_, r)| r.times.ended)
             .map(|ended| ended.saturating_add(keep).saturating_sub(now))
             .min()
+    }
+
+    /// Whether the sequence's end is written and it is not being deleted.
+    fn has_ended(&self, id: JobId) -> bool {
+        self.farm
+            .sequence(id)
+            .is_some_and(|r| !r.deleting() && r.recorded().is_some())
     }
 
     /// Sequences whose retention has run out (ended that long ago): deleted.
@@ -418,10 +381,8 @@ impl Core {
         let expired: Vec<JobId> = self
             .sequences
             .iter()
-            .filter(|(_, r)| {
-                !r.deleting
-                    && r.recorded.is_some()
-                    && r.times.ended.is_some_and(|e| e.saturating_add(keep) <= now)
+            .filter(|(&id, r)| {
+                self.has_ended(id) && r.times.ended.is_some_and(|e| e.saturating_add(keep) <= now)
             })
             .map(|(&id, _)| id)
             .collect();
