@@ -20,10 +20,12 @@
 //!   paused if an operator paused the job (see [`crate::passes`]);
 //! - a job in passes whose results are taken back ([`PassInput::TakeBack`]) has its
 //!   tiles withdrawn and its pass started again;
-//! - a machine caught returning wrong pixels ([`Input::Quarantine`]) has the tiles it
-//!   rendered in the active jobs taken back ([`Effect::TakenBack`], for the executor
-//!   to forget their pixels) and rendered again by others ([`Event::Quarantine`]): the
-//!   core keeps which machine rendered each accepted tile while its job is active;
+//! - a machine caught returning wrong pixels ([`Input::Quarantine`]), or whose copy of
+//!   a tile is shown wrong against another ([`Input::Duplicate`]), is quarantined
+//!   ([`Effect::Quarantined`]) and has the tiles it rendered in the active jobs taken
+//!   back ([`Effect::TakenBack`], for the executor to forget their pixels) and
+//!   rendered again by others ([`Event::Quarantine`]): the core keeps which machine
+//!   rendered each accepted tile while its job is active;
 //! - a job the scheduler gives up ([`Action::JobFailed`]) fails
 //!   ([`lifecycle::Event::TilesFailed`]);
 //! - a job whose row is written ([`lifecycle::Action::Acknowledge`]) has its tiles
@@ -45,6 +47,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use protocol::{JobId, Refusal, SceneHash, WorkerId};
 
+pub use self::disputes::{CopyVerdict, Duplicate};
 pub use self::pass_run::{PassAction, PassInput, PassRun, PassTile};
 use self::renderers::Renderers;
 pub use self::sequence_run::{SequenceAction, SequenceInput, SequenceRun, FRAME_RETRY_MS};
@@ -66,10 +69,20 @@ pub enum Input {
     Pass(PassInput),
     /// About a sequence: its row written, an operator's control.
     Sequence(SequenceInput),
-    /// A machine was caught returning wrong pixels: it gets no tile again, and what it
-    /// rendered of the active jobs (not those in passes, whose states the executor
-    /// takes back with [`PassInput::TakeBack`]) is rendered again.
-    Quarantine { machine: String },
+    /// A machine was caught returning wrong pixels for a tile of `caught_in` (`reason`
+    /// says how, for people): it gets no tile again, and what it rendered of the
+    /// active jobs (not those in passes, whose states the executor takes back with
+    /// [`PassInput::TakeBack`]) is rendered again.
+    Quarantine {
+        machine: String,
+        caught_in: JobId,
+        reason: String,
+    },
+    /// A straggler's second copy of an accepted tile, compared with the accepted one
+    /// by the executor (which holds the pixels) and, if they differ, arbitrated by
+    /// rendering the pixels where they do: the core quarantines whichever copy's
+    /// machine is shown wrong.
+    Duplicate(Duplicate),
     /// The time has come ([`Farm::next_deadline`]).
     Timeout,
 }
@@ -83,6 +96,24 @@ pub enum Effect {
     Job(lifecycle::Action),
     Pass(PassAction),
     Sequence(SequenceAction),
+    /// A machine is quarantined ([`Input::Quarantine`], or a copy shown wrong): the
+    /// executor shuts it out of what it keeps (results held, jobs in passes) and says
+    /// so in the events of `caught_in` and of the jobs in `taken` (tiles of which it
+    /// rendered, taken back: each follows as [`Effect::TakenBack`]).
+    Quarantined {
+        machine: String,
+        caught_in: JobId,
+        reason: String,
+        taken: Vec<(JobId, Vec<u32>)>,
+    },
+    /// A duplicate copy settled nothing: equal to the accepted one, or different with
+    /// neither shown wrong (no renderer to arbitrate); the executor logs it.
+    DuplicateSettled {
+        job: JobId,
+        tile: u32,
+        machine: String,
+        same: bool,
+    },
     /// Tiles of `job` accepted from a quarantined machine, taken back: the executor
     /// forgets their pixels (and what it stored of them); they go out again.
     TakenBack {
@@ -226,19 +257,12 @@ impl Farm {
                     self.to_fill.extend(self.sequences.keys());
                 }
             }
-            Input::Quarantine { machine } => {
-                let passes = &self.passes;
-                let tiles = &self.tiles;
-                let taken = self.renderers.take_back(&machine, |job| {
-                    tiles.is_active(job) && !passes.contains_key(&job)
-                });
-                let mut revoke = Vec::new();
-                for (job, tiles) in taken {
-                    revoke.extend(tiles.iter().map(|&t| (job, t)));
-                    effects.push(Effect::TakenBack { job, tiles });
-                }
-                self.tiles_event(now, Event::Quarantine { machine, revoke }, &mut effects);
-            }
+            Input::Quarantine {
+                machine,
+                caught_in,
+                reason,
+            } => self.quarantine(now, machine, caught_in, reason, &mut effects),
+            Input::Duplicate(duplicate) => self.duplicate(now, duplicate, &mut effects),
             Input::Job(event) => self.job_event(now, event, &mut effects),
             Input::Pass(input) => self.pass_input(now, input, &mut effects),
             Input::Sequence(input) => self.sequence_input(now, input, &mut effects),
@@ -560,6 +584,9 @@ impl Farm {
     }
 }
 
+#[cfg(test)]
+mod dispute_tests;
+mod disputes;
 mod pass_run;
 #[cfg(test)]
 mod pass_tests;

@@ -23,6 +23,7 @@ use scheduler::farm::{Effect, Farm, Input, TilePlan};
 use scheduler::lifecycle::{self, Lifecycle, Phase, Reply};
 use scheduler::{Event, Millis, Scheduler};
 use tokio::sync::oneshot;
+use tracing::{error, info};
 
 use super::persistence::Write;
 use super::Shared;
@@ -239,6 +240,30 @@ impl Core {
                 Effect::Pass(action) => self.apply_pass(sh, action),
                 Effect::Sequence(action) => self.apply_sequence(sh, action),
                 Effect::TakenBack { job, tiles } => self.taken_back(sh, job, tiles),
+                Effect::Quarantined {
+                    machine,
+                    caught_in,
+                    reason,
+                    taken,
+                } => self.quarantined(sh, &machine, caught_in, &reason, &taken),
+                Effect::DuplicateSettled {
+                    job,
+                    tile,
+                    machine,
+                    same,
+                } => {
+                    if same {
+                        info!(
+                            machine,
+                            job, tile, "duplicate result equals the accepted one"
+                        );
+                    } else {
+                        error!(
+                            machine,
+                            job, tile, "duplicate result differs from the accepted one"
+                        );
+                    }
+                }
                 Effect::Job(action) => {
                     if let Some(answer) = self.apply_life(sh, action) {
                         debug_assert!(reply.is_none(), "two replies to one input");

@@ -57,6 +57,15 @@ pub(super) fn done(f: &mut Farm, worker: u64, job: JobId, tile: u32) -> Vec<Effe
     f.handle(1, Input::Tiles(Event::TileDone { worker, job, tile }))
 }
 
+/// A quarantine of `machine`, caught in no job in particular.
+pub(super) fn quarantine(machine: &str) -> Input {
+    Input::Quarantine {
+        machine: machine.into(),
+        caught_in: 0,
+        reason: "caught".into(),
+    }
+}
+
 pub(super) fn assigned(effects: &[Effect]) -> Vec<(u64, JobId, u32)> {
     effects
         .iter()
@@ -284,7 +293,7 @@ fn a_priority_set_before_the_job_is_stored_holds_when_it_goes_out() {
     );
 }
 
-fn stored_job(f: &mut Farm, tiles: u32) -> JobId {
+pub(super) fn stored_job(f: &mut Farm, tiles: u32) -> JobId {
     let job = f.admit(0, &request(), plan(tiles)).unwrap();
     f.handle(0, Input::Job(lifecycle::Event::Stored { job }));
     job
@@ -465,14 +474,9 @@ fn a_quarantine_takes_back_the_machines_tiles_and_the_job_waits_for_them() {
     let job = stored_job(&mut f, 3);
     assert!(done(&mut f, 1, job, 0).contains(&Effect::Tiles(Action::AcceptTile { job, tile: 0 })));
     join(&mut f, 2, 4);
-    let caught = f.handle(
-        2,
-        Input::Quarantine {
-            machine: "m1".into(),
-        },
-    );
+    let caught = f.handle(2, quarantine("m1"));
     assert_eq!(
-        caught[0],
+        caught[1],
         Effect::TakenBack {
             job,
             tiles: vec![0]
@@ -587,28 +591,18 @@ fn a_quarantine_takes_back_restored_tiles_but_not_requeued_ones() {
             tiles: vec![1],
         }),
     );
-    let caught = f.handle(
-        3,
-        Input::Quarantine {
-            machine: "m1".into(),
-        },
-    );
+    let caught = f.handle(3, quarantine("m1"));
     assert_eq!(
-        caught[0],
+        caught[1],
         Effect::TakenBack {
             job,
             tiles: vec![out[0]]
         },
         "{caught:?}"
     );
-    let seven = f.handle(
-        4,
-        Input::Quarantine {
-            machine: "m7".into(),
-        },
-    );
+    let seven = f.handle(4, quarantine("m7"));
     assert_eq!(
-        seven[0],
+        seven[1],
         Effect::TakenBack {
             job,
             tiles: vec![0]

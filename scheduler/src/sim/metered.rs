@@ -128,6 +128,7 @@ impl Metered {
             | Input::Storage(_)
             | Input::Pass(_)
             | Input::Sequence(_)
+            | Input::Duplicate(_)
             | Input::Quarantine { .. } => None,
         };
         let job_kind = match &input {
@@ -135,6 +136,7 @@ impl Metered {
             Input::Pass(input) => Some(self.job_kind(&format!("{input:?}"))),
             Input::Sequence(input) => Some(self.job_kind(&format!("{input:?}"))),
             Input::Quarantine { .. } => Some(self.job_kind("Quarantine")),
+            Input::Duplicate(_) => Some(self.job_kind("Duplicate")),
             Input::Storage(Ok(())) => Some(self.job_kind("StorageAvailable")),
             Input::Storage(Err(_)) => Some(self.job_kind("StorageUnavailable")),
             Input::Tiles(_) | Input::Timeout => None,

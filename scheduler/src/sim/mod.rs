@@ -657,7 +657,10 @@ impl<'a> Sim<'a> {
                 }
                 // The simulated workers are honest: nothing is taken back; and the
                 // simulated farm renders no sequence.
-                Effect::TakenBack { .. } | Effect::Sequence(_) => {
+                Effect::TakenBack { .. }
+                | Effect::Quarantined { .. }
+                | Effect::DuplicateSettled { .. }
+                | Effect::Sequence(_) => {
                     self.out.model_mismatches += 1;
                     continue;
                 }

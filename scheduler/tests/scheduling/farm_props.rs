@@ -518,7 +518,26 @@ impl Run {
                     })
                     .map(|(&k, _)| k)
                     .collect();
-                let effects = self.farm.handle(self.now, Input::Quarantine { machine });
+                let input = Input::Quarantine {
+                    machine: machine.clone(),
+                    caught_in: 0,
+                    reason: "caught".into(),
+                };
+                let effects = self.farm.handle(self.now, input);
+                // The executor hears first, with what is taken back.
+                match effects.first() {
+                    Some(Effect::Quarantined {
+                        machine: m, taken, ..
+                    }) => {
+                        assert_eq!(*m, machine);
+                        let told: BTreeSet<(JobId, u32)> = taken
+                            .iter()
+                            .flat_map(|(job, tiles)| tiles.iter().map(|&t| (*job, t)))
+                            .collect();
+                        assert_eq!(told, expect, "what the quarantine says it took back");
+                    }
+                    other => panic!("a quarantine first tells the executor: {other:?}"),
+                }
                 let taken: BTreeSet<(JobId, u32)> = effects
                     .iter()
                     .flat_map(|e| match e {

@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use protocol::JobId;
-use scheduler::farm::{Effect, Input};
+use scheduler::farm::Input;
 use tracing::{error, warn};
 
 use super::records::rect_pixels;
@@ -12,9 +12,7 @@ use super::{Core, Shared, Write};
 
 impl Core {
     /// The machine returned wrong pixels for a tile of job `caught_in` (said in
-    /// `reason`, for people): it gets no tile again, its held results are dropped, and
-    /// the tiles it rendered in active jobs are rendered again. The events of
-    /// `caught_in` and of every job it had tiles in say so.
+    /// `reason`, for people): the core quarantines it ([`Core::quarantined`] follows).
     pub fn quarantine(
         &mut self,
         sh: &Arc<Shared>,
@@ -22,15 +20,36 @@ impl Core {
         caught_in: JobId,
         reason: String,
     ) {
+        let input = Input::Quarantine {
+            machine: machine.to_string(),
+            caught_in,
+            reason,
+        };
+        self.feed(sh, input);
+    }
+
+    /// The core quarantined the machine: it gets no tile again, its held results are
+    /// dropped, and jobs in passes take back what it rendered (the core took back its
+    /// tiles of the other active jobs: `taken`). The events of `caught_in` and of every
+    /// job it had tiles taken back from say so.
+    pub(super) fn quarantined(
+        &mut self,
+        sh: &Arc<Shared>,
+        machine: &str,
+        caught_in: JobId,
+        reason: &str,
+        taken: &[(JobId, Vec<u32>)],
+    ) {
         sh.metrics.result_rejected();
         let first = !self.quarantined.contains_key(machine);
         error!(machine, reason = %reason, "quarantined");
         if first {
             sh.metrics.worker_quarantined();
-            self.quarantined.insert(machine.to_string(), reason.clone());
+            self.quarantined
+                .insert(machine.to_string(), reason.to_string());
         }
         for w in self.workers.values_mut().filter(|w| w.name == machine) {
-            w.quarantined.get_or_insert_with(|| reason.clone());
+            w.quarantined.get_or_insert_with(|| reason.to_string());
         }
         self.held.retain(|_, h| h.machine != machine);
         let adaptive: Vec<JobId> = self
@@ -59,28 +78,16 @@ impl Core {
                 );
             }
         }
-        let input = Input::Quarantine {
-            machine: machine.to_string(),
-        };
-        let effects = self.farm.handle(self.now.mono, input);
-        let affected: Vec<(JobId, Vec<u32>)> = effects
-            .iter()
-            .filter_map(|e| match e {
-                Effect::TakenBack { job, tiles } => Some((*job, tiles.clone())),
-                _ => None,
-            })
-            .collect();
-        self.carry_out(sh, effects);
         // The job of its wrong tile, and those whose tiles it had rendered.
         let mut jobs: Vec<JobId> = Some(caught_in)
             .filter(|j| self.jobs.contains_key(j))
             .into_iter()
             .collect();
-        jobs.extend(affected.iter().map(|(j, _)| *j));
+        jobs.extend(taken.iter().map(|(j, _)| *j));
         jobs.sort_unstable();
         jobs.dedup();
         for job in jobs {
-            let taken = affected
+            let taken = taken
                 .iter()
                 .find(|(j, _)| *j == job)
                 .map_or(String::new(), |(_, t)| {

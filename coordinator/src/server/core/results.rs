@@ -6,9 +6,9 @@ use std::sync::Arc;
 
 use protocol::{JobId, SceneHash, Settings, TileRect, Verification, WorkerId};
 use render::Tracer;
-use scheduler::farm::{Effect, Input};
+use scheduler::farm::{CopyVerdict, Duplicate, Effect, Input};
 use scheduler::{Action, Event};
-use tracing::{error, info, warn};
+use tracing::{error, warn};
 
 use super::records::{
     decompress, rect_pixels, to_render_rect, Accepted, Cost, Held, TilePixels, RTTS_KEPT,
@@ -424,8 +424,8 @@ impl Core {
 
     /// A straggler's second copy of a tile must equal the accepted one. If it does
     /// not, one of them is wrong: the pixels where they differ, rendered here, say
-    /// which, and that machine is quarantined (which takes the accepted tile back if
-    /// it was the wrong one and the job is still rendering).
+    /// which, and the core quarantines that machine (which takes the accepted tile
+    /// back if it was the wrong one and the job is still rendering).
     fn settle_duplicate(
         &mut self,
         sh: &Arc<Shared>,
@@ -435,52 +435,67 @@ impl Core {
         rgb: &[u8],
         verdict: &Verdict,
     ) {
-        let tracer = verdict.tracer.as_deref();
-        let Some(record) = self.jobs.get(&job) else {
+        let Some((accepted_by, verdict)) = self.compare_copies(sh, job, tile, rgb, verdict) else {
             return;
         };
+        let duplicate = Duplicate {
+            job,
+            tile,
+            accepted_by,
+            copy_by: machine.to_string(),
+            verdict,
+        };
+        self.feed(sh, Input::Duplicate(duplicate));
+    }
+
+    /// Compares a duplicate copy with the accepted one, and when they differ, renders
+    /// the pixels where they do to say which is wrong: who rendered the accepted copy,
+    /// and the verdict. `None` when there is nothing to compare (the job or its image
+    /// is gone, a job in passes has moved on from the copy's rung).
+    fn compare_copies(
+        &self,
+        sh: &Shared,
+        job: JobId,
+        tile: u32,
+        rgb: &[u8],
+        verdict: &Verdict,
+    ) -> Option<(Option<String>, CopyVerdict)> {
+        let tracer = verdict.tracer.as_deref();
+        let record = self.jobs.get(&job)?;
+        let rect = *record.tiles.get(tile as usize)?;
         if let (Some(ad), Some(answer), Some(plan)) =
             (&record.adaptive, &verdict.answer, &verdict.plan)
         {
             let t = &ad.tiles[tile as usize];
-            let (Some(state), Some(first)) = (&t.state, t.machines.last()) else {
-                return;
+            let (state, first) = (t.state.as_ref()?, t.machines.last()?);
+            if t.rung != Some(plan.rung) {
+                return None;
+            }
+            let first = Some(first.to_string());
+            if t.sha == answer.sha {
+                return Some((first, CopyVerdict::Same));
+            }
+            let (accepted_wrong, copy_wrong) = match tracer {
+                Some(tracer) => adaptive::arbitrate(
+                    &sh.verifier,
+                    tracer,
+                    &record.settings,
+                    rect,
+                    plan,
+                    state,
+                    &answer.state,
+                ),
+                None => (None, None),
             };
-            if t.rung != Some(plan.rung) || t.sha == answer.sha {
-                return;
-            }
-            let (Some(tracer), Some(&rect)) = (tracer, record.tiles.get(tile as usize)) else {
-                return;
-            };
-            let first = first.to_string();
-            let (wrong_first, wrong_second) = adaptive::arbitrate(
-                &sh.verifier,
-                tracer,
-                &record.settings,
-                rect,
-                plan,
-                state,
-                &answer.state,
-            );
-            if let Some(wrong) = wrong_first {
-                let reason = format!(
-                    "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
-                     comparing its result with {machine}'s copy)"
-                );
-                self.quarantine(sh, &first, job, reason);
-            }
-            if let Some(wrong) = wrong_second {
-                let reason = format!(
-                    "returned wrong pixels for tile {tile} of job {job}: {wrong} (found \
-                     comparing its copy with the accepted result)"
-                );
-                self.quarantine(sh, machine, job, reason);
-            }
-            return;
+            return Some((
+                first,
+                CopyVerdict::Differs {
+                    accepted_wrong,
+                    copy_wrong,
+                },
+            ));
         }
-        let (Some(image), Some(&rect)) = (&record.image, record.tiles.get(tile as usize)) else {
-            return;
-        };
+        let image = record.image.as_ref()?;
         let row = rect.width as usize * 3;
         let accepted: Vec<u8> = (0..rect.height as usize)
             .flat_map(|r| {
@@ -488,36 +503,27 @@ impl Core {
                 image.rgb[start..start + row].iter().copied()
             })
             .collect();
-        if accepted == rgb {
-            info!(
-                machine,
-                job, tile, "duplicate result equals the accepted one"
-            );
-            return;
-        }
         let first = record.accepted.get(&tile).map(|a| a.machine.to_string());
-        let Some(tracer) = tracer else {
-            error!(
-                machine,
-                job, tile, "duplicate result differs from the accepted one"
-            );
-            return;
+        if accepted == rgb {
+            return Some((first, CopyVerdict::Same));
+        }
+        let (accepted_wrong, copy_wrong) = match tracer {
+            Some(tracer) => {
+                let v = verify::spot::arbitrate(tracer, rect, &accepted, rgb);
+                (
+                    v.first.map(|w| w.to_string()),
+                    v.second.map(|w| w.to_string()),
+                )
+            }
+            None => (None, None),
         };
-        let verdict = verify::spot::arbitrate(tracer, rect, &accepted, rgb);
-        if let (Some(wrong), Some(first)) = (verdict.first, first) {
-            let reason = format!(
-                "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
-                 its result with {machine}'s copy)"
-            );
-            self.quarantine(sh, &first, job, reason);
-        }
-        if let Some(wrong) = verdict.second {
-            let reason = format!(
-                "returned wrong pixels for tile {tile} of job {job}: {wrong} (found comparing \
-                 its copy with the accepted result)"
-            );
-            self.quarantine(sh, machine, job, reason);
-        }
+        Some((
+            first,
+            CopyVerdict::Differs {
+                accepted_wrong,
+                copy_wrong,
+            },
+        ))
     }
 
     #[expect(
