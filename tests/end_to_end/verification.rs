@@ -18,6 +18,9 @@
 //!   refused at the canary with both builds named, it never gets a tile. Workers whose
 //!   connections end during the canary are lost connections, not refusals: counted
 //!   apart and logged as warnings.
+//! - A machine that rendered tiles honestly before the coordinator was killed, caught
+//!   returning red tiles after the restart: the tiles it rendered before, restored
+//!   from the disk, are taken back and rendered again by another.
 //! - A worker rendering frame 1 of an animated scene for a job of frame 17: caught by
 //!   the spot checks, which render the job's frame, and the job done with
 //!   `tessera render --frame 17`'s image.
@@ -37,8 +40,9 @@ use crate::support::fake_worker::{FakeWorker, Lie};
 use crate::support::flip_relay::FlipRelay;
 use crate::support::{
     assert_same_png, fetch, free_port, http_get_text, metric_value, orbit, poll, render_args,
-    render_reference, scene_path, shared, start_coordinator, start_worker, submit, tessera_within,
-    try_status, try_workers, wait_done, Daemon,
+    render_reference, restart_coordinator, scene_path, shared, start_coordinator,
+    start_restartable_coordinator, start_worker, submit, tessera_within, try_status, try_workers,
+    wait_done, Daemon,
 };
 
 /// The job of every test: small, 80 tiles.
@@ -337,6 +341,75 @@ fn red_tiles_are_rejected_and_their_machine_stays_quarantined_after_reconnecting
     assert!(!back.closed(), "the returning liar was disconnected");
     assert!(farm.named("liar")[0]["quarantined"].is_string());
     assert_eq!(farm.metric("tessera_workers_quarantined_total"), 1.0);
+}
+
+/// Tiles a machine rendered before the coordinator was killed are taken back when it
+/// is caught returning wrong pixels after the restart: the core learns who rendered
+/// each tile it restores. The job is then `tessera render`'s image all the same.
+#[test]
+fn tiles_restored_after_a_restart_are_taken_back_when_their_machine_is_caught() {
+    /// Tiles the machine renders (and the coordinator stores) before the restart.
+    const BEFORE: u64 = 6;
+    let _turn = shared();
+    let dir = tempfile::tempdir().expect("temporary directory");
+    let (mut coordinator, addr) = start_restartable_coordinator(dir.path());
+    let reference = render_reference(
+        dir.path(),
+        &scene_path("seed.json"),
+        "reference.png",
+        &render_args(JOB),
+    );
+    let build = render::build_identity();
+    let scene = scene_path("seed.json");
+    let mut args = vec![scene.as_str()];
+    args.extend(JOB);
+    let stalls = FakeWorker::start(&addr, "m", &build, Lie::SilentAfter(BEFORE));
+    let job = submit(dir.path(), &addr, &args);
+    poll(
+        "the machine's first tiles to be stored",
+        JOB_TIMEOUT,
+        || {
+            let status = try_status(dir.path(), &addr, job)?;
+            (status["tiles_done"].as_u64()? >= BEFORE).then_some(())
+        },
+    );
+    coordinator.kill9();
+    drop(stalls);
+
+    let coordinator = restart_coordinator(dir.path(), &addr, &[]);
+    let liar = FakeWorker::start(&addr, "m", &build, Lie::Red);
+    poll("the machine to be quarantined", JOB_TIMEOUT, || {
+        try_workers(dir.path(), &addr)?
+            .iter()
+            .any(|w| w["name"] == "m" && w["quarantined"].is_string())
+            .then_some(())
+    });
+    assert!(
+        liar.tiles_lied() >= 1,
+        "caught without lying: {:?}",
+        liar.error()
+    );
+    let _honest = start_worker(dir.path(), &addr, "honest");
+    wait_done(dir.path(), &addr, job, JOB_TIMEOUT);
+    let image = fetch(dir.path(), &addr, job, "job.png");
+    assert_same_png(
+        &image,
+        &reference,
+        "a job whose restored tiles were taken back",
+    );
+    let events = crate::support::events(dir.path(), &addr, job);
+    let quarantine = events
+        .iter()
+        .find(|(kind, detail)| kind == "quarantine" && detail.contains("machine m quarantined"))
+        .unwrap_or_else(|| panic!("no quarantine of m in the job's events: {events:?}"));
+    assert!(
+        quarantine
+            .1
+            .contains(&format!("{BEFORE} of its tiles taken back")),
+        "the tiles m rendered before the restart are not all taken back: {}",
+        quarantine.1
+    );
+    drop(coordinator);
 }
 
 #[test]

@@ -38,6 +38,9 @@ pub enum Lie {
     /// Reports the first tile of this frame failed (`TileFailed`), as a worker that
     /// cannot render it would; honest with everything else.
     FailFrame(u32),
+    /// Renders its first `n` tiles honestly, then keeps every further tile without
+    /// answering (its heartbeats go on): a job stalls with exactly `n` of its tiles.
+    SilentAfter(u64),
     /// Closes its connection when the canary comes, as a worker that gave up on a
     /// paused coordinator does (its connection was queued unanswered past its connect
     /// limit): a lost connection, not a wrong renderer.
@@ -320,7 +323,10 @@ async fn serve(
                 let mut advanced =
                     verify::adaptive::advance(&tracer, footprints, rect, previous, rung)?;
                 let lied = match lie {
-                    Lie::Honest | Lie::FailFrame(_) | Lie::HangsUpAtCanary => false,
+                    Lie::Honest
+                    | Lie::FailFrame(_)
+                    | Lie::HangsUpAtCanary
+                    | Lie::SilentAfter(_) => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in advanced.rgb.chunks_exact_mut(3) {
@@ -378,11 +384,17 @@ async fn serve(
                     .await?;
                     continue;
                 }
+                if matches!(lie, Lie::SilentAfter(n) if nth >= n) {
+                    continue;
+                }
                 let started = Instant::now();
                 let scene = frame_of(scene, frame, lie)?;
                 let mut image = render_tile(&scene, &settings, rect)?;
                 let lied = match lie {
-                    Lie::Honest | Lie::FailFrame(_) | Lie::HangsUpAtCanary => false,
+                    Lie::Honest
+                    | Lie::FailFrame(_)
+                    | Lie::HangsUpAtCanary
+                    | Lie::SilentAfter(_) => false,
                     Lie::FrameOne => frame != 1,
                     Lie::Red => {
                         for pixel in image.rgb.chunks_exact_mut(3) {
