@@ -23,18 +23,31 @@
 //! - **A quarantine takes back what the machine rendered**: exactly the tiles accepted
 //!   from its workers in the active jobs not in passes, each of which must then be
 //!   accepted again.
+//! - **Sequences**: some submissions are sequences, whose frames the core starts as
+//!   frame jobs (admitted here as a daemon would), and which operators cancel, pause,
+//!   resume, requeue frames of and delete. A frame starts only while its sequence is
+//!   stored, not paused, not cancelled, and storage writes; at most
+//!   `MAX_ACTIVE_FRAMES` of a sequence start or run at once; a frame ends only with its
+//!   frame job's end written, in the same state; the sequence's end is told once
+//!   every frame has ended, in the state its frames give, and told again only after
+//!   it ran again (a requeued frame).
 //!
-//! Liveness: after any history, storage comes back, workers join, and every tile out
-//! is returned: every job the core acknowledged ends within a bounded number of inputs,
-//! and a job ends only once (one `RecordEnd`).
+//! Liveness: after any history, storage comes back, workers join, sequences are
+//! resumed, and every tile out is returned: every job the core acknowledged ends within
+//! a bounded number of inputs, and a job ends only once (one `RecordEnd`); every
+//! sequence ends, its end told.
 
 use std::collections::{BTreeMap, BTreeSet};
 
 use proptest::prelude::*;
 use protocol::{JobId, JobState, SceneHash, WorkerId};
-use scheduler::farm::{Effect, Farm, Input, PassAction, PassInput, PassTile, TilePlan};
+use scheduler::farm::{
+    Effect, Farm, Input, PassAction, PassInput, PassTile, SequenceAction, SequenceInput,
+    SequenceRun, TilePlan,
+};
 use scheduler::lifecycle::{self, Lifecycle, Limits, Phase, Request};
 use scheduler::passes::{Passes, RungCheck};
+use scheduler::sequence::{FrameState, MAX_ACTIVE_FRAMES};
 use scheduler::{Action, Event, Policy, Scheduler};
 
 /// The ladder of the jobs in passes: short, so that histories reach its end.
@@ -102,6 +115,17 @@ enum Op {
     Advance {
         ms: u64,
     },
+    /// A sequence of `frames` frames of `tiles` tiles each, its row written at once.
+    Sequence {
+        frames: u32,
+        tiles: u32,
+    },
+    /// An operator's control of a sequence, checked as the daemon checks it: 0 cancel,
+    /// 1 pause, 2 resume, 3 requeue its failed and cancelled frames, 4 delete.
+    Control {
+        pick: usize,
+        control: u8,
+    },
 }
 
 fn op() -> impl Strategy<Value = Op> {
@@ -123,6 +147,8 @@ fn op() -> impl Strategy<Value = Op> {
         3 => any::<usize>().prop_map(|pick| Op::EndRecorded { pick }),
         1 => prop::bool::weighted(0.6).prop_map(|ok| Op::Storage { ok }),
         2 => (1u64..3_000).prop_map(|ms| Op::Advance { ms }),
+        1 => (1u32..7, 1u32..4).prop_map(|(frames, tiles)| Op::Sequence { frames, tiles }),
+        1 => (any::<usize>(), 0u8..5).prop_map(|(pick, control)| Op::Control { pick, control }),
     ]
 }
 
@@ -162,6 +188,12 @@ struct Run {
     reporter: Option<WorkerId>,
     /// Each worker's machine name.
     machines: BTreeMap<WorkerId, String>,
+    /// The sequences not deleted, with the tiles of their frames; and the final state
+    /// the core said each has ended in (until it said it runs again).
+    sequences: BTreeMap<JobId, u32>,
+    sequence_ended: BTreeMap<JobId, JobState>,
+    /// Frame jobs, with their sequence and frame.
+    frames: BTreeMap<JobId, (JobId, u32)>,
 }
 
 impl Run {
@@ -191,7 +223,74 @@ impl Run {
             accepted_from: BTreeMap::new(),
             reporter: None,
             machines: BTreeMap::new(),
+            sequences: BTreeMap::new(),
+            sequence_ended: BTreeMap::new(),
+            frames: BTreeMap::new(),
         }
+    }
+
+    fn request() -> Request {
+        Request {
+            client: None,
+            scene_bytes: 10,
+            objects: 1,
+            width: 8,
+            height: 8,
+            aa: 1,
+        }
+    }
+
+    /// The frames the core starts, admitted as frame jobs as the daemon does.
+    fn start_frames(&mut self, sequence: JobId, frames: &[u32]) {
+        let run = self
+            .farm
+            .sequence(sequence)
+            .expect("frames of a known sequence");
+        assert!(
+            run.stored() && !run.deleting(),
+            "frames of sequence {sequence} started before its row was written or while deleted"
+        );
+        assert!(
+            !run.frames().paused(),
+            "frames of paused sequence {sequence} started"
+        );
+        assert!(
+            self.farm.lifecycle().storage_down().is_none(),
+            "frames started while storage cannot write"
+        );
+        let tiles = self.sequences[&sequence];
+        for &frame in frames {
+            assert_eq!(
+                self.farm
+                    .sequence(sequence)
+                    .and_then(|r| r.frames().frame(frame)),
+                Some(FrameState::Starting),
+                "frame {frame} of sequence {sequence} started while not starting"
+            );
+            let plan = TilePlan {
+                priority: 0,
+                scene: scene(sequence),
+                tiles,
+                interactive: false,
+            };
+            let admitted = self
+                .farm
+                .admit_frame(self.now, sequence, frame, &Self::request(), plan);
+            if let Ok(job) = admitted {
+                self.farm.keep(job);
+                self.jobs.insert(job, tiles);
+                self.frames.insert(job, (sequence, frame));
+            }
+        }
+    }
+
+    /// A job deleted (a requeued frame's old job, or a deleted sequence's): its rows
+    /// and files are gone at once.
+    fn deleted(&mut self, job: JobId) {
+        self.jobs.remove(&job);
+        self.storing.remove(&job);
+        self.ending.remove(&job);
+        self.input(Input::Job(lifecycle::Event::Deleted { job }));
     }
 
     /// A job in passes' tiles as the executor holds them: the rung each has reached
@@ -323,6 +422,8 @@ impl Run {
                     *self.ends.entry(*job).or_default() += 1;
                     self.ending.insert(*job);
                 }
+                Effect::Job(lifecycle::Action::DeleteStored { job }) => self.deleted(*job),
+                Effect::Sequence(action) => self.sequence_action(action),
                 _ => {}
             }
         }
@@ -335,7 +436,78 @@ impl Run {
         }
     }
 
+    /// Follows a sequence's effect as the daemon would, and checks what it promises.
+    fn sequence_action(&mut self, action: &SequenceAction) {
+        match action {
+            SequenceAction::StartFrames { sequence, frames } => {
+                self.start_frames(*sequence, frames);
+            }
+            SequenceAction::FrameEnded {
+                sequence,
+                frame,
+                job,
+                state,
+            } => {
+                assert_eq!(self.frames.get(job), Some(&(*sequence, *frame)));
+                let phase = self.phase(*job);
+                assert!(
+                    matches!(phase, Some(Phase::Ended { state: s, recorded: true, .. }) if s == *state),
+                    "frame {frame} of sequence {sequence} ended {state:?}, its job {phase:?}"
+                );
+            }
+            SequenceAction::Ended { sequence, state } => {
+                let run = self.farm.sequence(*sequence).expect("a known sequence");
+                assert!(state.is_final(), "sequence {sequence} ended {state:?}");
+                assert_eq!(run.frames().state(), *state, "sequence {sequence}'s end");
+                assert!(
+                    self.sequence_ended.insert(*sequence, *state).is_none(),
+                    "sequence {sequence}'s end told twice"
+                );
+            }
+            SequenceAction::Running { sequence } => {
+                assert!(
+                    self.sequence_ended.remove(sequence).is_some(),
+                    "sequence {sequence} runs again without having ended"
+                );
+            }
+            SequenceAction::Paused { paused, jobs, .. } => {
+                for &job in jobs {
+                    let event = if *paused {
+                        Event::PauseJob { job }
+                    } else {
+                        Event::ResumeJob { job }
+                    };
+                    self.input(Input::Tiles(event));
+                }
+            }
+            SequenceAction::DeleteStored { sequence } => {
+                self.sequences.remove(sequence);
+                self.sequence_ended.remove(sequence);
+                self.input(Input::Sequence(SequenceInput::Deleted {
+                    sequence: *sequence,
+                }));
+            }
+            SequenceAction::FrameOut { .. } | SequenceAction::Requeued { .. } => {}
+        }
+    }
+
     fn check(&self) {
+        for (&sequence, _) in &self.sequences {
+            let run = self
+                .farm
+                .sequence(sequence)
+                .expect("a sequence not deleted");
+            let c = run.frames().counts();
+            assert_eq!(
+                c.pending + c.active + c.done + c.failed + c.cancelled,
+                run.frames().len()
+            );
+            assert!(
+                c.active as usize <= MAX_ACTIVE_FRAMES,
+                "sequence {sequence} runs {} frames",
+                c.active
+            );
+        }
         for &job in self.jobs.keys() {
             let phase = self.phase(job);
             let adding = self.farm.pass_run(job).is_some_and(|r| r.evaluating());
@@ -604,6 +776,45 @@ impl Run {
                 let status = if ok { Ok(()) } else { Err("disk full".into()) };
                 self.input(Input::Storage(status));
             }
+            Op::Sequence { frames, tiles } => {
+                let sequence = self.farm.issue_id();
+                self.sequences.insert(sequence, tiles);
+                self.farm
+                    .enter_sequence(sequence, SequenceRun::new(1, frames, tiles));
+                self.input(Input::Sequence(SequenceInput::Stored { sequence }));
+            }
+            Op::Control { pick, control } => {
+                let ids: Vec<JobId> = self.sequences.keys().copied().collect();
+                let Some(&sequence) = ids.get(pick % ids.len().max(1)) else {
+                    return;
+                };
+                let run = self.farm.sequence(sequence).expect("a known sequence");
+                let state = run.frames().state();
+                let input = match control {
+                    0 if !state.is_final() => SequenceInput::Cancel { sequence },
+                    1 | 2 if !state.is_final() => SequenceInput::Pause {
+                        sequence,
+                        paused: control == 1,
+                    },
+                    3 => {
+                        let frames: Vec<u32> = run
+                            .frames()
+                            .failed()
+                            .chain(run.frames().frames_in(FrameState::Cancelled))
+                            .map(|(f, _)| f)
+                            .collect();
+                        if frames.is_empty() {
+                            return;
+                        }
+                        SequenceInput::Requeue { sequence, frames }
+                    }
+                    4 if state.is_final() && run.recorded() == Some(state) => {
+                        SequenceInput::Delete { sequence }
+                    }
+                    _ => return,
+                };
+                self.input(Input::Sequence(input));
+            }
             Op::Advance { ms } => {
                 self.now += ms;
                 // Connected workers talk at least once a second.
@@ -639,6 +850,18 @@ impl Run {
             for job in jobs {
                 self.input(Input::Tiles(Event::ResumeJob { job }));
             }
+            let paused: Vec<JobId> = self
+                .sequences
+                .keys()
+                .copied()
+                .filter(|&s| self.farm.sequence(s).is_some_and(|r| r.frames().paused()))
+                .collect();
+            for sequence in paused {
+                self.input(Input::Sequence(SequenceInput::Pause {
+                    sequence,
+                    paused: false,
+                }));
+            }
             if !self.out.is_empty() {
                 self.apply(&Op::Result { pick: 0 });
             } else if !self.adding.is_empty() {
@@ -656,6 +879,10 @@ impl Run {
                 .jobs
                 .keys()
                 .all(|&j| self.phase(j).is_some_and(|p| p.has_ended()))
+                && self
+                    .sequences
+                    .keys()
+                    .all(|s| self.sequence_ended.contains_key(s))
             {
                 break;
             } else {
@@ -674,6 +901,15 @@ impl Run {
                     })
                 ),
                 "job {job} never ended: {phase:?}"
+            );
+        }
+        for &sequence in self.sequences.keys() {
+            let run = self.farm.sequence(sequence).expect("a known sequence");
+            assert_eq!(
+                self.sequence_ended.get(&sequence),
+                Some(&run.frames().state()),
+                "sequence {sequence} never ended: {:?}",
+                run.frames().counts()
             );
         }
     }
