@@ -492,7 +492,7 @@ impl Run {
     }
 
     fn check(&self) {
-        for (&sequence, _) in &self.sequences {
+        for &sequence in self.sequences.keys() {
             let run = self
                 .farm
                 .sequence(sequence)
