@@ -138,6 +138,7 @@ mod job;
 mod liveness;
 mod policy;
 mod results;
+mod sharded;
 mod worker;
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
