@@ -131,6 +131,7 @@
 //! only speed the decisions up: they are the same, event for event, as a search of
 //! every tile would make.
 
+mod blocks;
 mod confirmation;
 mod events;
 mod handout;

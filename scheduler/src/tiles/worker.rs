@@ -2,12 +2,13 @@
 //! and whether it takes tiles, and the [`Machine`] its failures count against. What
 //! the scheduler remembers of each connection, apart from the decisions made with it.
 
-use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeSet, HashMap};
 use std::fmt;
 use std::hash::{BuildHasherDefault, Hasher};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
+use super::blocks::Blocks;
 use super::sharded::Sharded;
 use super::Millis;
 
@@ -167,36 +168,127 @@ pub(super) type ByTile<V> = HashMap<u32, V, BuildHasherDefault<IdHasher>>;
 /// When each worker was heard from, oldest first: every message appends the worker at
 /// the time it came (the clock never goes back), so the queue stays in order. An entry
 /// older than its worker's last one is stale, for the owner to drop when it reaches
-/// the front. The entries of one millisecond share a bucket: the queue of buckets stays
-/// short (one per millisecond of the heartbeat timeout at most), so it never grows by
-/// copying a whole farm's entries at once, and each bucket is small.
+/// the front. Of the entries of one millisecond, the last appended comes first. The
+/// entries and the runs of each millisecond are kept in small reused [`Blocks`], so
+/// the queue never grows by copying a whole farm's entries, nor frees a large buffer,
+/// in one call.
 #[derive(Default)]
 pub(super) struct SeenQueue {
-    buckets: VecDeque<(Millis, Vec<WorkerId>)>,
+    /// Per millisecond, oldest first: the time, how many of its entries are left and
+    /// how many it had. The oldest one's are the first of `workers`, those left first
+    /// (the last appended is dropped first).
+    runs: Blocks<(Millis, usize, usize)>,
+    /// The workers, in the order appended.
+    workers: Blocks<WorkerId>,
 }
 
 impl SeenQueue {
     /// The worker was heard from at `now`.
     pub(super) fn push(&mut self, now: Millis, worker: WorkerId) {
-        match self.buckets.back_mut() {
-            Some((at, workers)) if *at == now => workers.push(worker),
-            _ => self.buckets.push_back((now, vec![worker])),
+        match self.runs.back_mut() {
+            Some((at, left, all)) if *at == now => {
+                // The newest run's entries are the last ones: one dropped already (if
+                // it is the oldest too) is overwritten.
+                let index = self.workers.len() - *all + *left;
+                *left += 1;
+                match self.workers.get_mut(index) {
+                    Some(slot) => *slot = worker,
+                    None => {
+                        self.workers.push_back(worker);
+                        *all += 1;
+                    }
+                }
+            }
+            _ => {
+                self.runs.push_back((now, 1, 1));
+                self.workers.push_back(worker);
+            }
         }
     }
 
     /// The front entry: of the oldest time, the last worker appended then.
     pub(super) fn front(&self) -> Option<(Millis, WorkerId)> {
-        let (at, workers) = self.buckets.front()?;
-        workers.last().map(|&worker| (*at, worker))
+        let &(at, left, _) = self.runs.front()?;
+        self.workers.get(left - 1).map(|&worker| (at, worker))
     }
 
     /// Drops the front entry.
     pub(super) fn pop_front(&mut self) {
-        if let Some((_, workers)) = self.buckets.front_mut() {
-            workers.pop();
-            if workers.is_empty() {
-                self.buckets.pop_front();
+        if let Some((_, left, all)) = self.runs.front_mut() {
+            *left -= 1;
+            if *left == 0 {
+                let all = *all;
+                self.runs.pop_front();
+                self.workers.advance(all);
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::VecDeque;
+
+    use super::*;
+
+    /// The queue as one growing list per millisecond, as it was first kept.
+    #[derive(Default)]
+    struct Buckets(VecDeque<(Millis, Vec<WorkerId>)>);
+
+    impl Buckets {
+        fn push(&mut self, now: Millis, worker: WorkerId) {
+            match self.0.back_mut() {
+                Some((at, workers)) if *at == now => workers.push(worker),
+                _ => self.0.push_back((now, vec![worker])),
+            }
+        }
+
+        fn front(&self) -> Option<(Millis, WorkerId)> {
+            let (at, workers) = self.0.front()?;
+            workers.last().map(|&worker| (*at, worker))
+        }
+
+        fn pop_front(&mut self) {
+            if let Some((_, workers)) = self.0.front_mut() {
+                workers.pop();
+                if workers.is_empty() {
+                    self.0.pop_front();
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_queue_gives_its_entries_in_the_order_of_one_list_per_millisecond() {
+        let mut queue = SeenQueue::default();
+        let mut model = Buckets::default();
+        let mut now = 0;
+        let mut state = 7u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            state >> 33
+        };
+        for step in 0..20_000u64 {
+            match next() % 10 {
+                // Bursts in one millisecond, some after part of it was dropped.
+                0..=4 => {
+                    for _ in 0..next() % 300 {
+                        let worker = next() % 5_000;
+                        queue.push(now, worker);
+                        model.push(now, worker);
+                    }
+                }
+                5 | 6 => now += next() % 3,
+                _ => {
+                    for _ in 0..next() % 600 {
+                        queue.pop_front();
+                        model.pop_front();
+                    }
+                }
+            }
+            assert_eq!(queue.front(), model.front(), "step {step}");
         }
     }
 }
