@@ -172,6 +172,9 @@ pub struct Scheduler {
     /// The active jobs in the order a free slot serves them ([`Job::rank`]).
     order: BTreeSet<JobRank>,
     workers: ByWorker<Worker>,
+    /// The credit of every worker, added up as it changes: a sequence asks for it on
+    /// each of its tiles handed out, which must not walk a farm of thousands.
+    credit_total: u64,
     /// When each worker was heard from, oldest first, so that a timeout looks only at
     /// those that fell silent: every message appends (the clock never goes back, so
     /// the queue stays in order), and an entry older than its worker's last one is
@@ -303,7 +306,9 @@ impl Scheduler {
                 // A second hello on a live id replaces the worker (a daemon bug, but
                 // the indexes must stay true). The new one counts first: a worker stays
                 // connected throughout, so no stall ends.
+                self.credit_total += joined.credit as u64;
                 if let Some(old) = self.workers.insert(worker, joined) {
+                    self.credit_total -= old.credit as u64;
                     self.unlist_scenes(worker, &old.scenes);
                     if old.takes_tiles() {
                         self.unready(&old.machine);
@@ -402,9 +407,11 @@ impl Scheduler {
                     let span = u128::from(rtt) + u128::from(rtt / 2);
                     let cover = usize::try_from(span.div_ceil(u128::from(tile.max(1))))
                         .unwrap_or(usize::MAX);
-                    w.credit = threads
+                    let credit = threads
                         .saturating_mul(cover.saturating_add(2))
                         .min(threads.saturating_mul(cap));
+                    self.credit_total = self.credit_total - w.credit as u64 + credit as u64;
+                    w.credit = credit;
                     if w.holding.len() < w.credit {
                         self.hungry.insert(worker);
                         self.fill(worker, &mut actions);
@@ -599,7 +606,11 @@ impl Scheduler {
 
     /// Tiles all workers may hold at once: what keeps the farm busy.
     pub fn total_credit(&self) -> u64 {
-        self.workers.values().map(|w| w.credit as u64).sum()
+        debug_assert_eq!(
+            self.credit_total,
+            self.workers.values().map(|w| w.credit as u64).sum::<u64>()
+        );
+        self.credit_total
     }
 
     /// Tiles the worker holds.
@@ -757,6 +768,7 @@ impl Scheduler {
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
+        self.credit_total -= w.credit as u64;
         self.hungry.remove(&worker);
         self.trim_seen();
         self.unlist_scenes(worker, &w.scenes);

@@ -370,6 +370,9 @@ impl Farm {
         if !stored {
             self.frame_jobs.remove(&job);
             run.refused(frame, now);
+            // Cancelled meanwhile, the frame is cancelled now: the sequence may have
+            // ended.
+            self.settle(sequence, effects);
             return;
         }
         let cancel = run.frames.started(frame, job);

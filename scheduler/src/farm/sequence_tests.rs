@@ -413,3 +413,30 @@ fn a_restart_takes_sequences_back_as_they_stood() {
     );
     assert_eq!(f.sequence(SEQ).unwrap().frames().state(), JobState::Running);
 }
+
+/// A sequence cancelled while its only frame's row was being written, and that row
+/// then cannot be written: the frame is cancelled, and the sequence ends cancelled.
+#[test]
+fn a_cancelled_sequence_whose_last_frame_cannot_be_stored_ends() {
+    let mut f = farm();
+    join(&mut f, 1, 1);
+    f.enter_sequence(SEQ, SequenceRun::new(1, 1, TILES));
+    f.handle(0, Input::Sequence(SequenceInput::Stored { sequence: SEQ }));
+    let job = f.admit_frame(0, SEQ, 1, &request(), plan(TILES)).unwrap();
+    let cancel = f.handle(1, Input::Sequence(SequenceInput::Cancel { sequence: SEQ }));
+    assert!(sequence_actions(&cancel).is_empty());
+    let failed = f.handle(
+        2,
+        Input::Job(lifecycle::Event::StoreFailed {
+            job,
+            message: "disk full".into(),
+        }),
+    );
+    assert_eq!(
+        sequence_actions(&failed),
+        vec![SequenceAction::Ended {
+            sequence: SEQ,
+            state: JobState::Cancelled
+        }]
+    );
+}
