@@ -28,6 +28,16 @@ fn quarantined(effects: &[Effect]) -> Vec<(String, Taken)> {
         .collect()
 }
 
+/// What a copy of tile 0 by m2 that settles nothing gives.
+fn settled(job: JobId, same: bool) -> Vec<Effect> {
+    vec![Effect::DuplicateSettled {
+        job,
+        tile: 0,
+        machine: "m2".into(),
+        same,
+    }]
+}
+
 /// Two machines, the first holding a job of 3 tiles whose tile 0 it rendered; the
 /// job is still active.
 fn farm_with_an_accepted_tile() -> (Farm, JobId) {
@@ -44,15 +54,7 @@ fn farm_with_an_accepted_tile() -> (Farm, JobId) {
 fn an_equal_copy_settles_nothing() {
     let (mut f, job) = farm_with_an_accepted_tile();
     let effects = f.handle(3, duplicate(job, 0, CopyVerdict::Same));
-    assert_eq!(
-        effects,
-        vec![Effect::DuplicateSettled {
-            job,
-            tile: 0,
-            machine: "m2".into(),
-            same: true
-        }]
-    );
+    assert_eq!(effects, settled(job, true));
 }
 
 /// The accepted copy shown wrong: its machine is quarantined, the tile is taken back
@@ -139,15 +141,7 @@ fn copies_that_differ_with_neither_shown_wrong_quarantine_nobody() {
         copy_wrong: None,
     };
     let effects = f.handle(3, duplicate(job, 0, verdict));
-    assert_eq!(
-        effects,
-        vec![Effect::DuplicateSettled {
-            job,
-            tile: 0,
-            machine: "m2".into(),
-            same: false
-        }]
-    );
+    assert_eq!(effects, settled(job, false));
 }
 
 /// The accepted copy shown wrong once its job has finished: its machine is

@@ -6,10 +6,35 @@
 //! sixty-fourth of the entries.
 
 use std::collections::hash_map::{Entry, HashMap};
-use std::hash::{BuildHasher, BuildHasherDefault, Hash};
+use std::hash::{BuildHasher, BuildHasherDefault, Hash, Hasher};
 use std::ops::Index;
 
-use super::worker::IdHasher;
+/// Hashes a worker id or a tile number (counters) by one multiplication: the maps keyed
+/// by them are looked up on every message of every worker, and a general-purpose hash of eight
+/// bytes costs more than the lookup itself. Nothing walks them in an order that
+/// decides anything (what does sorts first).
+#[derive(Default)]
+pub(crate) struct IdHasher(u64);
+
+impl Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+
+    fn write_u64(&mut self, id: u64) {
+        self.0 = id.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+
+    fn write_u32(&mut self, id: u32) {
+        self.write_u64(u64::from(id));
+    }
+}
 
 /// Shards per map: enough that a farm of tens of thousands of workers keeps each one
 /// to a few hundred entries, few enough that finding the shard costs little.

@@ -4,12 +4,12 @@
 
 use std::collections::{BTreeSet, HashMap};
 use std::fmt;
-use std::hash::{BuildHasherDefault, Hasher};
+use std::hash::BuildHasherDefault;
 
 use protocol::{JobId, SceneHash, WorkerId};
 
 use super::blocks::Blocks;
-use super::sharded::Sharded;
+use super::sharded::{IdHasher, Sharded};
 use super::Millis;
 
 /// Who failures are counted against: the name a worker gave, or its connection.
@@ -125,33 +125,6 @@ impl Overdue {
         let more = filed.next().is_some();
         due.sort_unstable();
         (due, more)
-    }
-}
-
-/// Hashes a worker id or a tile number (counters) by one multiplication: the maps keyed
-/// by them are looked up on every message of every worker, and a general-purpose hash of eight
-/// bytes costs more than the lookup itself. Nothing walks them in an order that
-/// decides anything (what does sorts first).
-#[derive(Default)]
-pub(crate) struct IdHasher(u64);
-
-impl Hasher for IdHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        }
-    }
-
-    fn write_u64(&mut self, id: u64) {
-        self.0 = id.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    }
-
-    fn write_u32(&mut self, id: u32) {
-        self.write_u64(u64::from(id));
     }
 }
 

@@ -526,14 +526,7 @@ impl Run {
     fn apply(&mut self, op: &Op) {
         match *op {
             Op::Submit { tiles, in_passes } => {
-                let request = Request {
-                    client: None,
-                    scene_bytes: 10,
-                    objects: 1,
-                    width: 8,
-                    height: 8,
-                    aa: 1,
-                };
+                let request = Self::request();
                 let next = self.jobs.keys().last().map_or(1, |j| j + 1);
                 let plan = TilePlan {
                     priority: 0,
