@@ -171,13 +171,23 @@ fn a_directory_that_cannot_be_written_is_an_error_the_caller_can_live_with() {
             "{err}"
         );
         assert!(!cache.contains(&id));
-    } else {
-        eprintln!(
-            "SKIPPED the read-only permissions case: running as root, whom permissions do \
-             not stop; the unwritable path below is tested instead"
-        );
     }
     fs::set_permissions(&root, fs::Permissions::from_mode(0o755)).unwrap();
+
+    // A read-only file system binds root too.
+    let disk_dir = dir.path().join("ro");
+    if let Some(disk) = SmallDisk::mount(&disk_dir, 1 << 20) {
+        let mut on_disk = Cache::open(&disk_dir, 1 << 20).unwrap();
+        disk.read_only();
+        let err = on_disk.put(&id, &bytes).unwrap_err();
+        assert!(matches!(err, AssetError::Io { .. }), "{err}");
+        assert!(
+            err.to_string().contains(&disk_dir.display().to_string()),
+            "{err}"
+        );
+        assert!(!on_disk.contains(&id));
+        assert!(matches!(on_disk.get(&id), Lookup::Absent));
+    }
 
     // Unwritable for anyone: the cache's directory replaced by a regular file.
     fs::remove_dir_all(&root).unwrap();

@@ -49,8 +49,10 @@ pub fn files_under(dir: &Path) -> Vec<(PathBuf, u64)> {
 }
 
 /// A tmpfs of `bytes` mounted at `dir` for as long as it lives: a disk that really
-/// fills up. `None` where mounting is not allowed (not root, or a container without
-/// the capability), with the reason printed so the skipped case is visible.
+/// fills up, or is read-only. `None` where mounting is not allowed (not root, or a
+/// container without the capability), with the reason printed so the skipped case is
+/// visible; a failure instead where `TESSERA_REQUIRE_PRIVILEGED=1` says the case must
+/// run (CI runs as root).
 pub struct SmallDisk {
     dir: PathBuf,
 }
@@ -58,27 +60,39 @@ pub struct SmallDisk {
 impl SmallDisk {
     pub fn mount(dir: &Path, bytes: u64) -> Option<SmallDisk> {
         std::fs::create_dir_all(dir).unwrap();
-        let out = Command::new("mount")
-            .args(["-t", "tmpfs", "-o", &format!("size={bytes}"), "tmpfs"])
-            .arg(dir)
-            .output();
-        match out {
-            Ok(out) if out.status.success() => Some(SmallDisk {
+        let size = format!("size={bytes}");
+        match run("mount", &["-t", "tmpfs", "-o", &size, "tmpfs"], dir) {
+            Ok(()) => Some(SmallDisk {
                 dir: dir.to_path_buf(),
             }),
-            Ok(out) => {
-                eprintln!(
-                    "SKIPPED the full-disk case: cannot mount a tmpfs here ({})",
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-                None
-            }
-            Err(e) => {
-                eprintln!("SKIPPED the full-disk case: cannot run mount ({e})");
+            Err(why) => {
+                unprivileged(&format!("cannot mount a tmpfs here ({why})"));
                 None
             }
         }
     }
+
+    /// Makes the disk read-only, for root too.
+    pub fn read_only(&self) {
+        run("mount", &["-o", "remount,ro"], &self.dir).expect("remount the tmpfs read-only");
+    }
+}
+
+fn run(program: &str, args: &[&str], dir: &Path) -> Result<(), String> {
+    match Command::new(program).args(args).arg(dir).output() {
+        Ok(out) if out.status.success() => Ok(()),
+        Ok(out) => Err(String::from_utf8_lossy(&out.stderr).trim().to_string()),
+        Err(e) => Err(format!("cannot run {program}: {e}")),
+    }
+}
+
+/// A case that needs privileges this machine does not give: skipped with a line
+/// saying so, or failed where they are required.
+fn unprivileged(why: &str) {
+    if std::env::var_os("TESSERA_REQUIRE_PRIVILEGED").is_some_and(|v| v == "1") {
+        panic!("TESSERA_REQUIRE_PRIVILEGED=1 but {why}");
+    }
+    eprintln!("SKIPPED a disk case: {why}");
 }
 
 impl Drop for SmallDisk {
