@@ -19,8 +19,9 @@
 //!   limits and the scene error;
 //! - [`transform`], `bounds` → `hierarchy`: affine maps, and the bounding volume
 //!   hierarchy over boxes that meshes and section 8's shapes share;
-//! - [`mesh`]: mesh files, their readers, and the geometry every object showing a file
-//!   shares, with the hierarchy built over it once;
+//! - [`mesh`]: mesh files (from a directory or sent with a scene, each read recorded),
+//!   their readers, and the geometry every object showing a file shares, with the
+//!   hierarchy built over it once, and kept across scenes by a [`GeometryCache`];
 //! - `settings` → `scene` → [`animation`]: what a render may override, the scene
 //!   model, and frames as functions of the frame number;
 //! - `parse` → `write`: scene files read, and written back;
@@ -64,7 +65,7 @@ pub use crate::animation::{
 };
 pub use crate::error::SceneError;
 pub use crate::image::{Image, TileImage};
-pub use crate::mesh::{MeshFile, MeshFiles};
+pub use crate::mesh::{buffer_name, CacheStats, FileRead, GeometryCache, MeshFile, MeshFiles};
 pub use crate::parse::{
     parse_animated, parse_animated_with, parse_scene, parse_scene_with, validate_settings,
     MAX_TRACKS,

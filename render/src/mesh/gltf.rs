@@ -41,6 +41,15 @@ pub fn read_glb(
     bytes: &[u8],
     file: &dyn Fn(&str) -> Result<Vec<u8>, String>,
 ) -> Result<MeshData, MeshError> {
+    let (json, bin) = glb_chunks(bytes)?;
+    let document: Value =
+        serde_json::from_slice(json).map_err(|e| fail(format!("the GLB's JSON: {e}")))?;
+    read_document(&document, bin, file)
+}
+
+/// A GLB file's JSON chunk and its binary chunk, if it has one (of several of a kind,
+/// the last).
+fn glb_chunks(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), MeshError> {
     let word = |at: usize| -> Result<u32, MeshError> {
         bytes
             .get(at..at + 4)
@@ -72,9 +81,31 @@ pub fn read_glb(
         at += 8 + length;
     }
     let json = json.ok_or_else(|| fail("the GLB file has no JSON chunk"))?;
-    let document: Value =
-        serde_json::from_slice(json).map_err(|e| fail(format!("the GLB's JSON: {e}")))?;
-    read_document(&document, bin, file)
+    Ok((json, bin))
+}
+
+/// The uris of the buffer files a `.gltf` (or, with `glb`, a `.glb`) reads, in the
+/// order its reader asks for them, found without reading its mesh: what a file's
+/// SHA-256 covers besides its own bytes, so that geometry already built for the same
+/// bytes is found before any is read. `None` if the document cannot be read at all
+/// (its reader then says why).
+pub(crate) fn buffer_files(bytes: &[u8], glb: bool) -> Option<Vec<String>> {
+    let json = if glb {
+        glb_chunks(bytes).ok()?.0
+    } else {
+        bytes
+    };
+    let document: Value = serde_json::from_slice(json).ok()?;
+    // As `load_buffer` tells them: a buffer without a uri is the GLB's chunk, and a
+    // `data:` URI holds its bytes.
+    let uris = document["buffers"].as_array().map(|list| {
+        list.iter()
+            .filter_map(|buffer| buffer["uri"].as_str())
+            .filter(|uri| !uri.starts_with("data:"))
+            .map(str::to_owned)
+            .collect()
+    });
+    Some(uris.unwrap_or_default())
 }
 
 /// Reads a `.gltf` file's text.

@@ -47,18 +47,26 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
     use sha2::{Digest, Sha256};
     let hasher = std::cell::RefCell::new(Sha256::new());
     hasher.borrow_mut().update(bytes);
-    let name = shown(path);
-    let extension = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .unwrap_or_default();
     let beside = |uri: &str| {
         let file = path.parent().unwrap_or(Path::new(".")).join(uri);
         let buffer = read(&file)?;
         hasher.borrow_mut().update(&buffer);
         Ok(buffer)
     };
+    let mesh = parse_with(path, bytes, &beside)?;
+    Ok((mesh, hasher.into_inner().finalize().into()))
+}
+
+/// The mesh in `bytes`, the file `path` names (its extension chooses the reader, and
+/// an error starts with it), a glTF's buffer files given by `file` from their uris:
+/// read from a directory or from the files sent with a scene alike.
+pub(crate) fn parse_with(
+    path: &Path,
+    bytes: &[u8],
+    file: &dyn Fn(&str) -> Result<Vec<u8>, String>,
+) -> Result<MeshData, String> {
+    let name = shown(path);
+    let extension = extension(path);
     let mesh = match extension.as_str() {
         "obj" => {
             // The lines the reader ignores (materials, groups, comments) may be in any
@@ -68,8 +76,8 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
         }
         "ply" => super::ply::read(bytes),
         "stl" => super::stl::read(bytes),
-        "gltf" => super::gltf::read_gltf(bytes, &beside),
-        "glb" => super::gltf::read_glb(bytes, &beside),
+        "gltf" => super::gltf::read_gltf(bytes, file),
+        "glb" => super::gltf::read_glb(bytes, file),
         _ => {
             return Err(format!(
                 "{name}: unknown mesh format {extension:?}: .obj, .ply, .stl, .gltf or .glb"
@@ -88,7 +96,15 @@ pub fn parse_hashed(path: &Path, bytes: &[u8]) -> Result<(MeshData, [u8; 32]), S
             "{name}: no triangle that is not degenerate: nothing to hit"
         ));
     }
-    Ok((mesh, hasher.into_inner().finalize().into()))
+    Ok(mesh)
+}
+
+/// The extension of `path` in lower case, which chooses the reader (empty if none).
+pub(crate) fn extension(path: &Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default()
 }
 
 /// A path as an error names it: as it is, or quoted and escaped if it holds a line

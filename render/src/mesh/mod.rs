@@ -1,22 +1,28 @@
 //! Triangle meshes read from files (the scene format, section 8): what a reader gives,
-//! and what every reader shares; and the geometry every object that shows a file
-//! shares, with what the tracer builds from it once (`accel`).
+//! and what every reader shares; where the files come from and which were read
+//! (`files`); and the geometry every object that shows a file shares, with what the
+//! tracer builds from it once (`accel`), kept across scenes if asked (`cache`).
 //!
 //! Below the scene model, which holds mesh files, and above only the generic bounding
 //! volume hierarchy: the readers know nothing of how meshes are traced.
 
 pub(crate) mod accel;
+mod cache;
+mod files;
 pub mod gltf;
 pub mod load;
 pub mod obj;
 pub mod ply;
 pub mod stl;
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use thiserror::Error;
+
+pub use cache::{CacheStats, GeometryCache};
+pub use files::{buffer_name, FileRead};
 
 /// A corner without a normal of the file's ([`MeshData::corner_normals`]).
 pub const NO_NORMAL: u32 = u32::MAX;
@@ -42,7 +48,8 @@ pub struct MeshData {
 pub struct MeshFile {
     /// The `file` string of the scene.
     pub name: String,
-    /// Where it was read: `name` resolved against the scene's directory.
+    /// Where it was read: `name` resolved against the scene's directory (for a file
+    /// sent with the scene, `name` itself).
     pub path: PathBuf,
     pub sha256: [u8; 32],
     pub geometry: Arc<MeshGeometry>,
@@ -96,11 +103,16 @@ impl MeshGeometry {
     }
 }
 
-/// Where the mesh files a scene names come from: the directory of the scene file, or
-/// nowhere (a scene given as text alone, as a farm receives it).
+/// Where the mesh files a scene names come from: the directory of the scene file, the
+/// files sent with the scene (bound in memory by name, as a farm's worker holds them),
+/// or nowhere (a scene given as text alone). Every file read is recorded
+/// ([`MeshFiles::files_read`]), and geometry may be shared across scenes through a
+/// [`GeometryCache`].
 #[derive(Clone, Debug, Default)]
 pub struct MeshFiles {
-    dir: Option<PathBuf>,
+    source: files::Source,
+    record: Arc<files::Record>,
+    cache: Option<GeometryCache>,
     /// Files read so far, by SHA-256, so that copies of one file (or one file under
     /// two names) hold their geometry once; and by name, so that a file named by many
     /// objects is read once.
@@ -117,46 +129,108 @@ impl MeshFiles {
     /// Mesh files relative to `dir`, the scene file's directory.
     pub fn beside(dir: impl Into<PathBuf>) -> Self {
         MeshFiles {
-            dir: Some(dir.into()),
+            source: files::Source::Dir(dir.into()),
             ..MeshFiles::default()
         }
     }
 
-    /// The directory names are resolved against, if files may be read at all.
+    /// The files sent with a scene, by name: a mesh by its `file` string exactly as the
+    /// scene writes it, a glTF's buffer file by [`buffer_name`]. A scene parsed with
+    /// them reads as it does from the files on disk; a name not among them is an
+    /// error naming it.
+    pub fn bound(files: BTreeMap<String, Arc<[u8]>>) -> Self {
+        MeshFiles {
+            source: files::Source::Bound(Arc::new(files)),
+            ..MeshFiles::default()
+        }
+    }
+
+    /// These files, their geometry found in and kept by `cache`: a file whose bytes
+    /// (with a glTF's buffers) were read before, by any scene given the same cache, is
+    /// not read again, and its hierarchy is built once for all of them.
+    pub fn with_cache(mut self, cache: &GeometryCache) -> Self {
+        self.cache = Some(cache.clone());
+        self
+    }
+
+    /// The directory names are resolved against, if files are read from one.
     pub fn dir(&self) -> Option<&Path> {
-        self.dir.as_deref()
+        match &self.source {
+            files::Source::Dir(dir) => Some(dir),
+            _ => None,
+        }
+    }
+
+    /// Every file read so far (meshes and a glTF's buffer files, not `data:` URIs),
+    /// once each, sorted by name, with its own SHA-256: after a scene is parsed from its
+    /// file, what must be sent with it for it to read the same elsewhere.
+    pub fn files_read(&self) -> Vec<FileRead> {
+        self.record.files()
     }
 
     /// The file `name` (as a scene writes it), read and checked, or one line saying
     /// why not, starting with the file's path.
     pub fn get(&self, name: &str) -> Result<Arc<MeshFile>, String> {
-        let Some(dir) = &self.dir else {
+        if matches!(self.source, files::Source::Nowhere) {
             return Err(
-                "a mesh file cannot be read here: a scene with meshes is rendered from its \
-                 file by `tessera render` (a farm does not render meshes yet)"
+                "a mesh file cannot be read here: the scene names a mesh file but no \
+                 files were given with it"
                     .into(),
             );
-        };
+        }
         if let Some(file) = lock(&self.by_name).get(name) {
             return Ok(file.clone());
         }
-        let path = dir.join(name);
-        let bytes = load::read(&path)?;
-        // Read before the bytes are compared: a glTF's buffers are part of what it is.
-        let (data, sha256) = load::parse_hashed(&path, &bytes)?;
-        drop(bytes);
-        let geometry = lock(&self.by_hash)
-            .entry(sha256)
-            .or_insert_with(|| Arc::new(MeshGeometry::new(data)))
-            .clone();
+        let reader = files::Reader {
+            source: &self.source,
+            record: &self.record,
+        };
+        // Hashed before it is read as a mesh: a glTF's buffers are part of what it is,
+        // and geometry already built for the same bytes need not be read again.
+        let gathered = reader.gather(name)?;
+        let known = gathered
+            .sha256
+            .and_then(|sha256| Some((sha256, self.known(&sha256)?)));
+        let (sha256, geometry) = match known {
+            Some(known) => known,
+            None => {
+                let (data, sha256) = reader.parse(name, gathered)?;
+                (sha256, self.keep(sha256, data))
+            }
+        };
         let file = Arc::new(MeshFile {
             name: name.to_string(),
-            path,
+            path: self.source.path(name),
             sha256,
             geometry,
         });
         lock(&self.by_name).insert(name.to_string(), file.clone());
         Ok(file)
+    }
+
+    /// The geometry of bytes of SHA-256 `sha256`, if this scene or the cache holds it.
+    fn known(&self, sha256: &[u8; 32]) -> Option<Arc<MeshGeometry>> {
+        if let Some(geometry) = lock(&self.by_hash).get(sha256) {
+            return Some(geometry.clone());
+        }
+        let geometry = self.cache.as_ref()?.get(sha256)?;
+        lock(&self.by_hash).insert(*sha256, geometry.clone());
+        Some(geometry)
+    }
+
+    /// `data`, just read from bytes of SHA-256 `sha256`, as the geometry this scene
+    /// (and the cache) shares: the one held already if another file had the same bytes.
+    fn keep(&self, sha256: [u8; 32], data: MeshData) -> Arc<MeshGeometry> {
+        lock(&self.by_hash)
+            .entry(sha256)
+            .or_insert_with(|| {
+                let geometry = Arc::new(MeshGeometry::new(data));
+                match &self.cache {
+                    Some(cache) => cache.keep(sha256, geometry),
+                    None => geometry,
+                }
+            })
+            .clone()
     }
 }
 
@@ -255,100 +329,4 @@ mod tests {
 }
 
 #[cfg(test)]
-mod fuzz {
-    //! Mutations of small valid files of every format: each reader gives a mesh or an
-    //! error, never a panic, and never more triangles than the bytes could hold.
-
-    use proptest::prelude::*;
-
-    const OBJ: &str =
-        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1 4//1\nf -1 -2 -3\n";
-    const PLY: &str =
-        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
-                       property float z\nelement face 1\nproperty list uchar int vertex_indices\n\
-                       end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
-    const STL: &str = "solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n\
-                       vertex 0 1 0\nendloop\nendfacet\nendsolid s\n";
-
-    fn binary_ply() -> Vec<u8> {
-        let mut bytes =
-            b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n\
-                          property float y\nproperty float z\nelement face 1\n\
-                          property list uchar int vertex_indices\nend_header\n"
-                .to_vec();
-        for v in [[0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] {
-            for x in v {
-                bytes.extend_from_slice(&x.to_le_bytes());
-            }
-        }
-        bytes.push(3);
-        for i in 0..3i32 {
-            bytes.extend_from_slice(&i.to_le_bytes());
-        }
-        bytes
-    }
-
-    /// A glTF of one triangle, its buffer a data URI.
-    fn gltf() -> Vec<u8> {
-        use base64::Engine;
-        let mut bytes = Vec::new();
-        for x in [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0] {
-            bytes.extend_from_slice(&x.to_le_bytes());
-        }
-        let data = base64::engine::general_purpose::STANDARD.encode(&bytes);
-        format!(
-            r#"{{"asset": {{"version": "2.0"}}, "scenes": [{{"nodes": [0]}}], "nodes": [{{"mesh": 0, "translation": [1, 2, 3]}}],
-            "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}}}]}}],
-            "buffers": [{{"byteLength": 36, "uri": "data:application/octet-stream;base64,{data}"}}],
-            "bufferViews": [{{"buffer": 0, "byteLength": 36}}],
-            "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}}]}}"#
-        )
-        .into_bytes()
-    }
-
-    /// `bytes` with each (position, byte) of `edits` written over it, and cut to
-    /// `keep` of its length.
-    fn mutate(bytes: &[u8], edits: &[(usize, u8)], keep: f64) -> Vec<u8> {
-        let mut out = bytes.to_vec();
-        for &(at, byte) in edits {
-            let len = out.len();
-            out[at % len] = byte;
-        }
-        out.truncate((out.len() as f64 * keep) as usize);
-        out
-    }
-
-    fn check(result: Result<super::MeshData, super::MeshError>, len: usize) {
-        if let Ok(mesh) = result {
-            // A triangle needs at least a byte of the file; a corner, a vertex read.
-            assert!(mesh.triangles.len() <= len.max(1) * 2);
-            assert_eq!(mesh.triangles.len(), mesh.corner_normals.len());
-            let n = mesh.positions.len() as u32;
-            assert!(mesh.triangles.iter().flatten().all(|&v| v < n));
-        }
-    }
-
-    proptest! {
-        #![proptest_config(ProptestConfig::with_cases(256))]
-        #[test]
-        fn mutated_files_never_panic(
-            edits in proptest::collection::vec((0usize..4096, any::<u8>()), 0..8),
-            keep in 0.0f64..=1.0,
-        ) {
-            let none = |name: &str| Err(format!("no file {name}"));
-            let gltf = gltf();
-            assert_eq!(super::gltf::read_gltf(&gltf, &none).map(|m| m.triangles.len()), Ok(1));
-            for original in [OBJ.as_bytes(), PLY.as_bytes(), STL.as_bytes(), &binary_ply(), &gltf] {
-                let bytes = mutate(original, &edits, keep);
-                let len = bytes.len();
-                if let Ok(text) = std::str::from_utf8(&bytes) {
-                    check(super::obj::read(text), len);
-                }
-                check(super::ply::read(&bytes), len);
-                check(super::stl::read(&bytes), len);
-                check(super::gltf::read_gltf(&bytes, &none), len);
-                check(super::gltf::read_glb(&bytes, &none), len);
-            }
-        }
-    }
-}
+mod fuzz;

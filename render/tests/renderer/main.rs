@@ -2,8 +2,10 @@
 //! numerical cases and hand-derived pixels, the hierarchy that changes speed and never
 //! answers, tiles and samplers that give the same bytes in any tiling, the adaptive
 //! sampler's error knob, the portable code path, scene loading under fuzzing, meshes of
-//! every format compared byte for byte, and hostile mesh files.
+//! every format compared byte for byte, the same from files bound in memory, geometry
+//! shared across scenes, and hostile mesh files.
 
+mod bound_files;
 mod bvh;
 mod calibration;
 mod fuzz_scene;

@@ -330,6 +330,13 @@ pub fn gltf(model: &Model) -> Vec<u8> {
     gltf_parts(model, false, Some(&uri)).0.into_bytes()
 }
 
+/// A `.gltf` whose buffer is the file `uri` (relative to the `.gltf`), indices as
+/// `u32`: the document and the buffer file's bytes.
+pub fn gltf_with_buffer(model: &Model, uri: &str) -> (Vec<u8>, Vec<u8>) {
+    let (json, buffer) = gltf_parts(model, false, Some(uri));
+    (json.into_bytes(), buffer)
+}
+
 /// A `.glb`, indices as `u16`.
 pub fn glb(model: &Model) -> Vec<u8> {
     let (json, buffer) = gltf_parts(model, true, None);
