@@ -4,33 +4,40 @@
 
 use std::path::Path;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context, Result};
+use coordinator::client::LocalFile;
 use serde_json::Value;
 
-/// A scene file's text, for a farm: the coordinator checks it. A scene with mesh
-/// objects is refused here, in one line: their files are on this machine, which a
-/// farm's workers never see, and a farm does not render meshes yet.
+/// A scene file's text, for a farm: the coordinator checks it.
 pub fn read_scene(path: &Path) -> Result<String> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read scene file {}", path.display()))?;
-    refuse_meshes(path, &text)?;
-    Ok(text)
+    std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read scene file {}", path.display()))
 }
 
-/// One line naming the first mesh object of the scene file at `path`, if it has any.
-fn refuse_meshes(path: &Path, text: &str) -> Result<()> {
-    if let Some((object, file)) = first_mesh(text) {
-        let place = match file {
-            Some(file) => format!("objects[{object}].file: {file}"),
-            None => format!("objects[{object}]"),
-        };
-        bail!(
-            "{}: {place}: a farm does not render meshes yet (their mesh files are not sent to \
-             workers): render this scene on this machine with `tessera render`",
-            path.display()
-        );
+/// The files the scene `text` (of the file at `path`) names, hashed, for a farm: what
+/// the renderer reads when it reads the scene from its file, each once. A scene that
+/// names no mesh reads none (and is not parsed here: the coordinator checks it); one
+/// whose files cannot be read is refused here, in `tessera render`'s words.
+pub fn scene_files(path: &Path, text: &str) -> Result<Vec<LocalFile>> {
+    if first_mesh(text).is_none() {
+        return Ok(Vec::new());
     }
-    Ok(())
+    let files = render::MeshFiles::beside(scene_dir(path));
+    render::parse_animated_with(text, &files).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    Ok(files
+        .files_read()
+        .into_iter()
+        .map(|f| LocalFile {
+            asset: protocol::AssetRef {
+                name: f.name,
+                key: protocol::AssetKey {
+                    sha256: f.sha256,
+                    size: f.size,
+                },
+            },
+            path: f.path,
+        })
+        .collect())
 }
 
 /// The first object of type `mesh` in a scene's text: its index and, if it names one,
@@ -55,10 +62,22 @@ fn first_mesh(text: &str) -> Option<(usize, Option<String>)> {
         })
 }
 
-/// A scene file's text, checked by the renderer's loader: its error is one line
-/// prefixed with the file.
+/// A scene file's text for a studio, checked by the renderer's loader: its error is
+/// one line prefixed with the file. A studio does not edit scenes with meshes yet: one
+/// is refused here, naming its first mesh.
 pub fn read_checked_scene(path: &Path) -> Result<String> {
     let text = read_scene(path)?;
+    if let Some((object, file)) = first_mesh(&text) {
+        let place = match file {
+            Some(file) => format!("objects[{object}].file: {file}"),
+            None => format!("objects[{object}]"),
+        };
+        anyhow::bail!(
+            "{}: {place}: a studio does not edit scenes with meshes yet: render this scene \
+             with `tessera render`, or on a farm with `tessera submit` or `tessera up`",
+            path.display()
+        );
+    }
     render::parse_scene(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     Ok(text)
 }
@@ -118,7 +137,7 @@ mod tests {
     }
 
     #[test]
-    fn a_scene_with_a_mesh_is_refused_for_a_farm_naming_its_first_mesh() {
+    fn a_scene_names_files_only_with_a_mesh_object_and_each_is_hashed_for_a_farm() {
         let scene = |objects: &str| {
             format!(
                 r#"{{"camera": {{"position": "0 0 -5", "look_at": "0 0 0"}}, "lights": [],
@@ -149,25 +168,32 @@ mod tests {
             first_mesh(&text),
             Some((2, Some("meshes/bunny.ply".to_owned())))
         );
-        assert_eq!(
-            refuse_meshes(Path::new("scenes/bunny.json"), &text)
-                .unwrap_err()
-                .to_string(),
-            "scenes/bunny.json: objects[2].file: meshes/bunny.ply: a farm does not render \
-             meshes yet (their mesh files are not sent to workers): render this scene on this \
-             machine with `tessera render`"
-        );
         // Written with escapes, or without a file, a mesh is still one.
         let escaped = scene(r#"{"type": "m\u0065sh", "color": "1 1 1 0"}"#);
         assert!(!escaped.contains("mesh"));
         assert_eq!(first_mesh(&escaped), Some((0, None)));
-        assert_eq!(
-            refuse_meshes(Path::new("s.json"), &escaped)
-                .unwrap_err()
-                .to_string(),
-            "s.json: objects[0]: a farm does not render meshes yet (their mesh files are not \
-             sent to workers): render this scene on this machine with `tessera render`"
+        // The files a mesh scene reads, from the scene file's directory, each hashed.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("meshes")).unwrap();
+        let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        std::fs::write(dir.path().join("meshes/tri.obj"), obj).unwrap();
+        let mesh = r#"{"type": "mesh", "file": "meshes/tri.obj", "color": "1 1 1 0"}"#;
+        let text = scene(&format!("{mesh}, {sphere}, {mesh}"));
+        let path = dir.path().join("s.json");
+        let files = scene_files(&path, &text).unwrap();
+        assert_eq!(files.len(), 1, "{files:?}");
+        assert_eq!(files[0].asset.name, "meshes/tri.obj");
+        assert_eq!(files[0].asset.key.size, obj.len() as u64);
+        assert_eq!(files[0].asset.key.sha256, assets::AssetId::of(obj).sha256);
+        assert!(scene_files(&path, &scene(sphere)).unwrap().is_empty());
+        // A file that is not there is the loader's one line, prefixed with the scene.
+        let missing = scene(r#"{"type": "mesh", "file": "gone.obj", "color": "1 1 1 0"}"#);
+        let error = scene_files(&path, &missing).unwrap_err().to_string();
+        assert!(
+            error.starts_with(&format!("{}: objects[0]", path.display())),
+            "{error}"
         );
+        assert!(error.contains("gone.obj"), "{error}");
     }
 
     #[test]

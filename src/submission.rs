@@ -9,7 +9,7 @@ use coordinator::client::Client;
 use protocol::{JobId, JobSpec, Overrides, Verification};
 
 use crate::args::FrameRange;
-use crate::scene_file::read_scene;
+use crate::scene_file::{read_scene, scene_files};
 
 /// What a submission chooses besides its scene.
 pub struct JobChoices {
@@ -110,23 +110,28 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
         frames,
     } = job;
     let scene = read_scene(scene_path)?;
+    let files = scene_files(scene_path, &scene)?;
     let name = label.name.unwrap_or_else(|| {
         scene_path
             .file_stem()
             .map_or_else(String::new, |s| s.to_string_lossy().into_owned())
     });
     client
-        .submit(JobSpec {
-            scene,
-            overrides,
-            priority,
-            verification,
-            time_limit_ms,
-            name,
-            submitter: label.submitter.unwrap_or_else(default_submitter),
-            frame: frames.frame,
-            frames: frames.frames,
-        })
+        .submit_with_files(
+            JobSpec {
+                scene,
+                overrides,
+                priority,
+                verification,
+                time_limit_ms,
+                name,
+                submitter: label.submitter.unwrap_or_else(default_submitter),
+                frame: frames.frame,
+                frames: frames.frames,
+                assets: Vec::new(),
+            },
+            &files,
+        )
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
 }

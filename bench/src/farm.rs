@@ -52,6 +52,7 @@ async fn run_job(
             submitter: "tessera-bench".into(),
             frame: 1,
             frames: None,
+            assets: Vec::new(),
         })
         .await?;
     let mut seen = 0;

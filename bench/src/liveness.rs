@@ -238,6 +238,7 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
             submitter: "tessera-bench".into(),
             frame: 1,
             frames: None,
+            assets: Vec::new(),
         })
         .await?;
 

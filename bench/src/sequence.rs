@@ -229,6 +229,7 @@ async fn run_sequence(
                 first: 1,
                 last: frames,
             }),
+            assets: Vec::new(),
         })
         .await?;
     let mut seen = 0;

@@ -13,6 +13,10 @@ use tokio_util::codec::Framed;
 
 use transport::{self, DialError, Endpoint, Stream};
 
+mod uploads;
+
+pub use uploads::LocalFile;
+
 /// The connection to the coordinator broke (closed, reset, or silent for longer than
 /// the answer timeout): the request may be tried again on a new connection. Requests
 /// return it inside their `anyhow::Error`; find it with [`ConnectionLost::of`].

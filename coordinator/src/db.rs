@@ -47,6 +47,9 @@ pub struct StoredJob {
     /// For a frame job: the sequence it renders a frame of. Its scene is kept in its
     /// row while it is active only (the sequence's row keeps it for good).
     pub sequence: Option<JobId>,
+    /// The files its scene names, bound to their content (the store keeps them while
+    /// the job is kept).
+    pub assets: Vec<protocol::AssetRef>,
     pub settings: Settings,
     pub tile_size: u32,
     pub priority: i32,

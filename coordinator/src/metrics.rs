@@ -59,6 +59,7 @@ pub struct Metrics {
     workers_quarantined: Counter,
     workers_refused: Counter,
     canaries_interrupted: Counter,
+    assets: AssetMetrics,
     /// What the scheduler's counters were at the last scrape.
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
@@ -180,8 +181,10 @@ impl Metrics {
              silent): not refusals, the worker reconnects",
             canaries_interrupted.clone(),
         );
+        let assets = AssetMetrics::register(&mut registry);
         Metrics {
             registry,
+            assets,
             canaries_interrupted,
             results_rejected,
             results_confirmed,
@@ -222,6 +225,23 @@ impl Metrics {
     /// Counts a result confirmed by another machine's identical one.
     pub fn result_confirmed(&self) {
         self.results_confirmed.inc();
+    }
+
+    /// Counts bytes of scene files received from clients.
+    pub fn asset_bytes_received(&self, bytes: u64) {
+        self.assets.received.inc_by(bytes);
+    }
+
+    /// Counts bytes of scene files sent to workers.
+    pub fn asset_bytes_sent(&self, bytes: u64) {
+        self.assets.sent.inc_by(bytes);
+    }
+
+    /// The store of scene files as it stands.
+    pub fn asset_store(&self, stats: &assets::StoreStats) {
+        self.assets.files.set(stats.files as i64);
+        self.assets.bytes.set(stats.bytes as i64);
+        self.assets.partial_bytes.set(stats.partial_bytes as i64);
     }
 
     /// Counts a machine quarantined.
@@ -400,6 +420,53 @@ fn openmetrics_to_prometheus(openmetrics: &str) -> String {
         out.push('\n');
     }
     out
+}
+
+/// The store of the files scenes name: what it holds, and what crosses the network.
+struct AssetMetrics {
+    files: Gauge,
+    bytes: Gauge,
+    partial_bytes: Gauge,
+    received: Counter,
+    sent: Counter,
+}
+
+impl AssetMetrics {
+    fn register(registry: &mut Registry) -> AssetMetrics {
+        let m = AssetMetrics {
+            files: Gauge::default(),
+            bytes: Gauge::default(),
+            partial_bytes: Gauge::default(),
+            received: Counter::default(),
+            sent: Counter::default(),
+        };
+        registry.register(
+            "asset_files",
+            "Scene files (meshes, buffers) stored, each once",
+            m.files.clone(),
+        );
+        registry.register(
+            "asset_bytes",
+            "Bytes of the scene files stored",
+            m.bytes.clone(),
+        );
+        registry.register(
+            "asset_upload_bytes",
+            "Bytes of uploads of scene files not yet complete",
+            m.partial_bytes.clone(),
+        );
+        registry.register(
+            "asset_received_bytes",
+            "Bytes of scene files received from clients",
+            m.received.clone(),
+        );
+        registry.register(
+            "asset_sent_bytes",
+            "Bytes of scene files sent to workers",
+            m.sent.clone(),
+        );
+        m
+    }
 }
 
 #[cfg(test)]

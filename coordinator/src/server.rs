@@ -39,6 +39,7 @@ mod adaptive;
 mod client_session;
 mod core;
 mod data_lock;
+mod depot;
 mod handshake;
 mod keys;
 mod observer;
@@ -153,11 +154,19 @@ impl Config {
     }
 }
 
+/// The most triangles of meshes the coordinator keeps built for its checks between
+/// jobs: a few large meshes, about a gigabyte.
+const GEOMETRY_TRIANGLES: u64 = 8_000_000;
+
 /// What every task of the daemon shares.
 struct Shared {
     state: Mutex<Core>,
     persistence: Persistence,
     store: Arc<Store>,
+    /// The files scenes name, by content.
+    depot: depot::Depot,
+    /// Meshes read and built for the checks, shared by the jobs that name them.
+    geometry: render::GeometryCache,
     /// The daemon's monotonic clock starts here; the state machines get milliseconds.
     clock: Instant,
     runtime: tokio::runtime::Handle,
@@ -197,6 +206,16 @@ impl Shared {
         let mut core = self.state.lock().unwrap_or_else(|e| e.into_inner());
         core.now = read_clocks(self.clock);
         core
+    }
+
+    /// The mesh files a scene names, read from the store (each checked against its
+    /// SHA-256) for the renderer, sharing the geometry already built.
+    fn mesh_files(&self, assets: &[protocol::AssetRef]) -> Result<render::MeshFiles, String> {
+        if assets.is_empty() {
+            return Ok(render::MeshFiles::none());
+        }
+        let files = self.depot.files(assets)?;
+        Ok(render::MeshFiles::bound(files).with_cache(&self.geometry))
     }
 
     /// Milliseconds on the daemon's monotonic clock.
@@ -271,11 +290,13 @@ impl Server {
     pub async fn bind(config: Config) -> Result<Server> {
         let data = config.data.clone();
         let reset = config.reset_database;
-        let (mut data_lock, opened) = tokio::task::spawn_blocking(move || {
+        let (mut data_lock, (opened, depot)) = tokio::task::spawn_blocking(move || {
             std::fs::create_dir_all(&data)
                 .with_context(|| format!("cannot create the data directory {}", data.display()))?;
             let lock = data_lock::DataLock::acquire(&data)?;
-            anyhow::Ok((lock, startup::open(&data, reset)?))
+            let depot = depot::Depot::open(&data, depot::default_limits())
+                .map_err(|e| anyhow::anyhow!("cannot open the scene files' store: {e}"))?;
+            anyhow::Ok((lock, (startup::open(&data, reset)?, depot)))
         })
         .await
         .context("the startup check stopped")??;
@@ -314,6 +335,8 @@ impl Server {
                 Arc::new(DaemonHooks(weak.clone())),
             ),
             store: Arc::clone(&store),
+            depot,
+            geometry: render::GeometryCache::new(GEOMETRY_TRIANGLES),
             clock: epoch,
             runtime: tokio::runtime::Handle::current(),
             closing: AtomicBool::new(false),
@@ -343,6 +366,18 @@ impl Server {
                 core.tiles_event(&shared, scheduler::Event::DisableMachine { machine });
             }
             for job in opened.jobs {
+                // Every job kept keeps its scene's files (a frame job's are its
+                // sequence's, pinned by the sequence).
+                if !job.job.assets.is_empty() && job.job.sequence.is_none() {
+                    if let Err(lacking) = shared.depot.pin(job.job.id, &job.job.assets) {
+                        warn!(
+                            job = job.job.id,
+                            lacking = lacking.len(),
+                            "files of the job's scene are gone from the store: its tiles \
+                             cannot be checked or rendered"
+                        );
+                    }
+                }
                 if job.job.last_frame.is_some() {
                     core.restore_sequence(job.job, job.last_event);
                 } else {
@@ -403,6 +438,7 @@ impl Server {
         tokio::pin!(shutdown);
         let _timer = AbortOnDrop(tokio::spawn(timer(Arc::clone(&self.shared))));
         let _watchdog = AbortOnDrop(tokio::spawn(watchdog(Arc::clone(&self.shared))));
+        let _collector = AbortOnDrop(tokio::spawn(collect_files(Arc::clone(&self.shared))));
         let _retire = AbortOnDrop(tokio::spawn(keys::retire(Arc::clone(&self.shared))));
         loop {
             tokio::select! {
@@ -523,6 +559,29 @@ async fn watchdog(sh: Arc<Shared>) {
             sh.persistence.check_stall(&hooks);
         }
         sh.metrics.sample_rate(now);
+    }
+}
+
+/// Gives back the scene files no job needs (see [`depot`]), at startup (once every
+/// stored job has pinned its own) and then every few minutes, and keeps the store's
+/// figures current in /metrics.
+async fn collect_files(sh: Arc<Shared>) {
+    let mut interval = tokio::time::interval(depot::COLLECT_EVERY);
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        interval.tick().await;
+        let shared = Arc::clone(&sh);
+        let collected = tokio::task::spawn_blocking(move || {
+            let collected = shared.depot.collect(unix_ms());
+            shared.metrics.asset_store(&shared.depot.stats());
+            collected
+        })
+        .await;
+        if let Ok((files, bytes)) = collected {
+            if files > 0 {
+                info!(files, bytes, "scene files no job needs given back");
+            }
+        }
     }
 }
 

@@ -9,11 +9,14 @@
 //! This crate holds formats and limits only: no sockets, no policy. It does not know
 //! the renderer either: a scene travels as its JSON text plus a content hash.
 
+mod assets;
 mod codec;
 mod handshake;
 mod messages;
+mod settings;
 pub mod wire;
 
+pub use crate::assets::*;
 pub use crate::codec::{frame_codec, FrameError, MessageCodec, DEFAULT_MAX_FRAME};
 pub use crate::handshake::{
     auth_label, coordinator_proof, peer_proof, AuthFailure, AuthProof, AuthRole,
@@ -21,4 +24,5 @@ pub use crate::handshake::{
     Role, Welcome, MAGIC, PROTOCOL_VERSION,
 };
 pub use crate::messages::*;
+pub use crate::settings::*;
 pub use crate::wire::MAX_FRAME_LIMIT;

@@ -2,6 +2,9 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::assets::{AssetKey, AssetRef};
+use crate::settings::{Overrides, Settings, TileRect};
+
 /// A job's identity, made by the coordinator.
 pub type JobId = u64;
 
@@ -11,79 +14,6 @@ pub type WorkerId = u64;
 
 /// SHA-256 of a scene's JSON text: workers cache scenes under it.
 pub type SceneHash = [u8; 32];
-
-/// Image settings of a job, after the client's overrides were applied to the scene's.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub struct Settings {
-    pub width: u32,
-    pub height: u32,
-    /// The sample budget: at most `aa` × `aa` samples per pixel.
-    pub aa: u32,
-    pub max_depth: u32,
-    /// Where the samples of each pixel go. Part of the settings, so that every worker
-    /// renders a job's tiles the same way.
-    pub sampling: Sampling,
-}
-
-/// How the samples of a pixel are placed (the renderer's `Sampling`, on the wire).
-/// Every choice is deterministic: a pixel's value depends only on the scene, the
-/// settings and its coordinates, so a job's image is the same in any tiling.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub enum Sampling {
-    /// `aa` × `aa` samples on the centred regular grid: the reference.
-    #[default]
-    Grid,
-    /// `aa` × `aa` strata, one sample at a hashed offset inside each.
-    Jittered,
-    /// Samples where the image needs them, to an image-wide error target: 8 × 8 blocks
-    /// of pixels double their samples (from 4, up to the largest power of two not above
-    /// `aa` × `aa`) down a fixed ladder of thresholds until the frame's estimated error
-    /// is at most the target. `target_milli` is the target in thousandths of an 8-bit
-    /// level (1000 = one level), 1 ..= 255,000. The farm renders such a job in passes
-    /// of [`ToWorker::Advance`], not with [`ToWorker::Render`].
-    Adaptive { target_milli: u32 },
-}
-
-impl Sampling {
-    /// The lowercase name used on the command line, in listings and in JSON output.
-    pub fn name(self) -> &'static str {
-        match self {
-            Sampling::Grid => "grid",
-            Sampling::Jittered => "jittered",
-            Sampling::Adaptive { .. } => "adaptive",
-        }
-    }
-
-    /// The adaptive target in 8-bit levels; `None` for the other samplers.
-    pub fn target_error(self) -> Option<f64> {
-        match self {
-            Sampling::Adaptive { target_milli } => Some(f64::from(target_milli) / 1000.0),
-            _ => None,
-        }
-    }
-}
-
-/// A rectangle of the frame: columns `x .. x + width`, rows `y .. y + height`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub struct TileRect {
-    pub x: u32,
-    pub y: u32,
-    pub width: u32,
-    pub height: u32,
-}
-
-/// What a client may change of a scene's own settings, and how the job is cut.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Overrides {
-    pub width: Option<u32>,
-    pub height: Option<u32>,
-    pub aa: Option<u32>,
-    pub max_depth: Option<u32>,
-    /// Side of the square tiles, in pixels.
-    pub tile_size: Option<u32>,
-    /// How pixels are sampled; `None` is the regular grid (a scene file never says).
-    pub sampling: Option<Sampling>,
-}
 
 /// A job as submitted.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -112,6 +42,10 @@ pub struct JobSpec {
     /// rendered as a frame job of its own (`frame` must then be 1). A range the scene
     /// does not have, or of more than [`MAX_SEQUENCE_FRAMES`] frames, is refused.
     pub frames: Option<FrameRange>,
+    /// Every file the scene names, bound to its content (at most
+    /// [`MAX_JOB_ASSETS`](crate::MAX_JOB_ASSETS)), uploaded first: a file the
+    /// coordinator lacks gets [`AssetAnswer::SubmitLacking`](crate::AssetAnswer).
+    pub assets: Vec<AssetRef>,
 }
 
 /// Frames `first..=last` of an animated scene, from 1.
@@ -298,6 +232,8 @@ pub enum ClientRequest {
         job: JobId,
         frame: u32,
     },
+    /// About the files scenes name: which the coordinator lacks, an upload's chunk.
+    Assets(crate::AssetRequest),
 }
 
 /// The most events one `Events` answer carries.
@@ -355,6 +291,9 @@ pub enum ClientResponse {
         job: JobId,
         events: Vec<JobEvent>,
     },
+    /// About files ([`ClientRequest::Assets`], or a submission naming files the
+    /// coordinator lacks).
+    Assets(crate::AssetAnswer),
 }
 
 /// What kind of refusal an [`ClientResponse::Error`] is: what a program decides on (to
@@ -654,8 +593,14 @@ pub struct CanaryRender {
 /// Coordinator to worker.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum ToWorker {
-    /// A scene the worker has not seen; sent once per worker before its first tile.
-    Scene { hash: SceneHash, scene: String },
+    /// A scene the worker has not seen; sent once per worker before its first tile,
+    /// with the files it names: those the worker's cache lacks it fetches
+    /// ([`FromWorker::FetchAsset`]) before it renders the scene's tiles.
+    Scene {
+        hash: SceneHash,
+        scene: String,
+        assets: Vec<AssetRef>,
+    },
     /// Render one tile of a job whose scene the worker has.
     Render {
         job: JobId,
@@ -720,6 +665,16 @@ pub enum ToWorker {
     /// or, when a worker of another host is connected under that name, the name with
     /// a suffix (`NAME-2`, ...). Sent once, before any tile.
     Joined { name: String },
+    /// Bytes `offset .. offset + bytes.len()` of a file a worker asked for; the last
+    /// chunk ends at the key's size.
+    AssetChunk {
+        key: AssetKey,
+        offset: u64,
+        bytes: Vec<u8>,
+    },
+    /// A file a worker asked for that the coordinator cannot give (it lost it, or its
+    /// bytes no longer match their SHA-256): `reason` in one line.
+    AssetUnavailable { key: AssetKey, reason: String },
 }
 
 /// Worker to coordinator.
@@ -791,4 +746,8 @@ pub enum FromWorker {
         rays: u64,
         render_us: u64,
     },
+    /// Bytes of a file a scene names, from `offset` (at most
+    /// [`ASSET_CHUNK`](crate::ASSET_CHUNK)): answered with [`ToWorker::AssetChunk`] or
+    /// [`ToWorker::AssetUnavailable`].
+    FetchAsset { key: AssetKey, offset: u64 },
 }

@@ -25,6 +25,14 @@ pub struct Args {
     /// failed tiles: keep it stable across restarts (the host name) [default: HOST-PID].
     #[arg(long, env = "TESSERA_NAME")]
     name: Option<String>,
+    /// Keep the files scenes name (meshes and their buffers) in DIR once fetched, so
+    /// that the next job naming one starts without a transfer [default: none, files are
+    /// kept only while their scene is].
+    #[arg(long, env = "TESSERA_CACHE_DIR", value_name = "DIR")]
+    cache_dir: Option<std::path::PathBuf>,
+    /// The most bytes of files kept in --cache-dir; the least recently used go first.
+    #[arg(long, env = "TESSERA_CACHE_SIZE", value_name = "BYTES", default_value_t = 10 << 30)]
+    cache_size: u64,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -73,6 +81,8 @@ async fn work(a: Args, print_config: Option<String>) -> Result<()> {
             threads,
             name,
             ready,
+            cache_dir: a.cache_dir,
+            cache_bytes: a.cache_size,
         },
         shutdown_signal(a.exit_on_stdin_eof),
     )

@@ -11,10 +11,9 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use protocol::{SceneHash, Settings};
+use protocol::{AssetRef, SceneHash, Settings};
 use render::adaptive::Footprints;
 use render::{AnimatedScene, Tracer};
-use sha2::{Digest, Sha256};
 
 /// A scene as received: parsed, or why it could not be used.
 type Loaded = Result<Arc<AnimatedScene>, String>;
@@ -45,17 +44,29 @@ pub struct SceneCache {
 }
 
 impl SceneCache {
-    /// Stores a scene sent by the coordinator, checking that it matches its hash.
-    pub fn insert(&mut self, hash: SceneHash, text: String) {
-        let actual: SceneHash = Sha256::digest(text.as_bytes()).into();
-        let loaded = if actual != hash {
+    /// Stores a scene sent by the coordinator, read with the files it names (`files`,
+    /// bound to `assets`), checking that it matches its hash.
+    pub fn insert(
+        &mut self,
+        hash: SceneHash,
+        text: &str,
+        assets: &[AssetRef],
+        files: &render::MeshFiles,
+    ) {
+        let loaded = if protocol::scene_hash(text, assets) != hash {
             Err("the scene received does not match its hash".to_string())
         } else {
-            render::parse_animated(&text)
+            render::parse_animated_with(text, files)
                 .map(Arc::new)
                 .map_err(|e| format!("the scene does not load: {e}"))
         };
         self.scenes.insert(hash, loaded);
+    }
+
+    /// A scene that cannot be used (a file it names could not be had): its tiles fail
+    /// with `reason`.
+    pub fn insert_failed(&mut self, hash: SceneHash, reason: String) {
+        self.scenes.insert(hash, Err(reason));
     }
 
     pub fn forget(&mut self, hash: &SceneHash) {
@@ -146,9 +157,9 @@ mod tests {
     }
 
     fn loaded() -> (SceneCache, SceneHash) {
-        let hash: SceneHash = Sha256::digest(ORBIT.as_bytes()).into();
+        let hash = protocol::scene_hash(ORBIT, &[]);
         let mut cache = SceneCache::default();
-        cache.insert(hash, ORBIT.to_string());
+        cache.insert(hash, ORBIT, &[], &render::MeshFiles::none());
         (cache, hash)
     }
 
@@ -211,8 +222,8 @@ mod tests {
         );
         assert!(cache.tracer(key(hash, 121)).is_ok());
         let text = r#"{"lights": [], "objects": []}"#;
-        let still: SceneHash = Sha256::digest(text.as_bytes()).into();
-        cache.insert(still, text.to_string());
+        let still = protocol::scene_hash(text, &[]);
+        cache.insert(still, text, &[], &render::MeshFiles::none());
         assert_eq!(
             cache.tracer(key(still, 2)).err().unwrap(),
             "frame 2: the scene has no animation, only frame 1"

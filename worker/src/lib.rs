@@ -8,6 +8,7 @@
 //! exits without reconnecting.
 
 mod cache;
+mod files;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -44,7 +45,14 @@ pub struct Config {
     /// Set while the worker is connected to a coordinator and taking tiles (its
     /// readiness, for supervisors); cleared while it reconnects or drains.
     pub ready: Arc<AtomicBool>,
+    /// Where the files scenes name are cached once fetched (`--cache-dir`), if
+    /// anywhere, and how many bytes of them at most (`--cache-size`).
+    pub cache_dir: Option<std::path::PathBuf>,
+    pub cache_bytes: u64,
 }
+
+/// The most triangles of meshes a worker keeps read and built between jobs.
+const GEOMETRY_TRIANGLES: u64 = 8_000_000;
 
 type Conn = Framed<Stream, MessageCodec<ToWorker, FromWorker>>;
 
@@ -62,6 +70,11 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
             .context("cannot start the rendering threads")?,
     );
     tokio::pin!(shutdown);
+    let kept = files::Kept::new(
+        config.cache_dir.as_deref(),
+        config.cache_bytes,
+        GEOMETRY_TRIANGLES,
+    );
     let mut backoff = Backoff::default();
     loop {
         let (key, connected) = connect(&config).await;
@@ -80,6 +93,8 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     alive: Arc::new(AtomicBool::new(true)),
                     in_flight: 0,
                     pongs: Vec::new(),
+                    files: files::Files::new(&kept),
+                    fetches: Vec::new(),
                     drain_asked: false,
                     name: config.name.clone(),
                 };
@@ -219,6 +234,10 @@ struct Session {
     in_flight: usize,
     /// Pings read and not yet answered.
     pongs: Vec<u64>,
+    /// The scenes waiting for their files, and the files being fetched.
+    files: files::Files,
+    /// Chunks of files to ask for, sent after the message being handled.
+    fetches: Vec<FromWorker>,
     /// The coordinator asked it to drain ([`ToWorker::Drain`]).
     drain_asked: bool,
     /// The name its hello asked for.
@@ -259,6 +278,10 @@ impl Session {
                     for token in self.pongs.drain(..) {
                         self.conn.send(FromWorker::Pong { token }).await?;
                     }
+                    for fetch in self.fetches.drain(..) {
+                        self.conn.feed(fetch).await?;
+                    }
+                    self.conn.flush().await?;
                     if self.drain_asked {
                         // An operator's drain is a SIGTERM sent from afar: the same
                         // drain, and the same clean exit without reconnecting.
@@ -305,8 +328,39 @@ impl Session {
         done: &mpsc::UnboundedSender<Rendered>,
     ) -> Result<(), Refused> {
         match message {
-            ToWorker::Scene { hash, scene } => self.cache.insert(hash, scene),
-            ToWorker::ForgetScene { hash } => self.cache.forget(&hash),
+            ToWorker::Scene {
+                hash,
+                scene,
+                assets,
+            } => {
+                if assets.is_empty() {
+                    self.cache
+                        .insert(hash, &scene, &[], &render::MeshFiles::none());
+                } else if let Some(ready) = self.files.scene(hash, scene, assets, &mut self.fetches)
+                {
+                    self.loaded(ready, done)?;
+                }
+            }
+            ToWorker::AssetChunk { key, offset, bytes } => {
+                for ready in self.files.chunk(key, offset, bytes, &mut self.fetches) {
+                    self.loaded(ready, done)?;
+                }
+            }
+            ToWorker::AssetUnavailable { key, reason } => {
+                for ready in self.files.unavailable(key, reason) {
+                    self.loaded(ready, done)?;
+                }
+            }
+            ToWorker::Render { scene, .. } | ToWorker::Advance { scene, .. }
+                if self.files.waiting(&scene) =>
+            {
+                // Handled once the scene's files are in.
+                self.files.queue(&scene, message);
+            }
+            ToWorker::ForgetScene { hash } => {
+                self.files.forget(&hash);
+                self.cache.forget(&hash);
+            }
             ToWorker::Heartbeat => {}
             ToWorker::Canary { scene, renders } => {
                 // Rendered on the pool like a tile, so that heartbeats keep flowing.
@@ -419,6 +473,40 @@ impl Session {
                     started.finish(message);
                 });
             }
+        }
+        Ok(())
+    }
+
+    /// A scene whose files came (or one of which cannot be had): read, then the tiles
+    /// that waited for it handled in order.
+    fn loaded(
+        &mut self,
+        ready: files::Ready,
+        done: &mpsc::UnboundedSender<Rendered>,
+    ) -> Result<(), Refused> {
+        let queued = match ready {
+            files::Ready::Loaded {
+                hash,
+                text,
+                assets,
+                files,
+                queued,
+            } => {
+                self.cache.insert(hash, &text, &assets, &files);
+                queued
+            }
+            files::Ready::Failed {
+                hash,
+                reason,
+                queued,
+            } => {
+                warn!(error = %reason, "a scene's file cannot be had");
+                self.cache.insert_failed(hash, reason);
+                queued
+            }
+        };
+        for message in queued {
+            self.handle(message, done)?;
         }
         Ok(())
     }

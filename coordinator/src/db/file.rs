@@ -44,6 +44,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "sequence", "INTEGER"),
     ("tiles", "encoding", "TEXT NOT NULL DEFAULT 'raw'"),
     ("jobs", "retried_ms", "INTEGER"),
+    ("jobs", "assets", "TEXT NOT NULL DEFAULT '[]'"),
 ];
 
 /// Adds the columns of [`ADDED_COLUMNS`] that `conn`'s tables lack.

@@ -30,6 +30,7 @@ pub(crate) fn job(id: JobId, sampling: Sampling) -> StoredJob {
         frame: id as u32,
         last_frame: None,
         sequence: None,
+        assets: Vec::new(),
         settings: Settings {
             width: 8,
             height: 8,

@@ -613,6 +613,8 @@ async fn studio_submit(
         verification: protocol::Verification::default(),
         time_limit_ms: None,
         name: "studio scene".into(),
+        // The studio's scenes name no file the coordinator would need.
+        assets: Vec::new(),
         submitter: "studio".into(),
         frame: 1,
         frames: None,

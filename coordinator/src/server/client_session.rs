@@ -16,7 +16,8 @@ use std::time::Duration;
 use anyhow::Result;
 use futures_util::{SinkExt, StreamExt};
 use protocol::{
-    ClientRequest, ClientResponse, JobId, JobState, JobStatus, MessageCodec, Refusal, WorkerStatus,
+    AssetAnswer, AssetRequest, ClientRequest, ClientResponse, JobId, JobState, JobStatus,
+    MessageCodec, Refusal, WorkerStatus,
 };
 use scheduler::lifecycle::{self, Reply};
 use tokio_util::codec::Framed;
@@ -94,6 +95,45 @@ pub(super) async fn serve(
     Ok(())
 }
 
+/// A question about files, or a chunk of an upload: a short call on the store, on the
+/// blocking pool.
+async fn assets(sh: &Arc<Shared>, request: AssetRequest) -> ClientResponse {
+    let shared = Arc::clone(sh);
+    let answer = tokio::task::spawn_blocking(move || match request {
+        AssetRequest::Lacking { keys } => {
+            if keys.len() > protocol::MAX_JOB_ASSETS {
+                return Err(Refusal::limit(format!(
+                    "{} files asked about: at most {} at once",
+                    keys.len(),
+                    protocol::MAX_JOB_ASSETS
+                )));
+            }
+            Ok(AssetAnswer::Lacking {
+                lacking: shared.depot.lacking(&keys),
+            })
+        }
+        AssetRequest::Upload { key, offset, bytes } => {
+            let now = super::unix_ms();
+            let answer = shared.depot.upload(&key, offset, &bytes, now);
+            if let Ok(AssetAnswer::Received { complete, .. }) = &answer {
+                shared.metrics.asset_bytes_received(bytes.len() as u64);
+                if *complete {
+                    shared.metrics.asset_store(&shared.depot.stats());
+                }
+            }
+            answer
+        }
+    })
+    .await;
+    match answer {
+        Ok(Ok(answer)) => ClientResponse::Assets(answer),
+        Ok(Err(refusal)) => ClientResponse::Error(refusal),
+        Err(_) => ClientResponse::Error(Refusal::unavailable(
+            "the scene files' store could not answer: try again",
+        )),
+    }
+}
+
 /// Answers one request. The protocol's client sessions and the status page's
 /// controls (`crate::http`) both come here: one implementation of every operation.
 pub(crate) async fn respond(
@@ -103,6 +143,7 @@ pub(crate) async fn respond(
 ) -> ClientResponse {
     match request {
         ClientRequest::Submit(spec) => submit(sh, spec, peer).await,
+        ClientRequest::Assets(request) => assets(sh, request).await,
         ClientRequest::Watch { job, after_tiles } => watch(sh, job, after_tiles).await,
         ClientRequest::Status { job } => match sh.lock().status(job) {
             Some(status) => ClientResponse::Job(status),

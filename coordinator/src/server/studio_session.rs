@@ -510,13 +510,18 @@ async fn submit_passes(
             verification: Verification::Sampled,
             time_limit_ms: None,
             name: format!("studio view, pass {}", pass.index + 1),
+            // The studio's scenes name no file the coordinator would need.
+            assets: Vec::new(),
             submitter: "studio".into(),
             // The studio edits and shows a scene's frame 1.
             frame: 1,
             frames: None,
         };
         let limits = sh.limits;
-        let prepared = tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await;
+        let prepared = tokio::task::spawn_blocking(move || {
+            prepare(spec, &limits, peer, &render::MeshFiles::none())
+        })
+        .await;
         let Ok(Ok(mut prepared)) = prepared else {
             return;
         };

@@ -72,8 +72,8 @@ impl Verifier {
         })
     }
 
-    /// The tracer for a job's frame of its scene (from 1) and settings, built on first
-    /// use (parsing, computing the frame and building the hierarchy: call it off the
+    /// The tracer for a job's frame of its scene (from 1), read with the files it names
+    /// (`files`), and settings, built on first use (parsing, computing the frame and building the hierarchy: call it off the
     /// state lock). The frame is the job's, so a result rendered from another frame
     /// fails its checks.
     pub fn tracer(
@@ -82,12 +82,14 @@ impl Verifier {
         frame: u32,
         settings: Settings,
         scene: &str,
+        files: impl FnOnce() -> Result<render::MeshFiles, String>,
     ) -> Result<Arc<Tracer>, String> {
         let key = (hash, frame, settings);
         if let Some((_, t)) = self.cache().iter().find(|(k, _)| *k == key) {
             return Ok(Arc::clone(t));
         }
-        let parsed = render::parse_animated(scene)
+        // The scene's files are read (and checked) only when the tracer is built.
+        let parsed = render::parse_animated_with(scene, &files()?)
             .map_err(|e| e.to_string())?
             .frame(u64::from(frame))
             .map_err(|e| e.to_string())?;

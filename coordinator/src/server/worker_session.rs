@@ -214,6 +214,7 @@ fn message_name(message: &FromWorker) -> &'static str {
         FromWorker::TileDoneZstd { .. } => "TileDoneZstd",
         FromWorker::TileFailed { .. } => "TileFailed",
         FromWorker::Draining => "Draining",
+        FromWorker::FetchAsset { .. } => "FetchAsset",
         FromWorker::Heartbeat => "Heartbeat",
         FromWorker::CanaryDone { .. } => "CanaryDone",
         FromWorker::Pong { .. } => "Pong",
@@ -255,7 +256,7 @@ async fn result(
                         Err(reason) => return (TilePixels::none(), Verdict::wrong(reason)),
                     },
                 };
-                let verdict = plan.run(&shared.verifier, &pixels.rgb, None);
+                let verdict = plan.run(&shared, &pixels.rgb, None);
                 (pixels, verdict)
             })
             .await?
@@ -293,7 +294,7 @@ async fn advanced(
             Ok(rgb) => TilePixels::received(rgb, zstd),
             Err(reason) => return (TilePixels::none(), Verdict::wrong(reason)),
         };
-        let verdict = plan.run(&shared.verifier, &pixels.rgb, Some(state));
+        let verdict = plan.run(&shared, &pixels.rgb, Some(state));
         (pixels, verdict)
     })
     .await?;
@@ -373,6 +374,25 @@ async fn on_message(
         }
         FromWorker::Heartbeat => {
             sh.lock().tiles_event(sh, Event::Heartbeat { worker });
+        }
+        FromWorker::FetchAsset { key, offset } => {
+            // Read off the lock and the async threads; the answer goes through the
+            // worker's outbox like everything the coordinator sends it.
+            let outbox = sh.lock().workers.get(&worker).map(|w| w.outbox.clone());
+            let Some(outbox) = outbox else {
+                return Ok(());
+            };
+            let shared = Arc::clone(sh);
+            let message =
+                tokio::task::spawn_blocking(move || match shared.depot.chunk(&key, offset) {
+                    Ok(bytes) => {
+                        shared.metrics.asset_bytes_sent(bytes.len() as u64);
+                        ToWorker::AssetChunk { key, offset, bytes }
+                    }
+                    Err(reason) => ToWorker::AssetUnavailable { key, reason },
+                })
+                .await?;
+            let _ = outbox.send(message);
         }
         FromWorker::Pong { token } => {
             let now = sh.clock.elapsed().as_micros() as u64;

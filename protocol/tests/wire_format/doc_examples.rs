@@ -97,6 +97,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 submitter: "u@h".into(),
                 frame: 1,
                 frames: None,
+                assets: Vec::new(),
             })),
         ),
         ("Status", message_frame(&ClientRequest::Status { job: 7 })),
@@ -134,6 +135,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
             message_frame(&ToWorker::Scene {
                 hash: scene_hash(),
                 scene: SCENE.into(),
+                assets: Vec::new(),
             }),
         ),
         (

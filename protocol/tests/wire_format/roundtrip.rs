@@ -25,11 +25,12 @@ use std::fmt::Debug;
 use bytes::BytesMut;
 use proptest::prelude::*;
 use protocol::{
-    wire, CanaryRender, ClientRequest, ClientResponse, FrameError, FrameFailure, FrameProgress,
-    FrameRange, FromWorker, Hello, HelloError, JobEvent, JobSpec, JobState, JobStatus, KeyId,
-    KeyStanding, MessageCodec, Overrides, PeerKey, Refusal, RefusalKind, Role, Sampling, Settings,
-    TileRect, ToWorker, Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC,
-    MAX_FRAME_LIMIT, PROTOCOL_VERSION,
+    wire, AssetAnswer, AssetKey, AssetRef, AssetRequest, CanaryRender, ClientRequest,
+    ClientResponse, FrameError, FrameFailure, FrameProgress, FrameRange, FromWorker, Hello,
+    HelloError, JobEvent, JobSpec, JobState, JobStatus, KeyId, KeyStanding, Lacking, MessageCodec,
+    Overrides, PeerKey, Refusal, RefusalKind, Role, Sampling, Settings, TileRect, ToWorker,
+    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
+    PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -143,14 +144,53 @@ prop_compose! {
     fn job_spec()(scene in text(), overrides in overrides(), priority in any::<i32>(),
                   full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
                   name in text(), frame in any::<u32>(),
-                  frames in prop::option::of(frame_range()))
+                  frames in prop::option::of(frame_range()),
+                  assets in prop::collection::vec(asset_ref(), 0..3))
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name, frame, frames,
+            name: name.clone(), submitter: name, frame, frames, assets,
         }
     }
+}
+
+fn asset_key() -> impl Strategy<Value = AssetKey> {
+    (any::<[u8; 32]>(), any::<u64>()).prop_map(|(sha256, size)| AssetKey { sha256, size })
+}
+
+fn asset_ref() -> impl Strategy<Value = AssetRef> {
+    (text(), asset_key()).prop_map(|(name, key)| AssetRef { name, key })
+}
+
+fn asset_request() -> impl Strategy<Value = AssetRequest> {
+    prop_oneof![
+        prop::collection::vec(asset_key(), 0..4).prop_map(|keys| AssetRequest::Lacking { keys }),
+        (asset_key(), any::<u64>(), blob()).prop_map(|(key, offset, bytes)| AssetRequest::Upload {
+            key,
+            offset,
+            bytes
+        }),
+    ]
+}
+
+fn asset_answer() -> impl Strategy<Value = AssetAnswer> {
+    prop_oneof![
+        prop::collection::vec(
+            (asset_key(), any::<u64>()).prop_map(|(key, received)| Lacking { key, received }),
+            0..4
+        )
+        .prop_map(|lacking| AssetAnswer::Lacking { lacking }),
+        (asset_key(), any::<u64>(), any::<bool>()).prop_map(|(key, received, complete)| {
+            AssetAnswer::Received {
+                key,
+                received,
+                complete,
+            }
+        }),
+        prop::collection::vec(asset_key(), 0..4)
+            .prop_map(|lacking| AssetAnswer::SubmitLacking { lacking }),
+    ]
 }
 
 prop_compose! {
@@ -235,7 +275,22 @@ prop_compose! {
 
 fn to_worker() -> impl Strategy<Value = ToWorker> {
     prop_oneof![
-        (any::<[u8; 32]>(), text()).prop_map(|(hash, scene)| ToWorker::Scene { hash, scene }),
+        (
+            any::<[u8; 32]>(),
+            text(),
+            prop::collection::vec(asset_ref(), 0..3)
+        )
+            .prop_map(|(hash, scene, assets)| ToWorker::Scene {
+                hash,
+                scene,
+                assets
+            }),
+        (asset_key(), any::<u64>(), blob()).prop_map(|(key, offset, bytes)| ToWorker::AssetChunk {
+            key,
+            offset,
+            bytes
+        }),
+        (asset_key(), text()).prop_map(|(key, reason)| ToWorker::AssetUnavailable { key, reason }),
         (
             any::<u64>(),
             any::<u32>(),
@@ -319,6 +374,8 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
             .prop_map(|(job, tile, message)| { FromWorker::TileFailed { job, tile, message } }),
         Just(FromWorker::Draining),
         Just(FromWorker::Heartbeat),
+        (asset_key(), any::<u64>())
+            .prop_map(|(key, offset)| FromWorker::FetchAsset { key, offset }),
         prop_oneof![
             prop::collection::vec(blob(), 0..4).prop_map(Ok),
             text().prop_map(Err),
@@ -407,6 +464,7 @@ fn client_request() -> impl Strategy<Value = ClientRequest> {
             .prop_map(|(job, frame, offset)| ClientRequest::FetchFrame { job, frame, offset }),
         (any::<u64>(), any::<u32>())
             .prop_map(|(job, frame)| ClientRequest::RequeueFrame { job, frame }),
+        asset_request().prop_map(ClientRequest::Assets),
     ]
 }
 
@@ -453,6 +511,7 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
                     })
                     .collect(),
             }),
+        asset_answer().prop_map(ClientResponse::Assets),
     ]
 }
 
@@ -808,6 +867,7 @@ fn the_encoder_refuses_a_message_the_peer_would_refuse() {
     let scene = ToWorker::Scene {
         hash: [0; 32],
         scene: "x".repeat(200),
+        assets: Vec::new(),
     };
     assert!(codec.encode(scene, &mut out).is_err());
 }
@@ -920,11 +980,15 @@ fn a_tile_names_its_frame_after_the_scene_hash() {
         submitter: String::new(),
         frame: 17,
         frames: None,
+        assets: Vec::new(),
     };
     let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
-    // The frame, then the range (`None`: one byte 0), are the JobSpec's last fields.
-    assert_eq!(bytes[bytes.len() - 5..bytes.len() - 1], 17u32.to_le_bytes());
-    assert_eq!(bytes[bytes.len() - 1], 0);
+    // The frame, the range (`None`: one byte 0), then the files (none: a length of 8
+    // zero bytes) are the JobSpec's last fields.
+    let end = bytes.len() - 8;
+    assert_eq!(bytes[end - 5..end - 1], 17u32.to_le_bytes());
+    assert_eq!(bytes[end - 1], 0);
+    assert_eq!(bytes[end..], [0; 8]);
     let back: ClientRequest = wire::decode(&bytes).unwrap();
     assert_eq!(back, ClientRequest::Submit(spec));
 }
@@ -1088,8 +1152,8 @@ fn decode_error<T: DeserializeOwned + Debug>(bytes: &[u8]) -> String {
 #[test]
 fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     assert_eq!(
-        decode_error::<ClientRequest>(&20u32.to_le_bytes()),
-        "unreadable ClientRequest: unknown variant 20 (variants go from 0 to 19)"
+        decode_error::<ClientRequest>(&21u32.to_le_bytes()),
+        "unreadable ClientRequest: unknown variant 21 (variants go from 0 to 20)"
     );
     let mut status = wire::encode(&ClientRequest::Status { job: 1 });
     assert_eq!(
@@ -1112,6 +1176,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             submitter: String::new(),
             frame: 1,
             frames: None,
+            assets: Vec::new(),
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1125,8 +1190,9 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         ..Default::default()
     });
     // The Sampling variant, before the priority, verification, time limit, the name
-    // and submitter (two empty strings: their lengths), the frame and the range.
-    let at = nested.len() - 13 - 16 - 4 - 1;
+    // and submitter (two empty strings: their lengths), the frame, the range and the
+    // files (none: their length).
+    let at = nested.len() - 13 - 16 - 4 - 1 - 8;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),
@@ -1135,9 +1201,12 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     let scene = wire::encode(&ToWorker::Scene {
         hash: [0; 32],
         scene: "ab".into(),
+        assets: Vec::new(),
     });
     let mut bad_utf8 = scene.clone();
-    *bad_utf8.last_mut().unwrap() = 0xff;
+    // The scene's last byte, before the files' length (8 bytes).
+    let last = bad_utf8.len() - 9;
+    bad_utf8[last] = 0xff;
     assert_eq!(
         decode_error::<ToWorker>(&bad_utf8),
         "unreadable ToWorker: a string is not valid UTF-8"

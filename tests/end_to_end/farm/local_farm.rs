@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use tempfile::TempDir;
 
 use crate::support::{
-    all_scenes, assert_same_png, names_mesh_files, ok, path_str, poll, proc_stat, render_reference,
-    scene_path, shared, tessera, Daemon, BIN, POLL,
+    all_scenes, assert_same_png, ok, path_str, poll, proc_stat, render_reference, scene_path,
+    shared, tessera, Daemon, BIN, POLL,
 };
 
 /// Longest a job of these tests may take to finish.
@@ -147,9 +147,8 @@ fn assert_all_gone(pids: &[u32], marker: &str, what: &str) {
 }
 
 /// Every scene, through `tessera up` with 1, 2 and 3 workers and three tile sizes
-/// (16, 32 and 48: full, and partial edge tiles), gives `tessera render`'s PNG. A scene
-/// that names mesh files is refused in one line instead, and nothing is written: mesh
-/// files are not shipped to workers yet.
+/// (16, 32 and 48: full, and partial edge tiles), gives `tessera render`'s PNG, scenes
+/// that name mesh files included (their files travel with the job).
 #[test]
 fn up_gives_renders_image_for_every_scene_worker_count_and_tile_size() {
     let _turn = shared();
@@ -162,24 +161,6 @@ fn up_gives_renders_image_for_every_scene_worker_count_and_tile_size() {
     for path in scenes {
         let scene = path_str(&path);
         let stem = path.file_stem().unwrap().to_string_lossy().into_owned();
-        if names_mesh_files(&path) {
-            let out = dir.path().join(format!("{stem}-up.png"));
-            let run = tessera(
-                dir.path(),
-                &["up", scene, "-o", path_str(&out)],
-                JOB_TIMEOUT,
-            );
-            assert!(
-                !run.status.success()
-                    && run.stderr.trim_end().lines().count() == 1
-                    && run.stderr.contains("mesh file"),
-                "tessera up {scene}: {}\nstderr: {}",
-                run.status,
-                run.stderr
-            );
-            assert!(!out.exists(), "tessera up {scene} wrote an image");
-            continue;
-        }
         let reference = render_reference(dir.path(), scene, &format!("{stem}.png"), SMALL);
         for workers in ["1", "2", "3"] {
             for tile in ["16", "32", "48"] {

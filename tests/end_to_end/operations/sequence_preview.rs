@@ -62,6 +62,7 @@ fn submit(addr: &str, frames: Option<FrameRange>) -> JobId {
         submitter: "test".into(),
         frame: 1,
         frames,
+        assets: Vec::new(),
     };
     runtime().block_on(async {
         let mut client = Client::connect(&Endpoint::plain(addr)).await.unwrap();

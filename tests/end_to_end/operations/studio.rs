@@ -33,8 +33,8 @@ use std::time::{Duration, Instant};
 use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
-    assert_same_png, entries, exclusive, farm_refusal, http_get, http_post, json_error, ok,
-    one_error_line, poll, shared, spawn_tessera, start_coordinator_with_http, tessera, wait_done,
+    assert_same_png, entries, exclusive, http_get, http_post, json_error, ok, one_error_line, poll,
+    shared, spawn_tessera, start_coordinator_with_http, studio_refusal, tessera, wait_done,
     write_mesh_scene, write_shapes_scene, Daemon, LOADER_REFUSAL,
 };
 
@@ -505,7 +505,7 @@ fn a_studio_refuses_a_mesh_in_one_line_and_takes_triangles_and_boxes() {
     let run = tessera(dir, &["studio", "cube.json"], TIMEOUT);
     assert_eq!(
         one_error_line(&run, "tessera studio cube.json"),
-        farm_refusal("cube.json")
+        studio_refusal("cube.json")
     );
     let run = tessera(
         dir,
@@ -521,7 +521,7 @@ fn a_studio_refuses_a_mesh_in_one_line_and_takes_triangles_and_boxes() {
         TIMEOUT,
     );
     assert!(!run.status.success());
-    let refusal = farm_refusal("cube.json");
+    let refusal = studio_refusal("cube.json");
     let refusal = refusal.trim_start_matches("error: ");
     assert!(run.stderr.contains(refusal), "{}", run.stderr);
 

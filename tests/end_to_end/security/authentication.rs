@@ -264,6 +264,7 @@ fn impostor(behaviour: Impostor) -> (String, JoinHandle<Vec<Vec<u8>>>) {
                 let bait = ToWorker::Scene {
                     hash: [0; 32],
                     scene: r#"{"lights": [], "objects": []}"#.into(),
+                    assets: Vec::new(),
                 };
                 offer(&mut stream, &protocol::wire::encode(&bait));
             }

@@ -348,9 +348,9 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (_coordinator, addr) = crate::support::start_coordinator_in(d);
-    // A version 10 client hello: magic, version, role Client, a nonce, no key.
+    // A version 11 client hello: magic, version, role Client, a nonce, no key.
     let mut hello = b"TSRA".to_vec();
-    hello.extend(10u16.to_le_bytes());
+    hello.extend(11u16.to_le_bytes());
     hello.extend(0u32.to_le_bytes());
     hello.extend([0u8; 32]);
     hello.push(0);
@@ -367,11 +367,11 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
         reason,
         format!(
             "protocol version mismatch: this coordinator speaks version {}, the peer speaks \
-             version 10",
+             version 11",
             protocol::PROTOCOL_VERSION
         )
     );
-    assert_eq!(protocol::PROTOCOL_VERSION, 11);
+    assert_eq!(protocol::PROTOCOL_VERSION, 12);
     let mut rest = [0; 16];
     assert_eq!(
         stream.read(&mut rest).ok(),

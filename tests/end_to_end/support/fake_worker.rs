@@ -277,7 +277,8 @@ async fn serve(
                 });
                 Some(FromWorker::CanaryDone { images })
             }
-            ToWorker::Scene { hash, scene } => {
+            // The fake worker's scenes name no file.
+            ToWorker::Scene { hash, scene, .. } => {
                 let parsed = render::parse_animated(&scene)
                     .map_err(|e| format!("the coordinator sent a bad scene: {e}"))?;
                 scenes.insert(hash, parsed);
@@ -297,7 +298,11 @@ async fn serve(
                 *state.joined_as.lock().expect("name slot") = Some(name);
                 None
             }
-            ToWorker::Heartbeat | ToWorker::Cancel { .. } | ToWorker::Drain => None,
+            ToWorker::Heartbeat
+            | ToWorker::Cancel { .. }
+            | ToWorker::Drain
+            | ToWorker::AssetChunk { .. }
+            | ToWorker::AssetUnavailable { .. } => None,
             ToWorker::Advance {
                 job,
                 tile,

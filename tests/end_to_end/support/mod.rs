@@ -72,20 +72,6 @@ pub fn all_scenes() -> Vec<PathBuf> {
     scenes
 }
 
-/// Whether the scene at `path` names a mesh file. A farm does not render such a scene
-/// yet: its workers receive the scene's text, not the files beside it.
-pub fn names_mesh_files(path: &Path) -> bool {
-    let text = std::fs::read_to_string(path)
-        .unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
-    let dir = path.parent().expect("a scene file lies in a directory");
-    let scene = render::parse_scene_with(&text, &render::MeshFiles::beside(dir))
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    scene
-        .objects
-        .iter()
-        .any(|o| matches!(o.shape, render::Shape::Mesh(_)))
-}
-
 /// A path as an argument (test paths are UTF-8).
 pub fn path_str(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")

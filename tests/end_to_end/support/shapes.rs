@@ -80,18 +80,17 @@ pub fn write_mesh_scene(dir: &Path) -> PathBuf {
     path
 }
 
-/// What the client commands that hand a scene to a farm (`submit`, `up`, `studio`, a
-/// coordinator's `--studio-scene`) say of [`write_mesh_scene`]'s scene at `scene`.
-pub fn farm_refusal(scene: &str) -> String {
+/// What the commands that open a scene in a studio (`studio`, a coordinator's
+/// `--studio-scene`) say of [`write_mesh_scene`]'s scene at `scene`.
+pub fn studio_refusal(scene: &str) -> String {
     format!(
-        "error: {scene}: objects[1].file: cube.obj: a farm does not render meshes yet (their \
-         mesh files are not sent to workers): render this scene on this machine with \
-         `tessera render`"
+        "error: {scene}: objects[1].file: cube.obj: a studio does not edit scenes with meshes \
+         yet: render this scene with `tessera render`, or on a farm with `tessera submit` or \
+         `tessera up`"
     )
 }
 
-/// What a coordinator answers when [`write_mesh_scene`]'s scene reaches it all the same
-/// (a job or a studio edit): the renderer's own line.
-pub const LOADER_REFUSAL: &str = "objects[1].file: a mesh file cannot be read here: a scene \
-    with meshes is rendered from its file by `tessera render` (a farm does not render meshes \
-    yet)";
+/// What a coordinator answers when [`write_mesh_scene`]'s scene reaches it without its
+/// files (a job naming none, or a studio edit): the renderer's own line.
+pub const LOADER_REFUSAL: &str = "objects[1].file: a mesh file cannot be read here: the \
+    scene names a mesh file but no files were given with it";

@@ -6,9 +6,12 @@ use std::net::IpAddr;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
-use protocol::{ClientResponse, JobId, JobSpec, JobState, Refusal, SceneHash, Settings};
+use protocol::scene_hash;
+use protocol::{
+    AssetAnswer, AssetRef, ClientResponse, JobId, JobSpec, JobState, Refusal, Settings,
+    MAX_ASSET_NAME, MAX_JOB_ASSETS,
+};
 use scheduler::lifecycle;
-use sha2::{Digest, Sha256};
 
 use super::unknown_job;
 use crate::db::Label;
@@ -25,29 +28,79 @@ pub(super) async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> Cli
             "the coordinator is shutting down: submit again when it is back",
         ));
     }
+    if let Err(refusal) = check_assets(&spec.assets) {
+        return ClientResponse::Error(refusal);
+    }
     let limits = sh.limits;
-    let prepared = match tokio::task::spawn_blocking(move || prepare(spec, &limits, peer)).await {
-        Ok(Ok(prepared)) => prepared,
-        Ok(Err(message)) => return ClientResponse::Error(message),
-        Err(_) => {
-            return ClientResponse::Error(Refusal::unavailable(
-                "the scene could not be checked: try again",
-            ))
+    // The scene's files are kept under a provisional owner while the scene is checked,
+    // then under the job's id once it is admitted: no collection falls in between.
+    let owner = sh.depot.provisional();
+    let shared = Arc::clone(sh);
+    // What stops a submission before admission: the answer to give, boxed (an answer
+    // is large, a prepared job is not).
+    let checked = tokio::task::spawn_blocking(move || -> Result<Prepared, Box<ClientResponse>> {
+        if let Err(lacking) = shared.depot.pin(owner, &spec.assets) {
+            let answer = ClientResponse::Assets(AssetAnswer::SubmitLacking { lacking });
+            return Err(Box::new(answer));
         }
+        let refused = |r: Refusal| Box::new(ClientResponse::Error(r));
+        let files = shared.mesh_files(&spec.assets).map_err(|e| {
+            refused(Refusal::not_found(format!(
+                "a file of the scene cannot be read from the coordinator's store: {e}"
+            )))
+        })?;
+        prepare(spec, &limits, peer, &files).map_err(refused)
+    })
+    .await;
+    let response = match checked {
+        Ok(Ok(prepared)) => admit(sh, prepared).await,
+        Ok(Err(response)) => *response,
+        Err(_) => ClientResponse::Error(Refusal::unavailable(
+            "the scene could not be checked: try again",
+        )),
     };
-    admit(sh, prepared).await
+    sh.depot.release(owner, crate::server::unix_ms());
+    response
+}
+
+/// The files a submission names, checked before any is read: how many, their names
+/// (one each), none twice.
+fn check_assets(assets: &[AssetRef]) -> Result<(), Refusal> {
+    if assets.len() > MAX_JOB_ASSETS {
+        return Err(Refusal::limit(format!(
+            "assets: {} files, more than the {MAX_JOB_ASSETS} a job may name",
+            assets.len()
+        )));
+    }
+    let mut names = std::collections::BTreeSet::new();
+    for (i, a) in assets.iter().enumerate() {
+        if a.name.is_empty() || a.name.len() > MAX_ASSET_NAME || a.name.contains('\0') {
+            return Err(Refusal::invalid(format!(
+                "assets[{i}]: a file's name must be 1 to {MAX_ASSET_NAME} bytes without NUL"
+            )));
+        }
+        if !names.insert(a.name.as_str()) {
+            return Err(Refusal::invalid(format!(
+                "assets[{i}]: {:?} is named twice",
+                a.name
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Has the lifecycle admit a prepared job (or a sequence), and answers once its row is
 /// written.
 pub(in crate::server) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> ClientResponse {
     let (reply, answer) = tokio::sync::oneshot::channel();
+    let assets = prepared.assets.clone();
     if prepared.frames.is_some() {
         let stored = match sh.lock().admit_sequence(prepared, reply) {
             Ok(stored) => stored,
             Err(message) => return ClientResponse::Error(message),
         };
         let id = stored.id;
+        keep_files(sh, id, &assets);
         let shared = Arc::clone(sh);
         sh.persistence.write(Write::InsertJob {
             job: Box::new(stored),
@@ -62,6 +115,7 @@ pub(in crate::server) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> Cl
             Err(message) => return ClientResponse::Error(message),
         };
         let id = stored.id;
+        keep_files(sh, id, &assets);
         let write = core.insert_write(sh, stored);
         // A studio view's pass is not stored: `store` discards the write.
         core.store(sh, id, write);
@@ -71,6 +125,17 @@ pub(in crate::server) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> Cl
             "the coordinator stopped before storing the job: submit again",
         ))
     })
+}
+
+/// Keeps the files of a job just admitted for as long as the job is kept (they were
+/// pinned for its check: they are in the store).
+fn keep_files(sh: &Shared, job: JobId, assets: &[AssetRef]) {
+    if !assets.is_empty() && sh.depot.pin(job, assets).is_err() {
+        tracing::error!(
+            job,
+            "the scene's files left the store while it was admitted"
+        );
+    }
 }
 
 /// A new job from a finished adaptive one, its tiles starting from the old job's
@@ -93,7 +158,7 @@ pub(super) async fn refine(
             "the coordinator is shutting down: refine again when it is back",
         ));
     }
-    let (old, tile_size, priority, verification, hash, name, submitter, frame) = {
+    let (old, tile_size, priority, verification, hash, name, submitter, frame, assets) = {
         let core = sh.lock();
         let Some(status) = core.status(job) else {
             return Ok(unknown_job(job));
@@ -123,6 +188,7 @@ pub(super) async fn refine(
             status.name.clone(),
             status.submitter.clone(),
             status.frame,
+            record.assets.to_vec(),
         )
     };
     let aa = aa.unwrap_or(old.aa);
@@ -139,7 +205,7 @@ pub(super) async fn refine(
         let scene = store
             .read_scene(job)
             .map_err(|e| Refusal::internal(format!("{e:#}")))?;
-        if Sha256::digest(scene.as_bytes()).as_slice() != hash {
+        if scene_hash(&scene, &assets) != hash {
             return Err(Refusal::internal(format!(
                 "the stored scene of job {job} does not match the job's scene hash"
             )));
@@ -164,8 +230,12 @@ pub(super) async fn refine(
             submitter,
             frame,
             frames: None,
+            assets,
         };
-        let mut prepared = prepare(spec, &limits, peer)?;
+        let files = shared
+            .mesh_files(&spec.assets)
+            .map_err(|e| Refusal::not_found(format!("the scene's files: {e}")))?;
+        let mut prepared = prepare(spec, &limits, peer, &files)?;
         if states.tile_size != tile_size
             || states.aa != old.aa
             || states.states.len() != prepared.tiles.len()
@@ -187,6 +257,7 @@ pub(super) async fn refine(
                 prepared.frame,
                 prepared.settings,
                 &prepared.scene,
+                || Ok(files.clone()),
             )
             .map_err(Refusal::invalid)?;
         let footprints = verifier.footprints(&tracer);
@@ -219,13 +290,14 @@ pub(in crate::server) fn prepare(
     spec: JobSpec,
     limits: &lifecycle::Limits,
     client: IpAddr,
+    files: &render::MeshFiles,
 ) -> Result<Prepared, Refusal> {
     limits.check_scene_bytes(spec.scene.len())?;
     // The frame is checked with the scene: a frame it does not have is refused in the
     // loader's one line ("frame 122 is beyond the scene's 121 frames"). Image settings
     // are not animated, so the base scene's are every frame's.
-    let animated =
-        render::parse_animated(&spec.scene).map_err(|e| Refusal::invalid(e.to_string()))?;
+    let animated = render::parse_animated_with(&spec.scene, files)
+        .map_err(|e| Refusal::invalid(e.to_string()))?;
     let frames = animated.frame_count();
     let out_of_range = |frame: u32| render::FrameOutOfRange {
         frame: u64::from(frame),
@@ -292,7 +364,7 @@ pub(in crate::server) fn prepare(
         verify::adaptive::check_tile_side(tile_size)
             .map_err(|e| Refusal::invalid(format!("overrides: tile: {e}")))?;
     }
-    let hash: SceneHash = Sha256::digest(spec.scene.as_bytes()).into();
+    let hash = scene_hash(&spec.scene, &spec.assets);
     let request = lifecycle::Request {
         client: Some(client),
         scene_bytes: spec.scene.len(),
@@ -327,6 +399,7 @@ pub(in crate::server) fn prepare(
         sequence: None,
         frames: spec.frames,
         frame_count: frames,
+        assets: spec.assets,
     })
 }
 

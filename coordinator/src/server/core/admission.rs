@@ -62,6 +62,7 @@ impl Core {
             frame: prepared.frame,
             last_frame: None,
             sequence: prepared.sequence,
+            assets: prepared.assets.clone(),
             settings: prepared.settings,
             tile_size: prepared.tile_size,
             priority: prepared.priority,
@@ -82,6 +83,7 @@ impl Core {
         self.jobs.insert(
             id,
             JobRecord {
+                assets: Arc::from(prepared.assets),
                 interactive: prepared.interactive,
                 owner: prepared.owner,
                 adaptive,
@@ -225,6 +227,7 @@ impl Core {
             adaptive
         });
         let mut record = JobRecord {
+            assets: Arc::from(stored.assets.clone()),
             interactive: false,
             owner: None,
             adaptive,

@@ -20,14 +20,13 @@ impl Core {
             match action {
                 Action::SendScene { worker, job } => {
                     if let Some(scene) = self.jobs.get(&job).and_then(|r| r.scene.clone()) {
-                        let hash = self.jobs[&job].hash;
-                        self.send(
-                            worker,
-                            ToWorker::Scene {
-                                hash,
-                                scene: scene.to_string(),
-                            },
-                        );
+                        let record = &self.jobs[&job];
+                        let message = ToWorker::Scene {
+                            hash: record.hash,
+                            scene: scene.to_string(),
+                            assets: record.assets.to_vec(),
+                        };
+                        self.send(worker, message);
                     }
                 }
                 Action::Assign { worker, job, tile } => self.assign(sh, worker, job, tile),
@@ -191,6 +190,7 @@ impl Core {
                 A::RefuseStored { job, message } => {
                     // A frame job's frame waits again: the core saw to it.
                     self.jobs.remove(&job);
+                    sh.depot.release(job, self.now.unix_ms);
                     error!(job, error = %message, "cannot store a job");
                     if let Some(reply) = self.submits.remove(&job) {
                         let _ = reply.send(ClientResponse::Error(Refusal::internal(format!(
@@ -214,7 +214,10 @@ impl Core {
                                 let mut core = shared.lock();
                                 core.jobs.remove(&job);
                                 core.life_event(&shared, lifecycle::Event::Deleted { job });
+                                let now = core.now.unix_ms;
                                 drop(core);
+                                // Its scene's files go once no other job names them.
+                                shared.depot.release(job, now);
                                 info!(job, "job deleted");
                                 shared.changed();
                             }),

@@ -118,11 +118,13 @@ impl Core {
             paint_last: record.time_limit_ms.is_some(),
         };
         let (hash, frame) = (record.hash, record.frame);
+        let assets = Arc::clone(&record.assets);
         let shared = Arc::clone(sh);
         sh.runtime.spawn_blocking(move || {
             let verifier = &shared.verifier;
+            let files = || shared.mesh_files(&assets);
             let evaluation = verifier
-                .tracer(hash, frame, snap.settings, &scene)
+                .tracer(hash, frame, snap.settings, &scene, files)
                 .and_then(|tracer| adaptive::evaluate(verifier, &tracer, snap));
             shared.lock().pass_evaluated(&shared, job, pass, evaluation);
         });

@@ -31,6 +31,8 @@ pub struct JobRecord {
     pub owner: Option<crate::studio::views::Owner>,
     /// The scene text, while the job is active (workers may still ask for it).
     pub scene: Option<Arc<str>>,
+    /// The files the scene names, bound to their content: sent with the scene.
+    pub assets: Arc<[protocol::AssetRef]>,
     pub hash: SceneHash,
     /// The frame of the scene it renders, from 1: sent with every tile, and the frame
     /// its results are checked against.
@@ -346,6 +348,8 @@ pub struct Prepared {
     pub sequence: Option<JobId>,
     /// For a sequence job: its frames (`frame` must be 1).
     pub frames: Option<protocol::FrameRange>,
+    /// The files the scene names, bound to their content (checked present).
+    pub assets: Vec<protocol::AssetRef>,
     /// The scene's frame count.
     pub frame_count: u32,
 }

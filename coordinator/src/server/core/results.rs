@@ -15,7 +15,6 @@ use super::records::{
 };
 use super::{Core, Shared, Write};
 use crate::server::adaptive::{self, AdaptivePlan, Answer};
-use crate::server::verification::Verifier;
 
 /// What a result is checked against, gathered under the lock.
 pub struct CheckPlan {
@@ -23,6 +22,7 @@ pub struct CheckPlan {
     frame: u32,
     settings: Settings,
     scene: Arc<str>,
+    assets: Arc<[protocol::AssetRef]>,
     rect: TileRect,
     /// For an adaptive job's answer: its pass, rung and previous state.
     adaptive: Option<AdaptivePlan>,
@@ -46,8 +46,10 @@ impl CheckPlan {
 
     /// Spot-checks the result (off the lock: it renders). An adaptive answer's state
     /// comes in `state`.
-    pub fn run(self, verifier: &Verifier, rgb: &[u8], state: Option<Vec<u8>>) -> Verdict {
-        match verifier.tracer(self.hash, self.frame, self.settings, &self.scene) {
+    pub fn run(self, sh: &Shared, rgb: &[u8], state: Option<Vec<u8>>) -> Verdict {
+        let verifier = &sh.verifier;
+        let files = || sh.mesh_files(&self.assets);
+        match verifier.tracer(self.hash, self.frame, self.settings, &self.scene, files) {
             Ok(tracer) => match (&self.adaptive, state) {
                 (Some(plan), Some(state)) => {
                     let checked = adaptive::check_answer(
@@ -212,6 +214,7 @@ impl Core {
             frame: record.frame,
             settings: record.settings,
             scene,
+            assets: Arc::clone(&record.assets),
             rect,
             adaptive,
         }))

@@ -35,6 +35,8 @@ mod controls;
 /// frames stand is the core's ([`Core::sequence_run`]).
 pub struct SequenceRecord {
     pub scene: Arc<str>,
+    /// The files the scene names: every frame job's.
+    pub assets: Arc<[protocol::AssetRef]>,
     pub hash: SceneHash,
     /// The scene's frame count (frames are named by it: `frame_0007.png`).
     pub frame_count: u32,
@@ -97,6 +99,7 @@ impl Core {
             frame: range.first,
             last_frame: Some(range.last),
             sequence: None,
+            assets: prepared.assets.clone(),
             settings: prepared.settings,
             tile_size: prepared.tile_size,
             priority: prepared.priority,
@@ -116,6 +119,7 @@ impl Core {
         self.sequences.insert(
             id,
             SequenceRecord {
+                assets: Arc::from(prepared.assets),
                 scene: Arc::from(prepared.scene),
                 hash: prepared.hash,
                 frame_count: prepared.frame_count,
@@ -167,6 +171,7 @@ impl Core {
             }
             Err(message) => {
                 self.sequences.remove(&id);
+                sh.depot.release(id, self.now.unix_ms);
                 self.feed(
                     sh,
                     Input::Sequence(SequenceInput::NotStored { sequence: id }),
@@ -209,6 +214,7 @@ impl Core {
         self.sequences.insert(
             id,
             SequenceRecord {
+                assets: Arc::from(stored.assets),
                 scene: Arc::from(stored.scene),
                 hash: stored.hash,
                 frame_count,
@@ -318,7 +324,9 @@ impl Core {
                             &shared,
                             Input::Sequence(SequenceInput::Deleted { sequence }),
                         );
+                        let now = core.now.unix_ms;
                         drop(core);
+                        shared.depot.release(sequence, now);
                         info!(job = sequence, "sequence deleted");
                         shared.changed();
                         if let Some(done) = done {
@@ -356,6 +364,7 @@ impl Core {
             sequence: Some(id),
             frames: None,
             frame_count: record.frame_count,
+            assets: record.assets.to_vec(),
         };
         // The answer goes to the sequence (the core tells it), not to a client.
         let (reply, _) = oneshot::channel();
