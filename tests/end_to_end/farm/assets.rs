@@ -201,3 +201,34 @@ fn a_worker_with_a_cache_fetches_a_file_once_across_its_restarts() {
         "the cache directory is empty"
     );
 }
+
+/// A relay corrupting the first two chunks of files on their way to the worker: the
+/// worker finds each file wrong by its hash, fetches it again, and renders the job
+/// exactly; the network's fault quarantines nobody.
+#[test]
+fn file_chunks_corrupted_on_the_way_are_fetched_again_and_nobody_is_quarantined() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let (_coordinator, addr, http) = start_coordinator_with_http(d, &[]);
+    let relay = crate::support::flip_relay::FlipRelay::start_flipping_files(&addr, 2);
+    let _worker = start_worker(d, relay.address(), "behind");
+    wait_for_workers(d, &addr, 1, REGISTER_TIMEOUT);
+    let scene = write_mesh_scene(d);
+    let scene = path_str(&scene);
+    let job = submit_scene(d, &addr, scene, SMALL);
+    wait_done(d, &addr, job, JOB_TIMEOUT);
+    assert_job_image(d, &addr, job, scene, SMALL, "files corrupted on the way");
+    assert_eq!(relay.files_flipped(), 2, "the relay corrupted no chunk");
+    let metrics = http_get_text(&http, "/metrics");
+    let size = std::fs::metadata(d.join("cube.obj")).unwrap().len() as f64;
+    assert_eq!(
+        metric_value(&metrics, "tessera_asset_sent_bytes_total"),
+        Some(3.0 * size),
+        "the file was not fetched three times"
+    );
+    assert_eq!(
+        metric_value(&metrics, "tessera_workers_quarantined_total"),
+        Some(0.0)
+    );
+}

@@ -4,7 +4,10 @@
 //! with that index as four little-endian bytes), the first included, has one byte of
 //! its pixels (raw or compressed) flipped, near the end of the frame (the pixels are
 //! followed by four 8-byte fields). Everything else passes unchanged, the
-//! handshake included. Dropping it closes every connection through it.
+//! handshake included. Or ([`FlipRelay::start_flipping_files`]) it corrupts instead
+//! the first few chunks of scene files the coordinator sends (`ToWorker::AssetChunk`,
+//! variant 11: the last byte of the chunk's bytes). Dropping it closes every
+//! connection through it.
 
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
@@ -25,6 +28,9 @@ struct Shared {
     /// `TileDone` frames relayed, and how many of them were corrupted.
     tile_frames: AtomicU64,
     flipped: AtomicU64,
+    /// File chunks still to corrupt, and those corrupted.
+    file_flips_left: AtomicU64,
+    files_flipped: AtomicU64,
     /// Every socket of the relay, shut down on drop so that blocked threads end.
     sockets: Mutex<Vec<TcpStream>>,
 }
@@ -40,12 +46,25 @@ impl FlipRelay {
     /// `every`th tile result.
     pub fn start(upstream: &str, every: u64) -> FlipRelay {
         assert!(every >= 1);
+        FlipRelay::relay(upstream, Some(every), 0)
+    }
+
+    /// Relays connections to `upstream`, corrupting the first `chunks` chunks of scene
+    /// files sent to the worker, and no tile result.
+    pub fn start_flipping_files(upstream: &str, chunks: u64) -> FlipRelay {
+        FlipRelay::relay(upstream, None, chunks)
+    }
+
+    fn relay(upstream: &str, every: Option<u64>, file_chunks: u64) -> FlipRelay {
         let listener = TcpListener::bind("127.0.0.1:0").expect("cannot bind the relay");
         listener
             .set_nonblocking(true)
             .expect("cannot make the relay nonblocking");
         let address = listener.local_addr().expect("relay address").to_string();
-        let shared = Arc::new(Shared::default());
+        let shared = Arc::new(Shared {
+            file_flips_left: AtomicU64::new(file_chunks),
+            ..Shared::default()
+        });
         let upstream = upstream.to_owned();
         let accepting = Arc::clone(&shared);
         thread::spawn(move || {
@@ -70,7 +89,11 @@ impl FlipRelay {
                             continue;
                         };
                         let to_worker = Arc::clone(&accepting);
-                        thread::spawn(move || copy(up2, down2, &to_worker));
+                        if file_chunks > 0 {
+                            thread::spawn(move || to_worker_frames(up2, down2, &to_worker));
+                        } else {
+                            thread::spawn(move || copy(up2, down2, &to_worker));
+                        }
                         let from_worker = Arc::clone(&accepting);
                         thread::spawn(move || frames(down, up, every, &from_worker));
                     }
@@ -95,6 +118,11 @@ impl FlipRelay {
     /// `TileDone` frames corrupted so far.
     pub fn flipped(&self) -> u64 {
         self.shared.flipped.load(Ordering::SeqCst)
+    }
+
+    /// File chunks corrupted so far.
+    pub fn files_flipped(&self) -> u64 {
+        self.shared.files_flipped.load(Ordering::SeqCst)
     }
 }
 
@@ -124,8 +152,44 @@ fn copy(mut from: TcpStream, mut to: TcpStream, shared: &Shared) {
     let _ = from.shutdown(Shutdown::Both);
 }
 
-/// Worker to coordinator: frame by frame, corrupting every `every`th tile result.
-fn frames(mut from: TcpStream, mut to: TcpStream, every: u64, shared: &Shared) {
+/// Coordinator to worker: frame by frame, corrupting the first file chunks.
+fn to_worker_frames(mut from: TcpStream, mut to: TcpStream, shared: &Shared) {
+    loop {
+        if shared.stop.load(Ordering::SeqCst) {
+            break;
+        }
+        let mut prefix = [0u8; 4];
+        if from.read_exact(&mut prefix).is_err() {
+            break;
+        }
+        let len = u32::from_be_bytes(prefix) as usize;
+        let mut body = vec![0u8; len];
+        if from.read_exact(&mut body).is_err() {
+            break;
+        }
+        // A file chunk: variant 11, the key (40 bytes), the offset (8), the bytes'
+        // length (8), then at least one byte.
+        let chunk = len > 4 + 40 + 8 + 8 && body[..4] == [11, 0, 0, 0];
+        if chunk
+            && shared
+                .file_flips_left
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+                .is_ok()
+        {
+            body[len - 1] ^= 0xff;
+            shared.files_flipped.fetch_add(1, Ordering::SeqCst);
+        }
+        if to.write_all(&prefix).is_err() || to.write_all(&body).is_err() {
+            break;
+        }
+    }
+    let _ = to.shutdown(Shutdown::Both);
+    let _ = from.shutdown(Shutdown::Both);
+}
+
+/// Worker to coordinator: frame by frame, corrupting every `every`th tile result
+/// (none without `every`).
+fn frames(mut from: TcpStream, mut to: TcpStream, every: Option<u64>, shared: &Shared) {
     loop {
         if shared.stop.load(Ordering::SeqCst) {
             break;
@@ -145,7 +209,7 @@ fn frames(mut from: TcpStream, mut to: TcpStream, every: u64, shared: &Shared) {
             && (body[..4] == [0, 0, 0, 0] || body[..4] == [6, 0, 0, 0]);
         if tile_done {
             let nth = shared.tile_frames.fetch_add(1, Ordering::SeqCst);
-            if nth.is_multiple_of(every) {
+            if every.is_some_and(|every| nth.is_multiple_of(every)) {
                 let at = len - AFTER_PIXELS - 7;
                 body[at] ^= 0xff;
                 shared.flipped.fetch_add(1, Ordering::SeqCst);
