@@ -153,22 +153,11 @@ fn copy(mut from: TcpStream, mut to: TcpStream, shared: &Shared) {
 }
 
 /// Coordinator to worker: frame by frame, corrupting the first file chunks.
-fn to_worker_frames(mut from: TcpStream, mut to: TcpStream, shared: &Shared) {
-    loop {
-        if shared.stop.load(Ordering::SeqCst) {
-            break;
-        }
-        let mut prefix = [0u8; 4];
-        if from.read_exact(&mut prefix).is_err() {
-            break;
-        }
-        let len = u32::from_be_bytes(prefix) as usize;
-        let mut body = vec![0u8; len];
-        if from.read_exact(&mut body).is_err() {
-            break;
-        }
+fn to_worker_frames(from: TcpStream, to: TcpStream, shared: &Shared) {
+    relay_frames(from, to, shared, |body| {
         // A file chunk: variant 11, the key (40 bytes), the offset (8), the bytes'
         // length (8), then at least one byte.
+        let len = body.len();
         let chunk = len > 4 + 40 + 8 + 8 && body[..4] == [11, 0, 0, 0];
         if chunk
             && shared
@@ -179,17 +168,36 @@ fn to_worker_frames(mut from: TcpStream, mut to: TcpStream, shared: &Shared) {
             body[len - 1] ^= 0xff;
             shared.files_flipped.fetch_add(1, Ordering::SeqCst);
         }
-        if to.write_all(&prefix).is_err() || to.write_all(&body).is_err() {
-            break;
-        }
-    }
-    let _ = to.shutdown(Shutdown::Both);
-    let _ = from.shutdown(Shutdown::Both);
+    });
 }
 
 /// Worker to coordinator: frame by frame, corrupting every `every`th tile result
 /// (none without `every`).
-fn frames(mut from: TcpStream, mut to: TcpStream, every: Option<u64>, shared: &Shared) {
+fn frames(from: TcpStream, to: TcpStream, every: Option<u64>, shared: &Shared) {
+    relay_frames(from, to, shared, |body| {
+        // A tile result: variant 0 or 6, job, tile, the pixels' length, pixels (raw or
+        // compressed), 32 more bytes.
+        let len = body.len();
+        let tile_done = len > 4 + 8 + 4 + 8 + AFTER_PIXELS
+            && (body[..4] == [0, 0, 0, 0] || body[..4] == [6, 0, 0, 0]);
+        if tile_done {
+            let nth = shared.tile_frames.fetch_add(1, Ordering::SeqCst);
+            if every.is_some_and(|every| nth.is_multiple_of(every)) {
+                let at = len - AFTER_PIXELS - 7;
+                body[at] ^= 0xff;
+                shared.flipped.fetch_add(1, Ordering::SeqCst);
+            }
+        }
+    });
+}
+
+/// Relays frames one by one, each body passed to `edit` on its way.
+fn relay_frames(
+    mut from: TcpStream,
+    mut to: TcpStream,
+    shared: &Shared,
+    mut edit: impl FnMut(&mut Vec<u8>),
+) {
     loop {
         if shared.stop.load(Ordering::SeqCst) {
             break;
@@ -203,18 +211,7 @@ fn frames(mut from: TcpStream, mut to: TcpStream, every: Option<u64>, shared: &S
         if from.read_exact(&mut body).is_err() {
             break;
         }
-        // A tile result: variant 0 or 6, job, tile, the pixels' length, pixels (raw or
-        // compressed), 32 more bytes.
-        let tile_done = len > 4 + 8 + 4 + 8 + AFTER_PIXELS
-            && (body[..4] == [0, 0, 0, 0] || body[..4] == [6, 0, 0, 0]);
-        if tile_done {
-            let nth = shared.tile_frames.fetch_add(1, Ordering::SeqCst);
-            if every.is_some_and(|every| nth.is_multiple_of(every)) {
-                let at = len - AFTER_PIXELS - 7;
-                body[at] ^= 0xff;
-                shared.flipped.fetch_add(1, Ordering::SeqCst);
-            }
-        }
+        edit(&mut body);
         if to.write_all(&prefix).is_err() || to.write_all(&body).is_err() {
             break;
         }
