@@ -369,7 +369,8 @@ impl Server {
                 // Every job kept keeps its scene's files (a frame job's are its
                 // sequence's, pinned by the sequence).
                 if !job.job.assets.is_empty() && job.job.sequence.is_none() {
-                    if let Err(lacking) = shared.depot.pin(job.job.id, &job.job.assets) {
+                    let now = unix_ms();
+                    if let Err(lacking) = shared.depot.pin(job.job.id, &job.job.assets, now) {
                         warn!(
                             job = job.job.id,
                             lacking = lacking.len(),

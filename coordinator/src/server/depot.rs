@@ -134,8 +134,10 @@ impl Depot {
     }
 
     /// Keeps the files of `refs` while `owner` (a job, or a provisional owner) names
-    /// them; returns those the store lacks (then nothing is pinned).
-    pub fn pin(&self, owner: u64, refs: &[AssetRef]) -> Result<(), Vec<AssetKey>> {
+    /// them; returns those the store lacks (then nothing is pinned, and the files it
+    /// has are kept the full grace from `now_ms`: the client uploads the others and
+    /// submits again).
+    pub fn pin(&self, owner: u64, refs: &[AssetRef], now_ms: u64) -> Result<(), Vec<AssetKey>> {
         let ids: Vec<AssetId> = refs.iter().map(|r| id_of(&r.key)).collect();
         let mut store = self.store();
         store.pin(owner, &ids);
@@ -143,7 +145,7 @@ impl Depot {
         if missing.is_empty() {
             return Ok(());
         }
-        store.unpin(owner, 0);
+        store.unpin(owner, now_ms);
         Err(missing.iter().map(key_of).collect())
     }
 
@@ -186,5 +188,50 @@ impl Depot {
 
     pub fn stats(&self) -> StoreStats {
         self.store().stats()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn file(bytes: &[u8], name: &str) -> AssetRef {
+        let id = AssetId::of(bytes);
+        AssetRef {
+            name: name.into(),
+            key: key_of(&id),
+        }
+    }
+
+    /// A submission naming a file the store lacks pins nothing, but the files it has
+    /// keep their full grace from then: the client uploads the rest and submits again.
+    #[test]
+    fn a_submission_lacking_a_file_leaves_the_others_their_grace() {
+        let dir = tempfile::tempdir().unwrap();
+        let depot = Depot::open(dir.path(), default_limits()).unwrap();
+        let a = file(b"the first file", "a.obj");
+        let b = file(b"the second file", "b.obj");
+        let t0 = 1_000_000;
+        depot.upload(&a.key, 0, b"the first file", t0).unwrap();
+        let grace = GRACE.as_millis() as u64;
+        let now = t0 + grace;
+        let owner = depot.provisional();
+        assert_eq!(
+            depot.pin(owner, &[a.clone(), b.clone()], now),
+            Err(vec![b.key])
+        );
+        assert_eq!(
+            depot.collect(now + 1),
+            (0, 0),
+            "a file of the submission was collected"
+        );
+        assert!(depot.lacking(&[a.key]).is_empty());
+        // Pinned by a job, it stays whatever the time; released, it goes after its grace.
+        depot.upload(&b.key, 0, b"the second file", now).unwrap();
+        depot.pin(7, &[a.clone(), b.clone()], now).unwrap();
+        assert_eq!(depot.collect(now + 10 * grace), (0, 0));
+        depot.release(7, now + 10 * grace);
+        assert_eq!(depot.collect(now + 12 * grace).0, 2);
+        assert_eq!(depot.lacking(&[a.key, b.key]).len(), 2);
     }
 }

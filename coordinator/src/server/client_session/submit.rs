@@ -39,7 +39,10 @@ pub(super) async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> Cli
     // What stops a submission before admission: the answer to give, boxed (an answer
     // is large, a prepared job is not).
     let checked = tokio::task::spawn_blocking(move || -> Result<Prepared, Box<ClientResponse>> {
-        if let Err(lacking) = shared.depot.pin(owner, &spec.assets) {
+        if let Err(lacking) = shared
+            .depot
+            .pin(owner, &spec.assets, crate::server::unix_ms())
+        {
             let answer = ClientResponse::Assets(AssetAnswer::SubmitLacking { lacking });
             return Err(Box::new(answer));
         }
@@ -130,7 +133,7 @@ pub(in crate::server) async fn admit(sh: &Arc<Shared>, prepared: Prepared) -> Cl
 /// Keeps the files of a job just admitted for as long as the job is kept (they were
 /// pinned for its check: they are in the store).
 fn keep_files(sh: &Shared, job: JobId, assets: &[AssetRef]) {
-    if !assets.is_empty() && sh.depot.pin(job, assets).is_err() {
+    if !assets.is_empty() && sh.depot.pin(job, assets, crate::server::unix_ms()).is_err() {
         tracing::error!(
             job,
             "the scene's files left the store while it was admitted"
