@@ -63,9 +63,11 @@ pub struct FrameChoice {
 /// Decides what to submit: `--frame K` one frame; `--frames A-B` (or `all`) a sequence;
 /// neither, every frame of an animated scene as a sequence, or frame 1 of a static one.
 /// A scene that does not parse goes as frame 1: the coordinator's loader says what is
-/// wrong with it, in the words `tessera render` uses.
+/// wrong with it, in the words `tessera render` uses. The scene is read with the mesh
+/// files `files` gives (those beside its file).
 pub fn choose_frames(
     scene: &str,
+    files: &render::MeshFiles,
     frame: Option<u32>,
     frames: Option<FrameRange>,
 ) -> Result<FrameChoice> {
@@ -76,7 +78,7 @@ pub fn choose_frames(
     if let Some(k) = frame {
         return Ok(single(k));
     }
-    let count = render::parse_animated(scene)
+    let count = render::parse_animated_with(scene, files)
         .ok()
         .map(|a| (a.frame_count(), a.animation.is_some()));
     let sequence = |first: u64, last: u64| -> Result<FrameChoice> {
@@ -142,33 +144,42 @@ mod tests {
 
     #[test]
     fn an_animated_scene_goes_whole_unless_a_frame_or_range_is_named() {
+        let none = render::MeshFiles::none();
         let orbit = include_str!("../scenes/seed-orbit.json");
         let seed = include_str!("../scenes/seed.json");
         let all = Some(protocol::FrameRange {
             first: 1,
             last: 121,
         });
-        assert_eq!(choose_frames(orbit, None, None).unwrap().frames, all);
+        assert_eq!(choose_frames(orbit, &none, None, None).unwrap().frames, all);
         assert_eq!(
-            choose_frames(orbit, None, Some(FrameRange::All))
+            choose_frames(orbit, &none, None, Some(FrameRange::All))
                 .unwrap()
                 .frames,
             all
         );
         assert_eq!(
-            choose_frames(orbit, Some(17), None).unwrap(),
+            choose_frames(orbit, &none, Some(17), None).unwrap(),
             FrameChoice {
                 frame: 17,
                 frames: None
             }
         );
         assert_eq!(
-            choose_frames(orbit, None, Some(FrameRange::Span { first: 3, last: 5 }))
-                .unwrap()
-                .frames,
+            choose_frames(
+                orbit,
+                &none,
+                None,
+                Some(FrameRange::Span { first: 3, last: 5 })
+            )
+            .unwrap()
+            .frames,
             Some(protocol::FrameRange { first: 3, last: 5 })
         );
-        assert_eq!(choose_frames(seed, None, None).unwrap().frames, None);
-        assert_eq!(choose_frames("not json", None, None).unwrap().frame, 1);
+        assert_eq!(choose_frames(seed, &none, None, None).unwrap().frames, None);
+        assert_eq!(
+            choose_frames("not json", &none, None, None).unwrap().frame,
+            1
+        );
     }
 }

@@ -14,7 +14,7 @@ use crate::args::{parse_priority, ClientArgs, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, status_json, summary};
-use crate::scene_file::read_scene;
+use crate::scene_file::{read_scene, scene_dir};
 use crate::sequences::wait_sequence;
 use crate::session::{naming_job, wait_and_fetch, Session};
 use crate::signals::StopSignals;
@@ -100,7 +100,8 @@ pub fn run(args: Args) -> Result<()> {
 
 async fn submit_and_follow(args: Args) -> Result<()> {
     let text = read_scene(&args.scene)?;
-    let frames = choose_frames(&text, args.frame, args.frames.frames)?;
+    let files = render::MeshFiles::beside(scene_dir(&args.scene));
+    let frames = choose_frames(&text, &files, args.frame, args.frames.frames)?;
     let coordinator = args.common.target()?;
     let (overrides, time_limit_ms) = args.image.farm_job(args.tile, args.time_limit)?;
     let choices = JobChoices {

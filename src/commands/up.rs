@@ -16,7 +16,7 @@ use crate::args::{threads_per_worker, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{counted, sequence_summary, summary};
-use crate::scene_file::read_scene;
+use crate::scene_file::{read_scene, scene_dir};
 use crate::sequences::wait_sequence;
 use crate::session::{wait, Session};
 use crate::signals::StopSignals;
@@ -68,8 +68,10 @@ async fn up(args: Args) -> Result<()> {
     // Fail on an unreadable scene or an image that cannot be written before starting
     // anything.
     let text = read_scene(&args.scene)?;
+    let files = render::MeshFiles::beside(scene_dir(&args.scene));
     let frames = choose_frames(
         &text,
+        &files,
         args.frames.frames.is_none().then_some(1),
         args.frames.frames,
     )?;

@@ -232,3 +232,53 @@ fn file_chunks_corrupted_on_the_way_are_fetched_again_and_nobody_is_quarantined(
         Some(0.0)
     );
 }
+
+/// An animated scene whose object is a mesh, every frame on a farm (`tessera up
+/// --frames all`): the sequence is found from the scene read with its files, each
+/// file travels once, and every frame is `tessera render --frames all`'s.
+#[test]
+fn an_animated_mesh_scene_renders_every_frame_as_render_does() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    write_mesh_scene(d);
+    let scene = r#"{"lights": [{"position": "-7 10 -10", "color": "1 1 1"}],
+        "objects": [{"type": "mesh", "file": "cube.obj", "color": "0.85 0.3 0.25 0"},
+                    {"type": "plan", "normal": "0 1 0", "distance": -1, "color": "0.5 0.25 0.2 2"}],
+        "camera": {"position": "0 2.5 -8", "look_at": "0 0 0"},
+        "animation": {"frames": 4, "fps": 24, "tracks": [{"target": "camera.position",
+            "interpolation": "linear",
+            "keys": [{"frame": 1, "value": "0 2.5 -8"}, {"frame": 4, "value": "3 2.5 -7"}]}]}}"#;
+    std::fs::write(d.join("anim.json"), scene).unwrap();
+    let anim = path_str(&d.join("anim.json")).to_owned();
+    let run = |args: &[&str]| {
+        let all = [args, SMALL].concat();
+        crate::support::ok(
+            crate::support::tessera(d, &all, JOB_TIMEOUT),
+            &format!("tessera {}", all.join(" ")),
+        );
+    };
+    run(&[
+        "render",
+        &anim,
+        "--frames",
+        "all",
+        "-o",
+        path_str(&d.join("local")),
+    ]);
+    run(&[
+        "up",
+        &anim,
+        "--frames",
+        "all",
+        "-o",
+        path_str(&d.join("farm")),
+    ]);
+    for k in 1..=4 {
+        let name = format!("frame_{k:04}.png");
+        let local = std::fs::read(d.join("local").join(&name)).unwrap();
+        let farm = std::fs::read(d.join("farm").join(&name))
+            .unwrap_or_else(|e| panic!("the farm wrote no {name}: {e}"));
+        assert!(local == farm, "{name} differs from tessera render's");
+    }
+}
