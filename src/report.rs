@@ -22,6 +22,25 @@ pub fn counted(figure: impl std::fmt::Display, noun: &str) -> String {
     }
 }
 
+/// A size in bytes as listings show it, in decimal units: `812 bytes`, `4.2 kB`,
+/// `33.7 MB`, `1.50 GB`.
+pub fn bytes(n: u64) -> String {
+    match n {
+        0..=999 => counted(n, "byte"),
+        1_000..=999_999 => format!("{:.1} kB", n as f64 / 1e3),
+        1_000_000..=999_999_999 => format!("{:.1} MB", n as f64 / 1e6),
+        _ => format!("{:.2} GB", n as f64 / 1e9),
+    }
+}
+
+/// A job's files in a listing: `, 3 files (33.7 MB)`; nothing for a job without.
+pub fn assets_summary(a: &protocol::JobAssets) -> String {
+    if a.files == 0 {
+        return String::new();
+    }
+    format!(", {} ({})", counted(a.files, "file"), bytes(a.bytes))
+}
+
 /// What a render spent and how wrong it may be, for the summary lines of `render`,
 /// `up` and `submit --wait`: `4 samples/pixel (grid 2x2, 96000 in all), estimated
 /// error 0.842 levels`. The mean is exact for the grid and jittered samplers, a
@@ -172,6 +191,7 @@ pub fn status_json(s: &JobStatus) -> Value {
         "queued_ms": s.queued_ms,
         "sequence": s.sequence,
         "frames": s.frames.as_ref().map(frames_json),
+        "assets": { "files": s.assets.files, "bytes": s.assets.bytes },
     })
 }
 

@@ -113,6 +113,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
     } = job;
     let scene = read_scene(scene_path)?;
     let files = scene_files(scene_path, &scene)?;
+    client.on_upload(upload_shown());
     let name = label.name.unwrap_or_else(|| {
         scene_path
             .file_stem()
@@ -136,6 +137,36 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
         )
         .await
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
+}
+
+/// Shows a submission's upload on stderr: when it starts, every few seconds while it
+/// goes, and when it ends. Files the coordinator has already are not uploaded, and
+/// not shown.
+fn upload_shown() -> impl FnMut(coordinator::client::UploadProgress) + Send + 'static {
+    use crate::report::{bytes, counted};
+    use std::time::{Duration, Instant};
+    let started = Instant::now();
+    let mut shown = started;
+    move |p| {
+        let now = Instant::now();
+        if p.finished {
+            let secs = now.duration_since(started).as_secs_f64();
+            eprintln!(
+                "uploaded {} ({}) in {secs:.1} s",
+                counted(p.files, "file"),
+                bytes(p.total)
+            );
+        } else if p.sent == 0 {
+            eprintln!(
+                "uploading {} the coordinator lacks ({})",
+                counted(p.files, "file"),
+                bytes(p.total)
+            );
+        } else if now.duration_since(shown) >= Duration::from_secs(3) {
+            shown = now;
+            eprintln!("uploading: {} of {}", bytes(p.sent), bytes(p.total));
+        }
+    }
 }
 
 #[cfg(test)]

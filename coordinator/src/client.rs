@@ -15,7 +15,7 @@ use transport::{self, DialError, Endpoint, Stream};
 
 mod uploads;
 
-pub use uploads::LocalFile;
+pub use uploads::{LocalFile, UploadProgress};
 
 /// The connection to the coordinator broke (closed, reset, or silent for longer than
 /// the answer timeout): the request may be tried again on a new connection. Requests
@@ -41,6 +41,8 @@ pub struct Client {
     address: String,
     /// A request whose answer takes longer than this counts as a lost connection.
     answer_timeout: Option<Duration>,
+    /// Told how a submission's upload goes ([`Client::on_upload`]).
+    upload_progress: Option<Box<dyn FnMut(uploads::UploadProgress) + Send>>,
 }
 
 impl Client {
@@ -58,6 +60,7 @@ impl Client {
             conn: raw.map_codec(|_| MessageCodec::new(DEFAULT_MAX_FRAME)),
             address: endpoint.address.clone(),
             answer_timeout: None,
+            upload_progress: None,
         })
     }
 

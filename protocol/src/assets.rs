@@ -75,6 +75,52 @@ pub enum AssetAnswer {
     SubmitLacking { lacking: Vec<AssetKey> },
 }
 
+/// The longest `problem` a worker's cache report may carry: a listing shows one line.
+pub const MAX_CACHE_PROBLEM: usize = 256;
+
+/// A job's files, as its status shows them: how many distinct files its scene names,
+/// and their bytes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobAssets {
+    pub files: u32,
+    pub bytes: u64,
+}
+
+impl JobAssets {
+    /// The distinct files of `assets` (two names bound to one content count once: the
+    /// content is stored and sent once).
+    pub fn of(assets: &[AssetRef]) -> JobAssets {
+        let mut keys: Vec<&AssetKey> = assets.iter().map(|a| &a.key).collect();
+        keys.sort_unstable();
+        keys.dedup();
+        JobAssets {
+            files: keys.len() as u32,
+            bytes: keys.iter().map(|k| k.size).sum(),
+        }
+    }
+}
+
+/// A worker's files, as it reports them ([`FromWorker::Cache`](crate::FromWorker::Cache))
+/// and listings show them.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WorkerCache {
+    /// Files and bytes in its disk cache, and the cache's bound (0: it has none).
+    pub files: u64,
+    pub bytes: u64,
+    pub capacity: u64,
+    /// Files being fetched now, with their bytes received so far and in all.
+    pub fetching: u32,
+    pub fetching_received: u64,
+    pub fetching_total: u64,
+    /// Bytes of files fetched since it connected.
+    pub fetched_bytes: u64,
+    /// Triangles of meshes read and built, kept in memory for the next scene.
+    pub geometry_triangles: u64,
+    /// Why its disk cache is not used or not written to, in one line (at most
+    /// [`MAX_CACHE_PROBLEM`] bytes); `None` when it works.
+    pub problem: Option<String>,
+}
+
 /// The hash a scene is known by on the farm (workers keep it under this hash, and
 /// check what they receive against it): its text's SHA-256 alone for a scene that
 /// names no file (as before files travelled with scenes), else over the text and each

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::assets::{AssetKey, AssetRef};
+use crate::assets::{AssetKey, AssetRef, JobAssets, WorkerCache};
 use crate::settings::{Overrides, Settings, TileRect};
 
 /// A job's identity, made by the coordinator.
@@ -491,6 +491,8 @@ pub struct JobStatus {
     pub frames: Option<FrameProgress>,
     /// For a frame job of a sequence: the sequence.
     pub sequence: Option<JobId>,
+    /// The files its scene names.
+    pub assets: JobAssets,
 }
 
 impl JobStatus {
@@ -546,6 +548,8 @@ pub struct WorkerStatus {
     /// The IP address it connected from, as the coordinator saw it: what tells apart
     /// two machines that asked for one name (the second got a suffixed one).
     pub host: String,
+    /// Its files, as it last reported them; `None` before its first report.
+    pub cache: Option<WorkerCache>,
 }
 
 /// Which of the coordinator's secrets a peer proved: after a rotation, a peer still on
@@ -581,6 +585,14 @@ impl std::fmt::Display for PeerKey {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "{} ({})", self.id, self.standing.as_str())
     }
+}
+
+/// A file the canary scene names (its mesh), sent whole with the canary.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CanaryFile {
+    /// The name the scene gives it (`file`).
+    pub name: String,
+    pub bytes: Vec<u8>,
 }
 
 /// One render of the canary: the settings and the rectangle of the canary scene.
@@ -625,6 +637,9 @@ pub enum ToWorker {
     /// bytes must equal the coordinator's own render, or the worker is refused.
     Canary {
         scene: String,
+        /// The files the canary scene names, whole: the canary comes before the worker
+        /// may fetch anything by hash.
+        files: Vec<CanaryFile>,
         renders: Vec<CanaryRender>,
     },
     /// The worker is refused and the connection closes: do not reconnect, `reason`
@@ -750,4 +765,7 @@ pub enum FromWorker {
     /// [`ASSET_CHUNK`](crate::ASSET_CHUNK)): answered with [`ToWorker::AssetChunk`] or
     /// [`ToWorker::AssetUnavailable`].
     FetchAsset { key: AssetKey, offset: u64 },
+    /// The worker's files now: sent after it joined and whenever they changed, at
+    /// most once a second; listings show it.
+    Cache(WorkerCache),
 }

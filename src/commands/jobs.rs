@@ -529,7 +529,7 @@ fn status_line(s: &JobStatus) -> String {
         (None, k) => format!("frame {k}, "),
     };
     let mut line = format!(
-        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}, {}, {:.1} s",
+        "job {}: {}, {frame}{}/{} tiles, {}x{} aa {} {}{}, {}, {:.1} s",
         s.id,
         shown_state(s),
         s.tiles_done,
@@ -538,6 +538,7 @@ fn status_line(s: &JobStatus) -> String {
         s.settings.height,
         s.settings.aa,
         s.settings.sampling.name(),
+        crate::report::assets_summary(&s.assets),
         counted(s.samples, "sample"),
         s.elapsed_ms as f64 / 1000.0
     );

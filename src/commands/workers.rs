@@ -3,12 +3,12 @@
 
 use anyhow::Result;
 use coordinator::client::Client;
-use protocol::{ClientRequest, WorkerStatus};
+use protocol::{ClientRequest, WorkerCache, WorkerStatus};
 use serde_json::{json, Value};
 use transport::Endpoint;
 
 use crate::args::ClientArgs;
-use crate::report::counted;
+use crate::report::{bytes, counted};
 
 /// List the workers connected to the coordinator, with their throughput; or drain,
 /// disable or enable one.
@@ -101,8 +101,9 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             // Which worker token it proved: after a rotation, "previous" marks the
             // workers whose token file is still to be replaced.
             let key = w.key.map_or(String::new(), |k| format!(", key {k}"));
+            let cache = w.cache.as_ref().map_or(String::new(), cache_summary);
             println!(
-                "worker {} {} on {}: {}, {}/{} tiles in flight, {} done, {:.1} M rays/s{rtt}, build {}{key}{state}",
+                "worker {} {} on {}: {}, {}/{} tiles in flight, {} done, {:.1} M rays/s{rtt}{cache}, build {}{key}{state}",
                 w.id,
                 w.name,
                 w.host,
@@ -168,6 +169,40 @@ async fn control(action: WorkerAction) -> Result<()> {
     Ok(())
 }
 
+/// A worker's files in its listing line: `, cache 12 files 1.2 GB of 10.00 GB, 3.1 M
+/// triangles built, fetching 1 file (12.0 of 33.7 MB)`, and what is wrong with its
+/// disk cache, if anything.
+fn cache_summary(c: &WorkerCache) -> String {
+    let mut line = if c.capacity > 0 {
+        format!(
+            ", cache {} {} of {}",
+            counted(c.files, "file"),
+            bytes(c.bytes),
+            bytes(c.capacity)
+        )
+    } else {
+        ", no disk cache".to_string()
+    };
+    if c.geometry_triangles > 0 {
+        line.push_str(&format!(
+            ", {:.1} M triangles built",
+            c.geometry_triangles as f64 / 1e6
+        ));
+    }
+    if c.fetching > 0 {
+        line.push_str(&format!(
+            ", fetching {} ({} of {})",
+            counted(c.fetching, "file"),
+            bytes(c.fetching_received),
+            bytes(c.fetching_total)
+        ));
+    }
+    if let Some(problem) = &c.problem {
+        line.push_str(&format!(" ({problem})"));
+    }
+    line
+}
+
 fn worker_json(w: &WorkerStatus) -> Value {
     json!({
         "id": w.id,
@@ -187,5 +222,16 @@ fn worker_json(w: &WorkerStatus) -> Value {
         "unresponsive": w.unresponsive,
         "key": w.key.map(|k| json!({ "id": k.id.to_string(), "standing": k.standing.as_str() })),
         "host": w.host,
+        "cache": w.cache.as_ref().map(|c| json!({
+            "files": c.files,
+            "bytes": c.bytes,
+            "capacity": c.capacity,
+            "fetching": c.fetching,
+            "fetching_received": c.fetching_received,
+            "fetching_total": c.fetching_total,
+            "fetched_bytes": c.fetched_bytes,
+            "geometry_triangles": c.geometry_triangles,
+            "problem": c.problem,
+        })),
     })
 }

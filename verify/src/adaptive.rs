@@ -328,7 +328,7 @@ mod tests {
     use protocol::{Sampling, Settings};
 
     fn tracer(aa: u32) -> Tracer {
-        let scene = render::parse_scene(crate::canary::SCENE).unwrap();
+        let scene = crate::canary::parse(crate::canary::SCENE, &crate::canary::files()).unwrap();
         let settings = Settings {
             width: 40,
             height: 30,

@@ -1,16 +1,44 @@
 //! The canary: a small fixed scene every worker renders when it joins, before any tile.
 //!
 //! It exercises every path of the renderer a job can take (spheres, planes, the
-//! checkerboard, mirrors, shadows from two lights, recursion, each sampler) in about a
-//! millisecond of work. A worker whose bytes differ from the coordinator's own render
+//! checkerboard, mirrors, shadows from two lights, recursion, each sampler, and the
+//! shapes of section 8: a mesh read from a file, instanced twice with flat and smooth
+//! shading under transforms whose sines and cosines every machine must compute alike, a
+//! box and a triangle) in a few milliseconds of work. A worker whose bytes differ from the coordinator's own render
 //! would change images in ways spot checks catch only by chance, so it is refused with
 //! both builds named; builds that render identically work together whatever their
 //! versions.
 
-use protocol::{CanaryRender, Sampling, Settings, TileRect};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use protocol::{CanaryFile, CanaryRender, Sampling, Settings, TileRect};
 
 /// The canary scene's text.
 pub const SCENE: &str = include_str!("canary.json");
+
+/// The mesh file the canary scene names: an icosahedron subdivided once (80 faces).
+/// It travels inside the canary message, not by hash: a worker renders the canary
+/// before it may fetch anything.
+const MESH: (&str, &[u8]) = ("canary.obj", include_bytes!("canary.obj"));
+
+/// The files the canary scene names, as the canary message carries them.
+pub fn files() -> Vec<CanaryFile> {
+    vec![CanaryFile {
+        name: MESH.0.to_string(),
+        bytes: MESH.1.to_vec(),
+    }]
+}
+
+/// Parses a canary scene with its files.
+pub fn parse(scene: &str, files: &[CanaryFile]) -> Result<render::Scene, String> {
+    let bound: BTreeMap<String, Arc<[u8]>> = files
+        .iter()
+        .map(|f| (f.name.clone(), Arc::from(f.bytes.as_slice())))
+        .collect();
+    render::parse_scene_with(scene, &render::MeshFiles::bound(bound))
+        .map_err(|e| format!("the canary scene: {e}"))
+}
 
 /// The canary's renders: the whole 40 × 30 frame with each sampler, and one
 /// block-aligned tile inside it with adaptive sampling, walked down the ladder in passes
@@ -56,8 +84,12 @@ pub fn renders() -> Vec<CanaryRender> {
 }
 
 /// Renders the canary as a worker is asked to: one RGB8 buffer per render.
-pub fn render(scene: &str, renders: &[CanaryRender]) -> Result<Vec<Vec<u8>>, String> {
-    let scene = render::parse_scene(scene).map_err(|e| format!("the canary scene: {e}"))?;
+pub fn render(
+    scene: &str,
+    files: &[CanaryFile],
+    renders: &[CanaryRender],
+) -> Result<Vec<Vec<u8>>, String> {
+    let scene = parse(scene, files)?;
     renders
         .iter()
         .map(|r| {
@@ -178,7 +210,7 @@ mod tests {
     #[test]
     fn the_canary_renders_and_matches_itself() {
         let renders = renders();
-        let ours = render(SCENE, &renders).expect("the canary renders");
+        let ours = render(SCENE, &files(), &renders).expect("the canary renders");
         assert_eq!(ours.len(), renders.len());
         assert_eq!(compare(&renders, &ours, &ours), Ok(()));
         // Not a blank image: the scene shows something in every render.
@@ -190,7 +222,7 @@ mod tests {
     #[test]
     fn one_changed_byte_is_named() {
         let renders = renders();
-        let ours = render(SCENE, &renders).unwrap();
+        let ours = render(SCENE, &files(), &renders).unwrap();
         let mut theirs = ours.clone();
         theirs[2][3 * 41 + 1] ^= 1;
         let err = compare(&renders, &ours, &theirs).unwrap_err();
@@ -212,10 +244,31 @@ mod tests {
     }
 
     #[test]
+    fn the_mesh_shows_in_every_render() {
+        // A renderer that read the mesh wrong (one vertex moved, here) would be caught
+        // by each of the canary's renders, not only by chance.
+        let renders = renders();
+        let ours = render(SCENE, &files(), &renders).unwrap();
+        let mut moved = files();
+        let text = String::from_utf8(moved[0].bytes.clone()).unwrap();
+        let first = text.lines().find(|l| l.starts_with("v ")).unwrap();
+        moved[0].bytes = text
+            .replacen(first, "v -0.425731 0.950651 0.000000", 1)
+            .into_bytes();
+        let theirs = render(SCENE, &moved, &renders).unwrap();
+        for (index, (a, b)) in ours.iter().zip(&theirs).enumerate() {
+            assert_ne!(a, b, "render {index} does not show the mesh");
+        }
+        // And without its file the canary is not rendered at all.
+        let err = render(SCENE, &[], &renders).unwrap_err();
+        assert!(err.contains("canary.obj"), "{err}");
+    }
+
+    #[test]
     fn the_adaptive_frame_in_passes_is_the_local_walk() {
         let renders = renders();
-        let ours = render(SCENE, &renders).unwrap();
-        let scene = render::parse_scene(SCENE).unwrap();
+        let ours = render(SCENE, &files(), &renders).unwrap();
+        let scene = parse(SCENE, &files()).unwrap();
         let tracer = crate::tracer(&scene, &renders[2].settings).unwrap();
         let target = renders[2].settings.sampling.target_error().unwrap();
         let (_, frame) =

@@ -169,7 +169,7 @@ mod tests {
     use protocol::{Sampling, Settings};
 
     fn tracer() -> (Tracer, TileRect) {
-        let scene = render::parse_scene(crate::canary::SCENE).unwrap();
+        let scene = crate::canary::parse(crate::canary::SCENE, &crate::canary::files()).unwrap();
         let settings = Settings {
             width: 40,
             height: 30,

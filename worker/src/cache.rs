@@ -16,7 +16,20 @@ use render::adaptive::Footprints;
 use render::{AnimatedScene, Tracer};
 
 /// A scene as received: parsed, or why it could not be used.
-type Loaded = Result<Arc<AnimatedScene>, String>;
+pub type Loaded = Result<Arc<AnimatedScene>, String>;
+
+/// Reads a scene sent by the coordinator with the files it names (`files`, bound to
+/// `assets`), checking that it matches its hash. A scene with large meshes takes
+/// seconds to read and build: the worker calls this off its connection's thread.
+pub fn read(hash: SceneHash, text: &str, assets: &[AssetRef], files: &render::MeshFiles) -> Loaded {
+    if protocol::scene_hash(text, assets) != hash {
+        Err("the scene received does not match its hash".to_string())
+    } else {
+        render::parse_animated_with(text, files)
+            .map(Arc::new)
+            .map_err(|e| format!("the scene does not load: {e}"))
+    }
+}
 
 /// What a tracer is for: a scene's frame at given settings.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -53,13 +66,11 @@ impl SceneCache {
         assets: &[AssetRef],
         files: &render::MeshFiles,
     ) {
-        let loaded = if protocol::scene_hash(text, assets) != hash {
-            Err("the scene received does not match its hash".to_string())
-        } else {
-            render::parse_animated_with(text, files)
-                .map(Arc::new)
-                .map_err(|e| format!("the scene does not load: {e}"))
-        };
+        self.insert_read(hash, read(hash, text, assets, files));
+    }
+
+    /// Stores a scene read off the connection's thread ([`read`]).
+    pub fn insert_read(&mut self, hash: SceneHash, loaded: Loaded) {
         self.scenes.insert(hash, loaded);
     }
 

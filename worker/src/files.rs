@@ -10,7 +10,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use assets::{AssetId, Cache, Lookup};
-use protocol::{AssetKey, AssetRef, FromWorker, SceneHash, ToWorker};
+use protocol::{AssetKey, AssetRef, FromWorker, SceneHash, ToWorker, WorkerCache};
 use tracing::{info, warn};
 
 /// How many times a file that came with the wrong bytes is fetched again before its
@@ -54,6 +54,8 @@ pub enum Ready {
 pub struct Kept {
     disk: Arc<Mutex<Option<Cache>>>,
     geometry: render::GeometryCache,
+    /// Why the disk cache is not used or was last not written to, for listings.
+    problem: Arc<Mutex<Option<String>>>,
 }
 
 impl Kept {
@@ -61,6 +63,7 @@ impl Kept {
     /// if it cannot be used (said in a warning); meshes read and built kept up to
     /// `geometry_triangles`.
     pub fn new(dir: Option<&Path>, max_bytes: u64, geometry_triangles: u64) -> Kept {
+        let mut problem = None;
         let disk = dir.and_then(|dir| match Cache::open(dir, max_bytes) {
             Ok(cache) => {
                 let stats = cache.stats();
@@ -69,13 +72,19 @@ impl Kept {
             }
             Err(e) => {
                 warn!(error = %e, "the file cache cannot be used: files are fetched for every scene");
+                problem = Some(format!("no disk cache: {e}"));
                 None
             }
         });
         Kept {
             disk: Arc::new(Mutex::new(disk)),
             geometry: render::GeometryCache::new(geometry_triangles),
+            problem: Arc::new(Mutex::new(problem)),
         }
+    }
+
+    fn set_problem(&self, problem: Option<String>) {
+        *self.problem.lock().unwrap_or_else(|e| e.into_inner()) = problem;
     }
 }
 
@@ -86,6 +95,8 @@ pub struct Files {
     fetching: HashMap<AssetKey, Fetch>,
     /// Files at hand for the scenes waiting.
     have: HashMap<AssetKey, Arc<[u8]>>,
+    /// Bytes of files received on this connection.
+    fetched_bytes: u64,
 }
 
 fn id_of(key: &AssetKey) -> AssetId {
@@ -102,6 +113,30 @@ impl Files {
             pending: HashMap::new(),
             fetching: HashMap::new(),
             have: HashMap::new(),
+            fetched_bytes: 0,
+        }
+    }
+
+    /// The worker's files now, as it reports them to the coordinator.
+    pub fn report(&self) -> WorkerCache {
+        let disk = self.kept.disk.lock().unwrap_or_else(|e| e.into_inner());
+        let stats = disk.as_ref().map(Cache::stats).unwrap_or_default();
+        drop(disk);
+        WorkerCache {
+            files: stats.files,
+            bytes: stats.bytes,
+            capacity: stats.max_bytes,
+            fetching: self.fetching.len() as u32,
+            fetching_received: self.fetching.values().map(|f| f.bytes.len() as u64).sum(),
+            fetching_total: self.fetching.keys().map(|k| k.size).sum(),
+            fetched_bytes: self.fetched_bytes,
+            geometry_triangles: self.kept.geometry.stats().triangles,
+            problem: self
+                .kept
+                .problem
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
         }
     }
 
@@ -113,6 +148,14 @@ impl Files {
     pub fn queue(&mut self, hash: &SceneHash, message: ToWorker) {
         if let Some(p) = self.pending.get_mut(hash) {
             p.queued.push(message);
+        }
+    }
+
+    /// Drops the queued messages `which` picks (the tiles of a job cancelled while
+    /// they waited).
+    pub fn drop_queued(&mut self, which: impl Fn(&ToWorker) -> bool) {
+        for p in self.pending.values_mut() {
+            p.queued.retain(|m| !which(m));
         }
     }
 
@@ -182,6 +225,7 @@ impl Files {
             return Vec::new();
         }
         fetch.bytes.extend_from_slice(&bytes);
+        self.fetched_bytes += bytes.len() as u64;
         let received = fetch.bytes.len() as u64;
         if received < key.size && !bytes.is_empty() {
             out.push(FromWorker::FetchAsset {
@@ -215,8 +259,13 @@ impl Files {
         }
         let mut disk = self.kept.disk.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(disk) = disk.as_mut() {
-            if let Err(e) = disk.put(&id, &fetch.bytes) {
-                warn!(error = %e, "a file cannot be cached: kept in memory for its scene");
+            match disk.put(&id, &fetch.bytes) {
+                Ok(_) => self.kept.set_problem(None),
+                Err(e) => {
+                    warn!(error = %e, "a file cannot be cached: kept in memory for its scene");
+                    self.kept
+                        .set_problem(Some(format!("cannot write to the disk cache: {e}")));
+                }
             }
         }
         drop(disk);

@@ -95,6 +95,10 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     pongs: Vec::new(),
                     files: files::Files::new(&kept),
                     fetches: Vec::new(),
+                    reading: HashMap::new(),
+                    read_back: mpsc::unbounded_channel(),
+                    joined: false,
+                    reported: None,
                     drain_asked: false,
                     name: config.name.clone(),
                 };
@@ -238,8 +242,21 @@ struct Session {
     files: files::Files,
     /// Chunks of files to ask for, sent after the message being handled.
     fetches: Vec<FromWorker>,
+    /// Scenes with files being read and built off the connection's thread, with the
+    /// tiles that came for them meanwhile, in order.
+    reading: HashMap<protocol::SceneHash, Vec<ToWorker>>,
+    /// Where those reads come back.
+    read_back: (
+        mpsc::UnboundedSender<SceneRead>,
+        mpsc::UnboundedReceiver<SceneRead>,
+    ),
     /// The coordinator asked it to drain ([`ToWorker::Drain`]).
     drain_asked: bool,
+    /// The coordinator said it joined: past the canary, when other messages than
+    /// heartbeats and pongs may go.
+    joined: bool,
+    /// Its files as last reported ([`FromWorker::Cache`]).
+    reported: Option<protocol::WorkerCache>,
     /// The name its hello asked for.
     name: String,
 }
@@ -309,8 +326,33 @@ impl Session {
                     }
                     self.conn.flush().await?;
                 }
+                Some((hash, loaded)) = self.read_back.1.recv() => {
+                    // A scene forgotten while it was read is dropped with its tiles.
+                    if let Some(queued) = self.reading.remove(&hash) {
+                        if let Err(e) = &loaded {
+                            warn!(error = %e, "a scene cannot be read");
+                        }
+                        self.cache.insert_read(hash, loaded);
+                        for message in queued {
+                            self.handle(message, &done_tx)?;
+                        }
+                        for fetch in self.fetches.drain(..) {
+                            self.conn.feed(fetch).await?;
+                        }
+                        self.conn.flush().await?;
+                    }
+                }
                 _ = heartbeat.tick() => {
-                    self.conn.send(FromWorker::Heartbeat).await?;
+                    self.conn.feed(FromWorker::Heartbeat).await?;
+                    // Its files, when they changed: at most once a heartbeat.
+                    if self.joined {
+                        let now = self.files.report();
+                        if self.reported.as_ref() != Some(&now) {
+                            self.reported = Some(now.clone());
+                            self.conn.feed(FromWorker::Cache(now)).await?;
+                        }
+                    }
+                    self.conn.flush().await?;
                 }
                 () = shutdown.as_mut(), if !draining => {
                     info!(in_flight = self.in_flight, "shutting down: finishing the tiles held");
@@ -357,31 +399,50 @@ impl Session {
                 // Handled once the scene's files are in.
                 self.files.queue(&scene, message);
             }
+            ToWorker::Render { scene, .. } | ToWorker::Advance { scene, .. }
+                if self.reading.contains_key(&scene) =>
+            {
+                // Handled once the scene is read.
+                if let Some(queued) = self.reading.get_mut(&scene) {
+                    queued.push(message);
+                }
+            }
             ToWorker::ForgetScene { hash } => {
                 self.files.forget(&hash);
+                self.reading.remove(&hash);
                 self.cache.forget(&hash);
             }
             ToWorker::Heartbeat => {}
-            ToWorker::Canary { scene, renders } => {
+            ToWorker::Canary {
+                scene,
+                files,
+                renders,
+            } => {
                 // Rendered on the pool like a tile, so that heartbeats keep flowing.
                 self.in_flight += 1;
                 let done = done.clone();
                 self.pool.spawn(move || {
-                    let images = verify::canary::render(&scene, &renders);
+                    let images = verify::canary::render(&scene, &files, &renders);
                     let _ = done.send(Rendered::Done(FromWorker::CanaryDone { images }));
                 });
             }
             ToWorker::Ping { token } => self.pongs.push(token),
             ToWorker::Drain => self.drain_asked = true,
-            ToWorker::Joined { name } if name == self.name => info!(%name, "joined"),
+            ToWorker::Joined { name } if name == self.name => {
+                self.joined = true;
+                info!(%name, "joined");
+            }
             // Another machine is connected under the name asked for: the coordinator
             // (its listings, logs and controls) knows this one by another.
-            ToWorker::Joined { name } => warn!(
-                %name,
-                "joined as {name}: a worker of another host is connected under the name {} \
-                 (give each machine its own --name)",
-                self.name
-            ),
+            ToWorker::Joined { name } => {
+                self.joined = true;
+                warn!(
+                    %name,
+                    "joined as {name}: a worker of another host is connected under the name {} \
+                     (give each machine its own --name)",
+                    self.name
+                );
+            }
             ToWorker::Refuse { reason } => return Err(Refused(reason)),
             ToWorker::Cancel { job } => {
                 let received = self.received;
@@ -389,6 +450,13 @@ impl Session {
                     .lock()
                     .expect("cancel set")
                     .insert(job, received);
+                // Tiles of the job that wait for their scene came before the cancel:
+                // not rendered either.
+                let of_job = |m: &ToWorker| matches!(m, ToWorker::Render { job: j, .. } | ToWorker::Advance { job: j, .. } if *j == job);
+                self.files.drop_queued(of_job);
+                for queued in self.reading.values_mut() {
+                    queued.retain(|m| !of_job(m));
+                }
             }
             ToWorker::Advance {
                 job,
@@ -492,8 +560,15 @@ impl Session {
                 files,
                 queued,
             } => {
-                self.cache.insert(hash, &text, &assets, &files);
-                queued
+                // Reading and building large meshes takes seconds: off this thread,
+                // which must keep answering pings and sending heartbeats and results.
+                self.reading.insert(hash, queued);
+                let back = self.read_back.0.clone();
+                tokio::task::spawn_blocking(move || {
+                    let loaded = cache::read(hash, &text, &assets, &files);
+                    let _ = back.send((hash, loaded));
+                });
+                return Ok(());
             }
             files::Ready::Failed {
                 hash,
@@ -562,6 +637,9 @@ impl Session {
         }
     }
 }
+
+/// A scene read off the connection's thread: its hash, and the scene or why not.
+type SceneRead = (protocol::SceneHash, cache::Loaded);
 
 /// Footprints computed on the pool: the scene's frame and settings they are for.
 type FootprintsKept = (TracerKey, Arc<render::adaptive::Footprints>);

@@ -22,12 +22,37 @@ pub struct LocalFile {
     pub path: PathBuf,
 }
 
+/// How a submission's upload goes: told when it starts, after each chunk and when it
+/// ends, so that a command can show it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UploadProgress {
+    /// Files the coordinator lacks (in part or whole), and their bytes it lacks.
+    pub files: usize,
+    pub total: u64,
+    /// Of those bytes, sent so far.
+    pub sent: u64,
+    /// The last of them is in.
+    pub finished: bool,
+}
+
 /// How many times a submission uploads what the coordinator says it lacks before
 /// giving up: files collected twice between an upload and the submission mean a
 /// coordinator short of room, which another try will not fix.
 const SUBMITS: usize = 3;
 
 impl Client {
+    /// Calls `report` as a submission's files are uploaded (not for files the
+    /// coordinator has already).
+    pub fn on_upload(&mut self, report: impl FnMut(UploadProgress) + Send + 'static) {
+        self.upload_progress = Some(Box::new(report));
+    }
+
+    fn report_upload(&mut self, progress: UploadProgress) {
+        if let Some(report) = &mut self.upload_progress {
+            report(progress);
+        }
+    }
+
     /// Which of `keys` the coordinator lacks, and what it has received of each.
     pub async fn lacking(&mut self, keys: Vec<AssetKey>) -> Result<Vec<Lacking>> {
         match self
@@ -42,6 +67,16 @@ impl Client {
     /// Uploads the file from byte `from` (what the coordinator has of it) to its end,
     /// checking on the way that it is still the file that was hashed.
     pub async fn upload(&mut self, file: &LocalFile, from: u64) -> Result<()> {
+        self.upload_counted(file, from, &mut |_| {}).await
+    }
+
+    /// [`Client::upload`], telling `sent` the bytes each chunk added.
+    async fn upload_counted(
+        &mut self,
+        file: &LocalFile,
+        from: u64,
+        sent: &mut (dyn FnMut(u64) + Send),
+    ) -> Result<()> {
         let key = file.asset.key;
         let shown = file.path.display();
         let mut f =
@@ -70,11 +105,13 @@ impl Client {
                     received, complete, ..
                 })) => {
                     if complete {
+                        sent(key.size.saturating_sub(offset));
                         return Ok(());
                     }
                     if received <= offset && len > 0 {
                         bail!("the coordinator took none of {shown} at byte {offset}");
                     }
+                    sent(received.saturating_sub(offset));
                     offset = received;
                     f.seek(SeekFrom::Start(offset))
                         .with_context(|| format!("cannot read {shown}"))?;
@@ -87,12 +124,45 @@ impl Client {
 
     /// Uploads what the coordinator lacks of `files`, each once.
     async fn upload_lacking(&mut self, files: &[LocalFile], lacking: Vec<Lacking>) -> Result<()> {
-        for l in lacking {
-            let Some(file) = files.iter().find(|f| f.asset.key == l.key) else {
-                continue;
-            };
-            self.upload(file, l.received).await?;
+        let todo: Vec<(&LocalFile, u64)> = lacking
+            .iter()
+            .filter_map(|l| {
+                let file = files.iter().find(|f| f.asset.key == l.key)?;
+                Some((file, l.received))
+            })
+            .collect();
+        if todo.is_empty() {
+            return Ok(());
         }
+        let mut progress = UploadProgress {
+            files: todo.len(),
+            total: todo
+                .iter()
+                .map(|(f, from)| f.asset.key.size.saturating_sub(*from))
+                .sum(),
+            sent: 0,
+            finished: false,
+        };
+        self.report_upload(progress);
+        // Told after each chunk: taken out of the client while it uploads.
+        let mut report = self.upload_progress.take();
+        let outcome = async {
+            for (file, from) in todo {
+                let mut sent = |n: u64| {
+                    progress.sent += n;
+                    if let Some(report) = &mut report {
+                        report(progress);
+                    }
+                };
+                self.upload_counted(file, from, &mut sent).await?;
+            }
+            Ok::<_, anyhow::Error>(())
+        }
+        .await;
+        self.upload_progress = report;
+        outcome?;
+        progress.finished = true;
+        self.report_upload(progress);
         Ok(())
     }
 

@@ -89,6 +89,19 @@ pub struct FarmView {
     pub warning: Option<String>,
     pub jobs: Vec<JobView>,
     pub workers: Vec<WorkerView>,
+    /// The files the coordinator keeps for jobs.
+    pub store: StoreView,
+}
+
+/// The coordinator's store of files, as the status page shows it.
+#[derive(Serialize)]
+pub struct StoreView {
+    pub files: u64,
+    pub bytes: u64,
+    /// Uploads under way (or left off by a client that may resume them): files and
+    /// bytes received of them so far.
+    pub uploading_files: u64,
+    pub uploading_bytes: u64,
 }
 
 #[derive(Serialize)]
@@ -126,6 +139,8 @@ pub struct JobView {
     /// A sequence job's frames (done, active, failed and which, and `done_prefix`, the
     /// frames its preview plays); `None` for a job of one frame.
     pub frames: Option<FrameProgress>,
+    /// The files its scene names.
+    pub assets: protocol::JobAssets,
 }
 
 #[derive(Serialize)]
@@ -141,6 +156,8 @@ pub struct WorkerView {
     pub disabled: bool,
     pub quarantined: bool,
     pub unresponsive: bool,
+    /// Its files, as it last reported them.
+    pub cache: Option<protocol::WorkerCache>,
 }
 
 /// An image for the page.
@@ -239,6 +256,7 @@ impl Observer {
                     estimated_error: s.estimated_error,
                     error: s.error,
                     frames: s.frames,
+                    assets: s.assets,
                 }
             })
             .collect();
@@ -257,6 +275,7 @@ impl Observer {
                 disabled: s.disabled,
                 quarantined: s.quarantined.is_some(),
                 unresponsive: s.unresponsive,
+                cache: s.cache,
             })
             .collect();
         let active = core
@@ -266,11 +285,18 @@ impl Observer {
             .any(|(_, j)| !j.phase.visible().is_final());
         let warning = active.then(|| core.no_worker_warning()).flatten();
         drop(core);
+        let stats = self.shared.depot.stats();
         FarmView {
             accepting: self.not_ready().is_none(),
             warning,
             jobs,
             workers,
+            store: StoreView {
+                files: stats.files,
+                bytes: stats.bytes,
+                uploading_files: stats.partial_files,
+                uploading_bytes: stats.partial_bytes,
+            },
         }
     }
 

@@ -63,7 +63,8 @@ impl Verifier {
     /// Renders the canary (a few milliseconds): call it off the async threads.
     pub fn new(config: VerifyConfig) -> Result<Verifier, String> {
         let renders = verify::canary::renders();
-        let images = verify::canary::render(verify::canary::SCENE, &renders)?;
+        let images =
+            verify::canary::render(verify::canary::SCENE, &verify::canary::files(), &renders)?;
         Ok(Verifier {
             config,
             canary: Canary { renders, images },

@@ -164,6 +164,7 @@ async fn canary(shared: &Shared, conn: &mut WorkerConn, build: &str) -> Result<(
     let ours = render::build_identity();
     conn.send(ToWorker::Canary {
         scene: verify::canary::SCENE.to_string(),
+        files: verify::canary::files(),
         renders: reference.renders.clone(),
     })
     .await
@@ -215,6 +216,7 @@ fn message_name(message: &FromWorker) -> &'static str {
         FromWorker::TileFailed { .. } => "TileFailed",
         FromWorker::Draining => "Draining",
         FromWorker::FetchAsset { .. } => "FetchAsset",
+        FromWorker::Cache(_) => "Cache",
         FromWorker::Heartbeat => "Heartbeat",
         FromWorker::CanaryDone { .. } => "CanaryDone",
         FromWorker::Pong { .. } => "Pong",
@@ -393,6 +395,22 @@ async fn on_message(
                 })
                 .await?;
             let _ = outbox.send(message);
+        }
+        FromWorker::Cache(mut cache) => {
+            // A listing shows it in one line, whatever the worker sent.
+            if let Some(problem) = &mut cache.problem {
+                if problem.len() > protocol::MAX_CACHE_PROBLEM {
+                    let mut end = protocol::MAX_CACHE_PROBLEM;
+                    while !problem.is_char_boundary(end) {
+                        end -= 1;
+                    }
+                    problem.truncate(end);
+                }
+                *problem = problem.replace(['\n', '\r'], " ");
+            }
+            if let Some(w) = sh.lock().workers.get_mut(&worker) {
+                w.cache = Some(cache);
+            }
         }
         FromWorker::Pong { token } => {
             let now = sh.clock.elapsed().as_micros() as u64;

@@ -4,9 +4,9 @@
 //! the documentation shows the new bytes.
 
 use protocol::{
-    wire, AuthRole, ClientRequest, ClientResponse, FromWorker, Hello, JobSpec, JobState, JobStatus,
-    KeyId, Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification, Welcome, MAGIC,
-    PROTOCOL_VERSION,
+    wire, AuthRole, ClientRequest, ClientResponse, FromWorker, Hello, JobAssets, JobSpec, JobState,
+    JobStatus, KeyId, Overrides, Role, Sampling, Settings, TileRect, ToWorker, Verification,
+    Welcome, MAGIC, PROTOCOL_VERSION,
 };
 use serde::Serialize;
 
@@ -128,6 +128,10 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 frame: 1,
                 frames: None,
                 sequence: None,
+                assets: JobAssets {
+                    files: 2,
+                    bytes: 5_000,
+                },
             })),
         ),
         (

@@ -25,12 +25,12 @@ use std::fmt::Debug;
 use bytes::BytesMut;
 use proptest::prelude::*;
 use protocol::{
-    wire, AssetAnswer, AssetKey, AssetRef, AssetRequest, CanaryRender, ClientRequest,
+    wire, AssetAnswer, AssetKey, AssetRef, AssetRequest, CanaryFile, CanaryRender, ClientRequest,
     ClientResponse, FrameError, FrameFailure, FrameProgress, FrameRange, FromWorker, Hello,
-    HelloError, JobEvent, JobSpec, JobState, JobStatus, KeyId, KeyStanding, Lacking, MessageCodec,
-    Overrides, PeerKey, Refusal, RefusalKind, Role, Sampling, Settings, TileRect, ToWorker,
-    Verification, Welcome, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC, MAX_FRAME_LIMIT,
-    PROTOCOL_VERSION,
+    HelloError, JobAssets, JobEvent, JobSpec, JobState, JobStatus, KeyId, KeyStanding, Lacking,
+    MessageCodec, Overrides, PeerKey, Refusal, RefusalKind, Role, Sampling, Settings, TileRect,
+    ToWorker, Verification, Welcome, WorkerCache, WorkerStatus, DEFAULT_MAX_FRAME, MAGIC,
+    MAX_FRAME_LIMIT, PROTOCOL_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use tokio_util::codec::{Decoder, Encoder};
@@ -241,12 +241,14 @@ prop_compose! {
         submitted_from in text(), submitted_unix_ms in any::<u64>(),
         queued_ms in any::<Option<u64>>(), frame in any::<u32>(),
         frames in prop::option::of(frame_progress()), sequence in any::<Option<u64>>(),
+        asset_files in any::<u32>(), asset_bytes in any::<u64>(),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
             frame, frames, sequence,
+            assets: JobAssets { files: asset_files, bytes: asset_bytes },
         }
     }
 }
@@ -260,6 +262,7 @@ prop_compose! {
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
         unresponsive in any::<bool>(),
         key in prop::option::of((any::<[u8; 4]>(), any::<bool>())), host in text(),
+        cache in prop::option::of(worker_cache()),
     ) -> WorkerStatus {
         let key = key.map(|(id, current)| PeerKey {
             id: KeyId(id),
@@ -268,7 +271,21 @@ prop_compose! {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
-            unresponsive, key, host,
+            unresponsive, key, host, cache,
+        }
+    }
+}
+
+prop_compose! {
+    fn worker_cache()(
+        files in any::<u64>(), bytes in any::<u64>(), capacity in any::<u64>(),
+        fetching in any::<u32>(), fetching_received in any::<u64>(),
+        fetching_total in any::<u64>(), fetched_bytes in any::<u64>(),
+        geometry_triangles in any::<u64>(), problem in prop::option::of(text()),
+    ) -> WorkerCache {
+        WorkerCache {
+            files, bytes, capacity, fetching, fetching_received, fetching_total,
+            fetched_bytes, geometry_triangles, problem,
         }
     }
 }
@@ -315,11 +332,20 @@ fn to_worker() -> impl Strategy<Value = ToWorker> {
         (
             text(),
             prop::collection::vec(
+                (text(), prop::collection::vec(any::<u8>(), 0..64))
+                    .prop_map(|(name, bytes)| CanaryFile { name, bytes }),
+                0..3
+            ),
+            prop::collection::vec(
                 (settings(), rect()).prop_map(|(settings, rect)| CanaryRender { settings, rect }),
                 0..5
             )
         )
-            .prop_map(|(scene, renders)| ToWorker::Canary { scene, renders }),
+            .prop_map(|(scene, files, renders)| ToWorker::Canary {
+                scene,
+                files,
+                renders
+            }),
         text().prop_map(|reason| ToWorker::Refuse { reason }),
         any::<u64>().prop_map(|token| ToWorker::Ping { token }),
         (
@@ -376,6 +402,7 @@ fn from_worker() -> impl Strategy<Value = FromWorker> {
         Just(FromWorker::Heartbeat),
         (asset_key(), any::<u64>())
             .prop_map(|(key, offset)| FromWorker::FetchAsset { key, offset }),
+        worker_cache().prop_map(FromWorker::Cache),
         prop_oneof![
             prop::collection::vec(blob(), 0..4).prop_map(Ok),
             text().prop_map(Err),
@@ -1100,6 +1127,7 @@ fn nan_rates_keep_their_bits() {
         unresponsive: false,
         key: None,
         host: "127.0.0.1".into(),
+        cache: None,
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {

@@ -184,6 +184,7 @@ fn a_worker_with_a_cache_fetches_a_file_once_across_its_restarts() {
         let now = sent();
         if round == 0 {
             assert!(now > 0.0, "the worker fetched nothing");
+            shows_the_files(d, &addr, &http, job);
         } else {
             assert_eq!(now, before, "the restarted worker fetched the file again");
         }
@@ -200,6 +201,45 @@ fn a_worker_with_a_cache_fetches_a_file_once_across_its_restarts() {
         std::fs::read_dir(&cache).unwrap().next().is_some(),
         "the cache directory is empty"
     );
+}
+
+/// `tessera status`, `tessera workers` and the status page show the job's files, the
+/// worker's cache and the coordinator's store (a worker reports its cache at most a
+/// second after it changed).
+fn shows_the_files(d: &Path, addr: &str, http: &str, job: u64) {
+    let size = std::fs::metadata(d.join("cube.obj")).unwrap().len();
+    let status = crate::support::status_json(d, addr, job);
+    assert_eq!(
+        status["assets"],
+        serde_json::json!({ "files": 1, "bytes": size }),
+        "{status}"
+    );
+    let line = crate::support::ok(
+        crate::support::client(d, addr, &["status", &job.to_string()]),
+        "status",
+    );
+    assert!(line.stdout.contains(", 1 file ("), "{}", line.stdout);
+    let cache = crate::support::poll("the worker's cache report", REGISTER_TIMEOUT, || {
+        let workers = crate::support::try_workers(d, addr)?;
+        let cache = workers.first()?["cache"].clone();
+        (cache["files"] == 1 && cache["bytes"] == size).then_some(cache)
+    });
+    assert!(cache["capacity"].as_u64().unwrap() > size, "{cache}");
+    assert_eq!(cache["fetching"], 0, "{cache}");
+    assert!(cache["geometry_triangles"].as_u64().unwrap() > 0, "{cache}");
+    assert_eq!(cache["problem"], serde_json::Value::Null, "{cache}");
+    let listing = crate::support::ok(crate::support::client(d, addr, &["workers"]), "workers");
+    assert!(
+        listing.stdout.contains(", cache 1 file "),
+        "{}",
+        listing.stdout
+    );
+    let page: serde_json::Value =
+        serde_json::from_str(&http_get_text(http, "/api/status")).unwrap();
+    assert_eq!(page["store"]["files"], 1, "{page}");
+    assert_eq!(page["store"]["bytes"], size, "{page}");
+    assert_eq!(page["jobs"][0]["assets"]["files"], 1, "{page}");
+    assert_eq!(page["workers"][0]["cache"]["files"], 1, "{page}");
 }
 
 /// A relay corrupting the first two chunks of files on their way to the worker: the

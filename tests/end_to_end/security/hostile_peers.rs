@@ -289,8 +289,12 @@ fn lying_worker(addr: &str) -> String {
         let frame = read_frame(&mut stream, what);
         match protocol::wire::decode::<ToWorker>(&frame) {
             Ok(ToWorker::Render { job, tile, .. }) => break (job, tile),
-            Ok(ToWorker::Canary { scene, renders }) => {
-                let images = verify::canary::render(&scene, &renders);
+            Ok(ToWorker::Canary {
+                scene,
+                files,
+                renders,
+            }) => {
+                let images = verify::canary::render(&scene, &files, &renders);
                 let answer = FromWorker::CanaryDone { images };
                 send_frame(&mut stream, &protocol::wire::encode(&answer));
             }

@@ -17,7 +17,9 @@ use std::sync::{Arc, Mutex};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
-use protocol::{CanaryRender, FromWorker, Role, SceneHash, Settings, TileRect, ToWorker};
+use protocol::{
+    CanaryFile, CanaryRender, FromWorker, Role, SceneHash, Settings, TileRect, ToWorker,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// How the fake worker departs from an honest one.
@@ -265,9 +267,13 @@ async fn serve(
                 let _ = writer.shutdown().await;
                 return Ok(());
             }
-            ToWorker::Canary { scene, renders } => {
+            ToWorker::Canary {
+                scene,
+                files,
+                renders,
+            } => {
                 state.canaries.fetch_add(1, Ordering::SeqCst);
-                let images = render_canary(&scene, &renders).map(|mut images| {
+                let images = render_canary(&scene, &files, &renders).map(|mut images| {
                     if lie == Lie::Perturbed {
                         for image in &mut images {
                             perturb(image, 0);
@@ -519,6 +525,10 @@ fn render_tile(
 }
 
 /// Renders the canary as a real worker does: one RGB8 buffer per render.
-fn render_canary(scene: &str, renders: &[CanaryRender]) -> Result<Vec<Vec<u8>>, String> {
-    verify::canary::render(scene, renders)
+fn render_canary(
+    scene: &str,
+    files: &[CanaryFile],
+    renders: &[CanaryRender],
+) -> Result<Vec<Vec<u8>>, String> {
+    verify::canary::render(scene, files, renders)
 }

@@ -226,6 +226,7 @@ impl JobRecord {
             frame: self.frame,
             frames: None,
             sequence: self.sequence,
+            assets: protocol::JobAssets::of(&self.assets),
         }
     }
 }
@@ -390,6 +391,8 @@ pub struct WorkerRecord {
     pace: Option<(Millis, Millis)>,
     /// The worker secret it proved, if workers prove one: listings say which.
     pub key: Option<KeyHold>,
+    /// Its files, as it last reported them.
+    pub cache: Option<protocol::WorkerCache>,
 }
 
 /// A worker's rays per second are those of its results of this last while, over the
@@ -429,6 +432,7 @@ impl WorkerRecord {
             tile_us: None,
             pace: None,
             key: None,
+            cache: None,
         }
     }
 
@@ -510,6 +514,7 @@ impl WorkerRecord {
             disabled: false,
             unresponsive: false,
             key: self.key.as_ref().and_then(KeyHold::peer_key),
+            cache: self.cache.clone(),
         }
     }
 }

@@ -101,6 +101,7 @@ impl Core {
                 failures,
             }),
             sequence: None,
+            assets: protocol::JobAssets::of(&record.assets),
         })
     }
 
