@@ -713,12 +713,14 @@ async fn studio_submit(
 async fn studio_archive(State(observer): State<Observer>, body: axum::body::Bytes) -> Response {
     let request: StudioRequest = match serde_json::from_slice(&body) {
         Ok(request) => request,
-        Err(e) => return refusal(
-            StatusCode::BAD_REQUEST,
-            format!(
+        Err(e) => {
+            return refusal(
+                StatusCode::BAD_REQUEST,
+                format!(
                 "a studio archive is {{\"file\": NAME, \"scene\": SCENE, \"assets\": [...]}}: {e}"
             ),
-        ),
+            )
+        }
     };
     let assets = match page_assets(&request.assets) {
         Ok(assets) => assets,
