@@ -244,10 +244,6 @@ impl Shared {
 /// Puts the files of the studio's scene in the store and keeps them there for as long
 /// as this coordinator runs (pinned under an owner never released: the page may open
 /// the scene at any time), and gives the scene with its files bound by content.
-#[expect(
-    clippy::type_complexity,
-    reason = "the scene, its file's name and its files, as `Shared` keeps them"
-)]
 fn studio_files(
     depot: &depot::Depot,
     scene: Option<StudioScene>,
