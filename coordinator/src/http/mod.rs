@@ -890,7 +890,10 @@ mod tests {
                 route.path
             );
             // A browser sends GETs across sites freely: nothing read may change anything.
-            let changes = matches!(route.access, Access::Control | Access::Login);
+            let changes = matches!(
+                route.access,
+                Access::Control | Access::Login | Access::Upload
+            );
             assert_eq!(
                 changes,
                 route.method == Method::POST,
