@@ -3,10 +3,12 @@
 //! render on this machine.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use anyhow::{anyhow, Context, Result};
 use coordinator::client::LocalFile;
 use serde_json::Value;
+use sha2::Digest;
 
 /// A scene file's text, for a farm: the coordinator checks it.
 pub fn read_scene(path: &Path) -> Result<String> {
@@ -62,24 +64,69 @@ fn first_mesh(text: &str) -> Option<(usize, Option<String>)> {
         })
 }
 
-/// A scene file's text for a studio, checked by the renderer's loader: its error is
-/// one line prefixed with the file. A studio does not edit scenes with meshes yet: one
-/// is refused here, naming its first mesh.
-pub fn read_checked_scene(path: &Path) -> Result<String> {
-    let text = read_scene(path)?;
-    if let Some((object, file)) = first_mesh(&text) {
-        let place = match file {
-            Some(file) => format!("objects[{object}].file: {file}"),
-            None => format!("objects[{object}]"),
-        };
-        anyhow::bail!(
-            "{}: {place}: a studio does not edit scenes with meshes yet: render this scene \
-             with `tessera render`, or on a farm with `tessera submit` or `tessera up`",
-            path.display()
-        );
+/// A scene file's text for a studio, checked by the renderer's loader, with the files
+/// it reads (for a scene file, relative to its directory as `tessera render` reads
+/// them; for an archive, its members), each read into memory once and bound to its
+/// content: the coordinator puts them in its store and the page edits the scene with
+/// them. An error is one line prefixed with the file.
+pub fn read_studio_scene(path: &Path) -> Result<coordinator::server::StudioScene> {
+    let name = |n: &std::ffi::OsStr| n.to_string_lossy().into_owned();
+    if is_archive(path) {
+        let archive = read_archive(path)?;
+        let files = render::MeshFiles::bound(archive.files.clone());
+        render::parse_animated_with(&archive.text, &files)
+            .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        let read = files
+            .files_read()
+            .into_iter()
+            .map(|f| (f.name.clone(), Arc::clone(&archive.files[&f.name])))
+            .collect();
+        return Ok(coordinator::server::StudioScene {
+            text: archive.text,
+            file: archive.scene_name,
+            files: read,
+        });
     }
-    render::parse_scene(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
-    Ok(text)
+    let text = read_scene(path)?;
+    let file = path.file_name().map(name).unwrap_or_default();
+    if first_mesh(&text).is_none() {
+        render::parse_scene(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        return Ok(coordinator::server::StudioScene {
+            text,
+            file,
+            files: Vec::new(),
+        });
+    }
+    let mut files = Vec::new();
+    for local in scene_files(path, &text)? {
+        let bytes = std::fs::read(&local.path)
+            .with_context(|| format!("cannot read {}", local.path.display()))?;
+        if <[u8; 32]>::from(sha2::Sha256::digest(&bytes)) != local.asset.key.sha256 {
+            anyhow::bail!(
+                "{}: {} changed while it was read: open the scene again",
+                path.display(),
+                local.path.display()
+            );
+        }
+        files.push((local.asset.name, Arc::from(bytes)));
+    }
+    Ok(coordinator::server::StudioScene { text, file, files })
+}
+
+/// Whether `path` names a scene saved with its mesh files: a `.tar` archive
+/// ([`coordinator::archive`]), by its extension, case-insensitive.
+pub fn is_archive(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("tar"))
+}
+
+/// A scene archive's scene and files, read whole into memory and checked (names,
+/// sizes, every mesh object's file present): one line prefixed with the archive.
+pub fn read_archive(path: &Path) -> Result<coordinator::archive::SceneArchive> {
+    let file = std::fs::File::open(path)
+        .with_context(|| format!("cannot read scene archive {}", path.display()))?;
+    coordinator::archive::read(std::io::BufReader::new(file))
+        .map_err(|e| anyhow!("{}: {e}", path.display()))
 }
 
 /// The directory a scene file's mesh files are relative to: the file's own.

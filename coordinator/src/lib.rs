@@ -7,6 +7,7 @@
 //! settings must follow before it accepts anyone, and [`keyring`] which token a peer
 //! proves as tokens are rotated.
 
+pub mod archive;
 pub mod client;
 pub mod daemon;
 mod db;

@@ -115,12 +115,23 @@ pub struct Config {
     /// Start with a new, empty job database when the one in `data` is missing or
     /// unreadable (its unfinished jobs are lost; ids continue above every id issued).
     pub reset_database: bool,
-    /// The scene the studio page opens with (already checked by the loader); the
-    /// page's own default without one.
-    pub studio_scene: Option<String>,
-    /// The file name of `studio_scene` (without its directory), which the studio's
-    /// Save offers.
-    pub studio_scene_file: Option<String>,
+    /// The scene the studio page opens with (already checked by the loader), with its
+    /// file's name and the files it reads; the page's own default without one.
+    pub studio_scene: Option<StudioScene>,
+    /// The most bytes one file of a scene may have in the store (an upload, a studio
+    /// page's mesh); the renderer's own limit by default.
+    pub max_file_bytes: u64,
+}
+
+/// The scene a studio opens with (`--studio-scene`), checked by the loader.
+#[derive(Clone, Debug)]
+pub struct StudioScene {
+    pub text: String,
+    /// The scene file's name, without its directory: what the studio's Save offers.
+    pub file: String,
+    /// The files the scene reads, each once, by the name the scene gives it: put in
+    /// the coordinator's store at start and kept there while it runs.
+    pub files: Vec<(String, Arc<[u8]>)>,
 }
 
 impl Config {
@@ -142,7 +153,7 @@ impl Config {
             http: None,
             reset_database: false,
             studio_scene: None,
-            studio_scene_file: None,
+            max_file_bytes: depot::default_limits().max_file_bytes,
         }
     }
 
@@ -188,9 +199,9 @@ struct Shared {
     verifier: verification::Verifier,
     /// The studio's views and their pages (docs/studio.md).
     studio: studio_session::Studio,
-    /// The scene the studio page opens with, if one was given, and its file's name.
-    studio_scene: Option<String>,
-    studio_scene_file: Option<String>,
+    /// The scene the studio page opens with, if one was given, its file's name and the
+    /// files it reads, as bound in the store.
+    studio_scene: Option<(String, String, Vec<protocol::AssetRef>)>,
     /// The scrape token of `/metrics` ([`Config::metrics_secret`]), replaced by a
     /// reload of the token files.
     scrape: std::sync::RwLock<Option<Vec<u8>>>,
@@ -228,6 +239,36 @@ impl Shared {
         self.changes.send_modify(|n| *n = n.wrapping_add(1));
         self.rearm.notify_one();
     }
+}
+
+/// Puts the files of the studio's scene in the store and keeps them there for as long
+/// as this coordinator runs (pinned under an owner never released: the page may open
+/// the scene at any time), and gives the scene with its files bound by content.
+fn studio_files(
+    depot: &depot::Depot,
+    scene: Option<StudioScene>,
+) -> Result<Option<(String, String, Vec<protocol::AssetRef>)>> {
+    let Some(scene) = scene else {
+        return Ok(None);
+    };
+    let now = unix_ms();
+    let mut refs = Vec::with_capacity(scene.files.len());
+    for (name, bytes) in &scene.files {
+        let key = depot
+            .put(bytes, now)
+            .map_err(|e| anyhow::anyhow!("the studio's scene: {name}: {}", e.message))?;
+        refs.push(protocol::AssetRef {
+            name: name.clone(),
+            key,
+        });
+    }
+    if let Err(lacking) = depot.pin(depot.provisional(), &refs, now) {
+        anyhow::bail!(
+            "the studio's scene: {} of its files left the store as they were put in it",
+            lacking.len()
+        );
+    }
+    Ok(Some((scene.text, scene.file, refs)))
 }
 
 /// The daemon's clocks now; `epoch` is the start of its monotonic milliseconds. Read
@@ -290,16 +331,24 @@ impl Server {
     pub async fn bind(config: Config) -> Result<Server> {
         let data = config.data.clone();
         let reset = config.reset_database;
-        let (mut data_lock, (opened, depot)) = tokio::task::spawn_blocking(move || {
-            std::fs::create_dir_all(&data)
-                .with_context(|| format!("cannot create the data directory {}", data.display()))?;
-            let lock = data_lock::DataLock::acquire(&data)?;
-            let depot = depot::Depot::open(&data, depot::default_limits())
-                .map_err(|e| anyhow::anyhow!("cannot open the scene files' store: {e}"))?;
-            anyhow::Ok((lock, (startup::open(&data, reset)?, depot)))
-        })
-        .await
-        .context("the startup check stopped")??;
+        let studio = config.studio_scene.clone();
+        let store_limits = assets::StoreLimits {
+            max_file_bytes: config.max_file_bytes,
+            ..depot::default_limits()
+        };
+        let (mut data_lock, (opened, depot, studio_scene)) =
+            tokio::task::spawn_blocking(move || {
+                std::fs::create_dir_all(&data).with_context(|| {
+                    format!("cannot create the data directory {}", data.display())
+                })?;
+                let lock = data_lock::DataLock::acquire(&data)?;
+                let depot = depot::Depot::open(&data, store_limits)
+                    .map_err(|e| anyhow::anyhow!("cannot open the scene files' store: {e}"))?;
+                let studio = studio_files(&depot, studio)?;
+                anyhow::Ok((lock, (startup::open(&data, reset)?, depot, studio)))
+            })
+            .await
+            .context("the startup check stopped")??;
         let listener = TcpListener::bind(config.listen)
             .await
             .with_context(|| format!("cannot listen on {}", config.listen))?;
@@ -355,8 +404,7 @@ impl Server {
             metrics: Metrics::new(),
             verifier,
             studio: studio_session::Studio::default(),
-            studio_scene: config.studio_scene.clone(),
-            studio_scene_file: config.studio_scene_file.clone(),
+            studio_scene,
             scrape: std::sync::RwLock::new(config.metrics_secret.clone()),
             _data_lock: data_lock,
         });

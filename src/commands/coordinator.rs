@@ -13,7 +13,7 @@ use transport::ServerTls;
 
 use crate::args::DaemonArgs;
 use crate::config;
-use crate::scene_file::read_checked_scene;
+use crate::scene_file::read_studio_scene;
 use crate::signals::{shutdown_signal, Hangups};
 
 /// Run a coordinator: accept jobs, hand tiles to workers, store images.
@@ -47,6 +47,13 @@ pub struct Args {
     /// Largest scene a job may carry, in bytes.
     #[arg(long, env = "TESSERA_MAX_SCENE_BYTES", value_name = "BYTES", default_value_t = 8 * 1024 * 1024)]
     max_scene_bytes: u64,
+    /// Largest file a scene may name (a mesh), in bytes: an upload of a larger one,
+    /// from a client or the studio page, is refused [default: the renderer's limit,
+    /// 2 GiB].
+    #[arg(long, env = "TESSERA_MAX_FILE_BYTES", value_name = "BYTES",
+          default_value_t = render::limits::MAX_MESH_FILE_BYTES,
+          value_parser = clap::value_parser!(u64).range(1..=render::limits::MAX_MESH_FILE_BYTES))]
+    max_file_bytes: u64,
     /// Most objects a scene may have.
     #[arg(
         long,
@@ -150,7 +157,8 @@ pub struct Args {
     #[arg(long)]
     reset_database: bool,
     /// The scene the studio page (`/studio`) opens with [default: the seed scene at
-    /// 960 x 540, aa 2]. Checked at start like any scene.
+    /// 960 x 540, aa 2]: a scene file, its mesh files read beside it, or a .tar archive
+    /// of a scene and its files (the studio's Save). Checked at start like any scene.
     #[arg(long, env = "TESSERA_STUDIO_SCENE", value_name = "FILE")]
     studio_scene: Option<PathBuf>,
     /// Exit when standard input closes (used by `tessera up` for its children).
@@ -283,17 +291,13 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
-        studio_scene_file: a
-            .studio_scene
-            .as_deref()
-            .and_then(|path| path.file_name())
-            .map(|name| name.to_string_lossy().into_owned()),
+        max_file_bytes: a.max_file_bytes,
     };
     config.check_security(a.insecure, a.http_insecure, a.tls_auto || pem.is_some())?;
     config.studio_scene = a
         .studio_scene
         .as_deref()
-        .map(read_checked_scene)
+        .map(read_studio_scene)
         .transpose()?;
     // `--print-config` stops here, with the verdict of the start's checks: what
     // follows creates files or binds.

@@ -15,7 +15,7 @@ use crate::args::{FrameRange, FramesArg, ImageArgs};
 use crate::config;
 use crate::local_render::{thread_pool, Job, SceneSource};
 use crate::output::{default_output, FileOutput, FramesDir, ImageOutput};
-use crate::scene_file::{read_in_parallel, scene_dir};
+use crate::scene_file::{is_archive, read_archive, read_in_parallel, scene_dir};
 
 /// Render a scene file to a PNG image on this machine.
 #[derive(clap::Args)]
@@ -33,7 +33,8 @@ use crate::scene_file::{read_in_parallel, scene_dir};
         tessera render scenes/seed-orbit.json --frames 1-120 -o orbit/"
 )]
 pub struct Args {
-    /// The scene file (JSON).
+    /// The scene file (JSON), or a scene saved with its mesh files as a .tar archive
+    /// (the studio's Save).
     scene: PathBuf,
     /// Where to write the PNG [default: the scene's file name with .png, here].
     #[arg(short, long, value_name = "OUT.png")]
@@ -68,9 +69,25 @@ pub fn run(args: Args) -> Result<()> {
     }
     // The pool renders, and reads a large scene's file and objects first.
     let pool = thread_pool(args.threads)?;
-    let text = pool
-        .install(|| read_in_parallel(scene_path))
-        .with_context(|| format!("cannot read scene file {}", scene_path.display()))?;
+    // A scene saved with its mesh files (the studio's Save) is read whole from its
+    // archive, its files bound by name as a worker's are.
+    let archived = is_archive(scene_path)
+        .then(|| read_archive(scene_path))
+        .transpose()?;
+    if archived.is_some() && args.state.is_some() {
+        bail!(
+            "--state: a render of an archive cannot save its samples (a refine reads the \
+             mesh files beside the scene): extract it with tar and render the scene file"
+        );
+    }
+    let (text, bound) = match archived {
+        Some(archive) => (archive.text, Some(archive.files)),
+        None => (
+            pool.install(|| read_in_parallel(scene_path))
+                .with_context(|| format!("cannot read scene file {}", scene_path.display()))?,
+            None,
+        ),
+    };
     // A render that saves its samples records where its mesh files are, as an absolute
     // and canonical directory (the one they are then read from), so that a refine from
     // any directory reads the same files.
@@ -79,7 +96,10 @@ pub fn run(args: Args) -> Result<()> {
         mesh_dir = std::fs::canonicalize(&mesh_dir)
             .with_context(|| format!("cannot resolve the directory of {}", scene_path.display()))?;
     }
-    let files = MeshFiles::beside(&mesh_dir);
+    let files = match bound {
+        Some(files) => MeshFiles::bound(files),
+        None => MeshFiles::beside(&mesh_dir),
+    };
     let animated = pool
         .install(|| parse_animated_with(&text, &files))
         .map_err(|e| anyhow!("{}: {e}", scene_path.display()))?;

@@ -10,7 +10,7 @@ use anyhow::{anyhow, Context, Result};
 use localfarm::{up_limits, LocalFarm, WorkerSpec};
 
 use crate::args::threads_per_worker;
-use crate::scene_file::read_checked_scene;
+use crate::scene_file::read_studio_scene;
 use crate::signals::{Interrupted, StopSignals};
 
 /// Edit a scene and move its camera in the browser while a local farm renders it.
@@ -24,7 +24,8 @@ use crate::signals::{Interrupted, StopSignals};
         (then open the printed http://127.0.0.1:PORT/studio)"
 )]
 pub struct Args {
-    /// The scene to open [default: the seed scene at 960 x 540, aa 2].
+    /// The scene to open: a scene file (its mesh files read beside it), or a .tar
+    /// archive of a scene and its files [default: the seed scene at 960 x 540, aa 2].
     scene: Option<PathBuf>,
     /// Worker processes to start.
     #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=64))]
@@ -54,7 +55,7 @@ async fn studio(args: Args) -> Result<()> {
         );
     }
     if let Some(scene) = &args.scene {
-        read_checked_scene(scene)?;
+        read_studio_scene(scene)?;
     }
     let specs = vec![WorkerSpec { threads }; workers];
     let mut coordinator_args = up_limits();

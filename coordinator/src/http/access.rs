@@ -43,6 +43,10 @@ pub enum Access {
     Read,
     /// What changes the farm: the client secret, as JSON from the page's own origin.
     Control,
+    /// What adds a file to the farm's store (a studio page's mesh): a control's rules,
+    /// but as raw bytes (`Content-Type: application/octet-stream`, which a cross-site
+    /// form cannot send either without the browser asking first).
+    Upload,
 }
 
 impl Access {
@@ -55,6 +59,7 @@ impl Access {
             Access::Scrape => "scrape",
             Access::Read => "read",
             Access::Control => "control",
+            Access::Upload => "upload",
         }
     }
 }
@@ -94,24 +99,27 @@ pub type Refused = (StatusCode, String);
 ///
 /// - [`Access::Open`] and [`Access::Page`]: always.
 /// - [`Access::Login`] and [`Access::Control`] must be JSON (`Content-Type:
-///   application/json`), which a cross-site form cannot send without the browser
-///   asking first (nothing here answers that question), and an `Origin`, when sent,
-///   must name the host the request was sent to.
-/// - With a client secret, [`Access::Read`] and [`Access::Control`] need it (a bearer
-///   token or a session), compared in constant time: none is 401, a wrong one 403.
-///   [`Access::Scrape`] takes the scrape token as well.
+///   application/json`), [`Access::Upload`] raw bytes (`application/octet-stream`),
+///   neither of which a cross-site form can send without the browser asking first
+///   (nothing here answers that question), and an `Origin`, when sent, must name the
+///   host the request was sent to.
+/// - With a client secret, [`Access::Read`], [`Access::Control`] and [`Access::Upload`]
+///   need it (a bearer token or a session), compared in constant time: none is 401, a
+///   wrong one 403. [`Access::Scrape`] takes the scrape token as well.
 /// - Without one, reading is open (such a farm listens on loopback unless its
-///   operator said `--insecure`), and only a loopback peer may use the controls.
+///   operator said `--insecure`), and only a loopback peer may use the controls and
+///   uploads.
 pub fn decide(access: Access, secrets: Secrets<'_>, asking: &Asking<'_>) -> Result<(), Refused> {
     match access {
         Access::Open | Access::Page => return Ok(()),
-        Access::Login => return same_site_json(asking),
-        Access::Control => same_site_json(asking)?,
+        Access::Login => return same_site(asking, "application/json"),
+        Access::Control => same_site(asking, "application/json")?,
+        Access::Upload => same_site(asking, "application/octet-stream")?,
         Access::Scrape | Access::Read => {}
     }
     let Some(client) = secrets.client else {
         return match access {
-            Access::Control if !asking.peer.is_loopback() => Err((
+            Access::Control | Access::Upload if !asking.peer.is_loopback() => Err((
                 StatusCode::FORBIDDEN,
                 "without a client secret only this machine may use the controls: give the \
                  coordinator a client token to use them from elsewhere"
@@ -162,17 +170,23 @@ pub fn decide(access: Access, secrets: Secrets<'_>, asking: &Asking<'_>) -> Resu
     }
 }
 
-/// A control or a login must be JSON from the page's own origin.
-fn same_site_json(asking: &Asking<'_>) -> Result<(), Refused> {
-    let json = asking.content_type.is_some_and(|t| {
+/// A control or a login must be JSON (an upload raw bytes, `kind`) from the page's own
+/// origin.
+fn same_site(asking: &Asking<'_>, kind: &str) -> Result<(), Refused> {
+    let right = asking.content_type.is_some_and(|t| {
         t.split(';')
             .next()
-            .is_some_and(|m| m.trim().eq_ignore_ascii_case("application/json"))
+            .is_some_and(|m| m.trim().eq_ignore_ascii_case(kind))
     });
-    if !json {
+    if !right {
+        let what = if kind == "application/json" {
+            "controls"
+        } else {
+            "uploads"
+        };
         return Err((
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "controls take Content-Type: application/json".into(),
+            format!("{what} take Content-Type: {kind}"),
         ));
     }
     if let Some(origin) = asking.origin {
@@ -343,6 +357,52 @@ mod tests {
         );
         let v6 = IpAddr::V6(std::net::Ipv6Addr::LOCALHOST);
         assert_eq!(code(decide(Access::Control, none, &asking(v6, None))), None);
+        let upload = |peer| Asking {
+            content_type: Some("application/octet-stream"),
+            ..asking(peer, None)
+        };
+        assert_eq!(code(decide(Access::Upload, none, &upload(LOOPBACK))), None);
+        assert_eq!(
+            code(decide(Access::Upload, none, &upload(REMOTE))),
+            Some(StatusCode::FORBIDDEN)
+        );
+    }
+
+    #[test]
+    fn an_upload_is_raw_bytes_from_the_page_with_the_secret_as_a_control_is() {
+        let secrets = [b"s3cret".to_vec()];
+        let upload = |auth, content_type, origin| Asking {
+            content_type: Some(content_type),
+            origin,
+            ..asking(REMOTE, auth)
+        };
+        let bytes = "application/octet-stream";
+        let decide = |a: &Asking<'_>| code(decide(Access::Upload, client(&secrets), a));
+        assert_eq!(decide(&upload(Some("Bearer s3cret"), bytes, None)), None);
+        assert_eq!(
+            decide(&upload(None, bytes, None)),
+            Some(StatusCode::UNAUTHORIZED)
+        );
+        // A form (or JSON) is not an upload; another site's page is refused.
+        for other in [
+            "multipart/form-data; boundary=x",
+            "text/plain",
+            "application/json",
+        ] {
+            assert_eq!(
+                decide(&upload(Some("Bearer s3cret"), other, None)),
+                Some(StatusCode::UNSUPPORTED_MEDIA_TYPE),
+                "{other}"
+            );
+        }
+        assert_eq!(
+            decide(&upload(
+                Some("Bearer s3cret"),
+                bytes,
+                Some("http://evil.example")
+            )),
+            Some(StatusCode::FORBIDDEN)
+        );
     }
 
     #[test]

@@ -44,7 +44,7 @@ pub struct Route {
 /// Every route of the coordinator, with who may call it and its handler: the only
 /// place a route is added.
 fn table() -> Vec<(Route, MethodRouter<Observer>)> {
-    use Access::{Control, Login, Open, Page, Read, Scrape};
+    use Access::{Control, Login, Open, Page, Read, Scrape, Upload};
     let row = |method: Method, path, access, handler| {
         (
             Route {
@@ -77,6 +77,8 @@ fn table() -> Vec<(Route, MethodRouter<Observer>)> {
         row(Method::POST, "/api/studio/open", Control, post(studio_open)),
         row(Method::POST, "/api/studio/view", Control, post(studio_view)),
         row(Method::POST, "/api/studio/submit", Control, post(studio_submit)),
+        row(Method::POST, "/api/studio/archive", Control, post(studio_archive)),
+        row(Method::POST, "/api/studio/files", Upload, post(studio_upload)),
     ];
     rows
 }
@@ -492,15 +494,68 @@ struct EventsQuery {
 }
 
 /// `GET /api/studio/scene`: the scene the studio opens with, `{"scene": SCENE,
-/// "file": NAME}`: the coordinator's `--studio-scene` and its file name, or `null`s
-/// for the page's own default. A read like the others: the page fetches it once
-/// logged in, so that no scene is in the page itself.
+/// "file": NAME, "assets": [{"name", "sha256", "size"}, ...]}`: the coordinator's
+/// `--studio-scene`, its file name and the files it reads (in the coordinator's store,
+/// by content), or `null`s and no files for the page's own default. A read like the
+/// others: the page fetches it once logged in, so that no scene is in the page itself.
 async fn studio_scene(State(observer): State<Observer>) -> Response {
-    let scene = observer
-        .studio_scene()
-        .and_then(|scene| serde_json::from_str::<serde_json::Value>(scene).ok());
-    Json(serde_json::json!({ "scene": scene, "file": observer.studio_scene_file() }))
-        .into_response()
+    let opened = observer.studio_scene();
+    let scene =
+        opened.and_then(|(text, _, _)| serde_json::from_str::<serde_json::Value>(text).ok());
+    let assets: Vec<PageAsset> = opened
+        .map(|(_, _, refs)| refs.iter().map(PageAsset::of).collect())
+        .unwrap_or_default();
+    Json(serde_json::json!({
+        "scene": scene,
+        "file": opened.map(|(_, file, _)| file),
+        "assets": assets,
+    }))
+    .into_response()
+}
+
+/// A file a scene names, as the page binds it: its name in the scene, and its content
+/// (SHA-256 in hexadecimal, size in bytes), by which the coordinator's store keeps it.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct PageAsset {
+    name: String,
+    sha256: String,
+    size: u64,
+}
+
+impl PageAsset {
+    fn of(r: &protocol::AssetRef) -> PageAsset {
+        PageAsset {
+            name: r.name.clone(),
+            sha256: assets::AssetId {
+                sha256: r.key.sha256,
+                size: r.key.size,
+            }
+            .hex(),
+            size: r.key.size,
+        }
+    }
+
+    /// The file as the farm names it, or one line saying what is wrong.
+    fn bound(&self, index: usize) -> Result<protocol::AssetRef, String> {
+        let id = assets::AssetId::from_hex(&self.sha256, self.size).ok_or_else(|| {
+            format!(
+                "assets[{index}].sha256: not 64 hexadecimal digits: {:?}",
+                self.sha256
+            )
+        })?;
+        Ok(protocol::AssetRef {
+            name: self.name.clone(),
+            key: protocol::AssetKey {
+                sha256: id.sha256,
+                size: id.size,
+            },
+        })
+    }
+}
+
+/// The page's bindings of a studio request, as the farm names them.
+fn page_assets(assets: &[PageAsset]) -> Result<Vec<protocol::AssetRef>, String> {
+    assets.iter().enumerate().map(|(i, a)| a.bound(i)).collect()
 }
 
 /// `POST /api/studio/open`: a new view for this page, a control like the others.
@@ -542,13 +597,19 @@ fn studio_sampling(settings: Option<&serde_json::Value>) -> Result<protocol::Sam
     }
 }
 
-/// A studio request's body: `scene` is required, `session` and `settings` optional.
+/// A studio request's body: `scene` is required, `session`, `settings`, `assets` (the
+/// files the page bound, which its scene may name) and `file` (the name to save as)
+/// optional.
 #[derive(serde::Deserialize)]
 struct StudioRequest {
     #[serde(default)]
     session: String,
     scene: serde_json::Value,
     settings: Option<serde_json::Value>,
+    #[serde(default)]
+    assets: Vec<PageAsset>,
+    #[serde(default)]
+    file: String,
 }
 
 /// A studio control's body and its sampler, or the status and one line saying what
@@ -582,8 +643,12 @@ async fn studio_view(
         Err((code, message)) => return refusal(code, message),
     };
     let scene = edit.scene.to_string();
+    let assets = match page_assets(&edit.assets) {
+        Ok(assets) => assets,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
     match observer
-        .studio_edit(edit.session, scene, sampling, peer.ip())
+        .studio_edit(edit.session, scene, assets, sampling, peer.ip())
         .await
     {
         Ok(generation) => Json(serde_json::json!({ "generation": generation })).into_response(),
@@ -603,8 +668,18 @@ async fn studio_submit(
         Ok(request) => request,
         Err((code, message)) => return refusal(code, message),
     };
+    let scene = request.scene.to_string();
+    let assets = match page_assets(&request.assets) {
+        Ok(assets) => assets,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
+    // Only the files the scene reads go with the job.
+    let assets = match observer.studio_files_read(scene.clone(), assets).await {
+        Ok(assets) => assets,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
     let spec = protocol::JobSpec {
-        scene: request.scene.to_string(),
+        scene,
         overrides: protocol::Overrides {
             sampling: Some(sampling),
             ..Default::default()
@@ -613,8 +688,7 @@ async fn studio_submit(
         verification: protocol::Verification::default(),
         time_limit_ms: None,
         name: "studio scene".into(),
-        // The studio's scenes name no file the coordinator would need.
-        assets: Vec::new(),
+        assets,
         submitter: "studio".into(),
         frame: 1,
         frames: None,
@@ -628,6 +702,123 @@ async fn studio_submit(
         }
         ClientResponse::Error(why) => refused(why),
         _ => refusal(StatusCode::INTERNAL_SERVER_ERROR, "unexpected answer"),
+    }
+}
+
+/// `POST /api/studio/archive` with `{"file": NAME, "scene": SCENE, "assets": [...]}`:
+/// the scene saved with the files it reads, as one tar archive (`application/x-tar`,
+/// downloaded as NAME with `.tar` for `.json`), which `tessera render` renders to the
+/// studio's picture (docs/studio.md, "Saving a scene with meshes"). 422 with one line
+/// for a scene that is not valid or a file that cannot go in an archive.
+async fn studio_archive(State(observer): State<Observer>, body: axum::body::Bytes) -> Response {
+    let request: StudioRequest = match serde_json::from_slice(&body) {
+        Ok(request) => request,
+        Err(e) => {
+            return refusal(
+                StatusCode::BAD_REQUEST,
+                format!(
+                "a studio archive is {{\"file\": NAME, \"scene\": SCENE, \"assets\": [...]}}: {e}"
+            ),
+            )
+        }
+    };
+    let assets = match page_assets(&request.assets) {
+        Ok(assets) => assets,
+        Err(message) => return refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    };
+    match observer
+        .studio_archive(request.file, request.scene, assets)
+        .await
+    {
+        Ok((name, bytes)) => (
+            [
+                (header::CONTENT_TYPE, "application/x-tar".to_owned()),
+                (
+                    header::CONTENT_DISPOSITION,
+                    format!(
+                        "attachment; filename=\"{}\"",
+                        name.replace(['"', '\\'], "_")
+                    ),
+                ),
+                (header::CACHE_CONTROL, "no-store".to_owned()),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Err(message) => refusal(StatusCode::UNPROCESSABLE_ENTITY, message),
+    }
+}
+
+/// The query of [`studio_upload`].
+#[derive(serde::Deserialize)]
+struct UploadQuery {
+    name: String,
+    sha256: Option<String>,
+}
+
+/// `POST /api/studio/files?name=NAME[&sha256=HEX]`, the body a mesh file's bytes
+/// (`application/octet-stream`): a studio page's mesh, checked by the renderer's
+/// loader as the file its scene will name NAME and stored by content, its SHA-256
+/// computed here (and, if the page gave one, compared with it). Answers `{"name",
+/// "sha256", "size"}`, what the page binds; 413 for a file over the store's limit per
+/// file, 422 with one line for one that is not a mesh, 400 for a hash that is not the
+/// bytes'. The file is kept unpinned until a job names it: one never named goes after
+/// the store's grace, as an upload a client never submitted does.
+async fn studio_upload(
+    State(observer): State<Observer>,
+    Query(query): Query<UploadQuery>,
+    headers: HeaderMap,
+    body: axum::body::Body,
+) -> Response {
+    use futures_util::StreamExt;
+    let name = query.name;
+    let limit = observer.max_file_bytes();
+    let too_large = |size: String| {
+        refusal(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!("{name}: {size} bytes, more than the {limit} a file may have on this farm"),
+        )
+    };
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if let Some(size) = declared.filter(|&size| size > limit) {
+        return too_large(size.to_string());
+    }
+    let mut stream = body.into_data_stream();
+    let mut bytes = Vec::new();
+    while let Some(chunk) = stream.next().await {
+        let chunk = match chunk {
+            Ok(chunk) => chunk,
+            Err(e) => {
+                return refusal(
+                    StatusCode::BAD_REQUEST,
+                    format!("{name}: the upload was cut short: {e}"),
+                )
+            }
+        };
+        if (bytes.len() + chunk.len()) as u64 > limit {
+            return too_large("more than that".replace("that", &limit.to_string()));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    if let Some(claimed) = &query.sha256 {
+        let actual = assets::AssetId::of(&bytes).hex();
+        if !claimed.eq_ignore_ascii_case(&actual) {
+            return refusal(
+                StatusCode::BAD_REQUEST,
+                format!("{name}: the bytes sent have SHA-256 {actual}, not the {claimed} given: nothing stored"),
+            );
+        }
+    }
+    match observer.studio_upload(name.clone(), bytes.into()).await {
+        Ok(key) => Json(PageAsset::of(&protocol::AssetRef { name, key })).into_response(),
+        Err(why) if why.kind == RefusalKind::Limit => refusal(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!("{name}: {}", why.message),
+        ),
+        Err(why) => refused(why),
     }
 }
 
@@ -699,7 +890,10 @@ mod tests {
                 route.path
             );
             // A browser sends GETs across sites freely: nothing read may change anything.
-            let changes = matches!(route.access, Access::Control | Access::Login);
+            let changes = matches!(
+                route.access,
+                Access::Control | Access::Login | Access::Upload
+            );
             assert_eq!(
                 changes,
                 route.method == Method::POST,

@@ -31,7 +31,7 @@ use super::Shared;
 
 mod submit;
 
-pub(super) use submit::{admit, prepare};
+pub(super) use submit::{admit, check_assets, prepare};
 use submit::{refine, submit};
 
 type ClientConn = Framed<Stream, MessageCodec<ClientRequest, ClientResponse>>;

@@ -121,6 +121,20 @@ impl Depot {
         })
     }
 
+    /// A whole file held in memory (a studio page's upload, a studio scene's file),
+    /// stored by its content, computed here: its key. Not pinned: no job names it yet,
+    /// so it is collected after [`GRACE`] unless one does, as an upload is.
+    pub fn put(&self, bytes: &[u8], now_ms: u64) -> Result<AssetKey, Refusal> {
+        let id = AssetId::of(bytes);
+        self.store().put(&id, bytes, now_ms).map_err(refusal)?;
+        Ok(key_of(&id))
+    }
+
+    /// The most bytes one file may have.
+    pub fn max_file_bytes(&self) -> u64 {
+        self.store().limits().max_file_bytes
+    }
+
     /// A provisional owner for a submission being checked: pin its files under it
     /// ([`Depot::pin`]) before reading them, and [`Depot::release`] it once the job has
     /// its own pin (or was refused).

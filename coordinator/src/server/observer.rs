@@ -414,10 +414,66 @@ impl Observer {
         &self,
         view: String,
         scene: String,
+        assets: Vec<protocol::AssetRef>,
         sampling: protocol::Sampling,
         peer: std::net::IpAddr,
     ) -> Result<u64, String> {
-        super::studio_session::edit(&self.shared, view, scene, sampling, peer).await
+        super::studio_session::edit(&self.shared, view, scene, assets, sampling, peer).await
+    }
+
+    /// Of the files a studio page binds, those its scene reads (checked with them):
+    /// what a job of the scene carries.
+    pub async fn studio_files_read(
+        &self,
+        scene: String,
+        assets: Vec<protocol::AssetRef>,
+    ) -> Result<Vec<protocol::AssetRef>, String> {
+        let shared = Arc::clone(&self.shared);
+        tokio::task::spawn_blocking(move || {
+            let (bound, _) = super::studio_session::bind(&shared, &scene, assets)?;
+            shared.depot.release(bound.owner, super::unix_ms());
+            Ok(bound.assets)
+        })
+        .await
+        .map_err(|_| "the scene could not be checked: try again".to_owned())?
+    }
+
+    /// A studio scene saved with its files as one archive: its file name and bytes
+    /// (docs/studio.md, "Saving a scene with meshes").
+    pub async fn studio_archive(
+        &self,
+        name: String,
+        scene: serde_json::Value,
+        assets: Vec<protocol::AssetRef>,
+    ) -> Result<(String, Vec<u8>), String> {
+        let shared = Arc::clone(&self.shared);
+        tokio::task::spawn_blocking(move || {
+            super::studio_session::archive(&shared, &name, scene, assets)
+        })
+        .await
+        .map_err(|_| "the archive could not be made: try again".to_owned())?
+    }
+
+    /// A file a studio page uploads, named `name` as its scene will name it: checked as
+    /// a mesh by the renderer's loader (its one-line error otherwise) and stored by
+    /// content, unpinned until a job names it. Its key.
+    pub async fn studio_upload(
+        &self,
+        name: String,
+        bytes: bytes::Bytes,
+    ) -> Result<protocol::AssetKey, protocol::Refusal> {
+        let shared = Arc::clone(&self.shared);
+        tokio::task::spawn_blocking(move || {
+            super::studio_session::check_mesh(&name, &bytes)?;
+            shared.depot.put(&bytes, super::unix_ms())
+        })
+        .await
+        .map_err(|_| protocol::Refusal::unavailable("the file could not be stored: try again"))?
+    }
+
+    /// The most bytes a file of a scene may have on this coordinator.
+    pub fn max_file_bytes(&self) -> u64 {
+        self.shared.depot.max_file_bytes()
     }
 
     /// Opens a studio view for an authorised page: its random name.
@@ -425,14 +481,13 @@ impl Observer {
         self.shared.studio.open(self.shared.now())
     }
 
-    /// The scene the studio page opens with (`--studio-scene`), if one was given.
-    pub fn studio_scene(&self) -> Option<&str> {
-        self.shared.studio_scene.as_deref()
-    }
-
-    /// The file name of the studio's scene, if it came from a file.
-    pub fn studio_scene_file(&self) -> Option<&str> {
-        self.shared.studio_scene_file.as_deref()
+    /// The scene the studio page opens with (`--studio-scene`), if one was given: its
+    /// text, its file's name and the files it reads, bound in the store.
+    pub fn studio_scene(&self) -> Option<(&str, &str, &[protocol::AssetRef])> {
+        self.shared
+            .studio_scene
+            .as_ref()
+            .map(|(text, file, refs)| (text.as_str(), file.as_str(), &refs[..]))
     }
 
     /// The scrape token of `/metrics`, if the coordinator has one.

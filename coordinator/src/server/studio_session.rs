@@ -13,7 +13,9 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use base64::Engine;
-use protocol::{ClientResponse, JobId, JobSpec, Overrides, Settings, TileRect, Verification};
+use protocol::{
+    AssetRef, ClientResponse, JobId, JobSpec, Overrides, Settings, TileRect, Verification,
+};
 use scheduler::lifecycle;
 use serde::Serialize;
 use tokio::sync::Notify;
@@ -441,6 +443,7 @@ pub async fn edit(
     sh: &Arc<Shared>,
     view: String,
     scene: String,
+    assets: Vec<AssetRef>,
     sampling: protocol::Sampling,
     peer: IpAddr,
 ) -> Result<u64, String> {
@@ -451,10 +454,10 @@ pub async fn edit(
         .check_scene_bytes(scene.len())
         .map_err(|r| r.message)?;
     let text = scene.clone();
-    let parsed = tokio::task::spawn_blocking(move || render::parse_scene(&text))
+    let shared = Arc::clone(sh);
+    let (bound, parsed) = tokio::task::spawn_blocking(move || bind(&shared, &text, assets))
         .await
-        .map_err(|_| "the scene could not be checked: try again".to_owned())?
-        .map_err(|e| e.to_string())?;
+        .map_err(|_| "the scene could not be checked: try again".to_owned())??;
     let s = parsed.settings;
     let full = Settings {
         width: s.width,
@@ -465,7 +468,10 @@ pub async fn edit(
     };
     let actions = locked(&sh.studio.views)
         .handle(sh.now(), Event::Edit { view: view.clone() })
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| {
+            sh.depot.release(bound.owner, super::unix_ms());
+            e.to_string()
+        })?;
     let mut generation = 0;
     for action in actions {
         match action {
@@ -476,8 +482,216 @@ pub async fn edit(
     let plan = plan::passes(full);
     sh.studio.planned(&view, generation, plan.clone());
     let shared = Arc::clone(sh);
-    tokio::spawn(async move { submit_passes(&shared, view, generation, scene, plan, peer).await });
+    tokio::spawn(async move {
+        let owner = bound.owner;
+        submit_passes(&shared, view, generation, scene, &bound, plan, peer).await;
+        // Each pass admitted holds its own pin on the files now.
+        shared.depot.release(owner, super::unix_ms());
+    });
     Ok(generation)
+}
+
+/// A studio scene's files, bound: pinned under a provisional owner of the store while
+/// the scene is checked and its jobs admitted (each job then pins them itself, and
+/// releases them when it is forgotten, as any job does); release the owner after.
+pub struct Bound {
+    pub owner: u64,
+    /// The files the scene reads, of those the page bound: what its jobs carry.
+    pub assets: Vec<AssetRef>,
+    pub files: render::MeshFiles,
+}
+
+/// Binds the files a page names (`{"name", "sha256", "size"}` each) to its scene:
+/// pins them, reads them from the store (checked against their hashes) and checks the
+/// scene with them, keeping only the files it reads. An error is one line: the
+/// loader's, or the file the store no longer has.
+pub fn bind(
+    sh: &Shared,
+    scene: &str,
+    mut assets: Vec<AssetRef>,
+) -> Result<(Bound, render::Scene), String> {
+    super::client_session::check_assets(&assets).map_err(|r| r.message)?;
+    let owner = sh.depot.provisional();
+    if let Err(lacking) = sh.depot.pin(owner, &assets, super::unix_ms()) {
+        let name = assets
+            .iter()
+            .find(|a| lacking.contains(&a.key))
+            .map_or("a file", |a| a.name.as_str());
+        return Err(format!(
+            "{name}: the coordinator no longer has this file: add the mesh again, or open \
+             the scene again"
+        ));
+    }
+    let checked = sh.mesh_files(&assets).and_then(|files| {
+        render::parse_scene_with(scene, &files)
+            .map(|parsed| (files, parsed))
+            .map_err(|e| e.to_string())
+    });
+    let (files, parsed) = match checked {
+        Ok(checked) => checked,
+        Err(message) => {
+            sh.depot.release(owner, super::unix_ms());
+            return Err(message);
+        }
+    };
+    let read: HashSet<String> = files.files_read().into_iter().map(|f| f.name).collect();
+    assets.retain(|a| read.contains(&a.name));
+    Ok((
+        Bound {
+            owner,
+            assets,
+            files,
+        },
+        parsed,
+    ))
+}
+
+/// A studio scene saved with its files as one archive ([`crate::archive`]): the
+/// archive's file name (`name` with `.tar` for `.json`) and bytes.
+///
+/// A mesh whose file is named outside the scene's directory (absolute, or climbing
+/// with `..`) is saved under `meshes/` with its own file name, and the scene names it
+/// there: the archive holds nothing outside itself, and the picture is the same (the
+/// same bytes under another name). A `.gltf` so named is refused, since the files it
+/// names would have to move with it.
+pub fn archive(
+    sh: &Shared,
+    name: &str,
+    mut scene: serde_json::Value,
+    assets: Vec<AssetRef>,
+) -> Result<(String, Vec<u8>), String> {
+    use crate::archive::{unsafe_name, write};
+    let stem = name.rsplit('/').next().unwrap_or("").trim();
+    let stem = stem.strip_suffix(".json").unwrap_or(stem);
+    let stem = if stem.is_empty() || unsafe_name(stem).is_some() {
+        "scene"
+    } else {
+        stem
+    };
+    let text = scene.to_string();
+    let (bound, _) = bind(sh, &text, assets)?;
+    let files = sh.depot.files(&bound.assets);
+    sh.depot.release(bound.owner, super::unix_ms());
+    let mut files = files?;
+    let mut moved: HashMap<String, String> = HashMap::new();
+    if let Some(objects) = scene.get_mut("objects").and_then(|o| o.as_array_mut()) {
+        for (i, object) in objects.iter_mut().enumerate() {
+            if object.get("type").and_then(|t| t.as_str()) != Some("mesh") {
+                continue;
+            }
+            let Some(file) = object
+                .get("file")
+                .and_then(|f| f.as_str())
+                .map(str::to_owned)
+            else {
+                continue;
+            };
+            if unsafe_name(&file).is_none() {
+                continue;
+            }
+            if file.to_ascii_lowercase().ends_with(".gltf") {
+                return Err(format!(
+                    "objects[{i}].file: {file}: a .gltf outside the scene's directory cannot \
+                     be saved in an archive (the files it names would move with it): move \
+                     it beside the scene, or use a .glb"
+                ));
+            }
+            let new = match moved.get(&file) {
+                Some(new) => new.clone(),
+                None => {
+                    let base = file.rsplit('/').find(|p| !p.is_empty() && *p != "..");
+                    let base = base.unwrap_or("mesh");
+                    let bytes = files
+                        .get(&file)
+                        .cloned()
+                        .ok_or_else(|| format!("objects[{i}].file: {file}: not bound"))?;
+                    let new = (1..)
+                        .map(|k| match k {
+                            1 => format!("meshes/{base}"),
+                            k => format!("meshes/{k}-{base}"),
+                        })
+                        .find(|n| files.get(n).is_none_or(|b| *b == bytes))
+                        .expect("a free name");
+                    files.insert(new.clone(), bytes);
+                    moved.insert(file.clone(), new.clone());
+                    new
+                }
+            };
+            object["file"] = serde_json::Value::String(new);
+        }
+    }
+    let text = serde_json::to_string_pretty(&scene).map_err(|e| e.to_string())? + "\n";
+    let bound_files = render::MeshFiles::bound(files.clone());
+    render::parse_scene_with(&text, &bound_files).map_err(|e| e.to_string())?;
+    let mut members = Vec::new();
+    let mut read: Vec<String> = bound_files
+        .files_read()
+        .into_iter()
+        .map(|f| f.name)
+        .collect();
+    read.sort();
+    read.dedup();
+    for name in read {
+        if let Some(why) = unsafe_name(&name) {
+            return Err(format!(
+                "{name}: a file the scene reads cannot be saved in an archive: {why}"
+            ));
+        }
+        let bytes = files.get(&name).cloned().expect("a file read is bound");
+        members.push((name, bytes));
+    }
+    let bytes = write(&format!("{stem}.json"), &text, &members).map_err(|e| e.to_string())?;
+    Ok((format!("{stem}.tar"), bytes))
+}
+
+/// The formats a mesh file may have, by its name's extension (docs/scene-format.md).
+const MESH_EXTENSIONS: [&str; 5] = ["obj", "ply", "stl", "glb", "gltf"];
+
+/// Checks a file a studio page uploads as the mesh its scene will name `name`: a name
+/// a scene can give it inside its own directory, a mesh format, and bytes the
+/// renderer's loader reads as a mesh (its one-line error otherwise, naming the file).
+pub fn check_mesh(name: &str, bytes: &[u8]) -> Result<(), protocol::Refusal> {
+    use protocol::Refusal;
+    if let Some(why) = crate::archive::unsafe_name(name) {
+        return Err(Refusal::invalid(format!("{name:?}: {why}")));
+    }
+    let extension = name.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase());
+    if !extension
+        .as_deref()
+        .is_some_and(|e| MESH_EXTENSIONS.contains(&e))
+    {
+        return Err(Refusal::invalid(format!(
+            "{name}: not a mesh file: the studio reads .obj, .ply, .stl, .glb and .gltf"
+        )));
+    }
+    let scene = serde_json::json!({
+        "camera": { "position": [0, 0, -5], "look_at": [0, 0, 0] },
+        "lights": [],
+        "objects": [{ "type": "mesh", "file": name, "color": [1, 1, 1, 0] }],
+    })
+    .to_string();
+    let files = render::MeshFiles::bound(std::collections::BTreeMap::from([(
+        name.to_owned(),
+        Arc::<[u8]>::from(bytes),
+    )]));
+    render::parse_scene_with(&scene, &files)
+        .map(drop)
+        .map_err(|e| {
+            let message = e.to_string();
+            let message = message
+                .strip_prefix("objects[0].file: ")
+                .or_else(|| message.strip_prefix("objects[0]: "))
+                .unwrap_or(&message);
+            if extension.as_deref() == Some("gltf")
+                && message.contains("not among the files sent with the scene")
+            {
+                return Refusal::invalid(format!(
+                    "{name}: this .gltf names other files ({message}): the studio adds a \
+                     .gltf whose buffers are embedded, or a .glb"
+                ));
+            }
+            Refusal::invalid(message.to_owned())
+        })
 }
 
 /// Submits a generation's passes in order (each admitted before the next, so the
@@ -487,6 +701,7 @@ async fn submit_passes(
     view: ViewId,
     generation: u64,
     scene: String,
+    bound: &Bound,
     plan: Vec<Pass>,
     peer: IpAddr,
 ) {
@@ -510,18 +725,18 @@ async fn submit_passes(
             verification: Verification::Sampled,
             time_limit_ms: None,
             name: format!("studio view, pass {}", pass.index + 1),
-            // The studio's scenes name no file the coordinator would need.
-            assets: Vec::new(),
+            // The files its scene reads: pinned by the job while it is kept, fetched by
+            // the workers by content.
+            assets: bound.assets.clone(),
             submitter: "studio".into(),
             // The studio edits and shows a scene's frame 1.
             frame: 1,
             frames: None,
         };
         let limits = sh.limits;
-        let prepared = tokio::task::spawn_blocking(move || {
-            prepare(spec, &limits, peer, &render::MeshFiles::none())
-        })
-        .await;
+        let files = bound.files.clone();
+        let prepared =
+            tokio::task::spawn_blocking(move || prepare(spec, &limits, peer, &files)).await;
         let Ok(Ok(mut prepared)) = prepared else {
             return;
         };

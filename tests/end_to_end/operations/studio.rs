@@ -12,8 +12,9 @@
 //! JSON, keeps each color on one line, and saves under the scene file's name or the
 //! one typed.
 //!
-//! A scene with a mesh is refused in one line on the command line, in an edit and in a
-//! job from the page, and the view takes triangles and boxes next.
+//! A scene with meshes opens with its files, a mesh is added from a file the page
+//! uploads and moved, and Save's archive renders with `tessera render` to the studio's
+//! very pixels; bad uploads and archives are refused in one line.
 //!
 //! Then, without a browser, the event stream through a 20 Mbit/s link
 //! ([`ThrottleRelay`]) while the camera orbits ten edits a second: the reader decodes
@@ -34,8 +35,8 @@ use crate::support::browser::{base64, browser_or_skip, DevTools};
 use crate::support::throttle_relay::ThrottleRelay;
 use crate::support::{
     assert_same_png, entries, exclusive, http_get, http_post, json_error, ok, one_error_line, poll,
-    shared, spawn_tessera, start_coordinator_with_http, studio_refusal, tessera, wait_done,
-    write_mesh_scene, write_shapes_scene, Daemon, LOADER_REFUSAL,
+    shared, spawn_tessera, start_coordinator_with_http, tessera, wait_done, write_shapes_scene,
+    Daemon, LOADER_REFUSAL,
 };
 
 const TIMEOUT: Duration = Duration::from_secs(60);
@@ -492,45 +493,90 @@ fn a_studio_of_an_invalid_scene_or_address_stops_before_starting_anything() {
     );
 }
 
-/// A scene with a mesh is refused in one line wherever it would reach a studio:
-/// `tessera studio` and a coordinator's `--studio-scene` before starting anything, and
-/// an edit sent by a page, or a job it submits, with the loader's own line; the view
-/// then takes the next edit, of triangles and boxes, which need no file.
+/// A scene with a mesh under `models/`, a box, a triangle, a sphere and the floor:
+/// small, so that its final pictures come quickly on one worker.
+const MESH_SCENE: &str = r#"{
+  "camera": { "position": "0 1.5 -5", "look_at": "0 0 0" },
+  "image": { "width": 240, "height": 160, "aa": 1 },
+  "lights": [ { "position": "-7 10 -10", "color": "1 1 1" } ],
+  "objects": [
+    { "type": "mesh", "file": "models/cube.obj", "color": "0.5 1 0.5 0.3",
+      "transform": { "scale": 0.7, "rotate": "0 30 0", "translate": "0 -0.3 0" } },
+    { "type": "box", "min": "1 -1 1", "max": "2.5 -0.4 2", "color": "0.9 0.8 0.2 0" },
+    { "type": "triangle", "vertices": ["-2.5 -1 0", "-1.5 -1 0", "-2 0.5 0"], "color": "0.9 0.3 0.3 0" },
+    { "type": "sphere", "center": "2 0.5 0", "radius": 0.5, "color": "0.5 0.5 0.5 0.6" },
+    { "type": "plan", "normal": "0 1 0", "distance": -1, "color": "0.5 0.25 0.2 2" }
+  ]
+}"#;
+
+/// A pyramid of 4 triangles on a square base, as an ASCII PLY: the mesh the page adds.
+const PYRAMID_PLY: &str = "ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\n\
+    property float y\nproperty float z\nelement face 5\nproperty list uchar int vertex_indices\n\
+    end_header\n-1 0 -1\n1 0 -1\n1 0 1\n-1 0 1\n0 1.5 0\n4 3 2 1 0\n3 0 1 4\n3 1 2 4\n3 2 3 4\n\
+    3 3 0 4\n";
+
+/// `DIR/scene.json` ([`MESH_SCENE`]) with its mesh in `DIR/models/cube.obj`.
+fn write_studio_mesh_scene(dir: &Path) {
+    std::fs::create_dir_all(dir.join("models")).unwrap();
+    std::fs::write(dir.join("models/cube.obj"), crate::support::CUBE_OBJ).unwrap();
+    std::fs::write(dir.join("scene.json"), MESH_SCENE).unwrap();
+}
+
+/// Sets the file input `selector` of the page to `path`, as a user picking it does
+/// (the page gets its `change` event).
+fn pick_file(page: &mut DevTools, selector: &str, path: &Path) {
+    let document = page.call("DOM.getDocument", serde_json::json!({}));
+    let node = page.call(
+        "DOM.querySelector",
+        serde_json::json!({ "nodeId": document["root"]["nodeId"], "selector": selector }),
+    );
+    assert_ne!(node["nodeId"], 0, "no {selector} on the page");
+    page.call(
+        "DOM.setFileInputFiles",
+        serde_json::json!({ "files": [path.to_str().unwrap()], "nodeId": node["nodeId"] }),
+    );
+}
+
+/// The text of the error shown under the field `path` (empty when there is none).
+fn field_error(page: &mut DevTools, path: &str) -> String {
+    page.eval(&format!(
+        "(() => {{ const f = document.querySelector('.field[data-path=\"{path}\"]'); \
+         return f ? f.querySelector('.error').textContent : 'no field {path}'; }})()"
+    ))
+    .as_str()
+    .unwrap_or_default()
+    .to_owned()
+}
+
+/// `tessera render ARGS` in `dir` to `out`: the picture's [`fnv`] sum.
+fn rendered_sum(dir: &Path, scene: &str, out: &str) -> u64 {
+    ok(
+        tessera(dir, &["render", scene, "-o", out], TIMEOUT),
+        &format!("tessera render {scene}"),
+    );
+    u64::from(fnv(crate::support::decode_rgb8(&dir.join(out)).as_raw()))
+}
+
+/// A scene with meshes in the studio: opened with its mesh file (read beside it and put
+/// in the coordinator's store), its picture `tessera render`'s; a mesh added from a file
+/// the page uploads, moved, rotated and scaled (an invalid scale shows the loader's
+/// error under its field), the picture following; Save downloads one archive of the
+/// scene and its files, which `tessera render` renders to the studio's very pixels.
 #[test]
-fn a_studio_refuses_a_mesh_in_one_line_and_takes_triangles_and_boxes() {
+fn the_studio_edits_a_mesh_scene_adds_a_mesh_and_saves_an_archive_tessera_render_gives() {
     let _turn = shared();
+    let Some(chromium) = browser_or_skip() else {
+        return;
+    };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    write_mesh_scene(dir);
-    let run = tessera(dir, &["studio", "cube.json"], TIMEOUT);
-    assert_eq!(
-        one_error_line(&run, "tessera studio cube.json"),
-        studio_refusal("cube.json")
-    );
-    let run = tessera(
-        dir,
-        &[
-            "coordinator",
-            "--listen",
-            "127.0.0.1:0",
-            "--data",
-            "data",
-            "--studio-scene",
-            "cube.json",
-        ],
-        TIMEOUT,
-    );
-    assert!(!run.status.success());
-    let refusal = studio_refusal("cube.json");
-    let refusal = refusal.trim_start_matches("error: ");
-    assert!(run.stderr.contains(refusal), "{}", run.stderr);
-
-    std::fs::write(dir.join("start.json"), SCENE).unwrap();
+    write_studio_mesh_scene(dir);
+    std::fs::write(dir.join("pyramid.ply"), PYRAMID_PLY).unwrap();
     let _studio: Daemon = spawn_tessera(
         dir,
         &[
             "studio",
-            "start.json",
+            "scene.json",
             "--workers",
             "1",
             "--threads-per-worker",
@@ -539,38 +585,255 @@ fn a_studio_refuses_a_mesh_in_one_line_and_takes_triangles_and_boxes() {
         "studio.log",
     );
     let url = printed(dir, "studio on ");
-    let http = url
-        .trim_start_matches("http://")
-        .trim_end_matches("/studio")
-        .to_owned();
+    let mut page = DevTools::open(
+        &chromium,
+        &dir.join("profile"),
+        &url,
+        &dir.join("chromium.log"),
+    );
+    page.set_viewport(1400, 900);
+    let downloads = dir.join("downloads");
+    std::fs::create_dir(&downloads).unwrap();
+    page.call(
+        "Browser.setDownloadBehavior",
+        serde_json::json!({ "behavior": "allow", "downloadPath": downloads.to_str().unwrap() }),
+    );
+
+    // Opened with its mesh, listed with the box and the triangle: `tessera render`'s
+    // picture.
+    let generation = wait_final(&mut page, 0, "the mesh scene's first final picture");
+    let titles = page.eval(
+        "[...document.querySelectorAll('#objects .entry header .grow')].map(e => e.textContent)",
+    );
+    assert_eq!(
+        titles,
+        serde_json::json!([
+            "mesh 1: models/cube.obj",
+            "box 2",
+            "triangle 3",
+            "sphere 4",
+            "plane 5"
+        ])
+    );
+    let opened = page.eval(CANVAS_HASH).as_u64().unwrap();
+    assert_eq!(
+        opened,
+        rendered_sum(dir, "scene.json", "opened.png"),
+        "the studio's picture of the opened mesh scene differs from `tessera render`'s"
+    );
+
+    // A mesh added from a file the user picks: uploaded, listed, rendered.
+    pick_file(&mut page, "#add-mesh-file", &dir.join("pyramid.ply"));
+    let generation = wait_final(&mut page, generation, "the picture with the added mesh");
+    let added = page.eval("JSON.stringify(scene.objects[5])");
+    let added: serde_json::Value = serde_json::from_str(added.as_str().unwrap()).unwrap();
+    assert_eq!(added["type"], "mesh");
+    assert_eq!(added["file"], "meshes/pyramid.ply");
+    assert_ne!(page.eval(CANVAS_HASH).as_u64().unwrap(), opened);
+
+    // Moved, rotated and scaled; a scale of 0 is the loader's error under its field.
+    let scale = "objects[5].transform.scale";
+    type_into(&mut page, scale, "0");
+    let error = poll("the scale's error", TIMEOUT, || {
+        let e = field_error(&mut page, scale);
+        (!e.is_empty()).then_some(e)
+    });
+    assert!(
+        error.starts_with("objects[5].transform: scale must have no zero component"),
+        "{error}"
+    );
+    type_into(&mut page, scale, "0.6");
+    type_into(&mut page, "objects[5].transform.translate.x", "-0.8");
+    type_into(&mut page, "objects[5].transform.translate.z", "-1");
+    type_into(&mut page, "objects[5].transform.rotate.y", "45");
+    wait_final(&mut page, generation, "the picture of the moved mesh");
+    assert_eq!(field_error(&mut page, scale), "");
+    let transform = page.eval("JSON.stringify(scene.objects[5].transform)");
+    let transform: serde_json::Value = serde_json::from_str(transform.as_str().unwrap()).unwrap();
+    assert_eq!(
+        transform,
+        serde_json::json!({ "translate": [-0.8, 0, -1], "rotate": [0, 45, 0], "scale": 0.6 })
+    );
+    let studio_final = page.eval(CANVAS_HASH).as_u64().unwrap();
+
+    // Saved as one archive: the scene and both mesh files, which `tessera render`
+    // renders to the studio's very pixels.
+    assert!(page.click("#save"), "no Save button");
+    let archive = downloads.join("scene.tar");
+    poll("the saved archive", TIMEOUT, || {
+        (std::fs::metadata(&archive).ok()?.len() > 0).then_some(())
+    });
+    let listed = std::process::Command::new("tar")
+        .arg("tf")
+        .arg(&archive)
+        .output()
+        .expect("tar runs");
+    assert_eq!(
+        String::from_utf8_lossy(&listed.stdout),
+        "scene.json\nmeshes/pyramid.ply\nmodels/cube.obj\n"
+    );
+    assert_eq!(
+        rendered_sum(dir, "downloads/scene.tar", "saved.png"),
+        studio_final,
+        "the studio's final picture differs from `tessera render` of the saved archive"
+    );
+}
+
+/// A tar of `members` written byte by byte, as a hostile tool could: names the
+/// coordinator's own archives never hold.
+fn hostile_tar(members: &[(&str, &[u8])]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for (name, bytes) in members {
+        let mut header = [0u8; 512];
+        header[..name.len()].copy_from_slice(name.as_bytes());
+        header[100..107].copy_from_slice(b"0000644");
+        header[124..135].copy_from_slice(format!("{:011o}", bytes.len()).as_bytes());
+        header[136..147].copy_from_slice(b"00000000000");
+        header[156] = b'0';
+        header[148..156].copy_from_slice(b"        ");
+        let sum: u32 = header.iter().map(|&b| u32::from(b)).sum();
+        header[148..155].copy_from_slice(format!("{sum:06o}\0").as_bytes());
+        out.extend_from_slice(&header);
+        out.extend_from_slice(bytes);
+        out.resize(out.len().div_ceil(512) * 512, 0);
+    }
+    out.resize(out.len() + 1024, 0);
+    out
+}
+
+/// What a studio refuses, each in one line: a coordinator's `--studio-scene` with
+/// meshes gives the page its files, by content; an edit naming a mesh without them is
+/// the loader's refusal, and triangles and boxes need none; an upload too large for
+/// the store, not a mesh, with a hash that is not its bytes', or not sent as bytes; and
+/// `tessera render` of an archive with a member outside it, or without a mesh's file.
+#[test]
+fn a_studio_refuses_bad_uploads_and_tessera_render_bad_archives_in_one_line() {
+    let _turn = shared();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    write_studio_mesh_scene(dir);
+    let (_coordinator, _addr, http) = start_coordinator_with_http(
+        dir,
+        &["--studio-scene", "scene.json", "--max-file-bytes", "4096"],
+    );
+    let (code, body) = http_get(&http, "/api/studio/scene").unwrap();
+    assert_eq!(code, 200);
+    let opened: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(opened["file"], "scene.json");
+    let cube = crate::support::CUBE_OBJ.as_bytes();
+    assert_eq!(
+        opened["assets"],
+        serde_json::json!([{ "name": "models/cube.obj",
+            "sha256": assets::AssetId::of(cube).hex(), "size": cube.len() }])
+    );
+
+    // Edits: without the scene's files, the loader's refusal; with them, a picture;
+    // triangles and boxes need none.
     let json = ("Content-Type", "application/json");
     let (code, body) = http_post(&http, "/api/studio/open", &[json], "{}");
     assert_eq!(code, 200, "{body}");
     let answer: serde_json::Value = serde_json::from_str(&body).unwrap();
     let session = answer["session"].as_str().unwrap().to_owned();
-    let mesh = std::fs::read_to_string(dir.join("cube.json")).unwrap();
-    let edit = |scene: &str| {
+    let scene = opened["scene"].to_string();
+    let edit = |assets: &str| {
         http_post(
             &http,
             "/api/studio/view",
             &[json],
-            &format!(r#"{{"session": "{session}", "scene": {scene}}}"#),
+            &format!(r#"{{"session": "{session}", "scene": {scene}, "assets": {assets}}}"#),
         )
     };
-    let (code, body) = edit(&mesh);
+    let (code, body) = edit("[]");
     assert_eq!(code, 422, "{body}");
-    assert_eq!(json_error(body.as_bytes()), LOADER_REFUSAL);
+    assert_eq!(
+        json_error(body.as_bytes()),
+        LOADER_REFUSAL.replace("objects[1]", "objects[0]")
+    );
+    let (code, body) = edit(&opened["assets"].to_string());
+    assert_eq!(code, 200, "{body}");
+    let shapes = std::fs::read_to_string(write_shapes_scene(dir)).unwrap();
     let (code, body) = http_post(
         &http,
-        "/api/studio/submit",
+        "/api/studio/view",
         &[json],
-        &format!(r#"{{"scene": {mesh}}}"#),
+        &format!(r#"{{"session": "{session}", "scene": {shapes}}}"#),
     );
-    assert_eq!(code, 422, "{body}");
-    assert_eq!(json_error(body.as_bytes()), LOADER_REFUSAL);
-    let shapes = std::fs::read_to_string(write_shapes_scene(dir)).unwrap();
-    let (code, body) = edit(&shapes);
     assert_eq!(code, 200, "{body}");
+
+    // Uploads: bytes only, at most the store's limit per file, a mesh, its own hash.
+    let bytes = ("Content-Type", "application/octet-stream");
+    let upload = |name: &str, headers: &[(&str, &str)], body: &str| {
+        let (code, answer) = http_post(
+            &http,
+            &format!("/api/studio/files?name={name}"),
+            headers,
+            body,
+        );
+        (code, json_error(answer.as_bytes()))
+    };
+    let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+    let (code, _) = upload("meshes/tri.obj", &[json], tri);
+    assert_eq!(code, 415);
+    let large = format!("# {}\n{tri}", "x".repeat(5000));
+    assert_eq!(
+        upload("meshes/big.obj", &[bytes], &large),
+        (
+            413,
+            format!(
+                "meshes/big.obj: {} bytes, more than the 4096 a file may have on this farm",
+                large.len()
+            )
+        )
+    );
+    let (code, error) = upload("meshes/t.obj", &[bytes], "v 0 0 0\nf 1 2 9\n");
+    assert_eq!(code, 422, "{error}");
+    assert!(
+        error.starts_with("meshes/t.obj") && !error.contains('\n'),
+        "{error}"
+    );
+    assert_eq!(
+        upload("notes.txt", &[bytes], tri),
+        (
+            422,
+            "notes.txt: not a mesh file: the studio reads .obj, .ply, .stl, .glb and .gltf"
+                .to_owned()
+        )
+    );
+    let (code, error) = upload(&format!("t.obj&sha256={}", "0".repeat(64)), &[bytes], tri);
+    assert_eq!(code, 400, "{error}");
+    assert!(error.contains("nothing stored"), "{error}");
+    let (code, error) = upload("../t.obj", &[bytes], tri);
+    assert_eq!(code, 422, "{error}");
+    let (code, answer) = http_post(
+        &http,
+        "/api/studio/files?name=meshes/tri.obj",
+        &[bytes],
+        tri,
+    );
+    assert_eq!(code, 200, "{answer}");
+    let stored: serde_json::Value = serde_json::from_str(&answer).unwrap();
+    assert_eq!(stored["sha256"], assets::AssetId::of(tri.as_bytes()).hex());
+
+    // Archives: a member outside the archive, and a mesh's file missing, are refused.
+    let text = MESH_SCENE.as_bytes();
+    std::fs::write(
+        dir.join("climbing.tar"),
+        hostile_tar(&[("s.json", text), ("models/cube.obj", cube), ("../x", b"x")]),
+    )
+    .unwrap();
+    let run = tessera(dir, &["render", "climbing.tar"], TIMEOUT);
+    assert_eq!(
+        one_error_line(&run, "tessera render climbing.tar"),
+        "error: climbing.tar: member 2 (\"../x\"): a name climbing out with `..`: a member \
+         must be inside the archive"
+    );
+    std::fs::write(dir.join("missing.tar"), hostile_tar(&[("s.json", text)])).unwrap();
+    let run = tessera(dir, &["render", "missing.tar"], TIMEOUT);
+    assert_eq!(
+        one_error_line(&run, "tessera render missing.tar"),
+        "error: missing.tar: objects[0].file: \"models/cube.obj\" is not in the archive"
+    );
+    assert!(!dir.join("x").exists() && !dir.join("climbing.png").exists());
 }
 
 /// The link of the throughput test: 20 Mbit/s each way.

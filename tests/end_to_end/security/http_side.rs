@@ -36,6 +36,8 @@ const EXPECTED: &[(&str, &str, Access)] = &[
     ("POST", "/api/studio/open", Access::Control),
     ("POST", "/api/studio/view", Access::Control),
     ("POST", "/api/studio/submit", Access::Control),
+    ("POST", "/api/studio/archive", Access::Control),
+    ("POST", "/api/studio/files", Access::Upload),
 ];
 
 const SCRAPE_TOKEN: &str = "5c3a0e9d8b7f6a5e4d3c2b1a0f9e8d7c";
@@ -51,14 +53,21 @@ fn concrete(path: &str, job: u64) -> (String, &'static str) {
         .replace("{file}", "1.png");
     let path = match path.as_str() {
         "/api/studio/stream" => "/api/studio/stream?session=none".to_owned(),
+        // Not a mesh: stored nowhere.
+        "/api/studio/files" => "/api/studio/files?name=none.obj".to_owned(),
         _ => path,
     };
     (path, "{}")
 }
 
-/// One request of `route` with `auth` headers.
+/// One request of `route` with `auth` headers: JSON, or raw bytes for an upload.
 fn ask(site: &Site, method: &str, path: &str, body: &str, auth: &[(&str, &str)]) -> Answer {
-    let mut headers = vec![("Content-Type", "application/json")];
+    let kind = if path.starts_with("/api/studio/files") {
+        "application/octet-stream"
+    } else {
+        "application/json"
+    };
+    let mut headers = vec![("Content-Type", kind)];
     headers.extend_from_slice(auth);
     let body = if method == "POST" {
         body.as_bytes()
@@ -119,7 +128,7 @@ fn walk(site: &Site, job: u64, client_token: &str, what: &str) {
                     String::from_utf8_lossy(&answer.body)
                 );
             }
-            Access::Read | Access::Control | Access::Scrape => {
+            Access::Read | Access::Control | Access::Upload | Access::Scrape => {
                 let refused = ask(site, method, &path, body, none);
                 assert_eq!(refused.status, 401, "{name} without a secret");
                 let line = json_error(&refused.body);
@@ -133,7 +142,8 @@ fn walk(site: &Site, job: u64, client_token: &str, what: &str) {
                         answer.status,
                         String::from_utf8_lossy(&answer.body)
                     );
-                    if route.access != Access::Control && !path.contains("frames") {
+                    let changes = matches!(route.access, Access::Control | Access::Upload);
+                    if !changes && !path.contains("frames") {
                         assert!(
                             [200, 304, 404].contains(&answer.status),
                             "{name} with {how}: {}",

@@ -80,16 +80,6 @@ pub fn write_mesh_scene(dir: &Path) -> PathBuf {
     path
 }
 
-/// What the commands that open a scene in a studio (`studio`, a coordinator's
-/// `--studio-scene`) say of [`write_mesh_scene`]'s scene at `scene`.
-pub fn studio_refusal(scene: &str) -> String {
-    format!(
-        "error: {scene}: objects[1].file: cube.obj: a studio does not edit scenes with meshes \
-         yet: render this scene with `tessera render`, or on a farm with `tessera submit` or \
-         `tessera up`"
-    )
-}
-
 /// What a coordinator answers when [`write_mesh_scene`]'s scene reaches it without its
 /// files (a job naming none, or a studio edit): the renderer's own line.
 pub const LOADER_REFUSAL: &str = "objects[1].file: a mesh file cannot be read here: the \

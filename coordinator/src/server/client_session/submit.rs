@@ -68,7 +68,7 @@ pub(super) async fn submit(sh: &Arc<Shared>, spec: JobSpec, peer: IpAddr) -> Cli
 
 /// The files a submission names, checked before any is read: how many, their names
 /// (one each), none twice.
-fn check_assets(assets: &[AssetRef]) -> Result<(), Refusal> {
+pub(in crate::server) fn check_assets(assets: &[AssetRef]) -> Result<(), Refusal> {
     if assets.len() > MAX_JOB_ASSETS {
         return Err(Refusal::limit(format!(
             "assets: {} files, more than the {MAX_JOB_ASSETS} a job may name",
