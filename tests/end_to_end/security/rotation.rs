@@ -350,7 +350,7 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
     let (_coordinator, addr) = crate::support::start_coordinator_in(d);
     // A version 11 client hello: magic, version, role Client, a nonce, no key.
     let mut hello = b"TSRA".to_vec();
-    hello.extend(11u16.to_le_bytes());
+    hello.extend(12u16.to_le_bytes());
     hello.extend(0u32.to_le_bytes());
     hello.extend([0u8; 32]);
     hello.push(0);
@@ -367,7 +367,7 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
         reason,
         format!(
             "protocol version mismatch: this coordinator speaks version {}, the peer speaks \
-             version 11",
+             version 12",
             protocol::PROTOCOL_VERSION
         )
     );
