@@ -348,7 +348,7 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (_coordinator, addr) = crate::support::start_coordinator_in(d);
-    // A version 11 client hello: magic, version, role Client, a nonce, no key.
+    // A version 12 client hello: magic, version, role Client, a nonce, no key.
     let mut hello = b"TSRA".to_vec();
     hello.extend(12u16.to_le_bytes());
     hello.extend(0u32.to_le_bytes());
@@ -371,7 +371,7 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
             protocol::PROTOCOL_VERSION
         )
     );
-    assert_eq!(protocol::PROTOCOL_VERSION, 12);
+    assert_eq!(protocol::PROTOCOL_VERSION, 13);
     let mut rest = [0; 16];
     assert_eq!(
         stream.read(&mut rest).ok(),
