@@ -49,6 +49,8 @@ mod studio_session;
 mod verification;
 mod worker_session;
 
+pub use assets::StoreLimits;
+pub use depot::default_limits as default_file_limits;
 pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
 
@@ -110,6 +112,9 @@ pub struct Config {
     /// ([`lifecycle::Limits`]; its `retry_ms` is the persistence's retry interval,
     /// whatever is set here).
     pub limits: lifecycle::Limits,
+    /// The largest file a scene may name, and all the scenes' files together
+    /// ([`depot::default_limits`] by default).
+    pub files: assets::StoreLimits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
     /// Start with a new, empty job database when the one in `data` is missing or
@@ -139,6 +144,7 @@ impl Config {
             policy: Policy::default(),
             verify: VerifyConfig::default(),
             limits: lifecycle::Limits::default(),
+            files: depot::default_limits(),
             http: None,
             reset_database: false,
             studio_scene: None,
@@ -290,11 +296,12 @@ impl Server {
     pub async fn bind(config: Config) -> Result<Server> {
         let data = config.data.clone();
         let reset = config.reset_database;
+        let file_limits = config.files;
         let (mut data_lock, (opened, depot)) = tokio::task::spawn_blocking(move || {
             std::fs::create_dir_all(&data)
                 .with_context(|| format!("cannot create the data directory {}", data.display()))?;
             let lock = data_lock::DataLock::acquire(&data)?;
-            let depot = depot::Depot::open(&data, depot::default_limits())
+            let depot = depot::Depot::open(&data, file_limits)
                 .map_err(|e| anyhow::anyhow!("cannot open the scene files' store: {e}"))?;
             anyhow::Ok((lock, (startup::open(&data, reset)?, depot)))
         })

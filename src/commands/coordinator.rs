@@ -61,6 +61,16 @@ pub struct Args {
     /// Largest antialiasing a job may ask for.
     #[arg(long, env = "TESSERA_MAX_AA", value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
     max_aa: u32,
+    /// Largest file a scene may name (a mesh, a glTF's buffer), in bytes: an upload of
+    /// a larger one is refused at its first chunk.
+    #[arg(long, env = "TESSERA_MAX_FILE_BYTES", value_name = "BYTES", default_value_t = render::limits::MAX_MESH_FILE_BYTES,
+          value_parser = clap::value_parser!(u64).range(1..=render::limits::MAX_MESH_FILE_BYTES))]
+    max_file_bytes: u64,
+    /// Most bytes of the files scenes name kept under --data (complete files and uploads
+    /// in progress): an upload that would go over is refused at its first chunk.
+    #[arg(long, env = "TESSERA_MAX_STORE_BYTES", value_name = "BYTES", default_value_t = coordinator::server::default_file_limits().max_total_bytes,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    max_store_bytes: u64,
     /// Most jobs queued or running per client address.
     #[arg(
         long,
@@ -278,6 +288,10 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
             max_active_per_client: a.max_jobs_per_client as usize,
             retention: a.retention.map(|d| d.as_millis() as scheduler::Millis),
             ..Default::default()
+        },
+        files: coordinator::server::StoreLimits {
+            max_file_bytes: a.max_file_bytes,
+            max_total_bytes: a.max_store_bytes,
         },
         http: a.daemon.http,
         reset_database: a.reset_database,
