@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, Context, Result};
 use coordinator::client::Client;
 use protocol::{JobId, JobSpec, Overrides, Verification};
 
@@ -136,7 +136,9 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
             &files,
         )
         .await
-        .map_err(|e| anyhow!("{}: {e}", scene_path.display()))
+        // As context, not flattened: a refused upload's reason is in the chain (one
+        // line with `{:#}`), and a refusal keeps its kind for `--json`.
+        .with_context(|| scene_path.display().to_string())
 }
 
 /// Shows a submission's upload on stderr: when it starts, every few seconds while it

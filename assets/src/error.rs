@@ -68,6 +68,15 @@ pub enum AssetError {
 }
 
 impl AssetError {
+    /// Whether the file system refused for want of room (a full disk, or a quota).
+    pub fn is_disk_full(&self) -> bool {
+        matches!(
+            self,
+            AssetError::Io { source, .. }
+                if matches!(source.kind(), io::ErrorKind::StorageFull | io::ErrorKind::QuotaExceeded)
+        )
+    }
+
     pub(crate) fn io(action: &'static str, path: impl Into<PathBuf>, source: io::Error) -> Self {
         AssetError::Io {
             action,

@@ -149,16 +149,17 @@ pub(crate) fn write_atomic(root: &Path, id: &AssetId, bytes: &[u8]) -> Result<()
 }
 
 /// Moves the complete, flushed file at `from` to `id`'s place under `root`, and makes
-/// both directories' changes durable.
+/// its new entry durable.
+///
+/// The directory it left is not flushed: a crash may bring the old entry back beside
+/// the new one, and opening a store removes an upload whose file is already complete
+/// ([`crate::Store::open`]). That flush was a third of the disk waits of storing a
+/// small file (some 3.5 ms each on a virtual disk: 10,000 small files took 35 s more).
 pub(crate) fn install(root: &Path, id: &AssetId, from: &Path) -> Result<(), AssetError> {
     let dir = ensure_prefix_dir(root, id)?;
     let target = dir.join(file_name(id));
     fs::rename(from, &target).map_err(|e| AssetError::io("rename into place", &target, e))?;
-    sync_dir(&dir)?;
-    match from.parent() {
-        Some(parent) => sync_dir(parent),
-        None => Ok(()),
-    }
+    sync_dir(&dir)
 }
 
 /// The two-character directory `id` goes in, created (durably) if it is not there.

@@ -338,6 +338,21 @@ impl Store {
         collected
     }
 
+    /// Gives back everything received of the upload of `id` (its partial file is
+    /// removed); returns the bytes given back. For a caller that will not resume it: an
+    /// upload that filled the disk would otherwise hold that space until
+    /// [`Store::collect`], hours later, while everything else on the disk (the
+    /// coordinator's database) waits for room.
+    pub fn abandon(&mut self, id: &AssetId) -> Result<u64, AssetError> {
+        let Some(partial) = self.partials.get(id).copied() else {
+            return Ok(0);
+        };
+        layout::remove(&self.partial_path(id))?;
+        self.partials.remove(id);
+        self.partial_bytes -= partial.received;
+        Ok(partial.received)
+    }
+
     pub fn stats(&self) -> StoreStats {
         StoreStats {
             files: self.files.len() as u64,

@@ -49,6 +49,8 @@ mod studio_session;
 mod verification;
 mod worker_session;
 
+pub use assets::StoreLimits;
+pub use depot::default_limits as default_file_limits;
 pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
 
@@ -110,6 +112,9 @@ pub struct Config {
     /// ([`lifecycle::Limits`]; its `retry_ms` is the persistence's retry interval,
     /// whatever is set here).
     pub limits: lifecycle::Limits,
+    /// The largest file a scene may name, and all the scenes' files together
+    /// ([`depot::default_limits`] by default).
+    pub files: assets::StoreLimits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
     /// Start with a new, empty job database when the one in `data` is missing or
@@ -118,9 +123,6 @@ pub struct Config {
     /// The scene the studio page opens with (already checked by the loader), with its
     /// file's name and the files it reads; the page's own default without one.
     pub studio_scene: Option<StudioScene>,
-    /// The most bytes one file of a scene may have in the store (an upload, a studio
-    /// page's mesh); the renderer's own limit by default.
-    pub max_file_bytes: u64,
 }
 
 /// The scene a studio opens with (`--studio-scene`), checked by the loader.
@@ -150,10 +152,10 @@ impl Config {
             policy: Policy::default(),
             verify: VerifyConfig::default(),
             limits: lifecycle::Limits::default(),
+            files: depot::default_limits(),
             http: None,
             reset_database: false,
             studio_scene: None,
-            max_file_bytes: depot::default_limits().max_file_bytes,
         }
     }
 
@@ -332,10 +334,7 @@ impl Server {
         let data = config.data.clone();
         let reset = config.reset_database;
         let studio = config.studio_scene.clone();
-        let store_limits = assets::StoreLimits {
-            max_file_bytes: config.max_file_bytes,
-            ..depot::default_limits()
-        };
+        let store_limits = config.files;
         let (mut data_lock, (opened, depot, studio_scene)) =
             tokio::task::spawn_blocking(move || {
                 std::fs::create_dir_all(&data).with_context(|| {

@@ -47,13 +47,6 @@ pub struct Args {
     /// Largest scene a job may carry, in bytes.
     #[arg(long, env = "TESSERA_MAX_SCENE_BYTES", value_name = "BYTES", default_value_t = 8 * 1024 * 1024)]
     max_scene_bytes: u64,
-    /// Largest file a scene may name (a mesh), in bytes: an upload of a larger one,
-    /// from a client or the studio page, is refused [default: the renderer's limit,
-    /// 2 GiB].
-    #[arg(long, env = "TESSERA_MAX_FILE_BYTES", value_name = "BYTES",
-          default_value_t = render::limits::MAX_MESH_FILE_BYTES,
-          value_parser = clap::value_parser!(u64).range(1..=render::limits::MAX_MESH_FILE_BYTES))]
-    max_file_bytes: u64,
     /// Most objects a scene may have.
     #[arg(
         long,
@@ -68,6 +61,16 @@ pub struct Args {
     /// Largest antialiasing a job may ask for.
     #[arg(long, env = "TESSERA_MAX_AA", value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_AA)))]
     max_aa: u32,
+    /// Largest file a scene may name (a mesh, a glTF's buffer), in bytes: an upload of
+    /// a larger one is refused at its first chunk.
+    #[arg(long, env = "TESSERA_MAX_FILE_BYTES", value_name = "BYTES", default_value_t = render::limits::MAX_MESH_FILE_BYTES,
+          value_parser = clap::value_parser!(u64).range(1..=render::limits::MAX_MESH_FILE_BYTES))]
+    max_file_bytes: u64,
+    /// Most bytes of the files scenes name kept under --data (complete files and uploads
+    /// in progress): an upload that would go over is refused at its first chunk.
+    #[arg(long, env = "TESSERA_MAX_STORE_BYTES", value_name = "BYTES", default_value_t = coordinator::server::default_file_limits().max_total_bytes,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    max_store_bytes: u64,
     /// Most jobs queued or running per client address.
     #[arg(
         long,
@@ -287,11 +290,14 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
             retention: a.retention.map(|d| d.as_millis() as scheduler::Millis),
             ..Default::default()
         },
+        files: coordinator::server::StoreLimits {
+            max_file_bytes: a.max_file_bytes,
+            max_total_bytes: a.max_store_bytes,
+        },
         http: a.daemon.http,
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
-        max_file_bytes: a.max_file_bytes,
     };
     config.check_security(a.insecure, a.http_insecure, a.tls_auto || pem.is_some())?;
     config.studio_scene = a

@@ -5,7 +5,7 @@
 //! next job naming it starts without a transfer. The tiles of a scene whose files are
 //! still coming wait here, and are handled once it is read.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -319,6 +319,11 @@ impl Files {
             .filter(|(_, p)| p.assets.iter().all(|a| self.have.contains_key(&a.key)))
             .map(|(h, _)| *h)
             .collect();
+        if complete.is_empty() {
+            // Nothing left the waiting scenes: nothing to tidy (a scene of thousands of
+            // files checks here once a file).
+            return Vec::new();
+        }
         let mut ready = Vec::new();
         for hash in complete {
             let Some(p) = self.pending.remove(&hash) else {
@@ -344,13 +349,14 @@ impl Files {
     /// Drops the files no waiting scene needs (the disk cache and the built geometry
     /// keep what the next scene may need).
     fn tidy(&mut self) {
-        let pending = &self.pending;
-        let needed = |key: &AssetKey| {
-            pending
-                .values()
-                .any(|p| p.assets.iter().any(|a| a.key == *key))
-        };
-        self.have.retain(|k, _| needed(k));
-        self.fetching.retain(|k, _| needed(k));
+        // A set, not a search of every scene's files for each file: a scene of 10,000
+        // files made that 10^8 comparisons a call.
+        let needed: HashSet<AssetKey> = self
+            .pending
+            .values()
+            .flat_map(|p| p.assets.iter().map(|a| a.key))
+            .collect();
+        self.have.retain(|k, _| needed.contains(k));
+        self.fetching.retain(|k, _| needed.contains(k));
     }
 }

@@ -395,6 +395,9 @@ fn a_directory_that_cannot_be_written_is_an_error_naming_the_path() {
     assert!(matches!(err, AssetError::Io { .. }), "{err}");
 }
 
+/// A chunk that finds the disk full is cut back, so the upload stays as reported and
+/// resumes after a restart; the error says the disk is full, and a caller that will not
+/// resume ([`Store::abandon`]) gets the bytes back.
 #[test]
 fn a_full_disk_fails_the_chunk_and_leaves_the_upload_as_reported() {
     let dir = tempfile::tempdir().unwrap();
@@ -429,7 +432,18 @@ fn a_full_disk_fails_the_chunk_and_leaves_the_upload_as_reported() {
     if received > 0 {
         assert_eq!(fs::read(&partial).unwrap(), bytes[..offset]);
     }
+    assert!(err.is_disk_full(), "{message}");
     drop(store);
-    let reopened = Store::open(&root, ROOMY).unwrap();
+    let mut reopened = Store::open(&root, ROOMY).unwrap();
     assert_eq!(reopened.received(&id), received);
+    // A caller that will not resume gives the bytes back: the disk has room again.
+    assert_eq!(reopened.abandon(&id).unwrap(), received);
+    assert_eq!(reopened.received(&id), 0);
+    assert_eq!(reopened.stats().partial_bytes, 0);
+    assert!(!partial.exists());
+    assert_eq!(
+        reopened.abandon(&id).unwrap(),
+        0,
+        "nothing left to give back"
+    );
 }

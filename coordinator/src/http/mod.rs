@@ -773,18 +773,22 @@ async fn studio_upload(
     use futures_util::StreamExt;
     let name = query.name;
     let limit = observer.max_file_bytes();
-    let too_large = |size: String| {
-        refusal(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            format!("{name}: {size} bytes, more than the {limit} a file may have on this farm"),
-        )
+    // Its size when declared; a body that streams past the limit has none.
+    let too_large = |size: Option<u64>| {
+        let line = match size {
+            Some(size) => {
+                format!("{name}: {size} bytes, more than the {limit} a file may have on this farm")
+            }
+            None => format!("{name}: more than the {limit} bytes a file may have on this farm"),
+        };
+        refusal(StatusCode::PAYLOAD_TOO_LARGE, line)
     };
     let declared = headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     if let Some(size) = declared.filter(|&size| size > limit) {
-        return too_large(size.to_string());
+        return too_large(Some(size));
     }
     let mut stream = body.into_data_stream();
     let mut bytes = Vec::new();
@@ -799,7 +803,7 @@ async fn studio_upload(
             }
         };
         if (bytes.len() + chunk.len()) as u64 > limit {
-            return too_large("more than that".replace("that", &limit.to_string()));
+            return too_large(None);
         }
         bytes.extend_from_slice(&chunk);
     }

@@ -15,6 +15,7 @@ use std::time::Duration;
 
 use assets::{AssetError, AssetId, Store, StoreLimits, StoreStats, Upload};
 use protocol::{AssetAnswer, AssetKey, AssetRef, JobId, Lacking, Refusal, ASSET_CHUNK};
+use tracing::warn;
 
 /// How long an upload not completed, or a file no job names, is kept: long enough for
 /// a client to upload a large scene's files and submit it, or to resume after losing
@@ -112,6 +113,20 @@ impl Depot {
         let (received, complete) = match store.write_chunk(&id, offset, bytes, now_ms) {
             Ok(Upload::Complete) => (key.size, true),
             Ok(Upload::Partial { received }) => (received, false),
+            Err(error) if error.is_disk_full() => {
+                // The upload is given back whole rather than kept to resume: the disk
+                // it filled is the data directory's, where the job database and the
+                // images wait for room too, and nothing frees it but the collection
+                // hours later. The client is told which disk, in one line.
+                let given_back = store.abandon(&id).unwrap_or(0);
+                let dir = store.dir().display().to_string();
+                drop(store);
+                warn!(file = %id, given_back, error = %error, "an upload filled the disk: given back");
+                return Err(Refusal::unavailable(format!(
+                    "the coordinator's disk is full: {dir} has no room for {id} ({given_back} \
+                     bytes of it received were given back): free space there and submit again"
+                )));
+            }
             Err(error) => return Err(refusal(error)),
         };
         Ok(AssetAnswer::Received {

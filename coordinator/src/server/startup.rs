@@ -16,7 +16,6 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use protocol::{JobId, JobState};
-use sha2::{Digest, Sha256};
 use tracing::{info, warn};
 
 use crate::db::{Db, StoredJob, StoredTile, Times, Totals};
@@ -178,9 +177,17 @@ pub(super) fn check_job(db: &mut Db, job: StoredJob) -> Result<Option<RestoredJo
             stored_tiles,
         }));
     }
-    let hash: [u8; 32] = Sha256::digest(job.scene.as_bytes()).into();
+    // A scene that names files is known by its text and its files together (the hash
+    // the job was accepted under and its workers check).
+    let hash = protocol::scene_hash(&job.scene, &job.assets);
     let damaged = if hash != job.hash {
         Some("its stored scene does not match its hash".to_owned())
+    } else if !job.assets.is_empty() {
+        // Its files are in the store, not at hand here: parsed without them the scene
+        // would be refused for naming them. The hash above proves the text and the
+        // files' identities are those accepted; the store checks each file's bytes when
+        // it is read, and a file gone makes the job's tiles fail with its name.
+        None
     } else {
         match render::parse_animated(&job.scene) {
             Err(e) => Some(format!("its stored scene no longer parses: {e}")),
@@ -273,6 +280,35 @@ mod tests {
             "{error}"
         );
         assert!(error.contains("remove it"), "{error}");
+    }
+
+    /// A job whose scene names files is known by its text and its files: restored,
+    /// not failed as damaged (its hash is not its text's alone, and its scene does not
+    /// parse without its files).
+    #[test]
+    fn a_job_whose_scene_names_files_is_restored() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut db = Db::open(&dir.path().join("jobs.db"), true).unwrap();
+        let mut job = crate::db::tests::job(5, protocol::Sampling::Grid);
+        job.scene = r#"{"camera": {"position": "0 0 -5", "look_at": "0 0 0"},
+            "objects": [{"type": "mesh", "file": "cube.obj", "color": "1 1 1 0"}]}"#
+            .into();
+        job.assets = vec![protocol::AssetRef {
+            name: "cube.obj".into(),
+            key: protocol::AssetKey {
+                sha256: [3; 32],
+                size: 120,
+            },
+        }];
+        job.hash = protocol::scene_hash(&job.scene, &job.assets);
+        db.insert_job(&job).unwrap();
+        let restored = check_job(&mut db, job).unwrap().unwrap();
+        assert_eq!(
+            restored.job.state,
+            JobState::Queued,
+            "{:?}",
+            restored.job.error
+        );
     }
 
     #[test]

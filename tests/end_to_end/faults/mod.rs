@@ -11,6 +11,7 @@
 //! of these tests has the machine to itself, so that their timing does not depend on
 //! other tests.
 
+mod assets;
 mod coordinator;
 mod liveness;
 mod network;
