@@ -113,7 +113,10 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
     } = job;
     let scene = read_scene(scene_path)?;
     let files = scene_files(scene_path, &scene)?;
-    client.on_upload(upload_shown());
+    // On a terminal only: a script reading stderr gets an error as one line.
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        client.on_upload(upload_shown());
+    }
     let name = label.name.unwrap_or_else(|| {
         scene_path
             .file_stem()
