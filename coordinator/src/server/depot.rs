@@ -8,8 +8,9 @@
 //! the job is deleted); an upload never completed, or a file no job has named for
 //! [`GRACE`], is given back by [`Depot::collect`].
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -34,12 +35,58 @@ pub fn default_limits() -> StoreLimits {
     }
 }
 
+/// The most bytes of files read lately kept in memory ([`Recent`]).
+const RECENT_BYTES: u64 = 256 << 20;
+
 /// The coordinator's files.
 pub struct Depot {
     store: Mutex<Store>,
     /// Owners pinned while a submission is checked, before it has a job id: counted
     /// down from the top of the ids, which jobs never reach.
-    next_provisional: Mutex<u64>,
+    next_provisional: AtomicU64,
+    recent: Mutex<Recent>,
+}
+
+/// Files read and checked lately, kept in memory (at most [`RECENT_BYTES`], least
+/// recently used out): the coordinator's checks build a tracer for each frame of a
+/// sequence, and its workers fetch a file chunk by chunk, and without it each would
+/// read (and hash) the whole file from disk again, under the store's lock.
+#[derive(Default)]
+struct Recent {
+    files: HashMap<AssetKey, (Arc<[u8]>, u64)>,
+    by_use: BTreeMap<u64, AssetKey>,
+    bytes: u64,
+    clock: u64,
+}
+
+impl Recent {
+    fn get(&mut self, key: &AssetKey) -> Option<Arc<[u8]>> {
+        self.clock += 1;
+        let (bytes, used) = self.files.get_mut(key)?;
+        self.by_use.remove(used);
+        *used = self.clock;
+        self.by_use.insert(self.clock, *key);
+        Some(Arc::clone(bytes))
+    }
+
+    fn keep(&mut self, key: AssetKey, bytes: Arc<[u8]>) {
+        let size = bytes.len() as u64;
+        if size > RECENT_BYTES || self.files.contains_key(&key) {
+            return;
+        }
+        while self.bytes + size > RECENT_BYTES {
+            let Some((_, oldest)) = self.by_use.pop_first() else {
+                break;
+            };
+            if let Some((gone, _)) = self.files.remove(&oldest) {
+                self.bytes -= gone.len() as u64;
+            }
+        }
+        self.clock += 1;
+        self.files.insert(key, (bytes, self.clock));
+        self.by_use.insert(self.clock, key);
+        self.bytes += size;
+    }
 }
 
 pub fn key_of(id: &AssetId) -> AssetKey {
@@ -77,7 +124,8 @@ impl Depot {
     pub fn open(data: &Path, limits: StoreLimits) -> Result<Depot, AssetError> {
         Ok(Depot {
             store: Mutex::new(Store::open(&data.join("assets"), limits)?),
-            next_provisional: Mutex::new(u64::MAX),
+            next_provisional: AtomicU64::new(u64::MAX),
+            recent: Mutex::default(),
         })
     }
 
@@ -154,12 +202,11 @@ impl Depot {
     /// ([`Depot::pin`]) before reading them, and [`Depot::release`] it once the job has
     /// its own pin (or was refused).
     pub fn provisional(&self) -> u64 {
-        let mut next = self
-            .next_provisional
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
-        *next -= 1;
-        *next + 1
+        self.next_provisional.fetch_sub(1, Ordering::Relaxed)
+    }
+
+    fn recent(&self) -> MutexGuard<'_, Recent> {
+        self.recent.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Keeps the files of `refs` while `owner` (a job, or a provisional owner) names
@@ -187,20 +234,40 @@ impl Depot {
     /// The files of `refs` by name, each checked against its SHA-256 as read: what the
     /// renderer reads the scene with. A file lost or damaged is named in one line.
     pub fn files(&self, refs: &[AssetRef]) -> Result<BTreeMap<String, Arc<[u8]>>, String> {
-        let mut store = self.store();
         let mut files = BTreeMap::new();
         for r in refs {
-            let bytes = store
-                .read_verified(&id_of(&r.key))
-                .map_err(|e| format!("{}: {e}", r.name))?;
-            files.insert(r.name.clone(), Arc::from(bytes));
+            // Not matched on the lock's guard: it would live through the arms.
+            let kept = self.recent().get(&r.key);
+            let bytes = match kept {
+                Some(bytes) => bytes,
+                None => {
+                    let bytes: Arc<[u8]> = self
+                        .store()
+                        .read_verified(&id_of(&r.key))
+                        .map_err(|e| format!("{}: {e}", r.name))?
+                        .into();
+                    self.recent().keep(r.key, Arc::clone(&bytes));
+                    bytes
+                }
+            };
+            files.insert(r.name.clone(), bytes);
         }
         Ok(files)
     }
 
-    /// Bytes of a file for a worker, from `offset`: at most [`ASSET_CHUNK`].
+    /// Bytes of a file for a worker, from `offset`: at most [`ASSET_CHUNK`]. From
+    /// memory when the file was read lately (the worker checks the whole file's hash
+    /// either way).
     pub fn chunk(&self, key: &AssetKey, offset: u64) -> Result<Vec<u8>, String> {
         let len = key.size.saturating_sub(offset).min(ASSET_CHUNK as u64) as usize;
+        let kept = self.recent().get(key);
+        if let Some(bytes) = kept {
+            let start = usize::try_from(offset).map_err(|_| "an offset past the file")?;
+            return bytes
+                .get(start..start + len)
+                .map(<[u8]>::to_vec)
+                .ok_or_else(|| format!("offset {offset} is past the end of {}", id_of(key)));
+        }
         self.store()
             .read_chunk(&id_of(key), offset, len)
             .map_err(|e| e.to_string())
@@ -209,6 +276,10 @@ impl Depot {
     /// Gives back what no job needs any more; returns the files and bytes removed.
     pub fn collect(&self, now_ms: u64) -> (usize, u64) {
         let collected = self.store().collect(now_ms, GRACE.as_millis() as u64);
+        if !collected.ids.is_empty() {
+            // What is no longer stored is no longer served from memory either.
+            *self.recent() = Recent::default();
+        }
         (
             collected.ids.len() + collected.partials.len(),
             collected.bytes + collected.partial_bytes,
@@ -262,5 +333,57 @@ mod tests {
         depot.release(7, now + 10 * grace);
         assert_eq!(depot.collect(now + 12 * grace).0, 2);
         assert_eq!(depot.lacking(&[a.key, b.key]).len(), 2);
+    }
+
+    /// A file read once is served from memory after: its checks and its chunks do not
+    /// read it from disk again (here: the file on disk damaged after the first read
+    /// changes nothing served), and memory stays within its bound.
+    #[test]
+    fn files_read_lately_are_served_from_memory_within_a_bound() {
+        let dir = tempfile::tempdir().unwrap();
+        let depot = Depot::open(dir.path(), default_limits()).unwrap();
+        let bytes = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        let a = file(bytes, "a.obj");
+        depot.upload(&a.key, 0, bytes, 1).unwrap();
+        let first = depot.files(std::slice::from_ref(&a)).unwrap();
+        assert_eq!(&*first["a.obj"], &bytes[..]);
+        for entry in walk(&dir.path().join("assets")) {
+            std::fs::write(entry, b"damaged").unwrap();
+        }
+        let again = depot.files(std::slice::from_ref(&a)).unwrap();
+        assert!(Arc::ptr_eq(&first["a.obj"], &again["a.obj"]));
+        assert_eq!(depot.chunk(&a.key, 8).unwrap(), &bytes[8..]);
+        assert!(depot.chunk(&a.key, bytes.len() as u64 + 1).is_err());
+
+        let mut recent = Recent::default();
+        let big = |n: u8| {
+            (
+                key_of(&AssetId::of(&[n])),
+                Arc::from(vec![n; (RECENT_BYTES / 3) as usize]),
+            )
+        };
+        for n in 0..4 {
+            let (key, bytes) = big(n);
+            recent.keep(key, bytes);
+        }
+        assert!(recent.bytes <= RECENT_BYTES);
+        assert!(
+            recent.get(&big(0).0).is_none(),
+            "the least recently used stayed"
+        );
+        assert!(recent.get(&big(3).0).is_some());
+    }
+
+    fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+        let mut files = Vec::new();
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                files.extend(walk(&path));
+            } else {
+                files.push(path);
+            }
+        }
+        files
     }
 }
