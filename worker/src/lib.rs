@@ -412,9 +412,12 @@ impl Session {
                 let footprints = self.cache.footprints(&key);
                 let back = self.footprints_channel();
                 self.pool.spawn(move || {
-                    let Some(started) = start() else {
+                    let Some(mut started) = start() else {
                         return;
                     };
+                    let tracer = tracer.and_then(|t| t.get());
+                    // The tile's time is its rendering's, not its frame's preparing.
+                    started.at = Instant::now();
                     let advanced = tracer.and_then(|t| {
                         let footprints = footprints.unwrap_or_else(|| {
                             let f = verify::adaptive::footprints(&t);
@@ -451,9 +454,11 @@ impl Session {
                     settings,
                 });
                 self.pool.spawn(move || {
-                    let Some(started) = start() else {
+                    let Some(mut started) = start() else {
                         return;
                     };
+                    let tracer = tracer.and_then(|t| t.get());
+                    started.at = Instant::now();
                     let rendered = tracer.and_then(|t| {
                         if settings.sampling.target_error().is_some() {
                             return Err("adaptive tiles are advanced in passes, not rendered \
