@@ -148,6 +148,9 @@ struct FarmRun {
     sent: f64,
     /// CPU seconds of the coordinator, and of the workers together, during it.
     cpu: (f64, f64),
+    /// When the last worker to fetch a file for it had it, from the workers' logs;
+    /// `None` when none fetched any.
+    fetched: Option<f64>,
 }
 
 /// The farm against `tessera render --threads 2` on one job.
@@ -450,6 +453,7 @@ async fn farm_job(
     let pids = farm.pids();
     let traffic = Traffic::scrape(http).await?;
     let cpu_before = cpu(&pids)?;
+    let since = time_of_day();
     let started = Instant::now();
     let (text, files, _) = read_with_files(scene)?;
     let prep = started.elapsed().as_secs_f64();
@@ -468,8 +472,48 @@ async fn farm_job(
         received: after.received - traffic.received,
         sent: after.sent - traffic.sent,
         cpu: (used[0], used.iter().skip(1).sum()),
+        fetched: last_fetch(farm, pids.len() - 1, since),
     };
     Ok((job, run, status))
+}
+
+/// Now, in seconds of the UTC day, as the daemons' log lines write it.
+fn time_of_day() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+        % 86_400.0
+}
+
+/// The time of day (seconds, UTC) of a daemon's log line (`2026-11-28T11:06:52.335436Z
+/// INFO ...`).
+fn log_time_of_day(line: &str) -> Option<f64> {
+    let stamp = line.split_whitespace().next()?;
+    let (_, time) = stamp.split_once('T')?;
+    let mut parts = time.strip_suffix('Z')?.split(':');
+    let mut seconds = 0.0;
+    for unit in [3600.0, 60.0, 1.0] {
+        seconds += unit * parts.next()?.parse::<f64>().ok()?;
+    }
+    Some(seconds)
+}
+
+/// Seconds after `since` (a time of day) of the last `file fetched` in the logs of the
+/// farm's `workers`: when the last of them had its files. Lines from before `since` (an
+/// earlier job's) are not counted; a day's end between the two is.
+fn last_fetch(farm: &localfarm::LocalFarm, workers: usize, since: f64) -> Option<f64> {
+    let dir = farm.data_dir().parent()?.to_path_buf();
+    (1..=workers)
+        .filter_map(|i| std::fs::read_to_string(dir.join(format!("local-{i}.log"))).ok())
+        .flat_map(|log| {
+            log.lines()
+                .filter(|l| l.contains("file fetched"))
+                .filter_map(log_time_of_day)
+                .collect::<Vec<_>>()
+        })
+        .map(|t| (t - since).rem_euclid(86_400.0))
+        .filter(|&after| after < 43_200.0)
+        .reduce(f64::max)
 }
 
 /// The farm against `tessera render --threads 2` on `scene` (a sequence of `frames`,
@@ -699,18 +743,19 @@ fn markdown(
     );
     let _ = writeln!(
         md,
-        "| job | client reads and hashes | uploaded | submitted (checked) | first tile | \
-         done | CPU |\n|---|---:|---:|---:|---:|---:|---:|"
+        "| job | client reads and hashes | uploaded | submitted (checked) | last worker has \
+         the file | first tile | done | CPU |\n|---|---:|---:|---:|---:|---:|---:|---:|"
     );
     for t in throughput {
         let m = |f: fn(&FarmRun) -> f64| median(&t.farm.iter().map(f).collect::<Vec<_>>());
         let _ = writeln!(
             md,
-            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2} + {:.2} |",
+            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2} + {:.2} |",
             t.what,
             m(|r| r.prep),
             m(|r| r.timeline.uploaded),
             m(|r| r.timeline.submitted),
+            m(|r| r.fetched.unwrap_or(f64::NAN)),
             m(|r| r.timeline.first_tile),
             m(|r| r.timeline.done),
             m(|r| r.cpu.0),
@@ -737,21 +782,23 @@ fn markdown(
     let _ = writeln!(
         md,
         "| workers keep files with | job | client reads and hashes (s) | uploaded (s) | \
-         submitted (s) | first tile (s) | first tile / one worker's parse + build | done \
+         submitted (s) | last worker has the file (s) | first tile (s) | first tile / one worker's parse + build | done \
          (s) | CPU (s) | bytes received | bytes sent to workers |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for (keep, runs) in &f.jobs {
         for (i, r) in runs.iter().enumerate() {
             let _ = writeln!(
                 md,
-                "| {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2} | {:.3} | {:.2} + {:.2} | {} \
-                 | {} |",
+                "| {} | {} | {:.3} | {:.3} | {:.3} | {} | {:.3} | {:.2} | {:.3} | {:.2} + \
+                 {:.2} | {} | {} |",
                 keep.label(),
                 i + 1,
                 r.prep,
                 r.timeline.uploaded,
                 r.timeline.submitted,
+                r.fetched
+                    .map_or("none fetched".to_owned(), |t| format!("{t:.3}")),
                 r.timeline.first_tile,
                 r.timeline.first_tile / (f.parse + f.build),
                 r.timeline.done,
@@ -813,5 +860,13 @@ mod tests {
         assert_eq!(keys[8]["frame"], 60);
         assert_eq!(keys[0]["value"], "1.000000 1.2 -4.000000");
         assert_eq!(keys[8]["value"], keys[0]["value"]);
+    }
+
+    #[test]
+    fn a_log_lines_time_is_read_to_the_microsecond() {
+        let line = "2026-11-28T11:06:52.335436Z  INFO worker::files: file fetched file=x";
+        let t = log_time_of_day(line).unwrap();
+        assert!((t - (11.0 * 3600.0 + 6.0 * 60.0 + 52.335436)).abs() < 1e-6);
+        assert_eq!(log_time_of_day("not a log line"), None);
     }
 }
