@@ -148,6 +148,9 @@ struct FarmRun {
     sent: f64,
     /// CPU seconds of the coordinator, and of the workers together, during it.
     cpu: (f64, f64),
+    /// CPU seconds of the client (this process: reading and hashing, uploading,
+    /// following the job).
+    client_cpu: f64,
     /// When the last worker to fetch a file for it had it, from the workers' logs;
     /// `None` when none fetched any.
     fetched: Option<f64>,
@@ -161,6 +164,8 @@ struct Throughput {
     /// `None` for a single frame.
     frames: Option<u32>,
     local: Vec<f64>,
+    /// CPU seconds of each local run (the `tessera render` process).
+    local_cpu: Vec<f64>,
     farm: Vec<FarmRun>,
     local_command: String,
 }
@@ -168,6 +173,14 @@ struct Throughput {
 impl Throughput {
     fn farm_seconds(&self) -> Vec<f64> {
         self.farm.iter().map(|r| r.timeline.done).collect()
+    }
+
+    /// CPU seconds of each farm run: the client, the coordinator and the workers.
+    fn farm_cpu(&self) -> Vec<f64> {
+        self.farm
+            .iter()
+            .map(|r| r.client_cpu + r.cpu.0 + r.cpu.1)
+            .collect()
     }
 
     /// Farm throughput over local throughput, of the medians.
@@ -453,6 +466,7 @@ async fn farm_job(
     let pids = farm.pids();
     let traffic = Traffic::scrape(http).await?;
     let cpu_before = cpu(&pids)?;
+    let client_before = super::verification::own_cpu_seconds()?;
     let since = time_of_day();
     let started = Instant::now();
     let (text, files, _) = read_with_files(scene)?;
@@ -465,6 +479,7 @@ async fn farm_job(
         .zip(&cpu_before)
         .map(|(a, b)| a - b)
         .collect();
+    let client_cpu = super::verification::own_cpu_seconds()? - client_before;
     let after = Traffic::scrape(http).await?;
     let run = FarmRun {
         prep,
@@ -472,6 +487,7 @@ async fn farm_job(
         received: after.received - traffic.received,
         sent: after.sent - traffic.sent,
         cpu: (used[0], used.iter().skip(1).sum()),
+        client_cpu,
         fetched: last_fetch(farm, pids.len() - 1, since),
     };
     Ok((job, run, status))
@@ -543,6 +559,7 @@ async fn compare(
         size,
         frames,
         local: Vec::new(),
+        local_cpu: Vec::new(),
         farm: Vec::new(),
         local_command: String::new(),
     };
@@ -579,9 +596,13 @@ async fn compare(
                 result.farm.push(timing);
             } else {
                 let first = result.local.is_empty();
+                let cpu_before = super::verification::children_cpu_seconds()?;
                 let (seconds, shown) = run_local(exe, &scene.path, size, frames, &out(first))
                     .await
                     .with_context(|| format!("{what}: the local render"))?;
+                result
+                    .local_cpu
+                    .push(super::verification::children_cpu_seconds()? - cpu_before);
                 eprintln!("farm-meshes: {what}: local run {}: {seconds:.3} s", run + 1);
                 result.local.push(seconds);
                 result.local_command = shown;
@@ -734,6 +755,28 @@ fn markdown(
             secs_list(&t.farm_seconds()),
             secs_list(&t.local),
             t.local_command
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\nCPU seconds (user + system) of each run: the farm's client, coordinator and \
+         workers together; the local process. On a machine shared with other work the \
+         wall times measure the share of the cores each side got as much as its own \
+         cost; the CPU times do not.\n"
+    );
+    let _ = writeln!(
+        md,
+        "| job | farm CPU (s) | local CPU (s) | local / farm CPU (medians) |\n\
+         |---|---|---|---:|"
+    );
+    for t in throughput {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | **{:.3}** |",
+            t.what,
+            secs_list(&t.farm_cpu()),
+            secs_list(&t.local_cpu),
+            median(&t.local_cpu) / median(&t.farm_cpu())
         );
     }
     let _ = writeln!(
