@@ -67,19 +67,29 @@ impl Prepared {
     pub fn get(&self) -> Result<Arc<Tracer>, String> {
         self.tracer
             .get_or_init(|| {
+                // Named, so that neither it nor the threads it starts (Linux names a
+                // thread after the one that starts it) pass for rendering threads.
                 std::thread::scope(|s| {
-                    s.spawn(|| {
-                        let scene = self.scene.get()?;
-                        let frame = scene
-                            .frame(u64::from(self.frame))
-                            .map_err(|e| e.to_string())?;
-                        Ok(Arc::new(verify::tracer(&frame, &self.settings)?))
-                    })
-                    .join()
-                    .unwrap_or_else(|_| Err("preparing the frame failed".to_string()))
+                    match std::thread::Builder::new()
+                        .name("prepare".into())
+                        .spawn_scoped(s, || self.prepare())
+                    {
+                        Ok(thread) => thread
+                            .join()
+                            .unwrap_or_else(|_| Err("preparing the frame failed".to_string())),
+                        Err(_) => self.prepare(),
+                    }
                 })
             })
             .clone()
+    }
+
+    fn prepare(&self) -> Result<Arc<Tracer>, String> {
+        let scene = self.scene.get()?;
+        let frame = scene
+            .frame(u64::from(self.frame))
+            .map_err(|e| e.to_string())?;
+        Ok(Arc::new(verify::tracer(&frame, &self.settings)?))
     }
 }
 
