@@ -10,6 +10,7 @@
 mod compression;
 mod error_table;
 mod farm;
+mod farm_meshes;
 mod latency;
 mod liveness;
 mod measure;
@@ -55,7 +56,9 @@ use render::limits::MAX_AA;
         target/release/tessera-bench --suite renderer --anchor ./ew --limit-bench ./limit_bench \\\n      \
         --seed-cpp ./seed_structured --out docs/perf\n  \
         target/release/tessera-bench --suite renderer --only meshes --anchor-mesh ./ewm \\\n      \
-        --mesh-scenes ../shared/mesh-scenes --out /tmp/meshes"
+        --mesh-scenes ../shared/mesh-scenes --out /tmp/meshes\n  \
+        target/release/tessera-bench --suite farm-meshes --mesh-scenes ../shared/mesh-scenes \
+        --out /tmp/farm-meshes"
 )]
 struct Args {
     /// Which measurements to make.
@@ -114,7 +117,7 @@ struct Args {
     /// and on the generated meshes of the parse and build sweep.
     #[arg(long, value_name = "PATH")]
     anchor_mesh: Option<PathBuf>,
-    /// Renderer suite: the directory of the mesh scenes (bunny, armadillo, elephant,
+    /// Renderer and farm-meshes suites: the directory of the mesh scenes (bunny, armadillo, elephant,
     /// dragon, bunny64: a JSON scene each, beside their PLY files) [default:
     /// ../shared/mesh-scenes beside the source tree, if it is there].
     #[arg(long, value_name = "DIR")]
@@ -242,6 +245,14 @@ pub enum Suite {
     /// seconds in; when it is found unresponsive, when its tiles are done elsewhere
     /// and when the job ends. About 2 minutes, so not part of `all`.
     Liveness,
+    /// Scenes with mesh files on a local farm, the files' journey included: a 60-frame
+    /// orbit of the bunny and a 1920 × 1080 aa 4 frame of a million-triangle mesh on
+    /// two one-thread workers against `tessera render --threads 2`; the first tile of
+    /// a job on a 100 MB mesh with four workers against one worker's parse and build,
+    /// and a second job on it; the bytes on the wire per job for 1, 2 and 4 workers
+    /// (from the coordinator's metrics). Needs the mesh scenes (--mesh-scenes). About
+    /// 5 minutes, so not part of `all`.
+    FarmMeshes,
     /// Error and scaling (so as root, for the static split).
     All,
 }
@@ -302,6 +313,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if opts.suite == Suite::Sequence {
         sequence::run(opts, &opts.out).await?;
+    }
+    if opts.suite == Suite::FarmMeshes {
+        farm_meshes::run(opts, &opts.out).await?;
     }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;

@@ -39,7 +39,7 @@ use spheres::{run_limit_bench, spheres_markdown, write_cases};
 use sweeps::write_scaling;
 
 mod image;
-mod mesh;
+pub(crate) mod mesh;
 mod report;
 mod spheres;
 mod sweeps;

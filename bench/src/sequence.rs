@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use coordinator::client::Client;
+use coordinator::client::{Client, LocalFile};
 use protocol::{FrameRange, JobId, JobSpec, JobState, JobStatus, Overrides};
 use transport::Endpoint;
 
@@ -28,18 +28,18 @@ const ORBIT: &str = include_str!("../../scenes/seed-orbit.json");
 
 /// Worker processes of the farm, one rendering thread each; the local render gets as
 /// many threads.
-const WORKERS: usize = 2;
+pub(crate) const WORKERS: usize = 2;
 
 /// Image size and sampling of one part.
 #[derive(Clone, Copy)]
-struct Size {
-    width: u32,
-    height: u32,
-    aa: u32,
+pub(crate) struct Size {
+    pub width: u32,
+    pub height: u32,
+    pub aa: u32,
 }
 
 impl Size {
-    fn overrides(self) -> Overrides {
+    pub(crate) fn overrides(self) -> Overrides {
         Overrides {
             width: Some(self.width),
             height: Some(self.height),
@@ -48,7 +48,7 @@ impl Size {
         }
     }
 
-    fn label(self) -> String {
+    pub(crate) fn label(self) -> String {
         format!("{}×{} aa {}", self.width, self.height, self.aa)
     }
 }
@@ -166,13 +166,25 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// A local farm of `workers` one-thread workers, with `tessera up`'s limits.
-async fn start_farm(exe: &Path, workers: usize) -> Result<LocalFarm> {
-    let specs = vec![WorkerSpec::default(); workers];
+/// A local farm of `workers` one-thread workers, with `tessera up`'s limits and
+/// `extra` arguments for the coordinator (`--http 127.0.0.1:0` for its metrics).
+pub(crate) async fn start_farm(exe: &Path, workers: usize, extra: &[&str]) -> Result<LocalFarm> {
+    start_farm_of(exe, vec![WorkerSpec::default(); workers], extra).await
+}
+
+/// [`start_farm`] with workers of these `specs`.
+pub(crate) async fn start_farm_of(
+    exe: &Path,
+    specs: Vec<WorkerSpec>,
+    extra: &[&str],
+) -> Result<LocalFarm> {
+    let workers = specs.len();
     let exe = exe.to_path_buf();
+    let extra: Vec<String> = extra.iter().map(|&a| a.to_owned()).collect();
     let farm = tokio::task::spawn_blocking(move || {
-        let limits = localfarm::up_limits();
-        let args: Vec<&str> = limits.iter().map(String::as_str).collect();
+        let mut args = localfarm::up_limits();
+        args.extend(extra);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
         LocalFarm::start_with(&exe, &specs, &args)
     })
     .await
@@ -206,69 +218,128 @@ fn orbit(frames: u32) -> Result<String> {
     Ok(scene.to_string())
 }
 
-/// Submits frames 1 to `frames` of `scene` as one sequence job and waits for it;
-/// returns the job and the seconds from submission to done.
-async fn run_sequence(
+/// Submits frames 1 to `frames` of `scene` (which names `files`) as one sequence job
+/// and waits for it; returns the job, when each step came (see [`Timeline`]) and its
+/// final status.
+pub(crate) async fn run_sequence(
     client: &mut Client,
     scene: String,
+    files: &[LocalFile],
     size: Size,
     frames: u32,
-) -> Result<(JobId, f64, JobStatus)> {
-    let started = Instant::now();
-    let job = client
-        .submit(JobSpec {
-            scene,
-            overrides: size.overrides(),
-            priority: 0,
-            verification: protocol::Verification::default(),
-            time_limit_ms: None,
-            name: "bench-sequence".into(),
-            submitter: "tessera-bench".into(),
-            frame: 1,
-            frames: Some(FrameRange {
-                first: 1,
-                last: frames,
-            }),
-            assets: Vec::new(),
-        })
-        .await?;
+) -> Result<(JobId, Timeline, JobStatus)> {
+    let spec = job_spec(
+        scene,
+        size,
+        Some(FrameRange {
+            first: 1,
+            last: frames,
+        }),
+    );
+    let (job, timeline, status) = follow(client, spec, files, Instant::now()).await?;
+    match &status.frames {
+        Some(f) if f.done == frames => {}
+        other => bail!("benchmark sequence {job} is done but its frames are {other:?}"),
+    }
+    Ok((job, timeline, status))
+}
+
+/// The benchmark's job of `scene` at `size`: one frame, or a sequence of `frames`.
+pub(crate) fn job_spec(scene: String, size: Size, frames: Option<FrameRange>) -> JobSpec {
+    JobSpec {
+        scene,
+        overrides: size.overrides(),
+        priority: 0,
+        verification: protocol::Verification::default(),
+        time_limit_ms: None,
+        name: "bench".into(),
+        submitter: "tessera-bench".into(),
+        frame: 1,
+        frames,
+        assets: Vec::new(),
+    }
+}
+
+/// When each step of a job came, in seconds from `started` (given by the caller, so
+/// that what the client does before it submits can count too).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Timeline {
+    /// The files the coordinator lacked uploaded (at once when it lacked none).
+    pub uploaded: f64,
+    /// The job accepted: the coordinator has checked the scene, read with its files.
+    pub submitted: f64,
+    /// The coordinator has the job's first tile.
+    pub first_tile: f64,
+    /// The job is done: every frame stored.
+    pub done: f64,
+}
+
+/// Uploads what the coordinator lacks of `files`, submits `spec` naming them, and
+/// follows the job to its end, which must be `done`.
+pub(crate) async fn follow(
+    client: &mut Client,
+    spec: JobSpec,
+    files: &[LocalFile],
+    started: Instant,
+) -> Result<(JobId, Timeline, JobStatus)> {
+    let mut timeline = Timeline::default();
+    if !files.is_empty() {
+        // The upload apart from the submission, which then finds nothing lacking
+        // (`submit_with_files` uploads what it still lacks): the coordinator's check of
+        // the scene is timed on its own.
+        let keys = files.iter().map(|f| f.asset.key).collect();
+        for lacking in client.lacking(keys).await? {
+            if let Some(file) = files.iter().find(|f| f.asset.key == lacking.key) {
+                client.upload(file, lacking.received).await?;
+            }
+        }
+    }
+    timeline.uploaded = started.elapsed().as_secs_f64();
+    let job = client.submit_with_files(spec, files).await?;
+    timeline.submitted = started.elapsed().as_secs_f64();
     let mut seen = 0;
     let status = loop {
         let status = client.watch(job, seen).await?;
+        if seen == 0 && status.tiles_done > 0 {
+            timeline.first_tile = started.elapsed().as_secs_f64();
+        }
         seen = status.tiles_done;
         if status.state.is_final() {
             break status;
         }
     };
-    let seconds = started.elapsed().as_secs_f64();
+    timeline.done = started.elapsed().as_secs_f64();
     if status.state != JobState::Done {
         bail!(
-            "benchmark sequence {job} ended {:?}: {:?}",
+            "benchmark job {job} ended {:?}: {:?}",
             status.state,
             status.error
         );
     }
-    match &status.frames {
-        Some(f) if f.done == frames => {}
-        other => bail!("benchmark sequence {job} is done but its frames are {other:?}"),
+    if timeline.first_tile == 0.0 {
+        timeline.first_tile = timeline.done;
     }
-    Ok((job, seconds, status))
+    Ok((job, timeline, status))
 }
 
-/// `tessera render SCENE --frames 1-N --threads 2 -o DIR` with the size: its wall time.
-async fn run_local(
+/// `tessera render SCENE --frames 1-N --threads 2 -o DIR` with the size (without
+/// `frames`, the scene's first frame to the PNG `out`): its wall time, and the command
+/// as the report shows it.
+pub(crate) async fn run_local(
     exe: &Path,
     scene: &Path,
     size: Size,
-    frames: u32,
-    dir: &Path,
+    frames: Option<u32>,
+    out: &Path,
 ) -> Result<(f64, String)> {
-    let _ = std::fs::remove_dir_all(dir);
-    let args: Vec<String> = vec![
-        "render".into(),
-        scene.display().to_string(),
-        "--frames".into(),
-        format!("1-{frames}"),
+    if frames.is_some() {
+        let _ = std::fs::remove_dir_all(out);
+    }
+    let mut args: Vec<String> = vec!["render".into(), scene.display().to_string()];
+    if let Some(frames) = frames {
+        args.extend(["--frames".into(), format!("1-{frames}")]);
+    }
+    args.extend([
         "--width".into(),
         size.width.to_string(),
         "--height".into(),
@@ -278,8 +349,8 @@ async fn run_local(
         "--threads".into(),
         WORKERS.to_string(),
         "-o".into(),
-        dir.display().to_string(),
-    ];
+        out.display().to_string(),
+    ]);
     let mut command = tokio::process::Command::new(exe);
     for key in localfarm::tessera_variables() {
         command.env_remove(key);
@@ -297,22 +368,30 @@ async fn run_local(
     let seconds = started.elapsed().as_secs_f64();
     if !output.status.success() {
         bail!(
-            "tessera render --frames failed ({}): {}",
+            "tessera {} failed ({}): {}",
+            args.join(" "),
             output.status,
             String::from_utf8_lossy(&output.stderr).trim()
         );
     }
+    let name = scene.file_name().map_or_else(
+        || scene.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    );
     let shown = format!(
-        "tessera render seed-orbit.json --frames 1-{frames} --width {} --height {} --aa {} \
-         --threads {WORKERS} -o DIR",
-        size.width, size.height, size.aa
+        "tessera render {name}{} --width {} --height {} --aa {} --threads {WORKERS} -o {}",
+        frames.map_or_else(String::new, |n| format!(" --frames 1-{n}")),
+        size.width,
+        size.height,
+        size.aa,
+        if frames.is_some() { "DIR" } else { "OUT.png" }
     );
     Ok((seconds, shown))
 }
 
 /// Fetches every frame of a done sequence and checks it byte for byte against the
 /// local render's file.
-async fn check_frames(
+pub(crate) async fn check_frames(
     client: &mut Client,
     job: JobId,
     status: &JobStatus,
@@ -365,7 +444,7 @@ async fn compare(
             if farm_turn {
                 // A fresh farm each time: every run starts from the same state (an
                 // empty data directory, nothing being deleted behind it).
-                let farm = start_farm(exe, WORKERS).await?;
+                let farm = start_farm(exe, WORKERS, &[]).await?;
                 let mut client = Client::connect(&Endpoint::plain(farm.address())).await?;
                 let pids = farm.pids();
                 let cpu = |pids: &[u32]| -> Result<Vec<f64>> {
@@ -374,8 +453,9 @@ async fn compare(
                         .collect()
                 };
                 let before = cpu(&pids)?;
-                let (job, seconds, status) =
-                    run_sequence(&mut client, ORBIT.to_owned(), size, frames).await?;
+                let (job, timeline, status) =
+                    run_sequence(&mut client, ORBIT.to_owned(), &[], size, frames).await?;
+                let seconds = timeline.done;
                 let used: Vec<f64> = cpu(&pids)?
                     .iter()
                     .zip(&before)
@@ -402,7 +482,7 @@ async fn compare(
                 } else {
                     work.join("local-again")
                 };
-                let (seconds, shown) = run_local(exe, scene, size, frames, &dir).await?;
+                let (seconds, shown) = run_local(exe, scene, size, Some(frames), &dir).await?;
                 if checked_against.is_none() {
                     checked_against = Some(dir);
                 }
@@ -453,7 +533,7 @@ fn dir_size(dir: &Path) -> (u64, u64) {
 
 /// A fresh farm renders a sequence of `frames` tiny frames; its processes' memory.
 async fn measure_memory(exe: &Path, frames: u32, size: Size) -> Result<Memory> {
-    let farm = start_farm(exe, WORKERS).await?;
+    let farm = start_farm(exe, WORKERS, &[]).await?;
     let pids = farm.pids();
     let idle_kib: Vec<u64> = pids
         .iter()
@@ -478,7 +558,8 @@ async fn measure_memory(exe: &Path, frames: u32, size: Size) -> Result<Memory> {
         })
     };
     let mut client = Client::connect(&Endpoint::plain(farm.address())).await?;
-    let (_, seconds, _) = run_sequence(&mut client, orbit(frames)?, size, frames).await?;
+    let (_, timeline, _) = run_sequence(&mut client, orbit(frames)?, &[], size, frames).await?;
+    let seconds = timeline.done;
     stop.store(true, Ordering::Relaxed);
     sampler.await.context("the memory sampler")?;
     let peak_kib = pids
@@ -504,7 +585,7 @@ async fn measure_memory(exe: &Path, frames: u32, size: Size) -> Result<Memory> {
 }
 
 /// The machine's load averages over 1, 5 and 15 minutes, from /proc/loadavg.
-fn load_average() -> String {
+pub(crate) fn load_average() -> String {
     std::fs::read_to_string("/proc/loadavg")
         .map(|text| {
             text.split_whitespace()
@@ -515,7 +596,7 @@ fn load_average() -> String {
         .unwrap_or_else(|_| "unknown".into())
 }
 
-fn median(xs: &[f64]) -> f64 {
+pub(crate) fn median(xs: &[f64]) -> f64 {
     let mut v = xs.to_vec();
     v.sort_by(f64::total_cmp);
     match v.len() {
@@ -525,7 +606,7 @@ fn median(xs: &[f64]) -> f64 {
     }
 }
 
-fn secs_list(xs: &[f64]) -> String {
+pub(crate) fn secs_list(xs: &[f64]) -> String {
     xs.iter()
         .map(|s| format!("{s:.2}"))
         .collect::<Vec<_>>()

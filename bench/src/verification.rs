@@ -173,6 +173,23 @@ const USER_HZ: f64 = 100.0;
 
 /// User plus system CPU seconds of a process so far, from `/proc/PID/stat`.
 pub(super) fn cpu_seconds(pid: u32) -> Result<f64> {
+    stat_seconds(&pid.to_string(), 11)
+}
+
+/// User plus system CPU seconds of this process's children waited for so far, from
+/// `/proc/self/stat`: around one child's run, its own.
+pub(super) fn children_cpu_seconds() -> Result<f64> {
+    stat_seconds("self", 13)
+}
+
+/// This process's own CPU seconds so far (all its threads).
+pub(super) fn own_cpu_seconds() -> Result<f64> {
+    stat_seconds("self", 11)
+}
+
+/// Two adjacent times of `/proc/PID/stat` added, in seconds: `first` counts the fields
+/// after the command name (11 and 12 are utime and stime, 13 and 14 cutime and cstime).
+fn stat_seconds(pid: &str, first: usize) -> Result<f64> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))
         .with_context(|| format!("cannot read /proc/{pid}/stat"))?;
     // The command name may hold spaces: the fields start after its closing parenthesis.
@@ -187,6 +204,7 @@ pub(super) fn cpu_seconds(pid: u32) -> Result<f64> {
             .and_then(|f| f.parse::<f64>().ok())
             .with_context(|| format!("unreadable /proc/{pid}/stat"))
     };
-    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
-    Ok((ticks(11)? + ticks(12)?) / USER_HZ)
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name (11
+    // and 12 counted from 0); cutime and cstime the two after them.
+    Ok((ticks(first)? + ticks(first + 1)?) / USER_HZ)
 }

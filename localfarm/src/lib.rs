@@ -80,11 +80,17 @@ pub enum Error {
 #[derive(Clone, Debug)]
 pub struct WorkerSpec {
     pub threads: usize,
+    /// More arguments for `tessera worker` (benchmarks of its settings, such as
+    /// `--cache-dir`).
+    pub args: Vec<String>,
 }
 
 impl Default for WorkerSpec {
     fn default() -> Self {
-        WorkerSpec { threads: 1 }
+        WorkerSpec {
+            threads: 1,
+            args: Vec::new(),
+        }
     }
 }
 
@@ -218,7 +224,7 @@ impl LocalFarm {
         for (i, spec) in workers.iter().enumerate() {
             let name = format!("local-{}", i + 1);
             let threads = spec.threads.to_string();
-            let args: Vec<&std::ffi::OsStr> = vec![
+            let mut args: Vec<&std::ffi::OsStr> = vec![
                 "worker".as_ref(),
                 "--coordinator".as_ref(),
                 farm.address.as_ref(),
@@ -227,6 +233,7 @@ impl LocalFarm {
                 "--name".as_ref(),
                 name.as_ref(),
             ];
+            args.extend(spec.args.iter().map(std::ffi::OsStr::new));
             let mut child = farm.spawn(exe, &name, &args, false)?;
             let stdin = child.stdin.take();
             farm.children

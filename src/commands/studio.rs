@@ -57,7 +57,13 @@ async fn studio(args: Args) -> Result<()> {
     if let Some(scene) = &args.scene {
         read_studio_scene(scene)?;
     }
-    let specs = vec![WorkerSpec { threads }; workers];
+    let specs = vec![
+        WorkerSpec {
+            threads,
+            ..WorkerSpec::default()
+        };
+        workers
+    ];
     let mut coordinator_args = up_limits();
     coordinator_args.extend(["--http".to_owned(), args.http.to_string()]);
     if let Some(scene) = &args.scene {

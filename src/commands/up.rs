@@ -84,7 +84,13 @@ async fn up(args: Args) -> Result<()> {
         label: Default::default(),
         frames,
     };
-    let specs = vec![WorkerSpec { threads }; workers];
+    let specs = vec![
+        WorkerSpec {
+            threads,
+            ..WorkerSpec::default()
+        };
+        workers
+    ];
     let exe = std::env::current_exe().context("cannot find the tessera executable")?;
     let starting = tokio::task::spawn_blocking(move || {
         let limits = up_limits();

@@ -7,27 +7,89 @@
 //! tracers of one scene are bounded: a sequence of frame jobs keeps the same scene for
 //! as long as it runs, so without a bound every frame's tracer (a copy of the scene and
 //! its hierarchy) would stay until the last frame is done.
+//!
+//! Reading a scene and building a frame's tracer are left to the first tile that needs
+//! them ([`Prepared::get`], on the rendering pool), never done on the connection's task:
+//! a mesh of millions of triangles takes seconds to read and build, and a worker that
+//! sent no heartbeat for that long was dropped by the coordinator (its tiles taken
+//! back, its files fetched again once it came back).
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
 
 use protocol::{AssetRef, SceneHash, Settings};
 use render::adaptive::Footprints;
 use render::{AnimatedScene, Tracer};
 
 /// A scene as received: parsed, or why it could not be used.
-pub type Loaded = Result<Arc<AnimatedScene>, String>;
+type Loaded = Result<Arc<AnimatedScene>, String>;
 
-/// Reads a scene sent by the coordinator with the files it names (`files`, bound to
-/// `assets`), checking that it matches its hash. A scene with large meshes takes
-/// seconds to read and build: the worker calls this off its connection's thread.
-pub fn read(hash: SceneHash, text: &str, assets: &[AssetRef], files: &render::MeshFiles) -> Loaded {
-    if protocol::scene_hash(text, assets) != hash {
-        Err("the scene received does not match its hash".to_string())
-    } else {
-        render::parse_animated_with(text, files)
-            .map(Arc::new)
-            .map_err(|e| format!("the scene does not load: {e}"))
+/// A scene received: its text and files until it is read, on first use (then let go:
+/// a mesh file's bytes are not kept beside its geometry).
+struct Received {
+    unread: Mutex<Option<(String, render::MeshFiles)>>,
+    loaded: OnceLock<Loaded>,
+}
+
+impl Received {
+    fn get(&self) -> Loaded {
+        self.loaded
+            .get_or_init(|| {
+                let unread = self
+                    .unread
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .take();
+                let (text, files) = unread.ok_or("the scene was not kept")?;
+                render::parse_animated_with(&text, &files)
+                    .map(Arc::new)
+                    .map_err(|e| format!("the scene does not load: {e}"))
+            })
+            .clone()
+    }
+}
+
+/// A frame's tracer, prepared once by the first tile that asks for it; the tiles asking
+/// meanwhile wait for it.
+pub struct Prepared {
+    scene: Arc<Received>,
+    frame: u32,
+    settings: Settings,
+    tracer: OnceLock<Result<Arc<Tracer>, String>>,
+}
+
+impl Prepared {
+    /// The tracer: the scene read (if no frame of it was prepared before) and the
+    /// frame's tracer built, on a thread of their own so that the hierarchy's build
+    /// runs on every core as it did on the connection's task, not on the one rendering
+    /// thread that waits for it. A frame the scene does not have is the loader's
+    /// one-line message ("frame 122 is beyond the scene's 121 frames").
+    pub fn get(&self) -> Result<Arc<Tracer>, String> {
+        self.tracer
+            .get_or_init(|| {
+                // Named, so that neither it nor the threads it starts (Linux names a
+                // thread after the one that starts it) pass for rendering threads.
+                std::thread::scope(|s| {
+                    match std::thread::Builder::new()
+                        .name("prepare".into())
+                        .spawn_scoped(s, || self.prepare())
+                    {
+                        Ok(thread) => thread
+                            .join()
+                            .unwrap_or_else(|_| Err("preparing the frame failed".to_string())),
+                        Err(_) => self.prepare(),
+                    }
+                })
+            })
+            .clone()
+    }
+
+    fn prepare(&self) -> Result<Arc<Tracer>, String> {
+        let scene = self.scene.get()?;
+        let frame = scene
+            .frame(u64::from(self.frame))
+            .map_err(|e| e.to_string())?;
+        Ok(Arc::new(verify::tracer(&frame, &self.settings)?))
     }
 }
 
@@ -47,9 +109,10 @@ pub const TRACERS_PER_SCENE: usize = protocol::MAX_ACTIVE_FRAMES;
 
 #[derive(Default)]
 pub struct SceneCache {
-    scenes: HashMap<SceneHash, Loaded>,
+    /// Each scene received, or why it cannot be used.
+    scenes: HashMap<SceneHash, Result<Arc<Received>, String>>,
     /// Each tracer with when it was last used (a count of uses, for the bound).
-    tracers: HashMap<TracerKey, (Arc<Tracer>, u64)>,
+    tracers: HashMap<TracerKey, (Arc<Prepared>, u64)>,
     /// The adaptive footprints of each kept tracer: computed once per job, not once
     /// per tile.
     footprints: HashMap<TracerKey, Arc<Footprints>>,
@@ -57,8 +120,9 @@ pub struct SceneCache {
 }
 
 impl SceneCache {
-    /// Stores a scene sent by the coordinator, read with the files it names (`files`,
-    /// bound to `assets`), checking that it matches its hash.
+    /// Stores a scene sent by the coordinator, to be read with the files it names
+    /// (`files`, bound to `assets`) by its first tile, checking now that it matches its
+    /// hash.
     pub fn insert(
         &mut self,
         hash: SceneHash,
@@ -66,12 +130,15 @@ impl SceneCache {
         assets: &[AssetRef],
         files: &render::MeshFiles,
     ) {
-        self.insert_read(hash, read(hash, text, assets, files));
-    }
-
-    /// Stores a scene read off the connection's thread ([`read`]).
-    pub fn insert_read(&mut self, hash: SceneHash, loaded: Loaded) {
-        self.scenes.insert(hash, loaded);
+        let received = if protocol::scene_hash(text, assets) != hash {
+            Err("the scene received does not match its hash".to_string())
+        } else {
+            Ok(Arc::new(Received {
+                unread: Mutex::new(Some((text.to_owned(), files.clone()))),
+                loaded: OnceLock::new(),
+            }))
+        };
+        self.scenes.insert(hash, received);
     }
 
     /// A scene that cannot be used (a file it names could not be had): its tiles fail
@@ -99,10 +166,9 @@ impl SceneCache {
         }
     }
 
-    /// The tracer for a frame of a scene at given settings, prepared on first use. A
-    /// frame the scene does not have is the loader's one-line message ("frame 122 is
-    /// beyond the scene's 121 frames").
-    pub fn tracer(&mut self, key: TracerKey) -> Result<Arc<Tracer>, String> {
+    /// The tracer for a frame of a scene at given settings, to be prepared by the first
+    /// tile that uses it ([`Prepared::get`]).
+    pub fn tracer(&mut self, key: TracerKey) -> Result<Arc<Prepared>, String> {
         self.uses += 1;
         let now = self.uses;
         if let Some((t, used)) = self.tracers.get_mut(&key) {
@@ -118,10 +184,12 @@ impl SceneCache {
                 )
             }
         };
-        let frame = scene
-            .frame(u64::from(key.frame))
-            .map_err(|e| e.to_string())?;
-        let tracer = Arc::new(verify::tracer(&frame, &key.settings)?);
+        let tracer = Arc::new(Prepared {
+            scene,
+            frame: key.frame,
+            settings: key.settings,
+            tracer: OnceLock::new(),
+        });
         self.tracers.insert(key, (Arc::clone(&tracer), now));
         self.bound(&key.scene);
         Ok(tracer)
@@ -210,8 +278,14 @@ mod tests {
             frame_1, frame_17,
             "the camera moves between frames 1 and 17"
         );
-        assert_eq!(pixels(&cache.tracer(key(hash, 17)).unwrap()), frame_17);
-        assert_eq!(pixels(&cache.tracer(key(hash, 1)).unwrap()), frame_1);
+        assert_eq!(
+            pixels(&cache.tracer(key(hash, 17)).unwrap().get().unwrap()),
+            frame_17
+        );
+        assert_eq!(
+            pixels(&cache.tracer(key(hash, 1)).unwrap().get().unwrap()),
+            frame_1
+        );
         // A static scene's frame 1 is what parse_scene gives, as before frames existed.
         let still = render::parse_scene(ORBIT).unwrap();
         assert_eq!(
@@ -224,22 +298,22 @@ mod tests {
     fn a_frame_the_scene_does_not_have_fails_in_one_line() {
         let (mut cache, hash) = loaded();
         assert_eq!(
-            cache.tracer(key(hash, 122)).err().unwrap(),
+            cache.tracer(key(hash, 122)).unwrap().get().err().unwrap(),
             "frame 122 is beyond the scene's 121 frames"
         );
         assert_eq!(
-            cache.tracer(key(hash, 0)).err().unwrap(),
+            cache.tracer(key(hash, 0)).unwrap().get().err().unwrap(),
             "frame 0: frames are numbered from 1"
         );
-        assert!(cache.tracer(key(hash, 121)).is_ok());
+        assert!(cache.tracer(key(hash, 121)).unwrap().get().is_ok());
         let text = r#"{"lights": [], "objects": []}"#;
         let still = protocol::scene_hash(text, &[]);
         cache.insert(still, text, &[], &render::MeshFiles::none());
         assert_eq!(
-            cache.tracer(key(still, 2)).err().unwrap(),
+            cache.tracer(key(still, 2)).unwrap().get().err().unwrap(),
             "frame 2: the scene has no animation, only frame 1"
         );
-        assert!(cache.tracer(key(still, 1)).is_ok());
+        assert!(cache.tracer(key(still, 1)).unwrap().get().is_ok());
     }
 
     #[test]
@@ -261,7 +335,10 @@ mod tests {
         // Frame 2 was dropped long ago: it is prepared again, the same pixels.
         let again = cache.tracer(key(hash, 2)).unwrap();
         assert!(!Arc::ptr_eq(&second, &again));
-        assert_eq!(pixels(&second), pixels(&again));
+        assert_eq!(
+            pixels(&second.get().unwrap()),
+            pixels(&again.get().unwrap())
+        );
         cache.forget(&hash);
         assert_eq!(cache.tracers_kept(), 0);
     }

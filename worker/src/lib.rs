@@ -95,8 +95,6 @@ pub async fn run(config: Config, shutdown: impl std::future::Future<Output = ()>
                     pongs: Vec::new(),
                     files: files::Files::new(&kept),
                     fetches: Vec::new(),
-                    reading: HashMap::new(),
-                    read_back: mpsc::unbounded_channel(),
                     joined: false,
                     reported: None,
                     drain_asked: false,
@@ -242,14 +240,6 @@ struct Session {
     files: files::Files,
     /// Chunks of files to ask for, sent after the message being handled.
     fetches: Vec<FromWorker>,
-    /// Scenes with files being read and built off the connection's thread, with the
-    /// tiles that came for them meanwhile, in order.
-    reading: HashMap<protocol::SceneHash, Vec<ToWorker>>,
-    /// Where those reads come back.
-    read_back: (
-        mpsc::UnboundedSender<SceneRead>,
-        mpsc::UnboundedReceiver<SceneRead>,
-    ),
     /// The coordinator asked it to drain ([`ToWorker::Drain`]).
     drain_asked: bool,
     /// The coordinator said it joined: past the canary, when other messages than
@@ -326,22 +316,6 @@ impl Session {
                     }
                     self.conn.flush().await?;
                 }
-                Some((hash, loaded)) = self.read_back.1.recv() => {
-                    // A scene forgotten while it was read is dropped with its tiles.
-                    if let Some(queued) = self.reading.remove(&hash) {
-                        if let Err(e) = &loaded {
-                            warn!(error = %e, "a scene cannot be read");
-                        }
-                        self.cache.insert_read(hash, loaded);
-                        for message in queued {
-                            self.handle(message, &done_tx)?;
-                        }
-                        for fetch in self.fetches.drain(..) {
-                            self.conn.feed(fetch).await?;
-                        }
-                        self.conn.flush().await?;
-                    }
-                }
                 _ = heartbeat.tick() => {
                     self.conn.feed(FromWorker::Heartbeat).await?;
                     // Its files, when they changed: at most once a heartbeat.
@@ -399,17 +373,8 @@ impl Session {
                 // Handled once the scene's files are in.
                 self.files.queue(&scene, message);
             }
-            ToWorker::Render { scene, .. } | ToWorker::Advance { scene, .. }
-                if self.reading.contains_key(&scene) =>
-            {
-                // Handled once the scene is read.
-                if let Some(queued) = self.reading.get_mut(&scene) {
-                    queued.push(message);
-                }
-            }
             ToWorker::ForgetScene { hash } => {
                 self.files.forget(&hash);
-                self.reading.remove(&hash);
                 self.cache.forget(&hash);
             }
             ToWorker::Heartbeat => {}
@@ -454,9 +419,6 @@ impl Session {
                 // not rendered either.
                 let of_job = |m: &ToWorker| matches!(m, ToWorker::Render { job: j, .. } | ToWorker::Advance { job: j, .. } if *j == job);
                 self.files.drop_queued(of_job);
-                for queued in self.reading.values_mut() {
-                    queued.retain(|m| !of_job(m));
-                }
             }
             ToWorker::Advance {
                 job,
@@ -480,9 +442,12 @@ impl Session {
                 let footprints = self.cache.footprints(&key);
                 let back = self.footprints_channel();
                 self.pool.spawn(move || {
-                    let Some(started) = start() else {
+                    let Some(mut started) = start() else {
                         return;
                     };
+                    let tracer = tracer.and_then(|t| t.get());
+                    // The tile's time is its rendering's, not its frame's preparing.
+                    started.at = Instant::now();
                     let advanced = tracer.and_then(|t| {
                         let footprints = footprints.unwrap_or_else(|| {
                             let f = verify::adaptive::footprints(&t);
@@ -519,9 +484,11 @@ impl Session {
                     settings,
                 });
                 self.pool.spawn(move || {
-                    let Some(started) = start() else {
+                    let Some(mut started) = start() else {
                         return;
                     };
+                    let tracer = tracer.and_then(|t| t.get());
+                    started.at = Instant::now();
                     let rendered = tracer.and_then(|t| {
                         if settings.sampling.target_error().is_some() {
                             return Err("adaptive tiles are advanced in passes, not rendered \
@@ -560,15 +527,8 @@ impl Session {
                 files,
                 queued,
             } => {
-                // Reading and building large meshes takes seconds: off this thread,
-                // which must keep answering pings and sending heartbeats and results.
-                self.reading.insert(hash, queued);
-                let back = self.read_back.0.clone();
-                tokio::task::spawn_blocking(move || {
-                    let loaded = cache::read(hash, &text, &assets, &files);
-                    let _ = back.send((hash, loaded));
-                });
-                return Ok(());
+                self.cache.insert(hash, &text, &assets, &files);
+                queued
             }
             files::Ready::Failed {
                 hash,
@@ -637,9 +597,6 @@ impl Session {
         }
     }
 }
-
-/// A scene read off the connection's thread: its hash, and the scene or why not.
-type SceneRead = (protocol::SceneHash, cache::Loaded);
 
 /// Footprints computed on the pool: the scene's frame and settings they are for.
 type FootprintsKept = (TracerKey, Arc<render::adaptive::Footprints>);

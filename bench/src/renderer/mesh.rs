@@ -227,9 +227,20 @@ fn grid_cells(triangles: usize) -> (usize, usize) {
 
 /// What [`write_grid_ply`] wrote.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct GridCounts {
-    vertices: usize,
-    triangles: usize,
+pub(crate) struct GridCounts {
+    pub vertices: usize,
+    pub triangles: usize,
+}
+
+/// [`write_grid_ply`] to the file `path`: the same bytes for the same `triangles`, so
+/// that a benchmark can make a mesh of any size when it runs instead of keeping one.
+pub(crate) fn write_grid_file(path: &Path, triangles: usize) -> Result<GridCounts> {
+    let file =
+        std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut w = std::io::BufWriter::new(file);
+    write_grid_ply(&mut w, triangles)
+        .and_then(|c| w.flush().map(|()| c))
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Writes a wavy grid of about `triangles` triangles (see [`grid_cells`]) as binary
@@ -288,7 +299,7 @@ fn write_grid_ply(out: &mut impl std::io::Write, triangles: usize) -> std::io::R
 
 /// A scene of the grid alone at 8 × 8, aa 1: its tracing is negligible, so the
 /// anchor's whole run is about parsing and building.
-fn grid_scene_json(file: &str) -> String {
+pub(crate) fn grid_scene_json(file: &str) -> String {
     format!(
         r#"{{
  "camera": {{ "position": "0 2.5 -2.5", "look_at": "0 0 0" }},
@@ -315,7 +326,12 @@ struct BuildPoint {
 /// The best parse and build of `runs` Tessera runs on `threads` threads: the scene
 /// read and parsed (its mesh file read, hashed and parsed) afresh each time, since a
 /// mesh's hierarchy is kept with its geometry once built.
-fn time_tessera(scene: &Path, dir: &Path, threads: usize, runs: u32) -> Result<(f64, f64)> {
+pub(crate) fn time_tessera(
+    scene: &Path,
+    dir: &Path,
+    threads: usize,
+    runs: u32,
+) -> Result<(f64, f64)> {
     let pool = measure::pool(threads)?;
     let (mut parse, mut build) = (f64::INFINITY, f64::INFINITY);
     for _ in 0..runs {
@@ -344,15 +360,7 @@ pub(super) fn write_build_scaling(opts: &Options, out: &Path) -> Result<()> {
     for triangles in sweep_sizes(opts.mesh_max_triangles) {
         let ply = dir.path().join("grid.ply");
         let scene = dir.path().join("grid.json");
-        let counts = {
-            let file = std::fs::File::create(&ply)
-                .with_context(|| format!("cannot create {}", ply.display()))?;
-            let mut w = std::io::BufWriter::new(file);
-            let counts = write_grid_ply(&mut w, triangles)
-                .and_then(|c| w.flush().map(|()| c))
-                .with_context(|| format!("cannot write {}", ply.display()))?;
-            counts
-        };
+        let counts = write_grid_file(&ply, triangles)?;
         std::fs::write(&scene, grid_scene_json("grid.ply"))
             .with_context(|| format!("cannot write {}", scene.display()))?;
         let file_bytes = std::fs::metadata(&ply).map_or(0, |m| m.len());
