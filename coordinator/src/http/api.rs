@@ -1164,6 +1164,28 @@ mod tests {
     }
 
     #[test]
+    fn the_reference_of_docs_api_md_is_the_documents_operations() {
+        let page = include_str!("../../../docs/api.md");
+        let rows: BTreeSet<(String, String)> = page
+            .lines()
+            .filter_map(|line| {
+                let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+                let path = cells.get(2)?.strip_prefix("`/api/v1")?.strip_suffix('`')?;
+                Some((cells[1].to_owned(), format!("/api/v1{path}")))
+            })
+            .collect();
+        let served: BTreeSet<(String, String)> = routes()
+            .into_iter()
+            .filter(|r| r.path.starts_with("/api/v1/"))
+            .map(|r| (r.method.to_string(), r.path.to_owned()))
+            .collect();
+        assert_eq!(
+            rows, served,
+            "docs/api.md's reference and the routes differ"
+        );
+    }
+
+    #[test]
     fn refusals_are_one_line_with_the_protocols_kind() {
         let failure: Failure = Refusal::state("job 3 is done").into();
         assert_eq!(
