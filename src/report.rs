@@ -5,7 +5,6 @@ use std::path::Path;
 
 use protocol::{FrameProgress, JobStatus};
 use render::RenderSettings;
-use serde_json::{json, Value};
 
 /// A figure with its noun, singular for exactly one: `1 thread`, `4 threads`, `1
 /// sample/pixel`, `0.5 levels`. One helper for every figure printed, so that none says
@@ -131,14 +130,7 @@ pub fn sequence_summary(dir: &Path, status: &JobStatus) -> String {
     )
 }
 
-/// The state shown for a job: its lifecycle state, or "paused".
-pub fn shown_state(s: &JobStatus) -> &'static str {
-    if s.paused && !s.state.is_final() {
-        "paused"
-    } else {
-        s.state.as_str()
-    }
-}
+pub use coordinator::json::{shown_state, status_json};
 
 /// The frames line of `tessera status` for a sequence.
 pub fn frames_summary(f: &FrameProgress) -> String {
@@ -155,64 +147,6 @@ pub fn frames_summary(f: &FrameProgress) -> String {
         line.push_str(&format!(", {} failed ({})", f.failed, listed.join(", ")));
     }
     line
-}
-
-/// A job's status as the `--json` output of the job commands gives it.
-pub fn status_json(s: &JobStatus) -> Value {
-    json!({
-        "id": s.id,
-        "state": shown_state(s),
-        "paused": s.paused,
-        "frame": s.frame,
-        "width": s.settings.width,
-        "height": s.settings.height,
-        "aa": s.settings.aa,
-        "max_depth": s.settings.max_depth,
-        "priority": s.priority,
-        "tiles_done": s.tiles_done,
-        "tiles_total": s.tiles_total,
-        "rays": s.rays,
-        "elapsed_ms": s.elapsed_ms,
-        "eta_ms": s.eta_ms,
-        "error": s.error,
-        "sampler": s.settings.sampling.name(),
-        "target_error": s.settings.sampling.target_error(),
-        "samples": s.samples,
-        // The mean over the whole image (a sequence's per pixel of a frame), once done.
-        "samples_per_pixel": s.samples_per_pixel(),
-        "estimated_error": s.estimated_error,
-        "time_limit_ms": s.time_limit_ms,
-        "stopped_on_time_limit": s.stopped_on_time_limit,
-        "warning": s.warning,
-        "name": s.name,
-        "submitter": s.submitter,
-        "submitted_from": s.submitted_from,
-        "submitted_unix_ms": s.submitted_unix_ms,
-        "queued_ms": s.queued_ms,
-        "sequence": s.sequence,
-        "frames": s.frames.as_ref().map(frames_json),
-        "assets": { "files": s.assets.files, "bytes": s.assets.bytes },
-    })
-}
-
-/// A sequence's frames as JSON.
-fn frames_json(f: &FrameProgress) -> Value {
-    let failures: Vec<Value> = f
-        .failures
-        .iter()
-        .map(|x| json!({ "frame": x.frame, "job": x.job, "error": x.error }))
-        .collect();
-    json!({
-        "first": f.first,
-        "last": f.last,
-        "done": f.done,
-        "active": f.active,
-        "pending": f.pending,
-        "cancelled": f.cancelled,
-        "failed": f.failed,
-        "done_prefix": f.done_prefix,
-        "failures": failures,
-    })
 }
 
 /// A Unix time in milliseconds as `YYYY-MM-DD HH:MM:SS` UTC (the civil calendar from

@@ -12,6 +12,7 @@ pub mod client;
 pub mod daemon;
 mod db;
 pub mod http;
+pub mod json;
 pub mod keyring;
 mod metrics;
 mod preview;

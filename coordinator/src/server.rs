@@ -55,7 +55,8 @@ pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
 
 pub use observer::{
-    FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, StudioStream, WorkerView,
+    FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, Resolution, StudioStream,
+    WorkerView,
 };
 
 use self::core::Core;

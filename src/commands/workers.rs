@@ -3,12 +3,13 @@
 
 use anyhow::Result;
 use coordinator::client::Client;
-use protocol::{ClientRequest, WorkerCache, WorkerStatus};
-use serde_json::{json, Value};
+use protocol::{ClientRequest, WorkerCache};
+use serde_json::Value;
 use transport::Endpoint;
 
 use crate::args::ClientArgs;
 use crate::report::{bytes, counted};
+use coordinator::json::worker_json;
 
 /// List the workers connected to the coordinator, with their throughput; or drain,
 /// disable or enable one.
@@ -201,37 +202,4 @@ fn cache_summary(c: &WorkerCache) -> String {
         line.push_str(&format!(" ({problem})"));
     }
     line
-}
-
-fn worker_json(w: &WorkerStatus) -> Value {
-    json!({
-        "id": w.id,
-        "name": w.name,
-        "threads": w.threads,
-        "tiles_in_flight": w.tiles_in_flight,
-        "tiles_done": w.tiles_done,
-        "rays": w.rays,
-        "connected_ms": w.connected_ms,
-        "rays_per_second": w.rays_per_second,
-        "build": w.build,
-        "quarantined": w.quarantined,
-        "rtt_us": w.rtt_us,
-        "credit": w.credit,
-        "draining": w.draining,
-        "disabled": w.disabled,
-        "unresponsive": w.unresponsive,
-        "key": w.key.map(|k| json!({ "id": k.id.to_string(), "standing": k.standing.as_str() })),
-        "host": w.host,
-        "cache": w.cache.as_ref().map(|c| json!({
-            "files": c.files,
-            "bytes": c.bytes,
-            "capacity": c.capacity,
-            "fetching": c.fetching,
-            "fetching_received": c.fetching_received,
-            "fetching_total": c.fetching_total,
-            "fetched_bytes": c.fetched_bytes,
-            "geometry_triangles": c.geometry_triangles,
-            "problem": c.problem,
-        })),
-    })
 }

@@ -13,12 +13,15 @@
 //! implementation of every operation.
 
 mod access;
+mod api;
+
+pub use api::OPENAPI;
 
 use axum::extract::{ConnectInfo, Path, Query, Request, State};
 use axum::http::{header, HeaderMap, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::{get, post, MethodRouter};
+use axum::routing::{get, post, put, MethodRouter};
 use axum::{Json, Router};
 use protocol::{ClientRequest, ClientResponse, JobId, Refusal, RefusalKind};
 
@@ -79,6 +82,30 @@ fn table() -> Vec<(Route, MethodRouter<Observer>)> {
         row(Method::POST, "/api/studio/submit", Control, post(studio_submit)),
         row(Method::POST, "/api/studio/archive", Control, post(studio_archive)),
         row(Method::POST, "/api/studio/files", Upload, post(studio_upload)),
+        // The API (docs/api.md), described by its OpenAPI document.
+        row(Method::GET, "/api/v1/openapi.json", Page, get(api::openapi)),
+        row(Method::GET, "/api/v1/jobs", Read, get(api::list_jobs)),
+        row(Method::POST, "/api/v1/jobs", Control, post(api::submit)),
+        row(Method::GET, "/api/v1/jobs/{id}", Read, get(api::status)),
+        row(Method::GET, "/api/v1/jobs/{id}/wait", Read, get(api::wait)),
+        row(Method::GET, "/api/v1/jobs/{id}/events", Read, get(api::events)),
+        row(Method::GET, "/api/v1/jobs/{id}/image.png", Read, get(api::image)),
+        row(Method::GET, "/api/v1/jobs/{id}/frames/{frame}", Read, get(api::frame)),
+        row(Method::POST, "/api/v1/jobs/{id}/pause", Control, post(api::pause)),
+        row(Method::POST, "/api/v1/jobs/{id}/resume", Control, post(api::resume)),
+        row(Method::POST, "/api/v1/jobs/{id}/priority", Control, post(api::priority)),
+        row(Method::POST, "/api/v1/jobs/{id}/cancel", Control, post(api::cancel)),
+        row(Method::POST, "/api/v1/jobs/{id}/retry", Control, post(api::retry)),
+        row(Method::POST, "/api/v1/jobs/{id}/requeue", Control, post(api::requeue)),
+        row(Method::POST, "/api/v1/jobs/{id}/refine", Control, post(api::refine)),
+        row(Method::POST, "/api/v1/jobs/{id}/delete", Control, post(api::delete)),
+        row(Method::GET, "/api/v1/workers", Read, get(api::workers)),
+        row(Method::POST, "/api/v1/workers/{worker}/drain", Control, post(api::drain)),
+        row(Method::POST, "/api/v1/workers/{worker}/disable", Control, post(api::disable)),
+        row(Method::POST, "/api/v1/workers/{worker}/enable", Control, post(api::enable)),
+        row(Method::POST, "/api/v1/files/lacking", Control, post(api::lacking)),
+        row(Method::PUT, "/api/v1/files/{file}", Upload, put(api::upload)),
+        row(Method::POST, "/api/v1/resolve", Control, post(api::resolve)),
     ];
     rows
 }
@@ -212,11 +239,26 @@ async fn metrics(State(observer): State<Observer>, headers: HeaderMap) -> Respon
     }
 }
 
-/// A refused or failed control: its status and one line saying why, as JSON
-/// (`{"error": "..."}`).
+/// A refused or failed request: its status and one line saying why, as JSON
+/// (`{"error": "...", "kind": "..."}`, the kind the protocol's for the status, or
+/// `unauthorized` and `forbidden` for who asks).
 fn refusal(code: StatusCode, message: impl Into<String>) -> Response {
     let message: String = message.into();
-    (code, Json(serde_json::json!({ "error": message }))).into_response()
+    let kind = match code {
+        StatusCode::UNAUTHORIZED => "unauthorized",
+        StatusCode::FORBIDDEN => "forbidden",
+        StatusCode::NOT_FOUND => "not_found",
+        StatusCode::CONFLICT => "state",
+        StatusCode::PAYLOAD_TOO_LARGE | StatusCode::TOO_MANY_REQUESTS => "limit",
+        StatusCode::SERVICE_UNAVAILABLE => "unavailable",
+        code if code.is_server_error() => "internal",
+        _ => "invalid",
+    };
+    (
+        code,
+        Json(serde_json::json!({ "error": message, "kind": kind })),
+    )
+        .into_response()
 }
 
 /// `POST /api/login` with `{"secret": TOKEN}`: the page's login. The right client
@@ -882,7 +924,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn every_route_is_in_the_table_once_and_changes_only_by_post() {
+    fn every_route_is_in_the_table_once_and_changes_only_by_post_or_put() {
         let routes = routes();
         for (i, route) in routes.iter().enumerate() {
             assert!(
@@ -900,7 +942,7 @@ mod tests {
             );
             assert_eq!(
                 changes,
-                route.method == Method::POST,
+                route.method == Method::POST || route.method == Method::PUT,
                 "{} {} is {}",
                 route.method,
                 route.path,

@@ -471,6 +471,43 @@ impl Observer {
         .map_err(|_| protocol::Refusal::unavailable("the file could not be stored: try again"))?
     }
 
+    /// What the scene `scene` reads of the files `given` (bound by name to content):
+    /// the renderer's own parse, with the given files the store holds read from it
+    /// ([`render::MeshFiles::probing`]), so that a client learns which files to send
+    /// (a glTF's buffer files among them, once the glTF is stored) without knowing the
+    /// scene format's rules. A scene that is not valid is refused with the loader's
+    /// one line, once every file it reads is given.
+    pub async fn resolve(
+        &self,
+        scene: String,
+        given: Vec<protocol::AssetRef>,
+    ) -> Result<Resolution, Refusal> {
+        super::client_session::check_assets(&given)?;
+        let shared = Arc::clone(&self.shared);
+        tokio::task::spawn_blocking(move || {
+            let now = super::unix_ms();
+            let keys: Vec<protocol::AssetKey> = given.iter().map(|a| a.key).collect();
+            let lacking = shared.depot.lacking(&keys);
+            let stored: Vec<protocol::AssetRef> = given
+                .iter()
+                .filter(|a| !lacking.iter().any(|l| l.key == a.key))
+                .cloned()
+                .collect();
+            // Kept while they are read, as a submission's are: no collection between.
+            let owner = shared.depot.provisional();
+            let resolved = probe(&shared, &scene, &given, &stored, lacking, owner, now);
+            shared.depot.release(owner, now);
+            resolved
+        })
+        .await
+        .map_err(|_| Refusal::unavailable("the scene could not be resolved: try again"))?
+    }
+
+    /// The most bytes a request's scene may have: a protocol frame's bound.
+    pub fn max_request_bytes(&self) -> usize {
+        self.shared.max_frame
+    }
+
     /// The most bytes a file of a scene may have on this coordinator.
     pub fn max_file_bytes(&self) -> u64 {
         self.shared.depot.max_file_bytes()
@@ -548,6 +585,68 @@ impl Observer {
         let snapshot = snapshot(&self.shared.lock());
         self.shared.metrics.render(&snapshot, format)
     }
+}
+
+/// What a scene reads of the files given with it ([`Observer::resolve`]).
+pub struct Resolution {
+    /// The files given that the scene reads (a glTF's buffer files among them), each
+    /// once: what a job of the scene carries.
+    pub files: Vec<protocol::AssetRef>,
+    /// The names the scene reads that were not given: give them, and ask again (a
+    /// glTF's buffer files are known once the glTF is given and stored).
+    pub missing: Vec<String>,
+    /// The files of `files` the store lacks, with the bytes of each received so far:
+    /// upload them (a glTF is read for its buffer files once it is stored).
+    pub lacking: Vec<protocol::Lacking>,
+}
+
+/// [`Observer::resolve`]'s parse, the stored files of `given` pinned under `owner`.
+fn probe(
+    shared: &super::Shared,
+    scene: &str,
+    given: &[protocol::AssetRef],
+    stored: &[protocol::AssetRef],
+    lacking: Vec<protocol::Lacking>,
+    owner: u64,
+    now: u64,
+) -> Result<Resolution, Refusal> {
+    if shared.depot.pin(owner, stored, now).is_err() {
+        return Err(Refusal::unavailable(
+            "a file given left the store while the scene was resolved: resolve again",
+        ));
+    }
+    let bytes = shared.depot.files(stored).map_err(|e| {
+        Refusal::internal(format!(
+            "a file of the scene cannot be read from the store: {e}"
+        ))
+    })?;
+    let files = render::MeshFiles::probing(bytes);
+    render::parse_animated_with(scene, &files).map_err(|e| Refusal::invalid(e.to_string()))?;
+    let asked = files.missing();
+    let read: std::collections::BTreeSet<String> = files
+        .files_read()
+        .into_iter()
+        .map(|f| f.name)
+        .chain(asked.iter().cloned())
+        .collect();
+    let files: Vec<protocol::AssetRef> = given
+        .iter()
+        .filter(|a| read.contains(&a.name))
+        .cloned()
+        .collect();
+    let missing = asked
+        .into_iter()
+        .filter(|name| !given.iter().any(|a| &a.name == name))
+        .collect();
+    let lacking = lacking
+        .into_iter()
+        .filter(|l| files.iter().any(|a| a.key == l.key))
+        .collect();
+    Ok(Resolution {
+        files,
+        missing,
+        lacking,
+    })
 }
 
 /// The stored sequence `job`, or why there is none.

@@ -76,6 +76,9 @@ impl FileRead {
     }
 }
 
+/// The names a scene being resolved asked for and was not given.
+pub(crate) type Missing = Arc<std::sync::Mutex<std::collections::BTreeSet<String>>>;
+
 /// Where names are read from.
 #[derive(Clone, Default)]
 pub(crate) enum Source {
@@ -86,6 +89,9 @@ pub(crate) enum Source {
     Dir(PathBuf),
     /// The files sent with the scene, by name.
     Bound(Arc<BTreeMap<String, Arc<[u8]>>>),
+    /// The files given so far, by name, for a scene being resolved: a name not among
+    /// them is recorded as missing ([`MeshFiles::probing`](super::MeshFiles::probing)).
+    Probe(Arc<BTreeMap<String, Arc<[u8]>>>, Missing),
 }
 
 impl std::fmt::Debug for Source {
@@ -94,6 +100,7 @@ impl std::fmt::Debug for Source {
             Source::Nowhere => f.write_str("Nowhere"),
             Source::Dir(dir) => f.debug_tuple("Dir").field(dir).finish(),
             Source::Bound(files) => f.debug_tuple("Bound").field(&files.keys()).finish(),
+            Source::Probe(files, _) => f.debug_tuple("Probe").field(&files.keys()).finish(),
         }
     }
 }
@@ -103,7 +110,7 @@ impl Source {
     pub(crate) fn path(&self, name: &str) -> PathBuf {
         match self {
             Source::Dir(dir) => dir.join(name),
-            Source::Nowhere | Source::Bound(_) => PathBuf::from(name),
+            Source::Nowhere | Source::Bound(_) | Source::Probe(..) => PathBuf::from(name),
         }
     }
 
@@ -125,6 +132,13 @@ impl Source {
                 }
                 Ok(Bytes::Bound(bytes.clone()))
             }
+            Source::Probe(files, missing) => match files.get(name) {
+                Some(_) => Source::Bound(Arc::clone(files)).fetch(name),
+                None => {
+                    lock(missing).insert(name.to_owned());
+                    Err(format!("{}: not among the files given", load::shown(&path)))
+                }
+            },
             Source::Nowhere => Err(format!("{}: no files were given", load::shown(&path))),
         }
     }

@@ -145,6 +145,29 @@ impl MeshFiles {
         }
     }
 
+    /// The files given so far with a scene being resolved, by name as in
+    /// [`MeshFiles::bound`]: a name the scene reads that is not among them is recorded
+    /// ([`MeshFiles::missing`]) and its mesh stands in as one triangle, so that one parse
+    /// finds every file the scene names, and a glTF's buffer files once the glTF is
+    /// among them. A client learns from it which files to send without knowing the
+    /// scene format's rules (the coordinator's `resolve`); a scene is rendered only
+    /// from [`MeshFiles::bound`] files.
+    pub fn probing(files: BTreeMap<String, Arc<[u8]>>) -> Self {
+        MeshFiles {
+            source: files::Source::Probe(Arc::new(files), files::Missing::default()),
+            ..MeshFiles::default()
+        }
+    }
+
+    /// The names read but not given, sorted, of files [`MeshFiles::probing`]; none
+    /// otherwise.
+    pub fn missing(&self) -> Vec<String> {
+        match &self.source {
+            files::Source::Probe(_, missing) => lock(missing).iter().cloned().collect(),
+            _ => Vec::new(),
+        }
+    }
+
     /// These files, their geometry found in and kept by `cache`: a file whose bytes
     /// (with a glTF's buffers) were read before, by any scene given the same cache, is
     /// not read again, and its hierarchy is built once for all of them.
@@ -181,6 +204,24 @@ impl MeshFiles {
         if let Some(file) = lock(&self.by_name).get(name) {
             return Ok(file.clone());
         }
+        match self.read(name) {
+            Err(_) if !self.missing().is_empty() => Ok(Arc::new(MeshFile {
+                name: name.to_string(),
+                path: self.source.path(name),
+                sha256: [0; 32],
+                geometry: Arc::new(MeshGeometry::new(MeshData {
+                    positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+                    triangles: vec![[0, 1, 2]],
+                    corner_normals: vec![[NO_NORMAL; 3]],
+                    normals: Vec::new(),
+                })),
+            })),
+            read => read,
+        }
+    }
+
+    /// [`MeshFiles::get`] of a file not read before.
+    fn read(&self, name: &str) -> Result<Arc<MeshFile>, String> {
         let reader = files::Reader {
             source: &self.source,
             record: &self.record,
@@ -299,6 +340,67 @@ pub(crate) fn cut(text: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn probing_finds_every_file_a_scene_reads_a_gltfs_buffers_once_it_is_given() {
+        let scene = r#"{"camera": {"position": "0 0 -5", "look_at": "0 0 0", "fov": 40},
+            "image": {"width": 8, "height": 8}, "lights": [],
+            "objects": [
+                {"type": "mesh", "file": "a.obj", "color": "1 1 1 0"},
+                {"type": "mesh", "file": "m/ship.gltf", "color": "1 1 1 0"},
+                {"type": "mesh", "file": "b.obj", "color": "1 1 1 0"}]}"#;
+        let obj: Arc<[u8]> = Arc::from(&b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"[..]);
+        let mut bin = Vec::new();
+        for x in [0f32, 0., 0., 1., 0., 0., 0., 1., 0.] {
+            bin.extend_from_slice(&x.to_le_bytes());
+        }
+        let gltf = r#"{"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "buffers": [{"byteLength": 36, "uri": "ship.bin"}],
+            "bufferViews": [{"buffer": 0, "byteLength": 36}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}]}"#;
+        let probe = |given: &[(&str, Arc<[u8]>)]| {
+            let files = MeshFiles::probing(
+                given
+                    .iter()
+                    .map(|(n, b)| ((*n).to_owned(), b.clone()))
+                    .collect(),
+            );
+            crate::parse_animated_with(scene, &files).unwrap();
+            let read: Vec<String> = files.files_read().into_iter().map(|f| f.name).collect();
+            (read, files.missing())
+        };
+        let (read, missing) = probe(&[("a.obj", obj.clone())]);
+        assert_eq!(
+            (read, missing),
+            (
+                vec!["a.obj".into()],
+                vec!["b.obj".into(), "m/ship.gltf".into()]
+            )
+        );
+        let with_gltf = [
+            ("a.obj", obj.clone()),
+            ("b.obj", obj.clone()),
+            ("m/ship.gltf", Arc::from(gltf.as_bytes())),
+        ];
+        let (_, missing) = probe(&with_gltf);
+        assert_eq!(missing, vec!["m/ship.bin".to_owned()]);
+        let mut all = with_gltf.to_vec();
+        all.push(("m/ship.bin", Arc::from(bin)));
+        let (read, missing) = probe(&all);
+        assert!(missing.is_empty(), "{missing:?}");
+        assert_eq!(read, ["a.obj", "b.obj", "m/ship.bin", "m/ship.gltf"]);
+        // A file given that is not a mesh is the scene's error once nothing is missing.
+        let mut broken = all.clone();
+        broken[0].1 = Arc::from(&b"not a mesh"[..]);
+        let files = MeshFiles::probing(
+            broken
+                .iter()
+                .map(|(n, b)| ((*n).to_owned(), b.clone()))
+                .collect(),
+        );
+        assert!(crate::parse_animated_with(scene, &files).is_err());
+    }
 
     #[test]
     fn errors_quote_long_words_by_their_start_and_length() {

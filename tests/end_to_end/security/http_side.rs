@@ -38,6 +38,29 @@ const EXPECTED: &[(&str, &str, Access)] = &[
     ("POST", "/api/studio/submit", Access::Control),
     ("POST", "/api/studio/archive", Access::Control),
     ("POST", "/api/studio/files", Access::Upload),
+    ("GET", "/api/v1/openapi.json", Access::Page),
+    ("GET", "/api/v1/jobs", Access::Read),
+    ("POST", "/api/v1/jobs", Access::Control),
+    ("GET", "/api/v1/jobs/{id}", Access::Read),
+    ("GET", "/api/v1/jobs/{id}/wait", Access::Read),
+    ("GET", "/api/v1/jobs/{id}/events", Access::Read),
+    ("GET", "/api/v1/jobs/{id}/image.png", Access::Read),
+    ("GET", "/api/v1/jobs/{id}/frames/{frame}", Access::Read),
+    ("POST", "/api/v1/jobs/{id}/pause", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/resume", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/priority", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/cancel", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/retry", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/requeue", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/refine", Access::Control),
+    ("POST", "/api/v1/jobs/{id}/delete", Access::Control),
+    ("GET", "/api/v1/workers", Access::Read),
+    ("POST", "/api/v1/workers/{worker}/drain", Access::Control),
+    ("POST", "/api/v1/workers/{worker}/disable", Access::Control),
+    ("POST", "/api/v1/workers/{worker}/enable", Access::Control),
+    ("POST", "/api/v1/files/lacking", Access::Control),
+    ("PUT", "/api/v1/files/{file}", Access::Upload),
+    ("POST", "/api/v1/resolve", Access::Control),
 ];
 
 const SCRAPE_TOKEN: &str = "5c3a0e9d8b7f6a5e4d3c2b1a0f9e8d7c";
@@ -46,10 +69,19 @@ const SCRAPE_TOKEN: &str = "5c3a0e9d8b7f6a5e4d3c2b1a0f9e8d7c";
 /// request, once allowed, changes nothing that matters (a job or worker that does not
 /// exist, a studio request without a body), and the body a POST sends.
 fn concrete(path: &str, job: u64) -> (String, &'static str) {
+    // The API's job controls act on a job that does not exist (its reads on the job).
+    let controlled = path.starts_with("/api/v1/jobs/{id}/")
+        && !["wait", "events", "image.png", "{frame}"]
+            .iter()
+            .any(|read| path.ends_with(read));
+    let job = if controlled { 987_654 } else { job };
     let path = path
         .replace("/api/jobs/{id}/{action}", "/api/jobs/987654/pause")
+        .replace("{frame}", "1")
+        .replace("{file}", &format!("{}-1?offset=0", "0".repeat(64)))
         .replace("{id}", &job.to_string())
         .replace("{worker}/{action}", "nobody/drain")
+        .replace("{worker}", "nobody")
         .replace("{file}", "1.png");
     let path = match path.as_str() {
         "/api/studio/stream" => "/api/studio/stream?session=none".to_owned(),
@@ -62,14 +94,14 @@ fn concrete(path: &str, job: u64) -> (String, &'static str) {
 
 /// One request of `route` with `auth` headers: JSON, or raw bytes for an upload.
 fn ask(site: &Site, method: &str, path: &str, body: &str, auth: &[(&str, &str)]) -> Answer {
-    let kind = if path.starts_with("/api/studio/files") {
+    let kind = if path.starts_with("/api/studio/files") || method == "PUT" {
         "application/octet-stream"
     } else {
         "application/json"
     };
     let mut headers = vec![("Content-Type", kind)];
     headers.extend_from_slice(auth);
-    let body = if method == "POST" {
+    let body = if method == "POST" || method == "PUT" {
         body.as_bytes()
     } else {
         b""
