@@ -6,6 +6,7 @@
 mod client_commands;
 mod configuration;
 mod controls;
+mod event_stream;
 mod job_reports;
 mod monitoring;
 mod sequence_preview;
