@@ -286,7 +286,7 @@ impl Filter {
 
     pub fn passes(&self, event: &FarmEvent) -> bool {
         self.job.is_none_or(|job| event.job == Some(job))
-            && (self.kinds.is_empty() || self.kinds.iter().any(|k| *k == event.kind))
+            && (self.kinds.is_empty() || self.kinds.contains(&event.kind))
     }
 }
 

@@ -122,7 +122,7 @@ impl Stream {
     }
 
     /// Every event to the end of a stream that ends (`follow=false`).
-    fn to_end(mut self) -> Vec<Sse> {
+    fn read_to_end(mut self) -> Vec<Sse> {
         std::iter::from_fn(|| self.next()).collect()
     }
 }
@@ -135,7 +135,7 @@ fn kept_after(http: &str, after: u64) -> Vec<Sse> {
         &[],
     );
     assert_eq!(stream.status, 200, "{}", stream.head);
-    stream.to_end()
+    stream.read_to_end()
 }
 
 fn ids(events: &[Sse]) -> Vec<u64> {
@@ -205,13 +205,13 @@ fn a_stream_sees_a_worker_join_and_a_job_run_in_id_order() {
     assert_eq!(kept_after(&http, 0), [vec![joined], seen].concat());
     // Filters: one kind, one job.
     let only = Stream::open(&http, "/api/v1/events?after=0&follow=false&kinds=done", &[]);
-    assert_eq!(kinds_of(&only.to_end()), ["done"]);
+    assert_eq!(kinds_of(&only.read_to_end()), ["done"]);
     let other = Stream::open(
         &http,
         &format!("/api/v1/events?after=0&follow=false&job={}", job + 1),
         &[],
     );
-    assert!(other.to_end().is_empty());
+    assert!(other.read_to_end().is_empty());
 }
 
 fn kinds_of(events: &[Sse]) -> Vec<&str> {
@@ -352,7 +352,7 @@ fn an_id_older_than_the_events_kept_gets_a_gap_event() {
         "/api/v1/events?follow=false",
         &[("Last-Event-ID", "1")],
     );
-    let got = resumed.to_end();
+    let got = resumed.read_to_end();
     assert_eq!(
         kinds_of(&got),
         ["gap", "submitted", "submitted", "submitted"]
