@@ -415,6 +415,14 @@ mod tests {
         assert_eq!(gap(50, 42), None);
         // Nothing kept yet, next id 1: a new client misses nothing.
         assert_eq!(gap(0, 1), None);
+        // One event trimmed is a gap.
+        assert_eq!(
+            gap(40, 42),
+            Some(Gap {
+                after: 40,
+                oldest_kept: 42
+            })
+        );
         let g = gap(10, 42).expect("events 11 to 41 were trimmed");
         assert_eq!(
             g,

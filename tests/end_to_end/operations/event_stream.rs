@@ -78,12 +78,13 @@ impl Stream {
     }
 
     /// The next event, heartbeats skipped; `None` once the stream ends (or is cut, or
-    /// is quiet for [`EVENT_TIMEOUT`]).
+    /// has no event for [`EVENT_TIMEOUT`], heartbeats or not).
     fn next(&mut self) -> Option<Sse> {
+        let deadline = Instant::now() + EVENT_TIMEOUT;
         let (mut id, mut kind, mut data) = (None, None, None);
         loop {
             let mut line = String::new();
-            if self.reader.read_line(&mut line).unwrap_or(0) == 0 {
+            if Instant::now() > deadline || self.reader.read_line(&mut line).unwrap_or(0) == 0 {
                 return None;
             }
             let line = line.trim_end_matches(['\r', '\n']);
