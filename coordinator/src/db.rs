@@ -28,6 +28,7 @@ use protocol::{JobEvent, JobId, JobState, SceneHash, Settings, Verification};
 use rusqlite::Connection;
 use sha2::{Digest, Sha256};
 
+mod farm_events;
 mod file;
 mod read;
 mod write;

@@ -11,6 +11,7 @@ pub mod archive;
 pub mod client;
 pub mod daemon;
 mod db;
+pub mod events;
 pub mod http;
 pub mod json;
 pub mod keyring;

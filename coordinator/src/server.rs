@@ -40,6 +40,7 @@ mod client_session;
 mod core;
 mod data_lock;
 mod depot;
+mod events;
 mod handshake;
 mod keys;
 mod observer;
@@ -118,6 +119,9 @@ pub struct Config {
     pub files: assets::StoreLimits,
     /// Serve health, metrics and the status page over HTTP on this address, if set.
     pub http: Option<SocketAddr>,
+    /// How long and how many of the farm's events are kept for streams that resume
+    /// (docs/events.md).
+    pub events: crate::events::Retention,
     /// Start with a new, empty job database when the one in `data` is missing or
     /// unreadable (its unfinished jobs are lost; ids continue above every id issued).
     pub reset_database: bool,
@@ -155,6 +159,7 @@ impl Config {
             limits: lifecycle::Limits::default(),
             files: depot::default_limits(),
             http: None,
+            events: crate::events::Retention::default(),
             reset_database: false,
             studio_scene: None,
         }
@@ -198,6 +203,8 @@ struct Shared {
     /// Wakes the timer to look at the state machines' deadlines again.
     rearm: tokio::sync::Notify,
     metrics: Metrics,
+    /// The farm's recorded events on their way to the streams (docs/events.md).
+    events: events::Hub,
     /// The canary's reference render, and the spot checks.
     verifier: verification::Verifier,
     /// The studio's views and their pages (docs/studio.md).
@@ -304,6 +311,12 @@ impl Hooks for DaemonHooks {
         }
     }
 
+    fn farm_events(&self, recorded: Vec<crate::events::FarmEvent>) {
+        if let Some(sh) = self.0.upgrade() {
+            sh.events.publish(recorded);
+        }
+    }
+
     fn storage(&self, status: std::result::Result<(), String>) {
         if let Some(sh) = self.0.upgrade() {
             if status.is_err() {
@@ -382,6 +395,7 @@ impl Server {
                 db_path,
                 Arc::clone(&store),
                 Arc::new(DaemonHooks(weak.clone())),
+                config.events,
             ),
             store: Arc::clone(&store),
             depot,
@@ -402,6 +416,7 @@ impl Server {
             changes: tokio::sync::watch::channel(0).0,
             rearm: tokio::sync::Notify::new(),
             metrics: Metrics::new(),
+            events: events::Hub::default(),
             verifier,
             studio: studio_session::Studio::default(),
             studio_scene,

@@ -153,6 +153,16 @@ pub struct Args {
     /// until `tessera delete`].
     #[arg(long, env = "TESSERA_RETENTION", value_name = "DURATION", value_parser = config::parse_duration)]
     retention: Option<Duration>,
+    /// How long the farm's events are kept for event streams that resume (`GET
+    /// /api/v1/events`, docs/events.md): a whole number and a unit, s, m, h or d. A
+    /// stream asking for an older one is told of the gap.
+    #[arg(long, env = "TESSERA_EVENT_RETENTION", value_name = "DURATION", default_value = "7d",
+          value_parser = config::parse_duration)]
+    event_retention: Duration,
+    /// How many of the farm's events are kept at most (the newest), whatever their age.
+    #[arg(long, env = "TESSERA_EVENT_RETENTION_COUNT", value_name = "N", default_value_t = coordinator::events::DEFAULT_RETENTION_COUNT,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    event_retention_count: u64,
     /// If the job database is missing or unreadable although the data directory has
     /// held jobs, start a new empty one instead of refusing to start (unfinished jobs
     /// are lost; new ids continue after the highest ever issued). For this start only:
@@ -295,6 +305,10 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
             max_total_bytes: a.max_store_bytes,
         },
         http: a.daemon.http,
+        events: coordinator::events::Retention {
+            max_age: a.event_retention,
+            max_count: a.event_retention_count,
+        },
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,

@@ -124,6 +124,8 @@ impl Db {
              );",
         )
         .context("cannot create the job tables")?;
+        conn.execute_batch(super::farm_events::SCHEMA)
+            .context("cannot create the farm's event table")?;
         add_missing_columns(&conn).context("cannot upgrade the job database")?;
         Ok(Db {
             conn,

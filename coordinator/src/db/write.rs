@@ -10,6 +10,7 @@ use super::read::{read_job, JOB_COLUMNS};
 use super::{
     tile_checksum, Db, EventWrite, ReopenError, StoredJob, TileEncoding, TileWrite, Times, Totals,
 };
+use crate::events::{Announcement, FarmEvent, Retention};
 
 impl Db {
     /// Stores a new job durably.
@@ -52,12 +53,30 @@ impl Db {
         Ok(())
     }
 
-    /// Records finished tiles (with their checksums) and event log entries, all in one
-    /// transaction. An entry replaces one of the same job and number (how the marker of
-    /// events not kept is updated; and a write retried after a failure changes nothing).
+    /// [`Db::save_batch`] without farm events, as the tests record tiles and logs.
+    #[cfg(test)]
     pub fn save_results(&mut self, tiles: &[TileWrite], events: &[EventWrite]) -> Result<()> {
+        self.save_batch(tiles, events, &[], Retention::default(), 0)
+            .map(drop)
+    }
+
+    /// Records finished tiles (with their checksums), event log entries and the farm's
+    /// events announced meanwhile, all in one transaction, and trims the farm's events
+    /// to `retention` (at `now_ms`) in it too. A log entry replaces one of the same job
+    /// and number (how the marker of events not kept is updated; and a write retried
+    /// after a failure changes nothing). Returns the farm's events as recorded, with
+    /// their ids, once committed.
+    pub fn save_batch(
+        &mut self,
+        tiles: &[TileWrite],
+        events: &[EventWrite],
+        announced: &[Announcement],
+        retention: Retention,
+        now_ms: u64,
+    ) -> Result<Vec<FarmEvent>> {
         let tx = self.conn.transaction()?;
         insert_events(&tx, events)?;
+        let recorded = super::farm_events::insert(&tx, announced, retention, now_ms)?;
         {
             let mut insert = tx.prepare_cached(
                 "INSERT OR IGNORE INTO tiles (job, tile, rgb, rays, worker, samples, error_sq_sum,
@@ -80,7 +99,7 @@ impl Db {
             }
         }
         tx.commit().context("cannot record finished tiles")?;
-        Ok(())
+        Ok(recorded)
     }
 
     /// Records when the job's first tile was handed out.
@@ -258,7 +277,7 @@ impl Db {
     }
 }
 
-/// Inserts event log entries in `tx` (see [`Db::save_results`]).
+/// Inserts event log entries in `tx` (see [`Db::save_batch`]).
 fn insert_events(tx: &rusqlite::Transaction<'_>, events: &[EventWrite]) -> Result<()> {
     if events.is_empty() {
         return Ok(());

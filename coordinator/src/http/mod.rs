@@ -14,6 +14,7 @@
 
 mod access;
 mod api;
+mod events;
 
 pub use api::OPENAPI;
 
@@ -75,6 +76,7 @@ fn table() -> Vec<(Route, MethodRouter<Observer>)> {
         row(Method::GET, "/api/jobs/{id}/frames/{file}", Read, get(sequence_frame)),
         row(Method::GET, "/api/studio/scene", Read, get(studio_scene)),
         row(Method::GET, "/api/studio/stream", Read, get(studio_stream)),
+        row(Method::GET, "/api/v1/events", Read, get(events::farm_events)),
         row(Method::POST, "/api/jobs/{id}/{action}", Control, post(job_control)),
         row(Method::POST, "/api/workers/{worker}/{action}", Control, post(worker_control)),
         row(Method::POST, "/api/studio/open", Control, post(studio_open)),

@@ -163,10 +163,14 @@ impl Core {
         }
     }
 
-    /// Adds an entry to the job's event log (queued for the disk, never waited for).
+    /// Adds an entry to the job's event log (queued for the disk, never waited for),
+    /// and announces it on the farm's stream when its kind is one of the stream's.
     /// `kind` is one of the words docs/operations.md lists. A studio view's pass keeps
     /// no log.
     pub fn log(&mut self, sh: &Shared, job: JobId, kind: &str, detail: String) {
+        // The farm's stream tells of it too, whether or not the job's log still keeps
+        // entries.
+        self.announce_logged(sh, job, kind, &detail);
         let log = match (self.jobs.get_mut(&job), self.sequences.get_mut(&job)) {
             (Some(record), _) if !record.interactive => &mut record.log,
             (None, Some(sequence)) => &mut sequence.log,

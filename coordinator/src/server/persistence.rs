@@ -25,6 +25,7 @@ use protocol::{JobEvent, JobId, JobState, EVENTS_PER_PAGE};
 use tracing::{info, warn};
 
 use crate::db::{Db, Durability, EventWrite, ReopenError, StoredJob, TileWrite, Times, Totals};
+use crate::events::{Announcement, FarmEvent, FarmPage, Retention};
 use crate::store::{ImagePlace, JobMetadata, Store};
 
 /// How long after a failed write it is tried again.
@@ -55,6 +56,9 @@ pub trait Hooks: Send + Sync {
     fn tiles_recorded(&self, tiles: &[(JobId, u32)]);
     /// Storage became unavailable (`Err` with the reason) or available again.
     fn storage(&self, status: Result<(), String>);
+    /// The farm's events are durably recorded, with their ids, in id order: now they
+    /// may be streamed (docs/events.md).
+    fn farm_events(&self, events: Vec<FarmEvent>);
 }
 
 /// One write, with what to do once it is done.
@@ -107,6 +111,16 @@ pub enum Write {
     /// An entry of a job's event log: written with the tiles and entries queued with
     /// it, in one transaction.
     Event(EventWrite),
+    /// An event of the farm's stream: recorded with the tiles and entries queued with
+    /// it, in one transaction, and given its id there.
+    Announce(Announcement),
+    /// Reads a page of the farm's events after `after` (docs/events.md), with the
+    /// oldest id kept.
+    ReadFarmEvents {
+        after: u64,
+        limit: usize,
+        then: Then<FarmPage>,
+    },
     /// Reads a page of a job's event log, after every entry queued before it is
     /// written: a client reads what happened up to its request.
     ReadEvents {
@@ -148,12 +162,14 @@ impl Write {
             | Write::Disabled { then, .. } => then(Ok(())),
             Write::Image { then, .. } => then(Ok([0; 32])),
             Write::ReadEvents { then, .. } => then(Ok(Vec::new())),
+            Write::ReadFarmEvents { then, .. } => then(Ok(FarmPage::default())),
             Write::Reopen { then, .. } => then(Ok(None)),
             Write::Tile(_)
             | Write::Started { .. }
             | Write::SequenceRunning { .. }
             | Write::ForgetTiles { .. }
-            | Write::Event(_) => {}
+            | Write::Event(_)
+            | Write::Announce(_) => {}
         }
     }
 }
@@ -206,6 +222,7 @@ impl Persistence {
         db_path: PathBuf,
         store: Arc<Store>,
         hooks: Arc<dyn Hooks>,
+        retention: Retention,
     ) -> Persistence {
         let (tx, rx) = std::sync::mpsc::channel();
         let status = Arc::new(Status {
@@ -220,6 +237,7 @@ impl Persistence {
             hooks,
             status: Arc::clone(&status),
             durability: Durability::Synced,
+            retention,
         };
         let thread = std::thread::Builder::new()
             .name("persistence".into())
@@ -293,11 +311,14 @@ struct Writer {
     status: Arc<Status>,
     /// How the step being carried out is committed.
     durability: Durability,
+    /// How long and how many of the farm's events are kept.
+    retention: Retention,
 }
 
-/// A write taken off the queue, with the tiles and event log entries batched.
+/// A write taken off the queue, with the tiles, event log entries and farm events
+/// batched.
 enum Step {
-    Tiles(Vec<TileWrite>, Vec<EventWrite>),
+    Tiles(Vec<TileWrite>, Vec<EventWrite>, Vec<Announcement>),
     One(Write),
     /// Checks that the disk can be written again (after a failed insert).
     Probe,
@@ -307,6 +328,11 @@ impl Step {
     /// How its commit is made to last: synced when someone is told it is done.
     fn durability(&self) -> Durability {
         match self {
+            // A farm event may be streamed once committed: synced, so that an id a
+            // client has seen is never given again, not even after a power cut. They
+            // are few (no tile has one), so the syncs are too.
+            Step::Tiles(_, _, announced) if !announced.is_empty() => Durability::Synced,
+            Step::One(Write::Announce(_)) => Durability::Synced,
             Step::Tiles(..)
             | Step::One(Write::Tile(_) | Write::Event(_) | Write::Started { .. }) => {
                 Durability::Ordered
@@ -349,8 +375,9 @@ impl Writer {
                     },
                 };
                 match first {
-                    first @ (Write::Tile(_) | Write::Event(_)) => {
-                        let (mut tiles, mut events) = (Vec::new(), Vec::new());
+                    first @ (Write::Tile(_) | Write::Event(_) | Write::Announce(_)) => {
+                        let (mut tiles, mut events, mut announced) =
+                            (Vec::new(), Vec::new(), Vec::new());
                         let mut write = first;
                         // Group commit: what comes within GROUP_COMMIT of the first
                         // goes in the same transaction, one sync for all of it.
@@ -359,12 +386,15 @@ impl Writer {
                             match write {
                                 Write::Tile(t) => tiles.push(t),
                                 Write::Event(e) => events.push(e),
+                                Write::Announce(a) => announced.push(a),
                                 other => {
                                     next = Some(other);
                                     break;
                                 }
                             }
-                            if tiles.len() >= TILE_BATCH || events.len() >= EVENT_BATCH {
+                            if tiles.len() >= TILE_BATCH
+                                || events.len() + announced.len() >= EVENT_BATCH
+                            {
                                 break;
                             }
                             let left = until.saturating_duration_since(Instant::now());
@@ -373,7 +403,7 @@ impl Writer {
                                 Err(_) => break,
                             }
                         }
-                        Step::Tiles(tiles, events)
+                        Step::Tiles(tiles, events, announced)
                     }
                     other => Step::One(other),
                 }
@@ -400,8 +430,14 @@ impl Writer {
                 self.until_done(|db| db.probe().and_then(|()| store.probe()));
                 false
             }
-            Step::Tiles(batch, events) => {
-                self.until_done(|db| db.save_results(&batch, &events));
+            Step::Tiles(batch, events, announced) => {
+                let retention = self.retention;
+                let recorded = self.until_done(|db| {
+                    db.save_batch(&batch, &events, &announced, retention, super::unix_ms())
+                });
+                if !recorded.is_empty() {
+                    self.hooks.farm_events(recorded);
+                }
                 if batch.is_empty() {
                     return false;
                 }
@@ -409,7 +445,17 @@ impl Writer {
                 self.hooks.tiles_recorded(&done);
                 false
             }
-            Step::One(Write::Event(e)) => self.carry_out(Step::Tiles(Vec::new(), vec![e])),
+            Step::One(Write::Event(e)) => {
+                self.carry_out(Step::Tiles(Vec::new(), vec![e], Vec::new()))
+            }
+            Step::One(Write::Announce(a)) => {
+                self.carry_out(Step::Tiles(Vec::new(), Vec::new(), vec![a]))
+            }
+            Step::One(Write::ReadFarmEvents { after, limit, then }) => {
+                // Answered at once either way, as a job's log is.
+                then(self.attempt(|db| db.farm_events_after(after, limit)));
+                false
+            }
             Step::One(Write::ReadEvents { job, after, then }) => {
                 // Answered at once either way: a client waits for it, and a read that
                 // fails is no reason to stop writing.
@@ -437,7 +483,9 @@ impl Writer {
                     }
                 }
             }
-            Step::One(Write::Tile(t)) => self.carry_out(Step::Tiles(vec![t], Vec::new())),
+            Step::One(Write::Tile(t)) => {
+                self.carry_out(Step::Tiles(vec![t], Vec::new(), Vec::new()))
+            }
             Step::One(Write::Started { job, at_unix_ms }) => {
                 self.until_done(|db| db.set_started(job, at_unix_ms));
                 false
@@ -602,7 +650,7 @@ mod tests {
             })
         };
         let ordered = [
-            Step::Tiles(Vec::new(), vec![event()]),
+            Step::Tiles(Vec::new(), vec![event()], Vec::new()),
             Step::One(Write::Event(event())),
             Step::One(Write::Started {
                 job: 1,
@@ -613,7 +661,10 @@ mod tests {
         for step in &ordered {
             assert_eq!(step.durability(), Durability::Ordered);
         }
+        let announced = || Announcement::worker(0, "joined", serde_json::Map::new());
         let synced = [
+            Step::Tiles(Vec::new(), vec![event()], vec![announced()]),
+            Step::One(Write::Announce(announced())),
             job(None),
             Step::One(Write::ForgetTiles {
                 job: 1,

@@ -6,6 +6,7 @@
 mod client_commands;
 mod configuration;
 mod controls;
+mod event_stream;
 mod http_api;
 mod job_reports;
 mod monitoring;

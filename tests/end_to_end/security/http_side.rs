@@ -31,6 +31,7 @@ const EXPECTED: &[(&str, &str, Access)] = &[
     ("GET", "/api/jobs/{id}/frames/{file}", Access::Read),
     ("GET", "/api/studio/scene", Access::Read),
     ("GET", "/api/studio/stream", Access::Read),
+    ("GET", "/api/v1/events", Access::Read),
     ("POST", "/api/jobs/{id}/{action}", Access::Control),
     ("POST", "/api/workers/{worker}/{action}", Access::Control),
     ("POST", "/api/studio/open", Access::Control),
@@ -85,6 +86,8 @@ fn concrete(path: &str, job: u64) -> (String, &'static str) {
         .replace("{file}", "1.png");
     let path = match path.as_str() {
         "/api/studio/stream" => "/api/studio/stream?session=none".to_owned(),
+        // What is kept, then the end: an answer read to its end.
+        "/api/v1/events" => "/api/v1/events?after=0&follow=false".to_owned(),
         // Not a mesh: stored nowhere.
         "/api/studio/files" => "/api/studio/files?name=none.obj".to_owned(),
         _ => path,

@@ -209,10 +209,15 @@ impl Core {
     /// on SIGTERM), and gets no new tile from now on. Returns its id.
     pub fn drain_worker(&mut self, sh: &Arc<Shared>, key: &str) -> Result<WorkerId, Refusal> {
         let worker = self.named_worker(key)?;
+        let mut newly = false;
         if let Some(w) = self.workers.get_mut(&worker) {
             info!(worker, name = %w.name, host = %w.host, "worker drained by an operator");
+            newly = !w.draining;
             w.draining = true;
             let _ = w.outbox.send(ToWorker::Drain);
+        }
+        if newly {
+            self.announce_worker(sh, worker, "drained", serde_json::json!({}));
         }
         self.tiles_event(sh, Event::WorkerDraining { worker });
         Ok(worker)
@@ -236,6 +241,7 @@ impl Core {
         if self.farm.tiles().is_disabled(&machine) != disabled {
             let verb = if disabled { "disabled" } else { "enabled" };
             info!(%machine, "machine {verb} by an operator");
+            self.announce_machine(sh, &machine, verb, serde_json::json!({}));
             let event = if disabled {
                 Event::DisableMachine {
                     machine: machine.clone(),

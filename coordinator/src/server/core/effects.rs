@@ -212,6 +212,7 @@ impl Core {
                             place: self.image_place(job),
                             then: Box::new(move |_| {
                                 let mut core = shared.lock();
+                                core.announce_job(&shared, job, "deleted", serde_json::json!({}));
                                 core.jobs.remove(&job);
                                 core.life_event(&shared, lifecycle::Event::Deleted { job });
                                 let now = core.now.unix_ms;

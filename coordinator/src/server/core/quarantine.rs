@@ -47,6 +47,8 @@ impl Core {
             sh.metrics.worker_quarantined();
             self.quarantined
                 .insert(machine.to_string(), reason.to_string());
+            let details = serde_json::json!({ "reason": reason, "caught_in_job": caught_in });
+            self.announce_machine(sh, machine, "quarantined", details);
         }
         for w in self.workers.values_mut().filter(|w| w.name == machine) {
             w.quarantined.get_or_insert_with(|| reason.to_string());

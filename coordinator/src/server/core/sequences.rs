@@ -316,6 +316,7 @@ impl Core {
                     place: ImagePlace::Job(sequence),
                     then: Box::new(move |_| {
                         let mut core = shared.lock();
+                        core.announce_job(&shared, sequence, "deleted", serde_json::json!({}));
                         let done = core
                             .sequences
                             .remove(&sequence)
@@ -421,6 +422,10 @@ impl Core {
         job: JobId,
         state: JobState,
     ) {
+        if state == JobState::Done {
+            let details = serde_json::json!({ "frame": frame, "frame_job": job });
+            self.announce_job(sh, id, "frame_done", details);
+        }
         let error = self.frame_error(job);
         let cost = self.jobs.get(&job).map(|r| r.totals).unwrap_or_default();
         let Some(record) = self.sequences.get_mut(&id) else {

@@ -71,6 +71,7 @@ impl Core {
         // suffixed).
         let _ = record.outbox.send(ToWorker::Joined { name: name.clone() });
         self.workers.insert(id, record);
+        self.announce_worker(sh, id, "joined", serde_json::json!({ "threads": threads }));
         self.tiles_event(
             sh,
             Event::WorkerJoined {
@@ -86,6 +87,7 @@ impl Core {
     /// connection): the tiles it held go back to the queue, each noted in its job's
     /// log.
     pub fn worker_lost(&mut self, sh: &Shared, worker: WorkerId, why: &str, drop: bool) {
+        self.announce_worker(sh, worker, "left", serde_json::json!({ "why": why }));
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
