@@ -7,6 +7,7 @@
 //! measures on the real thing: the `tessera` executable beside this one (built by the
 //! same `cargo build --release`), or the one given with `--tessera`.
 
+mod api;
 mod compression;
 mod error_table;
 mod farm;
@@ -253,6 +254,11 @@ pub enum Suite {
     /// (from the coordinator's metrics). Needs the mesh scenes (--mesh-scenes). About
     /// 5 minutes, so not part of `all`.
     FarmMeshes,
+    /// The HTTP API against the binary protocol on one coordinator: status and submit
+    /// latency, then a job rendered while a hundred clients poll its status (the job's
+    /// time and a binary status probe's latency, quiet against polled). About 2
+    /// minutes, so not part of `all`.
+    Api,
     /// Error and scaling (so as root, for the static split).
     All,
 }
@@ -319,6 +325,9 @@ pub async fn run(opts: &Options) -> Result<()> {
     }
     if opts.suite == Suite::Latency {
         latency::run(opts, &opts.out).await?;
+    }
+    if opts.suite == Suite::Api {
+        api::run(opts, &opts.out).await?;
     }
     if opts.suite == Suite::Liveness {
         liveness::run(opts, &opts.out).await?;

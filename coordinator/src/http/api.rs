@@ -116,31 +116,58 @@ fn job_id(path: Result<Path<String>, PathRejection>) -> Result<JobId, Failure> {
 
 /// A request's body, read to its end, at most `limit` bytes (413 past it).
 async fn body_bytes(headers: &HeaderMap, body: Body, limit: usize) -> Result<Vec<u8>, Failure> {
-    use futures_util::StreamExt;
-    let too_large = || {
-        Failure::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "limit",
-            format!("the body is more than the {limit} bytes this request may have"),
-        )
-    };
+    check_declared_length(headers, limit)?;
+    let mut stream = body.into_data_stream();
+    let mut bytes = Vec::new();
+    while let Some(chunk) = next_body_chunk(&mut stream).await? {
+        if bytes.len() + chunk.len() > limit {
+            return Err(body_too_large(limit));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    Ok(bytes)
+}
+
+/// How long a request's body may go without a byte before it is given up: a client
+/// that stops sending in the middle of a body must not hold its request (and an
+/// upload's place in the store) forever.
+pub const BODY_STALL: Duration = Duration::from_secs(30);
+
+/// 413 when the body's declared length is over `limit`, before any of it is read.
+fn check_declared_length(headers: &HeaderMap, limit: usize) -> Result<(), Failure> {
     let declared = headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     if declared.is_some_and(|size| size > limit as u64) {
-        return Err(too_large());
+        return Err(body_too_large(limit));
     }
-    let mut stream = body.into_data_stream();
-    let mut bytes = Vec::new();
-    while let Some(chunk) = stream.next().await {
-        let chunk = chunk.map_err(|e| Failure::bad(format!("the body was cut short: {e}")))?;
-        if bytes.len() + chunk.len() > limit {
-            return Err(too_large());
-        }
-        bytes.extend_from_slice(&chunk);
+    Ok(())
+}
+
+fn body_too_large(limit: usize) -> Failure {
+    Failure::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "limit",
+        format!("the body is more than the {limit} bytes this request may have"),
+    )
+}
+
+/// The body's next bytes, `None` at its end; 400 for a body cut short or silent for
+/// [`BODY_STALL`].
+async fn next_body_chunk(
+    stream: &mut axum::body::BodyDataStream,
+) -> Result<Option<axum::body::Bytes>, Failure> {
+    use futures_util::StreamExt;
+    match tokio::time::timeout(BODY_STALL, stream.next()).await {
+        Err(_) => Err(Failure::bad(format!(
+            "the body stalled: no byte for {} s",
+            BODY_STALL.as_secs()
+        ))),
+        Ok(None) => Ok(None),
+        Ok(Some(Err(e))) => Err(Failure::bad(format!("the body was cut short: {e}"))),
+        Ok(Some(Ok(bytes))) => Ok(Some(bytes)),
     }
-    Ok(bytes)
 }
 
 /// A JSON body as `T`, or 400 saying what is wrong with it (an empty body is `{}`).
@@ -965,47 +992,85 @@ pub async fn upload(
     let pairs = query(raw, &["offset"])?;
     let offset: u64 = param(&pairs, "offset", "a number of bytes")?
         .ok_or_else(|| Failure::bad("query: offset is required: where these bytes start"))?;
-    let bytes = body_bytes(&headers, body, MAX_UPLOAD_CHUNK).await?;
-    let too_large = |why: Refusal| {
-        if why.kind == RefusalKind::Limit {
-            Failure::new(StatusCode::PAYLOAD_TOO_LARGE, "limit", why.message)
-        } else {
-            why.into()
+    check_declared_length(&headers, MAX_UPLOAD_CHUNK)?;
+    let mut upload = Upload {
+        observer: &observer,
+        peer: peer.ip(),
+        key,
+        at: offset,
+        received: offset,
+        complete: false,
+    };
+    // Each whole chunk is stored as it arrives, so a body cut short keeps the chunks
+    // before the cut: the next PUT resumes at `received` (as `files/lacking` tells it)
+    // having lost at most one chunk, not the request.
+    let mut pending = Vec::new();
+    let mut total = 0usize;
+    let mut stream = body.into_data_stream();
+    while let Some(bytes) = next_body_chunk(&mut stream).await? {
+        total += bytes.len();
+        if total > MAX_UPLOAD_CHUNK {
+            return Err(body_too_large(MAX_UPLOAD_CHUNK));
         }
-    };
-    let mut at = offset;
-    let mut answer = json!({ "sha256": hex(&key.sha256), "size": key.size, "received": offset, "complete": false });
-    let chunks: Vec<&[u8]> = if bytes.is_empty() {
-        vec![&[]]
-    } else {
-        bytes.chunks(protocol::ASSET_CHUNK).collect()
-    };
-    for chunk in chunks {
+        pending.extend_from_slice(&bytes);
+        while pending.len() >= protocol::ASSET_CHUNK && !upload.complete {
+            let rest = pending.split_off(protocol::ASSET_CHUNK);
+            upload.store(std::mem::replace(&mut pending, rest)).await?;
+        }
+    }
+    if (!pending.is_empty() || total == 0) && !upload.complete {
+        upload.store(pending).await?;
+    }
+    Ok(Json(json!({
+        "sha256": hex(&key.sha256),
+        "size": key.size,
+        "received": upload.received,
+        "complete": upload.complete,
+    }))
+    .into_response())
+}
+
+/// An upload's chunks going into the store, in order, as `PUT files/...` reads them.
+struct Upload<'a> {
+    observer: &'a Observer,
+    peer: std::net::IpAddr,
+    key: AssetKey,
+    /// Where the next chunk goes: the request's offset and the bytes read since. The
+    /// store checks bytes it already has against what it holds and appends the rest.
+    at: u64,
+    /// The store's own count after the last chunk: what the answer reports.
+    received: u64,
+    complete: bool,
+}
+
+impl Upload<'_> {
+    /// Stores `bytes` at [`Upload::at`] as the protocol's `Upload` does; 413 for a file
+    /// over the store's limit.
+    async fn store(&mut self, bytes: Vec<u8>) -> Result<(), Failure> {
+        let length = bytes.len() as u64;
         let request = ClientRequest::Assets(AssetRequest::Upload {
-            key,
-            offset: at,
-            bytes: chunk.to_vec(),
+            key: self.key,
+            offset: self.at,
+            bytes,
         });
-        match observer.control(request, peer.ip()).await {
+        match self.observer.control(request, self.peer).await {
             ClientResponse::Assets(AssetAnswer::Received {
                 received, complete, ..
             }) => {
-                at = received;
-                answer = json!({
-                    "sha256": hex(&key.sha256),
-                    "size": key.size,
-                    "received": received,
-                    "complete": complete,
-                });
-                if complete {
-                    break;
-                }
+                self.at += length;
+                self.received = received;
+                self.complete = complete;
+                Ok(())
             }
-            ClientResponse::Error(why) => return Err(too_large(why)),
-            _ => return Err(unexpected("an upload")),
+            ClientResponse::Error(why) if why.kind == RefusalKind::Limit => Err(Failure::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "limit",
+                why.message,
+            )),
+            ClientResponse::Error(why) => Err(why.into()),
+            _ => Err(unexpected("an upload")),
         }
     }
-    Ok(Json(answer).into_response())
 }
 
 #[derive(serde::Deserialize)]

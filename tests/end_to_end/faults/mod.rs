@@ -13,6 +13,7 @@
 
 mod assets;
 mod coordinator;
+mod http_api;
 mod liveness;
 mod network;
 mod workers;
