@@ -75,6 +75,8 @@ pub struct StoredJob {
     /// Who and what: the job's name, its submitter as the client claimed it, and the
     /// address the submission came from. Empty for a job stored by an earlier version.
     pub label: Label,
+    /// The jobs it was submitted after (`JobSpec::after`).
+    pub after: Vec<JobId>,
 }
 
 /// What a job is called and who submitted it.

@@ -49,6 +49,8 @@ pub fn status_json(s: &JobStatus) -> Value {
         "sequence": s.sequence,
         "frames": s.frames.as_ref().map(frames_json),
         "assets": { "files": s.assets.files, "bytes": s.assets.bytes },
+        "after": s.after,
+        "waiting_for": s.waiting_for,
     })
 }
 

@@ -11,7 +11,7 @@ use crate::wire;
 pub const MAGIC: [u8; 4] = *b"TSRA";
 
 /// Bumped whenever any message changes shape.
-pub const PROTOCOL_VERSION: u16 = 13;
+pub const PROTOCOL_VERSION: u16 = 14;
 
 /// The peer's first frame.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -624,12 +624,12 @@ mod tests {
     #[test]
     fn a_hello_of_the_previous_version_is_refused_naming_both() {
         let mut frame = Hello::new(Role::Client).to_frame();
-        frame[4..6].copy_from_slice(&12u16.to_le_bytes());
+        frame[4..6].copy_from_slice(&13u16.to_le_bytes());
         let error = Hello::from_frame(&frame).unwrap_err();
         assert_eq!(
             error.to_string(),
-            "protocol version mismatch: this coordinator speaks version 13, the peer speaks \
-             version 12"
+            "protocol version mismatch: this coordinator speaks version 14, the peer speaks \
+             version 13"
         );
     }
 

@@ -46,7 +46,16 @@ pub struct JobSpec {
     /// [`MAX_JOB_ASSETS`](crate::MAX_JOB_ASSETS)), uploaded first: a file the
     /// coordinator lacks gets [`AssetAnswer::SubmitLacking`](crate::AssetAnswer).
     pub assets: Vec<AssetRef>,
+    /// Jobs that must be done before this one starts (`tessera submit --after JOB`, at
+    /// most [`MAX_AFTER`]): it waits ([`JobState::Waiting`]) until every one of them
+    /// is done, and fails, naming it, if one fails or is cancelled. Each must be a job
+    /// the coordinator has, so a dependency always points to an older job and no cycle
+    /// can form.
+    pub after: Vec<JobId>,
 }
+
+/// The most jobs a job may wait for.
+pub const MAX_AFTER: usize = 256;
 
 /// Frames `first..=last` of an animated scene, from 1.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -409,6 +418,9 @@ pub enum JobState {
     Done,
     Failed,
     Cancelled,
+    /// Stored, waiting for the jobs it was submitted `after` to be done
+    /// ([`JobStatus::waiting_for`] says which are not yet).
+    Waiting,
 }
 
 impl JobState {
@@ -420,6 +432,7 @@ impl JobState {
             JobState::Done => "done",
             JobState::Failed => "failed",
             JobState::Cancelled => "cancelled",
+            JobState::Waiting => "waiting",
         }
     }
 
@@ -493,6 +506,10 @@ pub struct JobStatus {
     pub sequence: Option<JobId>,
     /// The files its scene names.
     pub assets: JobAssets,
+    /// The jobs it was submitted after ([`JobSpec::after`]).
+    pub after: Vec<JobId>,
+    /// Those of them not yet done, while it is [`JobState::Waiting`]; empty otherwise.
+    pub waiting_for: Vec<JobId>,
 }
 
 impl JobStatus {

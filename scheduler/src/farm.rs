@@ -33,6 +33,10 @@
 //!   [`Event::Interactive`] for a studio view's pass);
 //! - a job that ends early ([`lifecycle::Action::CancelTiles`]) has its tiles
 //!   withdrawn ([`Event::CancelJob`]);
+//! - a stored job submitted after others waits, its tiles kept back, until every one
+//!   of them is done and its end written ([`Effect::Waiting`], then
+//!   [`Effect::Released`]); one that fails or is cancelled fails it, naming it (see
+//!   [`dependencies`]);
 //! - the time ([`Input::Timeout`]) reaches the tile scheduler first, then the
 //!   lifecycle; [`Farm::next_deadline`] is the earlier of theirs;
 //! - storage that cannot write ([`Input::Storage`]) stops the tile scheduler first
@@ -45,8 +49,9 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use protocol::{JobId, Refusal, SceneHash, WorkerId};
+use protocol::{JobId, JobState, Refusal, SceneHash, WorkerId};
 
+pub use self::dependencies::Dependencies;
 pub use self::disputes::{CopyVerdict, Duplicate};
 pub use self::pass_run::{PassAction, PassInput, PassRun, PassTile};
 use self::renderers::Renderers;
@@ -120,6 +125,16 @@ pub enum Effect {
         job: JobId,
         tiles: Vec<u32>,
     },
+    /// A stored job waits for the jobs it was submitted after: `on`, those not yet
+    /// done. Its tiles go out once they are ([`Effect::Released`]).
+    Waiting {
+        job: JobId,
+        on: Vec<JobId>,
+    },
+    /// Every job a waiting job was submitted after is done: its tiles go out.
+    Released {
+        job: JobId,
+    },
 }
 
 /// How a job's tiles go out once it is stored: what [`Event::JobSubmitted`] needs, and
@@ -152,6 +167,8 @@ pub struct Farm {
     /// The sequences that may start frames once the input under way is handled: a
     /// frame's tile went out, a frame ended, an operator's control.
     to_fill: BTreeSet<JobId>,
+    /// Which jobs were submitted after which, and which wait.
+    dependencies: Dependencies,
 }
 
 impl Farm {
@@ -166,7 +183,13 @@ impl Farm {
             sequences: BTreeMap::new(),
             frame_jobs: BTreeMap::new(),
             to_fill: BTreeSet::new(),
+            dependencies: Dependencies::default(),
         }
+    }
+
+    /// Which jobs were submitted after which, and which wait.
+    pub fn dependencies(&self) -> &Dependencies {
+        &self.dependencies
     }
 
     /// The tile scheduler, to read.
@@ -296,9 +319,164 @@ impl Farm {
         request: &lifecycle::Request,
         plan: TilePlan,
     ) -> Result<JobId, Refusal> {
+        self.admit_after(now, request, plan, &[])
+    }
+
+    /// [`Farm::admit`] for a job submitted after the jobs `after`: each must be a job
+    /// of the lifecycle (not a sequence), stored. It waits for them once stored.
+    pub fn admit_after(
+        &mut self,
+        now: Millis,
+        request: &lifecycle::Request,
+        plan: TilePlan,
+        after: &[JobId],
+    ) -> Result<JobId, Refusal> {
+        self.check_after(after)?;
         let job = self.lifecycle.admit(now, request)?;
         self.plans.insert(job, plan);
+        self.dependencies.declare(job, after);
         Ok(job)
+    }
+
+    /// Whether a job may be submitted after the jobs `after`.
+    fn check_after(&self, after: &[JobId]) -> Result<(), Refusal> {
+        if after.len() > protocol::MAX_AFTER {
+            return Err(Refusal::invalid(format!(
+                "after: {} jobs, more than the {} a job may wait for",
+                after.len(),
+                protocol::MAX_AFTER
+            )));
+        }
+        for &dependency in after {
+            if self.sequences.contains_key(&dependency) {
+                return Err(Refusal::invalid(format!(
+                    "after: job {dependency} is a sequence: a job waits for jobs of one \
+                     frame (a sequence's frames are jobs of their own)"
+                )));
+            }
+            match self.lifecycle.job(dependency).map(|j| &j.phase) {
+                None | Some(Phase::Storing) => {
+                    return Err(Refusal::not_found(format!(
+                        "after: there is no job {dependency} to wait for"
+                    )))
+                }
+                Some(_) => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// Records that a job taken back (after a restart) was submitted after `after`:
+    /// told before [`Farm::resume_job`], which then keeps its tiles back while it
+    /// waits.
+    pub fn declare_after(&mut self, job: JobId, after: &[JobId]) {
+        self.dependencies.declare(job, after);
+    }
+
+    /// Whether the job may go back to the queue ([`Lifecycle::check_retry`]), and its
+    /// dependencies let it: none failed or cancelled (retry those first), none deleted.
+    pub fn check_retry(&self, job: JobId, pixels: u64) -> Result<(), Refusal> {
+        self.lifecycle.check_retry(job, pixels)?;
+        self.check_retry_dependencies(job)
+    }
+
+    fn check_retry_dependencies(&self, job: JobId) -> Result<(), Refusal> {
+        for &dependency in self.dependencies.after(job) {
+            match self.lifecycle.job(dependency).map(|j| &j.phase) {
+                None => {
+                    return Err(Refusal::state(format!(
+                        "job {job} cannot be retried: job {dependency}, which it waits \
+                         for, was deleted (submit the scene again)"
+                    )))
+                }
+                Some(Phase::Ended {
+                    state: state @ (JobState::Failed | JobState::Cancelled),
+                    ..
+                }) => {
+                    return Err(Refusal::state(format!(
+                        "job {job} cannot be retried before job {dependency}, which it \
+                         waits for and which is {}: retry job {dependency} first",
+                        state.as_str()
+                    )))
+                }
+                Some(_) => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// What the job's dependencies say now: go, wait for some, or fail because one
+    /// failed or was cancelled. A dependency no longer kept counts as done: it can
+    /// only have been deleted once it ended, and had it not ended done, the jobs
+    /// depending on it would have failed first.
+    fn gate(&self, job: JobId) -> Gate {
+        let mut on = BTreeSet::new();
+        for &dependency in self.dependencies.after(job) {
+            match self.lifecycle.job(dependency).map(|j| &j.phase) {
+                None
+                | Some(Phase::Ended {
+                    state: JobState::Done,
+                    recorded: true,
+                    ..
+                }) => {}
+                Some(Phase::Ended {
+                    state,
+                    error,
+                    recorded: true,
+                }) => return Gate::Fail(dependency_failed(dependency, *state, error.as_deref())),
+                Some(_) => {
+                    on.insert(dependency);
+                }
+            }
+        }
+        if on.is_empty() {
+            Gate::Go
+        } else {
+            Gate::Wait(on)
+        }
+    }
+
+    /// A stored job's tiles go out, unless its dependencies keep them back (it then
+    /// waits) or one of them failed (it then fails).
+    fn start_or_wait(&mut self, now: Millis, job: JobId, done: &[u32], effects: &mut Vec<Effect>) {
+        match self.gate(job) {
+            Gate::Go => self.resume(now, job, done, effects),
+            Gate::Wait(on) => {
+                effects.push(Effect::Waiting {
+                    job,
+                    on: on.iter().copied().collect(),
+                });
+                self.dependencies.wait(job, on);
+            }
+            Gate::Fail(message) => {
+                self.job_event(now, lifecycle::Event::TilesFailed { job, message }, effects);
+            }
+        }
+    }
+
+    /// `job`'s end is written: the jobs waiting for it go on (done) or fail.
+    fn dependency_ended(&mut self, now: Millis, job: JobId, effects: &mut Vec<Effect>) {
+        let Some(Phase::Ended { state, error, .. }) =
+            self.lifecycle.job(job).map(|j| j.phase.clone())
+        else {
+            return;
+        };
+        if state == JobState::Done {
+            for released in self.dependencies.done(job) {
+                effects.push(Effect::Released { job: released });
+                self.resume(now, released, &[], effects);
+            }
+        } else {
+            let message = dependency_failed(job, state, error.as_deref());
+            for dependent in self.dependencies.waiting_on(job) {
+                self.dependencies.stop_waiting(dependent);
+                let event = lifecycle::Event::TilesFailed {
+                    job: dependent,
+                    message: message.clone(),
+                };
+                self.job_event(now, event, effects);
+            }
+        }
     }
 
     /// Renders `job` in passes, from the first of `passes`: its last tile ends a pass
@@ -319,7 +497,7 @@ impl Farm {
     ) -> Vec<Effect> {
         self.plans.insert(job, plan);
         let mut effects = Vec::new();
-        self.resume(now, job, done, &mut effects);
+        self.start_or_wait(now, job, done, &mut effects);
         effects
     }
 
@@ -536,6 +714,36 @@ impl Farm {
                 self.passes.remove(job);
                 self.renderers.forget_job(*job);
                 self.frame_jobs.remove(job);
+                self.dependencies.forget(*job);
+            }
+            // A job that a job not yet done depends on stays: that one may still need
+            // it (waiting, or failed and to be retried after it).
+            lifecycle::Event::Delete { job } => {
+                if let Some(dependent) = self.dependencies.dependents(*job).find(|d| {
+                    self.lifecycle.job(*d).is_some_and(|j| {
+                        !matches!(
+                            j.phase,
+                            Phase::Ended {
+                                state: JobState::Done,
+                                ..
+                            }
+                        )
+                    })
+                }) {
+                    let result = Err(Refusal::state(format!(
+                        "job {job} cannot be deleted: job {dependent} depends on it and is \
+                         not done (delete job {dependent} first, or let it finish)"
+                    )));
+                    effects.push(Effect::Job(lifecycle::Action::Reply { job: *job, result }));
+                    return;
+                }
+            }
+            lifecycle::Event::Retry { job, .. } => {
+                if let Err(refusal) = self.check_retry_dependencies(*job) {
+                    let result = Err(refusal);
+                    effects.push(Effect::Job(lifecycle::Action::Reply { job: *job, result }));
+                    return;
+                }
             }
             lifecycle::Event::StoreFailed { job, .. } => {
                 self.plans.remove(job);
@@ -546,7 +754,18 @@ impl Farm {
             _ => {}
         }
         for action in self.lifecycle.handle(now, event) {
+            let mut gate = None;
             let next: Vec<Event> = match &action {
+                lifecycle::Action::Acknowledge { job }
+                    if !self.dependencies.after(*job).is_empty() =>
+                {
+                    gate = Some(*job);
+                    Vec::new()
+                }
+                lifecycle::Action::RecordEnd { job, .. } => {
+                    self.dependencies.stop_waiting(*job);
+                    Vec::new()
+                }
                 lifecycle::Action::Acknowledge { job } => {
                     self.plans.get(job).map_or_else(Vec::new, |p| {
                         let submitted = Event::JobSubmitted {
@@ -574,16 +793,43 @@ impl Farm {
             for event in next {
                 self.tiles_event(now, event, effects);
             }
+            if let Some(job) = gate {
+                self.start_or_wait(now, job, &[], effects);
+            }
             if let Some((job, stored)) = stored {
                 self.frame_stored(now, job, stored, effects);
             }
         }
         if let Some(job) = end_recorded {
             self.frame_ended(job, effects);
+            self.dependency_ended(now, job, effects);
         }
     }
 }
 
+/// What a job's dependencies say about it now.
+enum Gate {
+    Go,
+    Wait(BTreeSet<JobId>),
+    Fail(String),
+}
+
+/// Why a job fails when `dependency`, which it waits for, ended `state`.
+fn dependency_failed(dependency: JobId, state: JobState, error: Option<&str>) -> String {
+    match (state, error) {
+        (JobState::Failed, Some(error)) => {
+            format!("job {dependency}, which this job waits for, failed: {error}")
+        }
+        _ => format!(
+            "job {dependency}, which this job waits for, is {}",
+            state.as_str()
+        ),
+    }
+}
+
+mod dependencies;
+#[cfg(test)]
+mod dependency_tests;
 #[cfg(test)]
 mod dispute_tests;
 mod disputes;

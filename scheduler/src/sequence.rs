@@ -279,7 +279,7 @@ impl Sequence {
             JobState::Done => FrameState::Done,
             JobState::Failed => FrameState::Failed,
             JobState::Cancelled => FrameState::Cancelled,
-            JobState::Queued | JobState::Running => return false,
+            JobState::Queued | JobState::Running | JobState::Waiting => return false,
         };
         self.set(i, new);
         true
@@ -299,7 +299,7 @@ impl Sequence {
         self.set(
             i,
             match state {
-                JobState::Queued | JobState::Running => FrameState::Active,
+                JobState::Queued | JobState::Running | JobState::Waiting => FrameState::Active,
                 JobState::Done => FrameState::Done,
                 JobState::Failed => FrameState::Failed,
                 JobState::Cancelled => FrameState::Cancelled,

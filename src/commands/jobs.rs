@@ -542,6 +542,13 @@ fn status_line(s: &JobStatus) -> String {
         counted(s.samples, "sample"),
         s.elapsed_ms as f64 / 1000.0
     );
+    if !s.waiting_for.is_empty() {
+        let on: Vec<String> = s.waiting_for.iter().map(|j| format!("job {j}")).collect();
+        line.push_str(&format!(" (waiting for {} to be done)", on.join(", ")));
+    } else if !s.after.is_empty() && !s.state.is_final() {
+        let on: Vec<String> = s.after.iter().map(|j| j.to_string()).collect();
+        line.push_str(&format!(" (after jobs {}, done)", on.join(", ")));
+    }
     if let Some(q) = s.queued_ms {
         line.push_str(&format!(" ({:.1} s of it in the queue)", q as f64 / 1000.0));
     }

@@ -10,7 +10,7 @@ use anyhow::Result;
 use protocol::{JobId, Verification};
 use serde_json::json;
 
-use crate::args::{parse_priority, ClientArgs, FramesArg, ImageArgs};
+use crate::args::{parse_job_id, parse_priority, ClientArgs, FramesArg, ImageArgs};
 use crate::config;
 use crate::output::JobOutput;
 use crate::report::{sequence_summary, status_json, summary};
@@ -74,6 +74,10 @@ pub struct Args {
     /// submission came from beside it.
     #[arg(long, value_name = "WHO")]
     submitter: Option<String>,
+    /// Start only once job JOB is done (repeatable: once every one is). Until then the
+    /// job is `waiting`; if one fails or is cancelled, this one fails, naming it.
+    #[arg(long, value_name = "JOB", value_parser = parse_job_id)]
+    after: Vec<protocol::JobId>,
     #[command(flatten)]
     common: ClientArgs,
 }
@@ -114,6 +118,7 @@ async fn submit_and_follow(args: Args) -> Result<()> {
             submitter: args.submitter,
         },
         frames,
+        after: args.after,
     };
     let json_out = args.common.json;
     // The output is checked before the farm spends anything on it.

@@ -24,6 +24,7 @@ const FIRST_SCHEMA: &str = "
 
 pub(crate) fn job(id: JobId, sampling: Sampling) -> StoredJob {
     StoredJob {
+        after: Vec::new(),
         id,
         scene: "{}".into(),
         hash: [7; 32],

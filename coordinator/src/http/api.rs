@@ -239,7 +239,15 @@ pub async fn openapi() -> Response {
 }
 
 /// The states a job may be listed by, as `state` shows them.
-const STATES: [&str; 6] = ["queued", "running", "paused", "done", "failed", "cancelled"];
+const STATES: [&str; 7] = [
+    "queued",
+    "running",
+    "paused",
+    "waiting",
+    "done",
+    "failed",
+    "cancelled",
+];
 
 /// `GET /api/v1/jobs?state=S&name=N&submitter=W&before=ID&limit=K`: the jobs newest
 /// first, as `tessera list --json` gives them, filtered (the state exactly; a name and
@@ -315,6 +323,8 @@ struct Submission {
     verify: Option<String>,
     #[serde(default)]
     assets: Vec<PageAsset>,
+    #[serde(default)]
+    after: Vec<u64>,
 }
 
 #[derive(serde::Deserialize)]
@@ -404,6 +414,7 @@ pub async fn submit(
             first: f.first,
             last: f.last,
         }),
+        after: s.after.clone(),
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())
@@ -1206,7 +1217,7 @@ mod tests {
                 "openapi.json describes {method} {path}, which is not a route"
             );
         }
-        // Its bounds on the files a request names are the protocol's.
+        // Its bounds on the files and the jobs a request names are the protocol's.
         for bound in OPENAPI.split("\"maxItems\": ").skip(1) {
             let n: usize = bound
                 .split(|c: char| !c.is_ascii_digit())
@@ -1214,8 +1225,13 @@ mod tests {
                 .unwrap_or_default()
                 .parse()
                 .unwrap();
-            assert_eq!(n, protocol::MAX_JOB_ASSETS);
+            assert!(
+                n == protocol::MAX_JOB_ASSETS || n == protocol::MAX_AFTER,
+                "a bound of {n} items, neither the protocol's files nor its jobs"
+            );
         }
+        let after = &document["components"]["schemas"]["Submission"]["properties"]["after"];
+        assert_eq!(after["maxItems"], protocol::MAX_AFTER);
         // Every reference points at something.
         let text = OPENAPI;
         for reference in text.split("\"$ref\": \"#/").skip(1) {

@@ -471,7 +471,7 @@ async fn retry(sh: &Arc<Shared>, job: JobId, peer: IpAddr) -> Result<JobStatus, 
                     }
                 )
             });
-            match core.farm.lifecycle().check_retry(job, pixels) {
+            match core.farm.check_retry(job, pixels) {
                 Err(_) if ending && tokio::time::Instant::now() < patience => None,
                 other => Some(other),
             }

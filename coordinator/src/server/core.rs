@@ -268,6 +268,20 @@ impl Core {
                         );
                     }
                 }
+                Effect::Waiting { job, on } => {
+                    let on: Vec<String> = on.iter().map(|j| format!("job {j}")).collect();
+                    info!(job, on = %on.join(", "), "job waits for the jobs it was submitted after");
+                    self.log(
+                        sh,
+                        job,
+                        "waiting",
+                        format!("for {} to be done", on.join(", ")),
+                    );
+                }
+                Effect::Released { job } => {
+                    info!(job, "the jobs it waits for are done: its tiles go out");
+                    self.log(sh, job, "released", "the jobs it waits for are done".into());
+                }
                 Effect::Job(action) => {
                     if let Some(answer) = self.apply_life(sh, action) {
                         debug_assert!(reply.is_none(), "two replies to one input");

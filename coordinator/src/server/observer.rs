@@ -729,7 +729,14 @@ fn snapshot(core: &Core) -> Snapshot {
         JobState::Done,
         JobState::Failed,
         JobState::Cancelled,
+        JobState::Waiting,
     ];
+    // A job waiting for others is queued for the lifecycle: shown as waiting.
+    let waiting = |id: JobId| core.farm.dependencies().waiting_for(id).is_some();
+    let shown = |id: JobId, j: &scheduler::lifecycle::Job| match j.phase.visible() {
+        JobState::Queued if waiting(id) => JobState::Waiting,
+        state => state,
+    };
     Snapshot {
         jobs: all
             .iter()
@@ -739,7 +746,7 @@ fn snapshot(core: &Core) -> Snapshot {
                     core.farm
                         .lifecycle()
                         .jobs()
-                        .filter(|(_, j)| j.phase.visible() == s)
+                        .filter(|(id, j)| shown(*id, j) == s)
                         .count() as i64,
                 )
             })

@@ -98,6 +98,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 frame: 1,
                 frames: None,
                 assets: Vec::new(),
+                after: Vec::new(),
             })),
         ),
         ("Status", message_frame(&ClientRequest::Status { job: 7 })),
@@ -132,6 +133,8 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     files: 2,
                     bytes: 5_000,
                 },
+                after: Vec::new(),
+                waiting_for: Vec::new(),
             })),
         ),
         (

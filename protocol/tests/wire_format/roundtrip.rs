@@ -145,12 +145,13 @@ prop_compose! {
                   full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
                   name in text(), frame in any::<u32>(),
                   frames in prop::option::of(frame_range()),
-                  assets in prop::collection::vec(asset_ref(), 0..3))
+                  assets in prop::collection::vec(asset_ref(), 0..3),
+                  after in prop::collection::vec(any::<u64>(), 0..4))
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name, frame, frames, assets,
+            name: name.clone(), submitter: name, frame, frames, assets, after,
         }
     }
 }
@@ -225,6 +226,7 @@ fn job_state() -> impl Strategy<Value = JobState> {
         Just(JobState::Done),
         Just(JobState::Failed),
         Just(JobState::Cancelled),
+        Just(JobState::Waiting),
     ]
 }
 
@@ -242,13 +244,15 @@ prop_compose! {
         queued_ms in any::<Option<u64>>(), frame in any::<u32>(),
         frames in prop::option::of(frame_progress()), sequence in any::<Option<u64>>(),
         asset_files in any::<u32>(), asset_bytes in any::<u64>(),
+        after in prop::collection::vec(any::<u64>(), 0..4),
+        waiting_for in prop::collection::vec(any::<u64>(), 0..4),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
             frame, frames, sequence,
-            assets: JobAssets { files: asset_files, bytes: asset_bytes },
+            assets: JobAssets { files: asset_files, bytes: asset_bytes }, after, waiting_for,
         }
     }
 }
@@ -1008,14 +1012,15 @@ fn a_tile_names_its_frame_after_the_scene_hash() {
         frame: 17,
         frames: None,
         assets: Vec::new(),
+        after: Vec::new(),
     };
     let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
-    // The frame, the range (`None`: one byte 0), then the files (none: a length of 8
-    // zero bytes) are the JobSpec's last fields.
-    let end = bytes.len() - 8;
+    // The frame, the range (`None`: one byte 0), then the files and the jobs it waits
+    // for (none: lengths of 8 zero bytes each) are the JobSpec's last fields.
+    let end = bytes.len() - 16;
     assert_eq!(bytes[end - 5..end - 1], 17u32.to_le_bytes());
     assert_eq!(bytes[end - 1], 0);
-    assert_eq!(bytes[end..], [0; 8]);
+    assert_eq!(bytes[end..], [0; 16]);
     let back: ClientRequest = wire::decode(&bytes).unwrap();
     assert_eq!(back, ClientRequest::Submit(spec));
 }
@@ -1205,6 +1210,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             frame: 1,
             frames: None,
             assets: Vec::new(),
+            after: Vec::new(),
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1218,9 +1224,9 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         ..Default::default()
     });
     // The Sampling variant, before the priority, verification, time limit, the name
-    // and submitter (two empty strings: their lengths), the frame, the range and the
-    // files (none: their length).
-    let at = nested.len() - 13 - 16 - 4 - 1 - 8;
+    // and submitter (two empty strings: their lengths), the frame, the range, the
+    // files and the jobs it waits for (none: their lengths).
+    let at = nested.len() - 13 - 16 - 4 - 1 - 8 - 8;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

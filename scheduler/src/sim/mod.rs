@@ -656,8 +656,10 @@ impl<'a> Sim<'a> {
                     continue;
                 }
                 // The simulated workers are honest: nothing is taken back; and the
-                // simulated farm renders no sequence.
+                // simulated farm renders no sequence and submits no job after another.
                 Effect::TakenBack { .. }
+                | Effect::Waiting { .. }
+                | Effect::Released { .. }
                 | Effect::Quarantined { .. }
                 | Effect::DuplicateSettled { .. }
                 | Effect::Sequence(_) => {

@@ -234,6 +234,8 @@ pub(super) async fn refine(
             frame,
             frames: None,
             assets,
+            // A refinement is a job of its own, waiting for nothing.
+            after: Vec::new(),
         };
         let files = shared
             .mesh_files(&spec.assets)
@@ -311,6 +313,12 @@ pub(in crate::server) fn prepare(
         return Err(Refusal::invalid(out_of_range(spec.frame).to_string()));
     }
     if let Some(range) = spec.frames {
+        if !spec.after.is_empty() {
+            return Err(Refusal::invalid(
+                "after: a sequence job cannot wait for other jobs; submit its frames' \
+                 dependencies as single jobs, or submit the sequence once they are done",
+            ));
+        }
         if spec.frame != 1 {
             return Err(Refusal::invalid(
                 "frames: a sequence job names its range, not a frame",
@@ -403,6 +411,7 @@ pub(in crate::server) fn prepare(
         frames: spec.frames,
         frame_count: frames,
         assets: spec.assets,
+        after: spec.after,
     })
 }
 

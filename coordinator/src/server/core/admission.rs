@@ -42,7 +42,9 @@ impl Core {
                 self.farm
                     .admit_frame(now, sequence, prepared.frame, &prepared.request, plan)?
             }
-            None => self.farm.admit(now, &prepared.request, plan)?,
+            None => self
+                .farm
+                .admit_after(now, &prepared.request, plan, &prepared.after)?,
         };
         let adaptive = is_adaptive(&prepared.settings).then(|| {
             let (adaptive, passes) = AdaptiveJob::new(
@@ -78,6 +80,7 @@ impl Core {
             time_limit_ms: prepared.time_limit_ms,
             stopped_on_time_limit: false,
             paused: false,
+            after: prepared.after.clone(),
             label: prepared.label.clone(),
         };
         self.jobs.insert(
@@ -112,6 +115,7 @@ impl Core {
                 totals: Totals::default(),
                 tiles_per_worker: BTreeMap::new(),
                 image_sha256: None,
+                after: prepared.after,
             },
         );
         self.submits.insert(id, reply);
@@ -259,7 +263,13 @@ impl Core {
             totals: stored.totals.unwrap_or_default(),
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
+            after: stored.after.clone(),
         };
+        // Before the job is taken back: what it waits for decides whether its tiles go
+        // out, and a job that depends on it keeps it from being deleted.
+        if !retried {
+            self.farm.declare_after(id, &stored.after);
+        }
         // A retry starts a new run: its first tile out is the run's start (stored anew
         // when it goes out). What was rendered before still counts in its rate below.
         if record

@@ -179,7 +179,11 @@ impl Core {
         let record = self.jobs.get(&id).filter(|r| !r.interactive)?;
         let pass_rung = self.farm.pass_run(id).map(|r| r.rung());
         let mut status = record.status(id, job, pass_rung, self.now.unix_ms);
-        if !status.state.is_final() {
+        if let Some(on) = self.farm.dependencies().waiting_for(id) {
+            // Not for want of a worker: no tile of it goes out before these are done.
+            status.state = JobState::Waiting;
+            status.waiting_for = on.iter().copied().collect();
+        } else if !status.state.is_final() {
             status.warning = self.no_worker_warning();
         }
         Some(status)

@@ -65,6 +65,8 @@ pub struct JobRecord {
     pub tiles_per_worker: BTreeMap<String, u64>,
     /// The SHA-256 of the stored image, once stored.
     pub image_sha256: Option<[u8; 32]>,
+    /// The jobs it was submitted after.
+    pub after: Vec<JobId>,
     /// How its results are checked.
     pub verification: Verification,
     /// Who rendered each accepted tile and what it added to the totals, while the job
@@ -227,6 +229,8 @@ impl JobRecord {
             frames: None,
             sequence: self.sequence,
             assets: protocol::JobAssets::of(&self.assets),
+            after: self.after.clone(),
+            waiting_for: Vec::new(),
         }
     }
 }
@@ -353,6 +357,8 @@ pub struct Prepared {
     pub assets: Vec<protocol::AssetRef>,
     /// The scene's frame count.
     pub frame_count: u32,
+    /// The jobs it waits for (`JobSpec::after`).
+    pub after: Vec<JobId>,
 }
 
 /// A connected worker.

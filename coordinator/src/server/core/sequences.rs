@@ -113,6 +113,7 @@ impl Core {
             stopped_on_time_limit: false,
             paused: false,
             label: prepared.label.clone(),
+            after: Vec::new(),
         };
         let run = SequenceRun::new(range.first, range.last, prepared.tiles.len() as u32);
         self.farm.enter_sequence(id, run);
@@ -366,6 +367,7 @@ impl Core {
             frames: None,
             frame_count: record.frame_count,
             assets: record.assets.to_vec(),
+            after: Vec::new(),
         };
         // The answer goes to the sequence (the core tells it), not to a client.
         let (reply, _) = oneshot::channel();

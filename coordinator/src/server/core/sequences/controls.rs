@@ -102,6 +102,8 @@ impl Core {
             }),
             sequence: None,
             assets: protocol::JobAssets::of(&record.assets),
+            after: Vec::new(),
+            waiting_for: Vec::new(),
         })
     }
 
