@@ -13,7 +13,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import IO, Iterator, List, Optional, Sequence
+from typing import IO, Any, Dict, Iterator, List, Optional, Sequence
 
 import pytest
 
@@ -81,10 +81,10 @@ class Farm:
 
     def client(self, **kwargs: object) -> Client:
         """A client with the farm's token (and pin), reading no environment."""
-        settings: dict = {"token": TOKEN, "tls_fingerprint": self.fingerprint, "use_env": False, "timeout": 30.0}
+        settings: Dict[str, Any] = {"token": TOKEN, "tls_fingerprint": self.fingerprint, "use_env": False, "timeout": 30.0}
         settings.update(kwargs)
         url = settings.pop("url", self.url)
-        return Client(str(url), **settings)  # type: ignore[arg-type]
+        return Client(str(url), **settings)
 
     def start_worker(self, name: str) -> subprocess.Popen[bytes]:
         args = [self.binary, "worker", "--coordinator", self.addr, "--threads", "1", "--name", name]

@@ -9,7 +9,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Callable, Iterator, List, Optional, TypeVar
+from typing import Any, Callable, Dict, Iterator, List, Optional, TypeVar
 
 import pytest
 
@@ -28,7 +28,7 @@ from tessera_client import (
     file_key,
 )
 
-SMALL = {"width": 96, "height": 64, "aa": 1}
+SMALL: Dict[str, Any] = {"width": 96, "height": 64, "aa": 1}
 SMALL_ARGS = ("--width", "96", "--height", "64", "--aa", "1")
 T = TypeVar("T")
 

@@ -138,7 +138,7 @@ class _PinnedConnection(http.client.HTTPSConnection):
         presented = hashlib.sha256(der).hexdigest() if der else "(none)"
         if presented != self._pin:
             self.sock.close()
-            self.sock = None  # type: ignore[assignment]
+            self.sock = None
             raise TesseraError(
                 f"TLS with the coordinator at {self.host}:{self.port}: the coordinator "
                 f"presented the certificate with SHA-256 fingerprint {presented}, but "
