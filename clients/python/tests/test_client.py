@@ -358,7 +358,7 @@ def test_a_stream_resuming_after_trimmed_events_gets_a_gap_first(tls_farm: Farm)
     gap = kept[0]
     assert isinstance(gap, GapEvent), kept
     assert (gap.kind, gap.after, gap.oldest_kept, gap.id) == ("gap", 0, kept[1].id, kept[1].id - 1)
-    assert "no longer kept" in gap.message
+    assert "no longer kept" in gap.message and gap.job is None and gap.worker is None
     assert [e.kind for e in kept[1:]] == ["submitted"] * 3
     assert [e.job.id for e in events if e.job] == ids[-3:]
     # Resuming right after the gap is not told of it again.

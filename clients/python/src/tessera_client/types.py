@@ -342,7 +342,8 @@ class Event:
 class GapEvent:
     """The stream's ``gap`` event: the events after ``after`` and before
     ``oldest_kept`` are no longer kept, and the stream goes on from
-    ``oldest_kept``. Its ``id`` is ``oldest_kept - 1``."""
+    ``oldest_kept``. Its ``id`` is ``oldest_kept - 1``. It is about no job and no
+    worker: ``job`` and ``worker`` are None, as a loop over the stream reads them."""
 
     id: int
     after: int
@@ -350,6 +351,8 @@ class GapEvent:
     message: str
     data: JsonObject = field(repr=False, compare=False)
     kind: str = "gap"
+    job: Optional[EventJob] = None
+    worker: Optional[JsonObject] = None
 
 
 #: What :meth:`tessera_client.Client.events` yields.
