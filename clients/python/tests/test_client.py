@@ -16,6 +16,7 @@ import pytest
 from conftest import SCENES, TOKEN, CutProxy, Farm
 from tessera_client import (
     MAX_CHUNK,
+    Asset,
     Cancelled,
     Client,
     Event,
@@ -274,16 +275,8 @@ def test_refusals_carry_their_kind_and_status(farm: Farm, tmp_path: Path) -> Non
 def test_an_upload_cut_off_is_resumed_by_another_client_where_the_store_stands(
     farm: Farm, tmp_path: Path
 ) -> None:
-    # A mesh new to the store: the knot with a comment line of its own.
-    (tmp_path / "models").mkdir()
+    scene_file = fresh_mesh_scene(tmp_path)
     mesh = tmp_path / "models" / "fresh.obj"
-    mesh.write_bytes(f"# {uuid.uuid4()}\n".encode() + (SCENES / "models/knot.obj").read_bytes())
-    scene = json.loads((SCENES / "instances.json").read_text())
-    for thing in scene["objects"]:
-        if thing.get("type") == "mesh":
-            thing["file"] = "models/fresh.obj"
-    scene_file = tmp_path / "fresh.json"
-    scene_file.write_text(json.dumps(scene))
     key = file_key(mesh)
     chunk = 64 * 1024
 
@@ -313,6 +306,46 @@ def test_an_upload_cut_off_is_resumed_by_another_client_where_the_store_stands(
     repeat = first.submit(scene_file, on_upload=again.append, **SMALL)
     assert again == []
     first.cancel(repeat.id)
+
+
+def fresh_mesh_scene(directory: Path) -> Path:
+    """The instances scene with a mesh new to the store (the knot, with a comment
+    line of its own), written in `directory`: the scene's path."""
+    (directory / "models").mkdir(exist_ok=True)
+    mesh = directory / "models" / "fresh.obj"
+    mesh.write_bytes(f"# {uuid.uuid4()}\n".encode() + (SCENES / "models/knot.obj").read_bytes())
+    scene = json.loads((SCENES / "instances.json").read_text())
+    for thing in scene["objects"]:
+        if thing.get("type") == "mesh":
+            thing["file"] = "models/fresh.obj"
+    scene_file = directory / "fresh.json"
+    scene_file.write_text(json.dumps(scene))
+    return scene_file
+
+
+def test_a_submission_refused_for_a_lacking_file_uploads_it_and_is_sent_again(
+    farm: Farm, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    scene_file = fresh_mesh_scene(tmp_path)
+    mesh = tmp_path / "models" / "fresh.obj"
+    key = file_key(mesh)
+    client = farm.client()
+    # As if the store had lost the file after it was resolved and uploaded: the
+    # submission names a file the store does not have, and the coordinator says so.
+    monkeypatch.setattr(
+        client, "_send_files", lambda *_: {"models/fresh.obj": Asset("models/fresh.obj", key.sha256, key.size)}
+    )
+    with pytest.raises(TesseraError) as lacking:
+        client._json("POST", "/jobs", body={"scene": scene_file.read_text(), "assets": [
+            {"name": "models/fresh.obj", "sha256": key.sha256, "size": key.size}]})
+    assert (lacking.value.kind, lacking.value.status) == ("lacking", 409)
+    assert lacking.value.lacking == [FileKey(key.sha256, key.size)]
+    uploads: List[UploadProgress] = []
+    job = client.submit(scene_file, on_upload=uploads.append, **SMALL)
+    assert uploads and uploads[-1].complete and uploads[0].offset == 0, uploads
+    assert client.lacking([key]) == []
+    done = client.wait(job.id, timeout=120)
+    assert done.state == "done" and done.asset_files == 1, done
 
 
 def test_tls_pinned_to_the_fingerprint_and_a_wrong_pin_refused(tls_farm: Farm) -> None:
