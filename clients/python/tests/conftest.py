@@ -34,7 +34,8 @@ def tessera_bin() -> str:
             "target/release/tessera) or put tessera on PATH",
             pytrace=False,
         )
-    return found
+    # The daemons run in directories of their own: a relative path is made absolute.
+    return os.path.abspath(found)
 
 
 class Farm:

@@ -4,6 +4,7 @@
 //! `tessera render` gives.
 
 mod assets;
+mod dependencies;
 mod frames;
 mod jobs;
 mod local_farm;

@@ -580,6 +580,7 @@ class Client:
         target_error: Optional[float] = None,
         time_limit_ms: Optional[int] = None,
         verify: Optional[str] = None,
+        after: Sequence[int] = (),
         chunk_size: int = MAX_CHUNK,
         on_upload: Optional[UploadCallback] = None,
     ) -> Job:
@@ -591,8 +592,10 @@ class Client:
         as ``tessera submit`` sends them: resolved by the coordinator, uploaded in
         chunks of at most ``chunk_size`` bytes from where the store's upload stands
         (so an upload cut off is resumed), and sent again if the store lost one
-        before the job was made. ``frames=(first, last)`` makes a sequence job. The
-        settings are ``tessera submit``'s flags."""
+        before the job was made. ``frames=(first, last)`` makes a sequence job.
+        ``after`` names jobs that must be done before this one starts (``tessera
+        submit --after``): it waits until then, and fails, naming the job, if one of
+        them fails or is cancelled. The settings are ``tessera submit``'s flags."""
         scene_value: Union[str, Mapping[str, Any]]
         if isinstance(scene, Mapping):
             scene_value = scene
@@ -621,6 +624,7 @@ class Client:
             "time_limit_ms": time_limit_ms,
             "verify": verify,
             "assets": [a.to_json() for a in assets.values()],
+            "after": [int(j) for j in after] or None,
         }
         body = {k: v for k, v in body.items() if v is not None}
         paths = {a.sha256: base / a.name for a in assets.values()}

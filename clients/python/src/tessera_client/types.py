@@ -7,7 +7,7 @@ coordinator adds later is still there to read before this module names it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Optional, Union
+from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 JsonObject = Dict[str, Any]
 
@@ -80,7 +80,8 @@ class Frames:
 class Job:
     """A job's status, as ``tessera status --json`` prints it and ``GET
     /api/v1/jobs/{id}`` answers it. ``state`` is one of queued, running, paused,
-    done, failed or cancelled."""
+    waiting (for the jobs it was submitted ``after``: those not yet done are in
+    ``waiting_for``), done, failed or cancelled."""
 
     id: int
     state: str
@@ -114,6 +115,8 @@ class Job:
     frames: Optional[Frames]
     asset_files: int
     asset_bytes: int
+    after: Tuple[int, ...]
+    waiting_for: Tuple[int, ...]
     raw: JsonObject = field(repr=False, compare=False)
 
     @property
@@ -158,6 +161,8 @@ class Job:
             frames=Frames.from_json(frames) if isinstance(frames, Mapping) else None,
             asset_files=_int(assets, "files"),
             asset_bytes=_int(assets, "bytes"),
+            after=tuple(int(j) for j in d.get("after") or ()),
+            waiting_for=tuple(int(j) for j in d.get("waiting_for") or ()),
             raw=dict(d),
         )
 
