@@ -23,9 +23,9 @@
 //! - An event is given up after `attempts` failed attempts, or after a failed attempt
 //!   once it is older than `max_age` (so an event found old after a long outage still
 //!   gets one try): one log line with the last status or error, counted.
-//! - At most `queue` events wait besides the one being posted; when one more comes, the
-//!   oldest waiting is dropped (a receiver back from an outage gets the newest ends),
-//!   counted. Events the farm's retention deleted before they were delivered count as
+//! - At most `queue` events wait behind the first (the one being posted, or waiting for
+//!   its retry, which only its own attempts settle); when one more comes, the oldest of
+//!   them is dropped (a receiver back from an outage gets the newest ends), counted. Events the farm's retention deleted before they were delivered count as
 //!   dropped too.
 
 use std::collections::VecDeque;
@@ -56,7 +56,7 @@ pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(10);
 /// How a webhook retries and how much it keeps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Policy {
-    /// Events waiting besides the one being posted; at least 1.
+    /// Events waiting behind the first (the one being posted or retried); at least 1.
     pub queue: usize,
     /// Failed attempts after which an event is given up; at least 1.
     pub attempts: u32,
@@ -193,11 +193,11 @@ impl Delivery {
                     return actions;
                 }
                 self.seen = id;
-                let waiting = self.queue.len() - usize::from(self.in_flight);
+                // The head (being posted, or waiting for its retry) is settled by its
+                // own attempts only: the bound is on the ends behind it.
+                let waiting = self.queue.len().saturating_sub(1);
                 if waiting >= self.policy.queue {
-                    // The oldest waiting: behind the one in flight, if there is one.
-                    let oldest = usize::from(self.in_flight);
-                    let dropped = self.queue.remove(oldest).expect("the queue is full");
+                    let dropped = self.queue.remove(1).expect("the queue is full");
                     actions.push(Action::Drop {
                         count: 1,
                         why: format!(
@@ -545,7 +545,7 @@ mod tests {
     }
 
     #[test]
-    fn a_full_queue_drops_its_oldest_waiting_not_the_one_in_flight() {
+    fn a_full_queue_drops_its_oldest_waiting_not_the_first() {
         let mut d = Delivery::resume(small(), 0);
         for id in 1..=4 {
             d.handle(ended(id, 0), 0);
@@ -568,6 +568,15 @@ mod tests {
         }
         assert_eq!(delivered, [1, 3, 4, 5]);
         assert_eq!(d.cursor(), 5);
+        // The first waiting for its retry is not dropped either.
+        let mut d = Delivery::resume(small(), 0);
+        d.handle(ended(1, 0), 0);
+        d.handle(Event::Answered { status: 500 }, 1);
+        for id in 2..=5 {
+            d.handle(ended(id, 2), 2);
+        }
+        assert_eq!(d.depth(), 4);
+        assert_eq!(posted(&d.handle(Event::Tick, 101)), [1]);
     }
 
     #[test]
@@ -737,6 +746,11 @@ mod tests {
                 let answered = matches!(event, Event::Answered { .. } | Event::Failed { .. });
                 let had = in_flight;
                 let mut resolved = false;
+                // The first end not settled nor dropped: being posted or retried.
+                let head = ends
+                    .iter()
+                    .copied()
+                    .find(|id| !settled.contains(id) && !dropped.contains(id));
                 for action in d.handle(event, now) {
                     match action {
                         Action::Post { id, attempt, .. } => {
@@ -765,6 +779,7 @@ mod tests {
                                     let id: u64 = rest.split(' ').next().unwrap().parse().unwrap();
                                     prop_assert!(ends.contains(&id));
                                     prop_assert!(Some(id) != in_flight, "never the one in flight");
+                                    prop_assert!(Some(id) != head, "never the first");
                                     prop_assert!(dropped.insert(id));
                                 }
                             }

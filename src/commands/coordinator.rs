@@ -189,8 +189,9 @@ pub struct Args {
     /// of the system's trust store.
     #[arg(long, env = "TESSERA_WEBHOOK_CA", value_name = "FILE")]
     webhook_ca: Option<PathBuf>,
-    /// Job ends waiting per webhook besides the one being posted; when one more comes,
-    /// the oldest waiting is dropped (counted in tessera_webhook_dropped_total).
+    /// Job ends waiting per webhook behind the one being posted or retried; when one
+    /// more comes, the oldest of them is dropped (counted in
+    /// tessera_webhook_dropped_total).
     #[arg(long, env = "TESSERA_WEBHOOK_QUEUE", value_name = "N", default_value_t = coordinator::webhooks::DEFAULT_QUEUE as u32,
           value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     webhook_queue: u32,

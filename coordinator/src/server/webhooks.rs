@@ -282,7 +282,7 @@ async fn deliver(
                         carry.out(&mut delivery, actions);
                     }
                     for event in page.events {
-                        let event = taken(&sh, &event);
+                        let event = taken(&sh, &event).await;
                         let actions = delivery.handle(event, super::unix_ms());
                         carry.out(&mut delivery, actions);
                     }
@@ -312,7 +312,7 @@ async fn deliver(
         tokio::select! {
             received = live.recv() => match received {
                 Ok(event) => {
-                    let event = taken(&sh, &event);
+                    let event = taken(&sh, &event).await;
                     let actions = delivery.handle(event, super::unix_ms());
                     carry.out(&mut delivery, actions);
                 }
@@ -362,36 +362,62 @@ async fn read_page(sh: &Shared, after: u64) -> Result<FarmPage, String> {
         .unwrap_or_else(|_| Err("the coordinator is shutting down".into()))
 }
 
+/// How long a job's end waits to be recorded before its body is made: the event is
+/// recorded with the next batch of the writer, the job's end (its final state, error
+/// and totals) with its own write, which may come a few milliseconds later. A disk
+/// that stalls longer only makes the body show the job as it was.
+const END_RECORDED: Duration = Duration::from_secs(5);
+
 /// A farm event as the delivery takes it: a job's end with the body to post, or an
 /// event passed over.
-fn taken(sh: &Shared, event: &FarmEvent) -> Event {
+async fn taken(sh: &Shared, event: &FarmEvent) -> Event {
     if !webhooks::KINDS.contains(&event.kind.as_str()) {
         return Event::Passed { id: event.id };
     }
     Event::Ended {
         id: event.id,
         unix_ms: event.unix_ms,
-        body: body(sh, event),
+        body: body(sh, event).await,
+    }
+}
+
+/// The job's status once its end is recorded (at most [`END_RECORDED`] later), or as
+/// it is then; `None` for a job no longer known.
+async fn ended_status(sh: &Shared, job: protocol::JobId) -> Option<protocol::JobStatus> {
+    let deadline = tokio::time::Instant::now() + END_RECORDED;
+    let mut changes = sh.changes.subscribe();
+    loop {
+        let status = sh.lock().status(job)?;
+        if status.state.is_final() || tokio::time::Instant::now() >= deadline {
+            return Some(status);
+        }
+        // Woken by the change, or after a while anyway.
+        let _ = tokio::time::timeout(Duration::from_millis(50), changes.changed()).await;
     }
 }
 
 /// What is posted for a job's end: the farm event (`id`, `unix_ms`, `kind`) with the
-/// job's status as the API gives it, and the event's `detail`. A job deleted before
-/// its end was read has only the event's own `id`, `name` and `detail`.
-fn body(sh: &Shared, event: &FarmEvent) -> String {
+/// job's status as the API gives it, and the event's `detail`; its `state` is the
+/// end's (a job retried since shows the end this event is about). A job deleted
+/// before its end was read has only the event's own `id`, `name` and `detail`.
+async fn body(sh: &Shared, event: &FarmEvent) -> String {
     let mut job = event
         .body
         .get("job")
         .and_then(Value::as_object)
         .cloned()
         .unwrap_or_default();
-    let status = event.job.and_then(|id| sh.lock().status(id));
+    let status = match event.job {
+        Some(id) => ended_status(sh, id).await,
+        None => None,
+    };
     if let Some(Value::Object(status)) = status.as_ref().map(crate::json::status_json) {
         let detail = job.remove("detail");
         job = status;
         if let Some(detail) = detail {
             job.insert("detail".into(), detail);
         }
+        job.insert("state".into(), event.kind.clone().into());
     }
     let mut object = Map::new();
     object.insert("id".into(), event.id.into());

@@ -13,4 +13,5 @@ mod monitoring;
 mod sequence_preview;
 mod status_page;
 mod studio;
+mod webhooks;
 mod worker_names;
