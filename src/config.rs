@@ -341,6 +341,45 @@ mod tests {
         );
     }
 
+    /// A setting given more than once (`--webhook`) is a list in the file, each item a
+    /// flag in order; a single value still works, and a list is refused elsewhere.
+    #[test]
+    fn a_list_in_the_file_gives_a_repeatable_setting_once_per_item() {
+        let sub = clap::Command::new("coordinator")
+            .arg(
+                clap::Arg::new("webhook")
+                    .long("webhook")
+                    .action(clap::ArgAction::Append),
+            )
+            .arg(clap::Arg::new("data").long("data"));
+        let path = Path::new("c.toml");
+        let flags = |text: &str| settings_of(path, text, "coordinator", &sub);
+        let listed = flags("[coordinator]\nwebhook = [\"http://a/\", \"http://b/\"]\n").unwrap();
+        assert_eq!(
+            listed,
+            [(
+                "webhook".to_string(),
+                vec![
+                    OsString::from("--webhook=http://a/"),
+                    OsString::from("--webhook=http://b/")
+                ]
+            )]
+        );
+        let one = flags("[coordinator]\nwebhook = \"http://a/\"\n").unwrap();
+        assert_eq!(one[0].1, [OsString::from("--webhook=http://a/")]);
+        let error = flags("[coordinator]\ndata = [\"x\"]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.ends_with("data: must be a string or a number"),
+            "{error}"
+        );
+        let error = flags("[coordinator]\nwebhook = [true]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(error.ends_with("every item must be a string"), "{error}");
+    }
+
     #[test]
     fn a_bad_duration_says_what_is_wrong() {
         let error = |text: &str| parse_duration(text).unwrap_err();

@@ -174,6 +174,18 @@ pub struct Args {
     /// of a scene and its files (the studio's Save). Checked at start like any scene.
     #[arg(long, env = "TESSERA_STUDIO_SCENE", value_name = "FILE")]
     studio_scene: Option<PathBuf>,
+    /// The webhooks: boxed, as the largest of the settings, so that the command line's
+    /// parsed form stays small beside the other commands'.
+    #[command(flatten)]
+    webhooks: Box<WebhookArgs>,
+    /// Exit when standard input closes (used by `tessera up` for its children).
+    #[arg(long, hide = true)]
+    exit_on_stdin_eof: bool,
+}
+
+/// Where each job's end is posted (docs/operations.md, "Webhooks").
+#[derive(clap::Args)]
+struct WebhookArgs {
     /// Post each job's end (done, failed, cancelled) as signed JSON to this URL, http://
     /// or https:// (docs/operations.md, "Webhooks"); repeat it for several receivers (a
     /// config file takes a list; TESSERA_WEBHOOK holds one URL). Redirects are not
@@ -214,9 +226,6 @@ pub struct Args {
     #[arg(long, env = "TESSERA_WEBHOOK_TIMEOUT", value_name = "DURATION", default_value = "10s",
           value_parser = config::parse_duration)]
     webhook_timeout: Duration,
-    /// Exit when standard input closes (used by `tessera up` for its children).
-    #[arg(long, hide = true)]
-    exit_on_stdin_eof: bool,
 }
 
 /// The coordinator's two secrets: one that workers prove, one that clients prove.
@@ -353,26 +362,27 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
         webhooks: coordinator::server::WebhookConfig {
-            urls: a.webhook.clone(),
+            urls: a.webhooks.webhook.clone(),
             secret: transport::load_secret(
-                a.webhook_secret_file.as_deref(),
+                a.webhooks.webhook_secret_file.as_deref(),
                 "TESSERA_WEBHOOK_SECRET",
             )
             .map_err(|e| anyhow!("--webhook-secret-file: {e}"))?,
-            ca: a.webhook_ca.clone(),
+            ca: a.webhooks.webhook_ca.clone(),
             policy: coordinator::webhooks::Policy {
-                queue: a.webhook_queue as usize,
-                attempts: a.webhook_attempts,
-                backoff: a.webhook_backoff,
-                max_age: a.webhook_max_age,
+                queue: a.webhooks.webhook_queue as usize,
+                attempts: a.webhooks.webhook_attempts,
+                backoff: a.webhooks.webhook_backoff,
+                max_age: a.webhooks.webhook_max_age,
             },
-            timeout: a.webhook_timeout,
+            timeout: a.webhooks.webhook_timeout,
         },
     };
-    for url in &a.webhook {
+    for url in &a.webhooks.webhook {
         coordinator::webhooks::parse_url(url).map_err(|why| anyhow!("--webhook {url:?}: {why}"))?;
     }
     if let Some(warning) = a
+        .webhooks
         .webhook_secret_file
         .as_deref()
         .and_then(transport::exposed_token_file)

@@ -381,10 +381,19 @@ async fn taken(sh: &Shared, event: &FarmEvent) -> Event {
     }
 }
 
-/// The job's status once its end is recorded (at most [`END_RECORDED`] later), or as
-/// it is then; `None` for a job no longer known.
-async fn ended_status(sh: &Shared, job: protocol::JobId) -> Option<protocol::JobStatus> {
-    let deadline = tokio::time::Instant::now() + END_RECORDED;
+/// The job's status once its end is recorded (at most [`END_RECORDED`] after the end
+/// happened at `ended_ms`), or as it is then; `None` for a job no longer known. An end
+/// read back after a restart waits for nothing: its job is as it will stay (or was
+/// retried since).
+async fn ended_status(
+    sh: &Shared,
+    job: protocol::JobId,
+    ended_ms: u64,
+) -> Option<protocol::JobStatus> {
+    let wait_ms = ended_ms
+        .saturating_add(END_RECORDED.as_millis() as u64)
+        .saturating_sub(super::unix_ms());
+    let deadline = tokio::time::Instant::now() + Duration::from_millis(wait_ms);
     let mut changes = sh.changes.subscribe();
     loop {
         let status = sh.lock().status(job)?;
@@ -408,7 +417,7 @@ async fn body(sh: &Shared, event: &FarmEvent) -> String {
         .cloned()
         .unwrap_or_default();
     let status = match event.job {
-        Some(id) => ended_status(sh, id).await,
+        Some(id) => ended_status(sh, id, event.unix_ms).await,
         None => None,
     };
     if let Some(Value::Object(status)) = status.as_ref().map(crate::json::status_json) {

@@ -625,7 +625,7 @@ fn an_end_posted_and_not_answered_before_a_kill_is_posted_again() {
     *receiver.shared.then.lock().unwrap() = Some(Answer::Status(200));
     let restarted = Instant::now();
     let (_coordinator, _) = start_coordinator(d, &data, &listen, &args, "coordinator-2.log");
-    let posts = receiver.wait_posts(1 + jobs.len(), WAIT);
+    receiver.wait_posts(1 + jobs.len(), WAIT);
     let all_in = restarted.elapsed();
     thread::sleep(Duration::from_millis(500));
     let posts = receiver.posts();
