@@ -149,7 +149,7 @@ fn settings_of(
     text: &str,
     section: &str,
     sub: &clap::Command,
-) -> Result<Vec<(String, Option<OsString>)>> {
+) -> Result<Vec<(String, Vec<OsString>)>> {
     let file = path.display();
     let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
         let at = e
@@ -205,16 +205,34 @@ fn settings_of(
             continue;
         }
         let takes_value = arg.get_action().takes_values();
-        let flag = match value {
-            toml::Value::Boolean(on) if !takes_value => {
-                on.then(|| OsString::from(format!("--{key}")))
-            }
-            toml::Value::String(s) if takes_value => Some(format!("--{key}={s}").into()),
-            toml::Value::Integer(n) if takes_value => Some(format!("--{key}={n}").into()),
-            toml::Value::Float(x) if takes_value => Some(format!("--{key}={x}").into()),
-            _ if takes_value => {
-                bail!("{file}: [{section}] {key}: must be a string or a number")
-            }
+        let repeatable = matches!(arg.get_action(), clap::ArgAction::Append);
+        let one = |value: &toml::Value| match value {
+            toml::Value::String(s) => Some(OsString::from(format!("--{key}={s}"))),
+            toml::Value::Integer(n) => Some(format!("--{key}={n}").into()),
+            toml::Value::Float(x) => Some(format!("--{key}={x}").into()),
+            _ => None,
+        };
+        let flag: Vec<OsString> = match value {
+            toml::Value::Boolean(on) if !takes_value => on
+                .then(|| OsString::from(format!("--{key}")))
+                .into_iter()
+                .collect(),
+            // A setting given more than once (`webhook`): a list, each a flag.
+            toml::Value::Array(items) if repeatable => items
+                .iter()
+                .map(|item| {
+                    one(item).ok_or_else(|| {
+                        anyhow!("{file}: [{section}] {key}: every item must be a string")
+                    })
+                })
+                .collect::<Result<_>>()?,
+            _ if takes_value => match one(value) {
+                Some(flag) => vec![flag],
+                None if repeatable => {
+                    bail!("{file}: [{section}] {key}: must be a string or a list of strings")
+                }
+                None => bail!("{file}: [{section}] {key}: must be a string or a number"),
+            },
             _ => bail!("{file}: [{section}] {key}: must be true or false"),
         };
         flags.push((key.clone(), flag));
@@ -259,6 +277,10 @@ pub fn describe(
             .map(|values| values.map(|v| v.to_string_lossy().into_owned()).collect())
             .unwrap_or_default();
         match raw.last() {
+            Some(_) if raw.len() > 1 => {
+                let list = toml::Value::Array(raw.into_iter().map(toml::Value::String).collect());
+                out.push_str(&format!("{long} = {list}  # {source}\n"));
+            }
             Some(value) => {
                 let shown = if value.parse::<f64>().is_ok() || value == "true" || value == "false" {
                     value.clone()
@@ -317,6 +339,45 @@ mod tests {
             parse_duration("36500d"),
             Ok(Duration::from_secs(MAX_DURATION_SECS))
         );
+    }
+
+    /// A setting given more than once (`--webhook`) is a list in the file, each item a
+    /// flag in order; a single value still works, and a list is refused elsewhere.
+    #[test]
+    fn a_list_in_the_file_gives_a_repeatable_setting_once_per_item() {
+        let sub = clap::Command::new("coordinator")
+            .arg(
+                clap::Arg::new("webhook")
+                    .long("webhook")
+                    .action(clap::ArgAction::Append),
+            )
+            .arg(clap::Arg::new("data").long("data"));
+        let path = Path::new("c.toml");
+        let flags = |text: &str| settings_of(path, text, "coordinator", &sub);
+        let listed = flags("[coordinator]\nwebhook = [\"http://a/\", \"http://b/\"]\n").unwrap();
+        assert_eq!(
+            listed,
+            [(
+                "webhook".to_string(),
+                vec![
+                    OsString::from("--webhook=http://a/"),
+                    OsString::from("--webhook=http://b/")
+                ]
+            )]
+        );
+        let one = flags("[coordinator]\nwebhook = \"http://a/\"\n").unwrap();
+        assert_eq!(one[0].1, [OsString::from("--webhook=http://a/")]);
+        let error = flags("[coordinator]\ndata = [\"x\"]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.ends_with("data: must be a string or a number"),
+            "{error}"
+        );
+        let error = flags("[coordinator]\nwebhook = [true]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(error.ends_with("every item must be a string"), "{error}");
     }
 
     #[test]

@@ -31,6 +31,7 @@ use sha2::{Digest, Sha256};
 mod farm_events;
 mod file;
 mod read;
+mod webhook_cursors;
 mod write;
 
 /// A job as stored.

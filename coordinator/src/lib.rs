@@ -22,6 +22,7 @@ pub mod server;
 mod store;
 pub mod studio;
 mod tiling;
+pub mod webhooks;
 
 pub use crate::daemon::serve;
 /// Any PNG to 8-bit RGB, as the farm reads back the frames it stored; also what the

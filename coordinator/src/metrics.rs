@@ -60,6 +60,8 @@ pub struct Metrics {
     workers_refused: Counter,
     canaries_interrupted: Counter,
     assets: AssetMetrics,
+    /// Per webhook URL (docs/operations.md, "Webhooks").
+    pub webhooks: WebhookMetrics,
     /// What the scheduler's counters were at the last scrape.
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
@@ -182,9 +184,11 @@ impl Metrics {
             canaries_interrupted.clone(),
         );
         let assets = AssetMetrics::register(&mut registry);
+        let webhooks = WebhookMetrics::register(&mut registry);
         Metrics {
             registry,
             assets,
+            webhooks,
             canaries_interrupted,
             results_rejected,
             results_confirmed,
@@ -423,6 +427,62 @@ fn openmetrics_to_prometheus(openmetrics: &str) -> String {
 }
 
 /// The store of the files scenes name: what it holds, and what crosses the network.
+/// The label of a webhook's series: its URL without user information and query.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct WebhookLabel {
+    pub webhook: String,
+}
+
+/// What the webhooks did, per webhook: counted as it happens by each webhook's task.
+pub struct WebhookMetrics {
+    pub delivered: Family<WebhookLabel, Counter>,
+    pub failed_attempts: Family<WebhookLabel, Counter>,
+    pub given_up: Family<WebhookLabel, Counter>,
+    pub dropped: Family<WebhookLabel, Counter>,
+    pub queue_depth: Family<WebhookLabel, Gauge>,
+}
+
+impl WebhookMetrics {
+    fn register(registry: &mut Registry) -> WebhookMetrics {
+        let m = WebhookMetrics {
+            delivered: Family::default(),
+            failed_attempts: Family::default(),
+            given_up: Family::default(),
+            dropped: Family::default(),
+            queue_depth: Family::default(),
+        };
+        registry.register(
+            "webhook_delivered",
+            "Job ends delivered to a webhook (answered 2xx)",
+            m.delivered.clone(),
+        );
+        registry.register(
+            "webhook_failed_attempts",
+            "Posts to a webhook that failed (another status, no answer, refused, TLS), \
+             retried or given up",
+            m.failed_attempts.clone(),
+        );
+        registry.register(
+            "webhook_given_up",
+            "Job ends a webhook gave up on after its attempts or their maximum age",
+            m.given_up.clone(),
+        );
+        registry.register(
+            "webhook_dropped",
+            "Job ends not delivered to a webhook because its queue was full (the oldest \
+             waiting is dropped) or the event retention deleted them first (counted by \
+             event id, of any kind)",
+            m.dropped.clone(),
+        );
+        registry.register(
+            "webhook_queue_depth",
+            "Job ends waiting for a webhook, the one being posted included",
+            m.queue_depth.clone(),
+        );
+        m
+    }
+}
+
 struct AssetMetrics {
     files: Gauge,
     bytes: Gauge,

@@ -48,12 +48,14 @@ mod persistence;
 mod startup;
 mod studio_session;
 mod verification;
+mod webhooks;
 mod worker_session;
 
 pub use assets::StoreLimits;
 pub use depot::default_limits as default_file_limits;
 pub use keys::TokenReloader;
 pub use verification::VerifyConfig;
+pub use webhooks::{signature as webhook_signature, WebhookConfig};
 
 pub use observer::{
     FarmView, FramePng, JobView, Observer, Picture, PreviewPlan, Resolution, StudioStream,
@@ -128,6 +130,8 @@ pub struct Config {
     /// The scene the studio page opens with (already checked by the loader), with its
     /// file's name and the files it reads; the page's own default without one.
     pub studio_scene: Option<StudioScene>,
+    /// Where each job's end is posted (docs/operations.md, "Webhooks").
+    pub webhooks: WebhookConfig,
 }
 
 /// The scene a studio opens with (`--studio-scene`), checked by the loader.
@@ -162,6 +166,7 @@ impl Config {
             events: crate::events::Retention::default(),
             reset_database: false,
             studio_scene: None,
+            webhooks: WebhookConfig::default(),
         }
     }
 
@@ -337,6 +342,8 @@ pub struct Server {
     /// One permit per open connection.
     connections: Arc<tokio::sync::Semaphore>,
     shared: Arc<Shared>,
+    /// The webhooks, started with the server.
+    hooks: Vec<Arc<webhooks::Hook>>,
 }
 
 impl Server {
@@ -345,6 +352,7 @@ impl Server {
     /// A data directory that another coordinator holds is refused first, before
     /// anything in it is read.
     pub async fn bind(config: Config) -> Result<Server> {
+        let hooks = webhooks::prepare(&config.webhooks)?;
         let data = config.data.clone();
         let reset = config.reset_database;
         let studio = config.studio_scene.clone();
@@ -455,6 +463,7 @@ impl Server {
             http,
             connections: Arc::new(tokio::sync::Semaphore::new(config.max_connections)),
             shared,
+            hooks,
         })
     }
 
@@ -504,6 +513,8 @@ impl Server {
         let _watchdog = AbortOnDrop(tokio::spawn(watchdog(Arc::clone(&self.shared))));
         let _collector = AbortOnDrop(tokio::spawn(collect_files(Arc::clone(&self.shared))));
         let _retire = AbortOnDrop(tokio::spawn(keys::retire(Arc::clone(&self.shared))));
+        let _webhooks =
+            webhooks::start(&self.shared, std::mem::take(&mut self.hooks)).map(AbortOnDrop);
         loop {
             tokio::select! {
                 accepted = self.listener.as_ref().expect("bound until shutdown").accept() => {

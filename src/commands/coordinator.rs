@@ -174,9 +174,58 @@ pub struct Args {
     /// of a scene and its files (the studio's Save). Checked at start like any scene.
     #[arg(long, env = "TESSERA_STUDIO_SCENE", value_name = "FILE")]
     studio_scene: Option<PathBuf>,
+    /// The webhooks: boxed, as the largest of the settings, so that the command line's
+    /// parsed form stays small beside the other commands'.
+    #[command(flatten)]
+    webhooks: Box<WebhookArgs>,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
+}
+
+/// Where each job's end is posted (docs/operations.md, "Webhooks").
+#[derive(clap::Args)]
+struct WebhookArgs {
+    /// Post each job's end (done, failed, cancelled) as signed JSON to this URL, http://
+    /// or https:// (docs/operations.md, "Webhooks"); repeat it for several receivers (a
+    /// config file takes a list; TESSERA_WEBHOOK holds one URL). Redirects are not
+    /// followed.
+    #[arg(long = "webhook", env = "TESSERA_WEBHOOK", value_name = "URL")]
+    webhook: Vec<String>,
+    /// File holding the key webhook posts are signed with (HMAC-SHA256 in the
+    /// Tessera-Signature header) [or set TESSERA_WEBHOOK_SECRET to the key itself];
+    /// without one, posts are not signed.
+    #[arg(long, env = "TESSERA_WEBHOOK_SECRET_FILE", value_name = "FILE")]
+    webhook_secret_file: Option<PathBuf>,
+    /// PEM file of the CA certificates https:// webhooks are verified against, instead
+    /// of the system's trust store.
+    #[arg(long, env = "TESSERA_WEBHOOK_CA", value_name = "FILE")]
+    webhook_ca: Option<PathBuf>,
+    /// Job ends waiting per webhook behind the one being posted or retried; when one
+    /// more comes, the oldest of them is dropped (counted in
+    /// tessera_webhook_dropped_total).
+    #[arg(long, env = "TESSERA_WEBHOOK_QUEUE", value_name = "N", default_value_t = coordinator::webhooks::DEFAULT_QUEUE as u32,
+          value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    webhook_queue: u32,
+    /// Failed attempts after which a job's end is given up (logged, counted).
+    #[arg(long, env = "TESSERA_WEBHOOK_ATTEMPTS", value_name = "N", default_value_t = coordinator::webhooks::DEFAULT_ATTEMPTS,
+          value_parser = clap::value_parser!(u32).range(1..=1000))]
+    webhook_attempts: u32,
+    /// The delay before a webhook's first retry, doubled at each next one up to 5
+    /// minutes: a whole number and a unit, ms, s, m, h or d.
+    #[arg(long, env = "TESSERA_WEBHOOK_BACKOFF", value_name = "DURATION", default_value = "1s",
+          value_parser = config::parse_duration)]
+    webhook_backoff: Duration,
+    /// A job's end older than this is given up at its next failed attempt, whatever
+    /// its attempts.
+    #[arg(long, env = "TESSERA_WEBHOOK_MAX_AGE", value_name = "DURATION", default_value = "1h",
+          value_parser = config::parse_duration)]
+    webhook_max_age: Duration,
+    /// How long a webhook post may take, connecting and answering, before it counts as
+    /// failed.
+    #[arg(long, env = "TESSERA_WEBHOOK_TIMEOUT", value_name = "DURATION", default_value = "10s",
+          value_parser = config::parse_duration)]
+    webhook_timeout: Duration,
 }
 
 /// The coordinator's two secrets: one that workers prove, one that clients prove.
@@ -312,7 +361,34 @@ async fn coordinator(a: Args, print_config: Option<String>) -> Result<()> {
         reset_database: a.reset_database,
         // Read once the settings pass the security check, whose refusal comes first.
         studio_scene: None,
+        webhooks: coordinator::server::WebhookConfig {
+            urls: a.webhooks.webhook.clone(),
+            secret: transport::load_secret(
+                a.webhooks.webhook_secret_file.as_deref(),
+                "TESSERA_WEBHOOK_SECRET",
+            )
+            .map_err(|e| anyhow!("--webhook-secret-file: {e}"))?,
+            ca: a.webhooks.webhook_ca.clone(),
+            policy: coordinator::webhooks::Policy {
+                queue: a.webhooks.webhook_queue as usize,
+                attempts: a.webhooks.webhook_attempts,
+                backoff: a.webhooks.webhook_backoff,
+                max_age: a.webhooks.webhook_max_age,
+            },
+            timeout: a.webhooks.webhook_timeout,
+        },
     };
+    for url in &a.webhooks.webhook {
+        coordinator::webhooks::parse_url(url).map_err(|why| anyhow!("--webhook {url:?}: {why}"))?;
+    }
+    if let Some(warning) = a
+        .webhooks
+        .webhook_secret_file
+        .as_deref()
+        .and_then(transport::exposed_token_file)
+    {
+        warn!("{warning}");
+    }
     config.check_security(a.insecure, a.http_insecure, a.tls_auto || pem.is_some())?;
     config.studio_scene = a
         .studio_scene

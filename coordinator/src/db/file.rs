@@ -127,6 +127,8 @@ impl Db {
         .context("cannot create the job tables")?;
         conn.execute_batch(super::farm_events::SCHEMA)
             .context("cannot create the farm's event table")?;
+        conn.execute_batch(super::webhook_cursors::SCHEMA)
+            .context("cannot create the webhooks' cursor table")?;
         add_missing_columns(&conn).context("cannot upgrade the job database")?;
         Ok(Db {
             conn,

@@ -147,6 +147,17 @@ pub enum Write {
         disabled: bool,
         then: Then<()>,
     },
+    /// Reads the webhooks' cursors, in the order of `urls` (a new webhook's is
+    /// recorded: it starts after the last farm event).
+    WebhookCursors {
+        urls: Vec<String>,
+        then: Then<Vec<u64>>,
+    },
+    /// Records that a webhook settled every farm event up to `cursor`.
+    WebhookCursor {
+        url: String,
+        cursor: u64,
+    },
 }
 
 impl Write {
@@ -164,7 +175,9 @@ impl Write {
             Write::ReadEvents { then, .. } => then(Ok(Vec::new())),
             Write::ReadFarmEvents { then, .. } => then(Ok(FarmPage::default())),
             Write::Reopen { then, .. } => then(Ok(None)),
-            Write::Tile(_)
+            Write::WebhookCursors { urls, then } => then(Ok(vec![0; urls.len()])),
+            Write::WebhookCursor { .. }
+            | Write::Tile(_)
             | Write::Started { .. }
             | Write::SequenceRunning { .. }
             | Write::ForgetTiles { .. }
@@ -337,6 +350,9 @@ impl Step {
             | Step::One(Write::Tile(_) | Write::Event(_) | Write::Started { .. }) => {
                 Durability::Ordered
             }
+            // Lost to a power cut, a webhook's cursor goes back: its receiver is sent
+            // again what it may have had, which it deduplicates by id.
+            Step::One(Write::WebhookCursor { .. }) => Durability::Ordered,
             // A sequence's frame job is started by the coordinator, not accepted from
             // anyone: lost to a power cut, it is started again.
             Step::One(Write::InsertJob { job, .. }) if job.sequence.is_some() => {
@@ -454,6 +470,14 @@ impl Writer {
             Step::One(Write::ReadFarmEvents { after, limit, then }) => {
                 // Answered at once either way, as a job's log is.
                 then(self.attempt(|db| db.farm_events_after(after, limit)));
+                false
+            }
+            Step::One(Write::WebhookCursors { urls, then }) => {
+                then(self.attempt(|db| db.webhook_cursors(&urls)));
+                false
+            }
+            Step::One(Write::WebhookCursor { url, cursor }) => {
+                self.until_done(|db| db.set_webhook_cursor(&url, cursor));
                 false
             }
             Step::One(Write::ReadEvents { job, after, then }) => {

@@ -14,4 +14,5 @@ mod python_client;
 mod sequence_preview;
 mod status_page;
 mod studio;
+mod webhooks;
 mod worker_names;
