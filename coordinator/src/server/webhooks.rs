@@ -19,12 +19,16 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
 use base64::Engine as _;
+use bytes::Bytes;
 use hmac::{KeyInit, Mac};
+use http_body_util::Full;
+use hyper::header::{self, HeaderValue};
+use hyper::{Method, Request, Uri};
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, ServerName};
 use serde_json::{Map, Value};
 use sha2::Sha256;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::sync::broadcast::error::RecvError;
 use tracing::{info, warn};
 
@@ -73,13 +77,16 @@ const SYSTEM_BUNDLES: &[&str] = &[
     "/usr/local/etc/openssl/cert.pem",
 ];
 
-/// The most bytes of an answer's head read: the status line is all that is used.
+/// The most bytes of an answer read (hyper's buffer; its head must fit): the status
+/// is all that is used.
 const MAX_ANSWER_HEAD: usize = 16 * 1024;
 
 /// One webhook, ready to post.
 pub(super) struct Hook {
     url: String,
     parsed: Url,
+    /// The request's target (`parsed.target`), checked at start.
+    target: Uri,
     label: WebhookLabel,
     tls: Option<tokio_rustls::TlsConnector>,
     secret: Option<Arc<[u8]>>,
@@ -94,15 +101,19 @@ pub(super) fn prepare(config: &WebhookConfig) -> Result<Vec<Arc<Hook>>> {
     let mut parsed = Vec::with_capacity(config.urls.len());
     for url in &config.urls {
         let u = webhooks::parse_url(url).map_err(|why| anyhow!("--webhook {url:?}: {why}"))?;
+        let target = u
+            .target
+            .parse::<Uri>()
+            .map_err(|why| anyhow!("--webhook {url:?}: the path and query: {why}"))?;
         if parsed
             .iter()
-            .any(|(other, _): &(&String, Url)| *other == url)
+            .any(|(other, _, _): &(&String, Url, Uri)| *other == url)
         {
             bail!("--webhook {url:?} is given twice");
         }
-        parsed.push((url, u));
+        parsed.push((url, u, target));
     }
-    let connector = if parsed.iter().any(|(_, u)| u.tls) {
+    let connector = if parsed.iter().any(|(_, u, _)| u.tls) {
         Some(tls_connector(config.ca.as_deref())?)
     } else {
         None
@@ -114,7 +125,7 @@ pub(super) fn prepare(config: &WebhookConfig) -> Result<Vec<Arc<Hook>>> {
              cannot tell them from forgeries"
         );
     }
-    for (_, u) in parsed.iter().filter(|(_, u)| !u.tls) {
+    for (_, u, _) in parsed.iter().filter(|(_, u, _)| !u.tls) {
         let loopback = u.host == "localhost"
             || u.host
                 .parse::<std::net::IpAddr>()
@@ -129,7 +140,7 @@ pub(super) fn prepare(config: &WebhookConfig) -> Result<Vec<Arc<Hook>>> {
     }
     Ok(parsed
         .into_iter()
-        .map(|(url, u)| {
+        .map(|(url, u, target)| {
             Arc::new(Hook {
                 url: url.clone(),
                 label: WebhookLabel {
@@ -137,6 +148,7 @@ pub(super) fn prepare(config: &WebhookConfig) -> Result<Vec<Arc<Hook>>> {
                 },
                 tls: connector.clone().filter(|_| u.tls),
                 parsed: u,
+                target,
                 secret: secret.clone(),
                 timeout: config.timeout,
                 policy: config.policy,
@@ -502,7 +514,7 @@ impl Hook {
             .await
             .map_err(|e| format!("cannot connect to {}:{}: {e}", u.host, u.port))?;
         let _ = tcp.set_nodelay(true);
-        let request = self.request(id, body, super::unix_ms() / 1000);
+        let request = self.request(id, body, super::unix_ms() / 1000)?;
         match &self.tls {
             Some(connector) => {
                 let name = ServerName::try_from(u.host.clone()).map_err(|_| {
@@ -512,39 +524,46 @@ impl Hook {
                     .connect(name, tcp)
                     .await
                     .map_err(|e| format!("TLS with {}: {e}", u.host))?;
-                exchange(stream, &request).await
+                exchange(stream, request).await
             }
-            None => exchange(tcp, &request).await,
+            None => exchange(tcp, request).await,
         }
     }
 
     /// The request: the body with the event's id, the time of sending and, with a
     /// secret, the signature over both and the body.
-    fn request(&self, id: u64, body: &str, timestamp: u64) -> Vec<u8> {
+    fn request(&self, id: u64, body: &str, timestamp: u64) -> Result<Request<Full<Bytes>>, String> {
         let u = &self.parsed;
-        let mut head = format!(
-            "POST {} HTTP/1.1\r\nHost: {}\r\nUser-Agent: tessera/{}\r\n\
-             Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\
-             Tessera-Event-Id: {id}\r\nTessera-Timestamp: {timestamp}\r\n",
-            u.target,
-            u.host_header(),
-            env!("CARGO_PKG_VERSION"),
-            body.len(),
-        );
+        let mut request = Request::builder()
+            .method(Method::POST)
+            .uri(self.target.clone())
+            .header(header::HOST, u.host_header())
+            .header(
+                header::USER_AGENT,
+                concat!("tessera/", env!("CARGO_PKG_VERSION")),
+            )
+            .header(header::CONTENT_TYPE, "application/json")
+            .header(header::CONTENT_LENGTH, body.len())
+            // One post per connection: nothing is kept alive between ends.
+            .header(header::CONNECTION, "close")
+            .header("Tessera-Event-Id", id)
+            .header("Tessera-Timestamp", timestamp);
         if let Some(secret) = &self.secret {
-            head.push_str(&format!(
-                "Tessera-Signature: sha256={}\r\n",
-                signature(secret, timestamp, id, body)
-            ));
+            request = request.header(
+                "Tessera-Signature",
+                format!("sha256={}", signature(secret, timestamp, id, body)),
+            );
         }
         if let Some(userinfo) = &u.userinfo {
             let credentials = base64::engine::general_purpose::STANDARD.encode(userinfo);
-            head.push_str(&format!("Authorization: Basic {credentials}\r\n"));
+            let mut value = HeaderValue::try_from(format!("Basic {credentials}"))
+                .map_err(|e| format!("the Authorization header: {e}"))?;
+            value.set_sensitive(true);
+            request = request.header(header::AUTHORIZATION, value);
         }
-        head.push_str("\r\n");
-        let mut request = head.into_bytes();
-        request.extend_from_slice(body.as_bytes());
         request
+            .body(Full::new(Bytes::copy_from_slice(body.as_bytes())))
+            .map_err(|e| format!("cannot make the request: {e}"))
     }
 }
 
@@ -562,52 +581,47 @@ pub fn signature(secret: &[u8], timestamp: u64, id: u64, body: &str) -> String {
         .collect()
 }
 
-/// Sends `request` and reads the answer's status line (the rest is not read).
-async fn exchange<S: AsyncRead + AsyncWrite + Unpin>(
-    mut stream: S,
-    request: &[u8],
-) -> Result<u16, String> {
-    stream
-        .write_all(request)
+/// Sends `request` over `stream` (HTTP/1.1, hyper's client connection) and returns
+/// the answer's status. Redirects are not followed and the answer's body is not read:
+/// the connection is dropped once the head is in.
+async fn exchange<S>(stream: S, request: Request<Full<Bytes>>) -> Result<u16, String>
+where
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+{
+    let (mut sender, connection) = hyper::client::conn::http1::Builder::new()
+        .max_buf_size(MAX_ANSWER_HEAD)
+        // The headers as docs/operations.md shows them (`Tessera-Event-Id`, ...).
+        .title_case_headers(true)
+        .handshake(hyper_util::rt::TokioIo::new(stream))
         .await
-        .map_err(|e| format!("cannot send: {e}"))?;
-    stream
-        .flush()
-        .await
-        .map_err(|e| format!("cannot send: {e}"))?;
-    let mut head = Vec::with_capacity(256);
-    let mut buffer = [0u8; 1024];
-    loop {
-        if let Some(end) = head.windows(2).position(|w| w == b"\r\n") {
-            return status_of(&head[..end]);
+        .map_err(|e| format!("cannot send: {}", chain(&e)))?;
+    // Drives the connection until the answer's head is in; dropped with it.
+    let _connection = super::AbortOnDrop(tokio::spawn(async move {
+        let _ = connection.await;
+    }));
+    let answer = sender.send_request(request).await.map_err(|e| {
+        if e.is_incomplete_message() {
+            "the connection closed without an answer".to_owned()
+        } else if e.is_parse_too_large() {
+            "the answer's head is too long".to_owned()
+        } else if e.is_parse() {
+            format!("not an HTTP answer: {}", chain(&e))
+        } else {
+            format!("no answer: {}", chain(&e))
         }
-        if head.len() > MAX_ANSWER_HEAD {
-            return Err("the answer's status line is too long".into());
-        }
-        let n = stream
-            .read(&mut buffer)
-            .await
-            .map_err(|e| format!("cannot read the answer: {e}"))?;
-        if n == 0 {
-            return Err("the connection closed without an answer".into());
-        }
-        head.extend_from_slice(&buffer[..n]);
-    }
+    })?;
+    Ok(answer.status().as_u16())
 }
 
-/// The status of an HTTP/1 status line (`HTTP/1.1 200 OK`).
-fn status_of(line: &[u8]) -> Result<u16, String> {
-    let line = String::from_utf8_lossy(line);
-    let mut parts = line.split(' ');
-    match (parts.next(), parts.next().map(str::parse::<u16>)) {
-        (Some(v), Some(Ok(status))) if v.starts_with("HTTP/1.") && (100..600).contains(&status) => {
-            Ok(status)
-        }
-        _ => Err(format!(
-            "not an HTTP answer: {:?}",
-            line.chars().take(80).collect::<String>()
-        )),
+/// An error with its causes, on one line.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        text.push_str(&format!(": {cause}"));
+        source = cause.source();
     }
+    text
 }
 
 #[cfg(test)]
@@ -626,13 +640,5 @@ mod tests {
             signature(b"secret", 1_767_225_601, 42, r#"{"a":1}"#),
             signature(b"secret", 1_767_225_600, 42, r#"{"a":1}"#)
         );
-    }
-
-    #[test]
-    fn status_lines_are_read_or_refused() {
-        assert_eq!(status_of(b"HTTP/1.1 204 No Content"), Ok(204));
-        assert_eq!(status_of(b"HTTP/1.0 500"), Ok(500));
-        assert!(status_of(b"SSH-2.0-OpenSSH").is_err());
-        assert!(status_of(b"HTTP/1.1 abc").is_err());
     }
 }
