@@ -148,6 +148,9 @@ pub struct FarmPage {
     pub events: Vec<FarmEvent>,
     /// The id of the oldest event kept; with none kept, the id the next event will get.
     pub first_kept: u64,
+    /// The id of the latest event recorded (0 before the first): where a stream that
+    /// starts from now stands.
+    pub last_issued: u64,
 }
 
 /// How long and how many events are kept: the older ones are trimmed by the writer as
@@ -379,6 +382,7 @@ mod tests {
         let page = |first_kept, ids: &[u64]| FarmPage {
             events: ids.iter().map(|&id| event(id)).collect(),
             first_kept,
+            last_issued: 0,
         };
         let all = Filter::default();
         let mut cursor = Cursor::after(2);

@@ -116,7 +116,22 @@ impl Db {
         Ok(FarmPage {
             events,
             first_kept: self.first_kept_farm_event()?,
+            last_issued: self.last_issued_farm_event()?,
         })
+    }
+
+    /// The latest event id issued (kept or trimmed since), 0 before the first.
+    fn last_issued_farm_event(&self) -> Result<u64> {
+        let issued: Option<i64> = self
+            .conn
+            .query_row(
+                "SELECT seq FROM sqlite_sequence WHERE name = 'farm_events'",
+                [],
+                |r| r.get(0),
+            )
+            .optional()
+            .context("cannot read the farm's last event id")?;
+        Ok(issued.unwrap_or(0).max(0) as u64)
     }
 
     /// The oldest event's id; with none kept, the id the next one will get.
@@ -128,16 +143,7 @@ impl Db {
         if let Some(oldest) = oldest {
             return Ok(oldest.max(0) as u64);
         }
-        let issued: Option<i64> = self
-            .conn
-            .query_row(
-                "SELECT seq FROM sqlite_sequence WHERE name = 'farm_events'",
-                [],
-                |r| r.get(0),
-            )
-            .optional()
-            .context("cannot read the farm's last event id")?;
-        Ok(issued.unwrap_or(0).max(0) as u64 + 1)
+        Ok(self.last_issued_farm_event()? + 1)
     }
 }
 

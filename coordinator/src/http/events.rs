@@ -72,15 +72,34 @@ pub(super) async fn farm_events(
         },
         None => Phase::Live,
     };
+    // A stream from now starts with an `id:` and no data: the latest event's id, which
+    // a client then resumes after should it be cut before the first event comes (an
+    // event without data is not dispatched, but sets the id to resume from).
+    let mut pending = VecDeque::new();
+    let start = match after {
+        Some(after) => after,
+        None => match observer.farm_events_after(u64::MAX, 0).await {
+            Ok(page) => {
+                pending.push_back(Event::default().id(page.last_issued.to_string()));
+                page.last_issued
+            }
+            Err(why) => {
+                return refusal(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    format!("cannot read the farm's events: {why}"),
+                )
+            }
+        },
+    };
     let stream = EventStream {
         observer,
         live,
-        cursor: Cursor::after(after.unwrap_or(0)),
+        cursor: Cursor::after(start),
         filter,
         follow: query.follow.unwrap_or(true),
         phase,
         fresh: false,
-        pending: VecDeque::new(),
+        pending,
     };
     let body = futures_util::stream::unfold(stream, |mut stream| async move {
         let event = stream.next().await?;

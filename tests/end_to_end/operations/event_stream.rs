@@ -414,3 +414,50 @@ fn the_event_stream_takes_the_client_token() {
     );
     assert_eq!(wrong.status, 400, "{}", wrong.head);
 }
+
+/// A stream from now begins with the latest event's id and no data, so that a client
+/// cut off before the first event comes resumes after it, missing nothing.
+#[test]
+fn a_stream_from_now_starts_with_the_id_to_resume_after() {
+    let _turn = shared();
+    let dir = TempDir::new().unwrap();
+    let d = dir.path();
+    let (_coordinator, addr, http) = start_coordinator_with_http(d, &[]);
+    submit_small(d, &addr);
+    let latest = kept_after(&http, 0)
+        .last()
+        .expect("the submission's event")
+        .id;
+    let mut stream = Stream::open(&http, "/api/v1/events", &[]);
+    let mut first = Vec::new();
+    loop {
+        let mut line = String::new();
+        stream
+            .reader
+            .read_line(&mut line)
+            .expect("the stream's first lines");
+        let line = line.trim_end_matches(['\r', '\n']).to_owned();
+        if line.is_empty() {
+            break;
+        }
+        first.push(line);
+    }
+    let id: Vec<&str> = first
+        .iter()
+        .filter_map(|l| l.strip_prefix("id:"))
+        .map(str::trim)
+        .collect();
+    assert_eq!(id, [latest.to_string()], "{first:?}");
+    assert!(first.iter().all(|l| !l.starts_with("data:")), "{first:?}");
+    // Cut before any event; one happens meanwhile; resumed after that id, it comes.
+    drop(stream);
+    let job = submit_small(d, &addr);
+    let resumed = Stream::open(
+        &http,
+        "/api/v1/events?follow=false",
+        &[("Last-Event-ID", &latest.to_string())],
+    )
+    .read_to_end();
+    assert_eq!(kinds_of(&resumed), ["submitted"], "{resumed:?}");
+    assert_eq!(resumed[0].data["job"]["id"], job);
+}

@@ -725,6 +725,8 @@ class Client:
                     if event_id is None:
                         continue  # not an event of this API
                     last = event_id
+                    if kind == "":
+                        continue  # only where the stream stands
                     if kind == "lagged":
                         # Fell behind the live events: resume from the database.
                         break
@@ -757,6 +759,9 @@ def _sse(response: http.client.HTTPResponse) -> Iterator[Tuple[Optional[int], st
                 except ValueError as e:
                     raise TesseraError(f"an event's data is not JSON: {data!r}", "protocol") from e
                 yield event_id, kind, parsed if isinstance(parsed, dict) else {"value": parsed}
+            elif event_id is not None:
+                # An id without data: where the stream stands, to resume after.
+                yield event_id, "", {}
             event_id, kind, data = None, "message", []
             continue
         if line.startswith(":"):
