@@ -149,7 +149,7 @@ fn settings_of(
     text: &str,
     section: &str,
     sub: &clap::Command,
-) -> Result<Vec<(String, Option<OsString>)>> {
+) -> Result<Vec<(String, Vec<OsString>)>> {
     let file = path.display();
     let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
         let at = e
@@ -205,13 +205,28 @@ fn settings_of(
             continue;
         }
         let takes_value = arg.get_action().takes_values();
-        let flag = match value {
-            toml::Value::Boolean(on) if !takes_value => {
-                on.then(|| OsString::from(format!("--{key}")))
+        // A repeatable flag (`--tag`) takes an array of strings, one flag each.
+        let repeats = matches!(arg.get_action(), clap::ArgAction::Append);
+        let flag: Vec<OsString> = match value {
+            toml::Value::Boolean(on) if !takes_value => on
+                .then(|| OsString::from(format!("--{key}")))
+                .into_iter()
+                .collect(),
+            toml::Value::String(s) if takes_value => vec![format!("--{key}={s}").into()],
+            toml::Value::Integer(n) if takes_value => vec![format!("--{key}={n}").into()],
+            toml::Value::Float(x) if takes_value => vec![format!("--{key}={x}").into()],
+            toml::Value::Array(items) if repeats => items
+                .iter()
+                .map(|item| match item {
+                    toml::Value::String(s) => Ok(format!("--{key}={s}").into()),
+                    _ => Err(anyhow!(
+                        "{file}: [{section}] {key}: must be an array of strings"
+                    )),
+                })
+                .collect::<Result<_>>()?,
+            _ if repeats => {
+                bail!("{file}: [{section}] {key}: must be a string or an array of strings")
             }
-            toml::Value::String(s) if takes_value => Some(format!("--{key}={s}").into()),
-            toml::Value::Integer(n) if takes_value => Some(format!("--{key}={n}").into()),
-            toml::Value::Float(x) if takes_value => Some(format!("--{key}={x}").into()),
             _ if takes_value => {
                 bail!("{file}: [{section}] {key}: must be a string or a number")
             }
@@ -258,6 +273,14 @@ pub fn describe(
             .get_raw(id)
             .map(|values| values.map(|v| v.to_string_lossy().into_owned()).collect())
             .unwrap_or_default();
+        if matches!(arg.get_action(), clap::ArgAction::Append) && !raw.is_empty() {
+            let shown: Vec<String> = raw
+                .iter()
+                .map(|v| toml::Value::String(v.clone()).to_string())
+                .collect();
+            out.push_str(&format!("{long} = [{}]  # {source}\n", shown.join(", ")));
+            continue;
+        }
         match raw.last() {
             Some(value) => {
                 let shown = if value.parse::<f64>().is_ok() || value == "true" || value == "false" {

@@ -21,6 +21,8 @@ pub struct JobChoices {
     pub label: Label,
     /// The frame of the scene, from 1, or a sequence of frames.
     pub frames: FrameChoice,
+    /// The worker tags the job requires (checked by the command line's parser).
+    pub require: Vec<String>,
 }
 
 /// What a job is called and who submitted it; `None` takes the default.
@@ -110,6 +112,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
         time_limit_ms,
         label,
         frames,
+        require,
     } = job;
     let scene = read_scene(scene_path)?;
     let files = scene_files(scene_path, &scene)?;
@@ -135,6 +138,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
                 frame: frames.frame,
                 frames: frames.frames,
                 assets: Vec::new(),
+                require,
             },
             &files,
         )

@@ -53,6 +53,7 @@ async fn run_job(
             frame: 1,
             frames: None,
             assets: Vec::new(),
+            require: Vec::new(),
         })
         .await?;
     let mut seen = 0;

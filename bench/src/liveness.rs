@@ -239,6 +239,7 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
             frame: 1,
             frames: None,
             assets: Vec::new(),
+            require: Vec::new(),
         })
         .await?;
 

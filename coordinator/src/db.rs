@@ -75,6 +75,10 @@ pub struct StoredJob {
     /// Who and what: the job's name, its submitter as the client claimed it, and the
     /// address the submission came from. Empty for a job stored by an earlier version.
     pub label: Label,
+    /// The worker tags it requires, sorted (none for a job stored by an earlier
+    /// version): kept so that a restarted coordinator sends its tiles where they were
+    /// sent before.
+    pub require: Vec<String>,
 }
 
 /// What a job is called and who submitted it.

@@ -49,6 +49,7 @@ pub fn status_json(s: &JobStatus) -> Value {
         "sequence": s.sequence,
         "frames": s.frames.as_ref().map(frames_json),
         "assets": { "files": s.assets.files, "bytes": s.assets.bytes },
+        "require": s.require,
     })
 }
 
@@ -103,5 +104,6 @@ pub fn worker_json(w: &WorkerStatus) -> Value {
             "geometry_triangles": c.geometry_triangles,
             "problem": c.problem,
         })),
+        "tags": w.tags,
     })
 }

@@ -11,7 +11,7 @@ use crate::wire;
 pub const MAGIC: [u8; 4] = *b"TSRA";
 
 /// Bumped whenever any message changes shape.
-pub const PROTOCOL_VERSION: u16 = 13;
+pub const PROTOCOL_VERSION: u16 = 14;
 
 /// The peer's first frame.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -69,11 +69,14 @@ pub enum Role {
     Client,
     /// Renders tiles with `threads` threads; `name` identifies it in listings and logs.
     /// `build` names the worker's renderer build (version, target, profile): shown in
-    /// listings and logs, and named when its canary render does not match.
+    /// listings and logs, and named when its canary render does not match. `tags`
+    /// name the pools it belongs to ([`check_tags`](crate::check_tags)): a job that
+    /// requires tags goes only to workers that have them all.
     Worker {
         name: String,
         threads: u32,
         build: String,
+        tags: Vec<String>,
     },
 }
 
@@ -436,6 +439,7 @@ mod tests {
             name: "w".into(),
             threads: 1,
             build: "b".into(),
+            tags: Vec::new(),
         }
     }
 
@@ -624,12 +628,12 @@ mod tests {
     #[test]
     fn a_hello_of_the_previous_version_is_refused_naming_both() {
         let mut frame = Hello::new(Role::Client).to_frame();
-        frame[4..6].copy_from_slice(&12u16.to_le_bytes());
+        frame[4..6].copy_from_slice(&13u16.to_le_bytes());
         let error = Hello::from_frame(&frame).unwrap_err();
         assert_eq!(
             error.to_string(),
-            "protocol version mismatch: this coordinator speaks version 13, the peer speaks \
-             version 12"
+            "protocol version mismatch: this coordinator speaks version 14, the peer speaks \
+             version 13"
         );
     }
 

@@ -46,6 +46,9 @@ pub struct JobSpec {
     /// [`MAX_JOB_ASSETS`](crate::MAX_JOB_ASSETS)), uploaded first: a file the
     /// coordinator lacks gets [`AssetAnswer::SubmitLacking`](crate::AssetAnswer).
     pub assets: Vec<AssetRef>,
+    /// Worker tags the job requires ([`check_tags`]): its tiles, confirmations
+    /// included, go only to workers that have every one of them. Empty: any worker.
+    pub require: Vec<String>,
 }
 
 /// Frames `first..=last` of an animated scene, from 1.
@@ -493,6 +496,8 @@ pub struct JobStatus {
     pub sequence: Option<JobId>,
     /// The files its scene names.
     pub assets: JobAssets,
+    /// The worker tags it requires, sorted (see [`JobSpec::require`]).
+    pub require: Vec<String>,
 }
 
 impl JobStatus {
@@ -550,6 +555,8 @@ pub struct WorkerStatus {
     pub host: String,
     /// Its files, as it last reported them; `None` before its first report.
     pub cache: Option<WorkerCache>,
+    /// Its tags, sorted, as its hello gave them: the jobs it may render.
+    pub tags: Vec<String>,
 }
 
 /// Which of the coordinator's secrets a peer proved: after a rotation, a peer still on

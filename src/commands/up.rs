@@ -83,6 +83,7 @@ async fn up(args: Args) -> Result<()> {
         time_limit_ms,
         label: Default::default(),
         frames,
+        require: Vec::new(),
     };
     let specs = vec![
         WorkerSpec {

@@ -45,6 +45,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("tiles", "encoding", "TEXT NOT NULL DEFAULT 'raw'"),
     ("jobs", "retried_ms", "INTEGER"),
     ("jobs", "assets", "TEXT NOT NULL DEFAULT '[]'"),
+    ("jobs", "required_tags", "TEXT NOT NULL DEFAULT '[]'"),
 ];
 
 /// Adds the columns of [`ADDED_COLUMNS`] that `conn`'s tables lack.

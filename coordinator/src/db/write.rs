@@ -20,9 +20,9 @@ impl Db {
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
                                    verification, time_limit_ms, name, submitter, submitted_from,
-                                   frame, last_frame, sequence, assets)
+                                   frame, last_frame, sequence, assets, required_tags)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16,
-                         ?17, ?18, ?19, ?20, ?21, ?22, ?23)",
+                         ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -47,6 +47,8 @@ impl Db {
                     job.last_frame,
                     job.sequence.map(|s| s as i64),
                     serde_json::to_string(&job.assets).context("cannot write the scene files")?,
+                    serde_json::to_string(&job.require)
+                        .context("cannot write the tags the job requires")?,
                 ],
             )
             .context("cannot store the job")?;

@@ -315,6 +315,9 @@ struct Submission {
     verify: Option<String>,
     #[serde(default)]
     assets: Vec<PageAsset>,
+    /// Worker tags the job requires (checked by the coordinator as a submission's).
+    #[serde(default)]
+    require: Vec<String>,
 }
 
 #[derive(serde::Deserialize)]
@@ -404,6 +407,7 @@ pub async fn submit(
             first: f.first,
             last: f.last,
         }),
+        require: s.require.clone(),
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())
@@ -1206,7 +1210,7 @@ mod tests {
                 "openapi.json describes {method} {path}, which is not a route"
             );
         }
-        // Its bounds on the files a request names are the protocol's.
+        // Its bounds on the files and the tags a request names are the protocol's.
         for bound in OPENAPI.split("\"maxItems\": ").skip(1) {
             let n: usize = bound
                 .split(|c: char| !c.is_ascii_digit())
@@ -1214,8 +1218,17 @@ mod tests {
                 .unwrap_or_default()
                 .parse()
                 .unwrap();
-            assert_eq!(n, protocol::MAX_JOB_ASSETS);
+            assert!(
+                [protocol::MAX_JOB_ASSETS, protocol::MAX_TAGS].contains(&n),
+                "maxItems {n}"
+            );
         }
+        let tag = &document["components"]["schemas"]["Tag"];
+        assert_eq!(tag["maxLength"], protocol::MAX_TAG_BYTES);
+        assert_eq!(
+            document["components"]["schemas"]["Submission"]["properties"]["require"]["maxItems"],
+            protocol::MAX_TAGS
+        );
         // Every reference points at something.
         let text = OPENAPI;
         for reference in text.split("\"$ref\": \"#/").skip(1) {

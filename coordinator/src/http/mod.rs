@@ -736,6 +736,7 @@ async fn studio_submit(
         submitter: "studio".into(),
         frame: 1,
         frames: None,
+        require: Vec::new(),
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())

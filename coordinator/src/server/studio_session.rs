@@ -732,6 +732,7 @@ async fn submit_passes(
             // The studio edits and shows a scene's frame 1.
             frame: 1,
             frames: None,
+            require: Vec::new(),
         };
         let limits = sh.limits;
         let files = bound.files.clone();

@@ -60,6 +60,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     name: "w1".into(),
                     threads: 4,
                     build: "b".into(),
+                    tags: vec!["gpu".into()],
                 },
                 nonce: peer_nonce(),
                 key: None,
@@ -98,6 +99,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 frame: 1,
                 frames: None,
                 assets: Vec::new(),
+                require: vec!["gpu".into()],
             })),
         ),
         ("Status", message_frame(&ClientRequest::Status { job: 7 })),
@@ -132,6 +134,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     files: 2,
                     bytes: 5_000,
                 },
+                require: vec!["gpu".into()],
             })),
         ),
         (

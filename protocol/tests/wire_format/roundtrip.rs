@@ -145,12 +145,13 @@ prop_compose! {
                   full in any::<bool>(), time_limit_ms in any::<Option<u64>>(),
                   name in text(), frame in any::<u32>(),
                   frames in prop::option::of(frame_range()),
-                  assets in prop::collection::vec(asset_ref(), 0..3))
+                  assets in prop::collection::vec(asset_ref(), 0..3),
+                  require in prop::collection::vec(text(), 0..3))
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name, frame, frames, assets,
+            name: name.clone(), submitter: name, frame, frames, assets, require,
         }
     }
 }
@@ -242,13 +243,14 @@ prop_compose! {
         queued_ms in any::<Option<u64>>(), frame in any::<u32>(),
         frames in prop::option::of(frame_progress()), sequence in any::<Option<u64>>(),
         asset_files in any::<u32>(), asset_bytes in any::<u64>(),
+        require in prop::collection::vec(text(), 0..3),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
             eta_ms, error, samples, estimated_error, time_limit_ms, stopped_on_time_limit,
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
             frame, frames, sequence,
-            assets: JobAssets { files: asset_files, bytes: asset_bytes },
+            assets: JobAssets { files: asset_files, bytes: asset_bytes }, require,
         }
     }
 }
@@ -262,7 +264,7 @@ prop_compose! {
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
         unresponsive in any::<bool>(),
         key in prop::option::of((any::<[u8; 4]>(), any::<bool>())), host in text(),
-        cache in prop::option::of(worker_cache()),
+        cache in prop::option::of(worker_cache()), tags in prop::collection::vec(text(), 0..3),
     ) -> WorkerStatus {
         let key = key.map(|(id, current)| PeerKey {
             id: KeyId(id),
@@ -271,7 +273,7 @@ prop_compose! {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
-            unresponsive, key, host, cache,
+            unresponsive, key, host, cache, tags,
         }
     }
 }
@@ -545,11 +547,20 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
 fn role() -> impl Strategy<Value = Role> {
     prop_oneof![
         Just(Role::Client),
-        (text(), any::<u32>(), text()).prop_map(|(name, threads, build)| Role::Worker {
-            name,
-            threads,
-            build
-        }),
+        (
+            text(),
+            any::<u32>(),
+            text(),
+            prop::collection::vec(text(), 0..3)
+        )
+            .prop_map(|(name, threads, build, tags)| {
+                Role::Worker {
+                    name,
+                    threads,
+                    build,
+                    tags,
+                }
+            }),
     ]
 }
 
@@ -1008,14 +1019,16 @@ fn a_tile_names_its_frame_after_the_scene_hash() {
         frame: 17,
         frames: None,
         assets: Vec::new(),
+        require: Vec::new(),
     };
     let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
-    // The frame, the range (`None`: one byte 0), then the files (none: a length of 8
-    // zero bytes) are the JobSpec's last fields.
-    let end = bytes.len() - 8;
+    // The frame, the range (`None`: one byte 0), then the files and the requirements
+    // (none: a length of 8 zero bytes each) are the JobSpec's last fields.
+    assert_eq!(bytes[bytes.len() - 8..], [0; 8]);
+    let end = bytes.len() - 16;
     assert_eq!(bytes[end - 5..end - 1], 17u32.to_le_bytes());
     assert_eq!(bytes[end - 1], 0);
-    assert_eq!(bytes[end..], [0; 8]);
+    assert_eq!(bytes[end..end + 8], [0; 8]);
     let back: ClientRequest = wire::decode(&bytes).unwrap();
     assert_eq!(back, ClientRequest::Submit(spec));
 }
@@ -1128,6 +1141,7 @@ fn nan_rates_keep_their_bits() {
         key: None,
         host: "127.0.0.1".into(),
         cache: None,
+        tags: Vec::new(),
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {
@@ -1205,6 +1219,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             frame: 1,
             frames: None,
             assets: Vec::new(),
+            require: Vec::new(),
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1218,9 +1233,9 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
         ..Default::default()
     });
     // The Sampling variant, before the priority, verification, time limit, the name
-    // and submitter (two empty strings: their lengths), the frame, the range and the
-    // files (none: their length).
-    let at = nested.len() - 13 - 16 - 4 - 1 - 8;
+    // and submitter (two empty strings: their lengths), the frame, the range, the
+    // files and the requirements (none: their lengths).
+    let at = nested.len() - 13 - 16 - 4 - 1 - 8 - 8;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

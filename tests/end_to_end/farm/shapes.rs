@@ -69,6 +69,7 @@ fn a_farm_renders_triangles_boxes_and_meshes_as_render_does() {
                     frame: 1,
                     frames: None,
                     assets: Vec::new(),
+                    require: Vec::new(),
                 })
                 .await
         })

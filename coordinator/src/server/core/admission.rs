@@ -44,6 +44,8 @@ impl Core {
             }
             None => self.farm.admit(now, &prepared.request, plan)?,
         };
+        // Before its row is written, hence before any of its tiles goes out.
+        self.farm.require(now, id, &prepared.require);
         let adaptive = is_adaptive(&prepared.settings).then(|| {
             let (adaptive, passes) = AdaptiveJob::new(
                 &prepared.settings,
@@ -79,6 +81,7 @@ impl Core {
             stopped_on_time_limit: false,
             paused: false,
             label: prepared.label.clone(),
+            require: prepared.require.clone(),
         };
         self.jobs.insert(
             id,
@@ -112,6 +115,8 @@ impl Core {
                 totals: Totals::default(),
                 tiles_per_worker: BTreeMap::new(),
                 image_sha256: None,
+                require: prepared.require,
+                measured: Default::default(),
             },
         );
         self.submits.insert(id, reply);
@@ -259,6 +264,8 @@ impl Core {
             totals: stored.totals.unwrap_or_default(),
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
+            require: stored.require.clone(),
+            measured: Default::default(),
         };
         // A retry starts a new run: its first tile out is the run's start (stored anew
         // when it goes out). What was rendered before still counts in its rate below.
@@ -365,6 +372,8 @@ impl Core {
                 },
             );
         }
+        self.farm
+            .require(self.now.mono, id, &self.jobs[&id].require);
         let effects = self.farm.resume_job(self.now.mono, id, plan, &done);
         let renderers: Vec<(u32, &str)> = self.jobs[&id]
             .accepted

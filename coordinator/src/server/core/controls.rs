@@ -180,7 +180,9 @@ impl Core {
         let pass_rung = self.farm.pass_run(id).map(|r| r.rung());
         let mut status = record.status(id, job, pass_rung, self.now.unix_ms);
         if !status.state.is_final() {
-            status.warning = self.no_worker_warning();
+            status.warning = self
+                .no_worker_warning()
+                .or_else(|| self.pool_warning(&record.require, record.verification));
         }
         Some(status)
     }

@@ -56,6 +56,8 @@ pub struct SequenceRecord {
     ended_totals: Totals,
     /// Who hears once an operator's deletion is done.
     deleted: Option<oneshot::Sender<()>>,
+    /// The worker tags every frame job requires.
+    pub require: Vec<String>,
 }
 
 impl Core {
@@ -113,6 +115,7 @@ impl Core {
             stopped_on_time_limit: false,
             paused: false,
             label: prepared.label.clone(),
+            require: prepared.require.clone(),
         };
         let run = SequenceRun::new(range.first, range.last, prepared.tiles.len() as u32);
         self.farm.enter_sequence(id, run);
@@ -134,6 +137,7 @@ impl Core {
                 last_refusal: None,
                 ended_totals: Totals::default(),
                 deleted: None,
+                require: prepared.require,
             },
         );
         self.submits.insert(id, reply);
@@ -229,6 +233,7 @@ impl Core {
                 last_refusal: None,
                 ended_totals: Totals::default(),
                 deleted: None,
+                require: stored.require,
             },
         );
     }
@@ -366,6 +371,7 @@ impl Core {
             frames: None,
             frame_count: record.frame_count,
             assets: record.assets.to_vec(),
+            require: record.require.clone(),
         };
         // The answer goes to the sequence (the core tells it), not to a client.
         let (reply, _) = oneshot::channel();
