@@ -257,6 +257,7 @@ pub(crate) fn job_spec(scene: String, size: Size, frames: Option<FrameRange>) ->
         frame: 1,
         frames,
         assets: Vec::new(),
+        require: Vec::new(),
     }
 }
 

@@ -63,6 +63,7 @@ fn submit(addr: &str, frames: Option<FrameRange>) -> JobId {
         frame: 1,
         frames,
         assets: Vec::new(),
+        require: Vec::new(),
     };
     runtime().block_on(async {
         let mut client = Client::connect(&Endpoint::plain(addr)).await.unwrap();
