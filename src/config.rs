@@ -362,4 +362,46 @@ mod tests {
         assert_eq!(error("99999999999999999999s"), "too long: at most 36500d");
         assert_eq!(error("999999999999999999d"), "too long: at most 36500d");
     }
+
+    #[test]
+    fn a_repeatable_setting_takes_an_array_of_strings_from_the_file() {
+        use clap::CommandFactory;
+        let cli = crate::Cli::command();
+        let path = std::env::temp_dir().join(format!("tessera-tags-{}.toml", std::process::id()));
+        let expand_with = |text: &str| {
+            std::fs::write(&path, text).unwrap();
+            let args = ["tessera", "worker", "--config", path.to_str().unwrap()]
+                .map(OsString::from)
+                .to_vec();
+            expand(args, &cli)
+        };
+        let expanded = expand_with("[worker]\ntag = [\"gpu\", \"ssd\"]\n").unwrap();
+        let flags: Vec<&str> = expanded.args.iter().filter_map(|a| a.to_str()).collect();
+        assert_eq!(flags[2..4], ["--tag=gpu", "--tag=ssd"], "{flags:?}");
+        let matches = cli.clone().try_get_matches_from(&expanded.args).unwrap();
+        let (_, worker) = matches.subcommand().unwrap();
+        let sub = cli.find_subcommand("worker").unwrap();
+        let shown = describe("worker", sub, worker, &expanded.from_file);
+        assert!(
+            shown.contains("tag = [\"gpu\", \"ssd\"]  # config file\n"),
+            "{shown}"
+        );
+        let error = expand_with("[worker]\ntag = [1]\n")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.ends_with("[worker] tag: must be an array of strings"),
+            "{error}"
+        );
+        let error = expand_with("[worker]\ntag = true\n")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.ends_with("[worker] tag: must be a string or an array of strings"),
+            "{error}"
+        );
+        std::fs::remove_file(&path).unwrap();
+    }
 }
