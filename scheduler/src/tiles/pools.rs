@@ -21,7 +21,8 @@ pub(super) type Tags = BTreeSet<String>;
 pub(super) fn meets(tags: Option<&Tags>, require: Option<&Tags>) -> bool {
     match require {
         None => true,
-        Some(require) => tags.is_some_and(|t| require.is_subset(t)),
+        // A worker never told any tags has none: it meets only an empty requirement.
+        Some(require) => require.is_empty() || tags.is_some_and(|t| require.is_subset(t)),
     }
 }
 
