@@ -177,6 +177,12 @@ pub fn parse_priority(text: &str) -> Result<i32, String> {
     })
 }
 
+/// A worker tag as `worker --tag` and `submit --require` read it
+/// ([`protocol::check_tag`]).
+pub fn parse_tag(text: &str) -> Result<String, String> {
+    protocol::check_tag(text).map(|()| text.to_owned())
+}
+
 /// A tile's number as `tessera requeue` reads it.
 pub fn parse_tile_number(text: &str) -> Result<u32, String> {
     text.trim().parse().map_err(|_| {

@@ -217,19 +217,21 @@ fn settings_of(
                 .then(|| OsString::from(format!("--{key}")))
                 .into_iter()
                 .collect(),
-            // A setting given more than once (`webhook`): a list, each a flag.
+            // A setting given more than once (`webhook`, `tag`): an array of strings,
+            // each a flag.
             toml::Value::Array(items) if repeatable => items
                 .iter()
-                .map(|item| {
-                    one(item).ok_or_else(|| {
-                        anyhow!("{file}: [{section}] {key}: every item must be a string")
-                    })
+                .map(|item| match item {
+                    toml::Value::String(s) => Ok(OsString::from(format!("--{key}={s}"))),
+                    _ => Err(anyhow!(
+                        "{file}: [{section}] {key}: must be an array of strings"
+                    )),
                 })
                 .collect::<Result<_>>()?,
             _ if takes_value => match one(value) {
                 Some(flag) => vec![flag],
                 None if repeatable => {
-                    bail!("{file}: [{section}] {key}: must be a string or a list of strings")
+                    bail!("{file}: [{section}] {key}: must be a string or an array of strings")
                 }
                 None => bail!("{file}: [{section}] {key}: must be a string or a number"),
             },
@@ -276,6 +278,14 @@ pub fn describe(
             .get_raw(id)
             .map(|values| values.map(|v| v.to_string_lossy().into_owned()).collect())
             .unwrap_or_default();
+        if matches!(arg.get_action(), clap::ArgAction::Append) && !raw.is_empty() {
+            let shown: Vec<String> = raw
+                .iter()
+                .map(|v| toml::Value::String(v.clone()).to_string())
+                .collect();
+            out.push_str(&format!("{long} = [{}]  # {source}\n", shown.join(", ")));
+            continue;
+        }
         match raw.last() {
             Some(_) if raw.len() > 1 => {
                 let list = toml::Value::Array(raw.into_iter().map(toml::Value::String).collect());
@@ -377,7 +387,7 @@ mod tests {
         let error = flags("[coordinator]\nwebhook = [true]\n")
             .unwrap_err()
             .to_string();
-        assert!(error.ends_with("every item must be a string"), "{error}");
+        assert!(error.ends_with("must be an array of strings"), "{error}");
     }
 
     #[test]
@@ -399,5 +409,47 @@ mod tests {
         assert_eq!(error("36501d"), "too long: at most 36500d");
         assert_eq!(error("99999999999999999999s"), "too long: at most 36500d");
         assert_eq!(error("999999999999999999d"), "too long: at most 36500d");
+    }
+
+    #[test]
+    fn a_repeatable_setting_takes_an_array_of_strings_from_the_file() {
+        use clap::CommandFactory;
+        let cli = crate::Cli::command();
+        let path = std::env::temp_dir().join(format!("tessera-tags-{}.toml", std::process::id()));
+        let expand_with = |text: &str| {
+            std::fs::write(&path, text).unwrap();
+            let args = ["tessera", "worker", "--config", path.to_str().unwrap()]
+                .map(OsString::from)
+                .to_vec();
+            expand(args, &cli)
+        };
+        let expanded = expand_with("[worker]\ntag = [\"gpu\", \"ssd\"]\n").unwrap();
+        let flags: Vec<&str> = expanded.args.iter().filter_map(|a| a.to_str()).collect();
+        assert_eq!(flags[2..4], ["--tag=gpu", "--tag=ssd"], "{flags:?}");
+        let matches = cli.clone().try_get_matches_from(&expanded.args).unwrap();
+        let (_, worker) = matches.subcommand().unwrap();
+        let sub = cli.find_subcommand("worker").unwrap();
+        let shown = describe("worker", sub, worker, &expanded.from_file);
+        assert!(
+            shown.contains("tag = [\"gpu\", \"ssd\"]  # config file\n"),
+            "{shown}"
+        );
+        let error = expand_with("[worker]\ntag = [1]\n")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.ends_with("[worker] tag: must be an array of strings"),
+            "{error}"
+        );
+        let error = expand_with("[worker]\ntag = true\n")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.ends_with("[worker] tag: must be a string or an array of strings"),
+            "{error}"
+        );
+        std::fs::remove_file(&path).unwrap();
     }
 }

@@ -23,6 +23,8 @@ pub struct JobChoices {
     pub frames: FrameChoice,
     /// The jobs it waits for.
     pub after: Vec<protocol::JobId>,
+    /// The worker tags the job requires (checked by the command line's parser).
+    pub require: Vec<String>,
 }
 
 /// What a job is called and who submitted it; `None` takes the default.
@@ -113,6 +115,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
         label,
         frames,
         after,
+        require,
     } = job;
     let scene = read_scene(scene_path)?;
     let files = scene_files(scene_path, &scene)?;
@@ -139,6 +142,7 @@ pub async fn submit(client: &mut Client, scene_path: &Path, job: JobChoices) -> 
                 frames: frames.frames,
                 assets: Vec::new(),
                 after,
+                require,
             },
             &files,
         )

@@ -54,6 +54,7 @@ async fn run_job(
             frames: None,
             assets: Vec::new(),
             after: Vec::new(),
+            require: Vec::new(),
         })
         .await?;
     let mut seen = 0;

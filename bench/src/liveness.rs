@@ -240,6 +240,7 @@ async fn run_once(opts: &Options, plan: Plan, case: &Case, reference: &[u8]) -> 
             frames: None,
             assets: Vec::new(),
             after: Vec::new(),
+            require: Vec::new(),
         })
         .await?;
 

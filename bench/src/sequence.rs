@@ -258,6 +258,7 @@ pub(crate) fn job_spec(scene: String, size: Size, frames: Option<FrameRange>) ->
         frames,
         assets: Vec::new(),
         after: Vec::new(),
+        require: Vec::new(),
     }
 }
 

@@ -86,6 +86,7 @@ pub async fn run(opts: &Options, out: &Path) -> Result<()> {
                     frames: None,
                     assets: Vec::new(),
                     after: Vec::new(),
+                    require: Vec::new(),
                 };
                 let (wall, _) = super::latency::run_job(farm.address(), spec).await?;
                 eprintln!("verification: {}: {wall:.3} s", setting.name);

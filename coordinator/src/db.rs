@@ -78,6 +78,10 @@ pub struct StoredJob {
     pub label: Label,
     /// The jobs it was submitted after (`JobSpec::after`).
     pub after: Vec<JobId>,
+    /// The worker tags it requires, sorted (none for a job stored by an earlier
+    /// version): kept so that a restarted coordinator sends its tiles where they were
+    /// sent before.
+    pub require: Vec<String>,
 }
 
 /// What a job is called and who submitted it.

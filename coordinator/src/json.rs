@@ -51,6 +51,7 @@ pub fn status_json(s: &JobStatus) -> Value {
         "assets": { "files": s.assets.files, "bytes": s.assets.bytes },
         "after": s.after,
         "waiting_for": s.waiting_for,
+        "require": s.require,
     })
 }
 
@@ -105,5 +106,6 @@ pub fn worker_json(w: &WorkerStatus) -> Value {
             "geometry_triangles": c.geometry_triangles,
             "problem": c.problem,
         })),
+        "tags": w.tags,
     })
 }

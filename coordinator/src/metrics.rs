@@ -32,6 +32,27 @@ pub struct Snapshot {
     pub scheduler: Counters,
     /// Whether storage can write (a gauge of 1 or 0).
     pub storage_available: bool,
+    /// The work waiting in each pool, and its workers.
+    pub pools: Vec<PoolFigures>,
+}
+
+/// One pool's figures at a scrape: what an autoscaler scales its workers on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PoolFigures {
+    /// The pool's name: the tags its jobs require, sorted, joined with `,` (empty: the
+    /// jobs any worker may take).
+    pub pool: String,
+    /// Tiles of its active jobs (not paused) not yet done.
+    pub waiting_tiles: u64,
+    /// Their estimated rendering time on one thread, in seconds.
+    pub waiting_cpu_seconds: f64,
+    /// Connected workers ready for work that have every tag of the pool.
+    pub workers: u64,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct PoolLabel {
+    pool: String,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -66,6 +87,7 @@ pub struct Metrics {
     synced: Mutex<Counters>,
     /// (time, rays so far), oldest first, over the last [`RATE_WINDOW`].
     rate: Mutex<VecDeque<(Instant, u64)>>,
+    pools: PoolMetrics,
 }
 
 impl Default for Metrics {
@@ -185,7 +207,9 @@ impl Metrics {
         );
         let assets = AssetMetrics::register(&mut registry);
         let webhooks = WebhookMetrics::register(&mut registry);
+        let pools = PoolMetrics::register(&mut registry);
         Metrics {
+            pools,
             registry,
             assets,
             webhooks,
@@ -302,6 +326,7 @@ impl Metrics {
         self.storage_available
             .set(i64::from(snapshot.storage_available));
         self.tiles_in_flight.set(snapshot.tiles_in_flight);
+        self.pools.set(&snapshot.pools);
         {
             let mut synced = self.synced.lock().expect("metrics lock");
             let now = snapshot.scheduler;
@@ -426,7 +451,63 @@ fn openmetrics_to_prometheus(openmetrics: &str) -> String {
     out
 }
 
-/// The store of the files scenes name: what it holds, and what crosses the network.
+/// The figures autoscalers scale worker pools on, per pool: a scrape shows the pools
+/// of that moment only (a pool whose last job ended disappears, so a query should add
+/// `or vector(0)`).
+struct PoolMetrics {
+    waiting_tiles: Family<PoolLabel, Gauge>,
+    waiting_cpu_seconds: Family<PoolLabel, Gauge<f64, AtomicU64>>,
+    workers: Family<PoolLabel, Gauge>,
+}
+
+impl PoolMetrics {
+    fn register(registry: &mut Registry) -> PoolMetrics {
+        let pools = PoolMetrics {
+            waiting_tiles: Family::default(),
+            waiting_cpu_seconds: Family::default(),
+            workers: Family::default(),
+        };
+        registry.register(
+            "pool_waiting_tiles",
+            "Tiles not yet done of the active jobs (not paused) of the pool: the tags they \
+             require, sorted and joined with commas (empty: any worker)",
+            pools.waiting_tiles.clone(),
+        );
+        registry.register(
+            "pool_waiting_cpu_seconds",
+            "Estimated rendering seconds on one thread of those tiles (docs/operations.md, \
+             Autoscaling)",
+            pools.waiting_cpu_seconds.clone(),
+        );
+        registry.register(
+            "pool_workers",
+            "Connected workers ready for work that have every tag of the pool",
+            pools.workers.clone(),
+        );
+        pools
+    }
+
+    fn set(&self, figures: &[PoolFigures]) {
+        self.waiting_tiles.clear();
+        self.waiting_cpu_seconds.clear();
+        self.workers.clear();
+        for f in figures {
+            let label = PoolLabel {
+                pool: f.pool.clone(),
+            };
+            self.waiting_tiles
+                .get_or_create(&label)
+                .set(i64::try_from(f.waiting_tiles).unwrap_or(i64::MAX));
+            self.waiting_cpu_seconds
+                .get_or_create(&label)
+                .set(f.waiting_cpu_seconds);
+            self.workers
+                .get_or_create(&label)
+                .set(i64::try_from(f.workers).unwrap_or(i64::MAX));
+        }
+    }
+}
+
 /// The label of a webhook's series: its URL without user information and query.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct WebhookLabel {
@@ -483,6 +564,7 @@ impl WebhookMetrics {
     }
 }
 
+/// The store of the files scenes name: what it holds, and what crosses the network.
 struct AssetMetrics {
     files: Gauge,
     bytes: Gauge,
@@ -548,6 +630,20 @@ mod tests {
                 workers_unresponsive: 9,
             },
             storage_available: true,
+            pools: vec![
+                PoolFigures {
+                    pool: String::new(),
+                    waiting_tiles: 0,
+                    waiting_cpu_seconds: 0.0,
+                    workers: 3,
+                },
+                PoolFigures {
+                    pool: "gpu,ssd".into(),
+                    waiting_tiles: 12,
+                    waiting_cpu_seconds: 7.5,
+                    workers: 1,
+                },
+            ],
         };
         m.storage_outage();
         let text = m.render(&snapshot, Exposition::OpenMetrics);
@@ -565,14 +661,22 @@ mod tests {
             "tessera_workers_unresponsive_total 9",
             "tessera_storage_available 1",
             "tessera_storage_outages_total 1",
+            "tessera_pool_waiting_tiles{pool=\"\"} 0",
+            "tessera_pool_waiting_tiles{pool=\"gpu,ssd\"} 12",
+            "tessera_pool_waiting_cpu_seconds{pool=\"gpu,ssd\"} 7.5",
+            "tessera_pool_workers{pool=\"\"} 3",
+            "tessera_pool_workers{pool=\"gpu,ssd\"} 1",
         ] {
             assert!(text.lines().any(|l| l == line), "{line} missing in\n{text}");
         }
-        // Counters follow the scheduler's totals, not add them up again.
+        // Counters follow the scheduler's totals, not add them up again; a pool gone
+        // from the farm is gone from the scrape.
+        snapshot.pools.truncate(1);
         snapshot.scheduler.leases_expired = 8;
         snapshot.storage_available = false;
         let text = m.render(&snapshot, Exposition::OpenMetrics);
         assert!(text.contains("tessera_storage_available 0\n"), "{text}");
+        assert!(!text.contains("gpu,ssd"), "{text}");
         assert!(text.contains("tessera_leases_expired_total 8\n"), "{text}");
         assert!(
             text.contains("tessera_tiles_reassigned_total 6\n"),
@@ -590,6 +694,7 @@ mod tests {
             tiles_in_flight: 0,
             scheduler: Counters::default(),
             storage_available: true,
+            pools: Vec::new(),
         };
         let openmetrics = m.render(&snapshot, Exposition::OpenMetrics);
         assert!(openmetrics.ends_with("# EOF\n"), "{openmetrics}");

@@ -69,11 +69,14 @@ pub enum Role {
     Client,
     /// Renders tiles with `threads` threads; `name` identifies it in listings and logs.
     /// `build` names the worker's renderer build (version, target, profile): shown in
-    /// listings and logs, and named when its canary render does not match.
+    /// listings and logs, and named when its canary render does not match. `tags`
+    /// name the pools it belongs to ([`check_tags`](crate::check_tags)): a job that
+    /// requires tags goes only to workers that have them all.
     Worker {
         name: String,
         threads: u32,
         build: String,
+        tags: Vec<String>,
     },
 }
 
@@ -436,6 +439,7 @@ mod tests {
             name: "w".into(),
             threads: 1,
             build: "b".into(),
+            tags: Vec::new(),
         }
     }
 

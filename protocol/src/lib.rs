@@ -14,6 +14,7 @@ mod codec;
 mod handshake;
 mod messages;
 mod settings;
+mod tags;
 pub mod wire;
 
 pub use crate::assets::*;
@@ -25,4 +26,5 @@ pub use crate::handshake::{
 };
 pub use crate::messages::*;
 pub use crate::settings::*;
+pub use crate::tags::{check_tag, check_tags, pool_name, qualifies, MAX_TAGS, MAX_TAG_BYTES};
 pub use crate::wire::MAX_FRAME_LIMIT;

@@ -52,6 +52,9 @@ pub struct JobSpec {
     /// the coordinator has, so a dependency always points to an older job and no cycle
     /// can form.
     pub after: Vec<JobId>,
+    /// Worker tags the job requires ([`check_tags`]): its tiles, confirmations
+    /// included, go only to workers that have every one of them. Empty: any worker.
+    pub require: Vec<String>,
 }
 
 /// The most jobs a job may wait for.
@@ -510,6 +513,8 @@ pub struct JobStatus {
     pub after: Vec<JobId>,
     /// Those of them not yet done, while it is [`JobState::Waiting`]; empty otherwise.
     pub waiting_for: Vec<JobId>,
+    /// The worker tags it requires, sorted (see [`JobSpec::require`]).
+    pub require: Vec<String>,
 }
 
 impl JobStatus {
@@ -567,6 +572,8 @@ pub struct WorkerStatus {
     pub host: String,
     /// Its files, as it last reported them; `None` before its first report.
     pub cache: Option<WorkerCache>,
+    /// Its tags, sorted, as its hello gave them: the jobs it may render.
+    pub tags: Vec<String>,
 }
 
 /// Which of the coordinator's secrets a peer proved: after a rotation, a peer still on

@@ -486,6 +486,22 @@ impl Farm {
         self.passes.insert(job, PassRun::new(passes));
     }
 
+    /// The worker tags the job requires (none: any worker), told before its tiles go
+    /// out ([`Farm::admit`], [`Farm::resume_job`]) as [`Event::RequireTags`]. The job
+    /// is not active then, so nothing is handed out and nothing follows.
+    pub fn require(&mut self, now: Millis, job: JobId, tags: &[String]) {
+        debug_assert!(
+            !self.tiles.is_active(job),
+            "requirements are told before a job's tiles go out"
+        );
+        let event = Event::RequireTags {
+            job,
+            tags: tags.to_vec(),
+        };
+        let actions = self.tiles.handle(now, event);
+        debug_assert!(actions.is_empty(), "{actions:?}");
+    }
+
     /// Hands out a job's tiles but `done` at once, without a submission: a job taken
     /// back after a restart or a retry.
     pub fn resume_job(
@@ -710,6 +726,12 @@ impl Farm {
         let mut end_recorded = None;
         match &event {
             lifecycle::Event::Deleted { job } => {
+                // Its requirements were held by id, for its runs: none is to come.
+                let forget = Event::RequireTags {
+                    job: *job,
+                    tags: Vec::new(),
+                };
+                self.tiles.handle(now, forget);
                 self.plans.remove(job);
                 self.passes.remove(job);
                 self.renderers.forget_job(*job);

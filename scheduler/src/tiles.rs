@@ -138,6 +138,7 @@ mod handout;
 mod job;
 mod liveness;
 mod policy;
+mod pools;
 mod results;
 mod sharded;
 mod worker;
@@ -225,6 +226,13 @@ pub struct Scheduler {
     /// in the order they fell out of use ([`Scheduler::forget_unused_scenes`]).
     forgetting: VecDeque<SceneHash>,
     counters: Counters,
+    /// The tags each job requires ([`Event::RequireTags`]), for the jobs that require
+    /// any: kept by id like a pause, so that they hold from before the job is
+    /// submitted and across its runs.
+    requirements: BTreeMap<JobId, pools::Tags>,
+    /// Each worker's tags ([`Event::WorkerTags`]), told before it joins; dropped when
+    /// it leaves.
+    worker_tags: BTreeMap<WorkerId, pools::Tags>,
 }
 
 /// What the scheduler has done since it started, for monitoring.
@@ -478,6 +486,10 @@ impl Scheduler {
             Event::RequeueTiles { job, tiles } => {
                 self.requeue_tiles(job, &tiles);
                 self.fill_all(&mut actions);
+            }
+            Event::RequireTags { job, tags } => self.set_requirements(job, tags, &mut actions),
+            Event::WorkerTags { worker, tags } => {
+                self.set_worker_tags(worker, tags, &mut actions);
             }
         }
         actions
@@ -768,6 +780,7 @@ impl Scheduler {
         let Some(w) = self.workers.remove(&worker) else {
             return;
         };
+        self.worker_tags.remove(&worker);
         self.credit_total -= w.credit as u64;
         self.hungry.remove(&worker);
         self.trim_seen();

@@ -558,6 +558,9 @@ fn status_line(s: &JobStatus) -> String {
     if let Some(eta) = s.eta_ms {
         line.push_str(&format!(", about {:.1} s left", eta as f64 / 1000.0));
     }
+    if !s.require.is_empty() {
+        line.push_str(&format!(", requires {}", s.require.join(", ")));
+    }
     line.push_str(&format!(
         "; {:?} by {} from {}, submitted {} UTC",
         s.name,

@@ -59,6 +59,12 @@ pub struct Args {
     /// workers): nothing altered survives unless both machines lie alike.
     #[arg(long, value_enum, default_value_t = VerifyArg::Sampled, value_name = "MODE")]
     verify: VerifyArg,
+    /// Render only on workers tagged NAME (`tessera worker --tag NAME`); repeat to
+    /// require several tags, all of which a worker must have. With none connected the
+    /// job waits (and says so); with --verify full it needs two such machines.
+    #[arg(long, value_name = "NAME", action = clap::ArgAction::Append,
+          value_parser = crate::args::parse_tag)]
+    require: Vec<String>,
     /// Wait for the job, showing progress, and write its image.
     #[arg(long)]
     wait: bool,
@@ -119,6 +125,8 @@ async fn submit_and_follow(args: Args) -> Result<()> {
         },
         frames,
         after: args.after,
+        require: protocol::check_tags(&args.require)
+            .map_err(|e| anyhow::anyhow!("--require: {e}"))?,
     };
     let json_out = args.common.json;
     // The output is checked before the farm spends anything on it.

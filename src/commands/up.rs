@@ -84,6 +84,7 @@ async fn up(args: Args) -> Result<()> {
         label: Default::default(),
         frames,
         after: Vec::new(),
+        require: Vec::new(),
     };
     let specs = vec![
         WorkerSpec {

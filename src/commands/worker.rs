@@ -33,6 +33,14 @@ pub struct Args {
     /// The most bytes of files kept in --cache-dir; the least recently used go first.
     #[arg(long, env = "TESSERA_CACHE_SIZE", value_name = "BYTES", default_value_t = 10 << 30)]
     cache_size: u64,
+    /// A tag of this worker (repeat for more, or in TESSERA_TAG separate them with
+    /// commas; in a config file an array): jobs submitted with `--require NAME` go only
+    /// to workers with every tag they require. Names: lowercase letters, digits, '.',
+    /// '_' and '-', starting with a letter or a digit, at most 64 characters; at most 32
+    /// tags.
+    #[arg(long = "tag", env = "TESSERA_TAG", value_name = "NAME", value_delimiter = ',',
+          action = clap::ArgAction::Append, value_parser = crate::args::parse_tag)]
+    tags: Vec<String>,
     /// Exit when standard input closes (used by `tessera up` for its children).
     #[arg(long, hide = true)]
     exit_on_stdin_eof: bool,
@@ -62,6 +70,7 @@ async fn work(a: Args, print_config: Option<String>) -> Result<()> {
         |n| n as usize,
     );
     let name = a.name.unwrap_or_else(default_worker_name);
+    let tags = protocol::check_tags(&a.tags).map_err(|e| anyhow::anyhow!("--tag: {e}"))?;
     let ready = Arc::new(AtomicBool::new(false));
     let _health = match a.daemon.http {
         Some(addr) => {
@@ -83,6 +92,7 @@ async fn work(a: Args, print_config: Option<String>) -> Result<()> {
             ready,
             cache_dir: a.cache_dir,
             cache_bytes: a.cache_size,
+            tags,
         },
         shutdown_signal(a.exit_on_stdin_eof),
     )

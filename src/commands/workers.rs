@@ -103,8 +103,13 @@ async fn list(coordinator: &Endpoint, json_out: bool) -> Result<()> {
             // workers whose token file is still to be replaced.
             let key = w.key.map_or(String::new(), |k| format!(", key {k}"));
             let cache = w.cache.as_ref().map_or(String::new(), cache_summary);
+            let tags = if w.tags.is_empty() {
+                String::new()
+            } else {
+                format!(", tags {}", w.tags.join(", "))
+            };
             println!(
-                "worker {} {} on {}: {}, {}/{} tiles in flight, {} done, {:.1} M rays/s{rtt}{cache}, build {}{key}{state}",
+                "worker {} {} on {}: {}, {}/{} tiles in flight, {} done, {:.1} M rays/s{rtt}{cache}, build {}{key}{tags}{state}",
                 w.id,
                 w.name,
                 w.host,

@@ -49,6 +49,8 @@ pub struct Config {
     /// anywhere, and how many bytes of them at most (`--cache-size`).
     pub cache_dir: Option<std::path::PathBuf>,
     pub cache_bytes: u64,
+    /// Its tags (checked and sorted): the pools it renders for, sent in its hello.
+    pub tags: Vec<String>,
 }
 
 /// The most triangles of meshes a worker keeps read and built between jobs.
@@ -205,6 +207,7 @@ async fn connect(config: &Config) -> (Option<KeyId>, Result<Conn, DialError>) {
         name: config.name.clone(),
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
         build: render::build_identity(),
+        tags: config.tags.clone(),
     };
     let conn = transport::dial_with(&config.coordinator, role, secret)
         .await

@@ -46,6 +46,7 @@ const ADDED_COLUMNS: &[(&str, &str, &str)] = &[
     ("jobs", "retried_ms", "INTEGER"),
     ("jobs", "assets", "TEXT NOT NULL DEFAULT '[]'"),
     ("jobs", "after_jobs", "TEXT NOT NULL DEFAULT '[]'"),
+    ("jobs", "required_tags", "TEXT NOT NULL DEFAULT '[]'"),
 ];
 
 /// Adds the columns of [`ADDED_COLUMNS`] that `conn`'s tables lack.

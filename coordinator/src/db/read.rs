@@ -139,7 +139,7 @@ pub(super) const JOB_COLUMNS: &str =
     state, error, sampler, target_milli, total_rays, total_samples, total_error_sq_sum,
     total_error_pixels, submitted_ms, started_ms, ended_ms, image_sha256, verification,
     time_limit_ms, stopped_on_time_limit, paused, name, submitter, submitted_from, frame,
-    last_frame, sequence, retried_ms, assets, after_jobs";
+    last_frame, sequence, retried_ms, assets, after_jobs, required_tags";
 
 fn bad(what: String) -> BadRow {
     BadRow { what, tile: None }
@@ -221,8 +221,16 @@ pub(super) fn read_job(r: &rusqlite::Row<'_>) -> Result<StoredJob, BadRow> {
     let after: String = r.get(33).map_err(field)?;
     let after: Vec<JobId> = serde_json::from_str(&after)
         .map_err(|e| bad(format!("job {id}: unreadable dependencies: {e}")))?;
+    let require: String = r.get(34).map_err(field)?;
+    let require: Vec<String> = serde_json::from_str(&require)
+        .map_err(|e| bad(format!("job {id}: unreadable required tags: {e}")))?;
+    // Checked as a submission's are: a row edited by hand cannot put a tag in that
+    // listings and metrics could not show.
+    let require =
+        protocol::check_tags(&require).map_err(|e| bad(format!("job {id}: required tags: {e}")))?;
     Ok(StoredJob {
         after,
+        require,
         assets,
         frame,
         last_frame,

@@ -53,6 +53,7 @@ pub(crate) fn job(id: JobId, sampling: Sampling) -> StoredJob {
             ..Times::default()
         },
         image_sha256: None,
+        require: vec!["gpu".into()],
         label: Label {
             name: format!("job {id}"),
             submitter: "ann@host".into(),

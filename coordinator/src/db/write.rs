@@ -20,9 +20,10 @@ impl Db {
                 "INSERT INTO jobs (id, scene, hash, width, height, aa, max_depth, tile_size,
                                    priority, state, error, sampler, target_milli, submitted_ms,
                                    verification, time_limit_ms, name, submitter, submitted_from,
-                                   frame, last_frame, sequence, assets, after_jobs)
+                                   frame, last_frame, sequence, assets, after_jobs,
+                                   required_tags)
                  VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16,
-                         ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24)",
+                         ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25)",
                 params![
                     job.id as i64,
                     job.scene,
@@ -49,6 +50,8 @@ impl Db {
                     serde_json::to_string(&job.assets).context("cannot write the scene files")?,
                     serde_json::to_string(&job.after)
                         .context("cannot write the job's dependencies")?,
+                    serde_json::to_string(&job.require)
+                        .context("cannot write the tags the job requires")?,
                 ],
             )
             .context("cannot store the job")?;

@@ -325,6 +325,9 @@ struct Submission {
     assets: Vec<PageAsset>,
     #[serde(default)]
     after: Vec<u64>,
+    /// Worker tags the job requires (checked by the coordinator as a submission's).
+    #[serde(default)]
+    require: Vec<String>,
 }
 
 #[derive(serde::Deserialize)]
@@ -415,6 +418,7 @@ pub async fn submit(
             last: f.last,
         }),
         after: s.after.clone(),
+        require: s.require.clone(),
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())
@@ -1217,7 +1221,8 @@ mod tests {
                 "openapi.json describes {method} {path}, which is not a route"
             );
         }
-        // Its bounds on the files and the jobs a request names are the protocol's.
+        // Its bounds on the files, the jobs and the tags a request names are the
+        // protocol's.
         for bound in OPENAPI.split("\"maxItems\": ").skip(1) {
             let n: usize = bound
                 .split(|c: char| !c.is_ascii_digit())
@@ -1226,12 +1231,20 @@ mod tests {
                 .parse()
                 .unwrap();
             assert!(
-                n == protocol::MAX_JOB_ASSETS || n == protocol::MAX_AFTER,
-                "a bound of {n} items, neither the protocol's files nor its jobs"
+                [
+                    protocol::MAX_JOB_ASSETS,
+                    protocol::MAX_AFTER,
+                    protocol::MAX_TAGS
+                ]
+                .contains(&n),
+                "maxItems {n}: none of the protocol's bounds"
             );
         }
-        let after = &document["components"]["schemas"]["Submission"]["properties"]["after"];
-        assert_eq!(after["maxItems"], protocol::MAX_AFTER);
+        let submission = &document["components"]["schemas"]["Submission"]["properties"];
+        assert_eq!(submission["after"]["maxItems"], protocol::MAX_AFTER);
+        assert_eq!(submission["require"]["maxItems"], protocol::MAX_TAGS);
+        let tag = &document["components"]["schemas"]["Tag"];
+        assert_eq!(tag["maxLength"], protocol::MAX_TAG_BYTES);
         // Every reference points at something.
         let text = OPENAPI;
         for reference in text.split("\"$ref\": \"#/").skip(1) {

@@ -737,6 +737,7 @@ async fn studio_submit(
         frame: 1,
         frames: None,
         after: Vec::new(),
+        require: Vec::new(),
     };
     match observer
         .control(ClientRequest::Submit(spec), peer.ip())

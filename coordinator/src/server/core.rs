@@ -35,6 +35,7 @@ mod effects;
 mod figures;
 mod names;
 mod passes;
+mod pools;
 mod quarantine;
 mod records;
 mod results;
@@ -71,6 +72,9 @@ pub struct Core {
     /// leases already in the jobs' event logs.
     leases_expired_seen: u64,
     expiries_logged: HashSet<(JobId, u32, WorkerId)>,
+    /// Rendering time of every result accepted since the start: the pace a job's
+    /// waiting work is estimated at before its own first result ([`pools`]).
+    measured: pools::Measured,
 }
 
 /// The daemon's clocks at one moment, passed in to the core: the decision core's
@@ -101,6 +105,7 @@ impl Core {
             leases_expired_seen: 0,
             expiries_logged: HashSet::new(),
             sequences: BTreeMap::new(),
+            measured: pools::Measured::default(),
         }
     }
 

@@ -188,6 +188,22 @@ pub(super) async fn handle_connection(
             anyhow::bail!(reason);
         }
     };
+    // A worker's tags name pools in listings, metrics and autoscalers' queries: one
+    // that breaks their grammar is refused before it joins, with the tag named.
+    let mut hello = hello;
+    if let Role::Worker { tags, .. } = &mut hello.role {
+        match protocol::check_tags(tags) {
+            Ok(sorted) => *tags = sorted,
+            Err(why) => {
+                let reason = format!("invalid worker tags: {why}");
+                let refusal = protocol::wire::encode(&Welcome::Refused {
+                    reason: reason.clone(),
+                });
+                let _ = framed.send(Bytes::from(refusal)).await;
+                anyhow::bail!(reason);
+            }
+        }
+    }
     let accepted = protocol::wire::encode(&Welcome::Accepted {
         version: protocol::PROTOCOL_VERSION,
     });
@@ -205,9 +221,16 @@ pub(super) async fn handle_connection(
             name,
             threads,
             build,
+            tags,
         } => {
             let framed = framed.map_codec(|_| MessageCodec::new(max_frame));
-            worker_session::serve(shared, framed, peer, name, threads, build, hold).await
+            let worker = worker_session::Joining {
+                name,
+                threads,
+                build,
+                tags,
+            };
+            worker_session::serve(shared, framed, peer, worker, hold).await
         }
     }
 }

@@ -141,6 +141,11 @@ pub struct JobView {
     pub frames: Option<FrameProgress>,
     /// The files its scene names.
     pub assets: protocol::JobAssets,
+    /// The worker tags it requires, sorted.
+    pub require: Vec<String>,
+    /// Why it cannot go on now, if so (its pool has no worker, or one machine only for
+    /// a job in full verification; or the farm's own warning).
+    pub warning: Option<String>,
 }
 
 #[derive(Serialize)]
@@ -158,6 +163,8 @@ pub struct WorkerView {
     pub unresponsive: bool,
     /// Its files, as it last reported them.
     pub cache: Option<protocol::WorkerCache>,
+    /// Its tags, sorted.
+    pub tags: Vec<String>,
 }
 
 /// An image for the page.
@@ -257,6 +264,8 @@ impl Observer {
                     error: s.error,
                     frames: s.frames,
                     assets: s.assets,
+                    require: s.require,
+                    warning: s.warning,
                 }
             })
             .collect();
@@ -276,6 +285,7 @@ impl Observer {
                 quarantined: s.quarantined.is_some(),
                 unresponsive: s.unresponsive,
                 cache: s.cache,
+                tags: s.tags,
             })
             .collect();
         let active = core
@@ -755,6 +765,7 @@ fn snapshot(core: &Core) -> Snapshot {
         tiles_in_flight: core.farm.tiles().tiles_in_flight() as i64,
         scheduler: core.farm.tiles().counters(),
         storage_available: core.farm.lifecycle().storage_down().is_none(),
+        pools: core.pool_figures(),
     }
 }
 

@@ -733,6 +733,7 @@ async fn submit_passes(
             frame: 1,
             frames: None,
             after: Vec::new(),
+            require: Vec::new(),
         };
         let limits = sh.limits;
         let files = bound.files.clone();

@@ -33,15 +33,28 @@ const WRITER_GRACE: Duration = Duration::from_secs(1);
 /// How long a worker may take to render the canary (a few milliseconds of work).
 const CANARY_TIMEOUT: Duration = Duration::from_secs(60);
 
+/// What a worker's hello says of it.
+pub(super) struct Joining {
+    pub(super) name: String,
+    pub(super) threads: u32,
+    pub(super) build: String,
+    /// Checked and sorted by the handshake.
+    pub(super) tags: Vec<String>,
+}
+
 pub(super) async fn serve(
     shared: Arc<Shared>,
     mut conn: WorkerConn,
     peer: std::net::IpAddr,
-    name: String,
-    threads: u32,
-    build: String,
+    joining: Joining,
     mut hold: Option<KeyHold>,
 ) -> Result<()> {
+    let Joining {
+        name,
+        threads,
+        build,
+        tags,
+    } = joining;
     match canary(&shared, &mut conn, &build).await {
         Ok(()) => {}
         Err(CanaryFailure::Refused(reason)) => {
@@ -70,6 +83,7 @@ pub(super) async fn serve(
         Arc::clone(&dropped),
     );
     record.key = hold.clone();
+    record.tags = tags;
     // The name it joins under: unique among the connected workers.
     let (worker, name) = shared.lock().join(&shared, record);
     let key = hold

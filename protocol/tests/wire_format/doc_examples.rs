@@ -60,6 +60,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                     name: "w1".into(),
                     threads: 4,
                     build: "b".into(),
+                    tags: vec!["gpu".into()],
                 },
                 nonce: peer_nonce(),
                 key: None,
@@ -99,6 +100,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 frames: None,
                 assets: Vec::new(),
                 after: Vec::new(),
+                require: vec!["gpu".into()],
             })),
         ),
         ("Status", message_frame(&ClientRequest::Status { job: 7 })),
@@ -135,6 +137,7 @@ fn examples() -> Vec<(&'static str, Vec<u8>)> {
                 },
                 after: Vec::new(),
                 waiting_for: Vec::new(),
+                require: vec!["gpu".into()],
             })),
         ),
         (

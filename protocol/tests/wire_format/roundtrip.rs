@@ -146,12 +146,13 @@ prop_compose! {
                   name in text(), frame in any::<u32>(),
                   frames in prop::option::of(frame_range()),
                   assets in prop::collection::vec(asset_ref(), 0..3),
-                  after in prop::collection::vec(any::<u64>(), 0..4))
+                  after in prop::collection::vec(any::<u64>(), 0..4),
+                  require in prop::collection::vec(text(), 0..3))
                  -> JobSpec {
         let verification = if full { Verification::Full } else { Verification::Sampled };
         JobSpec {
             scene, overrides, priority, verification, time_limit_ms,
-            name: name.clone(), submitter: name, frame, frames, assets, after,
+            name: name.clone(), submitter: name, frame, frames, assets, after, require,
         }
     }
 }
@@ -246,6 +247,7 @@ prop_compose! {
         asset_files in any::<u32>(), asset_bytes in any::<u64>(),
         after in prop::collection::vec(any::<u64>(), 0..4),
         waiting_for in prop::collection::vec(any::<u64>(), 0..4),
+        require in prop::collection::vec(text(), 0..3),
     ) -> JobStatus {
         JobStatus {
             id, state, settings, priority, tiles_done, tiles_total, rays, elapsed_ms,
@@ -253,6 +255,7 @@ prop_compose! {
             paused, warning, name, submitter, submitted_from, submitted_unix_ms, queued_ms,
             frame, frames, sequence,
             assets: JobAssets { files: asset_files, bytes: asset_bytes }, after, waiting_for,
+            require,
         }
     }
 }
@@ -266,7 +269,7 @@ prop_compose! {
         credit in any::<u32>(), draining in any::<bool>(), disabled in any::<bool>(),
         unresponsive in any::<bool>(),
         key in prop::option::of((any::<[u8; 4]>(), any::<bool>())), host in text(),
-        cache in prop::option::of(worker_cache()),
+        cache in prop::option::of(worker_cache()), tags in prop::collection::vec(text(), 0..3),
     ) -> WorkerStatus {
         let key = key.map(|(id, current)| PeerKey {
             id: KeyId(id),
@@ -275,7 +278,7 @@ prop_compose! {
         WorkerStatus {
             id, name, threads, tiles_in_flight, tiles_done, rays, connected_ms,
             rays_per_second, build, quarantined, rtt_us, credit, draining, disabled,
-            unresponsive, key, host, cache,
+            unresponsive, key, host, cache, tags,
         }
     }
 }
@@ -549,11 +552,20 @@ fn client_response() -> impl Strategy<Value = ClientResponse> {
 fn role() -> impl Strategy<Value = Role> {
     prop_oneof![
         Just(Role::Client),
-        (text(), any::<u32>(), text()).prop_map(|(name, threads, build)| Role::Worker {
-            name,
-            threads,
-            build
-        }),
+        (
+            text(),
+            any::<u32>(),
+            text(),
+            prop::collection::vec(text(), 0..3)
+        )
+            .prop_map(|(name, threads, build, tags)| {
+                Role::Worker {
+                    name,
+                    threads,
+                    build,
+                    tags,
+                }
+            }),
     ]
 }
 
@@ -1013,14 +1025,16 @@ fn a_tile_names_its_frame_after_the_scene_hash() {
         frames: None,
         assets: Vec::new(),
         after: Vec::new(),
+        require: Vec::new(),
     };
     let bytes = wire::encode(&ClientRequest::Submit(spec.clone()));
-    // The frame, the range (`None`: one byte 0), then the files and the jobs it waits
-    // for (none: lengths of 8 zero bytes each) are the JobSpec's last fields.
-    let end = bytes.len() - 16;
+    // The frame, the range (`None`: one byte 0), then the files, the jobs it waits for
+    // and the requirements (none: a length of 8 zero bytes each) are the JobSpec's
+    // last fields.
+    let end = bytes.len() - 24;
     assert_eq!(bytes[end - 5..end - 1], 17u32.to_le_bytes());
     assert_eq!(bytes[end - 1], 0);
-    assert_eq!(bytes[end..], [0; 16]);
+    assert_eq!(bytes[end..], [0; 24]);
     let back: ClientRequest = wire::decode(&bytes).unwrap();
     assert_eq!(back, ClientRequest::Submit(spec));
 }
@@ -1133,6 +1147,7 @@ fn nan_rates_keep_their_bits() {
         key: None,
         host: "127.0.0.1".into(),
         cache: None,
+        tags: Vec::new(),
     };
     let bytes = wire::encode(&ClientResponse::Workers(vec![status]));
     let ClientResponse::Workers(back) = wire::decode(&bytes).unwrap() else {
@@ -1211,6 +1226,7 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
             frames: None,
             assets: Vec::new(),
             after: Vec::new(),
+            require: Vec::new(),
         }))
     };
     let mut tagged = submit(Overrides::default());
@@ -1225,8 +1241,8 @@ fn decoding_errors_name_the_message_and_the_problem_in_one_line() {
     });
     // The Sampling variant, before the priority, verification, time limit, the name
     // and submitter (two empty strings: their lengths), the frame, the range, the
-    // files and the jobs it waits for (none: their lengths).
-    let at = nested.len() - 13 - 16 - 4 - 1 - 8 - 8;
+    // files, the jobs it waits for and the requirements (none: their lengths).
+    let at = nested.len() - 13 - 16 - 4 - 1 - 8 - 8 - 8;
     nested[at] = 7;
     assert_eq!(
         decode_error::<ClientRequest>(&nested),

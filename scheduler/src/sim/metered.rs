@@ -11,7 +11,7 @@ use crate::farm::{Effect, Farm, Input, TilePlan};
 use crate::lifecycle;
 use crate::tiles::{Action, Event, Millis};
 
-pub(super) const EVENT_KINDS: [&str; 22] = [
+pub(super) const EVENT_KINDS: [&str; 24] = [
     "Timeout",
     "WorkerJoined",
     "Heartbeat",
@@ -34,6 +34,8 @@ pub(super) const EVENT_KINDS: [&str; 22] = [
     "RequeueTiles",
     "Interactive",
     "Continue",
+    "RequireTags",
+    "WorkerTags",
 ];
 
 fn kind_of(event: &Event) -> usize {
@@ -60,6 +62,8 @@ fn kind_of(event: &Event) -> usize {
         Event::RequeueTiles { .. } => 19,
         Event::Interactive { .. } => 20,
         Event::Continue => 21,
+        Event::RequireTags { .. } => 22,
+        Event::WorkerTags { .. } => 23,
     }
 }
 

@@ -154,10 +154,13 @@ impl Scheduler {
     pub(super) fn give_up_confirmations(&mut self, actions: &mut Vec<Action>) {
         let mut finished = Vec::new();
         let mut reranked = Vec::new();
+        // Only machines that meet a job's requirements may confirm its tiles.
+        let ready_by_job = self.ready_by_job();
         for (&id, job) in &mut self.jobs {
             if job.held.is_empty() {
                 continue;
             }
+            let ready = ready_by_job.get(&id).unwrap_or(&self.ready);
             let before = job.rank(id);
             let accepted: Vec<u32> = job
                 .held
@@ -165,7 +168,7 @@ impl Scheduler {
                 .filter(|&(&t, (from, required))| {
                     !required
                         && job.live_leases(t) == 0
-                        && !self.ready.keys().any(|m| {
+                        && !ready.keys().any(|m| {
                             m != from
                                 && !job.blocked.contains(m)
                                 && job.failures.get(&t).is_none_or(|(_, on)| !on.contains(m))

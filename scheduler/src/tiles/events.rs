@@ -140,6 +140,21 @@ pub enum Event {
     ///
     /// [`Scheduler::has_more`]: super::Scheduler::has_more
     Continue,
+    /// The job's tiles (confirmations included) go only to workers that have every
+    /// one of `tags`; none: to any worker. Held by id like a pause: told before
+    /// `JobSubmitted` (or a resumed job), it holds from its first tile, and across the
+    /// runs of a job rendered in several, until told again.
+    RequireTags {
+        job: JobId,
+        tags: Vec<String>,
+    },
+    /// The worker's tags: told just before its `WorkerJoined`, so that its first tiles
+    /// already follow them. Told again for a connected worker, the tiles it holds of
+    /// jobs it no longer qualifies for go back to the queue.
+    WorkerTags {
+        worker: WorkerId,
+        tags: Vec<String>,
+    },
 }
 
 /// What the daemon must do.

@@ -8,6 +8,7 @@ use std::ops::Bound::{Excluded, Unbounded};
 
 use protocol::{JobId, SceneHash, WorkerId};
 
+use super::pools::meets;
 use super::{Action, Lease, Scheduler};
 
 /// At most this many tiles in a row go to interactive jobs while batch tiles wait.
@@ -219,6 +220,8 @@ impl Scheduler {
     /// a straggler to duplicate.
     fn next_tile(&mut self, worker: WorkerId) -> Option<(JobId, u32)> {
         let machine = &self.workers.get(&worker)?.machine;
+        let tags = self.worker_tags.get(&worker);
+        let requirements = &self.requirements;
         // Interactive jobs first; after a run of them, batch jobs first for one tile.
         let first_interactive = self.interactive_run < INTERACTIVE_RUN;
         for first in [true, false] {
@@ -227,7 +230,10 @@ impl Scheduler {
                 if first && job.interactive != first_interactive {
                     continue;
                 }
-                if self.paused.contains(&id) || job.blocked.contains(machine) {
+                if self.paused.contains(&id)
+                    || job.blocked.contains(machine)
+                    || !meets(tags, requirements.get(&id))
+                {
                     continue;
                 }
                 if let Some(tile) = job.take_waiting_for(worker, machine) {
@@ -246,7 +252,11 @@ impl Scheduler {
         let holding = &self.workers.get(&worker)?.holding;
         self.order.iter().find_map(|&(_, _, id)| {
             let job = &self.jobs[&id];
-            if self.paused.contains(&id) || job.blocked.contains(machine) || job.queued > 0 {
+            if self.paused.contains(&id)
+                || job.blocked.contains(machine)
+                || job.queued > 0
+                || !meets(tags, requirements.get(&id))
+            {
                 return None;
             }
             job.straggler_for(worker, machine)

@@ -247,17 +247,29 @@ impl Scheduler {
     pub(super) fn check_stalls(&mut self, actions: &mut Vec<Action>) {
         let now = self.now;
         let mut failed = Vec::new();
+        // A job with requirements counts only the ready machines that meet them; with
+        // none of them connected it waits, as any job does with no worker at all.
+        let ready_by_job = self.ready_by_job();
         for (&id, job) in &mut self.jobs {
             if self.paused.contains(&id) {
                 job.stalled_since = None;
                 continue;
             }
-            match job.stalled_tile(&self.ready, self.policy.max_attempts) {
+            let ready = ready_by_job.get(&id).unwrap_or(&self.ready);
+            match job.stalled_tile(ready, self.policy.max_attempts) {
                 None => job.stalled_since = None,
                 Some(tile) => {
                     let since = *job.stalled_since.get_or_insert(now);
                     if now - since >= self.policy.stall_timeout {
-                        let message = job.stall_message(tile, &self.ready, self.policy.block_after);
+                        let mut message = job.stall_message(tile, ready, self.policy.block_after);
+                        if let Some(require) = self.requirements.get(&id) {
+                            let tags: Vec<&str> = require.iter().map(String::as_str).collect();
+                            message.push_str(&format!(
+                                " (counting only the machines with every tag the job \
+                                 requires: {})",
+                                tags.join(", ")
+                            ));
+                        }
                         failed.push((id, message));
                     }
                 }

@@ -7,6 +7,7 @@
 mod farm_props;
 mod lifecycle_props;
 mod liveness_props;
+mod pools_props;
 mod reference;
 mod scheduler_props;
 mod sim;

@@ -998,6 +998,8 @@ impl Farm {
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
             | Event::RequeueTiles { .. }
+            | Event::RequireTags { .. }
+            | Event::WorkerTags { .. }
             | Event::Interactive { .. }
             | Event::Continue => {
                 unreachable!(
@@ -3407,6 +3409,8 @@ fn reference_event(event: &Event) -> reference::Event {
         | Event::DisableMachine { .. }
         | Event::EnableMachine { .. }
         | Event::RequeueTiles { .. }
+        | Event::RequireTags { .. }
+        | Event::WorkerTags { .. }
         | Event::Interactive { .. }
         | Event::Continue => {
             unreachable!(
@@ -3515,6 +3519,8 @@ impl Twin {
             | Event::DisableMachine { .. }
             | Event::EnableMachine { .. }
             | Event::RequeueTiles { .. }
+            | Event::RequireTags { .. }
+            | Event::WorkerTags { .. }
             | Event::Interactive { .. }
             | Event::Continue => {
                 unreachable!(

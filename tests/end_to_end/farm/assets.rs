@@ -145,6 +145,7 @@ fn an_upload_resumes_across_a_coordinator_restart_and_a_lie_is_refused() {
             frames: None,
             assets: Vec::new(),
             after: Vec::new(),
+            require: Vec::new(),
         };
         client
             .submit_with_files(spec, std::slice::from_ref(&file))

@@ -70,6 +70,7 @@ fn a_farm_renders_triangles_boxes_and_meshes_as_render_does() {
                     frames: None,
                     assets: Vec::new(),
                     after: Vec::new(),
+                    require: Vec::new(),
                 })
                 .await
         })

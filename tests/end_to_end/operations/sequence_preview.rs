@@ -64,6 +64,7 @@ fn submit(addr: &str, frames: Option<FrameRange>) -> JobId {
         frames,
         assets: Vec::new(),
         after: Vec::new(),
+        require: Vec::new(),
     };
     runtime().block_on(async {
         let mut client = Client::connect(&Endpoint::plain(addr)).await.unwrap();

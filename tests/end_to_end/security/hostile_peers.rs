@@ -279,6 +279,7 @@ fn lying_worker(addr: &str) -> String {
         name: "liar".into(),
         threads: 1,
         build: render::build_identity(),
+        tags: Vec::new(),
     });
     send_frame(&mut stream, &hello.to_frame());
     match read_welcome(&mut stream, what) {

@@ -191,6 +191,7 @@ async fn serve(
         name,
         threads: 1,
         build,
+        tags: Vec::new(),
     };
     let (io, early) = match source {
         None => {

@@ -161,7 +161,7 @@ pub(super) async fn refine(
             "the coordinator is shutting down: refine again when it is back",
         ));
     }
-    let (old, tile_size, priority, verification, hash, name, submitter, frame, assets) = {
+    let (old, tile_size, priority, verification, hash, name, submitter, frame, assets, require) = {
         let core = sh.lock();
         let Some(status) = core.status(job) else {
             return Ok(unknown_job(job));
@@ -192,6 +192,8 @@ pub(super) async fn refine(
             status.submitter.clone(),
             status.frame,
             record.assets.to_vec(),
+            // A refinement renders in the pool the job did.
+            record.require.clone(),
         )
     };
     let aa = aa.unwrap_or(old.aa);
@@ -236,6 +238,7 @@ pub(super) async fn refine(
             assets,
             // A refinement is a job of its own, waiting for nothing.
             after: Vec::new(),
+            require,
         };
         let files = shared
             .mesh_files(&spec.assets)
@@ -298,6 +301,8 @@ pub(in crate::server) fn prepare(
     files: &render::MeshFiles,
 ) -> Result<Prepared, Refusal> {
     limits.check_scene_bytes(spec.scene.len())?;
+    let require = protocol::check_tags(&spec.require)
+        .map_err(|e| Refusal::invalid(format!("require: {e}")))?;
     // The frame is checked with the scene: a frame it does not have is refused in the
     // loader's one line ("frame 122 is beyond the scene's 121 frames"). Image settings
     // are not animated, so the base scene's are every frame's.
@@ -412,6 +417,7 @@ pub(in crate::server) fn prepare(
         frame_count: frames,
         assets: spec.assets,
         after: spec.after,
+        require,
     })
 }
 

@@ -46,6 +46,8 @@ impl Core {
                 .farm
                 .admit_after(now, &prepared.request, plan, &prepared.after)?,
         };
+        // Before its row is written, hence before any of its tiles goes out.
+        self.farm.require(now, id, &prepared.require);
         let adaptive = is_adaptive(&prepared.settings).then(|| {
             let (adaptive, passes) = AdaptiveJob::new(
                 &prepared.settings,
@@ -82,6 +84,7 @@ impl Core {
             paused: false,
             after: prepared.after.clone(),
             label: prepared.label.clone(),
+            require: prepared.require.clone(),
         };
         self.jobs.insert(
             id,
@@ -116,6 +119,8 @@ impl Core {
                 tiles_per_worker: BTreeMap::new(),
                 image_sha256: None,
                 after: prepared.after,
+                require: prepared.require,
+                measured: Default::default(),
             },
         );
         self.submits.insert(id, reply);
@@ -264,6 +269,8 @@ impl Core {
             tiles_per_worker: BTreeMap::new(),
             image_sha256: stored.image_sha256,
             after: stored.after.clone(),
+            require: stored.require.clone(),
+            measured: Default::default(),
         };
         // Before the job is taken back: what it waits for decides whether its tiles go
         // out, and a job that depends on it keeps it from being deleted.
@@ -375,6 +382,8 @@ impl Core {
                 },
             );
         }
+        self.farm
+            .require(self.now.mono, id, &self.jobs[&id].require);
         let effects = self.farm.resume_job(self.now.mono, id, plan, &done);
         let renderers: Vec<(u32, &str)> = self.jobs[&id]
             .accepted

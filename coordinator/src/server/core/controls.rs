@@ -184,7 +184,9 @@ impl Core {
             status.state = JobState::Waiting;
             status.waiting_for = on.iter().copied().collect();
         } else if !status.state.is_final() {
-            status.warning = self.no_worker_warning();
+            status.warning = self
+                .no_worker_warning()
+                .or_else(|| self.pool_warning(&record.require, record.verification));
         }
         Some(status)
     }

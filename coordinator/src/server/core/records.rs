@@ -84,6 +84,11 @@ pub struct JobRecord {
     pub label: Label,
     /// Where its event log stands.
     pub log: EventLog,
+    /// The worker tags it requires, sorted: its tiles go only to workers with them all.
+    pub require: Vec<String>,
+    /// Its results accepted in this run of the coordinator: what its waiting work is
+    /// estimated from.
+    pub measured: super::pools::Measured,
 }
 
 impl JobRecord {
@@ -231,6 +236,7 @@ impl JobRecord {
             assets: protocol::JobAssets::of(&self.assets),
             after: self.after.clone(),
             waiting_for: Vec::new(),
+            require: self.require.clone(),
         }
     }
 }
@@ -359,6 +365,8 @@ pub struct Prepared {
     pub frame_count: u32,
     /// The jobs it waits for (`JobSpec::after`).
     pub after: Vec<JobId>,
+    /// The worker tags it requires, checked and sorted.
+    pub require: Vec<String>,
 }
 
 /// A connected worker.
@@ -399,6 +407,8 @@ pub struct WorkerRecord {
     pub key: Option<KeyHold>,
     /// Its files, as it last reported them.
     pub cache: Option<protocol::WorkerCache>,
+    /// Its tags, sorted, as its hello gave them (checked): the pools it renders for.
+    pub tags: Vec<String>,
 }
 
 /// A worker's rays per second are those of its results of this last while, over the
@@ -439,6 +449,7 @@ impl WorkerRecord {
             pace: None,
             key: None,
             cache: None,
+            tags: Vec::new(),
         }
     }
 
@@ -521,6 +532,7 @@ impl WorkerRecord {
             unresponsive: false,
             key: self.key.as_ref().and_then(KeyHold::peer_key),
             cache: self.cache.clone(),
+            tags: self.tags.clone(),
         }
     }
 }

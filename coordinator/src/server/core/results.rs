@@ -549,6 +549,10 @@ impl Core {
             w.rays += cost.rays;
             w.count_result(self.now.instant, cost.render_us, cost.rays);
         }
+        self.measured.add(cost.render_us, cost.samples);
+        if let Some(record) = self.jobs.get_mut(&job) {
+            record.measured.add(cost.render_us, cost.samples);
+        }
         self.log(
             sh,
             job,

@@ -56,6 +56,8 @@ pub struct SequenceRecord {
     ended_totals: Totals,
     /// Who hears once an operator's deletion is done.
     deleted: Option<oneshot::Sender<()>>,
+    /// The worker tags every frame job requires.
+    pub require: Vec<String>,
 }
 
 impl Core {
@@ -114,6 +116,7 @@ impl Core {
             paused: false,
             label: prepared.label.clone(),
             after: Vec::new(),
+            require: prepared.require.clone(),
         };
         let run = SequenceRun::new(range.first, range.last, prepared.tiles.len() as u32);
         self.farm.enter_sequence(id, run);
@@ -135,6 +138,7 @@ impl Core {
                 last_refusal: None,
                 ended_totals: Totals::default(),
                 deleted: None,
+                require: prepared.require,
             },
         );
         self.submits.insert(id, reply);
@@ -230,6 +234,7 @@ impl Core {
                 last_refusal: None,
                 ended_totals: Totals::default(),
                 deleted: None,
+                require: stored.require,
             },
         );
     }
@@ -368,6 +373,7 @@ impl Core {
             frame_count: record.frame_count,
             assets: record.assets.to_vec(),
             after: Vec::new(),
+            require: record.require.clone(),
         };
         // The answer goes to the sequence (the core tells it), not to a client.
         let (reply, _) = oneshot::channel();

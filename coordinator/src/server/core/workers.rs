@@ -62,7 +62,7 @@ impl Core {
             self.tiles_event(sh, Event::WorkerLeft { worker: old });
         }
         record.name = naming.name(&record.name).to_owned();
-        let (threads, name) = (record.threads, record.name.clone());
+        let (threads, name, tags) = (record.threads, record.name.clone(), record.tags.clone());
         if let Some(reason) = self.quarantined.get(&name) {
             warn!(worker = id, %name, "a quarantined machine joined: it gets no tile");
             record.quarantined = Some(reason.clone());
@@ -71,7 +71,14 @@ impl Core {
         // suffixed).
         let _ = record.outbox.send(ToWorker::Joined { name: name.clone() });
         self.workers.insert(id, record);
-        self.announce_worker(sh, id, "joined", serde_json::json!({ "threads": threads }));
+        self.announce_worker(
+            sh,
+            id,
+            "joined",
+            serde_json::json!({ "threads": threads, "tags": tags }),
+        );
+        // Its tags first: its first tiles already follow them.
+        self.tiles_event(sh, Event::WorkerTags { worker: id, tags });
         self.tiles_event(
             sh,
             Event::WorkerJoined {

@@ -80,7 +80,10 @@ impl Core {
             stopped_on_time_limit: false,
             paused: frames_of.paused() && !state.is_final(),
             warning: (!state.is_final())
-                .then(|| self.no_worker_warning())
+                .then(|| {
+                    self.no_worker_warning()
+                        .or_else(|| self.pool_warning(&record.require, record.verification))
+                })
                 .flatten(),
             name: record.label.name.clone(),
             submitter: record.label.submitter.clone(),
@@ -104,6 +107,7 @@ impl Core {
             assets: protocol::JobAssets::of(&record.assets),
             after: Vec::new(),
             waiting_for: Vec::new(),
+            require: record.require.clone(),
         })
     }
 
