@@ -348,9 +348,9 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
     let dir = TempDir::new().unwrap();
     let d = dir.path();
     let (_coordinator, addr) = crate::support::start_coordinator_in(d);
-    // A version 12 client hello: magic, version, role Client, a nonce, no key.
+    // A version 13 client hello: magic, version, role Client, a nonce, no key.
     let mut hello = b"TSRA".to_vec();
-    hello.extend(12u16.to_le_bytes());
+    hello.extend(13u16.to_le_bytes());
     hello.extend(0u32.to_le_bytes());
     hello.extend([0u8; 32]);
     hello.push(0);
@@ -367,11 +367,11 @@ fn a_peer_of_the_previous_protocol_version_is_refused_with_one_line() {
         reason,
         format!(
             "protocol version mismatch: this coordinator speaks version {}, the peer speaks \
-             version 12",
+             version 13",
             protocol::PROTOCOL_VERSION
         )
     );
-    assert_eq!(protocol::PROTOCOL_VERSION, 13);
+    assert_eq!(protocol::PROTOCOL_VERSION, 14);
     let mut rest = [0; 16];
     assert_eq!(
         stream.read(&mut rest).ok(),
