@@ -121,7 +121,7 @@ impl Db {
     }
 
     /// The latest event id issued (kept or trimmed since), 0 before the first.
-    fn last_issued_farm_event(&self) -> Result<u64> {
+    pub(super) fn last_issued_farm_event(&self) -> Result<u64> {
         let issued: Option<i64> = self
             .conn
             .query_row(

@@ -33,15 +33,7 @@ impl Db {
     /// after the last farm event recorded (it is told of the ends from now on), and
     /// that start is recorded.
     pub fn webhook_cursors(&self, urls: &[String]) -> Result<Vec<u64>> {
-        let last: Option<i64> = self
-            .conn
-            .query_row(
-                "SELECT seq FROM sqlite_sequence WHERE name = 'farm_events'",
-                [],
-                |r| r.get(0),
-            )
-            .optional()
-            .context("cannot read the farm's last event id")?;
+        let last = self.last_issued_farm_event()?;
         let mut cursors = Vec::with_capacity(urls.len());
         for url in urls {
             let key = key(url);
@@ -57,9 +49,8 @@ impl Db {
             let cursor = match kept {
                 Some(cursor) => cursor.max(0) as u64,
                 None => {
-                    let start = last.unwrap_or(0).max(0) as u64;
-                    self.set_webhook_cursor(url, start)?;
-                    start
+                    self.set_webhook_cursor(url, last)?;
+                    last
                 }
             };
             cursors.push(cursor);

@@ -421,16 +421,8 @@ async fn job_events(
 /// limit, 503 for what may work later, 500 for what the coordinator failed at), and
 /// the body is `{"error": MESSAGE, "kind": KIND}`.
 fn refused(why: Refusal) -> Response {
-    let code = match why.kind {
-        RefusalKind::Invalid => StatusCode::UNPROCESSABLE_ENTITY,
-        RefusalKind::NotFound => StatusCode::NOT_FOUND,
-        RefusalKind::State => StatusCode::CONFLICT,
-        RefusalKind::Limit => StatusCode::TOO_MANY_REQUESTS,
-        RefusalKind::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
-        RefusalKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
-    };
-    let body = serde_json::json!({ "error": why.message, "kind": why.kind.as_str() });
-    (code, Json(body)).into_response()
+    // The API's mapping: the pages' routes and `/api/v1` answer a refusal alike.
+    api::Failure::from(why).into_response()
 }
 
 /// Whether the request's `If-None-Match` names `tag`: the page has it already.

@@ -27,16 +27,7 @@ const MIB: usize = 1 << 20;
 /// `METHOD PATH` with the token and `body` (raw bytes for a PUT, JSON otherwise): the
 /// status and the body's JSON (`null` when it is not JSON).
 fn call(site: &Site, method: &str, path: &str, body: &[u8]) -> (u16, Value) {
-    let auth = format!("Bearer {TOKEN}");
-    let kind = if method == "PUT" {
-        "application/octet-stream"
-    } else {
-        "application/json"
-    };
-    let headers = [("Authorization", auth.as_str()), ("Content-Type", kind)];
-    let answer = site
-        .request(method, path, &headers, body, Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("no answer to {method} {path}"));
+    let answer = site.api(TOKEN, method, path, body);
     (
         answer.status,
         serde_json::from_slice(&answer.body).unwrap_or(Value::Null),

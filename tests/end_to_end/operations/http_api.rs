@@ -40,15 +40,7 @@ fn coordinator(dir: &Path, extra: &[&str]) -> (crate::support::Daemon, String, S
 
 /// `METHOD PATH` with the token, a JSON body (or raw bytes for a PUT).
 fn call(site: &Site, method: &str, path: &str, body: &[u8]) -> Answer {
-    let auth = format!("Bearer {TOKEN}");
-    let kind = if method == "PUT" {
-        "application/octet-stream"
-    } else {
-        "application/json"
-    };
-    let headers = [("Authorization", auth.as_str()), ("Content-Type", kind)];
-    site.request(method, path, &headers, body, Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("no answer to {method} {path}"))
+    site.api(TOKEN, method, path, body)
 }
 
 /// [`call`], which must answer `status` with JSON: the JSON.

@@ -105,6 +105,22 @@ fn exchange(mut stream: impl Read + Write, request: &[u8]) -> Option<Vec<u8>> {
     }
 }
 
+impl Site {
+    /// `METHOD PATH` of the API (`/api/v1`) with the client token `token` and `body`:
+    /// raw bytes for a `PUT` (an upload), JSON otherwise. Panics if nothing answers.
+    pub fn api(&self, token: &str, method: &str, path: &str, body: &[u8]) -> Answer {
+        let auth = format!("Bearer {token}");
+        let kind = if method == "PUT" {
+            "application/octet-stream"
+        } else {
+            "application/json"
+        };
+        let headers = [("Authorization", auth.as_str()), ("Content-Type", kind)];
+        self.request(method, path, &headers, body, Duration::from_secs(30))
+            .unwrap_or_else(|| panic!("no answer to {method} {path}"))
+    }
+}
+
 /// What an HTTP server answered.
 pub struct Answer {
     pub status: u16,
