@@ -206,21 +206,26 @@ def _mesh_triangles(mesh):
     return verts, tris
 
 
-def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=None,
-                 flat=False):
-    """Writes ``directory/name`` and its PLY files for the scene as evaluated by
-    ``depsgraph``. Returns (scene dict, list of warnings).
+def _instance_key(inst):
+    """A name for an object instance that stays the same from frame to frame."""
+    ob = inst.object
+    name = ob.original.name if hasattr(ob, "original") else ob.name
+    if getattr(inst, "is_instance", False):
+        parent = inst.parent.original.name if inst.parent is not None else ""
+        return "%s/%s/%s" % (parent, name, tuple(inst.persistent_id))
+    return name
 
-    object_colors: optional {object name: (r, g, b)} used as-is (0..1, Tessera values)
-    instead of materials. flat: ambient 1 and no lights (a mask render)."""
-    warnings = []
-    warn = warnings.append
-    store = MeshStore(directory)
+
+def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
+    """The scene as evaluated by ``depsgraph``: (scene dict, keys) where keys[i] names
+    what ``objects[i]`` or ``lights[i]`` came from: ("object", key) / ("light", key).
+    Mesh files are written through ``store``."""
     r = scene.render
     width = int(r.resolution_x * r.resolution_percentage / 100)
     height = int(r.resolution_y * r.resolution_percentage / 100)
     out = {"image": {"width": width, "height": height, "aa": 1, "max_depth": 10},
            "ambient": 1.0 if flat else 0.2, "lights": [], "objects": []}
+    keys = {"objects": [], "lights": []}
     if r.pixel_aspect_x != r.pixel_aspect_y:
         warn("non-square pixels (pixel aspect %g:%g) are not supported" % (r.pixel_aspect_x, r.pixel_aspect_y))
 
@@ -230,12 +235,13 @@ def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=N
         cam_eval = cam.evaluated_get(depsgraph)
         pos, look, up = camera_vectors(cam_eval.matrix_world)
         c = {"position": fmt(pos), "look_at": fmt(look), "up": fmt(up)}
+        camd = cam_eval.data
         if camd.type == "PERSP":
             c["fov"] = camera_fov(camd.lens, camd.sensor_width, camd.sensor_height,
                                   camd.sensor_fit, width, height,
                                   r.pixel_aspect_x, r.pixel_aspect_y)
         else:
-            warn("camera %s: %s projection is not supported (exported as perspective 50 mm)"
+            warn("camera %s: %s projection is not supported (exported as perspective)"
                  % (cam.name, camd.type))
         if camd.shift_x or camd.shift_y:
             warn("camera %s: lens shift is not supported (ignored)" % cam.name)
@@ -255,6 +261,7 @@ def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=N
             m = inst.matrix_world
             out["lights"].append({"position": fmt(to_tessera((m[0][3], m[1][3], m[2][3]))),
                                   "color": fmt(light_color(light.color, light.energy))})
+            keys["lights"].append(_instance_key(inst))
             continue
         if ob.type not in MESH_LIKE:
             continue
@@ -275,8 +282,128 @@ def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=N
         out["objects"].append({"type": "mesh", "file": file,
                                "color": fmt(tuple(rgb) + (special,)),
                                "transform": {"matrix": fmt(matrix_to_tessera(inst.matrix_world))}})
+        keys["objects"].append(_instance_key(inst))
+    return out, keys
 
-    path = os.path.join(directory, name)
-    with open(path, "w") as f:
+
+def _dedupe_warnings(warnings):
+    seen, out = set(), []
+    for w in warnings:
+        if w not in seen:
+            seen.add(w)
+            out.append(w)
+    return out
+
+
+def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=None,
+                 flat=False):
+    """Writes ``directory/name`` and its PLY files for the scene as evaluated by
+    ``depsgraph``. Returns (scene dict, list of warnings).
+
+    object_colors: optional {object name: (r, g, b)} used as-is (0..1, Tessera values)
+    instead of materials. flat: ambient 1 and no lights (a mask render)."""
+    warnings = []
+    out, _ = collect(scene, depsgraph, MeshStore(directory), warnings.append, object_colors, flat)
+    with open(os.path.join(directory, name), "w") as f:
         json.dump(out, f, indent=1)
-    return out, warnings
+    return out, _dedupe_warnings(warnings)
+
+
+def _numbers(v):
+    return [float(x) for x in v.split()] if isinstance(v, str) else [float(v)]
+
+
+def reduce_keys(keys):
+    """Drops keys that linear interpolation between their neighbours gives with the
+    same bits, as Tessera computes it (v0 + (v1 - v0) * t, each rounded); keys are
+    (frame, [numbers]) in frame order."""
+    out = list(keys)
+    i = 1
+    while i + 1 < len(out):
+        (f0, a), (f, v), (f1, b) = out[i - 1], out[i], out[i + 1]
+        t = (f - f0) / (f1 - f0)
+        if all(a[k] + (b[k] - a[k]) * t == v[k] for k in range(len(v))):
+            del out[i]
+        else:
+            i += 1
+    return out
+
+
+def build_tracks(frames_values):
+    """frames_values: [(tessera frame, {target: value as written})] in frame order.
+    Returns the tracks (linear) of every target whose value changes."""
+    tracks = []
+    targets = list(frames_values[0][1])
+    for target in targets:
+        seq = [(f, vals[target]) for f, vals in frames_values if target in vals]
+        if all(v == seq[0][1] for _, v in seq):
+            continue
+        keys = reduce_keys([(f, _numbers(v)) for f, v in seq])
+        scalar = not isinstance(seq[0][1], str)
+        tracks.append({"target": target, "keys": [
+            {"frame": f, "value": (v[0] if scalar else fmt(v))} for f, v in keys]})
+    return tracks
+
+
+def _animated_values(out, keys):
+    vals = {}
+    cam = out.get("camera", {})
+    for k in ("position", "look_at", "up", "fov"):
+        if k in cam:
+            vals["camera." + k] = cam[k]
+    for i, o in enumerate(out["objects"]):
+        vals[("objects", keys["objects"][i], "transform.matrix")] = o["transform"]["matrix"]
+        vals[("objects", keys["objects"][i], "file")] = o["file"]
+    for i, l in enumerate(out["lights"]):
+        vals[("lights", keys["lights"][i], "position")] = l["position"]
+        vals[("lights", keys["lights"][i], "color")] = l["color"]
+    return vals
+
+
+def export_animation(scene, directory, name="scene.json", object_colors=None, flat=False,
+                     frame_start=None, frame_end=None, view_layer=None):
+    """Writes an animated Tessera scene: Blender frames frame_start..frame_end
+    (the scene's range by default) become Tessera frames 1..N. The static scene is the
+    first frame; every changing camera vector, fov, object matrix or light becomes a
+    linear track with a key on each frame it cannot be interpolated exactly.
+    Changes in shape (a deforming mesh), in the set of objects, and materials are not
+    animated: they are warned about. Leaves the scene at its original frame."""
+    warnings = []
+    warn = warnings.append
+    store = MeshStore(directory)
+    fs = scene.frame_start if frame_start is None else frame_start
+    fe = scene.frame_end if frame_end is None else frame_end
+    original = scene.frame_current
+    frames_values = []
+    first = first_keys = None
+    try:
+        for bf in range(fs, fe + 1):
+            scene.frame_set(bf)
+            depsgraph = (view_layer or scene.view_layers[0]).depsgraph
+            out, keys = collect(scene, depsgraph, store, warn, object_colors, flat)
+            if first is None:
+                first, first_keys = out, keys
+            elif keys != first_keys:
+                warn("frame %d: objects or lights appear or disappear; only frame %d's are exported"
+                     % (bf, fs))
+                continue
+            frames_values.append((bf - fs + 1, _animated_values(out, keys)))
+    finally:
+        scene.frame_set(original)
+    tracks = []
+    index = {("objects", k): i for i, k in enumerate(first_keys["objects"])}
+    index.update({("lights", k): i for i, k in enumerate(first_keys["lights"])})
+    for t in build_tracks(frames_values):
+        target = t["target"]
+        if isinstance(target, tuple):
+            kind, key, field = target
+            if field == "file":
+                warn("%s changes shape during the animation: its first frame's shape is used" % key)
+                continue
+            t["target"] = "%s[%d].%s" % (kind, index[(kind, key)], field)
+        tracks.append(t)
+    first["animation"] = {"frames": fe - fs + 1, "fps": scene.render.fps / scene.render.fps_base,
+                          "tracks": tracks}
+    with open(os.path.join(directory, name), "w") as f:
+        json.dump(first, f, indent=1)
+    return first, _dedupe_warnings(warnings)

@@ -156,6 +156,55 @@ def iou_report(tess_png, blend_png):
     return res, {"unclassified_tessera": ua, "unclassified_blender": ub}
 
 
+def animation_case(sc, tessera, work, failures):
+    """Frames 1..4 of an animation (a moving, turning cube, a growing linked duplicate,
+    a camera moving and zooming, interpolated by Blender's Bezier curves) exported as
+    one animated scene and rendered with tessera render --frames."""
+    cam = sc.camera
+    cam.data.sensor_fit = "AUTO"
+    sc.render.resolution_x, sc.render.resolution_y = 320, 240
+    place_camera(cam, (0.5, -19, 1.0), (0, 0, 0), 0)
+    cube = sc.objects["CubeRot"]
+    monkey = sc.objects["MonkeyLinked"]
+    sc.frame_start, sc.frame_end = 1, 4
+    for f, (x, rz, s, cx, lens) in enumerate([(-3, 45, 0.9, 0.5, 50), (-2, 80, 1.0, 1.5, 45),
+                                               (-1.5, 120, 1.1, 2.0, 40), (-1, 170, 1.2, 2.5, 38)], 1):
+        cube.location.x = x
+        cube.rotation_euler.z = math.radians(rz)
+        monkey.scale = (s, s, s)
+        cam.location.x = cx
+        cam.data.lens = lens
+        cube.keyframe_insert("location", frame=f)
+        cube.keyframe_insert("rotation_euler", frame=f)
+        monkey.keyframe_insert("scale", frame=f)
+        cam.keyframe_insert("location", frame=f)
+        cam.data.keyframe_insert("lens", frame=f)
+    d = os.path.join(work, "animation")
+    os.makedirs(d, exist_ok=True)
+    colors = {k: tuple(c / 255 for c in v) for k, v in PALETTE.items()}
+    scene, warnings = export.export_animation(sc, d, object_colors=colors, flat=True)
+    subprocess.run([tessera, "render", os.path.join(d, "scene.json"), "--frames", "all",
+                    "-o", os.path.join(d, "tessera")], check=True, stdout=subprocess.DEVNULL)
+    tracks = [t["target"] for t in scene["animation"]["tracks"]]
+    result = {"case": "animation", "tracks": tracks, "frames": [], "warnings": warnings}
+    for f in range(1, 5):
+        sc.frame_set(f)
+        bpng = os.path.join(d, "blender_%04d.png" % f)
+        sc.render.filepath = bpng
+        bpy.ops.render.render(write_still=True)
+        res, extra = iou_report(os.path.join(d, "tessera", "frame_%04d.png" % f), bpng)
+        worst = min([r["iou"] for r in res.values() if r["coverage"] >= 0.01] or [1.0])
+        for obj, r in res.items():
+            if r["coverage"] >= 0.01 and r["iou"] < 0.99:
+                failures.append(("animation frame %d" % f, obj, r))
+        print("animation frame %d       min IoU %.4f  " % (f, worst) + " ".join(
+            "%s=%.4f" % (o, r["iou"]) for o, r in res.items() if r["coverage"] >= 0.01), extra if any(extra.values()) else "")
+        result["frames"].append(res)
+    print("animation tracks:", tracks, warnings if warnings else "")
+    sc.frame_set(1)
+    return result
+
+
 def main():
     args = argv_after_dashes()
     keep = args[args.index("--keep") + 1] if "--keep" in args else None
@@ -207,6 +256,8 @@ def main():
         print(line, extra if any(extra.values()) else "", warnings if warnings else "")
         summary.append({"case": name, "fov": scene["camera"]["fov"], "objects": res, "extra": extra,
                         "warnings": warnings})
+    if not only or only == "animation":
+        summary.append(animation_case(sc, tessera, work, failures))
     with open(os.path.join(work, "results.json"), "w") as f:
         json.dump(summary, f, indent=1)
     if not keep:
