@@ -4,6 +4,7 @@
 //! scheduler's simulator.
 
 mod animation;
+mod blender;
 mod golden;
 mod meshes;
 mod refine;

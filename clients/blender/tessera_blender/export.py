@@ -1,0 +1,409 @@
+"""Blender scene -> Tessera scene (docs/scene-format.md).
+
+The first half of this module is pure Python (no bpy): axis mapping, matrices,
+camera field of view, binary PLY writing, colour and light rules. It can be unit
+tested with any Python 3. The second half (``export_scene``) takes bpy objects and
+imports nothing itself: it only calls methods on what it is given.
+
+Axes. Blender is right-handed with Z up; Tessera's camera is x right, y up,
+z forward (r = normalize(up x f), a left-handed frame). The mapping is the swap
+(x, y, z) -> (x, z, y): a reflection, which turns Blender's right-handed frames into
+Tessera's left-handed ones, so a camera's right/up/forward map to Tessera's
+right/up/forward and images are not mirrored.
+"""
+
+import hashlib
+import json
+import math
+import os
+import struct
+
+# --------------------------------------------------------------------------- math
+
+
+def to_tessera(v):
+    """A Blender point or direction (x, y, z) in Tessera's axes: (x, z, y)."""
+    return (v[0], v[2], v[1])
+
+
+def matrix_to_tessera(m):
+    """A Blender 4x4 world matrix (rows; anything indexable m[i][j]) as Tessera's
+    ``transform.matrix``: the 12 numbers of the 3x4 [A | t], row by row, for vertices
+    already written in Tessera's axes. A' = P A P, t' = P t with P the y/z swap."""
+    p = (0, 2, 1)
+    out = []
+    for i in range(3):
+        for j in range(3):
+            out.append(float(m[p[i]][p[j]]))
+        out.append(float(m[p[i]][3]))
+    return out
+
+
+def _norm(v):
+    n = math.sqrt(sum(c * c for c in v))
+    return tuple(c / n for c in v)
+
+
+def camera_vectors(m):
+    """position, look_at and up (Tessera axes) for a Blender camera world matrix.
+    A Blender camera looks along its local -Z with local +Y up; scale is ignored."""
+    pos = (m[0][3], m[1][3], m[2][3])
+    fwd = _norm((-m[0][2], -m[1][2], -m[2][2]))
+    up = _norm((m[0][1], m[1][1], m[2][1]))
+    pos_t = to_tessera(pos)
+    fwd_t = to_tessera(fwd)
+    look = tuple(pos_t[i] + fwd_t[i] for i in range(3))
+    return pos_t, look, to_tessera(up)
+
+
+def sensor_fit_axis(sensor_fit, width, height, aspect_x=1.0, aspect_y=1.0):
+    """'HORIZONTAL' or 'VERTICAL': the axis Blender's sensor size measures.
+    AUTO takes the longer side (after pixel aspect), as Blender does."""
+    if sensor_fit == 'AUTO':
+        return 'HORIZONTAL' if width * aspect_x >= height * aspect_y else 'VERTICAL'
+    return sensor_fit
+
+
+def camera_fov(lens, sensor_width, sensor_height, sensor_fit, width, height,
+               aspect_x=1.0, aspect_y=1.0):
+    """Tessera's ``fov`` (degrees across the *shorter* image side) for a Blender
+    perspective camera: focal length ``lens`` (mm), sensor size (mm) and fit.
+    The fit chooses the side the sensor size measures: AUTO the longer side,
+    HORIZONTAL the width, VERTICAL the height. AUTO and HORIZONTAL use
+    sensor_width, VERTICAL sensor_height (Blender's BKE_camera_sensor_size): in a
+    portrait image AUTO thus lays sensor_width along the *height*.
+    Non-square pixels are not representable in Tessera: the caller warns."""
+    axis = sensor_fit_axis(sensor_fit, width, height, aspect_x, aspect_y)
+    sensor = sensor_height if sensor_fit == 'VERTICAL' else sensor_width
+    half_fit = sensor / (2.0 * lens)          # tan of half the angle across the fit side
+    w, h = width * aspect_x, height * aspect_y
+    fit_len = w if axis == 'HORIZONTAL' else h
+    half_short = half_fit * min(w, h) / fit_len
+    return math.degrees(2.0 * math.atan(half_short))
+
+
+def linear_to_srgb(c):
+    """Blender colours are scene-linear; Tessera writes its values without a curve,
+    so they are display (sRGB) values. Colours are encoded once on export."""
+    c = max(0.0, float(c))
+    if c <= 0.0031308:
+        return 12.92 * c
+    return 1.055 * c ** (1.0 / 2.4) - 0.055
+
+
+# A Blender point light of this power (W) becomes a Tessera light of its colour.
+# Tessera's point lights have no distance fall-off (docs/scene-format.md, step 5:
+# colour += C * Lc * cos), so the rule is only a scale: Lc = colour * power / 1000.
+LIGHT_REFERENCE_WATTS = 1000.0
+
+
+def light_color(color, energy):
+    k = float(energy) / LIGHT_REFERENCE_WATTS
+    return tuple(max(0.0, float(c)) * k for c in color[:3])
+
+
+def mirror_coefficient(metallic, roughness):
+    """Tessera's 'special' for a Principled BSDF: metallic in (0, 1] is the mirror
+    fraction; a non-metal with roughness <= 0.05 is taken as a mirror of 0.5
+    (clear varnish); otherwise 0 (matte)."""
+    m = min(1.0, max(0.0, float(metallic)))
+    if m > 0.0:
+        return m
+    if roughness <= 0.05:
+        return 0.5
+    return 0.0
+
+
+def fmt(v):
+    """Numbers as the shortest text that reads back to the same double."""
+    return " ".join(repr(float(x)) for x in v)
+
+
+# ---------------------------------------------------------------------------- PLY
+
+
+def ply_bytes(vertices, triangles):
+    """Binary little-endian PLY: float x y z per vertex; faces as uchar count +
+    int indices. ``vertices`` in Tessera axes; ``triangles`` index triples."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        "element vertex %d\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face %d\nproperty list uchar int vertex_indices\nend_header\n"
+        % (len(vertices), len(triangles))
+    ).encode("ascii")
+    body = bytearray()
+    vs = struct.Struct("<fff")
+    fs = struct.Struct("<Biii")
+    for v in vertices:
+        body += vs.pack(*v)
+    for t in triangles:
+        body += fs.pack(3, *t)
+    return header + bytes(body)
+
+
+class MeshStore:
+    """Writes each distinct PLY once, named by the SHA-256 of its bytes."""
+
+    def __init__(self, directory, subdir="meshes"):
+        self.directory = directory
+        self.subdir = subdir
+        self.files = {}
+
+    def add(self, data):
+        digest = hashlib.sha256(data).hexdigest()
+        name = "%s/%s.ply" % (self.subdir, digest[:16])
+        if digest not in self.files:
+            path = os.path.join(self.directory, name)
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            with open(path, "wb") as f:
+                f.write(data)
+            self.files[digest] = name
+        return self.files[digest]
+
+
+# --------------------------------------------------------------------------- bpy
+
+
+MESH_LIKE = {"MESH", "CURVE", "SURFACE", "FONT", "META"}
+
+
+def _material_info(obj, warn):
+    """(rgb linear, special) from the first material, plus warnings."""
+    mat = obj.active_material if obj.material_slots else None
+    if len(obj.material_slots) > 1:
+        warn("%s: %d materials, only the first is used" % (obj.name, len(obj.material_slots)))
+    if mat is None:
+        return (0.8, 0.8, 0.8), 0.0
+    if not mat.use_nodes or mat.node_tree is None:
+        return tuple(mat.diffuse_color[:3]), mirror_coefficient(mat.metallic, mat.roughness)
+    out = mat.node_tree.get_output_node("ALL") if hasattr(mat.node_tree, "get_output_node") else None
+    surf = out.inputs["Surface"].links[0].from_node if out and out.inputs["Surface"].links else None
+    if surf is None or surf.type != "BSDF_PRINCIPLED":
+        warn("%s: material %s: surface %s is not supported (Principled BSDF only)"
+             % (obj.name, mat.name, surf.type if surf else "none"))
+        return (0.8, 0.8, 0.8), 0.0
+    base = surf.inputs["Base Color"]
+    special = mirror_coefficient(surf.inputs["Metallic"].default_value,
+                                 surf.inputs["Roughness"].default_value)
+    if surf.inputs["Transmission"].default_value > 0:
+        warn("%s: material %s: transmission (glass) is not supported" % (obj.name, mat.name))
+    if any(c > 0 for c in surf.inputs["Emission"].default_value[:3]) and \
+            surf.inputs["Emission Strength"].default_value > 0:
+        warn("%s: material %s: emission is not supported" % (obj.name, mat.name))
+    if base.links:
+        node = base.links[0].from_node
+        if node.type == "TEX_CHECKER":
+            return (1.0, 1.0, 1.0), 2.0
+        warn("%s: material %s: base colour from %s is not supported" % (obj.name, mat.name, node.type))
+        return (0.8, 0.8, 0.8), special
+    return tuple(base.default_value[:3]), special
+
+
+def _mesh_triangles(mesh):
+    mesh.calc_loop_triangles()
+    verts = [to_tessera(v.co) for v in mesh.vertices]
+    tris = [tuple(t.vertices) for t in mesh.loop_triangles]
+    return verts, tris
+
+
+def _instance_key(inst):
+    """A name for an object instance that stays the same from frame to frame."""
+    ob = inst.object
+    name = ob.original.name if hasattr(ob, "original") else ob.name
+    if getattr(inst, "is_instance", False):
+        parent = inst.parent.original.name if inst.parent is not None else ""
+        return "%s/%s/%s" % (parent, name, tuple(inst.persistent_id))
+    return name
+
+
+def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
+    """The scene as evaluated by ``depsgraph``: (scene dict, keys) where keys[i] names
+    what ``objects[i]`` or ``lights[i]`` came from: ("object", key) / ("light", key).
+    Mesh files are written through ``store``."""
+    r = scene.render
+    width = int(r.resolution_x * r.resolution_percentage / 100)
+    height = int(r.resolution_y * r.resolution_percentage / 100)
+    out = {"image": {"width": width, "height": height, "aa": 1, "max_depth": 10},
+           "ambient": 1.0 if flat else 0.2, "lights": [], "objects": []}
+    keys = {"objects": [], "lights": []}
+    if r.pixel_aspect_x != r.pixel_aspect_y:
+        warn("non-square pixels (pixel aspect %g:%g) are not supported" % (r.pixel_aspect_x, r.pixel_aspect_y))
+
+    cam = scene.camera
+    if cam is not None:
+        camd = cam.data
+        cam_eval = cam.evaluated_get(depsgraph)
+        pos, look, up = camera_vectors(cam_eval.matrix_world)
+        c = {"position": fmt(pos), "look_at": fmt(look), "up": fmt(up)}
+        camd = cam_eval.data
+        if camd.type == "PERSP":
+            c["fov"] = camera_fov(camd.lens, camd.sensor_width, camd.sensor_height,
+                                  camd.sensor_fit, width, height,
+                                  r.pixel_aspect_x, r.pixel_aspect_y)
+        else:
+            warn("camera %s: %s projection is not supported (exported as perspective)"
+                 % (cam.name, camd.type))
+        if camd.shift_x or camd.shift_y:
+            warn("camera %s: lens shift is not supported (ignored)" % cam.name)
+        out["camera"] = c
+    else:
+        warn("the scene has no camera")
+
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        if ob.type == "LIGHT":
+            if flat:
+                continue
+            light = ob.data
+            if light.type != "POINT":
+                warn("light %s: %s lights are not supported" % (ob.name, light.type))
+                continue
+            m = inst.matrix_world
+            out["lights"].append({"position": fmt(to_tessera((m[0][3], m[1][3], m[2][3]))),
+                                  "color": fmt(light_color(light.color, light.energy))})
+            keys["lights"].append(_instance_key(inst))
+            continue
+        if ob.type not in MESH_LIKE:
+            continue
+        key = ob.original.name if hasattr(ob, "original") else ob.name
+        mesh = ob.to_mesh()
+        try:
+            verts, tris = _mesh_triangles(mesh)
+        finally:
+            ob.to_mesh_clear()
+        if not tris:
+            continue
+        file = store.add(ply_bytes(verts, tris))
+        if object_colors is not None:
+            rgb, special = object_colors[key], 0.0
+        else:
+            rgb, special = _material_info(ob, warn)
+            rgb = tuple(linear_to_srgb(c) for c in rgb)
+        out["objects"].append({"type": "mesh", "file": file,
+                               "color": fmt(tuple(rgb) + (special,)),
+                               "transform": {"matrix": fmt(matrix_to_tessera(inst.matrix_world))}})
+        keys["objects"].append(_instance_key(inst))
+    return out, keys
+
+
+def _dedupe_warnings(warnings):
+    seen, out = set(), []
+    for w in warnings:
+        if w not in seen:
+            seen.add(w)
+            out.append(w)
+    return out
+
+
+def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=None,
+                 flat=False):
+    """Writes ``directory/name`` and its PLY files for the scene as evaluated by
+    ``depsgraph``. Returns (scene dict, list of warnings).
+
+    object_colors: optional {object name: (r, g, b)} used as-is (0..1, Tessera values)
+    instead of materials. flat: ambient 1 and no lights (a mask render)."""
+    warnings = []
+    out, _ = collect(scene, depsgraph, MeshStore(directory), warnings.append, object_colors, flat)
+    with open(os.path.join(directory, name), "w") as f:
+        json.dump(out, f, indent=1)
+    return out, _dedupe_warnings(warnings)
+
+
+def _numbers(v):
+    return [float(x) for x in v.split()] if isinstance(v, str) else [float(v)]
+
+
+def reduce_keys(keys):
+    """Drops keys that linear interpolation between their neighbours gives with the
+    same bits, as Tessera computes it (v0 + (v1 - v0) * t, each rounded); keys are
+    (frame, [numbers]) in frame order."""
+    out = list(keys)
+    i = 1
+    while i + 1 < len(out):
+        (f0, a), (f, v), (f1, b) = out[i - 1], out[i], out[i + 1]
+        t = (f - f0) / (f1 - f0)
+        if all(a[k] + (b[k] - a[k]) * t == v[k] for k in range(len(v))):
+            del out[i]
+        else:
+            i += 1
+    return out
+
+
+def build_tracks(frames_values):
+    """frames_values: [(tessera frame, {target: value as written})] in frame order.
+    Returns the tracks (linear) of every target whose value changes."""
+    tracks = []
+    targets = list(frames_values[0][1])
+    for target in targets:
+        seq = [(f, vals[target]) for f, vals in frames_values if target in vals]
+        if all(v == seq[0][1] for _, v in seq):
+            continue
+        keys = reduce_keys([(f, _numbers(v)) for f, v in seq])
+        scalar = not isinstance(seq[0][1], str)
+        tracks.append({"target": target, "keys": [
+            {"frame": f, "value": (v[0] if scalar else fmt(v))} for f, v in keys]})
+    return tracks
+
+
+def _animated_values(out, keys):
+    vals = {}
+    cam = out.get("camera", {})
+    for k in ("position", "look_at", "up", "fov"):
+        if k in cam:
+            vals["camera." + k] = cam[k]
+    for i, o in enumerate(out["objects"]):
+        vals[("objects", keys["objects"][i], "transform.matrix")] = o["transform"]["matrix"]
+        vals[("objects", keys["objects"][i], "file")] = o["file"]
+    for i, l in enumerate(out["lights"]):
+        vals[("lights", keys["lights"][i], "position")] = l["position"]
+        vals[("lights", keys["lights"][i], "color")] = l["color"]
+    return vals
+
+
+def export_animation(scene, directory, name="scene.json", object_colors=None, flat=False,
+                     frame_start=None, frame_end=None, view_layer=None):
+    """Writes an animated Tessera scene: Blender frames frame_start..frame_end
+    (the scene's range by default) become Tessera frames 1..N. The static scene is the
+    first frame; every changing camera vector, fov, object matrix or light becomes a
+    linear track with a key on each frame it cannot be interpolated exactly.
+    Changes in shape (a deforming mesh), in the set of objects, and materials are not
+    animated: they are warned about. Leaves the scene at its original frame."""
+    warnings = []
+    warn = warnings.append
+    store = MeshStore(directory)
+    fs = scene.frame_start if frame_start is None else frame_start
+    fe = scene.frame_end if frame_end is None else frame_end
+    original = scene.frame_current
+    frames_values = []
+    first = first_keys = None
+    try:
+        for bf in range(fs, fe + 1):
+            scene.frame_set(bf)
+            depsgraph = (view_layer or scene.view_layers[0]).depsgraph
+            out, keys = collect(scene, depsgraph, store, warn, object_colors, flat)
+            if first is None:
+                first, first_keys = out, keys
+            elif keys != first_keys:
+                warn("frame %d: objects or lights appear or disappear; only frame %d's are exported"
+                     % (bf, fs))
+                continue
+            frames_values.append((bf - fs + 1, _animated_values(out, keys)))
+    finally:
+        scene.frame_set(original)
+    tracks = []
+    index = {("objects", k): i for i, k in enumerate(first_keys["objects"])}
+    index.update({("lights", k): i for i, k in enumerate(first_keys["lights"])})
+    for t in build_tracks(frames_values):
+        target = t["target"]
+        if isinstance(target, tuple):
+            kind, key, field = target
+            if field == "file":
+                warn("%s changes shape during the animation: its first frame's shape is used" % key)
+                continue
+            t["target"] = "%s[%d].%s" % (kind, index[(kind, key)], field)
+        tracks.append(t)
+    first["animation"] = {"frames": fe - fs + 1, "fps": scene.render.fps / scene.render.fps_base,
+                          "tracks": tracks}
+    with open(os.path.join(directory, name), "w") as f:
+        json.dump(first, f, indent=1)
+    return first, _dedupe_warnings(warnings)
