@@ -12,6 +12,7 @@ Tessera's left-handed ones, so a camera's right/up/forward map to Tessera's
 right/up/forward and images are not mirrored.
 """
 
+import collections
 import hashlib
 import json
 import math
@@ -167,36 +168,82 @@ class MeshStore:
 MESH_LIKE = {"MESH", "CURVE", "SURFACE", "FONT", "META"}
 
 
+def _viewport_colour(mat):
+    return tuple(mat.diffuse_color[:3])
+
+
 def _material_info(obj, warn):
-    """(rgb linear, special) from the first material, plus warnings."""
+    """(rgb linear, special) from the object's first material. What the model cannot
+    show is warned, naming the object, the material and what was used instead."""
     mat = obj.active_material if obj.material_slots else None
     if len(obj.material_slots) > 1:
-        warn("%s: %d materials, only the first is used" % (obj.name, len(obj.material_slots)))
+        warn("%s: %d material slots: the first material's colour is used for the whole object"
+             % (obj.name, len(obj.material_slots)))
     if mat is None:
         return (0.8, 0.8, 0.8), 0.0
     if not mat.use_nodes or mat.node_tree is None:
-        return tuple(mat.diffuse_color[:3]), mirror_coefficient(mat.metallic, mat.roughness)
-    out = mat.node_tree.get_output_node("ALL") if hasattr(mat.node_tree, "get_output_node") else None
+        return _viewport_colour(mat), mirror_coefficient(mat.metallic, mat.roughness)
+    tree = mat.node_tree
+    out = tree.get_output_node("ALL") if hasattr(tree, "get_output_node") else None
     surf = out.inputs["Surface"].links[0].from_node if out and out.inputs["Surface"].links else None
+    where = "%s: material %s" % (obj.name, mat.name)
     if surf is None or surf.type != "BSDF_PRINCIPLED":
-        warn("%s: material %s: surface %s is not supported (Principled BSDF only)"
-             % (obj.name, mat.name, surf.type if surf else "none"))
-        return (0.8, 0.8, 0.8), 0.0
-    base = surf.inputs["Base Color"]
-    special = mirror_coefficient(surf.inputs["Metallic"].default_value,
-                                 surf.inputs["Roughness"].default_value)
-    if surf.inputs["Transmission"].default_value > 0:
-        warn("%s: material %s: transmission (glass) is not supported" % (obj.name, mat.name))
-    if any(c > 0 for c in surf.inputs["Emission"].default_value[:3]) and \
-            surf.inputs["Emission Strength"].default_value > 0:
-        warn("%s: material %s: emission is not supported" % (obj.name, mat.name))
+        kind = surf.bl_label if surf is not None else "no surface"
+        colour = surf.inputs.get("Color") if surf is not None else None
+        if colour is not None and not colour.links and hasattr(colour, "default_value"):
+            warn("%s: %s cannot be shown: used its Color input as a matte colour" % (where, kind))
+            return tuple(colour.default_value[:3]), 0.0
+        warn("%s: %s cannot be shown: used the material's viewport colour, matte" % (where, kind))
+        return _viewport_colour(mat), 0.0
+    inputs = surf.inputs
+    base = inputs["Base Color"]
+    special = mirror_coefficient(inputs["Metallic"].default_value, inputs["Roughness"].default_value)
+    # Input names are Blender 3.x's; 4.x renamed some (looked up defensively).
+    transmission = inputs.get("Transmission") or inputs.get("Transmission Weight")
+    if transmission is not None and transmission.default_value > 0:
+        warn("%s: transmission (glass) cannot be shown: rendered opaque" % where)
+    emission = inputs.get("Emission") or inputs.get("Emission Color")
+    strength = inputs.get("Emission Strength")
+    if emission is not None and strength is not None and strength.default_value > 0 \
+            and any(c > 0 for c in emission.default_value[:3]):
+        warn("%s: emission cannot be shown: only the base colour is used" % where)
     if base.links:
         node = base.links[0].from_node
         if node.type == "TEX_CHECKER":
             return (1.0, 1.0, 1.0), 2.0
-        warn("%s: material %s: base colour from %s is not supported" % (obj.name, mat.name, node.type))
-        return (0.8, 0.8, 0.8), special
+        warn("%s: base colour from %s cannot be shown: used the material's viewport colour"
+             % (where, node.bl_label))
+        return _viewport_colour(mat), special
     return tuple(base.default_value[:3]), special
+
+
+# Where a sun light is put: this far from the origin, against its direction. With no
+# fall-off in Tessera's model, a point light far away lights like the sun.
+SUN_DISTANCE = 1.0e4
+
+
+def light_entry(ob, matrix, warn):
+    """A Blender light as Tessera's point light (position, colour), or None. Point
+    lights map by the documented rule; spot and area lights become point lights at
+    their place; a sun becomes a point light far away along its direction."""
+    light = ob.data
+    position = (matrix[0][3], matrix[1][3], matrix[2][3])
+    colour = light_color(light.color, light.energy)
+    if light.type == "SPOT":
+        warn("light %s: spot cone cannot be shown: used a point light at its place" % ob.name)
+    elif light.type == "AREA":
+        warn("light %s: area light cannot be shown: used a point light at its centre" % ob.name)
+    elif light.type == "SUN":
+        direction = _norm((-matrix[0][2], -matrix[1][2], -matrix[2][2]))
+        position = tuple(-c * SUN_DISTANCE for c in direction)
+        # A sun's strength is in W/m^2 (1 to 10 for daylight), not in watts.
+        colour = tuple(max(0.0, float(c)) * float(light.energy) for c in light.color[:3])
+        warn("light %s: sun light cannot be shown: used a point light %g units away along"
+             " its direction, colour x strength" % (ob.name, SUN_DISTANCE))
+    elif light.type != "POINT":
+        warn("light %s: %s light cannot be shown: left out" % (ob.name, light.type))
+        return None
+    return {"position": fmt(to_tessera(position)), "color": fmt(colour)}
 
 
 def _mesh_triangles(mesh):
@@ -216,18 +263,33 @@ def _instance_key(inst):
     return name
 
 
-def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
+def image_settings(size, image=None):
+    """The scene's ``image``: the size given, ``aa`` 1 and depth 10 unless ``image``
+    (a dict of ``aa``, ``max_depth``) says otherwise."""
+    out = {"width": int(size[0]), "height": int(size[1]), "aa": 1, "max_depth": 10}
+    for k in ("aa", "max_depth"):
+        if image and image.get(k) is not None:
+            out[k] = int(image[k])
+    return out
+
+
+def collect(scene, depsgraph, store, warn, object_colors=None, flat=False, size=None,
+            image=None):
     """The scene as evaluated by ``depsgraph``: (scene dict, keys) where keys[i] names
     what ``objects[i]`` or ``lights[i]`` came from: ("object", key) / ("light", key).
-    Mesh files are written through ``store``."""
+    Mesh files are written through ``store``. ``size`` is the image's (width, height)
+    (the render settings' by default)."""
     r = scene.render
-    width = int(r.resolution_x * r.resolution_percentage / 100)
-    height = int(r.resolution_y * r.resolution_percentage / 100)
-    out = {"image": {"width": width, "height": height, "aa": 1, "max_depth": 10},
+    if size is None:
+        size = (int(r.resolution_x * r.resolution_percentage / 100),
+                int(r.resolution_y * r.resolution_percentage / 100))
+    width, height = size
+    out = {"image": image_settings(size, image),
            "ambient": 1.0 if flat else 0.2, "lights": [], "objects": []}
     keys = {"objects": [], "lights": []}
     if r.pixel_aspect_x != r.pixel_aspect_y:
-        warn("non-square pixels (pixel aspect %g:%g) are not supported" % (r.pixel_aspect_x, r.pixel_aspect_y))
+        warn("pixel aspect %g:%g cannot be shown: the image has square pixels of the same size"
+             % (r.pixel_aspect_x, r.pixel_aspect_y))
 
     cam = scene.camera
     if cam is not None:
@@ -241,10 +303,10 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
                                   camd.sensor_fit, width, height,
                                   r.pixel_aspect_x, r.pixel_aspect_y)
         else:
-            warn("camera %s: %s projection is not supported (exported as perspective)"
-                 % (cam.name, camd.type))
+            warn("camera %s: %s projection cannot be shown: used a perspective camera"
+                 " with Tessera's default fov" % (cam.name, camd.type))
         if camd.shift_x or camd.shift_y:
-            warn("camera %s: lens shift is not supported (ignored)" % cam.name)
+            warn("camera %s: lens shift cannot be shown: used the unshifted view" % cam.name)
         out["camera"] = c
     else:
         warn("the scene has no camera")
@@ -254,14 +316,10 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
         if ob.type == "LIGHT":
             if flat:
                 continue
-            light = ob.data
-            if light.type != "POINT":
-                warn("light %s: %s lights are not supported" % (ob.name, light.type))
-                continue
-            m = inst.matrix_world
-            out["lights"].append({"position": fmt(to_tessera((m[0][3], m[1][3], m[2][3]))),
-                                  "color": fmt(light_color(light.color, light.energy))})
-            keys["lights"].append(_instance_key(inst))
+            entry = light_entry(ob, inst.matrix_world, warn)
+            if entry is not None:
+                out["lights"].append(entry)
+                keys["lights"].append(_instance_key(inst))
             continue
         if ob.type not in MESH_LIKE:
             continue
@@ -286,6 +344,18 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False):
     return out, keys
 
 
+class Exported(collections.namedtuple("Exported", "scene warnings mesh_users")):
+    """What an export wrote: the scene dict, the warnings (each once, in order), and
+    {mesh file: [names of the objects using it]}."""
+
+
+def _mesh_users(out, keys):
+    users = {}
+    for obj, key in zip(out["objects"], keys["objects"]):
+        users.setdefault(obj["file"], []).append(key.split("/")[0] if "/" in key else key)
+    return users
+
+
 def _dedupe_warnings(warnings):
     seen, out = set(), []
     for w in warnings:
@@ -296,17 +366,18 @@ def _dedupe_warnings(warnings):
 
 
 def export_scene(scene, depsgraph, directory, name="scene.json", object_colors=None,
-                 flat=False):
+                 flat=False, size=None, image=None):
     """Writes ``directory/name`` and its PLY files for the scene as evaluated by
-    ``depsgraph``. Returns (scene dict, list of warnings).
+    ``depsgraph``. Returns an ``Exported``.
 
     object_colors: optional {object name: (r, g, b)} used as-is (0..1, Tessera values)
     instead of materials. flat: ambient 1 and no lights (a mask render)."""
     warnings = []
-    out, _ = collect(scene, depsgraph, MeshStore(directory), warnings.append, object_colors, flat)
+    out, keys = collect(scene, depsgraph, MeshStore(directory), warnings.append, object_colors,
+                        flat, size, image)
     with open(os.path.join(directory, name), "w") as f:
         json.dump(out, f, indent=1)
-    return out, _dedupe_warnings(warnings)
+    return Exported(out, _dedupe_warnings(warnings), _mesh_users(out, keys))
 
 
 def _numbers(v):
@@ -360,36 +431,34 @@ def _animated_values(out, keys):
     return vals
 
 
-def export_animation(scene, directory, name="scene.json", object_colors=None, flat=False,
-                     frame_start=None, frame_end=None, view_layer=None):
+def export_animation(scene, goto, directory, name="scene.json", object_colors=None, flat=False,
+                     frame_start=None, frame_end=None, size=None, image=None):
     """Writes an animated Tessera scene: Blender frames frame_start..frame_end
     (the scene's range by default) become Tessera frames 1..N. The static scene is the
     first frame; every changing camera vector, fov, object matrix or light becomes a
     linear track with a key on each frame it cannot be interpolated exactly.
     Changes in shape (a deforming mesh), in the set of objects, and materials are not
-    animated: they are warned about. Leaves the scene at its original frame."""
+    animated: they are warned about. ``goto(frame)`` moves the scene to a Blender
+    frame and returns the depsgraph evaluated there; the caller puts the scene back."""
     warnings = []
     warn = warnings.append
     store = MeshStore(directory)
     fs = scene.frame_start if frame_start is None else frame_start
     fe = scene.frame_end if frame_end is None else frame_end
-    original = scene.frame_current
+    if fe < fs:
+        raise ValueError("the frame range %d-%d is empty" % (fs, fe))
     frames_values = []
     first = first_keys = None
-    try:
-        for bf in range(fs, fe + 1):
-            scene.frame_set(bf)
-            depsgraph = (view_layer or scene.view_layers[0]).depsgraph
-            out, keys = collect(scene, depsgraph, store, warn, object_colors, flat)
-            if first is None:
-                first, first_keys = out, keys
-            elif keys != first_keys:
-                warn("frame %d: objects or lights appear or disappear; only frame %d's are exported"
-                     % (bf, fs))
-                continue
-            frames_values.append((bf - fs + 1, _animated_values(out, keys)))
-    finally:
-        scene.frame_set(original)
+    for bf in range(fs, fe + 1):
+        depsgraph = goto(bf)
+        out, keys = collect(scene, depsgraph, store, warn, object_colors, flat, size, image)
+        if first is None:
+            first, first_keys = out, keys
+        elif keys != first_keys:
+            warn("frame %d: objects or lights appear or disappear; only frame %d's are exported"
+                 % (bf, fs))
+            continue
+        frames_values.append((bf - fs + 1, _animated_values(out, keys)))
     tracks = []
     index = {("objects", k): i for i, k in enumerate(first_keys["objects"])}
     index.update({("lights", k): i for i, k in enumerate(first_keys["lights"])})
@@ -406,4 +475,4 @@ def export_animation(scene, directory, name="scene.json", object_colors=None, fl
                           "tracks": tracks}
     with open(os.path.join(directory, name), "w") as f:
         json.dump(first, f, indent=1)
-    return first, _dedupe_warnings(warnings)
+    return Exported(first, _dedupe_warnings(warnings), _mesh_users(first, first_keys))

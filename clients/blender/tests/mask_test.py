@@ -25,7 +25,7 @@ from mathutils import Euler, Matrix, Vector
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
-from tessera_blender import export, pngread  # noqa: E402
+from tessera_blender import evaluate, pngread  # noqa: E402
 
 PALETTE = {
     "CubeRot": (230, 40, 40),
@@ -35,6 +35,12 @@ PALETTE = {
     "Sphere": (40, 210, 210),
     "CylinderBevel": (210, 40, 210),
     "Torus": (240, 140, 20),
+    # Render settings, not the viewport's: a Subdivision of viewport level 0 and render
+    # level 2 (a rounded cube in the render) with an Array shown only in renders, an
+    # object hidden in the viewport but rendered, one shown but not rendered.
+    "RenderOnlyModifiers": (150, 90, 255),
+    "HiddenInViewport": (255, 170, 200),
+    "NotRendered": (120, 255, 120),
 }
 
 
@@ -69,6 +75,16 @@ def build_scene():
     bev.width = 0.25
     bev.segments = 3
     add(bpy.ops.mesh.primitive_torus_add, "Torus", (0, -2, 0.1), (70, 30, 0), (0.6, 0.6, 0.6))
+    ro = add(bpy.ops.mesh.primitive_cube_add, "RenderOnlyModifiers", (-6.0, 1, -2.8), (0, 0, 15), (0.9, 0.9, 0.9))
+    sub = ro.modifiers.new("subdivision", "SUBSURF")
+    sub.levels, sub.render_levels = 0, 2
+    arr = ro.modifiers.new("array", "ARRAY")
+    arr.show_viewport = False
+    arr.relative_offset_displace = (1.3, 0, 0)
+    hv = add(bpy.ops.mesh.primitive_ico_sphere_add, "HiddenInViewport", (5.2, 2, 2.8), subdivisions=3)
+    hv.hide_viewport = True
+    nr = add(bpy.ops.mesh.primitive_cube_add, "NotRendered", (5.5, 1, -3.2), (10, 20, 30), (1.3, 1.3, 1.3))
+    nr.hide_render = True
 
     for ob in sc.objects:
         ob.color = tuple(c / 255 for c in PALETTE[ob.name]) + (1.0,)
@@ -116,6 +132,7 @@ CASES = [
     ("50mm-portrait-vertical", 50, "VERTICAL", 240, 320, (0.5, -25, 1.0), 0, 36, 24),
     ("18mm-landscape-auto", 18, "AUTO", 320, 240, (1.0, -7.5, 2.0), 0, 36, 24),
     ("35mm-rolled-high", 35, "AUTO", 320, 240, (-6, -10, 7), 25, 36, 24),
+    ("28mm-close-up", 28, "AUTO", 320, 240, (0.3, -9.5, 0.8), 5, 36, 24),
     ("85mm-square-below", 85, "AUTO", 240, 240, (4, -26, -5), -10, 36, 24),
 ]
 
@@ -182,7 +199,7 @@ def animation_case(sc, tessera, work, failures):
     d = os.path.join(work, "animation")
     os.makedirs(d, exist_ok=True)
     colors = {k: tuple(c / 255 for c in v) for k, v in PALETTE.items()}
-    scene, warnings = export.export_animation(sc, d, object_colors=colors, flat=True)
+    scene, warnings, _ = evaluate.export_animation(sc, d, object_colors=colors, flat=True)
     subprocess.run([tessera, "render", os.path.join(d, "scene.json"), "--frames", "all",
                     "-o", os.path.join(d, "tessera")], check=True, stdout=subprocess.DEVNULL)
     tracks = [t["target"] for t in scene["animation"]["tracks"]]
@@ -233,8 +250,7 @@ def main():
         d = os.path.join(work, name)
         os.makedirs(d, exist_ok=True)
         colors = {k: tuple(c / 255 for c in v) for k, v in PALETTE.items()}
-        depsgraph = bpy.context.evaluated_depsgraph_get()
-        scene, warnings = export.export_scene(sc, depsgraph, d, object_colors=colors, flat=True)
+        scene, warnings, _ = evaluate.export_still(sc, d, object_colors=colors, flat=True)
         tpng = os.path.join(d, "tessera.png")
         bpng = os.path.join(d, "blender.png")
         subprocess.run([tessera, "render", os.path.join(d, "scene.json"), "-o", tpng],
