@@ -49,7 +49,7 @@ def tessera_bin():
 class Farm:
     """A coordinator with a client token and HTTP, and one worker, on 127.0.0.1."""
 
-    def __init__(self, tessera, directory, extra=()):
+    def __init__(self, tessera, directory, extra=(), tls=False):
         self.dir = directory
         os.makedirs(directory, exist_ok=True)
         self.token_file = os.path.join(directory, "client.token")
@@ -61,7 +61,7 @@ class Farm:
         coordinator = subprocess.Popen(
             [tessera, "coordinator", "--data", os.path.join(directory, "data"),
              "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
-             "--client-token-file", self.token_file, *extra],
+             "--client-token-file", self.token_file, *(["--tls-auto"] if tls else []), *extra],
             cwd=directory, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log)
         self.processes.append(coordinator)
         lines = queue.Queue()
@@ -69,17 +69,19 @@ class Farm:
                          daemon=True).start()
         said = []
         deadline = time.monotonic() + START_TIMEOUT
-        while len(said) < 2:
+        while len(said) < (3 if tls else 2):
             try:
                 said.append(lines.get(timeout=max(0.1, deadline - time.monotonic())))
             except queue.Empty:
                 self.stop()
                 raise AssertionError("the coordinator did not start: %r" % said)
         self.addr = said[0].split("listening on ", 1)[1]
-        self.url = "http://" + said[1].split("http on ", 1)[1]
+        self.url = ("https://" if tls else "http://") + said[1].split("http on ", 1)[1]
+        self.fingerprint = said[2].split("tls fingerprint ", 1)[1] if tls else ""
         wlog = open(os.path.join(directory, "worker.log"), "wb")
         self.processes.append(subprocess.Popen(
-            [tessera, "worker", "--coordinator", self.addr, "--threads", "1", "--name", "w1"],
+            [tessera, "worker", "--coordinator", self.addr, "--threads", "1", "--name", "w1",
+             *(["--tls-fingerprint", self.fingerprint] if tls else [])],
             cwd=directory, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=wlog))
 
     def stop(self):
@@ -204,6 +206,20 @@ def main():
               and "GlassCube: material Glass: Glass BSDF cannot be shown: used its Color input" in warnings[0]
               and "light Sun: sun light cannot be shown: used a point light" in warnings[0],
               "one warning names the glass cube, the sun and what was used instead: %r" % ui.REPORTS)
+        from tessera_blender import evaluate, export
+        ex = evaluate.export_still(sc, os.path.join(work, "rules"))
+        colour = {}
+        for obj in ex.scene["objects"]:
+            for name in ex.mesh_users[obj["file"]]:
+                colour[name] = [float(c) for c in obj["color"].split()]
+        red = export.linear_to_srgb(0.8), export.linear_to_srgb(0.05)
+        check(colour["Floor"][3] == 2.0, "a Checker Texture into Base Color is special 2")
+        check(colour["Chrome"][3] == 1.0, "Metallic 1 is a mirror of 1")
+        want = [red[0], red[1], red[1], 0.0]
+        check(all(abs(a - b) < 1e-6 for a, b in zip(colour["Monkey"], want)),
+              "a base colour is written sRGB-encoded, matte: %r" % colour["Monkey"])
+        check(len(ex.scene["lights"]) == 2 and "1.0 1.0 1.0" in [l["color"] for l in ex.scene["lights"]],
+              "a 1000 W white point light is Tessera's white 1: %r" % ex.scene["lights"])
         reference = os.path.join(work, "reference.png")
         subprocess.run([tessera, "render", os.path.join(export_dir, "scene.json"), "-o", reference],
                        check=True, stdout=subprocess.DEVNULL)
@@ -231,6 +247,20 @@ def main():
         print("farm render: %.3f s from the button to the image" % (time.monotonic() - t))
         check(result == {"FINISHED"}, "farm render finishes: %r %r" % (result, reports))
         check(still_bytes() == reference_bytes, "farm render: the image is tessera render's, byte for byte")
+
+        # -- a farm with TLS: pinned by its certificate's fingerprint
+        secure = Farm(tessera, os.path.join(work, "tls-farm"), tls=True)
+        farms.append(secure)
+        sc.tessera.address, sc.tessera.token_file = secure.url, secure.token_file
+        sc.tessera.tls_fingerprint = secure.fingerprint
+        result, reports = run_op()
+        check(result == {"FINISHED"} and still_bytes() == reference_bytes,
+              "farm render over TLS: tessera render's image: %r" % (reports,))
+        sc.tessera.tls_fingerprint = "ab" * 32
+        result, reports = run_op()
+        check(one_error(reports, "fingerprint")[0], "a wrong TLS fingerprint: one error: %r" % (reports,))
+        sc.tessera.address, sc.tessera.token_file = farm.url, farm.token_file
+        sc.tessera.tls_fingerprint = ""
 
         # -- animation on the farm: one sequence job
         cube = sc.objects["GlassCube"]
@@ -292,7 +322,6 @@ def main():
         sc.tessera.aa = 8
         d = os.path.join(work, "cancel")
         os.makedirs(d)
-        from tessera_blender import evaluate
         evaluate.export_still(sc, d, image={"aa": 8})
         settings = tjob.Settings(address=farm.url, token_file=farm.token_file)
         job = tjob.RenderJob(settings, os.path.join(d, "scene.json"), os.path.join(d, "out"))

@@ -9,7 +9,9 @@ import tempfile
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from tessera_blender import export  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
+
+from tessera_blender import export, job  # noqa: E402
 
 
 class Fov(unittest.TestCase):
@@ -60,6 +62,86 @@ class Ply(unittest.TestCase):
             s = export.MeshStore(d)
             self.assertEqual(s.add(data), s.add(bytes(data)))
             self.assertEqual(len(os.listdir(os.path.join(d, "meshes"))), 1)
+
+
+def _light(kind, colour=(1.0, 0.5, 0.25), energy=1000.0):
+    return SimpleNamespace(name="L", data=SimpleNamespace(type=kind, color=colour, energy=energy))
+
+
+# A light at Blender (1, 2, 3) pointing straight down (local -Z is world -Z).
+_AT = [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]]
+
+
+class Rules(unittest.TestCase):
+    def test_point_light_colour_times_watts_over_1000(self):
+        warnings = []
+        e = export.light_entry(_light("POINT", energy=500.0), _AT, warnings.append)
+        self.assertEqual(e, {"position": "1.0 3.0 2.0", "color": "0.5 0.25 0.125"})
+        self.assertEqual(warnings, [])
+
+    def test_spot_and_area_become_point_lights_with_a_warning(self):
+        for kind, words in (("SPOT", "spot cone"), ("AREA", "area light")):
+            warnings = []
+            e = export.light_entry(_light(kind), _AT, warnings.append)
+            self.assertEqual(e["position"], "1.0 3.0 2.0")
+            self.assertEqual(len(warnings), 1)
+            self.assertIn(words, warnings[0])
+            self.assertIn("used a point light", warnings[0])
+
+    def test_sun_is_a_far_point_light_against_its_direction(self):
+        warnings = []
+        e = export.light_entry(_light("SUN", energy=2.0), _AT, warnings.append)
+        # Pointing down (Blender -Z): the light sits up (Tessera +y), far away.
+        self.assertEqual(e["position"], "-0.0 10000.0 -0.0")
+        self.assertEqual(e["color"], "2.0 1.0 0.5")
+        self.assertIn("sun light", warnings[0])
+
+    def test_mirror_coefficient(self):
+        self.assertEqual(export.mirror_coefficient(1.0, 0.5), 1.0)
+        self.assertEqual(export.mirror_coefficient(0.3, 0.5), 0.3)
+        self.assertEqual(export.mirror_coefficient(0.0, 0.02), 0.5)
+        self.assertEqual(export.mirror_coefficient(0.0, 0.5), 0.0)
+
+    def test_colours_are_encoded_as_srgb(self):
+        self.assertEqual(export.linear_to_srgb(0.0), 0.0)
+        self.assertAlmostEqual(export.linear_to_srgb(1.0), 1.0)
+        self.assertAlmostEqual(export.linear_to_srgb(0.214), 0.5, places=3)
+
+    def test_image_settings_take_aa_and_depth(self):
+        self.assertEqual(export.image_settings((320, 240), {"aa": 3, "max_depth": 4}),
+                         {"width": 320, "height": 240, "aa": 3, "max_depth": 4})
+        self.assertEqual(export.image_settings((8, 6)),
+                         {"width": 8, "height": 6, "aa": 1, "max_depth": 10})
+
+
+class Animation(unittest.TestCase):
+    def test_keys_interpolated_exactly_are_dropped(self):
+        keys = [(1, [0.0]), (2, [0.5]), (3, [1.0]), (4, [3.0])]
+        self.assertEqual(export.reduce_keys(keys), [(1, [0.0]), (3, [1.0]), (4, [3.0])])
+
+    def test_tracks_only_for_what_changes(self):
+        tracks = export.build_tracks([(1, {"a": "0 0 0", "b": 1.0}), (2, {"a": "0 0 0", "b": 2.0})])
+        self.assertEqual(tracks, [{"target": "b", "keys": [{"frame": 1, "value": 1.0},
+                                                           {"frame": 2, "value": 2.0}]}])
+
+
+class Job(unittest.TestCase):
+    def test_errors_are_one_line(self):
+        self.assertEqual(job.one_line("\n  refused: too big\n  details\n"), "refused: too big")
+        self.assertEqual(job.one_line(""), "failed")
+
+    def test_a_file_named_by_its_hash_is_named_by_its_objects(self):
+        j = job.RenderJob(job.Settings(), "s.json", "out",
+                          mesh_names={"meshes/7081647b260b32ce.ply": ["Monkey", "Twin"]})
+        text = j._name_files("sha256:7081647b260b32ce" + "0" * 48 + " (75487 bytes) is over")
+        self.assertEqual(text, "the mesh of Monkey, Twin (meshes/7081647b260b32ce.ply) (75487 bytes) is over")
+
+    def test_a_missing_tessera_command_is_one_error(self):
+        with tempfile.TemporaryDirectory() as d:
+            j = job.RenderJob(job.Settings(tessera_path=os.path.join(d, "nope")), "s.json", d)
+            with self.assertRaises(job.JobError) as e:
+                j.run()
+            self.assertIn("cannot run", str(e.exception))
 
 
 if __name__ == "__main__":
