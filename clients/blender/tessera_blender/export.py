@@ -12,12 +12,14 @@ Tessera's left-handed ones, so a camera's right/up/forward map to Tessera's
 right/up/forward and images are not mirrored.
 """
 
+import array
 import collections
 import hashlib
 import json
 import math
 import os
 import struct
+import sys
 
 # --------------------------------------------------------------------------- math
 
@@ -123,15 +125,19 @@ def fmt(v):
 # ---------------------------------------------------------------------------- PLY
 
 
-def ply_bytes(vertices, triangles):
-    """Binary little-endian PLY: float x y z per vertex; faces as uchar count +
-    int indices. ``vertices`` in Tessera axes; ``triangles`` index triples."""
-    header = (
+def ply_header(vertices, triangles):
+    return (
         "ply\nformat binary_little_endian 1.0\n"
         "element vertex %d\nproperty float x\nproperty float y\nproperty float z\n"
         "element face %d\nproperty list uchar int vertex_indices\nend_header\n"
-        % (len(vertices), len(triangles))
+        % (vertices, triangles)
     ).encode("ascii")
+
+
+def ply_bytes(vertices, triangles):
+    """Binary little-endian PLY: float x y z per vertex; faces as uchar count +
+    int indices. ``vertices`` in Tessera axes; ``triangles`` index triples."""
+    header = ply_header(len(vertices), len(triangles))
     body = bytearray()
     vs = struct.Struct("<fff")
     fs = struct.Struct("<Biii")
@@ -246,12 +252,27 @@ def light_entry(ob, matrix, warn):
     return {"position": fmt(to_tessera(position)), "color": fmt(colour)}
 
 
-def _mesh_triangles(mesh):
+def mesh_ply(mesh):
+    """A Blender mesh's triangles as ``ply_bytes`` writes them (None if it has none).
+    The arrays are copied whole (``foreach_get``) and interleaved by slicing, not
+    vertex by vertex: several times faster on large meshes, with the same bytes."""
     mesh.calc_loop_triangles()
-    verts = [to_tessera(v.co) for v in mesh.vertices]
-    tris = [tuple(t.vertices) for t in mesh.loop_triangles]
-    return verts, tris
-
+    nv, nt = len(mesh.vertices), len(mesh.loop_triangles)
+    if nt == 0:
+        return None
+    co = [0.0] * (3 * nv)
+    mesh.vertices.foreach_get("co", co)
+    swapped = co[:]
+    swapped[1::3], swapped[2::3] = co[2::3], co[1::3]       # (x, y, z) -> (x, z, y)
+    vertices = array.array("f", swapped)
+    tri = [0] * (3 * nt)
+    mesh.loop_triangles.foreach_get("vertices", tri)
+    flat = [3] * (4 * nt)                                   # count, then three indices
+    flat[1::4], flat[2::4], flat[3::4] = tri[0::3], tri[1::3], tri[2::3]
+    if sys.byteorder != "little":
+        vertices.byteswap()
+    faces = struct.pack("<" + "B3i" * nt, *flat)
+    return ply_header(nv, nt) + vertices.tobytes() + faces
 
 def _instance_key(inst):
     """A name for an object instance that stays the same from frame to frame."""
@@ -326,12 +347,12 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False, size=
         key = ob.original.name if hasattr(ob, "original") else ob.name
         mesh = ob.to_mesh()
         try:
-            verts, tris = _mesh_triangles(mesh)
+            data = mesh_ply(mesh)
         finally:
             ob.to_mesh_clear()
-        if not tris:
+        if data is None:
             continue
-        file = store.add(ply_bytes(verts, tris))
+        file = store.add(data)
         if object_colors is not None:
             rgb, special = object_colors[key], 0.0
         else:

@@ -18,7 +18,6 @@
 Exit status 1 on the first failure."""
 
 import os
-import queue
 import shutil
 import subprocess
 import sys
@@ -31,65 +30,10 @@ import bpy
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
 import tessera_blender  # noqa: E402
+from farm import TOKEN, Farm, tessera_bin  # noqa: E402
 from tessera_blender import job as tjob, ui  # noqa: E402
-
-TOKEN = "5be1c0d2a9f34e7b8c6d0e1f2a3b4c5d"
-START_TIMEOUT = 20.0
-
-
-def tessera_bin():
-    found = os.environ.get("TESSERA") or shutil.which("tessera")
-    if not found:
-        print("addon_test: no tessera on PATH (or $TESSERA)")
-        sys.exit(2)
-    return os.path.abspath(found)
-
-
-class Farm:
-    """A coordinator with a client token and HTTP, and one worker, on 127.0.0.1."""
-
-    def __init__(self, tessera, directory, extra=(), tls=False):
-        self.dir = directory
-        os.makedirs(directory, exist_ok=True)
-        self.token_file = os.path.join(directory, "client.token")
-        with open(self.token_file, "w") as f:
-            f.write(TOKEN + "\n")
-        os.chmod(self.token_file, 0o600)
-        self.processes = []
-        log = open(os.path.join(directory, "coordinator.log"), "wb")
-        coordinator = subprocess.Popen(
-            [tessera, "coordinator", "--data", os.path.join(directory, "data"),
-             "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0",
-             "--client-token-file", self.token_file, *(["--tls-auto"] if tls else []), *extra],
-            cwd=directory, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log)
-        self.processes.append(coordinator)
-        lines = queue.Queue()
-        threading.Thread(target=lambda: [lines.put(l.decode().strip()) for l in coordinator.stdout],
-                         daemon=True).start()
-        said = []
-        deadline = time.monotonic() + START_TIMEOUT
-        while len(said) < (3 if tls else 2):
-            try:
-                said.append(lines.get(timeout=max(0.1, deadline - time.monotonic())))
-            except queue.Empty:
-                self.stop()
-                raise AssertionError("the coordinator did not start: %r" % said)
-        self.addr = said[0].split("listening on ", 1)[1]
-        self.url = ("https://" if tls else "http://") + said[1].split("http on ", 1)[1]
-        self.fingerprint = said[2].split("tls fingerprint ", 1)[1] if tls else ""
-        wlog = open(os.path.join(directory, "worker.log"), "wb")
-        self.processes.append(subprocess.Popen(
-            [tessera, "worker", "--coordinator", self.addr, "--threads", "1", "--name", "w1",
-             *(["--tls-fingerprint", self.fingerprint] if tls else [])],
-            cwd=directory, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=wlog))
-
-    def stop(self):
-        for p in self.processes:
-            if p.poll() is None:
-                p.kill()
-            p.wait()
-
 
 def build_scene():
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -64,6 +64,23 @@ class Ply(unittest.TestCase):
             self.assertEqual(len(os.listdir(os.path.join(d, "meshes"))), 1)
 
 
+class _Collection(list):
+    def foreach_get(self, attr, out):
+        out[:] = [c for item in self for c in getattr(item, attr)]
+
+
+class MeshPly(unittest.TestCase):
+    def test_whole_array_copy_gives_ply_bytes_bytes(self):
+        verts = [(0.5, -1.0, 2.0), (1.0, 0.0, 0.25), (0.0, 1.5, -3.0), (2.0, 2.0, 2.0)]
+        tris = [(0, 1, 2), (2, 1, 3)]
+        mesh = SimpleNamespace(
+            calc_loop_triangles=lambda: None,
+            vertices=_Collection(SimpleNamespace(co=v) for v in verts),
+            loop_triangles=_Collection(SimpleNamespace(vertices=t) for t in tris))
+        self.assertEqual(export.mesh_ply(mesh),
+                         export.ply_bytes([export.to_tessera(v) for v in verts], tris))
+
+
 def _light(kind, colour=(1.0, 0.5, 0.25), energy=1000.0):
     return SimpleNamespace(name="L", data=SimpleNamespace(type=kind, color=colour, energy=energy))
 

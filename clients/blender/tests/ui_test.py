@@ -27,6 +27,7 @@ watchdog thread ends the run with status 1 after 120 s whatever Blender is doing
 
 import os
 import shutil
+import signal
 import struct
 import sys
 import tempfile
@@ -51,7 +52,33 @@ def log(msg):
     print("ui test [%6.2fs]: %s" % (time.monotonic() - T0, msg), flush=True)
 
 
+def addon_reports():
+    """The add-on's reports so far, if it keeps a list of them (a modal operator's
+    reports reach the status bar, not stdout)."""
+    reps = getattr(getattr(tessera_blender, "ui", None), "REPORTS", None)
+    return list(reps) if isinstance(reps, list) else []
+
+
+def kill_children():
+    """Ends the processes this Blender started (a local tessera render still running
+    when the test gives up), so none outlives the test. Linux /proc; else nothing."""
+    me = os.getpid()
+    for pid in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if not pid.isdigit():
+            continue
+        try:
+            with open("/proc/%s/stat" % pid) as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid == me:
+                os.kill(int(pid), signal.SIGTERM)
+        except (OSError, ValueError, IndexError):
+            pass
+
+
 def fail(msg):
+    for level, text in addon_reports():
+        print("ui test: add-on report %s: %s" % (level, text), flush=True)
+    kill_children()
     print("ui test: FAIL: %s" % msg, flush=True)
     sys.stderr.flush()
     os._exit(1)
@@ -141,13 +168,28 @@ def invoke_render(**kw):
     return res, time.monotonic() - t
 
 
+def operator_running():
+    """True/False from the render operator's class flag, None if it has none."""
+    cls = getattr(bpy.types, "TESSERA_OT_render", None) or getattr(
+        getattr(tessera_blender, "ui", None), "TESSERA_OT_render", None)
+    flag = getattr(cls, "_running", None)
+    return flag if isinstance(flag, bool) else None
+
+
 def wait_for(what, ready, timeout=RENDER_TIMEOUT):
     """Generator: yields poll intervals until ready() or timeout (then fails)."""
     t = time.monotonic()
     steps = 0
+    ended = None
     while not ready():
         if time.monotonic() - t > timeout:
             fail("%s: not there after %.0f s" % (what, timeout))
+        # Fail fast when the operator has ended without the image (its error report is
+        # printed above). Uses the operator class's "a render is running" flag if it has one.
+        if operator_running() is False:
+            ended = ended or time.monotonic()
+            if time.monotonic() - ended > 1.0:
+                fail("%s: the render operator ended without it (its reports are listed above)" % what)
         steps += 1
         yield 0.1
     log("%s after %.2f s (%d timer steps ran meanwhile)" % (what, time.monotonic() - t, steps))
@@ -295,6 +337,9 @@ def main(opts):
 
 def start():
     opts = args()
+    if bpy.app.background:
+        # Timers never run in --background: the test would end at once and pass.
+        fail("this test needs Blender's UI: run it under xvfb-run, without --background")
     # No splash screen: it would cover the screenshot. Read when the window loop starts.
     bpy.context.preferences.view.show_splash = False
     tessera_blender.register()
