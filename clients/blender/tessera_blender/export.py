@@ -117,6 +117,17 @@ def mirror_coefficient(metallic, roughness):
     return 0.0
 
 
+def surface(base, metallic, roughness):
+    """Tessera's (r g b, special) for a Principled BSDF's base colour (linear),
+    metallic and roughness. Tessera adds a mirror's reflection to the lit colour,
+    untinted: a metal's diffuse part is base x (1 - metallic), so a chrome ball
+    (metallic 1) is a pure mirror, not a lit white ball with a reflection on top;
+    the tint of a coloured metal's reflection cannot be shown."""
+    special = mirror_coefficient(metallic, roughness)
+    m = min(1.0, max(0.0, float(metallic)))
+    return tuple(float(c) * (1.0 - m) for c in base[:3]), special
+
+
 def fmt(v):
     """Numbers as the shortest text that reads back to the same double."""
     return " ".join(repr(float(x)) for x in v)
@@ -135,8 +146,9 @@ def ply_header(vertices, triangles):
 
 
 def ply_bytes(vertices, triangles):
-    """Binary little-endian PLY: float x y z per vertex; faces as uchar count +
-    int indices. ``vertices`` in Tessera axes; ``triangles`` index triples."""
+    """Binary little-endian PLY: float x y z per vertex; faces as uchar count + int
+    indices. ``vertices`` in Tessera axes; ``triangles`` index triples. (The reference
+    for ``mesh_ply``, which writes the same bytes from Blender's arrays.)"""
     header = ply_header(len(vertices), len(triangles))
     body = bytearray()
     vs = struct.Struct("<fff")
@@ -188,7 +200,7 @@ def _material_info(obj, warn):
     if mat is None:
         return (0.8, 0.8, 0.8), 0.0
     if not mat.use_nodes or mat.node_tree is None:
-        return _viewport_colour(mat), mirror_coefficient(mat.metallic, mat.roughness)
+        return surface(_viewport_colour(mat), mat.metallic, mat.roughness)
     tree = mat.node_tree
     out = tree.get_output_node("ALL") if hasattr(tree, "get_output_node") else None
     surf = out.inputs["Surface"].links[0].from_node if out and out.inputs["Surface"].links else None
@@ -203,7 +215,8 @@ def _material_info(obj, warn):
         return _viewport_colour(mat), 0.0
     inputs = surf.inputs
     base = inputs["Base Color"]
-    special = mirror_coefficient(inputs["Metallic"].default_value, inputs["Roughness"].default_value)
+    metallic, roughness = inputs["Metallic"].default_value, inputs["Roughness"].default_value
+    special = mirror_coefficient(metallic, roughness)
     # Input names are Blender 3.x's; 4.x renamed some (looked up defensively).
     transmission = inputs.get("Transmission") or inputs.get("Transmission Weight")
     if transmission is not None and transmission.default_value > 0:
@@ -219,8 +232,8 @@ def _material_info(obj, warn):
             return (1.0, 1.0, 1.0), 2.0
         warn("%s: base colour from %s cannot be shown: used the material's viewport colour"
              % (where, node.bl_label))
-        return _viewport_colour(mat), special
-    return tuple(base.default_value[:3]), special
+        return surface(_viewport_colour(mat), metallic, roughness)
+    return surface(base.default_value, metallic, roughness)
 
 
 # Where a sun light is put: this far from the origin, against its direction. With no
@@ -252,27 +265,92 @@ def light_entry(ob, matrix, warn):
     return {"position": fmt(to_tessera(position)), "color": fmt(colour)}
 
 
+def _regroup(data, record, fields, prefix=b""):
+    """Each ``record``-byte record of ``data`` rebuilt as ``prefix`` then its
+    (offset, size) ``fields`` in the order given, by byte slicing (no Python loop
+    over the records)."""
+    count = len(data) // record
+    out_record = len(prefix) + sum(size for _, size in fields)
+    out = bytearray(out_record * count)
+    for k, byte in enumerate(prefix):
+        out[k::out_record] = bytes([byte]) * count
+    at = len(prefix)
+    for offset, size in fields:
+        for k in range(size):
+            out[at + k::out_record] = data[offset + k::record]
+        at += size
+    return bytes(out)
+
+
+def _floats(collection, attr, count):
+    out = array.array("f", [0.0]) * count
+    collection.foreach_get(attr, out)
+    return out
+
+
+def _le(values):
+    if sys.byteorder != "little":
+        values.byteswap()
+    return values.tobytes()
+
+
 def mesh_ply(mesh):
-    """A Blender mesh's triangles as ``ply_bytes`` writes them (None if it has none).
-    The arrays are copied whole (``foreach_get``) and interleaved by slicing, not
-    vertex by vertex: several times faster on large meshes, with the same bytes."""
+    """A Blender mesh's triangles as binary PLY, and the shading that shows them as
+    Blender does: (bytes, "flat" or "smooth"), or None for a mesh without triangles.
+
+    No normals are written: Blender computes its normals in parallel, so their last
+    bits change from one evaluation to the next, and two linked duplicates would no
+    longer share a file nor an animation keep its shape. Smoothness is carried by
+    which triangles share a vertex, and Tessera computes smooth normals over the
+    triangles sharing each vertex (docs/scene-format.md, "Normals and shading"):
+
+    - no face shaded smooth: the mesh's own vertices, flat shading;
+    - every face smooth, no auto smooth, no custom normals: the mesh's own vertices,
+      smooth shading (the same file as flat: only the object's shading differs);
+    - otherwise (mixed faces, auto smooth's sharp edges, custom normals): corners are
+      grouped as Blender's split normals group them (a vertex is split wherever its
+      corners' normals differ: across sharp edges and around flat faces), smooth
+      shading; a flat face then has vertices of its own and stays flat.
+
+    The arrays are copied whole (``foreach_get`` into typed arrays) and regrouped by
+    byte slicing, never element by element: a million triangles take a fraction of a
+    second, with the same bytes as ``ply_bytes``."""
     mesh.calc_loop_triangles()
     nv, nt = len(mesh.vertices), len(mesh.loop_triangles)
     if nt == 0:
         return None
-    co = [0.0] * (3 * nv)
-    mesh.vertices.foreach_get("co", co)
-    swapped = co[:]
-    swapped[1::3], swapped[2::3] = co[2::3], co[1::3]       # (x, y, z) -> (x, z, y)
-    vertices = array.array("f", swapped)
-    tri = [0] * (3 * nt)
+    smooth = [False] * len(mesh.polygons)
+    mesh.polygons.foreach_get("use_smooth", smooth)
+    tri = array.array("i", [0]) * (3 * nt)
     mesh.loop_triangles.foreach_get("vertices", tri)
-    flat = [3] * (4 * nt)                                   # count, then three indices
-    flat[1::4], flat[2::4], flat[3::4] = tri[0::3], tri[1::3], tri[2::3]
-    if sys.byteorder != "little":
-        vertices.byteswap()
-    faces = struct.pack("<" + "B3i" * nt, *flat)
-    return ply_header(nv, nt) + vertices.tobytes() + faces
+    co = _floats(mesh.vertices, "co", 3 * nv)
+    shading = "smooth" if any(smooth) else "flat"
+    plain_smooth = all(smooth) and not getattr(mesh, "use_auto_smooth", False) \
+        and not getattr(mesh, "has_custom_normals", False)
+    if shading == "smooth" and not plain_smooth:
+        co, tri = _split_by_corner_normals(mesh, co, tri)
+    vertices = _regroup(_le(co), 12, [(0, 4), (8, 4), (4, 4)])   # (x, y, z) -> (x, z, y)
+    faces = _regroup(_le(tri), 12, [(0, 12)], prefix=b"\x03")      # count 3, three indices
+    return ply_header(len(co) // 3, nt) + vertices + faces, shading
+
+
+def _split_by_corner_normals(mesh, co, tri):
+    """(positions, triangles) with one vertex per (vertex, split normal) pair."""
+    if hasattr(mesh, "calc_normals_split"):
+        mesh.calc_normals_split()
+    normal = _floats(mesh.loop_triangles, "split_normals", 3 * len(tri))
+    index = {}
+    new_tri = array.array("i", [0]) * len(tri)
+    positions = array.array("f")
+    for c, v in enumerate(tri):
+        key = (v, normal[3 * c], normal[3 * c + 1], normal[3 * c + 2])
+        k = index.get(key)
+        if k is None:
+            k = index[key] = len(index)
+            positions.extend(co[3 * v:3 * v + 3])
+        new_tri[c] = k
+    return positions, new_tri
+
 
 def _instance_key(inst):
     """A name for an object instance that stays the same from frame to frame."""
@@ -347,20 +425,23 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False, size=
         key = ob.original.name if hasattr(ob, "original") else ob.name
         mesh = ob.to_mesh()
         try:
-            data = mesh_ply(mesh)
+            ply = mesh_ply(mesh)
         finally:
             ob.to_mesh_clear()
-        if data is None:
+        if ply is None:
             continue
+        data, shading = ply
         file = store.add(data)
         if object_colors is not None:
             rgb, special = object_colors[key], 0.0
         else:
             rgb, special = _material_info(ob, warn)
             rgb = tuple(linear_to_srgb(c) for c in rgb)
-        out["objects"].append({"type": "mesh", "file": file,
-                               "color": fmt(tuple(rgb) + (special,)),
-                               "transform": {"matrix": fmt(matrix_to_tessera(inst.matrix_world))}})
+        entry = {"type": "mesh", "file": file, "color": fmt(tuple(rgb) + (special,)),
+                 "transform": {"matrix": fmt(matrix_to_tessera(inst.matrix_world))}}
+        if shading == "smooth":
+            entry["shading"] = "smooth"
+        out["objects"].append(entry)
         keys["objects"].append(_instance_key(inst))
     return out, keys
 
@@ -445,7 +526,6 @@ def _animated_values(out, keys):
             vals["camera." + k] = cam[k]
     for i, o in enumerate(out["objects"]):
         vals[("objects", keys["objects"][i], "transform.matrix")] = o["transform"]["matrix"]
-        vals[("objects", keys["objects"][i], "file")] = o["file"]
     for i, l in enumerate(out["lights"]):
         vals[("lights", keys["lights"][i], "position")] = l["position"]
         vals[("lights", keys["lights"][i], "color")] = l["color"]
@@ -470,6 +550,7 @@ def export_animation(scene, goto, directory, name="scene.json", object_colors=No
         raise ValueError("the frame range %d-%d is empty" % (fs, fe))
     frames_values = []
     first = first_keys = None
+    reshaped = set()
     for bf in range(fs, fe + 1):
         depsgraph = goto(bf)
         out, keys = collect(scene, depsgraph, store, warn, object_colors, flat, size, image)
@@ -480,6 +561,9 @@ def export_animation(scene, goto, directory, name="scene.json", object_colors=No
                  % (bf, fs))
             continue
         frames_values.append((bf - fs + 1, _animated_values(out, keys)))
+        for i, o in enumerate(out["objects"]):
+            if o["file"] != first["objects"][i]["file"]:
+                reshaped.add(keys["objects"][i])
     tracks = []
     index = {("objects", k): i for i, k in enumerate(first_keys["objects"])}
     index.update({("lights", k): i for i, k in enumerate(first_keys["lights"])})
@@ -487,11 +571,10 @@ def export_animation(scene, goto, directory, name="scene.json", object_colors=No
         target = t["target"]
         if isinstance(target, tuple):
             kind, key, field = target
-            if field == "file":
-                warn("%s changes shape during the animation: its first frame's shape is used" % key)
-                continue
             t["target"] = "%s[%d].%s" % (kind, index[(kind, key)], field)
         tracks.append(t)
+    for key in sorted(reshaped):
+        warn("%s changes shape during the animation: its first frame's shape is used" % key)
     first["animation"] = {"frames": fe - fs + 1, "fps": scene.render.fps / scene.render.fps_base,
                           "tracks": tracks}
     with open(os.path.join(directory, name), "w") as f:

@@ -61,11 +61,16 @@ def build_scene():
     sphere = bpy.context.active_object
     sphere.name = "Chrome"
     sphere.data.materials.append(material("Chrome", metallic=1.0, roughness=0.1)[0])
+    for poly in sphere.data.polygons:        # smooth, with auto smooth: corner normals
+        poly.use_smooth = True
+    sphere.data.use_auto_smooth = True
 
     bpy.ops.mesh.primitive_monkey_add(location=(1.2, 0, 1))
     monkey = bpy.context.active_object
     monkey.name = "Monkey"
     monkey.modifiers.new("subdivision", "SUBSURF").render_levels = 1
+    for poly in monkey.data.polygons:        # smooth: vertex normals
+        poly.use_smooth = True
     monkey.data.materials.append(material("Red", colour=(0.8, 0.05, 0.05))[0])
     twin = monkey.copy()                 # a linked duplicate with the same modifier
     twin.name = "MonkeyTwin"
@@ -158,7 +163,10 @@ def main():
                 colour[name] = [float(c) for c in obj["color"].split()]
         red = export.linear_to_srgb(0.8), export.linear_to_srgb(0.05)
         check(colour["Floor"][3] == 2.0, "a Checker Texture into Base Color is special 2")
-        check(colour["Chrome"][3] == 1.0, "Metallic 1 is a mirror of 1")
+        check(colour["Chrome"] == [0.0, 0.0, 0.0, 1.0], "Metallic 1 is a pure mirror of 1: %r" % colour["Chrome"])
+        shading = {n: o.get("shading", "flat") for o in ex.scene["objects"] for n in ex.mesh_users[o["file"]]}
+        check(shading == {"Floor": "flat", "Chrome": "smooth", "Monkey": "smooth", "MonkeyTwin": "smooth",
+                          "GlassCube": "flat"}, "smooth-shaded objects are exported smooth: %r" % shading)
         want = [red[0], red[1], red[1], 0.0]
         check(all(abs(a - b) < 1e-6 for a, b in zip(colour["Monkey"], want)),
               "a base colour is written sRGB-encoded, matte: %r" % colour["Monkey"])

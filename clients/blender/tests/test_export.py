@@ -1,6 +1,7 @@
 """Unit tests of the pure-Python half of the exporter (no Blender needed):
 python3 -m unittest discover -s clients/blender/tests -p 'test_*.py'"""
 
+import array
 import math
 import os
 import struct
@@ -66,19 +67,54 @@ class Ply(unittest.TestCase):
 
 class _Collection(list):
     def foreach_get(self, attr, out):
-        out[:] = [c for item in self for c in getattr(item, attr)]
+        """As Blender's: fills a typed array of the right length in place."""
+        values = [c for item in self for c in getattr(item, attr)]
+        assert len(values) == len(out)
+        out[:] = array.array(out.typecode, values) if isinstance(out, array.array) else values
+
+
+def _fake_mesh(verts, tris, smooth, split=None, auto_smooth=False):
+    loops = [SimpleNamespace(vertices=t, split_normals=[c for n in (split or [])[i * 3:i * 3 + 3] for c in n])
+             for i, t in enumerate(tris)]
+    return SimpleNamespace(
+        calc_loop_triangles=lambda: None, calc_normals_split=lambda: None,
+        use_auto_smooth=auto_smooth, has_custom_normals=False,
+        vertices=_Collection(SimpleNamespace(co=v) for v in verts),
+        polygons=_Collection(SimpleNamespace(use_smooth=[s]) for s in smooth),
+        loop_triangles=_Collection(loops))
+
+
+VERTS = [(0.5, -1.0, 2.0), (1.0, 0.0, 0.25), (0.0, 1.5, -3.0), (2.0, 2.0, 2.0)]
+TRIS = [(0, 1, 2), (2, 1, 3)]
 
 
 class MeshPly(unittest.TestCase):
-    def test_whole_array_copy_gives_ply_bytes_bytes(self):
-        verts = [(0.5, -1.0, 2.0), (1.0, 0.0, 0.25), (0.0, 1.5, -3.0), (2.0, 2.0, 2.0)]
-        tris = [(0, 1, 2), (2, 1, 3)]
-        mesh = SimpleNamespace(
-            calc_loop_triangles=lambda: None,
-            vertices=_Collection(SimpleNamespace(co=v) for v in verts),
-            loop_triangles=_Collection(SimpleNamespace(vertices=t) for t in tris))
-        self.assertEqual(export.mesh_ply(mesh),
-                         export.ply_bytes([export.to_tessera(v) for v in verts], tris))
+    def test_flat_faces_give_the_mesh_as_it_is(self):
+        data, shading = export.mesh_ply(_fake_mesh(VERTS, TRIS, [False, False]))
+        self.assertEqual(shading, "flat")
+        self.assertEqual(data, export.ply_bytes([export.to_tessera(v) for v in VERTS], TRIS))
+
+    def test_smooth_faces_give_the_same_file_shaded_smooth(self):
+        data, shading = export.mesh_ply(_fake_mesh(VERTS, TRIS, [True, True]))
+        self.assertEqual(shading, "smooth")
+        self.assertEqual(data, export.ply_bytes([export.to_tessera(v) for v in VERTS], TRIS))
+
+    def test_a_flat_face_beside_smooth_ones_gets_vertices_of_its_own(self):
+        n, a, b = (0.0, 0.0, 1.0), (0.0, 0.6, 0.8), (0.6, 0.0, 0.8)
+        # Triangle 0 flat (its face normal at each corner); triangle 1 smooth.
+        split = [n, n, n, a, b, a]
+        data, shading = export.mesh_ply(_fake_mesh(VERTS, TRIS, [False, True], split))
+        self.assertEqual(shading, "smooth")
+        corners = [VERTS[0], VERTS[1], VERTS[2], VERTS[2], VERTS[1], VERTS[3]]
+        self.assertEqual(data, export.ply_bytes([export.to_tessera(v) for v in corners],
+                                                [(0, 1, 2), (3, 4, 5)]))
+
+    def test_corners_with_the_same_normal_share_their_vertex(self):
+        n, a = (0.0, 0.0, 1.0), (0.0, 0.6, 0.8)
+        # Auto smooth: vertices 1 and 2 smooth across the edge, 0 and 3 on sharp edges.
+        split = [n, a, a, a, a, n]
+        data, _ = export.mesh_ply(_fake_mesh(VERTS, TRIS, [True, True], split, auto_smooth=True))
+        self.assertEqual(data, export.ply_bytes([export.to_tessera(v) for v in VERTS], TRIS))
 
 
 def _light(kind, colour=(1.0, 0.5, 0.25), energy=1000.0):
@@ -118,6 +154,13 @@ class Rules(unittest.TestCase):
         self.assertEqual(export.mirror_coefficient(0.3, 0.5), 0.3)
         self.assertEqual(export.mirror_coefficient(0.0, 0.02), 0.5)
         self.assertEqual(export.mirror_coefficient(0.0, 0.5), 0.0)
+
+    def test_a_metal_reflects_and_is_not_lit_as_well(self):
+        self.assertEqual(export.surface((0.8, 0.6, 0.4, 1.0), 1.0, 0.2), ((0.0, 0.0, 0.0), 1.0))
+        rgb, special = export.surface((0.8, 0.6, 0.4, 1.0), 0.25, 0.2)
+        self.assertEqual(special, 0.25)
+        self.assertEqual(rgb, (0.8 * 0.75, 0.6 * 0.75, 0.4 * 0.75))
+        self.assertEqual(export.surface((0.8, 0.6, 0.4), 0.0, 0.5), ((0.8, 0.6, 0.4), 0.0))
 
     def test_colours_are_encoded_as_srgb(self):
         self.assertEqual(export.linear_to_srgb(0.0), 0.0)
