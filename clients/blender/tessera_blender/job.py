@@ -23,6 +23,10 @@ class JobError(Exception):
     """A render that did not give its image(s): one line saying why."""
 
 
+class Cancelled(JobError):
+    """The render was stopped on request (Esc)."""
+
+
 class Settings:
     """What a render is asked for: where (farm address or local command) and how
     (sampler, target error); the size, ``aa`` and depth are in the scene file."""
@@ -97,7 +101,9 @@ class RenderJob:
         return re.sub(r"sha256:([0-9a-f]{64})", name, text)
 
     def _cancelled(self):
-        raise JobError("cancelled")
+        if self.job_id is not None:
+            raise Cancelled("cancelled (job %d cancelled on the farm)" % self.job_id)
+        raise Cancelled("cancelled")
 
     def _run_local(self):
         exe = shutil.which(self.settings.tessera_path) or self.settings.tessera_path

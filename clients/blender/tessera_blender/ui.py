@@ -20,7 +20,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 from bpy_extras.io_utils import ExportHelper
 
 from . import evaluate
-from .job import JobError, RenderJob, Settings, one_line
+from .job import Cancelled, JobError, RenderJob, Settings, one_line
 
 STILL_IMAGE = "Tessera Render"
 ANIMATION_IMAGE = "Tessera Animation"
@@ -197,10 +197,13 @@ class TESSERA_OT_render(bpy.types.Operator):
                              exported.mesh_users)
         self.outputs = None
         self.error = None
+        self.cancelled = None
 
     def _run(self):
         try:
             self.outputs = self.job.run()
+        except Cancelled as e:
+            self.cancelled = str(e)
         except JobError as e:
             self.error = str(e)
         except Exception as e:  # a thread must never die silently
@@ -209,6 +212,9 @@ class TESSERA_OT_render(bpy.types.Operator):
     def _finish(self, context):
         """Loads the images (main thread), reports, and cleans up."""
         try:
+            if self.cancelled is not None:
+                _report(self, "WARNING", "Tessera: render %s" % self.cancelled)
+                return {"CANCELLED"}
             if self.error is not None:
                 what = "animation" if self.animation else "render"
                 _report(self, "ERROR", "Tessera: %s failed: %s" % (what, self.error))

@@ -3,7 +3,7 @@
 Run (needs a display; Xvfb gives one, Mesa renders the UI in software):
 
     xvfb-run -a -s "-screen 0 1600x1000x24" \
-        blender --factory-startup --python-exit-code 1 \
+        blender --factory-startup --enable-event-simulate --python-exit-code 1 \
                 --python clients/blender/tests/ui_test.py -- [--screenshot OUT.png]
 
 tessera is taken from $TESSERA, else PATH, else this checkout's target/release/tessera.
@@ -18,7 +18,10 @@ Checks:
    then "Tessera Render" appears, 160x120, within 60 s.
 2. The animation button (`animation=True`, frames 1-3, a keyframed cube) ends with
    "Tessera Animation", an image sequence, within 60 s.
-3. With --screenshot: the Properties editor's Render tab with the Tessera panel open,
+3. Esc during a farm render (a coordinator and a worker on 127.0.0.1, started here)
+   cancels the job on the farm and ends in one report (needs --enable-event-simulate,
+   which makes Blender take its events from the script only).
+4. With --screenshot: the Properties editor's Render tab with the Tessera panel open,
    its fields filled in, saved as a PNG. `--no-render` skips 1 and 2 (only the picture).
 
 Exit status 0 when all pass, 1 on any failure (printed as "ui test: FAIL: ..."); a
@@ -253,6 +256,56 @@ def test_animation():
     shutil.rmtree(out, ignore_errors=True)
 
 
+def test_cancel(exe):
+    """Esc while a farm render runs: the job is cancelled on the farm, and the
+    operator ends with one report saying so. The key press is simulated
+    (Blender started with --enable-event-simulate)."""
+    sys.path.insert(0, HERE)
+    from farm import TOKEN, Farm
+    work = tempfile.mkdtemp(prefix="tessera-ui-cancel-")
+    farm = Farm(exe, work)
+    try:
+        sc = bpy.context.scene
+        sc.tessera.address, sc.tessera.token_file = farm.url, farm.token_file
+        sc.render.resolution_x, sc.render.resolution_y = 1920, 1080
+        sc.tessera.aa = 16            # minutes on one worker thread: Esc comes first
+        del tessera_blender.ui.REPORTS[:]
+        res, _ = invoke_render()
+        if res != {"RUNNING_MODAL"}:
+            fail("farm render: INVOKE_DEFAULT returned %s" % sorted(res))
+        sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(HERE)), "python", "src"))
+        from tessera_client import Client
+        client = Client(farm.url, token=TOKEN, use_env=False)
+        t = time.monotonic()
+        while not [j for j in client.jobs() if j.state == "running"]:
+            if time.monotonic() - t > 30:
+                fail("the farm job did not start running")
+            yield 0.1
+        win = bpy.context.window_manager.windows[0]
+        win.event_simulate(type="ESC", value="PRESS")
+        win.event_simulate(type="ESC", value="RELEASE")
+        t = time.monotonic()
+        while operator_running() is not False:
+            if time.monotonic() - t > 20:
+                fail("Esc: the render operator is still running after 20 s")
+            yield 0.1
+        reports = tessera_blender.ui.REPORTS
+        if len(reports) != 1 or reports[0][0] != "WARNING" or "cancelled on the farm" not in reports[0][1]:
+            fail("Esc: expected one report saying cancelled, got %r" % (reports,))
+        states = [j.state for j in client.jobs()]
+        if states != ["cancelled"]:
+            fail("Esc: the farm's jobs are %r, not one cancelled job" % states)
+        if bpy.data.images.get(STILL) is not None and bpy.data.images[STILL].size[0] == 1920:
+            fail("Esc: an image was loaded anyway")
+        log("Esc cancelled the farm's job in %.2f s; report %r" % (time.monotonic() - t, reports[0][1]))
+    finally:
+        farm.stop()
+        shutil.rmtree(work, ignore_errors=True)
+        sc = bpy.context.scene
+        sc.tessera.address = ""
+        sc.render.resolution_x, sc.render.resolution_y = 160, 120
+
+
 def screenshot_steps(out):
     wm = bpy.context.window_manager
     win = wm.windows[0]
@@ -332,6 +385,10 @@ def main(opts):
     if not opts["no_render"]:
         yield from test_still()
         yield from test_animation()
+        if bpy.app.use_event_simulate:
+            yield from test_cancel(tessera_exe())
+        else:
+            log("Esc test skipped: Blender was not started with --enable-event-simulate")
     if opts["screenshot"]:
         yield from screenshot_steps(opts["screenshot"])
     log("all checks passed")
