@@ -39,7 +39,8 @@ class _ExportEngine(bpy.types.RenderEngine):
 
     def render(self, depsgraph):
         request = _pending
-        if request is None:
+        # Blender calls render once per view layer: the first one is exported.
+        if request is None or request.ran:
             return
         request.ran = True
         try:

@@ -88,6 +88,15 @@ def build_scene():
     g.inputs["Color"].default_value = (0.2, 0.6, 0.9, 1.0)
     gm.node_tree.links.new(g.outputs["BSDF"], nodes["Material Output"].inputs["Surface"])
     glass.data.materials.append(gm)
+    # A collection instance of the glass cube's mesh: an instance, sharing its file.
+    props = bpy.data.collections.new("Props")
+    props.objects.link(bpy.data.objects.new("PropCube", glass.data))
+    holder = bpy.data.objects.new("PropInstance", None)
+    holder.instance_type, holder.instance_collection = "COLLECTION", props
+    holder.location = (-3.2, 2.5, 0.5)
+    sc.collection.objects.link(holder)
+    # A second view layer: Blender renders each; the first one is exported.
+    sc.view_layers.new("Second")
 
     bpy.ops.object.light_add(type="POINT", location=(2, -3, 5))
     bpy.context.active_object.data.energy = 1000
@@ -148,7 +157,8 @@ def main():
         export_s = time.monotonic() - t
         check(res == {"FINISHED"}, "File > Export finishes")
         meshes = os.listdir(os.path.join(export_dir, "meshes"))
-        check(len(meshes) == 4, "5 mesh objects, a linked duplicate sharing its file: 4 PLY files (%d)"
+        check(len(meshes) == 4, "6 mesh objects, a linked duplicate and a collection instance sharing"
+              " files: 4 PLY files (%d)"
               % len(meshes))
         warnings = [t for level, t in ui.REPORTS if level == "WARNING"]
         check(len(ui.REPORTS) == 1 and len(warnings) == 1
@@ -162,11 +172,15 @@ def main():
             for name in ex.mesh_users[obj["file"]]:
                 colour[name] = [float(c) for c in obj["color"].split()]
         red = export.linear_to_srgb(0.8), export.linear_to_srgb(0.05)
+        check(len(ex.scene["objects"]) == 6 and ex.mesh_users[
+            [o for o in ex.scene["objects"] if "PropInstance" in ex.mesh_users[o["file"]]][0]["file"]]
+            == ["GlassCube", "PropInstance"], "the collection instance shares the cube's file: %r"
+            % ex.mesh_users)
         check(colour["Floor"][3] == 2.0, "a Checker Texture into Base Color is special 2")
         check(colour["Chrome"] == [0.0, 0.0, 0.0, 1.0], "Metallic 1 is a pure mirror of 1: %r" % colour["Chrome"])
         shading = {n: o.get("shading", "flat") for o in ex.scene["objects"] for n in ex.mesh_users[o["file"]]}
         check(shading == {"Floor": "flat", "Chrome": "smooth", "Monkey": "smooth", "MonkeyTwin": "smooth",
-                          "GlassCube": "flat"}, "smooth-shaded objects are exported smooth: %r" % shading)
+                          "GlassCube": "flat", "PropInstance": "flat"}, "smooth-shaded objects are exported smooth: %r" % shading)
         want = [red[0], red[1], red[1], 0.0]
         check(all(abs(a - b) < 1e-6 for a, b in zip(colour["Monkey"], want)),
               "a base colour is written sRGB-encoded, matte: %r" % colour["Monkey"])
