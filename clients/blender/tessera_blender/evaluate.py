@@ -15,6 +15,8 @@ import bpy
 from . import export
 
 ENGINE_ID = "TESSERA_EXPORT"
+#: The side of the (empty, square) render the export runs in, in pixels.
+RENDER_SIDE = 32
 
 
 class ExportFailed(Exception):
@@ -57,22 +59,25 @@ def _render_depsgraph(scene, call):
         raise ExportFailed("the scene has no camera (set one in Scene properties)")
     request = _Request(call)
     r = scene.render
-    saved = (r.engine, r.resolution_percentage, r.use_border, scene.frame_current)
+    saved = (r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage, r.use_border)
+    frame = scene.frame_current
     bpy.utils.register_class(_ExportEngine)
     _pending = request
     try:
         r.engine = ENGINE_ID
-        # The export reads the size itself; the render buffer Blender allocates for
-        # the engine (which draws nothing) need not be the image's.
-        r.resolution_percentage = 1
+        # The export reads the size before; the render Blender starts for the engine
+        # (which draws nothing) need not be the image's: a small square, of a size
+        # Blender accepts whatever the image's (it refuses images of a few pixels).
+        r.resolution_x = r.resolution_y = RENDER_SIDE
+        r.resolution_percentage = 100
         r.use_border = False
         bpy.ops.render.render(write_still=False)
     finally:
         _pending = None
-        r.engine, r.resolution_percentage, r.use_border = saved[:3]
+        r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage, r.use_border = saved
         bpy.utils.unregister_class(_ExportEngine)
-        if scene.frame_current != saved[3]:
-            scene.frame_set(saved[3])
+        if scene.frame_current != frame:
+            scene.frame_set(frame)
     if not request.ran:
         raise ExportFailed("Blender did not start the export (is a render already running?)")
     if request.error is not None:

@@ -278,6 +278,12 @@ def main():
         result, reports = run_op()
         check(one_error(reports, "no-such-tessera")[0], "tessera command missing: one error: %r" % (reports,))
         sc.tessera.tessera_path = tessera
+        # The smallest image Blender allows (its own render refuses so few pixels).
+        sc.render.resolution_x, sc.render.resolution_y = 5, 4
+        result, reports = run_op()
+        check(result == {"FINISHED"} and tuple(bpy.data.images[ui.STILL_IMAGE].size) == (5, 4),
+              "a 5x4 image renders: %r %r" % (result, reports))
+        sc.render.resolution_x, sc.render.resolution_y = 160, 120
         sc.camera = None
         result, reports = run_op()
         check(one_error(reports, "no camera")[0], "no camera: one error: %r" % (reports,))
