@@ -161,14 +161,22 @@ def ply_bytes(vertices, triangles):
 
 
 class MeshStore:
-    """Writes each distinct PLY once, named by the SHA-256 of its bytes."""
+    """Writes each distinct PLY once, named by the SHA-256 of its bytes. A mesh seen
+    before under the same ``mesh_key`` is not converted again (a hundred linked
+    duplicates of a million triangles are read once, not a hundred times)."""
 
     def __init__(self, directory, subdir="meshes"):
         self.directory = directory
         self.subdir = subdir
         self.files = {}
+        self.by_key = {}
 
-    def add(self, data):
+    def known(self, key):
+        """(file, shading) of a mesh added under ``key`` (None: not known, or no key)."""
+        return self.by_key.get(key) if key is not None else None
+
+    def add(self, data, key=None, shading="flat"):
+        """Writes ``data`` unless a file with its bytes exists; returns (file, shading)."""
         digest = hashlib.sha256(data).hexdigest()
         name = "%s/%s.ply" % (self.subdir, digest[:16])
         if digest not in self.files:
@@ -177,7 +185,10 @@ class MeshStore:
             with open(path, "wb") as f:
                 f.write(data)
             self.files[digest] = name
-        return self.files[digest]
+        written = (self.files[digest], shading)
+        if key is not None:
+            self.by_key[key] = written
+        return written
 
 
 # --------------------------------------------------------------------------- bpy
@@ -334,6 +345,30 @@ def mesh_ply(mesh):
     return ply_header(len(co) // 3, nt) + vertices + faces, shading
 
 
+def mesh_key(mesh):
+    """A digest of everything ``mesh_ply`` reads of a mesh whose vertices are written
+    as they are (every face flat, or every face smooth with no auto smooth and no
+    custom normals): positions, faces, corners, shading flags. Equal keys give equal
+    PLY bytes: the triangles Blender makes of a face depend only on these. None for a
+    mesh whose vertices are split by its corner normals (not cached)."""
+    smooth = [False] * len(mesh.polygons)
+    mesh.polygons.foreach_get("use_smooth", smooth)
+    if any(smooth) and not (all(smooth) and not getattr(mesh, "use_auto_smooth", False)
+                            and not getattr(mesh, "has_custom_normals", False)):
+        return None
+    h = hashlib.sha256()
+    co = _floats(mesh.vertices, "co", 3 * len(mesh.vertices))
+    h.update(b"%d %d %d %d|" % (len(mesh.vertices), len(mesh.polygons), len(mesh.loops), any(smooth)))
+    h.update(co.tobytes())
+    for collection, attr, count in ((mesh.loops, "vertex_index", len(mesh.loops)),
+                                    (mesh.polygons, "loop_start", len(mesh.polygons)),
+                                    (mesh.polygons, "loop_total", len(mesh.polygons))):
+        values = array.array("i", [0]) * count
+        collection.foreach_get(attr, values)
+        h.update(values.tobytes())
+    return h.digest()
+
+
 def _split_by_corner_normals(mesh, co, tri):
     """(positions, triangles) with one vertex per (vertex, split normal) pair."""
     if hasattr(mesh, "calc_normals_split"):
@@ -425,13 +460,16 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False, size=
         key = ob.original.name if hasattr(ob, "original") else ob.name
         mesh = ob.to_mesh()
         try:
-            ply = mesh_ply(mesh)
+            digest = mesh_key(mesh)
+            written = store.known(digest)
+            if written is None:
+                ply = mesh_ply(mesh)
+                written = None if ply is None else store.add(ply[0], digest, ply[1])
         finally:
             ob.to_mesh_clear()
-        if ply is None:
+        if written is None:
             continue
-        data, shading = ply
-        file = store.add(data)
+        file, shading = written
         if object_colors is not None:
             rgb, special = object_colors[key], 0.0
         else:

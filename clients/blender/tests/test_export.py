@@ -73,14 +73,21 @@ class _Collection(list):
         out[:] = array.array(out.typecode, values) if isinstance(out, array.array) else values
 
 
-def _fake_mesh(verts, tris, smooth, split=None, auto_smooth=False):
+def _fake_mesh(verts, tris, smooth, split=None, auto_smooth=False, faces=None):
+    """A mesh of the given loop triangles; its faces (polygons) are ``faces`` (vertex
+    lists; by default the triangles themselves)."""
+    faces = faces or tris
+    starts = [sum(len(f) for f in faces[:i]) for i in range(len(faces))]
     loops = [SimpleNamespace(vertices=t, split_normals=[c for n in (split or [])[i * 3:i * 3 + 3] for c in n])
              for i, t in enumerate(tris)]
     return SimpleNamespace(
         calc_loop_triangles=lambda: None, calc_normals_split=lambda: None,
         use_auto_smooth=auto_smooth, has_custom_normals=False,
         vertices=_Collection(SimpleNamespace(co=v) for v in verts),
-        polygons=_Collection(SimpleNamespace(use_smooth=[s]) for s in smooth),
+        polygons=_Collection(SimpleNamespace(use_smooth=[s], loop_start=[starts[i]],
+                                             loop_total=[len(faces[i])])
+                             for i, s in enumerate(smooth)),
+        loops=_Collection(SimpleNamespace(vertex_index=[v]) for f in faces for v in f),
         loop_triangles=_Collection(loops))
 
 
@@ -115,6 +122,31 @@ class MeshPly(unittest.TestCase):
         split = [n, a, a, a, a, n]
         data, _ = export.mesh_ply(_fake_mesh(VERTS, TRIS, [True, True], split, auto_smooth=True))
         self.assertEqual(data, export.ply_bytes([export.to_tessera(v) for v in VERTS], TRIS))
+
+
+class MeshKey(unittest.TestCase):
+    def test_equal_meshes_have_equal_keys_and_other_faces_other_keys(self):
+        a = export.mesh_key(_fake_mesh(VERTS, TRIS, [False, False]))
+        self.assertEqual(a, export.mesh_key(_fake_mesh(VERTS, TRIS, [False, False])))
+        self.assertNotEqual(a, export.mesh_key(_fake_mesh(VERTS, TRIS, [True, True])))
+        other = [(0, 1, 3), (0, 3, 2)]
+        self.assertNotEqual(a, export.mesh_key(_fake_mesh(VERTS, other, [False, False])))
+        moved = [VERTS[0], VERTS[1], VERTS[2], (2.0, 2.0, 2.5)]
+        self.assertNotEqual(a, export.mesh_key(_fake_mesh(moved, TRIS, [False, False])))
+
+    def test_meshes_split_by_corner_normals_are_not_keyed(self):
+        self.assertIsNone(export.mesh_key(_fake_mesh(VERTS, TRIS, [False, True])))
+        self.assertIsNone(export.mesh_key(_fake_mesh(VERTS, TRIS, [True, True], auto_smooth=True)))
+
+    def test_a_known_key_is_not_converted_again(self):
+        with tempfile.TemporaryDirectory() as d:
+            store = export.MeshStore(d)
+            data, shading = export.mesh_ply(_fake_mesh(VERTS, TRIS, [False, False]))
+            key = export.mesh_key(_fake_mesh(VERTS, TRIS, [False, False]))
+            self.assertIsNone(store.known(key))
+            written = store.add(data, key, shading)
+            self.assertEqual(store.known(key), written)
+            self.assertIsNone(store.known(None))
 
 
 def _light(kind, colour=(1.0, 0.5, 0.25), energy=1000.0):
