@@ -227,7 +227,6 @@ def _material_info(obj, warn):
     inputs = surf.inputs
     base = inputs["Base Color"]
     metallic, roughness = inputs["Metallic"].default_value, inputs["Roughness"].default_value
-    special = mirror_coefficient(metallic, roughness)
     # Input names are Blender 3.x's; 4.x renamed some (looked up defensively).
     transmission = inputs.get("Transmission") or inputs.get("Transmission Weight")
     if transmission is not None and transmission.default_value > 0:
