@@ -329,19 +329,34 @@ def mesh_ply(mesh):
     nv, nt = len(mesh.vertices), len(mesh.loop_triangles)
     if nt == 0:
         return None
-    smooth = [False] * len(mesh.polygons)
-    mesh.polygons.foreach_get("use_smooth", smooth)
+    kind = _smoothness(mesh)
     tri = array.array("i", [0]) * (3 * nt)
     mesh.loop_triangles.foreach_get("vertices", tri)
     co = _floats(mesh.vertices, "co", 3 * nv)
-    shading = "smooth" if any(smooth) else "flat"
-    plain_smooth = all(smooth) and not getattr(mesh, "use_auto_smooth", False) \
-        and not getattr(mesh, "has_custom_normals", False)
-    if shading == "smooth" and not plain_smooth:
+    if kind == "split":
         co, tri = _split_by_corner_normals(mesh, co, tri)
     vertices = _regroup(_le(co), 12, [(0, 4), (8, 4), (4, 4)])   # (x, y, z) -> (x, z, y)
     faces = _regroup(_le(tri), 12, [(0, 12)], prefix=b"\x03")      # count 3, three indices
-    return ply_header(len(co) // 3, nt) + vertices + faces, shading
+    return ply_header(len(co) // 3, nt) + vertices + faces, "flat" if kind == "flat" else "smooth"
+
+
+def _smoothness(mesh):
+    """"flat" (no face smooth), "plain" (every face smooth and nothing splits the
+    normals at a vertex) or "split". Sharp edges split normals under auto smooth
+    (Blender before 4.1) and always from 4.1 on, where auto smooth is gone."""
+    smooth = [False] * len(mesh.polygons)
+    mesh.polygons.foreach_get("use_smooth", smooth)
+    if not any(smooth):
+        return "flat"
+    if not all(smooth) or getattr(mesh, "use_auto_smooth", False) \
+            or getattr(mesh, "has_custom_normals", False):
+        return "split"
+    if not hasattr(mesh, "use_auto_smooth"):
+        sharp = [False] * len(mesh.edges)
+        mesh.edges.foreach_get("use_edge_sharp", sharp)
+        if any(sharp):
+            return "split"
+    return "plain"
 
 
 def mesh_key(mesh):
@@ -350,14 +365,13 @@ def mesh_key(mesh):
     custom normals): positions, faces, corners, shading flags. Equal keys give equal
     PLY bytes: the triangles Blender makes of a face depend only on these. None for a
     mesh whose vertices are split by its corner normals (not cached)."""
-    smooth = [False] * len(mesh.polygons)
-    mesh.polygons.foreach_get("use_smooth", smooth)
-    if any(smooth) and not (all(smooth) and not getattr(mesh, "use_auto_smooth", False)
-                            and not getattr(mesh, "has_custom_normals", False)):
+    kind = _smoothness(mesh)
+    if kind == "split":
         return None
     h = hashlib.sha256()
     co = _floats(mesh.vertices, "co", 3 * len(mesh.vertices))
-    h.update(b"%d %d %d %d|" % (len(mesh.vertices), len(mesh.polygons), len(mesh.loops), any(smooth)))
+    h.update(b"%d %d %d %s|" % (len(mesh.vertices), len(mesh.polygons), len(mesh.loops),
+                                kind.encode()))
     h.update(co.tobytes())
     for collection, attr, count in ((mesh.loops, "vertex_index", len(mesh.loops)),
                                     (mesh.polygons, "loop_start", len(mesh.polygons)),

@@ -82,7 +82,7 @@ def _fake_mesh(verts, tris, smooth, split=None, auto_smooth=False, faces=None):
              for i, t in enumerate(tris)]
     return SimpleNamespace(
         calc_loop_triangles=lambda: None, calc_normals_split=lambda: None,
-        use_auto_smooth=auto_smooth, has_custom_normals=False,
+        use_auto_smooth=auto_smooth, has_custom_normals=False, edges=_Collection(),
         vertices=_Collection(SimpleNamespace(co=v) for v in verts),
         polygons=_Collection(SimpleNamespace(use_smooth=[s], loop_start=[starts[i]],
                                              loop_total=[len(faces[i])])
@@ -137,6 +137,14 @@ class MeshKey(unittest.TestCase):
     def test_meshes_split_by_corner_normals_are_not_keyed(self):
         self.assertIsNone(export.mesh_key(_fake_mesh(VERTS, TRIS, [False, True])))
         self.assertIsNone(export.mesh_key(_fake_mesh(VERTS, TRIS, [True, True], auto_smooth=True)))
+
+    def test_sharp_edges_split_normals_without_auto_smooth_from_blender_4_1(self):
+        mesh = _fake_mesh(VERTS, TRIS, [True, True])
+        del mesh.use_auto_smooth                      # Blender 4.1 and later
+        mesh.edges = _Collection([SimpleNamespace(use_edge_sharp=[False])])
+        self.assertIsNotNone(export.mesh_key(mesh))
+        mesh.edges.append(SimpleNamespace(use_edge_sharp=[True]))
+        self.assertIsNone(export.mesh_key(mesh))
 
     def test_a_known_key_is_not_converted_again(self):
         with tempfile.TemporaryDirectory() as d:
