@@ -195,6 +195,9 @@ class MeshStore:
 
 
 MESH_LIKE = {"MESH", "CURVE", "SURFACE", "FONT", "META"}
+# Objects a render shows that Tessera's model has no surface for.
+UNSHOWN = {"VOLUME": "a volume", "POINTCLOUD": "a point cloud", "CURVES": "hair curves",
+           "GPENCIL": "a grease pencil drawing", "GREASEPENCIL": "a grease pencil drawing"}
 
 
 def _viewport_colour(mat):
@@ -469,6 +472,8 @@ def collect(scene, depsgraph, store, warn, object_colors=None, flat=False, size=
                 keys["lights"].append(_instance_key(inst))
             continue
         if ob.type not in MESH_LIKE:
+            if ob.type in UNSHOWN:
+                warn("%s: %s cannot be shown: left out" % (ob.name, UNSHOWN[ob.type]))
             continue
         key = ob.original.name if hasattr(ob, "original") else ob.name
         mesh = ob.to_mesh()

@@ -94,6 +94,9 @@ def build_scene():
     holder.instance_type, holder.instance_collection = "COLLECTION", props
     holder.location = (-3.2, 2.5, 0.5)
     sc.collection.objects.link(holder)
+    # A volume: rendered by Blender, no surface for Tessera.
+    bpy.ops.object.volume_add(location=(4, 4, 1))
+    bpy.context.active_object.name = "Fog"
     # A second view layer: Blender renders each; the first one is exported.
     sc.view_layers.new("Second")
 
@@ -162,8 +165,10 @@ def main():
         warnings = [t for level, t in ui.REPORTS if level == "WARNING"]
         check(len(ui.REPORTS) == 1 and len(warnings) == 1
               and "GlassCube: material Glass: Glass BSDF cannot be shown: used its Color input" in warnings[0]
-              and "light Sun: sun light cannot be shown: used a point light" in warnings[0],
-              "one warning names the glass cube, the sun and what was used instead: %r" % ui.REPORTS)
+              and "light Sun: sun light cannot be shown: used a point light" in warnings[0]
+              and "Fog: a volume cannot be shown: left out" in warnings[0],
+              "one warning names the glass cube, the sun, the volume and what was used instead: %r"
+              % ui.REPORTS)
         from tessera_blender import evaluate, export
         ex = evaluate.export_still(sc, os.path.join(work, "rules"))
         colour = {}
