@@ -130,8 +130,9 @@ def _animation_paths(scene, count):
     """Where a sequence's frames go: Blender's own output path (Output properties),
     numbered by Blender frame as its animation renders are: PREFIX0001.png..."""
     prefix = bpy.path.abspath(scene.render.filepath or "//")
-    if prefix.endswith(("/", os.sep)) or os.path.isdir(prefix):
-        prefix = os.path.join(prefix, "")
+    directory = prefix.endswith(("/", os.sep)) or prefix == "" or os.path.isdir(prefix)
+    # Absolute (an unsaved file's "//" is the current directory), as reports name it.
+    prefix = os.path.join(os.path.abspath(prefix), "") if directory else os.path.abspath(prefix)
     prefix = re.sub(r"#+$", "", prefix)
     return [prefix + "%04d.png" % (scene.frame_start + i) for i in range(count)]
 
