@@ -148,7 +148,9 @@ fn assert_all_gone(pids: &[u32], marker: &str, what: &str) {
 
 /// Every scene, through `tessera up` with 1, 2 and 3 workers and three tile sizes
 /// (16, 32 and 48: full, and partial edge tiles), gives `tessera render`'s PNG, scenes
-/// that name mesh files included (their files travel with the job).
+/// that name mesh files included (their files travel with the job). The farms of a
+/// scene's three worker counts run at the same time (each `up` has a farm of its own),
+/// so that their start-ups and shut-downs overlap.
 #[test]
 fn up_gives_renders_image_for_every_scene_worker_count_and_tile_size() {
     let _turn = shared();
@@ -162,25 +164,30 @@ fn up_gives_renders_image_for_every_scene_worker_count_and_tile_size() {
         let scene = path_str(&path);
         let stem = path.file_stem().unwrap().to_string_lossy().into_owned();
         let reference = render_reference(dir.path(), scene, &format!("{stem}.png"), SMALL);
-        for workers in ["1", "2", "3"] {
-            for tile in ["16", "32", "48"] {
-                let out = dir.path().join(format!("{stem}-w{workers}-t{tile}.png"));
-                let up = [
-                    "up",
-                    scene,
-                    "--workers",
-                    workers,
-                    "--tile",
-                    tile,
-                    "-o",
-                    path_str(&out),
-                ];
-                let args = [&up[..], SMALL].concat();
-                let what = format!("tessera {}", args.join(" "));
-                ok(tessera(dir.path(), &args, JOB_TIMEOUT), &what);
-                assert_same_png(&out, &reference, &what);
+        thread::scope(|s| {
+            for workers in ["1", "2", "3"] {
+                let (dir, stem, reference) = (dir.path(), &stem, &reference);
+                s.spawn(move || {
+                    for tile in ["16", "32", "48"] {
+                        let out = dir.join(format!("{stem}-w{workers}-t{tile}.png"));
+                        let up = [
+                            "up",
+                            scene,
+                            "--workers",
+                            workers,
+                            "--tile",
+                            tile,
+                            "-o",
+                            path_str(&out),
+                        ];
+                        let args = [&up[..], SMALL].concat();
+                        let what = format!("tessera {}", args.join(" "));
+                        ok(tessera(dir, &args, JOB_TIMEOUT), &what);
+                        assert_same_png(&out, reference, &what);
+                    }
+                });
             }
-        }
+        });
     }
 }
 

@@ -24,9 +24,10 @@ use serde_json::Value;
 use tempfile::TempDir;
 
 use crate::support::{
-    assert_job_image, client, events, http_get_text, one_error_line, poll, scene_path, shared,
-    start_coordinator_with_http, start_worker_with, status_json, submit_scene, tessera, wait_done,
-    wait_for_workers, worker_named, workers_json, Daemon,
+    assert_job_image, assert_same_png, client, events, fetch, http_get_text, one_error_line, poll,
+    render_args, render_reference, scene_path, shared, start_coordinator_with_http,
+    start_worker_with, status_json, submit_scene, tessera, wait_done, wait_for_workers,
+    worker_named, workers_json, Daemon,
 };
 
 /// Longest a job of these tests may take.
@@ -235,9 +236,19 @@ fn a_worker_restarted_with_other_tags_while_holding_tiles_renders_none_of_them_a
         let workers = workers_json(dir, &addr, &[]);
         (worker_named(&workers, "w1").is_some() && tags_of(&workers, "w1") == ["cpu"]).then_some(())
     });
-    // From here on every tile w1 returns would be the restarted worker's.
+    // From here on every tile w1 returns would be the restarted worker's. Only w2 renders
+    // the rest: the reference renders on the other core meanwhile (scoped, so that a
+    // failed assertion still waits for its process).
     let before = renderers(dir, &addr, job).len();
-    let status = wait_done(dir, &addr, job, JOB_TIMEOUT);
+    let reference_args = [&render_args(LONG)[..], &["--threads", "1"]].concat();
+    let (status, reference) = std::thread::scope(|s| {
+        let reference = s.spawn(|| render_reference(dir, &scene, "reference.png", &reference_args));
+        let status = wait_done(dir, &addr, job, JOB_TIMEOUT);
+        (
+            status,
+            reference.join().expect("the reference render panicked"),
+        )
+    });
     let after = renderers(dir, &addr, job);
     assert_eq!(after.len() as u64, status["tiles_total"].as_u64().unwrap());
     let late: Vec<&(u32, String)> = after[before..].iter().filter(|(_, m)| m == "w1").collect();
@@ -248,5 +259,6 @@ fn a_worker_restarted_with_other_tags_while_holding_tiles_renders_none_of_them_a
         .filter(|(kind, detail)| kind == "tile_taken_back" && detail.contains(" from w1"))
         .count();
     assert!(taken_back > 0, "no tile of w1 was taken back");
-    assert_job_image(dir, &addr, job, &scene, LONG, "the job after the restart");
+    let fetched = fetch(dir, &addr, job, "job.png");
+    assert_same_png(&fetched, &reference, "the job after the restart");
 }

@@ -25,16 +25,18 @@ use crate::support::{
     tiles_done, tiles_total, worker_named, SplitMix, POLL, REGISTER_TIMEOUT,
 };
 
-/// Some 7 CPU-seconds in 4,275 tiles (with `--tile 32`): over 3 s on three workers
-/// sharing two cores.
-const LONG: &[&str] = &["--width", "2400", "--height", "1800", "--aa", "6"];
+/// Some 6 CPU-seconds in 4,275 tiles (with `--tile 32`): some 3 s on three workers
+/// sharing two cores. The image of `coordinator.rs`'s `VERY_LONG`, so that the two
+/// tests share one reference rendering.
+const LONG: &[&str] = &["--width", "2400", "--height", "1800", "--aa", "5"];
 /// Some 2 CPU-seconds in 4,275 tiles of 16 pixels: the job of one restarted worker.
 const ONE_WORKER_JOB: &[&str] = &[
     "--width", "1200", "--height", "900", "--aa", "5", "--tile", "16",
 ];
-/// Some 5 CPU-seconds in 7,500 tiles of 16 pixels: the job of two restarted workers.
+/// Some 4 CPU-seconds in 7,500 tiles of 16 pixels: the job of two restarted workers.
+/// The image of the faults tests' `JOB`, so that they share one reference rendering.
 const TWO_WORKER_JOB: &[&str] = &[
-    "--width", "1600", "--height", "1200", "--aa", "6", "--tile", "16",
+    "--width", "1600", "--height", "1200", "--aa", "5", "--tile", "16",
 ];
 /// `(min, median, max)` in milliseconds.
 fn spread(times: &[Duration]) -> String {
