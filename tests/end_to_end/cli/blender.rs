@@ -26,7 +26,9 @@ fn blender_add_on_suite_passes() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let bin_dir = Path::new(env!("CARGO_BIN_EXE_tessera")).parent().unwrap();
     let mut paths: Vec<PathBuf> = vec![bin_dir.to_path_buf()];
-    paths.extend(std::env::split_paths(&std::env::var_os("PATH").unwrap_or_default()));
+    paths.extend(std::env::split_paths(
+        &std::env::var_os("PATH").unwrap_or_default(),
+    ));
     let out = Command::new(root.join("clients/blender/run-tests"))
         .env("PATH", std::env::join_paths(paths).unwrap())
         .env("TESSERA", env!("CARGO_BIN_EXE_tessera"))
