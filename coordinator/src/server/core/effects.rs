@@ -147,14 +147,10 @@ impl Core {
                     .or(record.times.submitted)
                     .unwrap_or(at),
             );
-            self.store(
-                sh,
-                job,
-                Write::Started {
-                    job,
-                    at_unix_ms: at,
-                },
-            );
+            // The event is queued before the start it tells of: the two are committed
+            // one after the other, and a coordinator killed between them then logs a
+            // second `started` on its restart, rather than none at all (a start
+            // recorded without its event is never logged again).
             self.log(
                 sh,
                 job,
@@ -163,6 +159,14 @@ impl Core {
                     "first tile out after {:.1} s in the queue",
                     queued as f64 / 1000.0
                 ),
+            );
+            self.store(
+                sh,
+                job,
+                Write::Started {
+                    job,
+                    at_unix_ms: at,
+                },
             );
         }
         self.send(worker, message);
