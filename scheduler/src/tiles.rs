@@ -738,6 +738,18 @@ impl Scheduler {
     fn insert_job(&mut self, id: JobId, job: Job) {
         if let Some(old) = self.jobs.get(&id) {
             self.order.remove(&old.rank(id));
+            // The job its id named is replaced, and its pace with it: its holders'
+            // allowance may be less now (as when a job ends).
+            let holders: Vec<WorkerId> = old
+                .in_flight
+                .values()
+                .flatten()
+                .map(|l| l.worker)
+                .chain(old.late_copies.iter().map(|(_, w)| *w))
+                .collect();
+            for worker in holders {
+                self.overdue.sooner(worker, self.now);
+            }
         }
         self.order.insert(job.rank(id));
         self.jobs.insert(id, job);

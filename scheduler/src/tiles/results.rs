@@ -206,6 +206,8 @@ impl Scheduler {
             if let Some(w) = self.workers.get_mut(&worker) {
                 w.holding.retain(|(j, _)| *j != job_id);
                 self.hungry.insert(worker);
+                // Its pace may have been this job's: its allowance may be less now.
+                self.overdue.sooner(worker, self.now);
                 actions.push(Action::CancelOnWorker {
                     worker,
                     job: job_id,

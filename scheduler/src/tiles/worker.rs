@@ -76,7 +76,9 @@ impl Worker {
 /// [`Policy::progress_timeout`](super::Policy::progress_timeout), the least allowance
 /// any worker has. Its progress only moves later and its allowance is never less, so
 /// a timeout before that time could only find it in time: only the workers due are
-/// looked at, not every worker holding a tile late on a farm of thousands.
+/// looked at, not every worker holding a tile late on a farm of thousands. (A worker's
+/// allowance shrinks when a job whose tiles it holds ends, taking that job's pace with
+/// it: its holders are then looked at again at once, [`Overdue::sooner`].)
 #[derive(Default)]
 pub(super) struct Overdue {
     by_time: BTreeSet<(Millis, WorkerId)>,
@@ -111,6 +113,14 @@ impl Overdue {
             self.by_time.remove(&(filed, worker));
         }
         self.by_time.insert((at, worker));
+    }
+
+    /// Looks at a filed worker again by `at`, if it is filed for later; a worker not
+    /// filed stays so (it holds nothing late).
+    pub(super) fn sooner(&mut self, worker: WorkerId, at: Millis) {
+        if self.at.get(&worker).is_some_and(|&filed| filed > at) {
+            self.defer(worker, at);
+        }
     }
 
     /// The workers due by `now`, the `most` filed earliest, in id order; and whether
