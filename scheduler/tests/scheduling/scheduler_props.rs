@@ -119,6 +119,11 @@ const NAMES: [&str; 3] = ["m0", "m1", "m2"];
 fn no_speculation() -> Policy {
     Policy {
         speculate: false,
+        // The model knows nothing of hand-outs cut into several calls (a worker whose
+        // credit a pace raises to hundreds of tiles would otherwise idle between
+        // calls): continuations are the unit tests'.
+        handout_per_call: usize::MAX,
+        checks_per_call: usize::MAX,
         ..Policy::default()
     }
 }
@@ -4410,4 +4415,48 @@ fn the_raw_histories_exercise_every_feature() {
     ] {
         assert!(count > 0, "no {what} in the raw histories");
     }
+}
+
+/// A worker whose credit a pace raises above one call's hand-out still gets every tile
+/// it may take (found by `random_histories_keep_the_invariants_and_finish_every_job`:
+/// 263 tiles waiting, a pace raising a 2-thread worker's credit to 512).
+#[test]
+fn a_pace_raising_credit_past_one_call_s_hand_out_fills_the_worker() {
+    let mut ops: Vec<Op> = [24u32, 1, 26, 23, 23, 28, 26, 29, 19, 16, 16]
+        .into_iter()
+        .map(|tiles| Op::Submit {
+            priority: 0,
+            scene: 0,
+            tiles,
+        })
+        .collect();
+    ops.push(Op::Submit {
+        priority: 0,
+        scene: 0,
+        tiles: 30,
+    });
+    ops.push(Op::Join {
+        threads: 2,
+        name: None,
+    });
+    ops.push(Op::Join {
+        threads: 1,
+        name: None,
+    });
+    ops.push(Op::Submit {
+        priority: 0,
+        scene: 0,
+        tiles: 2,
+    });
+    let mut farm = Farm::with_policy(tight(no_speculation()), true);
+    for op in &ops {
+        farm.apply(op);
+    }
+    let first = *farm.workers.keys().next().expect("two workers joined");
+    farm.step(Event::WorkerPace {
+        worker: first,
+        rtt: 5377,
+        tile: 0,
+    });
+    farm.run_to_completion();
 }
