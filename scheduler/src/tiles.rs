@@ -740,14 +740,7 @@ impl Scheduler {
             self.order.remove(&old.rank(id));
             // The job its id named is replaced, and its pace with it: its holders'
             // allowance may be less now (as when a job ends).
-            let holders: Vec<WorkerId> = old
-                .in_flight
-                .values()
-                .flatten()
-                .map(|l| l.worker)
-                .chain(old.late_copies.iter().map(|(_, w)| *w))
-                .collect();
-            for worker in holders {
+            for worker in old.holders() {
                 self.overdue.sooner(worker, self.now);
             }
         }

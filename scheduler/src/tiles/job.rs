@@ -165,6 +165,17 @@ impl Job {
         true
     }
 
+    /// The workers holding any of its tiles: under a lease (live or run out) or as a
+    /// copy still to come, each once, in id order.
+    pub(super) fn holders(&self) -> BTreeSet<WorkerId> {
+        self.in_flight
+            .values()
+            .flatten()
+            .map(|l| l.worker)
+            .chain(self.late_copies.iter().map(|(_, w)| *w))
+            .collect()
+    }
+
     pub(super) fn live_leases(&self, tile: u32) -> usize {
         self.in_flight
             .get(&tile)

@@ -195,14 +195,7 @@ impl Scheduler {
         let Some(job) = self.remove_job(job_id) else {
             return;
         };
-        let holders: BTreeSet<WorkerId> = job
-            .in_flight
-            .values()
-            .flatten()
-            .map(|l| l.worker)
-            .chain(job.late_copies.iter().map(|(_, w)| *w))
-            .collect();
-        for worker in holders {
+        for worker in job.holders() {
             if let Some(w) = self.workers.get_mut(&worker) {
                 w.holding.retain(|(j, _)| *j != job_id);
                 self.hungry.insert(worker);
